@@ -1,0 +1,32 @@
+"""Headless OpenGL for pyrender: the one place that prepares it.
+
+Import pyrender only through :func:`import_pyrender`. It
+
+1. selects Mesa EGL (``PYOPENGL_PLATFORM=egl``) unless the user set ``PYOPENGL_PLATFORM``
+   already. EGL works on a fresh Debian machine without a display and without an apt step;
+   OSMesa does not work with the PyOpenGL 3.1.0 that pyrender 0.1.45 pins.
+2. restores ``np.infty``, which numpy 2 removed and which pyrender 0.1.45 still uses for
+   scene bounds and shadow maps (``pyrender/scene.py``, ``pyrender/renderer.py``). The alias
+   is the same float as ``np.inf``; nothing else is patched.
+"""
+from __future__ import annotations
+
+import os
+from types import ModuleType
+
+import numpy as np
+
+
+def configure_headless_gl() -> None:
+    """Choose EGL unless the user chose a platform; must run before OpenGL is imported."""
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    if not hasattr(np, "infty"):
+        np.infty = np.inf  # type: ignore[attr-defined]  # pyrender 0.1.45 with numpy >= 2
+
+
+def import_pyrender() -> ModuleType:
+    """Return the pyrender module, headless-ready."""
+    configure_headless_gl()
+    import pyrender  # noqa: PLC0415  (import after the platform is chosen)
+
+    return pyrender

@@ -1,0 +1,1 @@
+"""One module per ``dope-hope`` subcommand (see ``dope_hope/cli.py``)."""

@@ -1,0 +1,42 @@
+"""The exceptions dope-hope raises for a user's mistake.
+
+Every message names the file (or option) and what is wrong with it, on one line, so that
+the CLI can print it as is and exit with status 2.
+"""
+from __future__ import annotations
+
+import os
+
+
+class DopeHopeError(Exception):
+    """Base class: bad input that the user can fix."""
+
+
+class InputFileError(DopeHopeError):
+    """A file is missing, unreadable or malformed.
+
+    Args:
+        path: the offending file.
+        problem: what is wrong, e.g. "missing field 'objects[0].location'".
+    """
+
+    def __init__(self, path: str | os.PathLike, problem: str):
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+class UnknownObjectError(DopeHopeError):
+    """An object class that is not in the catalog (or not the one a model was trained for)."""
+
+
+class ConfigError(DopeHopeError):
+    """A config file or command-line option is invalid."""
+
+
+class ModelFileError(InputFileError):
+    """A weights file (checkpoint or ONNX) is unreadable or is for another architecture."""
+
+
+class CameraError(DopeHopeError):
+    """No usable camera intrinsics were given or found."""

@@ -1,0 +1,146 @@
+"""Cuboid keypoints, projection, rotations and the legacy keypoint frame.
+
+Conventions (ARCHITECTURE.md): metres; OpenCV pinhole camera (x right, y down, z forward),
+pixel centres at integer coordinates; a pose (R, t) maps model points into the camera frame,
+``x_c = R @ x + t``. Rotations go through scipy's ``Rotation``; quaternions appear only at
+file boundaries and always as ``quaternion_xyzw``.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+#: Half-extent signs (x, y, z) of cuboid corners 0..7, the order of the current official
+#: DOPE data generators. Keypoint 8 is the box centre.
+CUBOID_CORNER_SIGNS = np.array(
+    [
+        [+1, -1, +1],
+        [-1, -1, +1],
+        [-1, +1, +1],
+        [+1, +1, +1],
+        [+1, -1, -1],
+        [-1, -1, -1],
+        [-1, +1, -1],
+        [+1, +1, -1],
+    ],
+    dtype=np.float64,
+)
+NUM_KEYPOINTS = 9
+CENTROID_INDEX = 8
+#: Name recorded in checkpoints, datasets and ONNX metadata for the order above.
+KEYPOINT_ORDER = "dope-current"
+#: The order the official HOPE weights were trained in (a rotated object frame).
+LEGACY_KEYPOINT_ORDER = "dope-legacy"
+
+#: ``p_mesh = LEGACY_TO_MESH @ p_legacy``: the legacy keypoint frame of the official HOPE
+#: weights is the mesh frame under this fixed rotation.
+LEGACY_TO_MESH = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+#: Edges of the cuboid as pairs of corner indices (for drawing).
+CUBOID_EDGES = (
+    (0, 1), (1, 2), (2, 3), (3, 0),
+    (4, 5), (5, 6), (6, 7), (7, 4),
+    (0, 4), (1, 5), (2, 6), (3, 7),
+)
+
+
+def cuboid_keypoints(size: np.ndarray, center: np.ndarray | None = None) -> np.ndarray:
+    """Nine cuboid keypoints in the model frame.
+
+    Args:
+        size: (3,) full extents along x, y, z, metres.
+        center: (3,) box centre in the model frame, metres (default: origin).
+
+    Returns:
+        (9, 3) float: corners 0..7 in the documented order, then the centre.
+    """
+    size = np.asarray(size, dtype=np.float64).reshape(3)
+    center = np.zeros(3) if center is None else np.asarray(center, dtype=np.float64).reshape(3)
+    corners = CUBOID_CORNER_SIGNS * (size / 2.0) + center
+    return np.vstack([corners, center[None]])
+
+
+def transform_points(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``R @ p + t`` for each row. points (N, 3), R (3, 3), t (3,) -> (N, 3)."""
+    return np.asarray(points, dtype=np.float64) @ np.asarray(R).T + np.asarray(t).reshape(1, 3)
+
+
+def project_points(
+    points: np.ndarray, K: np.ndarray, R: np.ndarray | None = None, t: np.ndarray | None = None
+) -> np.ndarray:
+    """Pinhole projection.
+
+    Args:
+        points: (N, 3) model points (or camera-frame points when R, t are None), metres.
+        K: (3, 3) intrinsics.
+        R, t: optional pose, (3, 3) and (3,) metres.
+
+    Returns:
+        (N, 2) pixel coordinates (u, v); points with z <= 0 give inf/nan.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if R is not None:
+        pts = transform_points(pts, R, np.zeros(3) if t is None else t)
+    uvw = pts @ np.asarray(K, dtype=np.float64).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return uvw[:, :2] / uvw[:, 2:3]
+
+
+def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """(3, 3) K from focal lengths and principal point, pixels."""
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """K for the image resized by (sx, sy), under the pixel-centre-at-integer convention.
+
+    A pixel edge at u = -0.5 stays at -0.5, so ``u' = sx * (u + 0.5) - 0.5``.
+    """
+    K2 = np.array(K, dtype=np.float64)
+    K2[0, 0] *= sx
+    K2[0, 1] *= sx
+    K2[1, 1] *= sy
+    K2[0, 2] = sx * (K[0, 2] + 0.5) - 0.5
+    K2[1, 2] = sy * (K[1, 2] + 0.5) - 0.5
+    return K2
+
+
+def quaternion_xyzw_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
+    """(4,) scalar-last quaternion -> (3, 3) rotation (normalized first)."""
+    return Rotation.from_quat(np.asarray(q_xyzw, dtype=np.float64)).as_matrix()
+
+
+def matrix_to_quaternion_xyzw(R: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation -> (4,) scalar-last quaternion with w >= 0."""
+    q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
+    return q if q[3] >= 0 else -q
+
+
+def rotation_error_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Geodesic angle between two rotations, degrees."""
+    return float(np.degrees(Rotation.from_matrix(np.asarray(R_a).T @ np.asarray(R_b)).magnitude()))
+
+
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation closest to a (3, 3) matrix in Frobenius norm (drops scale and shear)."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=np.float64))
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    return R
+
+
+def legacy_size_to_mesh(size_legacy: np.ndarray) -> np.ndarray:
+    """Cuboid extents listed in the legacy frame (official DOPE configs) -> mesh frame. (3,)."""
+    return np.abs(LEGACY_TO_MESH) @ np.asarray(size_legacy, dtype=np.float64)
+
+
+def legacy_rotation_to_mesh(R_legacy: np.ndarray) -> np.ndarray:
+    """A pose estimated in the legacy keypoint frame as a mesh-frame rotation: ``R L^T``."""
+    return np.asarray(R_legacy, dtype=np.float64) @ LEGACY_TO_MESH.T
+
+
+def mesh_rotation_to_legacy(R_mesh: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`legacy_rotation_to_mesh`: ``R_mesh L``."""
+    return np.asarray(R_mesh, dtype=np.float64) @ LEGACY_TO_MESH

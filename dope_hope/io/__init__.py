@@ -1,0 +1,1 @@
+"""File formats: one module per format, every reader returning metres (see ARCHITECTURE.md)."""

@@ -1,0 +1,76 @@
+"""Image files: RGB in memory (OpenCV's BGR converted once, here), depth as uint16 or metres."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from dope_hope.errors import InputFileError
+from dope_hope.io.atomic import atomic_path
+
+
+def read_image_raw(path: str | os.PathLike) -> np.ndarray:
+    """Read any image unchanged (bit depth and channels kept); BGR(A) turned into RGB(A)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(path, "image file not found")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputFileError(path, "not a readable image (unknown format or corrupt)")
+    if img.ndim == 3 and img.shape[2] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    elif img.ndim == 3 and img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA)
+    return img
+
+
+def read_rgb(path: str | os.PathLike) -> np.ndarray:
+    """Read an image as (H, W, 3) uint8 RGB (grayscale and alpha converted, 16-bit scaled)."""
+    img = read_image_raw(path)
+    if img.dtype == np.uint16:
+        img = (img / 257.0 + 0.5).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        raise InputFileError(path, f"unsupported image dtype {img.dtype}")
+    if img.ndim == 2:
+        img = np.repeat(img[:, :, None], 3, axis=2)
+    elif img.shape[2] == 4:
+        img = img[:, :, :3]
+    return np.ascontiguousarray(img)
+
+
+def write_rgb(path: str | os.PathLike, rgb: np.ndarray) -> None:
+    """Write (H, W, 3) uint8 RGB (or (H, W) gray / uint16) atomically; format from the suffix."""
+    path = Path(path)
+    img = np.asarray(rgb)
+    if img.ndim == 3 and img.shape[2] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), img):
+            raise InputFileError(path, "could not write image")
+
+
+def read_depth_m(path: str | os.PathLike, depth_scale_m: float = 0.001) -> np.ndarray:
+    """Read a depth image as (H, W) float32 metres; 0 / NaN mean "no measurement".
+
+    uint16 PNGs are multiplied by ``depth_scale_m`` (metres per unit; 0.001 for millimetres);
+    float images (EXR, float TIFF) are taken as metres.
+    """
+    if str(path).lower().endswith(".exr"):
+        os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
+    img = read_image_raw(path)
+    if img.ndim == 3:
+        img = img[:, :, 0]
+    if img.dtype in (np.uint16, np.uint8, np.int32):
+        return img.astype(np.float32) * np.float32(depth_scale_m)
+    if img.dtype in (np.float32, np.float64):
+        return img.astype(np.float32)
+    raise InputFileError(path, f"unsupported depth dtype {img.dtype}")
+
+
+def write_depth_mm(path: str | os.PathLike, depth_m: np.ndarray) -> None:
+    """Write (H, W) metres as a uint16 millimetre PNG atomically (NaN/<=0 -> 0)."""
+    d = np.nan_to_num(np.asarray(depth_m, dtype=np.float64), nan=0.0)
+    mm = np.clip(np.round(d * 1000.0), 0, 65535).astype(np.uint16)
+    write_rgb(path, mm)
