@@ -17,6 +17,11 @@ from dope_hope.errors import DopeHopeError
 #: (subcommand, module under dope_hope.commands, one-line help)
 COMMANDS: tuple[tuple[str, str, str], ...] = (
     ("objects", "objects", "list the 28 HOPE objects"),
+    ("train", "train", "train a network for one object on DOPE-format folders"),
+    ("infer", "infer", "detect objects and estimate 6-DoF poses in images (JSON lines + overlays)"),
+    ("synth", "synth", "generate domain-randomized synthetic frames (DOPE format)"),
+    ("evaluate", "evaluate", "evaluate pose predictions: HOPE tables, curves, BOP19 AR"),
+    ("export", "export", "export a checkpoint to ONNX (native or Isaac ROS layout, fp32 or INT8)"),
 )
 
 

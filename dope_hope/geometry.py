@@ -144,3 +144,27 @@ def legacy_rotation_to_mesh(R_legacy: np.ndarray) -> np.ndarray:
 def mesh_rotation_to_legacy(R_mesh: np.ndarray) -> np.ndarray:
     """Inverse of :func:`legacy_rotation_to_mesh`: ``R_mesh L``."""
     return np.asarray(R_mesh, dtype=np.float64) @ LEGACY_TO_MESH
+
+
+def _legacy_to_current_index() -> np.ndarray:
+    # legacy corner k sits at mesh-frame signs L @ s_k, which is current corner j
+    mapped = CUBOID_CORNER_SIGNS @ LEGACY_TO_MESH.T
+    idx = [int(np.flatnonzero(np.all(CUBOID_CORNER_SIGNS == m, axis=1))[0]) for m in mapped]
+    return np.array(idx + [CENTROID_INDEX])
+
+
+#: ``current[LEGACY_TO_CURRENT_INDEX[k]] = legacy[k]``: legacy keypoint k is the same box
+#: corner (in the mesh frame) as current keypoint ``LEGACY_TO_CURRENT_INDEX[k]``.
+LEGACY_TO_CURRENT_INDEX = _legacy_to_current_index()
+
+
+def legacy_keypoints_to_current(keypoints: np.ndarray) -> np.ndarray:
+    """Reorder keypoints (..., 9, D) listed in the legacy order into the current order.
+
+    Valid for a mesh-frame pose: the legacy keypoints of the box ``legacy_size`` are the
+    current keypoints of ``legacy_size_to_mesh(legacy_size)`` in another order.
+    """
+    kp = np.asarray(keypoints)
+    out = np.empty_like(kp)
+    out[..., LEGACY_TO_CURRENT_INDEX, :] = kp
+    return out

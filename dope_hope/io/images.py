@@ -16,6 +16,8 @@ def read_image_raw(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputFileError(path, "image file not found")
+    if path.suffix.lower() == ".exr":
+        return _read_exr(path)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise InputFileError(path, "not a readable image (unknown format or corrupt)")
@@ -24,6 +26,38 @@ def read_image_raw(path: str | os.PathLike) -> np.ndarray:
     elif img.ndim == 3 and img.shape[2] == 4:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA)
     return img
+
+
+def _read_exr(path: Path) -> np.ndarray:
+    """EXR as float32 (H, W) or (H, W, C) RGB(A), via the OpenEXR bindings: OpenCV's wheels
+    are built without OpenEXR (cv2.imread returns None even with OPENCV_IO_ENABLE_OPENEXR)."""
+    import OpenEXR
+
+    try:
+        with OpenEXR.File(str(path)) as exr:
+            channels = {name: np.asarray(ch.pixels) for name, ch in exr.channels().items()}
+    except Exception as exc:  # the bindings raise RuntimeError/OSError for a corrupt file
+        raise InputFileError(path, f"not a readable EXR image ({exc})") from None
+    for name in ("RGBA", "RGB", "Z", "Y", "R"):
+        if name in channels:
+            return channels[name].astype(np.float32, copy=False)
+    if not channels:
+        raise InputFileError(path, "EXR image has no channels")
+    return channels[sorted(channels)[0]].astype(np.float32, copy=False)
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) of an image file from its header only (no decoding), pixels."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(path, "image file not found")
+    try:
+        with Image.open(path) as im:
+            return int(im.size[0]), int(im.size[1])
+    except (UnidentifiedImageError, OSError) as exc:
+        raise InputFileError(path, f"not a readable image ({exc})") from None
 
 
 def read_rgb(path: str | os.PathLike) -> np.ndarray:
@@ -55,17 +89,18 @@ def read_depth_m(path: str | os.PathLike, depth_scale_m: float = 0.001) -> np.nd
     """Read a depth image as (H, W) float32 metres; 0 / NaN mean "no measurement".
 
     uint16 PNGs are multiplied by ``depth_scale_m`` (metres per unit; 0.001 for millimetres);
-    float images (EXR, float TIFF) are taken as metres.
+    float images (EXR, float TIFF) are taken as metres; non-finite values and renderer
+    sentinels (|d| >= 1e30, e.g. NViSII's -FLT_MAX for "no surface") become 0.
     """
-    if str(path).lower().endswith(".exr"):
-        os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
     img = read_image_raw(path)
     if img.ndim == 3:
         img = img[:, :, 0]
     if img.dtype in (np.uint16, np.uint8, np.int32):
         return img.astype(np.float32) * np.float32(depth_scale_m)
     if img.dtype in (np.float32, np.float64):
-        return img.astype(np.float32)
+        d = img.astype(np.float32)
+        d[~np.isfinite(d) | (np.abs(d) >= 1e30)] = 0.0
+        return d
     raise InputFileError(path, f"unsupported depth dtype {img.dtype}")
 
 

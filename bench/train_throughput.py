@@ -1,0 +1,87 @@
+"""Training throughput: lite vs DOPE-DR-50, images/s of full training steps, side by side.
+
+Each model trains with the project's own step (``dope_hope.train.optimizer_step``: forward,
+per-stage MSE, backward, Adam step) on batches of ``--batch`` images at its config's input
+size (lite 200x200, DOPE-DR-50 400x400), with real belief/affinity targets. A few warm-up
+steps are not timed. On CUDA (when available) it runs the trainer's CUDA path too: bf16
+autocast + channels_last.
+
+    python bench/train_throughput.py [--batch 2] [--steps-lite 10] [--steps-dr50 3] [--threads 2]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+from dope_hope.config import load_config
+from dope_hope.model import build_model
+from dope_hope.targets import make_targets
+from dope_hope.train import input_hw, optimizer_step
+
+
+def batch_for(config: dict, stride: int, batch: int, device: torch.device):
+    H, W = input_hw(config)
+    rng = np.random.default_rng(0)
+    tc = config.get("targets") or {}
+    beliefs, affinities = [], []
+    for _ in range(batch):
+        kp = np.stack([rng.uniform(0.2 * W, 0.8 * W, 9), rng.uniform(0.2 * H, 0.8 * H, 9)], 1)[None]
+        b, a = make_targets(kp, (H, W), stride, float(tc.get("sigma", 2.0)), float(tc.get("radius", 1.0)))
+        beliefs.append(b)
+        affinities.append(a)
+    images = torch.randn(batch, 3, H, W)
+    return (images.to(device), torch.from_numpy(np.stack(beliefs)).to(device),
+            torch.from_numpy(np.stack(affinities)).to(device))
+
+
+def measure(name: str, batch: int, steps: int, warmup: int, device: torch.device) -> float:
+    """Images per second of training steps for the config ``name``."""
+    config = load_config(name)
+    torch.manual_seed(0)
+    model = build_model(config).to(device)
+    cuda = device.type == "cuda"
+    images, belief, affinity = batch_for(config, model.stride, batch, device)
+    if cuda:
+        model = model.to(memory_format=torch.channels_last)
+        images = images.contiguous(memory_format=torch.channels_last)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-5)
+    for _ in range(warmup):
+        optimizer_step(model, opt, images, belief, affinity, amp=cuda)
+    if cuda:
+        torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        optimizer_step(model, opt, images, belief, affinity, amp=cuda)
+    if cuda:
+        torch.cuda.synchronize()
+    dt = time.perf_counter() - t0
+    ips = steps * batch / dt
+    H, W = input_hw(config)
+    print(f"  {name:<11} {W}x{H}  batch {batch}: {dt / steps * 1000:9.1f} ms/step  {ips:8.2f} images/s")
+    return ips
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--batch", type=int, default=2)
+    ap.add_argument("--steps-lite", type=int, default=10)
+    ap.add_argument("--steps-dr50", type=int, default=3)
+    ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=2, help="torch threads on CPU")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
+    for device in devices:
+        label = f"CPU, {args.threads} thread(s)" if device.type == "cpu" else torch.cuda.get_device_name(0)
+        print(f"{label}:")
+        scale = 1 if device.type == "cpu" else 10
+        lite = measure("lite", args.batch, args.steps_lite * scale, args.warmup, device)
+        dr50 = measure("dope_dr_50", args.batch, args.steps_dr50 * scale, args.warmup, device)
+        print(f"  ratio lite / DOPE-DR-50: {lite / dr50:.1f}x images/s")
+
+
+if __name__ == "__main__":
+    main()

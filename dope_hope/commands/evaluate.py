@@ -1,0 +1,53 @@
+"""Evaluate pose predictions against a test set: per-object HOPE table (Markdown + CSV),
+detection rate vs threshold (PNG + CSV) and, for BOP data or with --bop-ar, the BOP19
+average recall (AR_VSD, AR_MSSD, AR_MSPD).
+
+Predictions: JSON lines as printed by `dope-hope infer` (one detection per line: image,
+class, score, R or quaternion_xyzw, t in metres; see dope_hope/evaluate.py), or a BOP19
+submission CSV. Several files (methods) can be compared in one run.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--predictions", "-p", nargs="+", required=True, type=Path, metavar="FILE",
+                        help="predictions file(s): .jsonl from `dope-hope infer` or BOP19 .csv")
+    parser.add_argument("--dataset", "-d", required=True, type=Path, metavar="DIR",
+                        help="test set folder (searched recursively for dope/hope frames)")
+    parser.add_argument("--format", choices=("dope", "hope", "bop"), default="dope",
+                        help="dataset annotation format (default: dope)")
+    parser.add_argument("--metric", default="addh", metavar="M[,M...]",
+                        help="error metric(s): addh (default, HOPE paper), add, adds, meanssd, mssd; "
+                             "the first one fills the table, all get curves")
+    parser.add_argument("--mesh", action="append", default=[], metavar="[NAME=]PATH",
+                        help="object mesh (HOPE .obj in cm / BOP .ply in mm); repeat for several objects")
+    parser.add_argument("--models-dir", type=Path, metavar="DIR",
+                        help="folder of meshes: BOP models (obj_000001.ply + models_info.json) or "
+                             "HOPE (<Name>/textured.obj)")
+    parser.add_argument("--mesh-units", choices=("m", "cm", "mm"),
+                        help="unit of the mesh files (default: .obj cm, .ply mm)")
+    parser.add_argument("--out", type=Path, default=Path("out/eval"), metavar="DIR",
+                        help="output folder (default: out/eval)")
+    parser.add_argument("--method", nargs="+", metavar="NAME",
+                        help="method name(s), one per predictions file (default: from the file)")
+    ar = parser.add_mutually_exclusive_group()
+    ar.add_argument("--bop-ar", dest="bop_ar", action="store_true", default=None,
+                    help="compute the BOP19 average recall (default: only for --format bop)")
+    ar.add_argument("--no-bop-ar", dest="bop_ar", action="store_false",
+                    help="skip the BOP19 average recall")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def run(args: argparse.Namespace) -> int:
+    from dope_hope.evaluate import EvalConfig, run_evaluation
+
+    cfg = EvalConfig(predictions=list(args.predictions), dataset=args.dataset, fmt=args.format,
+                     metrics=[m.strip().lower() for m in args.metric.split(",") if m.strip()],
+                     mesh=list(args.mesh), models_dir=args.models_dir, mesh_units=args.mesh_units,
+                     out=args.out, methods=args.method, bop_ar=args.bop_ar,
+                     progress=not args.no_progress)
+    run_evaluation(cfg)
+    return 0

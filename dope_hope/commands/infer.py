@@ -1,0 +1,332 @@
+"""Detect objects and estimate their 6-DoF poses in images (one model per object).
+
+Examples:
+  dope-hope infer frame.png --weights ketchup.pt --camera K.json
+  dope-hope infer scene/ --weights ketchup.pt --weights mustard.onnx --depth auto --out res/
+  dope-hope infer 'hope/val/**/*_rgb.jpg' --weights ketchup.pt --depth auto --mesh meshes/
+
+Output: one JSON line per detection on stdout, in the predictions format that
+`dope-hope evaluate` reads (image, class, score, R, t in metres, ls_applied, plus
+quaternion_xyzw, keypoints_2d, ...); in --out: OUT/predictions.jsonl (all detections,
+written atomically at the end), an overlay IMAGE.overlay.png per image (projected cuboids,
+axes, class and score) and with --belief IMAGE.belief.CLASS.png (belief maps of each model).
+
+Inputs: image files, a folder (its images, not recursive; *.depth.png, *_depth.png, *.seg.png
+and similar are skipped) or a quoted glob ('**' recurses). The "image" of each record is its
+path relative to the folder / the glob's fixed prefix / the files' common folder.
+
+Camera (never guessed): --camera K.json, or --fx --fy --cx --cy, else each image's sibling
+annotation: DOPE NNNNNN.json, HOPE NNNN.json for NNNN_rgb.jpg, or BOP scene_camera.json two
+levels up. K.json may hold {"fx", "fy", "cx", "cy"}, {"K": 3x3}, {"cam_K": 9 numbers}, a DOPE
+camera_data block or a HOPE camera block (optional width/height are checked against the image).
+
+Depth (optional, enables the depth line search "-LS"): --depth PATH (one image only) or
+--depth auto: each image's registered depth from its annotation's folder (DOPE
+NNNNNN.depth.png, HOPE NNNN_depth.png, BOP ../depth/NNNNNN.png); images without one are
+processed without -LS. --depth-scale gives millimetres per depth unit (BOP convention; default:
+the annotation's, else 1 = uint16 millimetres); float depth images (EXR) are metres.
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+
+#: Where the shipped demo model lives; used when --weights is not given.
+DEMO_WEIGHTS = Path(__file__).resolve().parent.parent / "assets" / "demo_lite.pt"
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+#: Name endings of auxiliary images in dataset folders (not colour frames).
+AUX_SUFFIXES = (".depth.png", ".depth.exr", ".seg.png", ".seg.exr", "_depth.png", "_seg.png",
+                "_mask.png", ".mask.png", ".cs.png")
+_GLOB_CHARS = set("*?[")
+
+
+def default_weights() -> Path | None:
+    """The shipped demo model if this installation has it, else None."""
+    return DEMO_WEIGHTS if DEMO_WEIGHTS.is_file() else None
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    demo = "present" if default_weights() is not None else "absent"
+    parser.add_argument("inputs", nargs="+", metavar="IMAGE|DIR|GLOB",
+                        help="image file(s), a folder of images, or a quoted glob")
+    parser.add_argument("--weights", action="append", type=Path, metavar="W",
+                        help="checkpoint (.pt/.pth) or exported .onnx of one object; repeat for several "
+                             f"objects (default: the demo model dope_hope/assets/demo_lite.pt when it "
+                             f"exists; {demo} in this installation)")
+    cam = parser.add_argument_group("camera (default: the image's sibling annotation)")
+    cam.add_argument("--camera", type=Path, metavar="K.json", help="camera intrinsics file (formats above)")
+    for name in ("fx", "fy", "cx", "cy"):
+        cam.add_argument(f"--{name}", type=float, metavar="PX", help=f"{name}, pixels (give all four)")
+    dep = parser.add_argument_group("depth line search")
+    dep.add_argument("--depth", metavar="PATH|auto",
+                     help="depth image registered to the (single) input image, or 'auto' for each "
+                          "image's annotated depth")
+    dep.add_argument("--depth-scale", type=float, metavar="MM_PER_UNIT",
+                     help="millimetres per depth unit (default: the annotation's, else 1.0)")
+    dep.add_argument("--depth-calibration", type=float, default=1.0, metavar="F",
+                     help="multiply depth by F (HOPE RealSense frames: 0.98042517; default 1)")
+    parser.add_argument("--mesh", action="append", type=Path, metavar="PATH",
+                        help="object mesh per --weights (same order), or one folder holding "
+                             "CLASS.obj / CLASS/textured.obj / obj_NNNNNN.ply: its box and surface "
+                             "replace the cuboid (default: the checkpoint's cuboid)")
+    parser.add_argument("--mesh-units", choices=("m", "cm", "mm"),
+                        help="mesh units (default: OBJ cm, PLY mm)")
+    parser.add_argument("--out", type=Path, default=Path("infer_out"), metavar="DIR",
+                        help="folder for overlays and predictions.jsonl (default ./infer_out)")
+    parser.add_argument("--no-overlay", action="store_true", help="do not write overlay images")
+    parser.add_argument("--belief", action="store_true", help="also write a montage of each model's belief maps")
+    parser.add_argument("--backend", choices=("auto", "torch", "onnx"), default="auto",
+                        help="auto: onnxruntime for .onnx files, PyTorch otherwise")
+    parser.add_argument("--height", type=int, metavar="H",
+                        help="network working height, pixels (default: the model's training scale; "
+                             "400 for official DOPE weights)")
+    parser.add_argument("--min-score", type=float, default=0.0, help="drop detections scoring lower")
+    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:1)")
+    parser.add_argument("--threads", type=int, help="CPU threads for the network")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+# ----------------------------------------------------------------------------- inputs
+def _is_image(path: Path) -> bool:
+    name = path.name.lower()
+    return path.suffix.lower() in IMAGE_SUFFIXES and not name.endswith(AUX_SUFFIXES) and not name.startswith(".")
+
+
+def _glob_base(pattern: str) -> Path:
+    """The fixed folder prefix of a glob pattern."""
+    parts = Path(pattern).parts
+    fixed = []
+    for part in parts[:-1]:
+        if _GLOB_CHARS & set(part):
+            break
+        fixed.append(part)
+    return Path(*fixed) if fixed else Path(".")
+
+
+def collect_images(inputs: list[str]) -> list[tuple[Path, str]]:
+    """(image path, record name) for each input image, in order, without duplicates."""
+    from dope_hope.errors import InputFileError
+
+    found: list[tuple[Path, Path]] = []  # (path, base folder for the name)
+    loose: list[Path] = []
+    for item in inputs:
+        p = Path(item)
+        if p.is_dir():
+            files = sorted(f for f in p.iterdir() if f.is_file() and _is_image(f))
+            if not files:
+                raise InputFileError(p, "folder holds no images (" + ", ".join(IMAGE_SUFFIXES) + ")")
+            found += [(f, p) for f in files]
+        elif p.is_file():
+            loose.append(p)
+        elif _GLOB_CHARS & set(item):
+            files = sorted(Path(f) for f in glob.glob(item, recursive=True)
+                           if Path(f).is_file() and _is_image(Path(f)))
+            if not files:
+                raise InputFileError(item, "no images match this pattern")
+            found += [(f, _glob_base(item)) for f in files]
+        else:
+            raise InputFileError(p, "image file not found")
+    if loose:
+        base = Path(os.path.commonpath([str(f.resolve().parent) for f in loose]))
+        found += [(f, base) for f in loose]
+    out, seen = [], set()
+    for f, base in found:
+        key = f.resolve()
+        if key in seen:
+            continue
+        seen.add(key)
+        try:
+            name = f.resolve().relative_to(base.resolve()).as_posix()
+        except ValueError:
+            name = f.name
+        out.append((f, name))
+    return out
+
+
+# ----------------------------------------------------------------------------- setup
+def _resolve_weights(args: argparse.Namespace) -> list[Path]:
+    from dope_hope.errors import ConfigError
+
+    if args.weights:
+        return list(args.weights)
+    demo = default_weights()
+    if demo is None:
+        raise ConfigError("--weights is required (no demo model at dope_hope/assets/demo_lite.pt "
+                          "in this installation)")
+    return [demo]
+
+
+def _global_camera(args: argparse.Namespace):
+    from dope_hope.errors import ConfigError
+    from dope_hope.geometry import intrinsics_matrix
+    from dope_hope.io.camera import ImageCamera, read_camera_file
+
+    given = [getattr(args, k) for k in ("fx", "fy", "cx", "cy")]
+    if args.camera is not None and any(v is not None for v in given):
+        raise ConfigError("give either --camera or --fx --fy --cx --cy, not both")
+    if args.camera is not None:
+        return read_camera_file(args.camera)
+    if any(v is not None for v in given):
+        if any(v is None for v in given):
+            raise ConfigError("--fx, --fy, --cx and --cy must be given together")
+        if given[0] <= 0 or given[1] <= 0:
+            raise ConfigError(f"--fx and --fy must be positive, got {given[0]} and {given[1]}")
+        return ImageCamera(K=intrinsics_matrix(*given), width=None, height=None, source=Path("--fx/--fy/--cx/--cy"))
+    return None
+
+
+def _find_mesh(folder: Path, class_name: str) -> Path:
+    from dope_hope.errors import ConfigError
+
+    candidates = [folder / f"{class_name}.obj", folder / class_name / "textured.obj",
+                  folder / f"{class_name}.ply"]
+    try:
+        from dope_hope.catalog import get_object
+
+        obj_id = get_object(class_name).obj_id
+        candidates.append(folder / f"obj_{obj_id:06d}.ply")
+    except Exception:  # not a HOPE object: only the name-based files apply
+        pass
+    for c in candidates:
+        if c.is_file():
+            return c
+    raise ConfigError(f"{folder}: no mesh for {class_name} (looked for "
+                      + ", ".join(c.name if c.parent == folder else str(c.relative_to(folder)) for c in candidates) + ")")
+
+
+def build_predictors(args: argparse.Namespace, weights: list[Path]):
+    from dope_hope.errors import ConfigError
+    from dope_hope.predictor import DopePredictor, open_backend
+
+    meshes = list(args.mesh or [])
+    mesh_dir = None
+    if len(meshes) == 1 and meshes[0].is_dir():
+        mesh_dir = meshes[0]
+    elif meshes and len(meshes) != len(weights):
+        raise ConfigError(f"give one --mesh per --weights ({len(weights)}), or one mesh folder; "
+                          f"got {len(meshes)} meshes")
+    predictors = []
+    for i, w in enumerate(weights):
+        backend = open_backend(w, args.backend, args.device, args.threads)
+        mesh = None
+        if mesh_dir is not None:
+            mesh = _find_mesh(mesh_dir, backend.class_name)
+        elif meshes:
+            mesh = meshes[i]
+        predictors.append(DopePredictor(backend, height=args.height, mesh=mesh, mesh_units=args.mesh_units,
+                                        min_score=args.min_score))
+    return predictors
+
+
+def _depth_for(args: argparse.Namespace, camera, n_images: int):
+    """(depth path or None, metres per unit) for one image."""
+    from dope_hope.errors import ConfigError
+
+    scale_m = None if args.depth_scale is None else args.depth_scale * 0.001
+    if args.depth is None:
+        return None, 0.001
+    if args.depth == "auto":
+        path = None if camera is None else camera.depth_path
+        recorded = None if camera is None else camera.depth_scale_m
+        return path, scale_m if scale_m is not None else (recorded if recorded is not None else 0.001)
+    if n_images != 1:
+        raise ConfigError("--depth PATH applies to a single image; use --depth auto for several")
+    return Path(args.depth), scale_m if scale_m is not None else 0.001
+
+
+def _output_name(name: str) -> str:
+    """A flat file-name stem from a record name (folders joined with '__', suffix dropped)."""
+    stem = name.rsplit(".", 1)[0] if "." in Path(name).name else name
+    return stem.replace("/", "__").replace("\\", "__")
+
+
+# ----------------------------------------------------------------------------- run
+def run(args: argparse.Namespace) -> int:
+    import json
+
+    from tqdm import tqdm
+
+    from dope_hope.errors import CameraError, ConfigError, InputFileError
+    from dope_hope.io.camera import camera_search_description, find_image_camera
+    from dope_hope.io.images import read_depth_m, read_image_raw, write_rgb
+    from dope_hope.io.predictions import write_predictions_jsonl
+    from dope_hope.predictor import predict_many, to_rgb8
+    from dope_hope.viz import belief_montage, overlay_detections
+
+    if args.height is not None and args.height < 8:
+        raise ConfigError(f"--height must be at least 8 pixels, got {args.height}")
+    if args.depth_scale is not None and args.depth_scale <= 0:
+        raise ConfigError(f"--depth-scale must be positive, got {args.depth_scale}")
+    images = collect_images(args.inputs)
+    global_cam = _global_camera(args)
+    predictors = build_predictors(args, _resolve_weights(args))
+    records: list[dict] = []
+    n_written = 0
+    bar = tqdm(images, desc="infer", unit="img", disable=args.no_progress or len(images) < 2,
+               file=sys.stderr)
+    for path, name in bar:
+        raw = read_image_raw(path)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                rgb = to_rgb8(raw)
+            except ValueError as exc:
+                raise InputFileError(path, str(exc)) from None
+        for w in caught:
+            print(f"dope-hope infer: warning: {path}: {w.message}", file=sys.stderr)
+        H, W = rgb.shape[:2]
+        found = find_image_camera(path) if (global_cam is None or args.depth == "auto") else None
+        camera = global_cam or found
+        if camera is None:
+            raise CameraError(f"{path}: no camera intrinsics (looked for {camera_search_description(path)}); "
+                              "give --camera K.json or --fx --fy --cx --cy")
+        camera.check_size(path, W, H)
+        depth_path, depth_scale_m = _depth_for(args, found if args.depth == "auto" else camera, len(images))
+        depth = None
+        if depth_path is not None:
+            depth = read_depth_m(depth_path, depth_scale_m)
+            if depth.shape != (H, W):
+                raise InputFileError(depth_path, f"depth is {depth.shape[1]}x{depth.shape[0]}, "
+                                                 f"the image {path.name} is {W}x{H}")
+        maps = []
+
+        def keep_maps(p, belief, affinity, net_in):
+            if args.belief:
+                maps.append((p.class_name, net_in.maps_on_image(belief, p.stride), net_in))
+
+        t0 = time.perf_counter()
+        dets = predict_many(predictors, rgb, camera.K, depth=depth, calibration=args.depth_calibration,
+                            on_maps=keep_maps)
+        elapsed = time.perf_counter() - t0
+        for d in dets:
+            rec = d.to_json(name, time=round(elapsed, 4))
+            records.append(rec)
+            print(json.dumps(rec), flush=True)
+        out_stem = _output_name(name)
+        if not args.no_overlay:
+            write_rgb(args.out / f"{out_stem}.overlay.png", overlay_detections(rgb, dets, camera.K))
+            n_written += 1
+        for class_name, m, net_in in maps:
+            write_rgb(args.out / f"{out_stem}.belief.{class_name}.png",
+                      belief_montage(m, _resize(rgb, net_in.resized_hw)))
+    write_predictions_jsonl(args.out / "predictions.jsonl", records)
+    summary = f"{len(images)} image(s), {len(records)} detection(s); predictions in {args.out / 'predictions.jsonl'}"
+    if n_written:
+        summary += f", overlays in {args.out}"
+    print(f"dope-hope infer: {summary}", file=sys.stderr)
+    return 0
+
+
+def _resize(rgb, hw: tuple[int, int]):
+    """(H, W, 3) uint8 -> (hw[0], hw[1], 3); unchanged when already that size."""
+    import cv2
+
+    if rgb.shape[:2] == tuple(hw):
+        return rgb
+    return cv2.resize(rgb, (hw[1], hw[0]), interpolation=cv2.INTER_AREA)

@@ -1,0 +1,100 @@
+"""Train a DOPE network (or the lite variant) for one object on DOPE-format folders.
+
+Examples:
+  dope-hope train --config lite --data synth/train --object Ketchup --out runs/ketchup
+  dope-hope train --config lite --data synth/train --val synth/val --object Ketchup \\
+      --out runs/ketchup --time-budget 20
+  dope-hope train --out runs/ketchup --resume            # continue from runs/ketchup/last.pt
+  torchrun --nproc_per_node 4 train.py --config dope_dr_50 --data D --object Ketchup --out R
+
+Writes OUT/last.pt (and every checkpoint_every epochs / checkpoint_every_steps steps),
+OUT/best.pt (best validation keypoint accuracy), OUT/metrics.csv + metrics.jsonl and
+OUT/summary.json. Ctrl-C writes last.pt before exiting; --resume continues exactly.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.add_argument("--config", default="lite",
+                        help="config name (lite, dope_dr_50, dope_dr_400) or YAML path (default lite); "
+                             "ignored with --resume, which continues with the checkpoint's config")
+    parser.add_argument("--data", nargs="+", type=Path, metavar="DIR",
+                        help="training folder(s), DOPE format (with --resume: default the checkpoint's)")
+    parser.add_argument("--object", dest="object_name", metavar="NAME",
+                        help="object class to train (case-insensitive), e.g. Ketchup (with --resume: "
+                             "default the checkpoint's)")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    parser.add_argument("--val", nargs="+", type=Path, default=[], metavar="DIR",
+                        help="validation folder(s) (default: a seeded train.val_fraction split of --data)")
+    parser.add_argument("--epochs", type=int, help="epochs (train.epochs)")
+    parser.add_argument("--steps", type=int, help="total optimizer steps; overrides --epochs (train.steps)")
+    parser.add_argument("--batch-size", type=int, help="batch size per process (train.batch_size)")
+    parser.add_argument("--workers", type=int, help="DataLoader workers per process (train.workers)")
+    parser.add_argument("--lr", type=float, help="peak learning rate (train.lr)")
+    parser.add_argument("--time-budget", type=float, metavar="MIN",
+                        help="stop cleanly after MIN minutes with validation and a checkpoint (train.time_limit_min)")
+    parser.add_argument("--seed", type=int, help="seed of init, data order and augmentation (train.seed)")
+    parser.add_argument("--resume", nargs="?", const="auto", metavar="PATH",
+                        help="continue from a checkpoint (no PATH: OUT/last.pt, if it exists)")
+    parser.add_argument("--backbone-weights", type=Path, metavar="PATH",
+                        help="local torchvision VGG19 state dict to initialize the trunk (arch dope)")
+    parser.add_argument("--mesh", type=Path, metavar="PATH",
+                        help="object mesh: its bounding box gives the cuboid size stored in the checkpoint")
+    parser.add_argument("--set", nargs="+", default=[], dest="overrides", metavar="KEY=VALUE",
+                        help="config overrides, e.g. --set train.lr=1e-3 augment.rotation_deg=30")
+    parser.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from dope_hope.config import apply_overrides, load_config
+    from dope_hope.errors import ConfigError, InputFileError
+
+    for folder in [*(args.data or []), *args.val]:  # fail fast, before importing torch
+        if not folder.is_dir():
+            raise InputFileError(folder, "data folder not found")
+    from dope_hope.train import TrainJob, train
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    resume: Path | None = None
+    if args.resume == "auto":
+        candidate = args.out / "last.pt"
+        if candidate.is_file():
+            resume = candidate
+        else:
+            logging.getLogger("dope_hope.train").info("--resume: %s does not exist yet, starting fresh", candidate)
+    elif args.resume is not None:
+        resume = Path(args.resume)
+        if not resume.is_file():
+            raise InputFileError(resume, "checkpoint to resume from not found")
+
+    overrides = apply_overrides({}, list(args.overrides))
+    cli = {"epochs": args.epochs, "steps": args.steps, "batch_size": args.batch_size, "workers": args.workers,
+           "lr": args.lr, "time_limit_min": args.time_budget, "seed": args.seed}
+    for key, value in cli.items():
+        if value is not None:
+            overrides.setdefault("train", {})[key] = value
+    config = {} if resume is not None else load_config(args.config)
+
+    if resume is None and not args.data:
+        raise ConfigError("--data DIR is required (the training folders)")
+    if resume is None and not args.object_name:
+        raise ConfigError("--object NAME is required (the class to train)")
+    job = TrainJob(data=list(args.data or []), object_name=args.object_name or "", out=args.out, val=list(args.val),
+                   resume=resume, mesh=args.mesh, backbone_weights=args.backbone_weights, device=args.device,
+                   progress=not args.no_progress, overrides=overrides)
+    summary = train(job, config)
+    status = summary["status"]
+    acc, acc_d = summary.get("val_kp_acc"), summary.get("val_kp_acc_decoded")
+    acc_text = (f", val keypoints within {summary.get('val_radius_px', 5):g} px: {acc:.3f} (belief peaks), "
+                f"{acc_d:.3f} (decoded instances)") if isinstance(acc, float) and isinstance(acc_d, float) else ""
+    if summary.get("rank", 0) == 0:
+        print(f"{status}: step {summary['step']} epoch {summary['epoch']}{acc_text}; checkpoint {summary['last']}")
+    if status in ("interrupted", "terminated"):
+        return 130
+    return 0

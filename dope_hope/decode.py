@@ -1,0 +1,331 @@
+"""Belief maps + affinity fields -> object instances with 2D keypoints and scores.
+
+Pipeline (all channels at once, no Python loops over pixels):
+
+1. **Peaks.** Each belief map is smoothed with a Gaussian (``smooth_sigma`` map px,
+   ``scipy.ndimage.gaussian_filter``); a cell is a peak when it is the maximum of its
+   ``(2*nms_radius+1)^2`` neighbourhood (``maximum_filter``) and its belief (the largest raw
+   value in its 3x3 neighbourhood) exceeds ``threshold``. Plateaus of equal maxima yield one
+   peak (connected components, ``scipy.ndimage.label``).
+2. **Sub-pixel position.** A separable *log-parabola* (Gaussian) fit on the three samples
+   through the peak cell along x and along y: for ``f = exp(-(x-m)^2 / 2s^2)`` the log is
+   an exact parabola, so the vertex is the Gaussian's centre whatever its sigma. The fit
+   uses the raw map (exact on ``targets`` output, as DOPE also refines on the unsmoothed
+   map), falling back to the smoothed map where the raw samples are not log-concave. At the
+   map border the stencil is shifted inwards (one-sided fit), so a keypoint whose Gaussian
+   centre lies *outside* the map is recognised as such and dropped: only positions inside
+   ``[-0.5, w - 0.5] x [-0.5, h - 0.5]`` map px are kept. The continuous map position then
+   goes through :func:`dope_hope.mapgrid.map_to_image`, the inverse of what ``targets``
+   used: no other offset anywhere (DOPE's ``OFFSET_DUE_TO_UPSAMPLING = 0.4395`` is not needed).
+3. **Grouping.** Every centroid peak (channel 8) starts an instance. For corner type k, each
+   corner peak reads the affinity vector ``v`` at its cell; for each centroid ``c`` the
+   direction ``u`` from that cell centre to ``c`` is compared with ``v``: the pair is feasible
+   when ``|v/|v| - u| < angle_threshold`` (DOPE's test, 0.5 = about 29 deg) and ``|v| >=
+   min_affinity``. Among feasible pairs the nearest centroid wins (DOPE's rule), solved as a
+   one-to-one assignment per corner type (``scipy.optimize.linear_sum_assignment`` on the
+   corner-centroid distance), so an instance never receives two corners of one type and two
+   touching instances do not steal each other's corners. The field gives only a direction
+   (no length), so the centroid distance is the only distance cue.
+
+Scores: ``Instance2D.scores[k]`` is the height of keypoint k's peak: the fitted Gaussian
+height on the raw map (``ln h = h_x + h_y - ln f(cell)``, exact for a separable Gaussian, so
+a perfect prediction scores 1 whatever its sub-pixel phase), or the raw 3x3 maximum where
+the fit fails; 0 where missing. ``Instance2D.score`` = ``scores.sum() / 9`` (mean over all
+nine, missing keypoints count 0).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import gaussian_filter, label, maximum_filter
+from scipy.optimize import linear_sum_assignment
+
+from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
+from dope_hope.mapgrid import map_to_image
+
+#: Official DOPE ``config_pose.yaml`` values, for reference: thresh_map 0.01 (peak detection
+#: on the smoothed map), thresh_points 0.1 (a peak is used), thresh_angle 0.5, sigma 3.
+DEFAULT_THRESHOLD = 0.1
+DEFAULT_ANGLE_THRESHOLD = 0.5
+#: DOPE smooths with sigma 3 map px; with 0.5-px targets that merges peaks of neighbouring
+#: instances closer than ~3 cells (24 image px at stride 8), so we smooth less by default.
+DEFAULT_SMOOTH_SIGMA = 1.0
+
+
+@dataclass
+class Instance2D:
+    """One detected object in image pixels.
+
+    keypoints: (9, 2) float, image px (u, v); NaN where a keypoint was not found.
+    scores: (9,) float, peak height of each keypoint (see the module docstring); 0 if missing.
+    score: float, ``scores.sum() / 9``.
+    """
+
+    keypoints: np.ndarray
+    scores: np.ndarray
+    score: float
+
+    @property
+    def present(self) -> np.ndarray:
+        """(9,) bool, keypoints that were found."""
+        return np.all(np.isfinite(self.keypoints), axis=1)
+
+
+@dataclass
+class Peaks:
+    """Peaks of all belief channels, concatenated.
+
+    channel: (P,) int, keypoint index 0..8.
+    cell: (P, 2) int, (x, y) map cell of the peak.
+    xy: (P, 2) float, refined continuous map position (x, y).
+    score: (P,) float, peak height (fitted Gaussian height, else the raw 3x3 maximum).
+    """
+
+    channel: np.ndarray
+    cell: np.ndarray
+    xy: np.ndarray
+    score: np.ndarray
+
+
+def _to_numpy(a) -> np.ndarray:
+    """Accept numpy arrays or torch tensors (any device); drop a leading batch of 1."""
+    if hasattr(a, "detach"):
+        a = a.detach().cpu().numpy()
+    a = np.asarray(a, dtype=np.float32)
+    if a.ndim == 4:
+        if a.shape[0] != 1:
+            raise ValueError(f"decode one image at a time, got a batch of {a.shape[0]}")
+        a = a[0]
+    return a
+
+
+def _log_parabola(maps: np.ndarray, c: np.ndarray, y: np.ndarray, x: np.ndarray, axis: int):
+    """Vertex of the parabola through log-samples at (pos-1, pos, pos+1) along ``axis``.
+
+    maps (C, h, w); c, y, x (P,) int indices of the peak cells; axis 1 (y) or 2 (x).
+    The stencil is shifted inwards at the border (one-sided, extrapolating fit).
+    Returns (vertex (P,) float map coordinate along the axis, valid (P,) bool,
+    log_height (P,) float: the parabola's value at its vertex).
+    """
+    n = maps.shape[axis]
+    pos = y if axis == 1 else x
+    if n < 3:
+        return pos.astype(np.float64), np.zeros(pos.shape, dtype=bool), np.zeros(pos.shape)
+    mid = np.clip(pos, 1, n - 2)
+    eps = 1e-30
+
+    def sample(offset: int) -> np.ndarray:
+        if axis == 1:
+            v = maps[c, mid + offset, x]
+        else:
+            v = maps[c, y, mid + offset]
+        return np.log(np.maximum(v.astype(np.float64), eps))
+
+    lo, ce, hi = sample(-1), sample(0), sample(1)
+    den = lo - 2.0 * ce + hi
+    with np.errstate(divide="ignore", invalid="ignore"):
+        vertex = mid + 0.5 * (lo - hi) / den
+        log_height = ce - (lo - hi) ** 2 / (8.0 * den)
+    interior = (pos >= 1) & (pos <= n - 2)
+    # Log-concave samples, all three above the floor; an interior peak cell must stay within
+    # one cell of the vertex (else the samples are not one Gaussian's).
+    valid = (den < 0) & (np.minimum(np.minimum(lo, ce), hi) > np.log(eps) + 1)
+    valid &= np.isfinite(vertex) & (~interior | (np.abs(vertex - pos) <= 1.0))
+    return np.where(valid, vertex, pos.astype(np.float64)), valid, log_height
+
+
+def find_peaks(
+    belief,
+    threshold: float = DEFAULT_THRESHOLD,
+    smooth_sigma: float = DEFAULT_SMOOTH_SIGMA,
+    nms_radius: int = 1,
+    refine_on: str = "raw",
+) -> Peaks:
+    """Sub-pixel peaks of every belief channel (see the module docstring).
+
+    Args:
+        belief: (C, h, w) belief maps (numpy or torch; a leading batch of 1 is dropped).
+        threshold: minimum belief at a peak.
+        smooth_sigma: Gaussian smoothing for detection, map px (0 = none).
+        nms_radius: a peak is the maximum of its (2r+1)^2 neighbourhood, map px.
+        refine_on: "raw" (default) or "smoothed": which map the log-parabola fit uses first.
+
+    Returns:
+        :class:`Peaks` with positions in continuous map coordinates inside the map.
+    """
+    if refine_on not in ("raw", "smoothed"):
+        raise ValueError(f"refine_on must be 'raw' or 'smoothed', got {refine_on!r}")
+    raw = _to_numpy(belief)
+    if raw.ndim != 3:
+        raise ValueError(f"belief must be (C, h, w), got {raw.shape}")
+    raw = np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0)
+    C, h, w = raw.shape
+    smooth = gaussian_filter(raw, sigma=(0, smooth_sigma, smooth_sigma)) if smooth_sigma > 0 else raw
+    size = (1, 2 * nms_radius + 1, 2 * nms_radius + 1)
+    local_max = smooth >= maximum_filter(smooth, size=size, mode="constant", cval=-np.inf)
+    local_max &= smooth > 0  # flat empty regions are not peaks
+    # Raw belief near each candidate: the 3x3 maximum, gathered at the candidates only.
+    cand = np.flatnonzero(local_max)
+    cc, cy, cx = np.unravel_index(cand, raw.shape)
+    padded = np.pad(raw, ((0, 0), (1, 1), (1, 1)), mode="edge")
+    near = np.max([padded[cc, cy + dy, cx + dx] for dy in range(3) for dx in range(3)], axis=0)
+    mask = np.zeros(raw.shape, dtype=bool)
+    mask.ravel()[cand[near > threshold]] = True
+    value = np.zeros(raw.shape, dtype=raw.dtype)
+    value.ravel()[cand] = near
+    # One peak per plateau: label connected peak cells within each channel.
+    structure = np.zeros((3, 3, 3), dtype=bool)
+    structure[1] = True
+    labels, n = label(mask, structure=structure)
+    if n == 0:
+        empty = np.zeros((0, 2))
+        return Peaks(np.zeros(0, int), empty.astype(int), empty, np.zeros(0))
+    idx = np.flatnonzero(mask)  # few cells: keep the first cell of each plateau
+    _, first = np.unique(labels.ravel()[idx], return_index=True)
+    c, y, x = np.unravel_index(idx[first], labels.shape)
+
+    primary, secondary = (raw, smooth) if refine_on == "raw" else (smooth, raw)
+    coords, heights, raw_ok = [], [], []
+    inside = np.ones(len(c), dtype=bool)
+    for axis in (2, 1):  # x then y
+        v1, ok1, h1 = _log_parabola(primary, c, y, x, axis)
+        v2, ok2, _ = _log_parabola(secondary, c, y, x, axis)
+        if primary is raw:
+            hr, okr = h1, ok1
+        else:
+            _, okr, hr = _log_parabola(raw, c, y, x, axis)
+        heights.append(hr)
+        raw_ok.append(okr)
+        pos = y if axis == 1 else x
+        n_axis = h if axis == 1 else w
+        coords.append(np.where(ok1, v1, np.where(ok2, v2, pos.astype(np.float64))))
+        # A border cell is only a keypoint if a fit places the Gaussian inside the map: a
+        # monotonic ramp towards the border means the keypoint lies beyond it.
+        border = (pos == 0) | (pos == n_axis - 1)
+        inside &= ~(border & ~ok1 & ~ok2) | (n_axis < 3)
+    xy = np.stack(coords, axis=1)
+    # Score: the fitted Gaussian height on the raw map (independent of the sub-pixel phase;
+    # for a separable Gaussian ln peak = h_x + h_y - ln f(cell)), else the raw 3x3 maximum.
+    value = value[c, y, x].astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        fitted = np.exp(heights[0] + heights[1] - np.log(np.maximum(raw[c, y, x], 1e-30)))
+    score = np.where(raw_ok[0] & raw_ok[1] & np.isfinite(fitted), np.maximum(fitted, value), value)
+    inside &= (
+        (xy[:, 0] >= -0.5) & (xy[:, 0] <= w - 0.5) & (xy[:, 1] >= -0.5) & (xy[:, 1] <= h - 0.5)
+    )
+    return Peaks(
+        channel=c[inside].astype(int),
+        cell=np.stack([x, y], axis=1)[inside].astype(int),
+        xy=xy[inside],
+        score=score[inside],
+    )
+
+
+def assign_corners(
+    corner_cells: np.ndarray,
+    corner_xy: np.ndarray,
+    vectors: np.ndarray,
+    centroids_xy: np.ndarray,
+    angle_threshold: float = DEFAULT_ANGLE_THRESHOLD,
+    min_affinity: float = 0.0,
+) -> np.ndarray:
+    """One-to-one assignment of the peaks of one corner type to centroids.
+
+    Args:
+        corner_cells: (n, 2) int map cells (x, y) of the corner peaks.
+        corner_xy: (n, 2) refined corner positions, map px.
+        vectors: (n, 2) affinity vectors read at the corner cells.
+        centroids_xy: (m, 2) centroid positions, map px.
+        angle_threshold: maximum |v/|v| - u| (unit-vector distance; 0.5 ~ 29 deg).
+        min_affinity: minimum |v| for the field to count.
+
+    Returns:
+        (n,) int: the centroid index of each corner peak, -1 where none is feasible.
+    """
+    n, m = len(corner_xy), len(centroids_xy)
+    out = np.full(n, -1, dtype=int)
+    if n == 0 or m == 0:
+        return out
+    vnorm = np.linalg.norm(vectors, axis=1)
+    v_hat = vectors / np.where(vnorm > 0, vnorm, 1.0)[:, None]
+    to_c = centroids_xy[None, :, :] - corner_cells[:, None, :].astype(np.float64)  # (n, m, 2)
+    dist_c = np.linalg.norm(to_c, axis=2)
+    u_hat = to_c / np.where(dist_c > 0, dist_c, 1.0)[..., None]
+    angle_dist = np.linalg.norm(u_hat - v_hat[:, None, :], axis=2)
+    feasible = (angle_dist < angle_threshold) & (vnorm[:, None] > max(min_affinity, 0.0))
+    feasible &= dist_c > 0
+    cost = np.linalg.norm(centroids_xy[None] - corner_xy[:, None], axis=2)
+    big = 1e6 + cost.max()
+    rows, cols = linear_sum_assignment(np.where(feasible, cost, big))
+    keep = feasible[rows, cols]
+    out[rows[keep]] = cols[keep]
+    return out
+
+
+def decode_maps(
+    belief,
+    affinity,
+    stride: int,
+    threshold: float = DEFAULT_THRESHOLD,
+    angle_threshold: float = DEFAULT_ANGLE_THRESHOLD,
+    smooth_sigma: float = DEFAULT_SMOOTH_SIGMA,
+    nms_radius: int = 1,
+    min_affinity: float = 0.0,
+    refine_on: str = "raw",
+    min_keypoints: int = 1,
+) -> list[Instance2D]:
+    """Decode one image's maps into instances.
+
+    Args:
+        belief: (9, h, w) belief maps, numpy or torch (a leading batch of 1 is dropped).
+        affinity: (16, h, w) affinity fields, same kind.
+        stride: image pixels per map cell (8 for the 50-px head, 1 for the 400-px head).
+        threshold: minimum belief at a keypoint peak (DOPE's thresh_points).
+        angle_threshold: corner-centroid direction test, unit-vector distance (DOPE 0.5).
+        smooth_sigma: detection smoothing, map px (DOPE uses 3).
+        nms_radius: local-maximum neighbourhood radius, map px.
+        min_affinity: minimum affinity vector length at a corner peak.
+        refine_on: "raw" or "smoothed" (see :func:`find_peaks`).
+        min_keypoints: drop instances with fewer keypoints (the centroid counts).
+
+    Returns:
+        Instances sorted by decreasing score; keypoints in image px via mapgrid.
+    """
+    bel = _to_numpy(belief)
+    aff = _to_numpy(affinity)
+    if bel.ndim != 3 or bel.shape[0] != NUM_KEYPOINTS:
+        raise ValueError(f"belief must be ({NUM_KEYPOINTS}, h, w), got {bel.shape}")
+    if aff.shape != (2 * CENTROID_INDEX,) + bel.shape[1:]:
+        raise ValueError(f"affinity must be ({2 * CENTROID_INDEX}, h, w) like belief, got {aff.shape}")
+    aff = np.nan_to_num(aff, nan=0.0, posinf=0.0, neginf=0.0)
+    peaks = find_peaks(bel, threshold, smooth_sigma, nms_radius, refine_on)
+
+    is_c = peaks.channel == CENTROID_INDEX
+    centroids_xy = peaks.xy[is_c]
+    m = len(centroids_xy)
+    if m == 0:
+        return []
+    kp_map = np.full((m, NUM_KEYPOINTS, 2), np.nan)
+    scores = np.zeros((m, NUM_KEYPOINTS))
+    kp_map[:, CENTROID_INDEX] = centroids_xy
+    scores[:, CENTROID_INDEX] = peaks.score[is_c]
+    for k in range(CENTROID_INDEX):  # 8 corner types; the work inside is vectorized
+        sel = peaks.channel == k
+        if not sel.any():
+            continue
+        cells = peaks.cell[sel]
+        vec = np.stack([aff[2 * k, cells[:, 1], cells[:, 0]], aff[2 * k + 1, cells[:, 1], cells[:, 0]]], 1)
+        owner = assign_corners(cells, peaks.xy[sel], vec, centroids_xy, angle_threshold, min_affinity)
+        got = owner >= 0
+        kp_map[owner[got], k] = peaks.xy[sel][got]
+        scores[owner[got], k] = peaks.score[sel][got]
+
+    kp_img = map_to_image(kp_map, stride)
+    instances = [
+        Instance2D(keypoints=kp_img[i], scores=scores[i], score=float(scores[i].sum() / NUM_KEYPOINTS))
+        for i in range(m)
+        if np.isfinite(kp_img[i, :, 0]).sum() >= min_keypoints
+    ]
+    instances.sort(key=lambda inst: -inst.score)
+    return instances

@@ -1,0 +1,500 @@
+"""DOPE-format annotation files (``NNNNNN.json`` beside ``NNNNNN.png``), read into metres.
+
+Three variants are read; :func:`write_dope_json` writes only the first.
+
+**project** (``"format": "dope-hope"``)::
+
+    {"format": "dope-hope", "units": "cm", "keypoint_order": "dope-current",
+     "depth_scale_m": 0.001,
+     "camera_data": {"intrinsics": {"fx", "fy", "cx", "cy"}, "width", "height"},
+     "objects": [{"class", "location" (3, cm), "quaternion_xyzw" (4,),
+                  "projected_cuboid" (9 x [u, v] px), "visibility" (fraction),
+                  "bounding_box": {"top_left": [u, v], "bottom_right": [u, v]},  (pixels, x first)
+                  "instance_id" (id in the .seg.png), "keypoint_order" (only if != file's)}]}
+
+``location`` / ``quaternion_xyzw`` are the mesh-frame pose (``x_c = R x + t``); the box is
+(x_min, y_min) / (x_max, y_max), i.e. ``bbox_xyxy``.
+
+**NDDS/FAT** (the official DOPE training samples; no ``format`` key): location in cm,
+``quaternion_xyzw`` in NDDS's left-handed (Unreal) convention, ``camera_data`` usually empty
+(K None; a sibling ``_camera_settings.json`` is used when present), keypoints in the current
+order. The reader converts the quaternion so that ``R`` is the pose of the frame in which the
+projected cuboid is the axis-aligned box of :data:`~dope_hope.geometry.CUBOID_CORNER_SIGNS`:
+``R = R((-qz, qy, -qx, qw)) @ diag(-1, -1, 1)``. Verified on the official samples: PnP on
+``projected_cuboid`` with the FAT camera (fx = fy = 768.16, cx = cy = 256) and the cracker
+box gives this R to 1e-6 and t equal to ``location``. When K is known the reader checks
+both this R and the quaternion taken as is against the projected cuboid and keeps the one
+that fits (files of other generators in this layout use a right-handed quaternion).
+
+**NViSII** (``local_to_world_matrix`` per object, ``camera_view_matrix``): metres. Its
+``quaternion_xyzw`` is wrong for scaled objects, so R is rebuilt from the two matrices (both
+stored transposed: translation in the last row) and the scale removed with
+:func:`~dope_hope.geometry.nearest_rotation`. The exporter writes the legacy keypoint order
+(corner k at ``L @ signs_k`` in the object frame); the reader checks which order the cuboid
+fits (from ``local_cuboid`` when present, else by fitting the box to ``projected_cuboid`` with
+the rebuilt R and K, up to scale) and records it in ``keypoint_order``.
+
+Its ``bounding_box_minx_maxx_miny_maxy`` has y one pixel too low (checked against the
+segmentation masks); the reader corrects it.
+
+Sibling files: ``NNNNNN.png``/``.jpg``, ``NNNNNN.depth.png`` (uint16 mm, z-depth) or
+``.depth.exr`` (NViSII: metres along the ray, see :func:`read_frame_depth_m`),
+``NNNNNN.seg.png``/``.seg.exr`` (instance ids = ``instance_id``).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
+from dope_hope.errors import InputFileError
+from dope_hope.geometry import (
+    CUBOID_CORNER_SIGNS,
+    KEYPOINT_ORDER,
+    LEGACY_KEYPOINT_ORDER,
+    LEGACY_TO_MESH,
+    NUM_KEYPOINTS,
+    intrinsics_matrix,
+    matrix_to_quaternion_xyzw,
+    nearest_rotation,
+    project_points,
+    quaternion_xyzw_to_matrix,
+)
+from dope_hope.io.atomic import atomic_write_text
+from dope_hope.io.images import image_size, read_depth_m
+from dope_hope.io.jsonfields import JsonFields as _Fields
+from dope_hope.io.jsonfields import load_json_object as _load_json
+
+FORMAT_NAME = "dope-hope"
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+_UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+_KEYPOINT_ORDERS = (KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER)
+#: Corner sign patterns, in the object's own frame, of each keypoint order.
+ORDER_CORNER_SIGNS: dict[str, np.ndarray] = {
+    KEYPOINT_ORDER: CUBOID_CORNER_SIGNS,
+    LEGACY_KEYPOINT_ORDER: CUBOID_CORNER_SIGNS @ LEGACY_TO_MESH.T,
+}
+# NDDS (Unreal, left-handed) quaternion -> right-handed cuboid frame: components remapped
+# (x, y, z) -> (-z, y, -x), then the fixed 180° turn about z of the current keypoint order.
+_NDDS_QUAT_INDEX = [2, 1, 0, 3]
+_NDDS_QUAT_SIGN = np.array([-1.0, 1.0, -1.0, 1.0])
+_NDDS_FRAME = np.diag([-1.0, -1.0, 1.0])
+_RESERVED_KEYS = {"format", "units", "keypoint_order", "camera_data", "objects", "depth_scale_m"}
+
+
+# --------------------------------------------------------------------------- siblings
+def _frame_stem(path: Path) -> Path:
+    return path.with_suffix("")
+
+
+def _first_existing(candidates: list[Path]) -> Path | None:
+    return next((c for c in candidates if c.is_file()), None)
+
+
+def find_image(json_path: str | os.PathLike) -> Path | None:
+    """``NNNNNN.png`` / ``.jpg`` beside ``NNNNNN.json``, or None."""
+    stem = _frame_stem(Path(json_path))
+    return _first_existing([stem.with_name(stem.name + s) for s in IMAGE_SUFFIXES])
+
+
+def _siblings(path: Path) -> tuple[Path | None, Path | None, Path | None]:
+    stem = _frame_stem(path)
+    depth = _first_existing([stem.with_name(stem.name + s) for s in (".depth.png", ".depth.exr")])
+    seg = _first_existing([stem.with_name(stem.name + s) for s in (".seg.png", ".seg.exr")])
+    return find_image(path), depth, seg
+
+
+def _image_size(image: Path | None) -> tuple[int | None, int | None]:
+    """(width, height) from the image header, or (None, None) when absent or unreadable (the
+    image reader reports that when the image is used)."""
+    if image is None:
+        return None, None
+    try:
+        return image_size(image)
+    except InputFileError:
+        return None, None
+
+
+# --------------------------------------------------------------------------- camera
+def _read_intrinsics(f: _Fields, camera: Any) -> tuple[np.ndarray | None, int | None, int | None]:
+    if camera is None or camera == {}:
+        return None, None, None
+    if not isinstance(camera, dict):
+        raise f.fail("camera_data", f"expected an object, got {type(camera).__name__}")
+    K = None
+    if camera.get("intrinsics") is not None:
+        intr = camera["intrinsics"]
+        vals = [f.number(f.get(intr, k, "camera_data.intrinsics"), f"camera_data.intrinsics.{k}")
+                for k in ("fx", "fy", "cx", "cy")]
+        if vals[0] <= 0 or vals[1] <= 0:
+            raise f.fail("camera_data.intrinsics", f"focal lengths must be positive, got {vals[:2]}")
+        K = intrinsics_matrix(*vals)
+    w, h = (None if camera.get(k) is None else f.positive_int(camera[k], f"camera_data.{k}")
+            for k in ("width", "height"))
+    return K, w, h
+
+
+def _read_camera_settings(folder: Path) -> tuple[np.ndarray | None, int | None, int | None]:
+    """NDDS/FAT ``_camera_settings.json`` in the folder (first camera), if any."""
+    path = folder / "_camera_settings.json"
+    if not path.is_file():
+        return None, None, None
+    f = _Fields(path)
+    cams = f.get(_load_json(path), "camera_settings", "")
+    if not isinstance(cams, list) or not cams:
+        raise f.fail("camera_settings", "expected a non-empty list")
+    intr = f.get(cams[0], "intrinsic_settings", "camera_settings[0]")
+    vals = [f.number(f.get(intr, k, "camera_settings[0].intrinsic_settings"),
+                     f"camera_settings[0].intrinsic_settings.{k}") for k in ("fx", "fy", "cx", "cy")]
+    size = cams[0].get("captured_image_size") or {}
+    return intrinsics_matrix(*vals), size.get("width"), size.get("height")
+
+
+# --------------------------------------------------------------------------- objects
+def _common_fields(f: _Fields, o: dict, where: str) -> dict:
+    """class, projected_cuboid, visibility, bbox shared by all variants."""
+    cls = f.get(o, "class", where)
+    if not isinstance(cls, str) or not cls:
+        raise f.fail(f"{where}.class", f"expected a non-empty string, got {cls!r}")
+    cuboid = None
+    if o.get("projected_cuboid") is not None:
+        cuboid = f.array(o["projected_cuboid"], f"{where}.projected_cuboid", (NUM_KEYPOINTS, 2))
+    vis = None
+    if o.get("visibility") is not None:
+        vis = f.number(o["visibility"], f"{where}.visibility")
+        if not 0.0 <= vis <= 1.0:
+            raise f.fail(f"{where}.visibility", f"expected a fraction in [0, 1], got {vis}")
+    return {"class_name": cls, "projected_cuboid": cuboid, "visibility": vis}
+
+
+def _bbox_top_left(f: _Fields, o: dict, where: str) -> np.ndarray | None:
+    box = o.get("bounding_box")
+    if box is None:
+        return None
+    if not isinstance(box, dict):
+        raise f.fail(f"{where}.bounding_box", "expected {'top_left': [u, v], 'bottom_right': [u, v]}")
+    tl = f.array(f.get(box, "top_left", f"{where}.bounding_box"), f"{where}.bounding_box.top_left", (2,))
+    br = f.array(f.get(box, "bottom_right", f"{where}.bounding_box"),
+                 f"{where}.bounding_box.bottom_right", (2,))
+    return np.concatenate([tl, br])
+
+
+def _instance_id(f: _Fields, o: dict, where: str, key: str) -> int | None:
+    v = o.get(key)
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v != int(v):
+        raise f.fail(f"{where}.{key}", f"expected an integer, got {v!r}")
+    return int(v)
+
+
+def _pose_from_location_quaternion(f: _Fields, o: dict, where: str, scale: float):
+    loc = f.array(f.get(o, "location", where), f"{where}.location", (3,))
+    q = f.array(f.get(o, "quaternion_xyzw", where), f"{where}.quaternion_xyzw", (4,))
+    if np.linalg.norm(q) < 1e-8:
+        raise f.fail(f"{where}.quaternion_xyzw", "zero quaternion")
+    return quaternion_xyzw_to_matrix(q), loc * scale
+
+
+def _read_project_objects(f: _Fields, data: dict) -> list[ObjectAnnotation]:
+    units = data.get("units", "cm")
+    if units not in _UNIT_SCALE:
+        raise f.fail("units", f"expected one of {sorted(_UNIT_SCALE)}, got {units!r}")
+    default_order = data.get("keypoint_order", KEYPOINT_ORDER)
+    out = []
+    for i, o in enumerate(_objects_list(f, data)):
+        where = f"objects[{i}]"
+        common = _common_fields(f, o, where)
+        R, t = _pose_from_location_quaternion(f, o, where, _UNIT_SCALE[units])
+        order = o.get("keypoint_order", default_order)
+        if order not in _KEYPOINT_ORDERS:
+            raise f.fail(f"{where}.keypoint_order", f"expected one of {_KEYPOINT_ORDERS}, got {order!r}")
+        out.append(ObjectAnnotation(R=R, t=t, bbox_xyxy=_bbox_top_left(f, o, where),
+                                    instance_id=_instance_id(f, o, where, "instance_id"),
+                                    keypoint_order=order, **common))
+    return out
+
+
+def _read_ndds_objects(f: _Fields, data: dict, K: np.ndarray | None) -> list[ObjectAnnotation]:
+    out = []
+    for i, o in enumerate(_objects_list(f, data)):
+        where = f"objects[{i}]"
+        common = _common_fields(f, o, where)
+        R_raw, t = _pose_from_location_quaternion(f, o, where, 0.01)
+        q = np.asarray(o["quaternion_xyzw"], dtype=np.float64)
+        R = quaternion_xyzw_to_matrix(q[_NDDS_QUAT_INDEX] * _NDDS_QUAT_SIGN) @ _NDDS_FRAME
+        uv = common["projected_cuboid"]
+        if K is not None and uv is not None:
+            # other generators write this layout with a right-handed quaternion: keep the
+            # rotation whose box fits the projected cuboid
+            signs = ORDER_CORNER_SIGNS[KEYPOINT_ORDER]
+            if fit_cuboid_up_to_scale(uv, K, R_raw, signs)[0] < fit_cuboid_up_to_scale(uv, K, R, signs)[0]:
+                R = R_raw
+        # NDDS "bounding_box" corners are (row, col) in some exporters and (x, y) in others:
+        # ambiguous, so left out rather than guessed.
+        out.append(ObjectAnnotation(R=R, t=t, keypoint_order=KEYPOINT_ORDER,
+                                    instance_id=_instance_id(f, o, where, "instance_id"), **common))
+    return out
+
+
+def _objects_list(f: _Fields, data: dict) -> list:
+    objs = data.get("objects", [])
+    if objs is None:
+        objs = []
+    if not isinstance(objs, list):
+        raise f.fail("objects", f"expected a list, got {type(objs).__name__}")
+    for i, o in enumerate(objs):
+        if not isinstance(o, dict):
+            raise f.fail(f"objects[{i}]", f"expected an object, got {type(o).__name__}")
+    return objs
+
+
+# --------------------------------------------------------------------------- NViSII
+def _as_column_major(M: np.ndarray, transposed: bool | None) -> tuple[np.ndarray, bool]:
+    """A 4x4 rigid/affine matrix in column-vector form; detects NViSII's transposed storage."""
+    if transposed is None:
+        has_row_t = not np.allclose(M[3, :3], 0.0)
+        has_col_t = not np.allclose(M[:3, 3], 0.0)
+        transposed = has_row_t or not has_col_t  # exporter default: transposed
+    return (M.T if transposed else M), transposed
+
+
+def fit_cuboid_up_to_scale(uv: np.ndarray, K: np.ndarray, R: np.ndarray,
+                           signs: np.ndarray) -> tuple[float, np.ndarray]:
+    """Fit an axis-aligned box with rotation R to 9 projected keypoints, scale unknown.
+
+    Unknowns: the box centre in the camera frame p (3,) and half-extents h (3,); keypoint k is
+    ``p + R (signs_k * h)`` (k = 8: p). The projection constraints are linear and homogeneous
+    in (p, h), so the fit is the SVD null vector; the scale is irrelevant to the reprojection.
+
+    Args:
+        uv: (9, 2) pixels; K: (3, 3); R: (3, 3) object -> camera; signs: (8, 3) corner signs.
+
+    Returns:
+        (max reprojection error in pixels (inf if the fit puts points behind the camera),
+        (9, 3) fitted camera-frame points at an arbitrary scale).
+    """
+    rows = []
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    for k in range(NUM_KEYPOINTS):
+        D = np.hstack([np.eye(3), R @ np.diag(signs[k]) if k < 8 else np.zeros((3, 3))])
+        u, v = uv[k]
+        rows.append((u - cx) * D[2] - fx * D[0])
+        rows.append((v - cy) * D[2] - fy * D[1])
+    y = np.linalg.svd(np.asarray(rows))[2][-1]
+    p, h = y[:3], y[3:]
+    if p[2] < 0:
+        p, h = -p, -h
+    pts = np.vstack([p + (R @ (signs * h).T).T, p[None]])
+    if np.any(pts[:, 2] <= 0):
+        return math.inf, pts
+    return float(np.abs(project_points(pts, K) - uv).max()), pts
+
+
+def _nvisii_order(f: _Fields, o: dict, where: str, uv: np.ndarray | None, K: np.ndarray | None,
+                  R: np.ndarray) -> str:
+    local = o.get("local_cuboid")
+    if local is not None:
+        pts = f.array(local, f"{where}.local_cuboid", (NUM_KEYPOINTS, 3))
+        s = np.sign(np.round(pts[:8] - pts[8], 9))
+        for order, signs in ORDER_CORNER_SIGNS.items():
+            # a degenerate (flat) box leaves zeros: compare on the non-zero axes only
+            if np.all((s == signs) | (s == 0)):
+                return order
+        raise f.fail(f"{where}.local_cuboid", "corners follow neither the current nor the legacy order")
+    if uv is None or K is None:
+        return LEGACY_KEYPOINT_ORDER  # what the official NViSII exporter writes
+    errs = {order: fit_cuboid_up_to_scale(uv, K, R, signs)[0]
+            for order, signs in ORDER_CORNER_SIGNS.items()}
+    best = min(errs, key=errs.get)
+    return best if errs[best] < 1.0 else LEGACY_KEYPOINT_ORDER
+
+
+def _read_nvisii_objects(f: _Fields, data: dict, K: np.ndarray | None) -> list[ObjectAnnotation]:
+    camera = data.get("camera_data") or {}
+    V = None
+    if camera.get("camera_view_matrix") is not None:
+        V = f.array(camera["camera_view_matrix"], "camera_data.camera_view_matrix", (4, 4),
+                    "rows", "columns")
+    out = []
+    for i, o in enumerate(_objects_list(f, data)):
+        where = f"objects[{i}]"
+        common = _common_fields(f, o, where)
+        if o.get("local_to_world_matrix") is None or V is None:
+            # no matrices: fall back on the exported pose (metres)
+            R, t = _pose_from_location_quaternion(f, o, where, 1.0)
+        else:
+            M_raw = f.array(o["local_to_world_matrix"], f"{where}.local_to_world_matrix", (4, 4),
+                            "rows", "columns")
+            M, transposed = _as_column_major(M_raw, None)
+            V_cm, _ = _as_column_major(V, transposed if np.allclose(V[3, :3], 0) and
+                                       np.allclose(V[:3, 3], 0) else None)
+            A = V_cm[:3, :3] @ M[:3, :3]  # object -> camera, with the object's scale
+            t = V_cm[:3, :3] @ M[:3, 3] + V_cm[:3, 3]
+            if o.get("location") is not None:
+                loc = f.array(o["location"], f"{where}.location", (3,))
+                flip = np.diag([1.0, -1.0, -1.0])  # OpenGL camera -> OpenCV, if not applied
+                if np.linalg.norm(flip @ t - loc) < np.linalg.norm(t - loc):
+                    A, t = flip @ A, flip @ t
+            if abs(np.linalg.det(A)) < 1e-12:
+                raise f.fail(f"{where}.local_to_world_matrix", "singular (zero scale)")
+            R = nearest_rotation(A)
+        order = _nvisii_order(f, o, where, common["projected_cuboid"], K, R)
+        bbox = None
+        if o.get("bounding_box_minx_maxx_miny_maxy") is not None:
+            b = f.array(o["bounding_box_minx_maxx_miny_maxy"],
+                        f"{where}.bounding_box_minx_maxx_miny_maxy", (4,))
+            # the exporter's y range is one pixel too low in the image (checked against the
+            # .seg.exr masks, which align with the RGB): shift it back
+            bbox = b[[0, 2, 1, 3]] - [0.0, 1.0, 0.0, 1.0]
+        out.append(ObjectAnnotation(R=R, t=t, bbox_xyxy=bbox, keypoint_order=order,
+                                    instance_id=_instance_id(f, o, where, "segmentation_id"),
+                                    **common))
+    return out
+
+
+def detect_variant(data: dict) -> str:
+    """"project", "nvisii" or "ndds" for a parsed DOPE JSON document."""
+    if data.get("format") == FORMAT_NAME:
+        return "project"
+    camera = data.get("camera_data")
+    objs = data.get("objects") if isinstance(data.get("objects"), list) else []
+    if (isinstance(camera, dict) and "camera_view_matrix" in camera) or any(
+            isinstance(o, dict) and ("local_to_world_matrix" in o or o.get("provenance") == "nvisii")
+            for o in objs):
+        return "nvisii"
+    return "ndds"
+
+
+# --------------------------------------------------------------------------- public API
+def read_dope_json(path: str | os.PathLike) -> FrameAnnotation:
+    """Read one DOPE-format annotation (project, NDDS/FAT or NViSII variant).
+
+    Returns:
+        FrameAnnotation in metres; R, t the mesh-frame (NViSII: object-frame) pose;
+        ``projected_cuboid`` (9, 2) pixels as in the file, its order in ``keypoint_order``;
+        sibling image/depth/seg paths when they exist.
+
+    Raises:
+        InputFileError: missing file, malformed JSON, missing field or wrong shape; the
+        message names the file and the field.
+    """
+    path = Path(path)
+    data = _load_json(path)
+    f = _Fields(path)
+    variant = detect_variant(data)
+    K, width, height = _read_intrinsics(f, data.get("camera_data"))
+    if K is None and variant == "ndds":
+        K, width, height = _read_camera_settings(path.parent)
+    if variant == "project":
+        objects = _read_project_objects(f, data)
+    elif variant == "nvisii":
+        objects = _read_nvisii_objects(f, data, K)
+    else:
+        objects = _read_ndds_objects(f, data, K)
+    image, depth, seg = _siblings(path)
+    if width is None or height is None:
+        width, height = _image_size(image)
+    depth_scale = 0.001
+    if depth is not None and depth.suffix.lower() == ".exr":
+        depth_scale = 1.0
+    if data.get("depth_scale_m") is not None:
+        depth_scale = f.number(data["depth_scale_m"], "depth_scale_m")
+    return FrameAnnotation(source=path, K=K, width=width, height=height, objects=objects,
+                           image_path=image, depth_path=depth, seg_path=seg,
+                           depth_scale_m=depth_scale)
+
+
+def read_frame_depth_m(frame: FrameAnnotation) -> np.ndarray:
+    """The frame's depth image as (H, W) float32 z-depth in metres (0 = no measurement).
+
+    ``.depth.png``: uint16 times ``frame.depth_scale_m``. ``.depth.exr`` (NViSII): the
+    renderer stores the distance along each pixel's ray, converted here to z with K.
+    """
+    if frame.depth_path is None:
+        raise InputFileError(frame.source, "no depth image beside the annotation")
+    depth = read_depth_m(frame.depth_path, frame.depth_scale_m)
+    if frame.depth_path.suffix.lower() != ".exr":
+        return depth
+    if frame.K is None:
+        raise InputFileError(frame.source, "camera_data.intrinsics: needed to turn the EXR "
+                                           "ray distances into z-depth")
+    h, w = depth.shape
+    u = (np.arange(w) - frame.K[0, 2]) / frame.K[0, 0]
+    v = (np.arange(h) - frame.K[1, 2]) / frame.K[1, 1]
+    ray = np.sqrt(1.0 + u[None, :] ** 2 + v[:, None] ** 2).astype(np.float32)
+    return depth / ray
+
+
+def frame_to_dict(frame: FrameAnnotation, extra: dict | None = None) -> dict:
+    """The project-format JSON document of a frame (centimetres)."""
+    orders = {o.keypoint_order for o in frame.objects}
+    file_order = orders.pop() if len(orders) == 1 else KEYPOINT_ORDER
+    camera: dict[str, Any] = {}
+    if frame.K is not None:
+        K = np.asarray(frame.K, dtype=np.float64)
+        camera["intrinsics"] = {"fx": float(K[0, 0]), "fy": float(K[1, 1]),
+                                "cx": float(K[0, 2]), "cy": float(K[1, 2])}
+    if frame.width is not None:
+        camera["width"] = int(frame.width)
+    if frame.height is not None:
+        camera["height"] = int(frame.height)
+    objects = []
+    for o in frame.objects:
+        d: dict[str, Any] = {
+            "class": o.class_name,
+            "location": [float(v) * 100.0 for v in np.asarray(o.t).reshape(3)],
+            "quaternion_xyzw": [float(v) for v in matrix_to_quaternion_xyzw(o.R)],
+        }
+        if o.projected_cuboid is not None:
+            d["projected_cuboid"] = np.asarray(o.projected_cuboid, dtype=np.float64).reshape(
+                NUM_KEYPOINTS, 2).tolist()
+        if o.visibility is not None:
+            d["visibility"] = float(o.visibility)
+        if o.bbox_xyxy is not None:
+            b = [float(v) for v in np.asarray(o.bbox_xyxy).reshape(4)]
+            d["bounding_box"] = {"top_left": b[:2], "bottom_right": b[2:]}
+        if o.instance_id is not None:
+            d["instance_id"] = int(o.instance_id)
+        if o.keypoint_order != file_order:
+            d["keypoint_order"] = o.keypoint_order
+        objects.append(d)
+    doc: dict[str, Any] = {"format": FORMAT_NAME, "units": "cm", "keypoint_order": file_order,
+                           "depth_scale_m": float(frame.depth_scale_m),
+                           "camera_data": camera, "objects": objects}
+    if extra:
+        clash = _RESERVED_KEYS.intersection(extra)
+        if clash:
+            raise ValueError(f"extra keys {sorted(clash)} would overwrite annotation fields")
+        doc.update(extra)
+    return doc
+
+
+def write_dope_json(path: str | os.PathLike, frame: FrameAnnotation,
+                    extra: dict | None = None) -> None:
+    """Write a frame atomically in the project format (location in cm, as DOPE does).
+
+    Args:
+        path: target ``NNNNNN.json``.
+        frame: the annotation (metres inside).
+        extra: additional top-level keys (e.g. generator settings); JSON-serializable, must
+            not reuse the annotation's own keys.
+    """
+    atomic_write_text(path, json.dumps(frame_to_dict(frame, extra), indent=1) + "\n")
+
+
+def list_dope_frames(folder: str | os.PathLike) -> list[Path]:
+    """Sorted ``*.json`` annotation paths in ``folder`` that have an image beside them.
+
+    ``NNNNNN.json`` pairs with ``NNNNNN.png`` / ``.jpg`` / ``.jpeg``; settings files such as
+    ``_camera_settings.json`` (no image) are skipped.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputFileError(folder, "dataset folder not found")
+    return sorted(p for p in folder.glob("*.json") if p.is_file() and find_image(p) is not None)

@@ -1,0 +1,497 @@
+"""Pose error metrics: ADD, ADD-S, ADD-H, MeanSSD, MSSD, MSPD, VSD, plus te/re.
+
+Conventions: a pose is ``R`` (3, 3), ``t`` (3,) metres with ``x_c = R x + t``; model points
+are (N, 3) metres in the model frame; symmetries are (S, 4, 4) model-frame rigid transforms
+(metres) with the identity first (:func:`dope_hope.catalog.category_symmetries` or
+:func:`symmetries_from_models_info`). All errors are in metres, except MSPD (pixels), re
+(degrees) and VSD (a fraction in [0, 1]).
+
+Names and definitions follow the BOP toolkit (``bop_toolkit_lib/pose_error.py``):
+``add``, ``adi`` (here :func:`adds`), ``mssd``, ``mspd``, ``vsd``, ``re``, ``te``. Two are
+from the HOPE paper (Tyree et al., IROS 2022):
+
+* **ADD-H** — mean distance between the model points in the two poses under the optimal
+  one-to-one (Hungarian) assignment; symmetry-aware without a list of symmetries.
+* **MeanSSD** — like MSSD but the mean instead of the max: the minimum over the symmetry
+  transforms of the mean point distance.
+
+ADD-H is computed exactly (see :func:`assignment_distance`); it is the optimum of the summed
+Euclidean distances, not of squared distances.
+"""
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
+from scipy.spatial.transform import Rotation
+
+#: BOP19 VSD misalignment tolerances, fractions of the object diameter (0.05 .. 0.5).
+BOP19_VSD_TAUS = tuple(round(0.05 * k, 2) for k in range(1, 11))
+#: BOP19 VSD visibility tolerance, metres (15 mm for HOPE and most BOP datasets).
+BOP19_VSD_DELTA = 0.015
+
+# Symmetry transforms are evaluated in chunks of this many points x symmetries, so that
+# 720 symmetries x 500 points (cylinders in 1° steps) stay at a few MB.
+_SYM_CHUNK_ELEMENTS = 64_000
+
+
+# --------------------------------------------------------------------------- helpers
+def _pose(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    R = np.asarray(R, dtype=np.float64).reshape(3, 3)
+    t = np.asarray(t, dtype=np.float64).reshape(3)
+    return R, t
+
+
+def _points(pts: np.ndarray) -> np.ndarray:
+    pts = np.asarray(pts, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+        raise ValueError(f"model points must be (N, 3) with N > 0, got shape {pts.shape}")
+    return pts
+
+
+def transform_pts(pts: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(N, 3) model points -> (N, 3) camera-frame points ``R p + t``."""
+    R, t = _pose(R, t)
+    return _points(pts) @ R.T + t
+
+
+def _symmetries(syms: np.ndarray | None) -> np.ndarray:
+    if syms is None:
+        return np.eye(4)[None]
+    syms = np.asarray(syms, dtype=np.float64)
+    if syms.ndim != 3 or syms.shape[1:] != (4, 4) or len(syms) == 0:
+        raise ValueError(f"symmetries must be (S, 4, 4) with S > 0, got shape {syms.shape}")
+    return syms
+
+
+def te(t_e: np.ndarray, t_g: np.ndarray) -> float:
+    """Translational error ``|t_e - t_g|``, metres."""
+    return float(np.linalg.norm(np.asarray(t_e, float).reshape(3) - np.asarray(t_g, float).reshape(3)))
+
+
+def re(R_e: np.ndarray, R_g: np.ndarray) -> float:
+    """Rotational error (geodesic angle of ``R_e R_g^T``), degrees, in [0, 180]."""
+    R_e = np.asarray(R_e, dtype=np.float64).reshape(3, 3)
+    R_g = np.asarray(R_g, dtype=np.float64).reshape(3, 3)
+    cos = 0.5 * (np.trace(R_e @ R_g.T) - 1.0)
+    return float(np.degrees(math.acos(min(1.0, max(-1.0, cos)))))
+
+
+# --------------------------------------------------------------------------- ADD family
+def add(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray,
+        pts: np.ndarray) -> float:
+    """ADD: mean distance between corresponding model points in the two poses, metres."""
+    e = transform_pts(pts, R_e, t_e)
+    g = transform_pts(pts, R_g, t_g)
+    return float(np.linalg.norm(e - g, axis=1).mean())
+
+
+def adds(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray,
+         pts: np.ndarray) -> float:
+    """ADD-S (BOP ``adi``): mean distance from each GT point to the nearest estimated point."""
+    e = transform_pts(pts, R_e, t_e)
+    g = transform_pts(pts, R_g, t_g)
+    d, _ = cKDTree(e).query(g, k=1)
+    return float(np.mean(d))
+
+
+def addh(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray,
+         pts: np.ndarray, upper: float | None = None) -> float:
+    """ADD-H: mean point distance under the optimal one-to-one assignment, metres.
+
+    ``ADD-S <= ADD-H <= ADD`` always. The HOPE paper uses 500 model points.
+
+    Args:
+        upper: optional cut-off, metres. When a cheap lower bound already reaches it the
+            exact value is not computed and that lower bound (>= ``upper``) is returned;
+            useful when only errors below a threshold matter.
+    """
+    return assignment_distance(transform_pts(pts, R_g, t_g), transform_pts(pts, R_e, t_e),
+                               upper=upper)
+
+
+class _Buffers(threading.local):
+    """Per-thread (n, n) float64 work matrices, reused across calls of the same size."""
+
+    def __init__(self) -> None:
+        self.cost: dict[int, np.ndarray] = {}
+
+    def get(self, n: int) -> np.ndarray:
+        buf = self.cost.get(n)
+        if buf is None:
+            if len(self.cost) > 4:
+                self.cost.clear()
+            buf = self.cost[n] = np.empty((n, n))
+        return buf
+
+
+_BUFFERS = _Buffers()
+#: Below this size scipy's solver alone is already fast; the warm start does not pay off.
+_WARM_START_MIN_N = 160
+#: Size of the sub-problem that provides the warm-start dual potentials.
+_WARM_START_SUBSET = 125
+#: Warm-start only "hard" problems: those where fewer than this fraction of the points have
+#: distinct nearest neighbours (measured crossover, bench/addh_speed.py); near-identity
+#: problems are solved faster by scipy alone.
+_WARM_START_MAX_UNIQUE_NN = 0.72
+
+
+def _column_potentials(C: np.ndarray, match: np.ndarray, max_iter: int) -> np.ndarray:
+    """Dual column potentials ``v`` of an optimal assignment ``i -> match[i]`` of ``C``.
+
+    With ``u_i = C[i, match[i]] - v[match[i]]`` these satisfy ``u_i + v_j <= C_ij`` (up to
+    rounding) and equality on the assignment: shortest-path distances in the residual
+    graph, by a dense Bellman-Ford (hand-written: scipy's ``bellman_ford`` is an order of
+    magnitude slower on a complete graph). Stops early; the result only seeds a warm
+    start, so an inexact one costs time, never correctness.
+    """
+    n = len(C)
+    matched = C[np.arange(n), match]
+    d = np.zeros(n)
+    for _ in range(max_iter):
+        row = d[match] - matched  # distance of row i: reached through its matched column
+        d_new = np.minimum(d, (C + row[:, None]).min(axis=0))
+        if np.all(d - d_new <= 1e-13):
+            return d_new
+        d = d_new
+    return d
+
+
+def _warm_potentials(a: np.ndarray, b: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """Approximate column duals for the full problem from an exact solve of a subsample.
+
+    The sub-problem's exact duals are extended to all columns by the c-transform
+    ``v_j = min_i (C_ij - u_i)`` over the subsample rows (for a Euclidean cost the optimal
+    duals are a 1-Lipschitz potential, so nearby points get nearby values).
+    """
+    n = len(a)
+    idx = np.arange(0, n, max(1, n // _WARM_START_SUBSET))[:_WARM_START_SUBSET]
+    Cs = C[np.ix_(idx, idx)]
+    _, sub_match = linear_sum_assignment(Cs)
+    v_sub = _column_potentials(Cs, sub_match, max_iter=len(idx) + 2)
+    u_sub = Cs[np.arange(len(idx)), sub_match] - v_sub[sub_match]
+    return (C[idx, :] - u_sub[:, None]).min(axis=0)
+
+
+def assignment_distance(a: np.ndarray, b: np.ndarray, upper: float | None = None,
+                        return_assignment: bool = False):
+    """Mean Euclidean distance under the optimal one-to-one assignment of ``a`` to ``b``.
+
+    ``min over permutations s of mean_i |a_i - b_s(i)|`` — the exact optimum of the summed
+    (not squared) distances, found in this order:
+
+    1. Exact short-cuts from bounds. Any permutation gives an upper bound (the identity:
+       ADD when ``a``, ``b`` are the same model points in two poses); the optimum is at
+       least the centroid distance (triangle inequality: ``sum |a_i - b_s(i)| >=
+       |sum a_i - sum b_i|``) and at least the mean nearest-neighbour distance in either
+       direction (ADD-S). When the bounds meet (e.g. a pure translation) the upper bound is
+       the answer; when each point's nearest neighbour is a different point, that
+       nearest-neighbour map is a permutation reaching the lower bound, so it is optimal.
+    2. Otherwise scipy's ``linear_sum_assignment`` on the full distance matrix (in a reused
+       buffer). For hard problems (n >= 160, fewer than 72% distinct nearest neighbours)
+       the matrix is first reduced by dual potentials warm-started from an exact solve of a
+       125-point subsample: subtracting per-row and per-column
+       constants changes every permutation's cost by the same amount, so the optimal
+       permutation is unchanged, but the solver's augmenting paths get short (2-4x faster
+       on hard cases; ``bench/addh_speed.py``).
+
+    Args:
+        a, b: (n, 3) point sets, metres.
+        upper: optional cut-off: if a lower bound is already >= ``upper``, that bound is
+            returned instead of the exact value.
+        return_assignment: also return ``s`` (n,) with ``a[i]`` assigned to ``b[s[i]]``
+            (None when the ``upper`` cut-off was taken).
+
+    Returns:
+        The mean distance (float), or ``(distance, s)`` with ``return_assignment``.
+    """
+    a = _points(a)
+    b = _points(b)
+    if a.shape != b.shape:
+        raise ValueError(f"point sets differ in size: {a.shape} vs {b.shape}")
+    n = len(a)
+
+    def result(value: float, perm: np.ndarray | None):
+        return (float(value), perm) if return_assignment else float(value)
+
+    identity = np.arange(n)
+    ub = float(np.linalg.norm(a - b, axis=1).mean())
+    d_ab, nn_ab = cKDTree(b).query(a, k=1)
+    d_ba, nn_ba = cKDTree(a).query(b, k=1)
+    lb = max(float(np.linalg.norm(a.mean(0) - b.mean(0))), float(d_ab.mean()), float(d_ba.mean()))
+    tol = 1e-12 * max(ub, 1e-12)
+    if ub <= lb + tol:
+        return result(ub, identity)
+    unique_nn = len(np.unique(nn_ab))
+    if unique_nn == n:
+        return result(float(d_ab.mean()), nn_ab)
+    if len(np.unique(nn_ba)) == n:  # b_j -> a_nn(j) is a bijection: invert it
+        perm = np.empty(n, dtype=np.int64)
+        perm[nn_ba] = identity
+        return result(float(d_ba.mean()), perm)
+    if upper is not None and lb >= upper:
+        return result(lb, None)
+
+    C = _BUFFERS.get(n)
+    cdist(a, b, out=C)
+    if n >= _WARM_START_MIN_N and unique_nn < _WARM_START_MAX_UNIQUE_NN * n:
+        v = _warm_potentials(a, b, C)
+        C -= v[None, :]
+        C -= C.min(axis=1, keepdims=True)
+    _, perm = linear_sum_assignment(C)
+    value = float(np.linalg.norm(a - b[perm], axis=1).mean())
+    return result(value, perm)
+
+
+# --------------------------------------------------------------------------- symmetry-aware
+def _sym_point_sets(pts: np.ndarray, R_g: np.ndarray, t_g: np.ndarray, syms: np.ndarray):
+    """Yield chunks of (s, N, 3) GT-pose points under the symmetry transforms ``syms``."""
+    per_chunk = max(1, _SYM_CHUNK_ELEMENTS // len(pts))
+    for start in range(0, len(syms), per_chunk):
+        S = syms[start:start + per_chunk]
+        R_s = np.einsum("ij,sjk->sik", R_g, S[:, :3, :3])      # R_g S_R
+        t_s = S[:, :3, 3] @ R_g.T + t_g                        # R_g S_t + t_g
+        yield np.einsum("sij,nj->sni", R_s, pts) + t_s[:, None, :]
+
+
+def _sym_reduce(R_e, t_e, R_g, t_g, pts, syms, reduce: str) -> float:
+    R_e, t_e = _pose(R_e, t_e)
+    R_g, t_g = _pose(R_g, t_g)
+    pts = _points(pts)
+    syms = _symmetries(syms)
+    e = pts @ R_e.T + t_e
+    best = math.inf
+    for g in _sym_point_sets(pts, R_g, t_g, syms):
+        d = np.linalg.norm(g - e[None], axis=2)
+        per_sym = d.mean(axis=1) if reduce == "mean" else d.max(axis=1)
+        best = min(best, float(per_sym.min()))
+    return best
+
+
+def mean_ssd(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray,
+             pts: np.ndarray, syms: np.ndarray | None) -> float:
+    """MeanSSD (HOPE paper): min over symmetries of the mean point distance, metres."""
+    return _sym_reduce(R_e, t_e, R_g, t_g, pts, syms, "mean")
+
+
+def mssd(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray,
+         pts: np.ndarray, syms: np.ndarray | None) -> float:
+    """MSSD (BOP19): min over symmetries of the max point distance, metres."""
+    return _sym_reduce(R_e, t_e, R_g, t_g, pts, syms, "max")
+
+
+def mspd(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray, K: np.ndarray,
+         pts: np.ndarray, syms: np.ndarray | None) -> float:
+    """MSPD (BOP19): min over symmetries of the max 2D distance of projections, pixels."""
+    R_e, t_e = _pose(R_e, t_e)
+    R_g, t_g = _pose(R_g, t_g)
+    pts = _points(pts)
+    syms = _symmetries(syms)
+    K = np.asarray(K, dtype=np.float64).reshape(3, 3)
+    e = pts @ R_e.T + t_e
+    e2 = (e @ K.T)
+    e2 = e2[:, :2] / e2[:, 2:3]
+    best = math.inf
+    for g in _sym_point_sets(pts, R_g, t_g, syms):
+        g2 = g @ K.T
+        g2 = g2[..., :2] / g2[..., 2:3]
+        best = min(best, float(np.linalg.norm(g2 - e2[None], axis=2).max(axis=1).min()))
+    return best
+
+
+# --------------------------------------------------------------------------- symmetries
+def symmetries_from_models_info(info: dict[str, Any], max_sym_disc_step: float = 0.01) -> np.ndarray:
+    """Symmetry transforms of one BOP ``models_info.json`` entry, as the BOP toolkit builds them.
+
+    ``symmetries_discrete``: 4x4 row-major lists, translation in millimetres.
+    ``symmetries_continuous``: ``{"axis": [x, y, z], "offset": [x, y, z] mm}``, discretized
+    into ``ceil(pi / max_sym_disc_step)`` rotations about the axis through ``offset`` (so the
+    point farthest from the axis moves at most ``max_sym_disc_step`` x diameter per step);
+    each discrete symmetry (identity included) is combined with each of these rotations:
+    ``R = R_c R_d``, ``t = R_c t_d + t_c``.
+
+    Returns:
+        (S, 4, 4) float, metres, identity first.
+    """
+    discrete = [np.eye(4)]
+    for k, sym in enumerate(info.get("symmetries_discrete") or []):
+        M = np.asarray(sym, dtype=np.float64)
+        if M.size != 16:
+            raise ValueError(f"symmetries_discrete[{k}]: expected 16 numbers, got {M.size}")
+        M = M.reshape(4, 4).copy()
+        M[:3, 3] *= 0.001
+        M[3] = (0.0, 0.0, 0.0, 1.0)
+        discrete.append(M)
+    continuous = []
+    for k, sym in enumerate(info.get("symmetries_continuous") or []):
+        axis = np.asarray(sym["axis"], dtype=np.float64).reshape(3)
+        norm = np.linalg.norm(axis)
+        if norm == 0:
+            raise ValueError(f"symmetries_continuous[{k}]: zero axis")
+        offset = 0.001 * np.asarray(sym.get("offset", (0, 0, 0)), dtype=np.float64).reshape(3)
+        steps = int(np.ceil(np.pi / max_sym_disc_step))
+        angles = np.arange(steps) * (2.0 * np.pi / steps)
+        rots = Rotation.from_rotvec(angles[:, None] * (axis / norm)[None]).as_matrix()
+        for R in rots:
+            M = np.eye(4)
+            M[:3, :3] = R
+            M[:3, 3] = offset - R @ offset
+            continuous.append(M)
+    if not continuous:
+        return np.stack(discrete)
+    return np.stack([C @ D for D in discrete for C in continuous])
+
+
+# --------------------------------------------------------------------------- VSD
+class DepthRenderer:
+    """Depth images of meshes in given poses, rendered with pyrender (headless EGL).
+
+    Keeps one ``OffscreenRenderer`` per image size and one scene per mesh, so repeated
+    calls (VSD over a whole dataset) only move the object and the camera.
+    """
+
+    def __init__(self, znear: float = 0.01, zfar: float = 100.0):
+        from dope_hope._gl import import_pyrender
+
+        self._pr = import_pyrender()
+        self.znear, self.zfar = znear, zfar
+        self._renderers: dict[tuple[int, int], Any] = {}
+        self._scenes: dict[int, tuple[Any, Any, Any, Any]] = {}  # id(mesh) -> (mesh, scene, node, cam)
+        self._rays: dict[tuple, np.ndarray] = {}
+
+    def _scene(self, mesh):
+        entry = self._scenes.get(id(mesh))
+        if entry is None or entry[0] is not mesh:
+            pr = self._pr
+            scene = pr.Scene(bg_color=(0, 0, 0, 0), ambient_light=(1.0, 1.0, 1.0))
+            node = scene.add(pr.Mesh.from_trimesh(mesh, smooth=False))
+            cam = pr.IntrinsicsCamera(1.0, 1.0, 0.0, 0.0, znear=self.znear, zfar=self.zfar)
+            scene.add(cam, pose=np.eye(4))
+            entry = self._scenes[id(mesh)] = (mesh, scene, node, cam)
+        return entry
+
+    def render_depth(self, mesh, R: np.ndarray, t: np.ndarray, K: np.ndarray,
+                     width: int, height: int) -> np.ndarray:
+        """(height, width) float32 depth (z, metres) of ``mesh`` (metres) in pose (R, t); 0 = none."""
+        R, t = _pose(R, t)
+        K = np.asarray(K, dtype=np.float64).reshape(3, 3)
+        _, scene, node, cam = self._scene(mesh)
+        # OpenCV camera -> OpenGL camera (y up, looking down -z): flip y and z.
+        pose = np.eye(4)
+        pose[:3, :3] = R
+        pose[:3, 3] = t
+        scene.set_pose(node, np.diag([1.0, -1.0, -1.0, 1.0]) @ pose)
+        # pyrender puts pixel centres at half-integers; ours are at integers.
+        cam.fx, cam.fy = float(K[0, 0]), float(K[1, 1])
+        cam.cx, cam.cy = float(K[0, 2]) + 0.5, float(K[1, 2]) + 0.5
+        size = (int(width), int(height))
+        renderer = self._renderers.get(size)
+        if renderer is None:
+            renderer = self._renderers[size] = self._pr.OffscreenRenderer(*size)
+        depth = renderer.render(scene, flags=self._pr.RenderFlags.DEPTH_ONLY)
+        return np.asarray(depth, dtype=np.float32)
+
+    def distance_factor(self, K: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """(H, W) factor turning a depth image into a distance-from-camera-centre image."""
+        K = np.asarray(K, dtype=np.float64).reshape(3, 3)
+        key = (tuple(np.round(K.ravel(), 9)), tuple(shape))
+        f = self._rays.get(key)
+        if f is None:
+            if len(self._rays) > 8:
+                self._rays.clear()
+            ys, xs = np.mgrid[0:shape[0], 0:shape[1]]
+            f = np.sqrt(((xs - K[0, 2]) / K[0, 0]) ** 2 + ((ys - K[1, 2]) / K[1, 1]) ** 2 + 1.0)
+            self._rays[key] = f
+        return f
+
+    def close(self) -> None:
+        for r in self._renderers.values():
+            r.delete()
+        self._renderers.clear()
+        self._scenes.clear()
+
+
+_DEFAULT_RENDERER: DepthRenderer | None = None
+
+
+def default_renderer() -> DepthRenderer:
+    """A process-wide :class:`DepthRenderer` (created on first use)."""
+    global _DEFAULT_RENDERER
+    if _DEFAULT_RENDERER is None:
+        _DEFAULT_RENDERER = DepthRenderer()
+    return _DEFAULT_RENDERER
+
+
+def vsd(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray,
+        depth_test: np.ndarray, K: np.ndarray, mesh, delta: float = BOP19_VSD_DELTA,
+        taus: Sequence[float] = BOP19_VSD_TAUS, cost_type: str = "step",
+        diameter: float | None = None, renderer: DepthRenderer | None = None) -> np.ndarray:
+    """Visible Surface Discrepancy (Hodan et al.), BOP19 settings by default.
+
+    Depth of the mesh is rendered in both poses; visibility masks are estimated against the
+    test depth as in the BOP toolkit ("bop19" mode: pixels without test depth count as
+    visible); distances are compared as distance-from-camera images.
+
+    Args:
+        depth_test: (H, W) test depth, metres, 0 = no measurement.
+        K: (3, 3) intrinsics of the test image.
+        mesh: ``trimesh.Trimesh`` in metres (rendered; cached by the renderer).
+        delta: visibility tolerance, metres (BOP19: 15 mm).
+        taus: misalignment tolerances as fractions of ``diameter`` (BOP19: 0.05 .. 0.5).
+        cost_type: "step" (BOP19) or "tlinear" (the ECCVW'16 definition).
+        diameter: object diameter, metres (default: the mesh's vertex diameter).
+        renderer: a :class:`DepthRenderer` (default: a shared one).
+
+    Returns:
+        (len(taus),) VSD errors in [0, 1].
+    """
+    if cost_type not in ("step", "tlinear"):
+        raise ValueError(f"unknown VSD cost type {cost_type!r}; use 'step' or 'tlinear'")
+    depth_test = np.nan_to_num(np.asarray(depth_test, dtype=np.float64), nan=0.0)
+    if depth_test.ndim != 2:
+        raise ValueError(f"depth_test must be (H, W), got shape {depth_test.shape}")
+    renderer = renderer or default_renderer()
+    if diameter is None:
+        from dope_hope.io.meshes import mesh_diameter
+
+        diameter = mesh_diameter(mesh)
+    h, w = depth_test.shape
+    factor = renderer.distance_factor(K, (h, w))
+    dist_test = depth_test * factor
+    dist_gt = renderer.render_depth(mesh, R_g, t_g, K, w, h) * factor
+    dist_est = renderer.render_depth(mesh, R_e, t_e, K, w, h) * factor
+    visib_gt = (dist_gt > 0) & ((dist_gt - dist_test <= delta) | (dist_test == 0))
+    visib_est = (dist_est > 0) & ((dist_est - dist_test <= delta) | (dist_test == 0))
+    visib_est |= visib_gt & (dist_est > 0)
+    inter = visib_gt & visib_est
+    union_count = int(np.count_nonzero(visib_gt | visib_est))
+    taus_arr = np.asarray(taus, dtype=np.float64)
+    if union_count == 0:
+        return np.ones(len(taus_arr))
+    comp_count = union_count - int(np.count_nonzero(inter))
+    dists = np.abs(dist_gt[inter] - dist_est[inter]) / diameter
+    if cost_type == "step":
+        costs = (dists[None, :] >= taus_arr[:, None]).sum(axis=1)
+    else:
+        costs = np.minimum(dists[None, :] / taus_arr[:, None], 1.0).sum(axis=1)
+    return (costs + comp_count) / float(union_count)
+
+
+def sphere_projections_overlap(radius: float, t_a: np.ndarray, t_b: np.ndarray) -> bool:
+    """Whether the image projections of two spheres of ``radius`` at ``t_a``, ``t_b`` overlap.
+
+    The BOP toolkit's approximate test (``misc.overlapping_sphere_projections``), used to
+    skip rendering for VSD when the poses are far apart.
+    """
+    t_a = np.asarray(t_a, dtype=np.float64).reshape(3)
+    t_b = np.asarray(t_b, dtype=np.float64).reshape(3)
+    if t_a[2] == 0 or t_b[2] == 0:
+        return False
+    proj_dist = np.linalg.norm(t_a[:2] / t_a[2] - t_b[:2] / t_b[2])
+    return bool(proj_dist < radius * (1.0 / t_a[2] + 1.0 / t_b[2]))

@@ -1,0 +1,332 @@
+"""Checkpoints: save (atomic), load (weights_only), build the model, import official DOPE weights.
+
+A checkpoint is a plain dict that ``torch.load(..., weights_only=True)`` can read (tensors,
+numbers, strings, lists, tuples, dicts; no pickled classes)::
+
+    format            "dope-hope-checkpoint"; format_version 1
+    model             state dict (CPU tensors)
+    config            the full config that built the model (model/input/targets/train/...)
+    object            {class_name, size_m: [x, y, z] cuboid extents in the MESH frame (m),
+                       frame: "mesh" | "legacy" (the object frame the network's keypoints use)}
+    keypoint_order    "dope-current" (geometry.KEYPOINT_ORDER) or "dope-legacy"
+    normalization     {mean: [3], std: [3]} applied to RGB in [0, 1]
+    optimizer, scheduler   state dicts or None
+    step, epoch       ints (resume point: the next epoch is ``epoch + 1``)
+    rng               {python, numpy, torch, cuda} generator states for an exact resume
+    source            where the weights came from (e.g. an imported official file) or None
+    extra             free-form plain data or None
+"""
+from __future__ import annotations
+
+import os
+import pickle
+import random
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from dope_hope import __version__
+from dope_hope.config import load_config
+from dope_hope.errors import ConfigError, ModelFileError
+from dope_hope.geometry import KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER
+from dope_hope.io.atomic import atomic_path
+from dope_hope.model.network import IMAGENET_MEAN, IMAGENET_STD, DopeNetwork, build_model
+
+CHECKPOINT_FORMAT = "dope-hope-checkpoint"
+FORMAT_VERSION = 1
+OBJECT_FRAMES = ("mesh", "legacy")
+_REQUIRED = ("model", "config", "object", "keypoint_order", "normalization")
+
+#: What the official DOPE inference code feeds the network (NVlabs/Deep_Object_Pose
+#: ``common/detector.py`` and ``scripts/train2/inference/detector.py``: torchvision
+#: ``Normalize((0.485, 0.456, 0.406), (0.229, 0.224, 0.225))``; the 2018 ROS1 node used
+#: mean = std = 0.5 instead, for the original YCB weights).
+OFFICIAL_NORMALIZATION = {
+    "mean": list(IMAGENET_MEAN),
+    "std": list(IMAGENET_STD),
+    "source": "NVlabs/Deep_Object_Pose common/detector.py (ImageNet mean/std)",
+}
+
+
+# ----------------------------------------------------------------------------- helpers
+def unwrap_model(model: nn.Module) -> nn.Module:
+    """The plain module inside DistributedDataParallel/DataParallel/torch.compile wrappers."""
+    while True:
+        if isinstance(model, (nn.parallel.DistributedDataParallel, nn.DataParallel)):
+            model = model.module
+        elif hasattr(model, "_orig_mod"):
+            model = model._orig_mod
+        else:
+            return model
+
+
+def strip_prefix(state: dict[str, Any], prefix: str = "module.") -> dict[str, Any]:
+    """Remove ``prefix`` from every key that has it (DataParallel/DDP saves)."""
+    return {k[len(prefix):] if k.startswith(prefix) else k: v for k, v in state.items()}
+
+
+def _plain(obj: Any) -> Any:
+    """Convert numpy values / paths to types ``weights_only`` loading accepts."""
+    if isinstance(obj, dict):
+        return {(_plain(k) if not isinstance(k, str) else k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        seq = [_plain(v) for v in obj]
+        return tuple(seq) if isinstance(obj, tuple) else seq
+    if isinstance(obj, np.ndarray):
+        return torch.from_numpy(np.ascontiguousarray(obj))
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def _summarize(keys: list[str], limit: int = 3) -> str:
+    shown = ", ".join(keys[:limit])
+    return f"{shown}, ... ({len(keys)} in all)" if len(keys) > limit else shown
+
+
+def check_state_dict(expected: dict[str, torch.Tensor], state: dict[str, Any],
+                     path: str | os.PathLike, ignore_missing_prefix: str | None = None) -> None:
+    """Raise ModelFileError (one line, naming the file) unless ``state`` fits ``expected``.
+
+    ``expected`` may hold meta tensors (only names and shapes are compared). Missing keys
+    starting with ``ignore_missing_prefix`` are allowed.
+    """
+    unexpected = [k for k in state if k not in expected]
+    missing = [k for k in expected if k not in state
+               and not (ignore_missing_prefix and k.startswith(ignore_missing_prefix))]
+    if unexpected:
+        raise ModelFileError(path, f"unexpected keys {_summarize(unexpected)}: weights for another architecture")
+    if missing:
+        raise ModelFileError(path, f"missing keys {_summarize(missing)}: weights for another architecture")
+    for key, value in state.items():
+        if not isinstance(value, torch.Tensor):
+            raise ModelFileError(path, f"{key} is not a tensor")
+        if tuple(value.shape) != tuple(expected[key].shape):
+            raise ModelFileError(path, f"{key} has shape {tuple(value.shape)}, the model expects "
+                                       f"{tuple(expected[key].shape)}: weights for another architecture")
+
+
+def expected_state(config: dict[str, Any]) -> dict[str, torch.Tensor]:
+    """Names and shapes of the state dict ``config`` builds (meta tensors: no memory, fast)."""
+    with torch.device("meta"):
+        model = build_model(config, load_backbone=False)
+    return model.state_dict()
+
+
+def _torch_load(path: Path) -> Any:
+    """torch.load with weights_only=True; every failure becomes a one-line ModelFileError."""
+    if not path.is_file():
+        raise ModelFileError(path, "file not found")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        if "weights only" in str(exc).lower():
+            raise ModelFileError(path, "refused: it pickles Python objects other than weights "
+                                       "(loaded with weights_only=True); not a checkpoint") from None
+        raise ModelFileError(path, "not a torch weights file (unpickling failed)") from None
+    except (RuntimeError, EOFError, OSError, ValueError) as exc:
+        text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        if isinstance(exc, EOFError) or "zip archive" in text or "central directory" in text:
+            raise ModelFileError(path, "truncated or not a torch weights file") from None
+        raise ModelFileError(path, f"unreadable weights file ({text[:120]})") from None
+    except Exception as exc:  # noqa: BLE001 - the weights-only unpickler raises KeyError etc. on junk
+        raise ModelFileError(path, f"not a torch weights file ({type(exc).__name__} while unpickling)") from None
+
+
+# ----------------------------------------------------------------------------- rng state
+def rng_state() -> dict[str, Any]:
+    """Python, numpy (global) and torch generator states, weights_only-loadable."""
+    np_state = np.random.get_state(legacy=False)
+    np_state["state"] = dict(np_state["state"], key=np_state["state"]["key"].astype(np.int64))
+    state = {
+        "python": random.getstate(),
+        "numpy": _plain(np_state),
+        "torch": torch.get_rng_state(),
+        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+    }
+    return state
+
+
+def restore_rng_state(state: dict[str, Any]) -> None:
+    """Inverse of :func:`rng_state` (CUDA states only where CUDA is available)."""
+    if state.get("python") is not None:
+        version, internal, gauss = state["python"]
+        random.setstate((version, tuple(internal), gauss))
+    if state.get("numpy") is not None:
+        np_state = dict(state["numpy"])
+        inner = dict(np_state["state"])
+        inner["key"] = np.asarray(inner["key"].numpy() if isinstance(inner["key"], torch.Tensor)
+                                  else inner["key"], dtype=np.uint32)
+        np_state["state"] = inner
+        np.random.set_state(np_state)
+    if state.get("torch") is not None:
+        torch.set_rng_state(state["torch"])
+    if state.get("cuda") and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+# ----------------------------------------------------------------------------- save / load
+def make_object_info(class_name: str, size_m: Any = None, frame: str = "mesh") -> dict[str, Any]:
+    """``{class_name, size_m (mesh frame, m), frame}``; size defaults to the catalog's."""
+    if frame not in OBJECT_FRAMES:
+        raise ConfigError(f"object frame must be one of {OBJECT_FRAMES}, got {frame!r}")
+    if size_m is None:
+        from dope_hope.catalog import get_object
+        size_m = get_object(class_name).size_array
+    size = [float(v) for v in np.asarray(size_m, dtype=np.float64).reshape(-1)]
+    if len(size) != 3 or min(size) <= 0:
+        raise ConfigError(f"object size must be 3 positive extents in metres, got {size}")
+    return {"class_name": str(class_name), "size_m": size, "frame": frame}
+
+
+def save_checkpoint(
+    path: str | os.PathLike,
+    model: nn.Module,
+    config: dict[str, Any],
+    object_info: dict[str, Any],
+    optimizer: torch.optim.Optimizer | None = None,
+    scheduler: Any = None,
+    step: int = 0,
+    epoch: int = 0,
+    extra: dict[str, Any] | None = None,
+    *,
+    keypoint_order: str | None = None,
+    normalization: dict[str, Any] | None = None,
+    source: str | None = None,
+) -> Path:
+    """Write a checkpoint atomically (a crash leaves the old file or none, never half a file).
+
+    Args:
+        model: the network (DDP/compile wrappers are unwrapped; tensors saved on CPU).
+        config: the full config that built it.
+        object_info: ``{class_name, size_m, frame}`` (see :func:`make_object_info`).
+        keypoint_order: default "dope-legacy" for frame "legacy", else "dope-current".
+        normalization: default ImageNet mean/std.
+    Returns the path written.
+    """
+    path = Path(path)
+    info = make_object_info(object_info["class_name"], object_info.get("size_m"),
+                            object_info.get("frame", "mesh"))
+    if keypoint_order is None:
+        keypoint_order = LEGACY_KEYPOINT_ORDER if info["frame"] == "legacy" else KEYPOINT_ORDER
+    norm = normalization or {"mean": list(IMAGENET_MEAN), "std": list(IMAGENET_STD)}
+    state = {k: v.detach().cpu() for k, v in unwrap_model(model).state_dict().items()}
+    ckpt = {
+        "format": CHECKPOINT_FORMAT,
+        "format_version": FORMAT_VERSION,
+        "dope_hope_version": __version__,
+        "model": state,
+        "config": _plain(config),
+        "object": info,
+        "keypoint_order": keypoint_order,
+        "normalization": _plain(norm),
+        "optimizer": optimizer.state_dict() if optimizer is not None else None,
+        "scheduler": scheduler.state_dict() if scheduler is not None else None,
+        "step": int(step),
+        "epoch": int(epoch),
+        "rng": rng_state(),
+        "source": source,
+        "extra": _plain(extra) if extra is not None else None,
+    }
+    with atomic_path(path) as tmp:
+        torch.save(ckpt, tmp)
+    return path
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
+    """Read and validate a checkpoint (``weights_only=True``, tensors on CPU).
+
+    Raises ModelFileError naming the file for: a missing, truncated or non-torch file; a file
+    that pickles arbitrary objects; a bare state dict or other non-checkpoint; weights that
+    do not fit the architecture its own config describes.
+    """
+    path = Path(path)
+    ckpt = _torch_load(path)
+    if not isinstance(ckpt, dict):
+        raise ModelFileError(path, f"not a dope-hope checkpoint (holds a {type(ckpt).__name__})")
+    if ckpt.get("format") != CHECKPOINT_FORMAT:
+        if ckpt and all(isinstance(v, torch.Tensor) for v in ckpt.values()):
+            raise ModelFileError(path, "a bare state dict, not a dope-hope checkpoint "
+                                       "(official DOPE weights: use import-official)")
+        raise ModelFileError(path, "not a dope-hope checkpoint (no 'format' marker)")
+    if int(ckpt.get("format_version", 0)) > FORMAT_VERSION:
+        raise ModelFileError(path, f"checkpoint format {ckpt.get('format_version')} is newer than "
+                                   f"this dope-hope understands ({FORMAT_VERSION})")
+    missing = [k for k in _REQUIRED if k not in ckpt]
+    if missing:
+        raise ModelFileError(path, f"checkpoint lacks {', '.join(missing)}")
+    if not isinstance(ckpt["model"], dict) or not isinstance(ckpt["config"], dict):
+        raise ModelFileError(path, "checkpoint 'model' and 'config' must be dicts")
+    obj = ckpt["object"]
+    if not isinstance(obj, dict) or "class_name" not in obj or obj.get("frame") not in OBJECT_FRAMES:
+        raise ModelFileError(path, "checkpoint 'object' must hold class_name, size_m and frame")
+    try:
+        expected = expected_state(ckpt["config"])
+    except ConfigError as exc:
+        raise ModelFileError(path, f"its config is invalid ({exc})") from None
+    check_state_dict(expected, ckpt["model"], path)
+    return ckpt
+
+
+def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[DopeNetwork, dict[str, Any]]:
+    """Load a checkpoint and build its network: ``(model in eval mode on device, checkpoint)``."""
+    ckpt = load_checkpoint(path)
+    model = build_model(ckpt["config"], load_backbone=False)
+    model.load_state_dict(ckpt["model"], strict=True)
+    return model.to(device).eval(), ckpt
+
+
+# ----------------------------------------------------------------------------- official weights
+def import_official(
+    pth_path: str | os.PathLike,
+    class_name: str,
+    out_path: str | os.PathLike | None = None,
+    size_m: Any = None,
+) -> dict[str, Any]:
+    """Wrap an official DOPE ``.pth`` (bare state dict, maybe ``module.``-prefixed) as a checkpoint.
+
+    The weights must fit the DOPE-DR-50 layout exactly. Records object frame "legacy" and
+    keypoint order "dope-legacy" (the official HOPE weights' frame; ARCHITECTURE.md),
+    ImageNet normalization (what the official inference code uses), and the cuboid size in
+    the mesh frame (the catalog's unless ``size_m`` is given). Writes it if ``out_path``.
+    """
+    pth_path = Path(pth_path)
+    state = _torch_load(pth_path)
+    if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
+        state = state["state_dict"]
+    if not isinstance(state, dict) or not state:
+        raise ModelFileError(pth_path, "expected a DOPE state dict")
+    if state.get("format") == CHECKPOINT_FORMAT:
+        raise ModelFileError(pth_path, "already a dope-hope checkpoint; nothing to import")
+    state = strip_prefix(state, "module.")
+    config = load_config("dope_dr_50")
+    expected = expected_state(config)
+    check_state_dict(expected, state, pth_path)
+    info = make_object_info(class_name, size_m, frame="legacy")
+    source = f"official DOPE weights {pth_path.name}"
+    ckpt = {
+        "format": CHECKPOINT_FORMAT,
+        "format_version": FORMAT_VERSION,
+        "dope_hope_version": __version__,
+        "model": {k: state[k].detach().to("cpu", torch.float32) for k in expected},
+        "config": config,
+        "object": info,
+        "keypoint_order": LEGACY_KEYPOINT_ORDER,
+        "normalization": dict(OFFICIAL_NORMALIZATION),
+        "optimizer": None,
+        "scheduler": None,
+        "step": 0,
+        "epoch": 0,
+        "rng": None,
+        "source": source,
+        "extra": None,
+    }
+    if out_path is not None:
+        with atomic_path(out_path) as tmp:
+            torch.save(ckpt, tmp)
+    return ckpt

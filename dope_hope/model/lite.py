@@ -1,0 +1,124 @@
+"""The ``arch: lite`` network: DOPE's inputs and outputs from a small CPU-trainable body.
+
+Built for training on two CPU cores in ~20 minutes at ~200x200 input. Design (why):
+
+- **Corner identity needs the whole object in view.** A belief peak says *which* of the 8
+  corners it is only if the unit sees the object's texture and shape around it (label side,
+  cap, long axis); a narrow plain net finds centroids but mixes corners up. So the body is a
+  small encoder down to stride 32 (receptive field ~220 px, more than a 200-px image) plus an
+  image-level pooled context vector, merged back to the output stride by a top-down
+  (FPN-style) path: every output cell sees the full object at a cost of a few MMAC.
+- **Refinement sees all keypoints at once.** As in DOPE, stage s > 1 takes
+  cat(belief, affinity, features); its dilated 3x3 convs (dilation 1, 2, 4: +112 px of
+  context at stride 8) let it enforce a consistent cuboid (corner k sits opposite corner j,
+  the affinity field points at the centroid) instead of judging each map alone.
+- **Fast convergence on small batches:** BatchNorm after every conv, ReLU; the 1x1 output
+  convs start near zero (std 1e-3), so the first steps do not fight random large maps.
+- **Cheap:** 3x3 convs only (the fastest kind on CPU), one shared body for belief and
+  affinity per stage (official DOPE runs two independent branches).
+
+Stride 8 (``head: 50``) by default, like DOPE-DR-50, so targets/decoding settings carry over;
+``head: 100`` gives stride 4 (one more top-down level) for small objects, at ~1.6x the cost.
+Numbers (``bench/model_cost.py``, 200x200, one CPU thread): 0.85 M parameters, 0.46 GMAC,
+13-28 ms per image (the range is load on the shared machine), vs DOPE-DR-50's 50.3 M
+parameters and 38.9 GMAC (~2 s) at the same size.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from dope_hope.errors import ConfigError
+
+NUM_BELIEF = 9
+NUM_MAPS = 25
+LITE_HEAD_STRIDES = {50: 8, 100: 4}
+
+
+def conv_bn_relu(cin: int, cout: int, stride: int = 1, dilation: int = 1) -> nn.Sequential:
+    """3x3 conv (no bias) -> BatchNorm -> ReLU; 'same' padding for any dilation."""
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, stride=stride, padding=dilation, dilation=dilation, bias=False),
+        nn.BatchNorm2d(cout),
+        nn.ReLU(inplace=True),
+    )
+
+
+def _up_to(x: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    return F.interpolate(x, size=ref.shape[-2:], mode="bilinear", align_corners=False)
+
+
+class LiteTrunk(nn.Module):
+    """Encoder (stride 2..32) + pooled context + top-down merge + ``stages`` refinement stages.
+
+    Args:
+        head: 50 (stride 8) or 100 (stride 4).
+        stages: refinement stages (1..4), each returning (belief, affinity).
+        width: encoder base width w (channels w, 2w, 4w, 4w, 4w at strides 2..32).
+        feature_channels: F, width of the merged stride-s features the stages read.
+        stage_channels: C, width inside each stage.
+    """
+
+    def __init__(self, head: int = 50, stages: int = 2, width: int = 24,
+                 feature_channels: int = 96, stage_channels: int = 64):
+        super().__init__()
+        if head not in LITE_HEAD_STRIDES:
+            raise ConfigError(f"model.head must be 50 or 100 for arch lite, got {head!r}")
+        if not 1 <= stages <= 4:
+            raise ConfigError(f"model.stages must be 1..4 for arch lite, got {stages!r}")
+        self.stride = LITE_HEAD_STRIDES[head]
+        w, fc, sc = int(width), int(feature_channels), int(stage_channels)
+        self.stem = nn.Sequential(conv_bn_relu(3, w, 2), conv_bn_relu(w, w))                # /2
+        self.down4 = nn.Sequential(conv_bn_relu(w, 2 * w, 2), conv_bn_relu(2 * w, 2 * w))     # /4
+        self.down8 = nn.Sequential(conv_bn_relu(2 * w, 4 * w, 2), conv_bn_relu(4 * w, 4 * w))  # /8
+        self.down16 = nn.Sequential(conv_bn_relu(4 * w, 4 * w, 2), conv_bn_relu(4 * w, 4 * w, dilation=2))
+        self.down32 = nn.Sequential(conv_bn_relu(4 * w, 4 * w, 2), conv_bn_relu(4 * w, 4 * w))
+        self.context = nn.Sequential(nn.AdaptiveAvgPool2d(1), nn.Conv2d(4 * w, 4 * w, 1), nn.ReLU(inplace=True))
+        self.lat32 = nn.Conv2d(4 * w, fc, 1)
+        self.lat16 = nn.Conv2d(4 * w, fc, 1)
+        self.lat8 = nn.Conv2d(4 * w, fc, 1)
+        self.lat4 = nn.Conv2d(2 * w, fc, 1) if self.stride == 4 else None
+        self.merge = conv_bn_relu(fc, fc)
+        blocks = []
+        for s in range(stages):
+            cin = fc if s == 0 else fc + NUM_MAPS
+            dilations = (1, 2) if s == 0 else (1, 2, 4)
+            layers: list[nn.Module] = []
+            for d in dilations:
+                layers.append(conv_bn_relu(cin, sc, dilation=d))
+                cin = sc
+            layers.append(nn.Conv2d(sc, NUM_MAPS, 1))
+            blocks.append(nn.Sequential(*layers))
+        self.stages = nn.ModuleList(blocks)
+
+    def reset_output_layers(self) -> None:
+        """Near-zero init of each stage's 1x1 output conv (called after the global init)."""
+        for block in self.stages:
+            nn.init.normal_(block[-1].weight, std=1e-3)
+            nn.init.zeros_(block[-1].bias)
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 3, H, W) -> (N, F, H/stride, W/stride) merged multi-scale features."""
+        c2 = self.stem(x)
+        c4 = self.down4(c2)
+        c8 = self.down8(c4)
+        c16 = self.down16(c8)
+        c32 = self.down32(c16)
+        p = self.lat32(c32 + self.context(c32))
+        p = self.lat16(c16) + _up_to(p, c16)
+        p = self.lat8(c8) + _up_to(p, c8)
+        if self.lat4 is not None:
+            p = self.lat4(c4) + _up_to(p, c4)
+        return self.merge(p)
+
+    def forward(self, x: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        feats = self.features(x)
+        outputs = []
+        inp = feats
+        for i, block in enumerate(self.stages):
+            maps = block(inp)
+            outputs.append((maps[:, :NUM_BELIEF], maps[:, NUM_BELIEF:]))
+            if i + 1 < len(self.stages):
+                inp = torch.cat([maps, feats], 1)
+        return outputs

@@ -1,0 +1,304 @@
+"""DopeNetwork: VGG19 trunk + six two-branch refinement stages, with a 50-px or 400-px head.
+
+Input: ImageNet-normalized RGB, (N, 3, H, W) float32 with H, W divisible by 8. Output: a list
+with one ``(belief (N, 9, h, w), affinity (N, 16, h, w))`` pair per stage (deep supervision);
+``h, w = dope_hope.mapgrid.map_size((H, W), model.stride)``.
+
+Parameter names follow the official DOPE checkpoints (NVlabs/Deep_Object_Pose, class
+``DopeNetwork``), so an official ``.pth`` loads with ``strict=True``:
+
+- ``vgg.<i>``: torchvision ``vgg19().features[0..22]`` (through conv4_2 + ReLU, stride 8),
+  then ``vgg.23`` conv 512->256 3x3, ``vgg.24`` ReLU, ``vgg.25`` conv 256->128 3x3,
+  ``vgg.26`` ReLU. Convs sit at 0 2 5 7 10 12 14 16 19 21 23 25.
+- ``m<s>_2`` (belief, 9 maps) and ``m<s>_1`` (affinity, 16 fields), ``s = 1..6``: an
+  ``nn.Sequential`` with ReLUs interleaved, convs at even indices. Stage 1 (input 128 ch):
+  0 2 4 = 3x3 convs to 128, 6 = 1x1 128->512, 8 = 1x1 512->out. Stages 2-6 (input
+  cat(belief, affinity, features) = 9 + 16 + 128 = 153 ch): 0 2 4 6 8 = 7x7 convs to 128
+  (pad 3), 10 = 1x1 128->128, 12 = 1x1 128->out. No ReLU after the last conv.
+
+Head 400 (DOPE-DR-400) adds :class:`UpsamplingDecoder` under the name ``decoder.*`` (no clash
+with official names, so the 50-px part loads official weights with ``strict=False`` and only
+``decoder.*`` keys missing). Its cost, measured by ``bench/model_cost.py`` (400x400 input,
+all 6 stages decoded): 0.046 M parameters vs 7.34 M for the trunk (0.6 %; 0.09 % of the
+whole 50.3 M network) and 2.3 GMAC vs 48.2 GMAC for the trunk (4.8 %; the whole network is
+158 GMAC); CPU time ~0.3 s vs ~1.9 s for the trunk on one thread (transposed convs at full
+resolution are memory-bound on CPU). ``decoder.stages: last`` decodes only the last stage
+(the others are bilinear-upsampled), e.g. for inference, where only ``outputs[-1]`` is used.
+The ``arch: lite`` variant lives in :mod:`dope_hope.model.lite`.
+"""
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torchvision.models.vgg import cfgs as _vgg_cfgs
+from torchvision.models.vgg import make_layers as _vgg_make_layers
+
+from dope_hope.errors import ConfigError, ModelFileError
+
+#: ImageNet statistics used to normalize RGB in [0, 1] (torchvision convention).
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+NUM_BELIEF = 9
+NUM_AFFINITY = 16
+NUM_MAPS = NUM_BELIEF + NUM_AFFINITY
+#: Trunk output channels of the official network.
+FEATURE_CHANNELS = 128
+#: Number of ``vgg19().features`` layers kept: through conv4_2 + ReLU (index 22), stride 8.
+VGG_LAYERS_KEPT = 23
+#: Head name -> map stride (image pixels per map cell).
+HEAD_STRIDES = {50: 8, 400: 1}
+
+
+# ----------------------------------------------------------------------------- normalization
+def normalize_image(rgb: np.ndarray, mean=IMAGENET_MEAN, std=IMAGENET_STD) -> torch.Tensor:
+    """(H, W, 3) uint8 RGB -> (3, H, W) float32 tensor, ``(rgb / 255 - mean) / std``."""
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"expected an (H, W, 3) RGB image, got shape {rgb.shape}")
+    x = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).float().div_(255.0)
+    m = torch.tensor(mean, dtype=torch.float32).view(3, 1, 1)
+    s = torch.tensor(std, dtype=torch.float32).view(3, 1, 1)
+    return (x - m) / s
+
+
+def normalize_batch(images: torch.Tensor, mean=IMAGENET_MEAN, std=IMAGENET_STD) -> torch.Tensor:
+    """(N, 3, H, W) RGB -> normalized float32 (same device).
+
+    uint8 input is divided by 255; floating input is taken to be in [0, 1] already.
+    """
+    if images.ndim != 4 or images.shape[1] != 3:
+        raise ValueError(f"expected an (N, 3, H, W) batch, got shape {tuple(images.shape)}")
+    x = images.float()
+    if images.dtype == torch.uint8:
+        x = x / 255.0
+    m = torch.tensor(mean, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
+    s = torch.tensor(std, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
+    return (x - m) / s
+
+
+# ----------------------------------------------------------------------------- building blocks
+def vgg_trunk() -> nn.Sequential:
+    """The official trunk: vgg19 features[0..22] then conv 512->256, ReLU, conv 256->128, ReLU.
+
+    Built from torchvision's VGG19 layer table with no weights (nothing is downloaded).
+    """
+    features = _vgg_make_layers(_vgg_cfgs["E"], batch_norm=False)
+    layers = list(features.children())[:VGG_LAYERS_KEPT]
+    layers += [
+        nn.Conv2d(512, 256, kernel_size=3, padding=1), nn.ReLU(inplace=True),
+        nn.Conv2d(256, FEATURE_CHANNELS, kernel_size=3, padding=1), nn.ReLU(inplace=True),
+    ]
+    return nn.Sequential(*layers)
+
+
+def dope_stage(in_channels: int, out_channels: int, first: bool) -> nn.Sequential:
+    """One official stage branch (convs at even indices, ReLUs between, none at the end)."""
+    kernel, pad, n_spatial, penultimate = (3, 1, 3, 512) if first else (7, 3, 5, 128)
+    mid = 128
+    layers: list[nn.Module] = [nn.Conv2d(in_channels, mid, kernel, padding=pad)]
+    for _ in range(n_spatial - 1):
+        layers += [nn.ReLU(inplace=True), nn.Conv2d(mid, mid, kernel, padding=pad)]
+    layers += [nn.ReLU(inplace=True), nn.Conv2d(mid, penultimate, 1)]
+    layers += [nn.ReLU(inplace=True), nn.Conv2d(penultimate, out_channels, 1)]
+    return nn.Sequential(*layers)
+
+
+class UpsamplingDecoder(nn.Module):
+    """Learned x8 upsampling of stage maps to full input resolution (DOPE-DR-400 head).
+
+    Per stage: ``cat(maps (25), reduce(features) (r))`` at stride 8 -> three stride-2
+    transposed convs (4x4, ReLU) -> 1x1 conv to 25 channels, added to the bilinear x8
+    upsampling of the stage's maps. The last conv starts at zero, so an untrained decoder
+    returns exactly the bilinearly upsampled 50-px maps (an imported official model works
+    at once and fine-tunes from there). The feature reduction runs once, not per stage.
+
+    Bilinear with ``align_corners=False`` puts map cell j's centre at image ``8j + 3.5``,
+    the convention of :mod:`dope_hope.mapgrid`.
+    """
+
+    def __init__(self, feature_channels: int = FEATURE_CHANNELS, reduce_channels: int = 32,
+                 channels: tuple[int, ...] = (32, 16, 16), decode_stages: str = "all"):
+        super().__init__()
+        if len(channels) != 3:
+            raise ConfigError(f"model.decoder.channels must list 3 widths (x2 each), got {channels}")
+        if decode_stages not in ("all", "last"):
+            raise ConfigError(f"model.decoder.stages must be 'all' or 'last', got {decode_stages!r}")
+        self.decode_stages = decode_stages
+        self.reduce = nn.Sequential(nn.Conv2d(feature_channels, reduce_channels, 1), nn.ReLU(inplace=True))
+        layers: list[nn.Module] = []
+        c = NUM_MAPS + reduce_channels
+        for co in channels:
+            layers += [nn.ConvTranspose2d(c, co, kernel_size=4, stride=2, padding=1), nn.ReLU(inplace=True)]
+            c = co
+        self.up = nn.Sequential(*layers)
+        self.out = nn.Conv2d(c, NUM_MAPS, 1)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, outputs: list[tuple[torch.Tensor, torch.Tensor]],
+                features: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        reduced = self.reduce(features)
+        result = []
+        for i, (belief, affinity) in enumerate(outputs):
+            maps = torch.cat([belief, affinity], 1)
+            up = F.interpolate(maps, scale_factor=8, mode="bilinear", align_corners=False)
+            if self.decode_stages == "all" or i == len(outputs) - 1:
+                up = up + self.out(self.up(torch.cat([maps, reduced], 1)))
+            result.append((up[:, :NUM_BELIEF], up[:, NUM_BELIEF:]))
+        return result
+
+
+def _init_weights(module: nn.Module) -> None:
+    """Kaiming (fan_out, ReLU) for convs, as torchvision's VGG; BN to identity."""
+    for m in module.modules():
+        if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
+            nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+        elif isinstance(m, (nn.BatchNorm2d, nn.GroupNorm)):
+            nn.init.ones_(m.weight)
+            nn.init.zeros_(m.bias)
+
+
+# ----------------------------------------------------------------------------- the network
+class DopeNetwork(nn.Module):
+    """DOPE belief/affinity network (``arch: dope``) or its small sibling (``arch: lite``).
+
+    Args:
+        arch: "dope" (official layout) or "lite" (:mod:`dope_hope.model.lite`).
+        head: 50 (maps at stride 8) or 400 (full resolution, dope only; lite also takes 100,
+            stride 4).
+        stages: number of refinement stages (dope: 1..6, official 6).
+        decoder: options of :class:`UpsamplingDecoder` for head 400.
+        lite: options of :class:`dope_hope.model.lite.LiteTrunk` for arch lite.
+
+    Attributes:
+        stride: image pixels per map cell (8, 4 or 1).
+        num_stages: number of (belief, affinity) pairs ``forward`` returns.
+    """
+
+    def __init__(self, arch: str = "dope", head: int = 50, stages: int = 6,
+                 decoder: dict[str, Any] | None = None, lite: dict[str, Any] | None = None):
+        super().__init__()
+        self.arch = arch
+        self.head = int(head)
+        self.num_stages = int(stages)
+        if arch == "dope":
+            if self.head not in HEAD_STRIDES:
+                raise ConfigError(f"model.head must be 50 or 400 for arch dope, got {head!r}")
+            if not 1 <= self.num_stages <= 6:
+                raise ConfigError(f"model.stages must be 1..6 for arch dope, got {stages!r}")
+            self.vgg = vgg_trunk()
+            for s in range(1, self.num_stages + 1):
+                in_ch = FEATURE_CHANNELS if s == 1 else FEATURE_CHANNELS + NUM_MAPS
+                # Registration order as in the official code does not matter for loading.
+                setattr(self, f"m{s}_2", dope_stage(in_ch, NUM_BELIEF, first=s == 1))
+                setattr(self, f"m{s}_1", dope_stage(in_ch, NUM_AFFINITY, first=s == 1))
+            _init_weights(self)
+            self.stride = HEAD_STRIDES[self.head]
+            if self.head == 400:
+                opts = dict(decoder or {})
+                self.decoder = UpsamplingDecoder(
+                    FEATURE_CHANNELS, int(opts.pop("reduce_channels", 32)),
+                    tuple(opts.pop("channels", (32, 16, 16))), str(opts.pop("stages", "all")))
+                if opts:
+                    raise ConfigError(f"unknown model.decoder options: {', '.join(sorted(opts))}")
+        elif arch == "lite":
+            from dope_hope.model.lite import LiteTrunk
+            self.lite = LiteTrunk(head=self.head, stages=self.num_stages, **(lite or {}))
+            self.stride = self.lite.stride
+            _init_weights(self)
+            self.lite.reset_output_layers()
+        else:
+            raise ConfigError(f"model.arch must be 'dope' or 'lite', got {arch!r}")
+
+    def forward(self, x: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """(N, 3, H, W) normalized RGB -> [(belief (N,9,h,w), affinity (N,16,h,w))] per stage."""
+        if self.arch == "lite":
+            return self.lite(x)
+        features = self.vgg(x)
+        outputs: list[tuple[torch.Tensor, torch.Tensor]] = []
+        inp = features
+        for s in range(1, self.num_stages + 1):
+            belief = getattr(self, f"m{s}_2")(inp)
+            affinity = getattr(self, f"m{s}_1")(inp)
+            outputs.append((belief, affinity))
+            if s < self.num_stages:
+                inp = torch.cat([belief, affinity, features], 1)
+        if self.head == 400:
+            outputs = self.decoder(outputs, features)
+        return outputs
+
+
+def model_section(config: dict[str, Any]) -> dict[str, Any]:
+    """The ``model`` section of a full config (or the dict itself if it is already one)."""
+    if "model" in config and isinstance(config["model"], dict):
+        return config["model"]
+    return config
+
+
+def build_model(config: dict[str, Any], load_backbone: bool = True) -> DopeNetwork:
+    """Build a DopeNetwork from a full config or its ``model`` section.
+
+    Keys: ``arch`` (dope|lite), ``head`` (50|400, lite 50|100), ``stages``, ``decoder``
+    (head 400), ``lite`` (arch lite); unknown keys raise ConfigError. ``backbone_weights``: a
+    LOCAL torchvision VGG19 state-dict file loaded into the trunk when ``load_backbone``
+    (nothing is ever downloaded; checkpoint loading passes False, its weights win).
+    """
+    m = dict(model_section(config))
+    backbone = m.pop("backbone_weights", None)
+    known = {"arch", "head", "stages", "decoder", "lite"}
+    unknown = sorted(set(m) - known)
+    if unknown:
+        raise ConfigError(f"unknown model options: {', '.join(unknown)}")
+    model = DopeNetwork(arch=m.get("arch", "dope"), head=m.get("head", 50),
+                        stages=m.get("stages", 6), decoder=m.get("decoder"), lite=m.get("lite"))
+    if backbone and load_backbone:
+        load_backbone_weights(model, backbone)
+    return model
+
+
+def load_backbone_weights(model: DopeNetwork, path: str | os.PathLike) -> list[str]:
+    """Copy ImageNet VGG19 conv weights from a local torchvision file into ``model.vgg``.
+
+    Accepts a state dict of ``torchvision.models.vgg19`` (keys ``features.<i>.weight|bias``;
+    classifier keys are ignored). Returns the ``vgg.*`` keys loaded, in model order (20
+    tensors: conv1_1 .. conv4_2). Raises ModelFileError naming the file for anything else.
+    """
+    if getattr(model, "arch", None) != "dope":
+        raise ConfigError("backbone_weights applies to arch dope only (the VGG19 trunk)")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise ModelFileError(path, "file not found") from None
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure is a bad file
+        raise ModelFileError(path, f"not a readable torch weights file ({type(exc).__name__})") from None
+    if not isinstance(state, dict):
+        raise ModelFileError(path, "expected a VGG19 state dict")
+    if "state_dict" in state and isinstance(state["state_dict"], dict):
+        state = state["state_dict"]
+    own = model.vgg.state_dict()
+    mapped: dict[str, torch.Tensor] = {}
+    for key, value in state.items():
+        key = key.removeprefix("module.")
+        if not key.startswith("features."):
+            continue
+        idx, _, name = key[len("features."):].partition(".")
+        if idx.isdigit() and int(idx) < VGG_LAYERS_KEPT:
+            target = f"{idx}.{name}"
+            if target not in own or own[target].shape != value.shape:
+                raise ModelFileError(path, f"{key} {tuple(value.shape)} does not fit the VGG19 trunk")
+            mapped[target] = value
+    expected = {k for k in own if int(k.split(".")[0]) < VGG_LAYERS_KEPT}
+    missing = sorted(expected - set(mapped))
+    if missing:
+        raise ModelFileError(path, f"not VGG19 weights: missing features.{missing[0]} "
+                                   f"(and {len(missing) - 1} more)")
+    model.vgg.load_state_dict(mapped, strict=False)
+    return [f"vgg.{k}" for k in own if k in mapped]

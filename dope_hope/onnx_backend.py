@@ -1,0 +1,323 @@
+"""OnnxBackend: run an exported dope-hope ``.onnx`` model with onnxruntime (no checkpoint).
+
+A dope-hope ONNX file is self-describing: everything the predictor needs (object class,
+cuboid size, keypoint order, object frame, normalization, map stride, input size) lives in
+the model's ``metadata_props`` under the keys of :class:`OnnxModelInfo` (prefix
+``dope_hope.``), written by :mod:`dope_hope.export`. Two graph layouts are accepted:
+
+- ``native``: input ``image`` (N, 3, H, W) float32 normalized with the model's mean/std;
+  outputs ``belief`` (N, 9, h, w) and ``affinity`` (N, 16, h, w) of the last stage.
+- ``isaac-ros``: what Isaac ROS DOPE's TensorRT node + decoder consume: input ``input``
+  (1, 3, H, W) normalized with the Isaac ROS image encoder's mean/std (recorded as
+  ``dope_hope.input_mean/std``), output ``output`` (1, 25, H/8, W/8) = belief then affinity.
+  This backend converts the predictor's batch to that normalization, runs images one at a
+  time (batch 1) and splits the output.
+
+Anything else (random bytes, a truncated file, an ONNX model with other inputs/outputs or
+without dope-hope metadata) raises :class:`~dope_hope.errors.ModelFileError` with one line
+naming the file and the problem.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import MISSING, asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dope_hope.errors import ConfigError, ModelFileError
+from dope_hope.geometry import KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER
+
+#: ``metadata_props`` key prefix and the format marker of a dope-hope ONNX file.
+META_PREFIX = "dope_hope."
+ONNX_FORMAT = "dope-hope-onnx"
+ONNX_FORMAT_VERSION = 1
+LAYOUTS = ("native", "isaac-ros")
+#: Graph tensor names per layout: (inputs, outputs).
+LAYOUT_NAMES = {
+    "native": (("image",), ("belief", "affinity")),
+    "isaac-ros": (("input",), ("output",)),
+}
+NUM_BELIEF, NUM_AFFINITY = 9, 16
+#: onnxruntime graph optimization levels by name.
+OPTIMIZATION_LEVELS = ("disable", "basic", "extended", "all")
+
+
+@dataclass
+class OnnxModelInfo:
+    """The metadata of a dope-hope ONNX file (``metadata_props``, all values strings there).
+
+    class_name: object the model detects. size_m: (3,) cuboid extents, mesh frame, metres.
+    frame: "mesh" | "legacy". keypoint_order: "dope-current" | "dope-legacy".
+    mean, std: the model's normalization of RGB in [0, 1] (what its first conv expects).
+    input_mean, input_std: the normalization the GRAPH input expects (= mean/std for the
+        native layout; the Isaac ROS encoder's for the isaac-ros layout, converted in-graph).
+    stride: image px per map cell. head: 50 | 400 | 100. arch: "dope" | "lite".
+    layout: "native" | "isaac-ros". input_hw: (H, W) training input size or None.
+    fixed_input_hw: (H, W) the only size the graph takes, or None (dynamic H, W).
+    opset: ONNX opset. precision: "fp32" | "int8". version: dope-hope version that wrote it.
+    exporter, source: free text (exporter used; the weights file exported).
+    extra: other ``dope_hope.*`` keys (e.g. isaac_ros.object_dimensions_cm, quantization).
+    """
+
+    class_name: str
+    size_m: tuple[float, float, float]
+    frame: str
+    keypoint_order: str
+    mean: tuple[float, float, float]
+    std: tuple[float, float, float]
+    input_mean: tuple[float, float, float]
+    input_std: tuple[float, float, float]
+    stride: int
+    head: int
+    arch: str
+    layout: str
+    input_hw: tuple[int, int] | None
+    fixed_input_hw: tuple[int, int] | None
+    opset: int
+    precision: str = "fp32"
+    version: str = ""
+    exporter: str = ""
+    source: str = ""
+    extra: dict[str, str] = field(default_factory=dict)
+
+    _JSON_FIELDS = ("size_m", "mean", "std", "input_mean", "input_std", "input_hw", "fixed_input_hw")
+    _INT_FIELDS = ("stride", "head", "opset")
+
+    def to_metadata(self) -> dict[str, str]:
+        """``{"dope_hope.<key>": str}`` for ``metadata_props`` (lists as JSON)."""
+        out = {f"{META_PREFIX}format": ONNX_FORMAT,
+               f"{META_PREFIX}format_version": str(ONNX_FORMAT_VERSION)}
+        for key, value in asdict(self).items():
+            if key == "extra":
+                continue
+            if key in self._JSON_FIELDS:
+                value = json.dumps(None if value is None else [float(v) if key not in (
+                    "input_hw", "fixed_input_hw") else int(v) for v in value])
+            out[f"{META_PREFIX}{key}"] = str(value)
+        for key, value in self.extra.items():
+            out[f"{META_PREFIX}{key}"] = str(value)
+        return out
+
+    @classmethod
+    def from_metadata(cls, meta: Mapping[str, str], path: str | os.PathLike) -> OnnxModelInfo:
+        """Parse and validate ``metadata_props``; ModelFileError (one line) if anything is off."""
+        if meta.get(f"{META_PREFIX}format") != ONNX_FORMAT:
+            raise ModelFileError(path, "an ONNX model without dope-hope metadata (no "
+                                       f"'{META_PREFIX}format'); export it with `dope-hope export`")
+        try:
+            version = int(meta.get(f"{META_PREFIX}format_version", "0"))
+        except ValueError:
+            version = 0
+        if version < 1 or version > ONNX_FORMAT_VERSION:
+            raise ModelFileError(path, f"dope-hope ONNX format version {version!r} is not "
+                                       f"supported (this dope-hope reads 1..{ONNX_FORMAT_VERSION})")
+        names = [f for f in cls.__dataclass_fields__ if f != "extra"]
+        values: dict[str, Any] = {}
+        for name in names:
+            key = f"{META_PREFIX}{name}"
+            if key not in meta:
+                if cls.__dataclass_fields__[name].default is not MISSING:  # optional key
+                    continue
+                raise ModelFileError(path, f"dope-hope metadata lacks '{key}'")
+            raw = meta[key]
+            try:
+                if name in cls._JSON_FIELDS:
+                    v = json.loads(raw)
+                    values[name] = None if v is None else tuple(
+                        int(x) if name.endswith("_hw") else float(x) for x in v)
+                elif name in cls._INT_FIELDS:
+                    values[name] = int(raw)
+                else:
+                    values[name] = raw
+            except (ValueError, TypeError):
+                raise ModelFileError(path, f"dope-hope metadata '{key}' = {raw[:40]!r} is malformed") from None
+        known = {f"{META_PREFIX}{n}" for n in names} | {f"{META_PREFIX}format", f"{META_PREFIX}format_version"}
+        values["extra"] = {k[len(META_PREFIX):]: v for k, v in meta.items()
+                           if k.startswith(META_PREFIX) and k not in known}
+        info = cls(**values)
+        info.validate(path)
+        return info
+
+    def validate(self, path: str | os.PathLike) -> None:
+        """Raise ModelFileError for inconsistent values."""
+        def bad(problem: str):
+            raise ModelFileError(path, f"dope-hope metadata: {problem}")
+
+        if self.layout not in LAYOUTS:
+            bad(f"layout {self.layout!r} is not one of {', '.join(LAYOUTS)}")
+        for name in ("size_m", "mean", "std", "input_mean", "input_std"):
+            v = getattr(self, name)
+            if v is None or len(v) != 3 or not np.all(np.isfinite(v)):
+                bad(f"{name} must hold 3 finite numbers, got {v}")
+        if min(self.size_m) <= 0 or min(self.std) <= 0 or min(self.input_std) <= 0:
+            bad("size_m and std must be positive")
+        expected = LEGACY_KEYPOINT_ORDER if self.frame == "legacy" else KEYPOINT_ORDER
+        if self.frame not in ("mesh", "legacy") or self.keypoint_order != expected:
+            bad(f"frame {self.frame!r} with keypoint order {self.keypoint_order!r} (expected {expected!r})")
+        if self.stride not in (1, 4, 8):
+            bad(f"stride {self.stride} is not 1, 4 or 8")
+        for name in ("input_hw", "fixed_input_hw"):
+            v = getattr(self, name)
+            if v is not None and (len(v) != 2 or min(v) < 1):
+                bad(f"{name} must be [H, W] or null, got {v}")
+        if self.layout == "isaac-ros" and (self.fixed_input_hw is None or self.stride != 8):
+            bad("an isaac-ros model must have a fixed input size and stride 8")
+
+
+def _ort_problem(exc: BaseException, limit: int = 160) -> str:
+    """One line from an onnxruntime load error (its prefixes and C++ source location dropped)."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    # "[ONNXRuntimeError] : 7 : INVALID_PROTOBUF : Load model from X failed:<detail>"
+    if "failed:" in text:
+        text = text.split("failed:", 1)[1].strip()
+    # "/onnxruntime_src/.../model.cc:256 onnxruntime::Model::Model(...) <detail>"
+    text = re.sub(r"^/\S+:\d+\s+[^(]*\([^)]*\)\s*", "", text)
+    if type(exc).__name__ == "InvalidProtobuf" or "Protobuf parsing failed" in text:
+        return "not a readable ONNX model: truncated or corrupt (protobuf parsing failed)"
+    return f"onnxruntime cannot load it: {text[:limit]}"
+
+
+def default_providers() -> list[str]:
+    """CUDA (if this onnxruntime build has it) then CPU."""
+    import onnxruntime as ort
+
+    available = ort.get_available_providers()
+    return (["CUDAExecutionProvider"] if "CUDAExecutionProvider" in available else []) + ["CPUExecutionProvider"]
+
+
+class OnnxBackend:
+    """:class:`dope_hope.predictor.MapBackend` over an exported ``.onnx`` file (onnxruntime).
+
+    Args:
+        path: the ``.onnx`` file (native or isaac-ros layout, fp32 or INT8).
+        threads: onnxruntime intra-op threads (None: onnxruntime's default, all cores).
+        providers: execution providers in order of preference (None: CUDA when this
+            onnxruntime has it, then CPU). Unavailable ones are dropped with a warning.
+        optimization: graph optimization level, one of "disable", "basic", "extended", "all".
+
+    Attributes: the MapBackend metadata (stride, class_name, size_m (3,) m, keypoint_order,
+    frame, mean, std, input_hw) plus ``fixed_input_hw`` ((H, W) for a static graph, else
+    None), ``info`` (:class:`OnnxModelInfo`), ``layout``, ``source`` (the path), ``session``
+    (built once, reused by every :meth:`run`) and ``providers`` (those in use).
+    """
+
+    def __init__(self, path: str | os.PathLike, threads: int | None = None,
+                 providers: Sequence[str] | None = None, optimization: str = "all"):
+        import onnxruntime as ort
+
+        self.path = Path(path)
+        self.source = str(path)
+        if not self.path.is_file():
+            raise ModelFileError(self.path, "ONNX file not found")
+        if optimization not in OPTIMIZATION_LEVELS:
+            raise ConfigError(f"optimization must be one of {', '.join(OPTIMIZATION_LEVELS)}, "
+                              f"got {optimization!r}")
+        if threads is not None and int(threads) < 0:
+            raise ConfigError(f"threads must be >= 0, got {threads!r}")
+        opts = ort.SessionOptions()
+        opts.graph_optimization_level = {
+            "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
+            "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+            "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+            "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+        }[optimization]
+        if threads:
+            opts.intra_op_num_threads = int(threads)
+        opts.log_severity_level = 3  # errors only: a bad file becomes our one-line error
+        available = set(ort.get_available_providers())
+        wanted = list(providers) if providers else default_providers()
+        usable = [p for p in wanted if p in available]
+        if len(usable) < len(wanted):
+            missing = [p for p in wanted if p not in available]
+            warnings.warn(f"onnxruntime providers not available here, skipped: {', '.join(missing)}",
+                          RuntimeWarning, stacklevel=2)
+        if "CPUExecutionProvider" not in usable:
+            usable.append("CPUExecutionProvider")
+        try:
+            self.session = ort.InferenceSession(str(self.path), opts, providers=usable)
+        except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own exception types
+            raise ModelFileError(self.path, _ort_problem(exc)) from None
+        self.providers = self.session.get_providers()
+        self._check_io()
+        meta = self.session.get_modelmeta().custom_metadata_map
+        self.info = OnnxModelInfo.from_metadata(meta, self.path)
+        if self.info.layout != self.layout:
+            raise ModelFileError(self.path, f"metadata says layout {self.info.layout!r} but the graph "
+                                            f"has the {self.layout!r} inputs/outputs")
+        i = self.info
+        self.stride: int = i.stride
+        self.class_name: str = i.class_name
+        self.size_m: np.ndarray = np.asarray(i.size_m, dtype=np.float64)
+        self.keypoint_order: str = i.keypoint_order
+        self.frame: str = i.frame
+        self.mean: tuple[float, float, float] = tuple(i.mean)
+        self.std: tuple[float, float, float] = tuple(i.std)
+        self.input_hw: tuple[int, int] | None = i.input_hw
+        self.fixed_input_hw: tuple[int, int] | None = i.fixed_input_hw
+        # x_graph = x_model * a + b converts the predictor's batch to the graph's normalization.
+        m, s = np.asarray(i.mean, np.float32), np.asarray(i.std, np.float32)
+        im, is_ = np.asarray(i.input_mean, np.float32), np.asarray(i.input_std, np.float32)
+        self._a = (s / is_).reshape(1, 3, 1, 1)
+        self._b = ((m - im) / is_).reshape(1, 3, 1, 1)
+        self._identity_input = bool(np.allclose(m, im) and np.allclose(s, is_))
+
+    def _check_io(self) -> None:
+        ins = tuple(x.name for x in self.session.get_inputs())
+        outs = tuple(x.name for x in self.session.get_outputs())
+        for layout, (want_in, want_out) in LAYOUT_NAMES.items():
+            if ins == want_in and outs == want_out:
+                self.layout = layout
+                break
+        else:
+            raise ModelFileError(self.path, f"not a dope-hope model: inputs {list(ins)}, outputs "
+                                            f"{list(outs)} (expected image -> belief, affinity or "
+                                            "the isaac-ros input -> output)")
+        shape = self.session.get_inputs()[0].shape
+        out_shapes = [o.shape for o in self.session.get_outputs()]
+        channels = [NUM_BELIEF, NUM_AFFINITY] if self.layout == "native" else [NUM_BELIEF + NUM_AFFINITY]
+        ok = len(shape) == 4 and shape[1] == 3 and all(
+            len(s) == 4 and s[1] == c for s, c in zip(out_shapes, channels))
+        if not ok:
+            raise ModelFileError(self.path, f"not a dope-hope model: input shape {shape}, output shapes "
+                                            f"{out_shapes} (expected (N, 3, H, W) -> {channels} channels)")
+
+    def graph_input(self, batch: np.ndarray) -> np.ndarray:
+        """(N, 3, H, W) normalized with ``mean/std`` -> the graph input's normalization."""
+        x = np.ascontiguousarray(batch, dtype=np.float32)
+        if self._identity_input:
+            return x
+        return (x * self._a + self._b).astype(np.float32)
+
+    def feeds(self, batch: np.ndarray) -> list[dict[str, np.ndarray]]:
+        """onnxruntime feed dicts for a model-normalized batch (one per image for isaac-ros)."""
+        x = self.graph_input(batch)
+        name = self.session.get_inputs()[0].name
+        if self.layout == "isaac-ros":
+            return [{name: x[i:i + 1]} for i in range(len(x))]
+        return [{name: x}]
+
+    def run(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 3, H, W) float32 normalized with ``mean/std`` -> belief (N, 9, h, w), affinity (N, 16, h, w)."""
+        batch = np.asarray(batch)
+        if batch.ndim != 4 or batch.shape[1] != 3:
+            raise ValueError(f"expected an (N, 3, H, W) batch, got shape {batch.shape}")
+        if self.fixed_input_hw is not None and tuple(batch.shape[2:]) != tuple(self.fixed_input_hw):
+            raise ValueError(f"{self.path.name} takes {self.fixed_input_hw[0]}x{self.fixed_input_hw[1]} "
+                             f"inputs only, got {batch.shape[2]}x{batch.shape[3]}")
+        results = [self.session.run(None, feed) for feed in self.feeds(batch)]
+        if self.layout == "isaac-ros":
+            maps = np.concatenate([r[0] for r in results], axis=0)
+            return maps[:, :NUM_BELIEF], maps[:, NUM_BELIEF:]
+        belief, affinity = results[0]
+        return belief, affinity
+
+    def __repr__(self) -> str:
+        size = "dynamic" if self.fixed_input_hw is None else f"{self.fixed_input_hw[0]}x{self.fixed_input_hw[1]}"
+        return (f"OnnxBackend({self.path.name!r}, class_name={self.class_name!r}, layout={self.layout!r}, "
+                f"precision={self.info.precision!r}, input={size}, providers={self.providers})")

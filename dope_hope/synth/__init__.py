@@ -1,0 +1,24 @@
+"""Domain-randomized synthetic data for one object (pyrender, headless EGL).
+
+Modules, one job each:
+
+- ``settings``: the synth config (configs/synth.yaml + user overrides), sizes, shards.
+- ``camera``: reference intrinsics scaled to the image size, jittered.
+- ``textures`` / ``background``: procedural images; background photo crops.
+- ``primitives``: procedural distractor shapes with texture coordinates.
+- ``assets``: target / distractor meshes (via io.meshes), cuboid, models-folder lookup.
+- ``scene``: per-frame random streams and scene sampling (pure numpy).
+- ``materials`` / ``render``: pyrender meshes, materials and the render passes.
+- ``postprocess``: compositing over the background, jitter, blur, noise.
+- ``depth_noise``: RealSense-like depth corruption (:func:`add_realsense_noise`).
+- ``annotate``: projected cuboids, visibility, boxes -> FrameAnnotation.
+- ``writer``: frame files (JSON last, atomic) and the dataset info file.
+- ``generate``: FrameGenerator / render_frame (in memory), generate_dataset (to disk).
+
+Importing this package does not import OpenGL; rendering starts it on first use.
+"""
+from dope_hope.synth.depth_noise import add_realsense_noise
+from dope_hope.synth.generate import FrameGenerator, GenerateSummary, SynthFrame, generate_dataset, render_frame
+
+__all__ = ["FrameGenerator", "GenerateSummary", "SynthFrame", "add_realsense_noise", "generate_dataset",
+           "render_frame"]

@@ -1,0 +1,72 @@
+"""Annotations of a rendered frame: projected cuboids, visibility, 2D boxes.
+
+Conventions of the generated annotation (also recorded in each JSON's ``synth`` block):
+
+- ``projected_cuboid``: the 9 keypoints (documented order) of the mesh's AABB under the pose,
+  projected with the frame's K (pixel centres at integer coordinates).
+- ``visibility``: visible pixels / pixels of the same instance rendered alone on a canvas
+  large enough for the whole object, so occlusion *and* truncation at the image border
+  lower it. 0 for an instance hidden completely (kept in the file; readers filter).
+- ``bbox_xyxy``: (x_min, y_min, x_max, y_max) of the instance's *visible* pixels, inclusive
+  pixel-centre coordinates (a one-pixel object has x_min == x_max); None when invisible.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
+from dope_hope.geometry import KEYPOINT_ORDER, cuboid_keypoints, project_points
+from dope_hope.synth.scene import SceneSpec
+
+if TYPE_CHECKING:  # render.py imports OpenGL; annotations need only the arrays
+    from dope_hope.synth.render import RenderOutput
+
+
+@dataclass
+class InstanceStats:
+    """Pixel statistics of one target instance."""
+
+    instance_id: int
+    px_count_visib: int
+    px_count_all: int
+    truncated: bool
+    occluder_ids: list[int]
+
+
+def mask_bbox(mask: np.ndarray) -> np.ndarray | None:
+    """(4,) float (x_min, y_min, x_max, y_max) inclusive pixel coordinates of a mask, or None."""
+    cols = np.flatnonzero(mask.any(axis=0))
+    if cols.size == 0:
+        return None
+    rows = np.flatnonzero(mask.any(axis=1))
+    return np.array([cols[0], rows[0], cols[-1], rows[-1]], dtype=np.float64)
+
+
+def annotate_frame(spec: SceneSpec, render: RenderOutput, class_name: str, cuboid_size: np.ndarray,
+                   cuboid_center: np.ndarray, source: Path | str = Path("frame.json")
+                   ) -> tuple[FrameAnnotation, list[InstanceStats]]:
+    """The FrameAnnotation (targets only) and per-instance pixel statistics."""
+    kp3 = cuboid_keypoints(cuboid_size, cuboid_center)
+    H, W = render.seg.shape
+    objects, stats = [], []
+    for obj in spec.targets:
+        mask = render.seg == obj.seg_id
+        visib = int(mask.sum())
+        total = int(render.px_all.get(obj.seg_id, 0))
+        uv = project_points(kp3, spec.K, obj.R, obj.t)
+        corners = uv[:8]
+        truncated = bool(np.any(corners < -0.5) or np.any(corners[:, 0] > W - 0.5) or
+                         np.any(corners[:, 1] > H - 0.5))
+        objects.append(ObjectAnnotation(
+            class_name=class_name, R=obj.R.copy(), t=obj.t.copy(), projected_cuboid=uv,
+            visibility=float(visib / total) if total > 0 else 0.0, bbox_xyxy=mask_bbox(mask),
+            instance_id=obj.seg_id, keypoint_order=KEYPOINT_ORDER))
+        occluders = sorted(int(o.seg_id) for o in spec.objects if o.occluder_of == obj.seg_id)
+        stats.append(InstanceStats(obj.seg_id, visib, total, truncated, occluders))
+    frame = FrameAnnotation(source=Path(source), K=spec.K.copy(), width=spec.width,
+                            height=spec.height, objects=objects, depth_scale_m=0.001)
+    return frame, stats

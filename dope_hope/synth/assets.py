@@ -1,0 +1,208 @@
+"""Meshes the generator renders: the target object and the distractor mesh library.
+
+Meshes come from :func:`dope_hope.io.meshes.load_mesh` (metres, textures kept). This module
+adds what the generator needs on top: the cuboid (mesh AABB), the bounding sphere used for
+placement, the texture as an array, and the lookup of an object's mesh in a models folder.
+"""
+from __future__ import annotations
+
+import os
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import trimesh
+
+from dope_hope.catalog import HOPE_OBJECTS, get_object
+from dope_hope.errors import InputFileError, UnknownObjectError
+from dope_hope.io.meshes import load_mesh, mesh_cuboid
+from dope_hope.synth.scene import ShapeInfo
+
+#: Mesh file suffixes looked for in --models-dir / --distractors.
+MESH_SUFFIXES = (".obj", ".ply")
+
+
+def texture_image(mesh: trimesh.Trimesh, max_px: int | None = None) -> np.ndarray | None:
+    """The mesh's base-colour texture as (h, w, 3 or 4) uint8, or None.
+
+    Reads ``SimpleMaterial.image`` (OBJ map_Kd) or ``PBRMaterial.baseColorTexture``; a texture
+    whose longer side exceeds ``max_px`` is downscaled (area interpolation).
+    """
+    visual = mesh.visual
+    if getattr(visual, "kind", None) != "texture" or getattr(visual, "uv", None) is None:
+        return None
+    mat = visual.material
+    img = getattr(mat, "image", None)
+    if img is None:
+        img = getattr(mat, "baseColorTexture", None)
+    if img is None:
+        return None
+    arr = np.asarray(img.convert("RGBA" if "A" in img.mode else "RGB")) if hasattr(img, "convert") \
+        else np.asarray(img)
+    arr = np.ascontiguousarray(arr.astype(np.uint8))
+    if max_px is not None and max(arr.shape[:2]) > max_px:
+        f = max_px / max(arr.shape[:2])
+        arr = cv2.resize(arr, (max(1, int(arr.shape[1] * f)), max(1, int(arr.shape[0] * f))),
+                         interpolation=cv2.INTER_AREA)
+    return arr
+
+
+def vertex_colors(mesh: trimesh.Trimesh) -> np.ndarray | None:
+    """(V, 4) uint8 vertex colours when the mesh has them (e.g. a BOP PLY without texture)."""
+    if getattr(mesh.visual, "kind", None) == "vertex":
+        return np.asarray(mesh.visual.vertex_colors, dtype=np.uint8)
+    return None
+
+
+def bounding_shape(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray, ShapeInfo]:
+    """Cuboid size (3,), cuboid centre (3,) and the bounding sphere about that centre (metres)."""
+    size, center = mesh_cuboid(mesh)
+    radius = float(np.linalg.norm(np.asarray(mesh.vertices) - center, axis=1).max())
+    return size, center, ShapeInfo(center=center, radius=radius)
+
+
+@dataclass
+class MeshAsset:
+    """A loaded mesh with what rendering and annotation need.
+
+    Attributes:
+        path: the file; name: class name (targets) or file stem.
+        mesh: trimesh in metres.
+        texture: (h, w, 3|4) uint8 base-colour texture or None; colors: (V, 4) uint8 or None.
+        cuboid_size, cuboid_center: (3,) AABB in the mesh frame, metres.
+        shape: bounding sphere about the cuboid centre.
+    """
+
+    path: Path
+    name: str
+    mesh: trimesh.Trimesh
+    texture: np.ndarray | None
+    colors: np.ndarray | None
+    cuboid_size: np.ndarray
+    cuboid_center: np.ndarray
+    shape: ShapeInfo
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, name: str | None = None, units: str | None = None,
+             max_texture_px: int | None = None) -> MeshAsset:
+        path = Path(path)
+        mesh = load_mesh(path, units=units)
+        size, center, shape = bounding_shape(mesh)
+        if np.any(size <= 0):
+            raise InputFileError(path, f"mesh is flat (extents {size.tolist()} m)")
+        return cls(path=path, name=name or path.stem, mesh=mesh,
+                   texture=texture_image(mesh, max_texture_px), colors=vertex_colors(mesh),
+                   cuboid_size=size, cuboid_center=center, shape=shape)
+
+
+def resolve_object_mesh(models_dir: str | os.PathLike, name: str) -> Path:
+    """Find the mesh of catalog object ``name`` in a models folder.
+
+    Looks for, in order: ``<dir>/<Name>/textured.obj`` (HOPE release layout),
+    ``<dir>/<Name>.obj``, ``<dir>/<Name>/*.obj``, and ``<dir>/obj_<id:06d>.ply`` (BOP).
+    Names match case-insensitively.
+    """
+    models_dir = Path(models_dir)
+    if not models_dir.is_dir():
+        raise InputFileError(models_dir, "models folder not found")
+    obj = get_object(name)
+    lower = obj.name.lower()
+    entries = {p.name.lower(): p for p in models_dir.iterdir()}
+    sub = entries.get(lower)
+    candidates: list[Path] = []
+    if sub is not None and sub.is_dir():
+        candidates += [sub / "textured.obj"] + sorted(sub.glob("*.obj")) + sorted(sub.glob("*.ply"))
+    for suffix in MESH_SUFFIXES:
+        if f"{lower}{suffix}" in entries:
+            candidates.append(entries[f"{lower}{suffix}"])
+    candidates.append(models_dir / f"obj_{obj.obj_id:06d}.ply")
+    for c in candidates:
+        if c.is_file():
+            return c
+    raise InputFileError(models_dir, f"no mesh for {obj.name} (looked for {obj.name}/textured.obj, "
+                                     f"{obj.name}.obj, obj_{obj.obj_id:06d}.ply)")
+
+
+def guess_class_name(mesh_path: str | os.PathLike) -> str:
+    """Catalog name matching the mesh file or its folder (case-insensitive), else the stem."""
+    p = Path(mesh_path)
+    names = {o.name.lower(): o.name for o in HOPE_OBJECTS}
+    for candidate in (p.stem, p.parent.name):
+        if candidate.lower() in names:
+            return names[candidate.lower()]
+    for candidate in (p.stem, p.parent.name):  # e.g. "hope_ketchup"
+        for token in candidate.replace("-", "_").split("_"):
+            if token.lower() in names:
+                return names[token.lower()]
+    if p.stem.startswith("obj_") and p.stem[4:].isdigit():
+        try:
+            return get_object(int(p.stem[4:])).name
+        except UnknownObjectError:
+            pass
+    return p.stem
+
+
+def list_distractor_meshes(folder: str | os.PathLike, target_path: str | os.PathLike | None = None,
+                           target_class: str | None = None) -> list[Path]:
+    """Mesh files under ``folder`` (recursive, sorted), minus copies of the target.
+
+    Excluded, so that no unannotated target instance is ever rendered: the target file itself,
+    files beside it in its own sub-folder (e.g. ``Ketchup/textured_simple.obj``), and files
+    whose name or folder names the target class.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputFileError(folder, "distractor folder not found")
+    files = sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
+    tgt = Path(target_path).resolve() if target_path is not None else None
+    cls = target_class.lower() if target_class else None
+    out = []
+    for f in files:
+        r = f.resolve()
+        if tgt is not None and (r == tgt or (r.parent == tgt.parent and r.parent != folder.resolve())):
+            continue
+        if cls is not None and (guess_class_name(f).lower() == cls):
+            continue
+        out.append(f)
+    if not out:
+        raise InputFileError(folder, "no distractor meshes (.obj/.ply) other than the target")
+    return out
+
+
+class DistractorLibrary:
+    """Lazily loaded distractor meshes with a small LRU cache.
+
+    Args:
+        files: mesh files (from :func:`list_distractor_meshes`).
+        cache_size: meshes kept loaded.
+        max_texture_px: textures are downscaled to at most this side.
+    """
+
+    def __init__(self, files: list[Path], cache_size: int = 6, max_texture_px: int = 1024):
+        self.files = list(files)
+        self.cache_size = max(1, int(cache_size))
+        self.max_texture_px = int(max_texture_px)
+        self._cache: OrderedDict[int, MeshAsset] = OrderedDict()
+        self._shapes: dict[int, ShapeInfo] = {}
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def get(self, i: int) -> MeshAsset:
+        if i in self._cache:
+            self._cache.move_to_end(i)
+            return self._cache[i]
+        asset = MeshAsset.load(self.files[i], max_texture_px=self.max_texture_px)
+        self._shapes[i] = asset.shape
+        self._cache[i] = asset
+        while len(self._cache) > self.cache_size:
+            self._cache.popitem(last=False)
+        return asset
+
+    def shape(self, i: int) -> ShapeInfo:
+        """Bounding sphere of mesh i (loads it once; the sphere is remembered after eviction)."""
+        if i not in self._shapes:
+            self.get(i)
+        return self._shapes[i]

@@ -1,0 +1,105 @@
+"""Backgrounds: random crops of photographs (flip, colour shift) or procedural images."""
+from __future__ import annotations
+
+import os
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from dope_hope.errors import InputFileError
+from dope_hope.io.images import read_rgb
+from dope_hope.synth.textures import procedural_image
+
+#: File suffixes taken as background photographs.
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+
+
+def list_images(folder: str | os.PathLike) -> list[Path]:
+    """Image files under ``folder`` (recursive), sorted so that indices are reproducible."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputFileError(folder, "background folder not found")
+    files = sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise InputFileError(folder, f"no images ({', '.join(IMAGE_SUFFIXES)}) in the background folder")
+    return files
+
+
+def color_shift(rng: np.random.Generator, img: np.ndarray, cfg: dict[str, Any]) -> np.ndarray:
+    """Random brightness, contrast and per-channel gain/offset. (H, W, 3) uint8 -> same."""
+    x = img.astype(np.float32)
+    mean = x.mean()
+    contrast = rng.uniform(*cfg["contrast"])
+    brightness = rng.uniform(*cfg["brightness"])
+    gain = rng.uniform(*cfg["channel_gain"], size=3).astype(np.float32)
+    offset = rng.uniform(-cfg["channel_offset"], cfg["channel_offset"], size=3).astype(np.float32)
+    x = ((x - mean) * contrast + mean) * brightness * gain + offset
+    return np.clip(x + 0.5, 0, 255).astype(np.uint8)
+
+
+def random_crop(rng: np.random.Generator, img: np.ndarray, width: int, height: int,
+                scale: tuple[float, float]) -> np.ndarray:
+    """Crop a random window with the target aspect ratio and resize it to (height, width).
+
+    ``scale`` is the window's side as a fraction of the largest window of that aspect ratio.
+    """
+    H, W = img.shape[:2]
+    aspect = width / height
+    max_w = min(W, H * aspect)
+    s = rng.uniform(*scale)
+    cw = max(1, int(round(max_w * s)))
+    ch = max(1, int(round(cw / aspect)))
+    cw, ch = min(cw, W), min(ch, H)
+    x0 = int(rng.integers(0, W - cw + 1))
+    y0 = int(rng.integers(0, H - ch + 1))
+    crop = img[y0:y0 + ch, x0:x0 + cw]
+    interp = cv2.INTER_AREA if cw > width else cv2.INTER_LINEAR
+    return cv2.resize(crop, (width, height), interpolation=interp)
+
+
+class BackgroundSource:
+    """Draws backgrounds for frames.
+
+    Args:
+        cfg: the ``background`` section of the synth config.
+        folder: photographs to crop from, or None for procedural backgrounds only.
+    """
+
+    def __init__(self, cfg: dict[str, Any], folder: str | os.PathLike | None = None):
+        self.cfg = cfg
+        self.files = list_images(folder) if folder is not None else []
+        self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
+
+    def _load(self, i: int) -> np.ndarray:
+        if i in self._cache:
+            self._cache.move_to_end(i)
+            return self._cache[i]
+        img = read_rgb(self.files[i])
+        # Keep memory bounded: cache a copy no larger than needed for the largest crop.
+        limit = int(self.cfg["max_cached_side_px"])
+        if max(img.shape[:2]) > limit:
+            f = limit / max(img.shape[:2])
+            img = cv2.resize(img, (max(1, int(img.shape[1] * f)), max(1, int(img.shape[0] * f))),
+                             interpolation=cv2.INTER_AREA)
+        self._cache[i] = img
+        while len(self._cache) > int(self.cfg["cache_images"]):
+            self._cache.popitem(last=False)
+        return img
+
+    def sample(self, rng: np.random.Generator, width: int, height: int) -> np.ndarray:
+        """One background, (height, width, 3) uint8 RGB."""
+        cfg = self.cfg
+        use_photo = bool(self.files) and rng.random() >= cfg["procedural_prob_with_images"]
+        if use_photo:
+            img = self._load(int(rng.integers(0, len(self.files))))
+            img = random_crop(rng, img, width, height, tuple(cfg["crop_scale"]))
+        else:
+            img = procedural_image(rng, height, width, cfg["procedural_weights"])
+        if rng.random() < cfg["flip_prob"]:
+            img = img[:, ::-1]
+        if rng.random() < cfg["vflip_prob"]:
+            img = img[::-1]
+        return color_shift(rng, np.ascontiguousarray(img), cfg["color_shift"])

@@ -1,0 +1,354 @@
+"""Frame generation: in memory (:class:`FrameGenerator`, :func:`render_frame`) and to disk
+(:func:`generate_dataset`: resumable, deterministic, multi-process, sharded).
+
+Frame ``i`` of a dataset with seed ``S`` depends only on (S, i), the inputs and the config:
+its random streams come from ``np.random.SeedSequence([S, i])`` (see scene.frame_streams).
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dope_hope import __version__
+from dope_hope.annotation import FrameAnnotation
+from dope_hope.errors import ConfigError
+from dope_hope.synth.annotate import InstanceStats, annotate_frame
+from dope_hope.synth.assets import DistractorLibrary, MeshAsset, guess_class_name, list_distractor_meshes
+from dope_hope.synth.background import BackgroundSource
+from dope_hope.synth.depth_noise import add_realsense_noise, noise_kwargs
+from dope_hope.synth.postprocess import composite, post_process
+from dope_hope.synth.scene import ObjectSpec, SceneSpec, frame_streams, sample_scene
+from dope_hope.synth.settings import load_synth_config, parse_shard, parse_size
+from dope_hope.synth.writer import (
+    check_or_write_info,
+    frame_paths,
+    is_complete,
+    remove_stale_temporaries,
+    write_frame,
+)
+
+GENERATOR_NAME = "dope-hope synth"
+
+
+@dataclass
+class SynthFrame:
+    """One generated frame in memory.
+
+    Attributes:
+        index: frame index; rgb: (H, W, 3) uint8; depth: (H, W) float32 metres as written
+            (with RealSense noise when enabled, 0 = no measurement); depth_clean: (H, W)
+            float32 metres, exact; seg: (H, W) uint8 ids (0 background, 1..k targets,
+            seg_distractor_base + j distractors); annotation: targets' FrameAnnotation;
+            stats: per-target pixel counts; scene: the sampled scene; alone_depth: seg id ->
+            (H, W) depth of that target rendered alone (only when requested).
+    """
+
+    index: int
+    rgb: np.ndarray
+    depth: np.ndarray
+    depth_clean: np.ndarray
+    seg: np.ndarray
+    annotation: FrameAnnotation
+    stats: list[InstanceStats]
+    scene: SceneSpec
+    alone_depth: dict[int, np.ndarray] = field(default_factory=dict)
+
+    def json_extra(self, seed: int, class_name: str, mesh_name: str, cuboid_size: np.ndarray,
+                   cuboid_center: np.ndarray, seg_base: int, depth_noise: bool) -> dict[str, Any]:
+        """The extra top-level JSON keys written beside the project-format annotation."""
+        return {
+            "cuboid": {"class": class_name,
+                       "size_m": [float(v) for v in cuboid_size],
+                       "center_m": [float(v) for v in cuboid_center],
+                       "frame": "mesh (axis-aligned bounding box)"},
+            "synth": {
+                "generator": GENERATOR_NAME, "version": __version__, "seed": int(seed),
+                "index": int(self.index), "mesh": mesh_name, "depth_noise": bool(depth_noise),
+                "seg_ids": {"background": 0, "targets": "instance_id (1..k)",
+                            "distractors": f"{seg_base} + j (j = 1..)"},
+                "bbox": "visible pixels; inclusive pixel-centre coordinates (x_min, y_min) / (x_max, y_max)",
+                "visibility": "visible pixels / pixels of the instance rendered alone, whole object "
+                              "(occlusion and truncation)",
+                "distractor_count": sum(o.role == "distractor" for o in self.scene.objects),
+                "instances": [asdict(s) for s in self.stats],
+            },
+        }
+
+
+class FrameGenerator:
+    """Renders frames of one target object (one OpenGL context; one per process).
+
+    Args:
+        mesh_path: target mesh (HOPE OBJ in cm, BOP PLY in mm; see io.meshes.load_mesh).
+        size: (W, H) or "WxH".
+        config: synth config name/path/overrides (see settings.load_synth_config).
+        class_name: annotation class (default: catalog name guessed from the path, else stem).
+        units: mesh file units override ("m", "cm", "mm").
+        backgrounds: folder of background photos (default: procedural backgrounds).
+        distractors: folder of distractor meshes (default: procedural primitives only).
+        depth_noise: apply RealSense-like noise to the depth that is returned as ``depth``.
+        seed: dataset seed (frame i uses SeedSequence([seed, i])).
+    """
+
+    def __init__(self, mesh_path: str | os.PathLike, size: tuple[int, int] | str = (640, 480),
+                 config: str | os.PathLike | dict | None = None, class_name: str | None = None,
+                 units: str | None = None, backgrounds: str | os.PathLike | None = None,
+                 distractors: str | os.PathLike | None = None, depth_noise: bool = False,
+                 seed: int = 0):
+        self.size = parse_size(size)
+        self.cfg = load_synth_config(config)
+        self.seed = int(seed)
+        self.class_name = class_name or guess_class_name(mesh_path)
+        self.target = MeshAsset.load(mesh_path, name=self.class_name, units=units)
+        self.library = None
+        if distractors is not None:
+            files = list_distractor_meshes(distractors, mesh_path, self.class_name)
+            d = self.cfg["distractors"]
+            self.library = DistractorLibrary(files, d["mesh_cache"], d["max_texture_px"])
+        self.backgrounds = BackgroundSource(self.cfg["background"], backgrounds)
+        self.depth_noise = bool(depth_noise)
+        self._renderer = None
+        self._meshes = None
+
+    # -- rendering resources, created on first use (in the process that renders)
+    def _ensure_renderer(self) -> None:
+        if self._renderer is None:
+            from dope_hope.synth.materials import MeshBuilder
+            from dope_hope.synth.render import SceneRenderer
+
+            self._renderer = SceneRenderer(*self.size, shadows=bool(self.cfg["lights"]["shadows"]))
+            self._meshes = MeshBuilder()
+
+    def close(self) -> None:
+        """Release the OpenGL context."""
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+            self._meshes = None
+
+    def __enter__(self) -> FrameGenerator:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _mesh_for(self, obj: ObjectSpec):
+        if obj.source == "target":
+            return self._meshes.target(self.target, obj.material)
+        if obj.source == "mesh":
+            return self._meshes.library_mesh(self.library.get(obj.mesh_index), obj.material)
+        return self._meshes.primitive_mesh(obj.geometry, obj.material)
+
+    def sample_scene(self, index: int, seed: int | None = None,
+                     force_occluder: int | None = None) -> tuple[SceneSpec, dict[str, np.random.Generator]]:
+        """The random scene of frame ``index`` (no rendering) and its remaining random streams."""
+        streams = frame_streams(self.seed if seed is None else seed, index)
+        n_lib = len(self.library) if self.library is not None else 0
+        spec = sample_scene(streams, self.size, self.cfg, self.target.shape, n_lib,
+                            self.library.shape if self.library is not None else None,
+                            force_occluder=force_occluder)
+        return spec, streams
+
+    def render_frame(self, index: int, seed: int | None = None, force_occluder: int | None = None,
+                     with_alone_depth: bool = False) -> SynthFrame:
+        """Render frame ``index`` in memory.
+
+        Args:
+            index: frame index.
+            seed: dataset seed (default: the generator's).
+            force_occluder: target instance (list index) that gets an occluder placed in front;
+                the rest of the frame is unchanged (separate random stream).
+            with_alone_depth: also return each target's depth rendered alone.
+        """
+        self._ensure_renderer()
+        spec, streams = self.sample_scene(index, seed, force_occluder)
+        W, H = self.size
+        out = self._renderer.render(spec, self._mesh_for,
+                                    (self.target.cuboid_size, self.target.cuboid_center),
+                                    with_alone_depth=with_alone_depth)
+        background = self.backgrounds.sample(streams["background"], W, H)
+        rgb = composite(background, out.color, out.alpha)
+        rgb = post_process(streams["post"], rgb, self.cfg["post"])
+        depth = out.depth
+        if self.depth_noise:
+            depth = add_realsense_noise(out.depth, rgb, spec.K, streams["depth_noise"],
+                                        **noise_kwargs(self.cfg["depth_noise"]))
+        annotation, stats = annotate_frame(spec, out, self.class_name, self.target.cuboid_size,
+                                           self.target.cuboid_center)
+        return SynthFrame(index=int(index), rgb=rgb, depth=depth, depth_clean=out.depth, seg=out.seg,
+                          annotation=annotation, stats=stats, scene=spec, alone_depth=out.alone_depth)
+
+    def json_extra(self, frame: SynthFrame, seed: int | None = None) -> dict[str, Any]:
+        return frame.json_extra(self.seed if seed is None else seed, self.class_name, self.target.path.name,
+                                self.target.cuboid_size, self.target.cuboid_center,
+                                int(self.cfg["output"]["seg_distractor_base"]), self.depth_noise)
+
+    def write_frame(self, out_dir: str | os.PathLike, index: int) -> Path:
+        """Render frame ``index`` and write it (images first, JSON last)."""
+        frame = self.render_frame(index)
+        return write_frame(out_dir, index, frame.rgb, frame.depth, frame.seg, frame.annotation,
+                           extra=self.json_extra(frame))
+
+
+def render_frame(mesh_path: str | os.PathLike, index: int = 0, seed: int = 0,
+                 size: tuple[int, int] | str = (640, 480), config: str | os.PathLike | dict | None = None,
+                 force_occluder: int | None = None, **kwargs: Any) -> SynthFrame:
+    """One frame in memory (loads the mesh and opens a renderer: for many frames keep a
+    :class:`FrameGenerator`). ``kwargs`` go to FrameGenerator (class_name, backgrounds, ...)."""
+    with FrameGenerator(mesh_path, size=size, config=config, seed=seed, **kwargs) as gen:
+        return gen.render_frame(index, force_occluder=force_occluder)
+
+
+# --------------------------------------------------------------------------- datasets
+_WORKER: FrameGenerator | None = None
+_WORKER_OUT: Path | None = None
+
+
+def _init_worker(gen_kwargs: dict[str, Any], out_dir: str, threads: int) -> None:
+    global _WORKER, _WORKER_OUT
+    # Share the cores between the workers' software rasterizers (Mesa llvmpipe) instead of
+    # each one starting a thread per core (unless the user set these).
+    os.environ.setdefault("LP_NUM_THREADS", str(threads))
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    _WORKER = FrameGenerator(**gen_kwargs)
+    _WORKER_OUT = Path(out_dir)
+
+
+def _work(index: int) -> int:
+    assert _WORKER is not None and _WORKER_OUT is not None
+    _WORKER.write_frame(_WORKER_OUT, index)
+    return index
+
+
+@dataclass
+class GenerateSummary:
+    """What :func:`generate_dataset` did."""
+
+    out_dir: Path
+    written: int
+    skipped: int
+    seconds: float
+    preview: Path | None = None
+
+    @property
+    def frames_per_s(self) -> float:
+        return self.written / self.seconds if self.seconds > 0 else 0.0
+
+
+def dataset_info(gen_kwargs: dict[str, Any], cfg: dict[str, Any], class_name: str,
+                 cuboid_size: np.ndarray, cuboid_center: np.ndarray) -> dict[str, Any]:
+    """Settings that define a dataset's frames (must match when resuming or adding shards)."""
+    def name(p):
+        return None if p is None else Path(p).name
+
+    return {"generator": GENERATOR_NAME, "version": __version__, "class": class_name,
+            "mesh": name(gen_kwargs["mesh_path"]), "units": gen_kwargs.get("units"),
+            "seed": int(gen_kwargs["seed"]), "size": list(parse_size(gen_kwargs["size"])),
+            "backgrounds": name(gen_kwargs.get("backgrounds")),
+            "distractors": name(gen_kwargs.get("distractors")),
+            "depth_noise": bool(gen_kwargs.get("depth_noise")),
+            "cuboid_size_m": [float(v) for v in cuboid_size],
+            "cuboid_center_m": [float(v) for v in cuboid_center], "config": cfg}
+
+
+def generate_dataset(out_dir: str | os.PathLike, mesh_path: str | os.PathLike, count: int,
+                     seed: int = 0, size: tuple[int, int] | str = (640, 480),
+                     config: str | os.PathLike | dict | None = None, workers: int = 1,
+                     shard: tuple[int, int] | str | None = None,
+                     backgrounds: str | os.PathLike | None = None,
+                     distractors: str | os.PathLike | None = None, depth_noise: bool = False,
+                     preview: bool = False, class_name: str | None = None, units: str | None = None,
+                     progress: bool = True, indices: list[int] | None = None,
+                     on_frame: Callable[[int], None] | None = None) -> GenerateSummary:
+    """Generate frames 0..count-1 (those of this shard) into ``out_dir``.
+
+    Frames whose JSON exists are skipped (resume). With ``workers`` > 1, frames are rendered
+    by that many spawned processes, each with its own renderer; the frames are identical to
+    a single-process run. ``shard`` = (i, n) renders the frames with ``index % n == i``.
+
+    Args:
+        indices: explicit frame indices instead of range(count) (still filtered by shard).
+        on_frame: called with each frame index once it is written (in this process).
+
+    Returns:
+        A GenerateSummary (frames written / skipped, seconds, preview path).
+    """
+    from tqdm import tqdm
+
+    if count < 0:
+        raise ConfigError(f"--count must be >= 0, got {count}")
+    if workers < 1:
+        raise ConfigError(f"--workers must be >= 1, got {workers}")
+    i_shard, n_shard = parse_shard(shard)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    gen_kwargs = dict(mesh_path=str(mesh_path), size=parse_size(size), config=config,
+                      class_name=class_name, units=units,
+                      backgrounds=None if backgrounds is None else str(backgrounds),
+                      distractors=None if distractors is None else str(distractors),
+                      depth_noise=depth_noise, seed=int(seed))
+    # Validate inputs in this process (clear errors before any worker starts).
+    local = FrameGenerator(**gen_kwargs)
+    check_or_write_info(out, dataset_info(gen_kwargs, local.cfg, local.class_name,
+                                          local.target.cuboid_size, local.target.cuboid_center))
+    wanted = [i for i in (range(count) if indices is None else indices) if i % n_shard == i_shard]
+    todo = [i for i in wanted if not is_complete(out, i)]
+    remove_stale_temporaries(out, set(todo))
+    start = time.perf_counter()
+    bar = tqdm(total=len(todo), unit="frame", desc="synth", disable=not progress, dynamic_ncols=True)
+    try:
+        if workers == 1 or len(todo) <= 1:
+            for i in todo:
+                local.write_frame(out, i)
+                bar.update(1)
+                if on_frame is not None:
+                    on_frame(i)
+        else:
+            ctx = mp.get_context("spawn")
+            n_proc = min(workers, len(todo))
+            threads = max(1, (os.cpu_count() or 1) // n_proc)
+            with ctx.Pool(n_proc, initializer=_init_worker,
+                          initargs=(gen_kwargs, str(out), threads)) as pool:
+                for i in pool.imap_unordered(_work, todo, chunksize=1):
+                    bar.update(1)
+                    if on_frame is not None:
+                        on_frame(i)
+    finally:
+        bar.close()
+        local.close()
+    seconds = time.perf_counter() - start
+    preview_path = write_preview(out, wanted, int(local.cfg["output"]["preview_frames"])) if preview else None
+    return GenerateSummary(out, len(todo), len(wanted) - len(todo), seconds, preview_path)
+
+
+def write_preview(out_dir: str | os.PathLike, indices: list[int], max_frames: int = 16) -> Path | None:
+    """``preview.png``: a montage of up to ``max_frames`` written frames with their projected
+    cuboids (read back from disk, so it also checks what was written)."""
+    from dope_hope.io.dope_json import read_dope_json
+    from dope_hope.io.images import read_rgb, write_rgb
+    from dope_hope.viz import PALETTE, draw_cuboid, draw_label, montage
+
+    tiles = []
+    for i in sorted(indices)[:max_frames]:
+        paths = frame_paths(out_dir, i)
+        if not paths["json"].is_file():
+            continue
+        frame = read_dope_json(paths["json"])
+        img = read_rgb(paths["rgb"])
+        for k, obj in enumerate(frame.objects):
+            if obj.projected_cuboid is not None:
+                img = draw_cuboid(img, obj.projected_cuboid, PALETTE[k % len(PALETTE)])
+        vis = " ".join(f"{o.visibility:.2f}" for o in frame.objects if o.visibility is not None)
+        tiles.append(draw_label(img, f"{i:06d} vis {vis}"))
+    if not tiles:
+        return None
+    path = Path(out_dir) / "preview.png"
+    write_rgb(path, montage(tiles, cols=min(4, len(tiles))))
+    return path

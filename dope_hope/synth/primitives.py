@@ -1,0 +1,99 @@
+"""Procedural distractor shapes: boxes, cylinders, spheres and capsules with texture coordinates.
+
+trimesh builds the shapes; it gives them no uv, so each triangle gets a box (tri-planar)
+projection: the two coordinates across the dominant axis of its normal, in tiles of
+``tile_m`` metres. Vertices are split per triangle for that, and the smooth normals of the
+shared-vertex mesh are carried over so that curved shapes stay smooth.
+"""
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+#: Primitive kinds understood by :func:`make_primitive`.
+PRIMITIVE_KINDS = ("box", "cylinder", "sphere", "capsule")
+
+
+def primitive_shape(kind: str, dims: np.ndarray) -> trimesh.Trimesh:
+    """The untextured shape, centred at the origin, metres.
+
+    dims: box (3,) extents; cylinder (radius, height); sphere (radius,); capsule (radius, height
+    of the straight part).
+    """
+    if kind == "box":
+        return trimesh.creation.box(extents=dims)
+    if kind == "cylinder":
+        return trimesh.creation.cylinder(radius=float(dims[0]), height=float(dims[1]), sections=24)
+    if kind == "sphere":
+        return trimesh.creation.icosphere(subdivisions=2, radius=float(dims[0]))
+    if kind == "capsule":
+        return trimesh.creation.capsule(height=float(dims[1]), radius=float(dims[0]), count=[16, 12])
+    raise ValueError(f"unknown primitive kind {kind!r}; expected one of {PRIMITIVE_KINDS}")
+
+
+def sample_dims(rng: np.random.Generator, kind: str, size_m: tuple[float, float]) -> np.ndarray:
+    """Random dimensions for ``kind`` with every extent in ``size_m`` (metres)."""
+    lo, hi = size_m
+    if kind == "box":
+        return rng.uniform(lo, hi, size=3)
+    if kind in ("cylinder", "capsule"):
+        return np.array([rng.uniform(lo, hi) / 2.0, rng.uniform(lo, hi)])
+    return np.array([rng.uniform(lo, hi) / 2.0])
+
+
+def dims_for_radius(kind: str, radius: float, rng: np.random.Generator) -> np.ndarray:
+    """Dimensions whose bounding sphere (about the centre) has roughly ``radius`` metres."""
+    if kind == "box":
+        d = rng.uniform(0.5, 1.0, size=3)
+        return d / np.linalg.norm(d) * 2.0 * radius
+    if kind == "cylinder":
+        a = rng.uniform(0.2, 1.2)  # height / diameter
+        r = radius / np.hypot(1.0, a)
+        return np.array([r, 2.0 * r * a])
+    if kind == "capsule":
+        r = radius * rng.uniform(0.4, 0.8)
+        return np.array([r, 2.0 * (radius - r)])
+    return np.array([radius])
+
+
+def box_uv(vertices: np.ndarray, faces: np.ndarray,
+           tile_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Tri-planar texture coordinates with vertices split per triangle.
+
+    Args:
+        vertices: (V, 3) metres; faces: (F, 3); tile_m: metres per texture repeat.
+
+    Returns:
+        positions (3F, 3), uv (3F, 2), faces (F, 3) indexing the split vertices, and the index
+        (3F,) of the original vertex of each split vertex (for carrying normals).
+    """
+    tri = vertices[faces]                                   # (F, 3, 3)
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    axis = np.argmax(np.abs(n), axis=1)                     # dominant normal axis per face
+    keep = np.array([[1, 2], [0, 2], [0, 1]])[axis]         # the two in-plane axes
+    uv = np.take_along_axis(tri, keep[:, None, :].repeat(3, axis=1), axis=2) / tile_m
+    positions = tri.reshape(-1, 3)
+    split_faces = np.arange(3 * len(faces)).reshape(-1, 3)
+    return positions, uv.reshape(-1, 2), split_faces, faces.reshape(-1)
+
+
+def make_primitive(kind: str, dims: np.ndarray, tile_m: float = 0.1) -> trimesh.Trimesh:
+    """A primitive with smooth normals (flat on box faces and cylinder caps) and uv coordinates.
+
+    Returns:
+        trimesh.Trimesh in metres, centred at the origin; ``visual`` is TextureVisuals with uv
+        (the image is attached by the material, see materials.py); vertex normals set.
+    """
+    shape = primitive_shape(kind, np.asarray(dims, dtype=np.float64))
+    positions, uv, faces, src = box_uv(np.asarray(shape.vertices), np.asarray(shape.faces), tile_m)
+    if kind == "box":
+        normals = np.repeat(shape.face_normals, 3, axis=0)
+    else:
+        normals = np.asarray(shape.vertex_normals)[src]
+        if kind == "cylinder":  # flat caps: faces whose normal is along the axis
+            fn = np.repeat(shape.face_normals, 3, axis=0)
+            cap = np.abs(fn[:, 2]) > 0.99
+            normals[cap] = fn[cap]
+    mesh = trimesh.Trimesh(vertices=positions, faces=faces, vertex_normals=normals, process=False,
+                           visual=trimesh.visual.TextureVisuals(uv=uv))
+    return mesh

@@ -1,0 +1,744 @@
+"""The training loop: data, loss, optimizer + schedule, validation, checkpoints, resume, DDP.
+
+:func:`train` runs one job described by :class:`TrainJob` and a full config (sections
+``model``, ``input``, ``targets``, ``train``, ``augment``; see ``configs/lite.yaml``).
+
+* Loss: per stage, ``belief_weight * MSE(belief) + affinity_weight * MSE(affinity)``, summed
+  over stages (DOPE's deep supervision).
+* Optimizer Adam/AdamW; schedule ``constant | cosine | step`` with linear warm-up, as a
+  :class:`torch.optim.lr_scheduler.LambdaLR` whose horizon is the total number of steps (or,
+  under a time limit without an explicit step/epoch count, an estimate from the measured speed
+  that is refined after every epoch, so that the cosine reaches its floor when time runs out).
+* Validation after every epoch on held-out frames (``--val`` or a seeded split): loss and the
+  keypoint accuracy (fraction of visible GT keypoints with a prediction of the same keypoint
+  index within ``val_radius_px`` = 5 px at input scale; see :func:`keypoint_hits`).
+* Determinism and resume: the data order is a function of (seed, epoch) (EpochSampler), every
+  item of (seed, epoch, index); a checkpoint records model, optimizer, scheduler, step, epoch,
+  the batch position inside the epoch and the python/numpy/torch RNG states, so an interrupted
+  CPU run resumed from its checkpoint ends with the same weights as an uninterrupted one.
+* Ctrl-C / SIGTERM: finish the current step, write ``last.pt``, return ``interrupted``.
+* torchrun: DistributedDataParallel (gloo on CPU, nccl on CUDA) from RANK / WORLD_SIZE /
+  LOCAL_RANK; rank 0 alone logs and writes checkpoints.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import os
+import random
+import signal
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+import torch.nn.functional as F
+from torch import nn
+
+from dope_hope.config import merge
+from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
+from dope_hope.geometry import KEYPOINT_ORDER, NUM_KEYPOINTS
+from dope_hope.mapgrid import map_to_image
+from dope_hope.model.checkpoint import load_checkpoint, restore_rng_state, save_checkpoint
+
+log = logging.getLogger(__name__)
+
+#: Defaults of the ``train`` section (a config's values override them).
+TRAIN_DEFAULTS: dict[str, Any] = {
+    "batch_size": 16, "epochs": 30, "steps": None, "time_limit_min": None,
+    "optimizer": "adam", "lr": 1e-4, "weight_decay": 0.0, "betas": [0.9, 0.999],
+    "schedule": "constant", "warmup_steps": 0, "min_lr_factor": 0.01,
+    "step_epochs": 20, "step_gamma": 0.1,
+    "grad_clip": None, "loss": "mse", "belief_weight": 1.0, "affinity_weight": 1.0,
+    "workers": 2, "threads": None, "checkpoint_every": 1, "checkpoint_every_steps": 0,
+    "amp": True, "channels_last": True, "seed": 0,
+    "val_fraction": 0.1, "val_every": 1, "val_radius_px": 5.0, "val_peak_threshold": 0.1,
+    "val_batch_size": None, "max_instances": 8, "min_visibility": 0.0,
+    "include_empty_frames": True, "log_every": 20, "horizon_estimate_after": 20,
+}
+
+
+# =============================================================================== job + config
+@dataclass
+class TrainJob:
+    """What one ``dope-hope train`` call asks for (the config holds the recipe).
+
+    Attributes:
+        data: training folders (DOPE format).
+        object_name: class to train (case-insensitive match against the annotations).
+        out: output folder (checkpoints, metrics.csv / metrics.jsonl, summary.json).
+        val: validation folders, or empty for a seeded split of ``data``.
+        resume: checkpoint to continue from, or None.
+        mesh: optional mesh whose AABB gives the cuboid size recorded in the checkpoint.
+        backbone_weights: optional local VGG19 state dict (arch dope).
+        device: "auto" (CUDA when available), "cpu" or "cuda[:i]".
+        progress: show tqdm bars (rank 0).
+        overrides: nested config values set on the command line (``--epochs``, ``--set``...);
+            merged over the given config, or over the checkpoint's config when resuming.
+        on_step: hook called with (trainer, step) after every optimizer step (tests use it to
+            interrupt a run at a given step).
+    """
+
+    data: list[Path]
+    object_name: str
+    out: Path
+    val: list[Path] = field(default_factory=list)
+    resume: Path | None = None
+    mesh: Path | None = None
+    backbone_weights: Path | None = None
+    device: str = "auto"
+    progress: bool = True
+    overrides: dict[str, Any] = field(default_factory=dict)
+    on_step: Callable[[Trainer, int], None] | None = None
+
+
+def train_settings(config: dict[str, Any]) -> dict[str, Any]:
+    """The ``train`` section over :data:`TRAIN_DEFAULTS`; unknown keys raise ConfigError."""
+    section = dict(config.get("train") or {})
+    unknown = sorted(set(section) - set(TRAIN_DEFAULTS))
+    if unknown:
+        raise ConfigError(f"train: unknown key(s) {', '.join(unknown)}")
+    out = {**TRAIN_DEFAULTS, **section}
+    if out["schedule"] not in ("constant", "cosine", "step"):
+        raise ConfigError(f"train.schedule must be constant, cosine or step, got {out['schedule']!r}")
+    if out["optimizer"] not in ("adam", "adamw"):
+        raise ConfigError(f"train.optimizer must be adam or adamw, got {out['optimizer']!r}")
+    if out["loss"] != "mse":
+        raise ConfigError(f"train.loss must be mse, got {out['loss']!r}")
+    if int(out["batch_size"]) < 1:
+        raise ConfigError(f"train.batch_size must be >= 1, got {out['batch_size']!r}")
+    return out
+
+
+def input_hw(config: dict[str, Any]) -> tuple[int, int]:
+    """(H, W) training input size from ``input.size``."""
+    size = (config.get("input") or {}).get("size")
+    if size is None or len(size) != 2:
+        raise ConfigError("config needs input.size: [H, W]")
+    h, w = int(size[0]), int(size[1])
+    if h % 8 or w % 8 or h <= 0 or w <= 0:
+        raise ConfigError(f"input.size {size} must be positive multiples of 8")
+    return h, w
+
+
+# =============================================================================== schedule
+class LrLambda:
+    """Picklable lr factor of step: linear warm-up, then constant / cosine / step decay.
+
+    ``horizon`` (total steps) may be updated while training (time-limited runs); it is part
+    of the scheduler's state dict, so a resumed run continues with the same schedule.
+    """
+
+    def __init__(self, kind: str, horizon: int, warmup: int = 0, min_factor: float = 0.01,
+                 step_every: int = 1000, gamma: float = 0.1):
+        self.kind, self.horizon, self.warmup = kind, int(max(1, horizon)), int(warmup)
+        self.min_factor, self.step_every, self.gamma = float(min_factor), int(max(1, step_every)), float(gamma)
+
+    def __call__(self, step: int) -> float:
+        if self.warmup > 0 and step < self.warmup:
+            return (step + 1) / self.warmup
+        if self.kind == "cosine":
+            span = max(1, self.horizon - self.warmup)
+            p = min(1.0, (step - self.warmup) / span)
+            return self.min_factor + (1 - self.min_factor) * 0.5 * (1 + math.cos(math.pi * p))
+        if self.kind == "step":
+            return self.gamma ** (step // self.step_every)
+        return 1.0
+
+
+# =============================================================================== metrics
+def keypoint_hits(predicted: Sequence[np.ndarray], gt: np.ndarray, radius_px: float) -> tuple[int, int]:
+    """Count visible GT keypoints that a prediction of the same index finds.
+
+    Each predicted point of keypoint index k is matched to the nearest GT instance's keypoint
+    k; a GT keypoint is found when a point matched to it lies within ``radius_px``.
+
+    Args:
+        predicted: 9 arrays (m_k, 2) of predicted image pixels for keypoints 0..8.
+        gt: (I, 9, 2) GT image pixels, NaN = absent / outside the image.
+        radius_px: hit radius, input-image pixels.
+
+    Returns:
+        (found, visible).
+    """
+    found = visible = 0
+    for k in range(NUM_KEYPOINTS):
+        g = gt[:, k]
+        g = g[np.all(np.isfinite(g), axis=1)]
+        visible += len(g)
+        p = np.asarray(predicted[k], dtype=np.float64).reshape(-1, 2)
+        p = p[np.all(np.isfinite(p), axis=1)]
+        if len(g) == 0 or len(p) == 0:
+            continue
+        d = np.linalg.norm(p[:, None, :] - g[None, :, :], axis=2)  # (m, I)
+        nearest = d.argmin(1)
+        hit = np.zeros(len(g), bool)
+        close = d[np.arange(len(p)), nearest] <= radius_px
+        hit[nearest[close]] = True
+        found += int(hit.sum())
+    return found, visible
+
+
+def validation_hits(belief: np.ndarray, affinity: np.ndarray, gt: np.ndarray, stride: int,
+                    radius_px: float, threshold: float) -> tuple[int, int, int, int]:
+    """Keypoint hits of one image, two ways: (found, visible) for the raw belief peaks and for
+    the instances of :func:`dope_hope.decode.decode_maps`.
+
+    Both keep as many predictions as the image has GT instances with a visible keypoint (the
+    strongest peaks per keypoint index; the best-scoring decoded instances), so that a map
+    full of spurious peaks cannot score by chance.
+
+    Args:
+        belief: (9, h, w); affinity: (16, h, w); gt: (I, 9, 2) input pixels, NaN = not visible.
+        stride: map stride; radius_px: hit radius, input pixels; threshold: peak threshold.
+    """
+    from dope_hope.decode import decode_maps, find_peaks
+
+    n_inst = max(1, int(np.any(np.all(np.isfinite(gt), axis=2), axis=1).sum()))
+    peaks = find_peaks(belief, threshold)
+    pred = []
+    for k in range(NUM_KEYPOINTS):
+        sel = np.flatnonzero(peaks.channel == k)
+        sel = sel[np.argsort(-peaks.score[sel])[:n_inst]]
+        pred.append(map_to_image(peaks.xy[sel], stride))
+    found, visible = keypoint_hits(pred, gt, radius_px)
+    instances = decode_maps(belief, affinity, stride, threshold=threshold)[:n_inst]
+    pred_d = [np.array([inst.keypoints[k] for inst in instances]).reshape(-1, 2) for k in range(NUM_KEYPOINTS)]
+    found_d, visible_d = keypoint_hits(pred_d, gt, radius_px)
+    return found, visible, found_d, visible_d
+
+
+# =============================================================================== helpers
+def stage_loss(outputs: list[tuple[torch.Tensor, torch.Tensor]], belief: torch.Tensor,
+               affinity: torch.Tensor, belief_weight: float = 1.0, affinity_weight: float = 1.0) -> torch.Tensor:
+    """Sum over stages of weighted MSE(belief) + MSE(affinity), in float32."""
+    total = belief.new_zeros(())
+    for b, a in outputs:
+        total = total + belief_weight * F.mse_loss(b.float(), belief) + affinity_weight * F.mse_loss(a.float(), affinity)
+    return total
+
+
+def optimizer_step(model: nn.Module, optimizer: torch.optim.Optimizer, images: torch.Tensor, belief: torch.Tensor,
+                   affinity: torch.Tensor, amp: bool = False, belief_weight: float = 1.0,
+                   affinity_weight: float = 1.0, grad_clip: float | None = None) -> float:
+    """One training step: forward (bf16 autocast on CUDA when ``amp``), per-stage loss,
+    backward, optional global grad-norm clipping, optimizer step. Returns the loss."""
+    model.train()
+    with torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp):
+        outputs = model(images)
+    loss = stage_loss(outputs, belief, affinity, belief_weight, affinity_weight)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    if grad_clip:
+        torch.nn.utils.clip_grad_norm_(model.parameters(), float(grad_clip))
+    optimizer.step()
+    return float(loss.detach())
+
+
+def object_info(name: str, records: Sequence[Any], mesh: Path | None) -> tuple[dict[str, Any], str]:
+    """Checkpoint ``object`` entry (class_name, size_m in the mesh frame, frame "mesh") and
+    where the size came from: a mesh's AABB > the size the dataset records > the catalog."""
+    from dope_hope.catalog import get_object
+    from dope_hope.model.checkpoint import make_object_info
+
+    try:
+        hope = get_object(name)
+        name = hope.name
+    except UnknownObjectError:
+        hope = None
+    if mesh is not None:
+        from dope_hope.io.meshes import load_mesh, mesh_cuboid
+        size, _ = mesh_cuboid(load_mesh(mesh))
+        return make_object_info(name, size, "mesh"), f"mesh {Path(mesh).name}"
+    from dope_hope.data import recorded_cuboid_size
+
+    for r in [r for r in records if len(r.keypoints)][:5]:
+        size = recorded_cuboid_size(r.json_path, name)
+        if size is not None:
+            return make_object_info(name, size, "mesh"), f"dataset {r.json_path.name}"
+    if hope is None:
+        raise ConfigError(f"cannot tell the cuboid size of {name!r}: the dataset records none and it is "
+                          "not a HOPE object; pass --mesh")
+    return make_object_info(name, hope.size_array, "mesh"), "catalog"
+
+
+class MetricsLog:
+    """Scalars to ``metrics.csv`` + ``metrics.jsonl`` (+ TensorBoard when installed); rank 0."""
+
+    COLUMNS = ("event", "step", "epoch", "time_s", "lr", "loss", "images_per_s",
+               "val_loss", "val_kp_acc", "val_kp_acc_decoded")
+
+    def __init__(self, out: Path, enabled: bool):
+        self.enabled = enabled
+        self.out = out
+        self.tb = None
+        if not enabled:
+            return
+        self.csv_path = out / "metrics.csv"
+        self.jsonl_path = out / "metrics.jsonl"
+        if not self.csv_path.exists():
+            with self.csv_path.open("w", newline="") as f:
+                csv.writer(f).writerow(self.COLUMNS)
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+            self.tb = SummaryWriter(str(out / "tensorboard"))
+        except ImportError:  # tensorboard is optional
+            self.tb = None
+
+    def write(self, event: str, **values: Any) -> None:
+        if not self.enabled:
+            return
+        row = {"event": event, **values}
+        with self.csv_path.open("a", newline="") as f:
+            csv.writer(f).writerow(["" if row.get(c) is None else row.get(c) for c in self.COLUMNS])
+        with self.jsonl_path.open("a") as f:
+            f.write(json.dumps(row) + "\n")
+        if self.tb is not None:
+            for k, v in values.items():
+                if k not in ("step", "epoch") and isinstance(v, (int, float)) and v is not None:
+                    self.tb.add_scalar(f"{event}/{k}", v, values.get("step", 0))
+
+    def close(self) -> None:
+        if self.tb is not None:
+            self.tb.close()
+
+
+# =============================================================================== distributed
+@dataclass
+class DistInfo:
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+    @property
+    def active(self) -> bool:
+        return self.world_size > 1
+
+
+def init_distributed(device: str) -> tuple[DistInfo, torch.device]:
+    """Join a torchrun job (env RANK, WORLD_SIZE, LOCAL_RANK) or run single-process."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    info = DistInfo(int(os.environ.get("RANK", "0")), world, int(os.environ.get("LOCAL_RANK", "0")))
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError("--device cuda: no CUDA device available")
+        dev = torch.device("cuda", info.local_rank if info.active else (dev.index or 0))
+        torch.cuda.set_device(dev)
+    if info.active and not dist.is_initialized():
+        dist.init_process_group("nccl" if dev.type == "cuda" else "gloo", init_method="env://")
+    return info, dev
+
+
+# =============================================================================== trainer
+class Trainer:
+    """One training job; :meth:`run` returns a summary dict (see :func:`train`)."""
+
+    def __init__(self, job: TrainJob, config: dict[str, Any]):
+        from dope_hope.data import AugmentParams, DopeDataset, EpochSampler, scan_frames, split_records
+        from dope_hope.model.network import build_model
+
+        self.job = job
+        self.dist, self.device = init_distributed(job.device)
+        if not self.dist.main:  # rank 0 alone reports (skipped files, progress, results)
+            logging.getLogger("dope_hope").setLevel(logging.ERROR)
+        self.out = Path(job.out)
+        self.stop_reason: str | None = None
+        self._signal_count = 0
+
+        ck = None
+        if job.resume is not None:
+            ck = load_checkpoint(job.resume)
+            config = ck.get("config") or config
+            saved_job = _extra(ck).get("job") or {}
+            if not job.data:
+                job.data = [Path(p) for p in saved_job.get("data", [])]
+                job.val = job.val or [Path(p) for p in saved_job.get("val", [])]
+            if not job.object_name:
+                job.object_name = str(saved_job.get("object", ""))
+            if job.mesh is None and saved_job.get("mesh"):
+                job.mesh = Path(saved_job["mesh"])
+            if not job.data or not job.object_name:
+                raise ConfigError(f"{job.resume} does not record its data folders / object; pass --data and --object")
+        config = merge(config, job.overrides)
+        self.config = config
+        self.ts = train_settings(config)
+        ts = self.ts
+        if ts["threads"]:
+            torch.set_num_threads(int(ts["threads"]))
+        self.seed = int(ts["seed"])
+        if ck is None:
+            random.seed(self.seed)
+            np.random.seed(self.seed % (2**32))
+            torch.manual_seed(self.seed)
+
+        # ---- data
+        hw = input_hw(config)
+        tcfg = config.get("targets") or {}
+        self.model = build_model(config)  # before the data: stride comes from the model
+        if job.backbone_weights is not None:
+            from dope_hope.model.network import load_backbone_weights
+            load_backbone_weights(self.model, job.backbone_weights)
+        stride = int(self.model.stride)
+        scan = dict(min_visibility=float(ts["min_visibility"]), include_empty=bool(ts["include_empty_frames"]),
+                    progress=job.progress and self.dist.main)
+        records, _ = scan_frames(job.data, job.object_name, KEYPOINT_ORDER, **scan)
+        if not any(len(r.keypoints) for r in records):
+            folders = ", ".join(str(p) for p in job.data)
+            raise InputFileError(folders, f"no annotated instance of class {job.object_name!r}")
+        if job.val:
+            val_records, _ = scan_frames(job.val, job.object_name, KEYPOINT_ORDER, **scan)
+            if not val_records:
+                raise InputFileError(", ".join(str(p) for p in job.val), "no readable validation frames")
+        else:
+            records, val_records = split_records(records, float(ts["val_fraction"]), self.seed)
+        common = dict(input_hw=hw, stride=stride, sigma=float(tcfg.get("sigma", 2.0)),
+                      radius=float(tcfg.get("radius", 1.0)), seed=self.seed, max_instances=int(ts["max_instances"]))
+        self.train_set = DopeDataset(records, augment=AugmentParams.from_config(config.get("augment")), **common)
+        self.val_set = DopeDataset(val_records, augment=AugmentParams(enabled=False), **common)
+        self.batch_size = int(ts["batch_size"])
+        if len(self.train_set) < self.batch_size * self.dist.world_size:
+            raise ConfigError(f"{len(self.train_set)} training frames are fewer than one batch "
+                              f"({self.batch_size} x {self.dist.world_size} processes); lower --batch-size")
+        self.sampler = EpochSampler(len(self.train_set), self.seed, True, self.dist.rank, self.dist.world_size)
+        self.val_sampler = EpochSampler(len(self.val_set), self.seed, False, self.dist.rank, self.dist.world_size)
+        self.steps_per_epoch = len(self.sampler) // self.batch_size
+        self.object, self.size_source = object_info(job.object_name, records, job.mesh)
+
+        # ---- model, optimizer, schedule
+        self.model.to(self.device)
+        self.cuda = self.device.type == "cuda"
+        self.channels_last = self.cuda and bool(ts["channels_last"])
+        self.amp = self.cuda and bool(ts["amp"])
+        if self.channels_last:
+            self.model.to(memory_format=torch.channels_last)
+        opt_cls = torch.optim.AdamW if ts["optimizer"] == "adamw" else torch.optim.Adam
+        self.optimizer = opt_cls(self.model.parameters(), lr=float(ts["lr"]),
+                                 weight_decay=float(ts["weight_decay"]), betas=tuple(ts["betas"]))
+        self.epochs = int(ts["epochs"])
+        self.total_steps = int(ts["steps"]) if ts["steps"] else self.epochs * self.steps_per_epoch
+        if ts["steps"]:
+            self.epochs = math.ceil(self.total_steps / self.steps_per_epoch)
+        self.time_limit_s = float(ts["time_limit_min"]) * 60.0 if ts["time_limit_min"] else None
+        # Under a time limit the schedule spans the time (estimated), unless steps were given.
+        self.estimate_horizon = self.time_limit_s is not None and not ts["steps"]
+        self.lr_lambda = LrLambda(ts["schedule"], self.total_steps, int(ts["warmup_steps"]), float(ts["min_lr_factor"]),
+                                  int(ts["step_epochs"]) * self.steps_per_epoch, float(ts["step_gamma"]))
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, self.lr_lambda)
+
+        self.step = 0
+        self.epoch = 0
+        self.batch_in_epoch = 0
+        self.best_acc = -1.0
+        self.last_val: dict[str, Any] = {}
+        self.val_done_epoch = -1
+        self._time_used_before = 0.0
+        if ck is not None:
+            self._restore(ck)
+        self.ddp_model: nn.Module = self.model
+        if self.dist.active:
+            self.ddp_model = nn.parallel.DistributedDataParallel(
+                self.model, device_ids=[self.device.index] if self.cuda else None)
+
+    # ------------------------------------------------------------------ checkpoints
+    def _restore(self, ck: dict[str, Any]) -> None:
+        self.model.load_state_dict(ck["model"])
+        if ck.get("optimizer") is not None:
+            self.optimizer.load_state_dict(ck["optimizer"])
+        if ck.get("scheduler") is not None:
+            self.scheduler.load_state_dict(ck["scheduler"])
+        self.step = int(ck.get("step", 0))
+        self.epoch = int(ck.get("epoch", 0))
+        extra = _extra(ck)
+        self.batch_in_epoch = int(extra.get("batch_in_epoch", 0))
+        self.best_acc = float(extra.get("best_acc", -1.0))
+        self.val_done_epoch = int(extra.get("val_done_epoch", -1))
+        if self.batch_in_epoch < self.steps_per_epoch and self.val_done_epoch == self.epoch:
+            self.val_done_epoch = -1  # stopped mid-epoch: validate again when the epoch ends
+        self._time_used_before = float(extra.get("time_used_s", 0.0))
+        if ck.get("rng"):
+            restore_rng_state(ck["rng"])
+        # the scheduler's state restored lr_lambda's attributes; steps / epochs given now win
+        if not self.estimate_horizon:
+            self.lr_lambda.horizon = max(1, self.total_steps)
+        if self.dist.main:
+            log.info("resumed from %s at step %d (epoch %d, batch %d)", self.job.resume, self.step, self.epoch, self.batch_in_epoch)
+
+    def save(self, name: str) -> Path:
+        """Write ``out/name`` atomically (rank 0 only); returns its path."""
+        path = self.out / name
+        if not self.dist.main:
+            return path
+        extra = {
+            "batch_in_epoch": self.batch_in_epoch, "best_acc": self.best_acc, "val_done_epoch": self.val_done_epoch,
+"time_used_s": self._time_used_before + self.elapsed(), "size_source": self.size_source,
+            "val": {k: v for k, v in self.last_val.items() if isinstance(v, (int, float))},
+            "world_size": self.dist.world_size,
+            "job": {"data": [str(p) for p in self.job.data], "val": [str(p) for p in self.job.val],
+                    "object": self.job.object_name, "mesh": str(self.job.mesh) if self.job.mesh else None},
+        }
+        save_checkpoint(path, self.model, self.config, self.object, optimizer=self.optimizer,
+                        scheduler=self.scheduler, step=self.step, epoch=self.epoch, extra=extra)
+        return path
+
+    # ------------------------------------------------------------------ control
+    def elapsed(self) -> float:
+        return time.monotonic() - self._t0
+
+    def request_stop(self, reason: str = "interrupted") -> None:
+        """Stop after the current step (what Ctrl-C / SIGTERM do)."""
+        self.stop_reason = self.stop_reason or reason
+
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        self._signal_count += 1
+        if self._signal_count > 1:
+            raise KeyboardInterrupt
+        self.request_stop("interrupted" if signum == signal.SIGINT else "terminated")
+
+    def _agree_stop(self) -> bool:
+        """True on every rank when any rank wants to stop (time limit, signal)."""
+        if self.time_limit_s is not None and self.elapsed() >= self.time_limit_s and self.stop_reason is None:
+            self.stop_reason = "time_limit"
+        if not self.dist.active:
+            return self.stop_reason is not None
+        reasons = (None, "time_limit", "terminated", "interrupted")
+        t = torch.tensor([reasons.index(self.stop_reason)], dtype=torch.int32, device=self.device if self.cuda else "cpu")
+        dist.all_reduce(t, op=dist.ReduceOp.MAX)
+        self.stop_reason = reasons[int(t.item())]
+        return self.stop_reason is not None
+
+    def _update_horizon(self) -> None:
+        """Time-limited run: make the schedule end when the time runs out (speed measured so far)."""
+        if not self.estimate_horizon or self._steps_this_run == 0:
+            return
+        per_step = self.elapsed() / self._steps_this_run
+        remaining = max(0.0, self.time_limit_s - self.elapsed())
+        horizon = self.step + int(remaining / max(per_step, 1e-9))
+        if self.dist.active:
+            t = torch.tensor([horizon], dtype=torch.int64)
+            dist.broadcast(t, 0)
+            horizon = int(t.item())
+        self.lr_lambda.horizon = max(self.step + 1, min(horizon, self.total_steps))
+
+    def _loader(self, dataset: Any, sampler: Any, batch_size: int, drop_last: bool) -> torch.utils.data.DataLoader:
+        from dope_hope.data import collate
+
+        workers = int(self.ts["workers"])
+        return torch.utils.data.DataLoader(
+            dataset, batch_size=batch_size, sampler=sampler, num_workers=workers, collate_fn=collate,
+            drop_last=drop_last, pin_memory=self.cuda, persistent_workers=False,
+            multiprocessing_context="fork" if workers > 0 and os.name == "posix" else None)
+
+    def _report_bad(self, files: list[str]) -> None:
+        from dope_hope.data import report_bad_file
+
+        for f in files:
+            report_bad_file(f, "unreadable image, replaced by another frame")
+
+    # ------------------------------------------------------------------ steps
+    def _to_device(self, x: torch.Tensor, image: bool = False) -> torch.Tensor:
+        x = x.to(self.device, non_blocking=True)
+        if image and self.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        return x
+
+    def _forward(self, model: nn.Module, images: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.amp):
+            return model(images)
+
+    def train_step(self, batch: dict[str, Any]) -> float:
+        images = self._to_device(batch["image"], image=True)
+        belief, affinity = self._to_device(batch["belief"]), self._to_device(batch["affinity"])
+        loss = optimizer_step(self.ddp_model, self.optimizer, images, belief, affinity, amp=self.amp,
+                              belief_weight=float(self.ts["belief_weight"]),
+                              affinity_weight=float(self.ts["affinity_weight"]), grad_clip=self.ts["grad_clip"])
+        self.scheduler.step()
+        return loss
+
+    @torch.no_grad()
+    def validate(self) -> dict[str, Any]:
+        """Loss and keypoint accuracy on the validation frames (all ranks; summed across)."""
+        self.model.eval()
+        stride = int(self.model.stride)
+        radius = float(self.ts["val_radius_px"])
+        thr = float(self.ts["val_peak_threshold"])
+        sums = torch.zeros(6, dtype=torch.float64)  # loss*n, n, found, visible, found_dec, visible_dec
+        self.val_sampler.set_epoch(0)
+        bs = int(self.ts["val_batch_size"] or self.batch_size)
+        for batch in self._loader(self.val_set, self.val_sampler, bs, drop_last=False):
+            self._report_bad(batch["bad_files"])
+            images = self._to_device(batch["image"], image=True)
+            outputs = self._forward(self.model, images)
+            n = images.shape[0]
+            loss = stage_loss(outputs, self._to_device(batch["belief"]), self._to_device(batch["affinity"]),
+                              float(self.ts["belief_weight"]), float(self.ts["affinity_weight"]))
+            sums[0] += float(loss) * n
+            sums[1] += n
+            belief = outputs[-1][0].float().cpu().numpy()
+            affinity = outputs[-1][1].float().cpu().numpy()
+            gt = batch["keypoints"].numpy().astype(np.float64)
+            for i in range(n):
+                f, v, fd, vd = validation_hits(belief[i], affinity[i], gt[i], stride, radius, thr)
+                sums[2:] += torch.tensor([f, v, fd, vd], dtype=torch.float64)
+        if self.dist.active:
+            t = sums.to(self.device if self.cuda else "cpu")
+            dist.all_reduce(t)
+            sums = t.cpu()
+        s = sums.tolist()
+        return {
+            "val_loss": s[0] / max(s[1], 1),
+            "val_kp_acc": s[2] / s[3] if s[3] else float("nan"),
+            "val_kp_acc_decoded": s[4] / s[5] if s[5] else float("nan"),
+            "val_frames": int(s[1]), "val_keypoints": int(s[3]), "val_radius_px": radius,
+        }
+
+    def _end_of_epoch(self) -> None:
+        every = int(self.ts["val_every"])
+        last_epoch = self.epoch + 1 >= self.epochs or self.step >= self.total_steps or self.stop_reason is not None
+        if (every > 0 and ((self.epoch + 1) % every == 0 or last_epoch)) or (every > 0 and self.stop_reason == "time_limit"):
+            self.last_val = self.validate()
+            self.val_done_epoch = self.epoch
+            if self.dist.main:
+                self.metrics.write("val", step=self.step, epoch=self.epoch, time_s=round(self._time_used_before + self.elapsed(), 2),
+                                   **{k: self.last_val[k] for k in ("val_loss", "val_kp_acc", "val_kp_acc_decoded")})
+                log.info("epoch %d step %d: val loss %.5f, keypoint accuracy %.3f", self.epoch, self.step,
+                         self.last_val["val_loss"], self.last_val["val_kp_acc"])
+                acc = self._primary_acc()
+                if acc is not None and acc > self.best_acc:
+                    self.best_acc = acc
+                    self.save("best.pt")
+
+    def _primary_acc(self) -> float | None:
+        a = self.last_val.get("val_kp_acc_decoded")
+        if a is None or not math.isfinite(a):
+            a = self.last_val.get("val_kp_acc")
+        return a if a is not None and math.isfinite(a) else None
+
+    # ------------------------------------------------------------------ loop
+    def run(self) -> dict[str, Any]:
+        self._t0 = time.monotonic()
+        self._steps_this_run = 0
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.metrics = MetricsLog(self.out, self.dist.main)
+        handlers = {}
+        try:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                handlers[sig] = signal.signal(sig, self._on_signal)
+        except ValueError:  # not the main thread: no signal handling
+            handlers = {}
+        try:
+            self._loop()
+        finally:
+            for sig, h in handlers.items():
+                signal.signal(sig, h)
+            self.metrics.close()
+        status = self.stop_reason or "completed"
+        summary = {
+            "status": status, "step": self.step, "epoch": self.epoch, "total_steps": self.total_steps,
+            "elapsed_s": round(self.elapsed(), 2), "train_frames": len(self.train_set), "val_frames": len(self.val_set),
+            "best_val_kp_acc": self.best_acc if self.best_acc >= 0 else None, **self.last_val,
+            "object": self.object, "last": str(self.out / "last.pt"), "rank": self.dist.rank,
+        }
+        if self.dist.main:
+            from dope_hope.io.atomic import atomic_write_text
+            atomic_write_text(self.out / "summary.json", json.dumps(summary, indent=2, default=str))
+        if self.dist.active:
+            dist.barrier()
+        return summary
+
+    def _loop(self) -> None:
+        from tqdm import tqdm
+
+        ts = self.ts
+        log_every = max(1, int(ts["log_every"]))
+        ck_steps = int(ts["checkpoint_every_steps"] or 0)
+        ck_epochs = int(ts["checkpoint_every"] or 0)
+        bar = tqdm(total=self.total_steps, initial=self.step, disable=not (self.job.progress and self.dist.main),
+                   unit="step", dynamic_ncols=True, desc="train")
+        run_loss, run_n, t_log = 0.0, 0, time.monotonic()
+        try:
+            while self.epoch < self.epochs and self.step < self.total_steps and self.stop_reason is None:
+                if self.batch_in_epoch < self.steps_per_epoch:
+                    self.sampler.set_epoch(self.epoch, skip=self.batch_in_epoch * self.batch_size)
+                    loader = self._loader(self.train_set, self.sampler, self.batch_size, drop_last=True)
+                    it = iter(loader)
+                    while self.batch_in_epoch < self.steps_per_epoch and self.step < self.total_steps:
+                        try:
+                            batch = next(it)
+                        except StopIteration:
+                            break
+                        except RuntimeError:
+                            if self.stop_reason is not None:  # a worker died of the same Ctrl-C
+                                break
+                            raise
+                        self._report_bad(batch["bad_files"])
+                        loss = self.train_step(batch)
+                        self.step += 1
+                        self.batch_in_epoch += 1
+                        self._steps_this_run += 1
+                        run_loss += loss
+                        run_n += 1
+                        bar.update(1)
+                        if self._steps_this_run == int(ts["horizon_estimate_after"]):
+                            self._update_horizon()
+                        if self.step % log_every == 0 and self.dist.main:
+                            dt = time.monotonic() - t_log
+                            ips = run_n * self.batch_size * self.dist.world_size / max(dt, 1e-9)
+                            lr = self.optimizer.param_groups[0]["lr"]
+                            self.metrics.write("train", step=self.step, epoch=self.epoch, lr=lr,
+                                               loss=run_loss / run_n, images_per_s=round(ips, 2),
+                                               time_s=round(self._time_used_before + self.elapsed(), 2))
+                            bar.set_postfix(loss=f"{run_loss / run_n:.4f}", lr=f"{lr:.2e}", img_s=f"{ips:.1f}")
+                            run_loss, run_n, t_log = 0.0, 0, time.monotonic()
+                        if self.job.on_step is not None:
+                            self.job.on_step(self, self.step)
+                        if ck_steps and self.step % ck_steps == 0:
+                            self.save("last.pt")
+                        if self._agree_stop():
+                            break
+                    del it, loader
+                if self.stop_reason in ("interrupted", "terminated"):
+                    break
+                # the epoch's batches are done (or the step / time budget ran out inside it)
+                if self.val_done_epoch != self.epoch:
+                    self._end_of_epoch()
+                if self.step >= self.total_steps or self.stop_reason is not None:
+                    break
+                self.epoch += 1
+                self.batch_in_epoch = 0
+                self._update_horizon()
+                if ck_epochs and self.epoch % ck_epochs == 0:
+                    self.save("last.pt")
+                self._agree_stop()
+        finally:
+            bar.close()
+        self.save("last.pt")
+
+
+def _extra(ck: dict[str, Any]) -> dict[str, Any]:
+    extra = ck.get("extra")
+    return extra if isinstance(extra, dict) else {}
+
+
+def train(job: TrainJob, config: dict[str, Any]) -> dict[str, Any]:
+    """Run a training job; returns the summary (status completed | time_limit | interrupted |
+    terminated, step, epoch, validation numbers, object, path of last.pt)."""
+    trainer = None
+    try:
+        trainer = Trainer(job, config)
+        return trainer.run()
+    finally:
+        if dist.is_available() and dist.is_initialized():
+            dist.destroy_process_group()

@@ -1,0 +1,150 @@
+"""decode: peaks, sub-pixel positions, grouping corners to centroids through the affinity."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.ndimage import gaussian_filter
+from scipy.spatial.transform import Rotation
+
+from dope_hope.catalog import get_object
+from dope_hope.decode import Instance2D, assign_corners, decode_maps
+from dope_hope.geometry import cuboid_keypoints, intrinsics_matrix, project_points, scale_intrinsics
+from dope_hope.targets import head_defaults, make_targets
+
+# A 640x480 camera seen through a 400x300 network input ("the 400-px scale").
+K400 = scale_intrinsics(intrinsics_matrix(615.0, 615.0, 319.5, 239.5), 400 / 640, 300 / 480)
+HW = (300, 400)
+
+
+def _match(instances: list[Instance2D], kp: np.ndarray) -> list[int]:
+    """Index of the ground-truth instance nearest to each decoded centroid."""
+    return [int(np.argmin(np.linalg.norm(kp[:, 8] - inst.keypoints[8], axis=1))) for inst in instances]
+
+
+def _scene(seed: int = 0) -> np.ndarray:
+    cub = cuboid_keypoints(get_object("Popcorn").size_array)
+    ts = [np.array([-0.15, 0.02, 0.7]), np.array([0.06, -0.06, 0.9]), np.array([0.2, 0.09, 0.6])]
+    Rs = Rotation.random(3, random_state=seed).as_matrix()
+    return np.stack([project_points(cub, K400, R, t) for R, t in zip(Rs, ts)])
+
+
+@pytest.mark.parametrize("stride", [8, 1])
+def test_every_instance_comes_back_with_its_own_keypoints(stride):
+    kp = _scene()
+    b, a = make_targets(kp, HW, stride)
+    inst = decode_maps(b, a, stride)
+    assert len(inst) == 3
+    assert sorted(_match(inst, kp)) == [0, 1, 2]
+    for i, j in zip(inst, _match(inst, kp)):
+        assert i.present.all()
+        np.testing.assert_allclose(i.keypoints, kp[j], atol=0.05)
+        np.testing.assert_allclose(i.scores, 1.0, atol=1e-3)  # fitted Gaussian height
+        assert i.score == pytest.approx(i.scores.sum() / 9)
+
+
+def test_missing_keypoints_stay_nan_with_zero_score():
+    kp = _scene()
+    kp[:, [0, 3, 5]] = np.nan
+    b, a = make_targets(kp, HW, 8)
+    inst = decode_maps(b, a, 8)
+    assert len(inst) == 3
+    for i in inst:
+        assert i.present.tolist() == [False, True, True, False, True, False, True, True, True]
+        assert np.all(i.scores[[0, 3, 5]] == 0)
+        assert i.score == pytest.approx(6 / 9, abs=1e-3)
+
+
+def test_torch_tensors_and_a_batch_of_one_decode_like_numpy():
+    kp = _scene(1)
+    b, a = make_targets(kp, HW, 8)
+    ref = decode_maps(b, a, 8)
+    got = decode_maps(torch.from_numpy(b)[None], torch.from_numpy(a)[None], 8)
+    assert len(got) == len(ref) == 3
+    for r, g in zip(ref, got):
+        np.testing.assert_allclose(g.keypoints, r.keypoints)
+    with pytest.raises(ValueError, match="one image at a time"):
+        decode_maps(torch.from_numpy(np.stack([b, b])), torch.from_numpy(np.stack([a, a])), 8)
+    with pytest.raises(ValueError):
+        decode_maps(b[:8], a, 8)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_noise_below_the_threshold_gives_no_detection(seed):
+    """What a network outputs on background: weak, smooth or speckled, under the threshold."""
+    rng = np.random.default_rng(seed)
+    smooth = gaussian_filter(rng.normal(size=(9, 37, 50)), (0, 1.5, 1.5))
+    belief = 0.06 * np.abs(smooth) / np.abs(smooth).max() + rng.uniform(0, 0.03, (9, 37, 50))
+    affinity = rng.normal(0, 1, (16, 37, 50))
+    assert decode_maps(belief.astype(np.float32), affinity.astype(np.float32), 8) == []
+    assert decode_maps(np.zeros((9, 37, 50)), np.zeros((16, 37, 50)), 8) == []
+
+
+def test_threshold_drops_weak_keypoints():
+    kp = _scene()
+    b, a = make_targets(kp, HW, 8)
+    b[2] *= 0.3  # corner 2 only weakly believed
+    assert all(i.present[2] for i in decode_maps(b, a, 8, threshold=0.1))
+    assert not any(i.present[2] for i in decode_maps(b, a, 8, threshold=0.5))
+
+
+def test_corners_whose_field_points_away_from_every_centroid_are_not_assigned():
+    kp = _scene()[:1]
+    b, a = make_targets(kp, HW, 8)
+    assert decode_maps(b, a, 8)[0].present.all()
+    inst = decode_maps(b, -a, 8)  # every vector reversed
+    assert len(inst) == 1
+    assert inst[0].present.tolist() == [False] * 8 + [True]
+    assert decode_maps(b, -a, 8, min_keypoints=2) == []
+
+
+def test_a_corner_nearer_to_another_centroid_follows_its_field():
+    """Nearest centroid alone would give corner A to B; the angle test keeps it with A."""
+    centroids = np.array([[10.0, 10.0], [22.0, 10.0]])  # A, B (map px)
+    corners = np.array([[17.0, 10.0], [22.0, 16.0]])     # A's (nearer to B!), B's
+    vectors = np.array([[-1.0, 0.0], [0.0, -1.0]])       # A's points left, B's up
+    owner = assign_corners(corners.astype(int), corners, vectors, centroids)
+    assert owner.tolist() == [0, 1]
+    # Without a usable field (below min_affinity) nothing is assigned.
+    assert assign_corners(corners.astype(int), corners, 0.01 * vectors, centroids,
+                          min_affinity=0.1).tolist() == [-1, -1]
+
+
+def test_two_corners_of_one_type_never_go_to_the_same_instance():
+    centroids = np.array([[10.0, 10.0]])
+    corners = np.array([[14.0, 10.0], [15.0, 11.0]])
+    vectors = centroids - corners
+    owner = assign_corners(corners.astype(int), corners, vectors, centroids)
+    assert sorted(owner.tolist()) == [-1, 0] and owner[0] == 0  # the nearer one wins
+
+
+@pytest.mark.parametrize("stride", [8, 1])
+def test_two_touching_instances_are_not_merged(stride):
+    """Two soup cans side by side (boxes sharing a face) at 1 m: centroids 25 px apart."""
+    size = get_object("AlphabetSoup").size_array
+    cub = cuboid_keypoints(size)
+    R = Rotation.from_euler("xyz", [20, 10, 5], degrees=True).as_matrix()
+    ts = [np.array([0, 0, 1.0]) + R @ np.array([s * size[0] / 2, 0, 0]) for s in (-1, 1)]
+    kp = np.stack([project_points(cub, K400, R, t) for t in ts])
+    assert np.linalg.norm(kp[0, 8] - kp[1, 8]) < 4 * 8  # closer than 4 cells at stride 8
+    b, a = make_targets(kp, HW, stride)
+    inst = decode_maps(b, a, stride)
+    assert len(inst) == 2 and sorted(_match(inst, kp)) == [0, 1]
+    for i, j in zip(inst, _match(inst, kp)):
+        assert i.present.all()
+        np.testing.assert_allclose(i.keypoints, kp[j], atol=0.05)
+    if stride == 8:
+        # DOPE's own smoothing (sigma 3 map px) merges them: why the default is smaller.
+        assert len(decode_maps(b, a, stride, smooth_sigma=3.0)) < 2
+
+
+def test_refinement_on_the_smoothed_map_stays_within_a_pixel():
+    kp = _scene(2)
+    _, radius = head_defaults(8)
+    b, a = make_targets(kp, HW, 8, sigma=2.0, radius=radius)
+    inst = decode_maps(b, a, 8, refine_on="smoothed")
+    assert len(inst) == 3
+    for i, j in zip(inst, _match(inst, kp)):
+        assert np.abs(i.keypoints - kp[j]).max() < 1.0
+    with pytest.raises(ValueError):
+        decode_maps(b, a, 8, refine_on="centroid")

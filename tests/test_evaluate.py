@@ -1,0 +1,355 @@
+"""Evaluation: matching rules, BOP19 scoring rules, and `dope-hope evaluate` end to end."""
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from dope_hope import evaluate as ev
+from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
+from dope_hope.catalog import get_object
+from dope_hope.cli import main
+from dope_hope.errors import InputFileError
+from dope_hope.io.dope_json import write_dope_json
+from dope_hope.io.images import write_depth_mm, write_rgb
+from dope_hope.io.predictions import prediction_record, write_predictions_jsonl
+
+K = np.array([[60.0, 0.0, 39.5], [0.0, 60.0, 29.5], [0.0, 0.0, 1.0]])
+W, H = 80, 60
+
+
+def rot(axis: str, deg: float) -> np.ndarray:
+    return Rotation.from_euler(axis, deg, degrees=True).as_matrix()
+
+
+# ----------------------------------------------------------------------------- matching
+def test_greedy_match_takes_estimates_by_descending_score_and_the_least_error_gt():
+    errors = np.array([[1.5, 9.0],    # low score: only close to GT 0
+                       [1.0, 2.0]])   # high score: closest to GT 0, also close to GT 1
+    m = ev.greedy_match(errors, np.array([0.2, 0.9]), threshold=3.0)
+    # the high-scoring estimate takes GT 0; the other one finds GT 1 too far -> unmatched
+    assert m.tolist() == [-1, 0]
+    # with scores swapped, the first estimate takes GT 0 and the second falls back on GT 1
+    assert ev.greedy_match(errors, np.array([0.9, 0.2]), threshold=3.0).tolist() == [0, 1]
+
+
+def test_greedy_match_threshold_is_strict_and_matching_one_to_one():
+    assert ev.greedy_match(np.array([[2.0]]), np.array([1.0]), 2.0).tolist() == [-1]
+    assert ev.greedy_match(np.array([[2.0]]), np.array([1.0]), 2.0 + 1e-9).tolist() == [0]
+    both = ev.greedy_match(np.array([[0.0], [0.0]]), np.array([0.5, 0.6]), 1.0)
+    assert both.tolist() == [-1, 0]
+    assert ev.greedy_match(np.zeros((2, 0)), np.ones(2), 1.0).tolist() == [-1, -1]
+
+
+# ----------------------------------------------------------------------------- BOP rules
+def target(errors, scores, vis=None, inst_count=1, kind="mssd"):
+    errors = np.asarray(errors, dtype=float)
+    vis = np.ones(errors.shape[1]) if vis is None else np.asarray(vis, dtype=float)
+    return ev.BopTarget(inst_count, np.asarray(scores, dtype=float), vis, {kind: errors})
+
+
+def test_bop_rule_correct_only_strictly_below_the_threshold():
+    rec = ev.bop_recalls([target([[0.1]], [1.0])], "mssd", [0.1, 0.15])
+    assert rec.tolist() == [0.0, 1.0]
+
+
+def test_bop_rule_only_the_top_inst_count_estimates_are_evaluated():
+    # the best-scoring estimate is wrong, the second one is perfect: inst_count = 1 -> missed
+    t = target([[0.5], [0.0]], [0.9, 0.5], inst_count=1)
+    assert ev.bop_recalls([t], "mssd", [0.2]).tolist() == [0.0]
+    t2 = target([[0.5], [0.0]], [0.9, 0.5], vis=[1.0], inst_count=2)  # 2 evaluated, 1 GT
+    assert ev.bop_recalls([t2], "mssd", [0.2]).tolist() == [1.0]
+
+
+def test_bop_rule_one_to_one_matching():
+    # two perfect estimates of the same GT, the other GT far away: one true positive of two
+    t = target([[0.0, 1.0], [0.0, 1.0]], [0.9, 0.8], inst_count=2)
+    assert ev.bop_recalls([t], "mssd", [0.2]).tolist() == [0.5]
+
+
+def test_bop_rule_only_the_inst_count_most_visible_gt_are_valid():
+    # the estimate matches the less visible GT; only the most visible one is a target
+    t = target([[0.0, 1.0]], [0.9], vis=[0.2, 0.9], inst_count=1)
+    assert ev.bop_recalls([t], "mssd", [0.2]).tolist() == [0.0]
+
+
+def test_bop_recall_pools_targets_and_vsd_has_one_row_per_tau():
+    a = target([[0.0]], [1.0])
+    b = target([[0.3]], [1.0])
+    np.testing.assert_allclose(ev.bop_recalls([a, b], "mssd", [0.1, 0.5]), [0.5, 1.0])
+    v = ev.BopTarget(1, np.ones(1), np.ones(1), {"vsd": np.array([[[0.0, 0.4, 1.0]]])})
+    rec = ev.bop_recalls([v], "vsd", [0.1, 0.5])
+    assert rec.shape == (3, 2)
+    assert rec.tolist() == [[1.0, 1.0], [0.0, 1.0], [0.0, 0.0]]
+
+
+def test_bop_rule_mssd_short_cut_when_translation_error_reaches_the_diameter():
+    # a small box far from the model origin: a rotation about the origin plus a 1 m shift
+    # puts it exactly onto itself (MSSD 0 with its symmetry), but |t_e - t_g| >= diameter
+    o = np.array([0.5, 0.0, 0.0])
+    size = np.array([0.04, 0.02, 0.03])
+    pts = ev.metrics.transform_pts(np.random.default_rng(0).uniform(-size / 2, size / 2, (200, 3)),
+                                   np.eye(3), o)
+    S = np.eye(4)
+    S[:3, :3] = rot("z", 180)
+    S[:3, 3] = o - rot("z", 180) @ o  # 180° about the box's own z axis
+    model = ev.ObjectModel("box", None, "cuboid", pts, float(np.linalg.norm(size)),
+                           np.stack([np.eye(4), S]))
+    R_g, t_g = np.eye(3), np.array([0.0, 0.0, 2.0])
+    R_e, t_e = rot("z", 180), t_g + np.array([1.0, 0.0, 0.0])
+    assert ev.metrics.mssd(R_e, t_e, R_g, t_g, pts, model.symmetries) == pytest.approx(0, abs=1e-12)
+    assert ev.bop_mssd_error(R_e, t_e, R_g, t_g, model) == math.inf
+    # below the diameter the error is the normalized MSSD
+    assert ev.bop_mssd_error(R_g, t_g + [0.01, 0, 0], R_g, t_g, model) == pytest.approx(
+        0.01 / model.diameter)
+
+
+def test_bop_mspd_is_scaled_to_width_640():
+    model = ev.ObjectModel("box", None, "cuboid", np.array([[0.0, 0, 0], [0.01, 0, 0]]), 0.01,
+                           np.eye(4)[None])
+    t = np.array([0.0, 0.0, 1.0])
+    e = ev.bop_mspd_error(np.eye(3), t + [0.01, 0, 0], np.eye(3), t, K, 1280, model)
+    assert e == pytest.approx(60.0 * 0.01 * 640 / 1280)
+
+
+# ----------------------------------------------------------------------------- end to end
+GT = {  # frame -> [(class, R, t, visibility)]
+    0: [("Ketchup", rot("y", 30), [-0.15, 0.0, 0.9], 0.9), ("Milk", rot("x", 90), [0.15, 0.0, 1.0], 0.8)],
+    1: [("Ketchup", rot("z", 10), [0.0, 0.05, 0.8], 0.7), ("Tuna", np.eye(3), [0.15, 0.0, 0.9], 0.05)],
+    2: [("Milk", np.eye(3), [-0.2, 0.0, 1.1], 1.0), ("Milk", rot("y", 90), [0.2, 0.0, 1.1], 0.6)],
+}
+
+
+def write_dataset(folder, with_depth=False):
+    folder.mkdir(parents=True, exist_ok=True)
+    renderer = ev.metrics.DepthRenderer() if with_depth else None
+    for k, objs in GT.items():
+        anns = [ObjectAnnotation(c, R, np.array(t, dtype=float), visibility=v) for c, R, t, v in objs]
+        write_rgb(folder / f"{k:06d}.png", np.zeros((H, W, 3), np.uint8))
+        if with_depth:
+            depth = np.zeros((H, W))
+            for a in anns:
+                import trimesh
+
+                d = renderer.render_depth(trimesh.creation.box(extents=get_object(a.class_name).size_array),
+                                          a.R, a.t, K, W, H)
+                depth = np.where((d > 0) & ((depth == 0) | (d < depth)), d, depth)
+            write_depth_mm(folder / f"{k:06d}.depth.png", depth)
+        write_dope_json(folder / f"{k:06d}.json", FrameAnnotation(folder / f"{k:06d}.json", K, W, H, anns))
+    if renderer is not None:
+        renderer.close()
+    return folder
+
+
+def shifted(k, i, shift, score=0.9, **kw):
+    c, R, t, _ = GT[k][i]
+    return prediction_record(f"{k:06d}.png", c, score, R, np.array(t) + np.array(shift), **kw)
+
+
+def predictions_mixed():
+    return [
+        shifted(0, 0, [0, 0, 0], ls_applied=True),           # Ketchup perfect
+        shifted(0, 1, [0.054, 0, 0], ls_applied=False),      # Milk 5.4 cm
+        # frame 1 Ketchup: missing
+        shifted(1, 1, [0, 0.012, 0]),                        # Tuna 1.2 cm
+        shifted(2, 0, [0, 0, 0], score=0.8),                 # Milk perfect
+        shifted(2, 1, [0, 0, 0.033], score=0.3),             # Milk 3.3 cm
+        prediction_record("000002", "Ketchup", 0.5, np.eye(3), [0.0, 0.0, 1.0]),  # false positive
+    ]
+
+
+def read_rows(path):
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_end_to_end_recall_precision_table_and_curves(tmp_path, capsys):
+    data = write_dataset(tmp_path / "data")
+    pred_path = tmp_path / "mixed.jsonl"
+    write_predictions_jsonl(pred_path, predictions_mixed(), method="mixed")
+    perfect = [shifted(k, i, [0, 0, 0]) for k in GT for i in range(len(GT[k]))]
+    perfect_path = tmp_path / "perfect.jsonl"
+    write_predictions_jsonl(perfect_path, perfect)
+    out = tmp_path / "out"
+    rc = main(["evaluate", "--predictions", str(pred_path), str(perfect_path), "--dataset", str(data),
+               "--metric", "addh,add", "--out", str(out), "--no-progress"])
+    assert rc == 0
+    printed = capsys.readouterr().out
+    assert "procedural" in printed
+
+    rows = {r["object"]: r for r in read_rows(out / "per_object_mixed.csv")}
+    exp = {  # object: (gt, det, P@2, R@2, P@10, R@10, median TP error @10 cm)
+        "Ketchup": (2, 2, 0.5, 0.5, 0.5, 0.5, 0.0),
+        "Milk": (3, 3, 1 / 3, 1 / 3, 1.0, 1.0, 3.3),
+        "Tuna": (1, 1, 1.0, 1.0, 1.0, 1.0, 1.2),
+    }
+    for name, (gt, det, p2, r2, p10, r10, med) in exp.items():
+        r = rows[name]
+        assert (int(r["gt"]), int(r["detections"])) == (gt, det)
+        got = [float(r[k]) for k in ("precision_2cm", "recall_2cm", "precision_10cm", "recall_10cm",
+                                     "median_tp_error_cm")]
+        np.testing.assert_allclose(got, [p2, r2, p10, r10, med], atol=1e-9)
+    assert rows["Milk"]["category"] == "cuboid" and rows["Tuna"]["category"] == "cylinder"
+    assert float(rows["Tuna"]["visibility"]) == pytest.approx(0.05)
+    assert float(rows["Milk"]["distance_cm"]) == pytest.approx(100 * np.mean(
+        [np.linalg.norm(GT[0][1][2]), 110.0 / 100 * np.sqrt(1 + (0.2 / 1.1) ** 2),
+         110.0 / 100 * np.sqrt(1 + (0.2 / 1.1) ** 2)]), rel=1e-9)
+    # pixels: silhouette area; the exact silhouette of a box is the hull of its projected corners
+    from scipy.spatial import ConvexHull
+
+    from dope_hope.geometry import cuboid_keypoints, project_points
+
+    corners = cuboid_keypoints(get_object("Milk").size_array)[:8]
+    exact = np.mean([ConvexHull(project_points(corners, K, R, np.array(t))).volume
+                     for c, R, t, _ in GT[0] + GT[2] if c == "Milk"])
+    assert float(rows["Milk"]["pixels_area_px2"]) == pytest.approx(exact, rel=0.1)
+    means = {r["object"]: r for r in read_rows(out / "per_object_mixed.csv") if r["row"] == "mean"}
+    assert set(means) == {"cylinder", "cuboid", "bottle", "overall"}
+    assert float(means["overall"]["recall_2cm"]) == pytest.approx((0.5 + 1 / 3 + 1.0) / 3)
+    assert float(means["overall"]["recall_10cm"]) == pytest.approx((0.5 + 1.0 + 1.0) / 3)
+    perfect_rows = read_rows(out / "per_object_perfect.csv")
+    assert all(float(r["recall_2cm"]) == 1.0 and float(r["precision_2cm"]) == 1.0 for r in perfect_rows)
+
+    md = (out / "per_object_mixed.md").read_text()
+    for label in ("**cylinder (mean of objects)**", "**cuboid (mean of objects)**",
+                  "**bottle (mean of objects)**", "**overall (mean of objects)**", "| Ketchup |"):
+        assert label in md
+    assert "procedural cuboid" in md and "ADD-H" in md
+
+    curve = [r for r in read_rows(out / "detection_rate.csv")
+             if r["method"] == "mixed" and r["metric"] == "addh" and r["group"] == "overall"]
+    rate = {float(r["threshold_cm"]): float(r["detection_rate"]) for r in curve}
+    assert len(rate) == 20 and min(rate) == 0.5 and max(rate) == 10.0
+    expected = {0.5: 2, 1.0: 2, 1.5: 3, 3.0: 3, 3.5: 4, 5.0: 4, 5.5: 5, 10.0: 5}
+    for th, n in expected.items():
+        assert rate[th] == pytest.approx(n / 6), th
+    groups = {r["group"] for r in read_rows(out / "detection_rate.csv")}
+    assert {"overall", "cylinder", "cuboid", "bottle", "Ketchup", "Milk", "Tuna"} <= groups
+    png = (out / "detection_rate.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["methods"]) == {"mixed", "perfect"}
+    assert summary["methods"]["mixed"]["bop19"] is None  # not a BOP dataset, no --bop-ar
+
+
+def test_end_to_end_bop_average_recall_without_depth(tmp_path):
+    data = write_dataset(tmp_path / "data")
+    pred_path = tmp_path / "mixed.jsonl"
+    write_predictions_jsonl(pred_path, predictions_mixed())
+    s = ev.run_evaluation(ev.EvalConfig(predictions=[pred_path], dataset=data, out=tmp_path / "o",
+                                        bop_ar=True), log=lambda _: None)
+    bop = s["methods"]["mixed"]["bop19"]
+    assert bop["ar_vsd"] is None and any("AR_VSD skipped" in n for n in bop["notes"])
+    # targets: visibility >= 0.1 (the 5 %-visible Tuna is not one): 5 GT instances
+    assert bop["gt_valid"] == 5
+    d_milk = get_object("Milk").diameter
+    errs = [0.0, 0.054 / d_milk, 0.0, 0.033 / d_milk]  # MSSD of pure translations / diameter
+    expected = [sum(e < th for e in errs) / 5 for th in ev.BOP19_MSSD_THRESHOLDS]
+    np.testing.assert_allclose(bop["recalls"]["mssd"], expected)
+    assert bop["ar_mssd"] == pytest.approx(np.mean(expected))
+    assert bop["ar"] == pytest.approx((bop["ar_mssd"] + bop["ar_mspd"]) / 2)
+    md = (tmp_path / "o" / "per_object_mixed.md").read_text()
+    assert "BOP19 average recall" in md and "skipped" in md
+
+
+def test_end_to_end_bop_average_recall_with_depth_perfect_predictions(tmp_path):
+    data = write_dataset(tmp_path / "data", with_depth=True)
+    perfect = [shifted(k, i, [0, 0, 0]) for k in GT for i in range(len(GT[k]))]
+    pred_path = tmp_path / "perfect.jsonl"
+    write_predictions_jsonl(pred_path, perfect)
+    s = ev.run_evaluation(ev.EvalConfig(predictions=[pred_path], dataset=data, out=tmp_path / "o",
+                                        bop_ar=True), log=lambda _: None)
+    bop = s["methods"]["perfect"]["bop19"]
+    assert bop["ar_vsd"] == pytest.approx(1.0)
+    assert bop["ar"] == pytest.approx(1.0)
+    # move every estimate 30 cm sideways: nothing is correct any more
+    far = [shifted(k, i, [0.3, 0, 0]) for k in GT for i in range(len(GT[k]))]
+    write_predictions_jsonl(pred_path, far)
+    s = ev.run_evaluation(ev.EvalConfig(predictions=[pred_path], dataset=data, out=tmp_path / "o",
+                                        bop_ar=True), log=lambda _: None)
+    assert s["methods"]["perfect"]["bop19"]["ar"] == pytest.approx(0.0)
+
+
+def test_unknown_image_and_ambiguous_mesh_are_user_errors(tmp_path, capsys):
+    data = write_dataset(tmp_path / "data")
+    bad = tmp_path / "bad.jsonl"
+    write_predictions_jsonl(bad, [prediction_record("nope.png", "Milk", 1, np.eye(3), [0, 0, 1])])
+    assert main(["evaluate", "-p", str(bad), "-d", str(data), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "line 1: image 'nope.png' is not in the dataset" in err and "\n" == err[-1] and err.count("\n") == 1
+    ok = tmp_path / "ok.jsonl"
+    write_predictions_jsonl(ok, predictions_mixed())
+    mesh = tmp_path / "thing.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    assert main(["evaluate", "-p", str(ok), "-d", str(data), "--mesh", str(mesh),
+                 "--out", str(tmp_path / "o")]) == 2
+    assert "NAME=PATH" in capsys.readouterr().err
+
+
+def test_mesh_models_use_the_mesh_and_centre_the_catalog_symmetries(tmp_path):
+    import trimesh
+
+    mesh_path = tmp_path / "Tuna.ply"
+    trimesh.creation.cylinder(radius=0.042, height=0.034, sections=48).apply_transform(
+        trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0])).apply_translation(
+        [0.0, 0.0, 0.01]).export(mesh_path)
+    models = ev.load_models(["Tuna", "Milk"], [str(mesh_path)], mesh_units="m")
+    tuna, milk = models["Tuna"], models["Milk"]
+    assert tuna.source == f"mesh {mesh_path}" and not tuna.procedural
+    assert milk.procedural and milk.source.startswith("procedural cuboid")
+    assert tuna.points.shape == (500, 3)
+    assert tuna.diameter == pytest.approx(np.hypot(0.084, 0.034), rel=0.02)
+    # the mesh is centred at z = 0.01: its symmetries turn about that centre, so a rotation of
+    # the object about its own (vertical) axis costs nothing under MeanSSD
+    R_e = rot("y", 57)
+    t_e = np.array([0.0, 0.0, 0.01]) - R_e @ np.array([0.0, 0.0, 0.01])
+    assert ev.metrics.mean_ssd(R_e, t_e, np.eye(3), np.zeros(3), tuna.points,
+                               tuna.symmetries) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_dataset_without_frames_is_an_input_error(tmp_path):
+    with pytest.raises(InputFileError, match="no dope-format frames"):
+        ev.load_dataset(tmp_path, "dope")
+
+
+def write_bop_dataset(root):
+    """hope/test/000001 with one image: two Ketchup instances (visibility 0.9 and 0.5)."""
+    scene = root / "test" / "000001"
+    (scene / "rgb").mkdir(parents=True)
+    write_rgb(scene / "rgb" / "000000.png", np.zeros((H, W, 3), np.uint8))
+    poses = [(np.eye(3), [-0.1, 0.0, 0.9]), (rot("y", 90), [0.12, 0.0, 1.0])]
+    (scene / "scene_camera.json").write_text(json.dumps(
+        {"0": {"cam_K": K.ravel().tolist(), "depth_scale": 1.0}}))
+    (scene / "scene_gt.json").write_text(json.dumps({"0": [
+        {"obj_id": 11, "cam_R_m2c": R.ravel().tolist(), "cam_t_m2c": (1000 * np.array(t)).tolist()}
+        for R, t in poses]}))
+    (scene / "scene_gt_info.json").write_text(json.dumps({"0": [
+        {"visib_fract": v, "bbox_visib": [0, 0, 10, 10]} for v in (0.9, 0.5)]}))
+    (root / "test_targets_bop19.json").write_text(json.dumps(
+        [{"scene_id": 1, "im_id": 0, "obj_id": 11, "inst_count": 1}]))
+    return poses
+
+
+@pytest.mark.parametrize("scores,expected", [((0.9, 0.5), 1.0), ((0.5, 0.9), 0.0)])
+def test_bop_dataset_with_targets_file_and_csv_predictions(tmp_path, scores, expected):
+    from dope_hope.io.bop_csv import BopEstimate, write_bop_csv
+
+    poses = write_bop_dataset(tmp_path / "hope")
+    # two perfect estimates, one per instance; inst_count = 1 keeps only the top-scoring one,
+    # and only the most visible instance (the first) is a valid target
+    csv_path = tmp_path / "mine_hope-test.csv"
+    write_bop_csv(csv_path, [BopEstimate(1, 0, 11, s, R, np.array(t), 0.1)
+                             for s, (R, t) in zip(scores, poses)])
+    s = ev.run_evaluation(ev.EvalConfig(predictions=[csv_path], dataset=tmp_path / "hope", fmt="bop",
+                                        out=tmp_path / "o"), log=lambda _: None)
+    bop = s["methods"]["mine"]["bop19"]
+    assert bop["targets"] == 1 and bop["gt_valid"] == 1
+    assert bop["ar_mssd"] == pytest.approx(expected) and bop["ar_mspd"] == pytest.approx(expected)
+    assert bop["ar_vsd"] is None
+    # the HOPE table counts both instances and both detections
+    row = read_rows(tmp_path / "o" / "per_object_mine.csv")[0]
+    assert (row["object"], row["gt"], row["recall_2cm"]) == ("Ketchup", "2", "1.0")

@@ -1,0 +1,126 @@
+"""dope_hope.io.meshes: units, textures, errors, surface sampling, cuboid and diameter."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from dope_hope.catalog import get_object
+from dope_hope.errors import DopeHopeError, InputFileError
+from dope_hope.io.meshes import (
+    load_mesh,
+    mesh_cuboid,
+    mesh_diameter,
+    sample_surface_points,
+)
+
+
+@pytest.fixture(scope="module")
+def ketchup(ketchup_obj):
+    return load_mesh(ketchup_obj)
+
+
+def test_ketchup_obj_loads_in_metres_with_texture(ketchup):
+    size, center = mesh_cuboid(ketchup)
+    # shared/data README: extents x 6.45, y 14.86, z 4.34 cm
+    np.testing.assert_allclose(size, [0.0645, 0.1486, 0.0434], atol=2e-4)
+    np.testing.assert_allclose(center, 0.0, atol=1e-4)  # HOPE meshes are box-centred
+    assert isinstance(ketchup.visual, trimesh.visual.TextureVisuals)
+    assert ketchup.visual.uv.shape == (len(ketchup.vertices), 2)
+    assert ketchup.visual.material.image.size == (2048, 2048)
+
+
+def test_units_override_and_ply_default_mm(tmp_path, ketchup_obj):
+    in_m = load_mesh(ketchup_obj, units="m")
+    in_cm = load_mesh(ketchup_obj)
+    np.testing.assert_allclose(in_m.extents, in_cm.extents * 100.0, rtol=1e-9)
+    box = trimesh.creation.box(extents=[10.0, 20.0, 30.0])  # "millimetres"
+    box.export(tmp_path / "box.ply")
+    np.testing.assert_allclose(load_mesh(tmp_path / "box.ply").extents, [0.01, 0.02, 0.03])
+    np.testing.assert_allclose(load_mesh(tmp_path / "box.ply", units="cm").extents, [0.1, 0.2, 0.3])
+
+
+def test_multi_part_obj_is_one_mesh(tmp_path):
+    a = trimesh.creation.box(extents=[1, 1, 1])
+    b = trimesh.creation.box(extents=[1, 1, 1])
+    b.apply_translation([3, 0, 0])
+    trimesh.Scene({"a": a, "b": b}).export(tmp_path / "two.obj")
+    mesh = load_mesh(tmp_path / "two.obj")  # cm
+    assert isinstance(mesh, trimesh.Trimesh)
+    assert len(mesh.faces) == 24
+    np.testing.assert_allclose(mesh.extents, [0.04, 0.01, 0.01], atol=1e-9)
+
+
+@pytest.mark.parametrize("content", [None, b"", b"this is not a mesh\n\x00\x01", b"v 1 2 3\n"])
+def test_missing_or_corrupt_mesh_names_the_file(tmp_path, content):
+    path = tmp_path / "broken.obj"
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(InputFileError) as err:
+        load_mesh(path)
+    assert str(path) in str(err.value)
+    assert isinstance(err.value, DopeHopeError)
+
+
+def test_unknown_unit_is_an_input_error(ketchup_obj):
+    with pytest.raises(InputFileError, match="unit"):
+        load_mesh(ketchup_obj, units="inch")
+
+
+def test_sample_surface_points_deterministic_on_surface_and_spread(ketchup):
+    pts = sample_surface_points(ketchup, 500, seed=0)
+    assert pts.shape == (500, 3)
+    np.testing.assert_array_equal(pts, sample_surface_points(ketchup, 500, seed=0))
+    assert not np.array_equal(pts, sample_surface_points(ketchup, 500, seed=1))
+    # a subset of the dense area-weighted surface sample (10000 points for n = 500), each
+    # point inside its triangle's plane
+    dense, faces = trimesh.sample.sample_surface(ketchup, 10000, seed=0)
+    dist, idx = cKDTree(dense).query(pts)
+    assert dist.max() == 0.0
+    tri = ketchup.triangles[faces[idx]]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    assert np.abs(np.einsum("ij,ij->i", pts - tri[:, 0], normal)).max() < 1e-9
+    # farthest-point spread: the nearest-neighbour gap is far more uniform than for a
+    # random subset of the same size
+    rand = trimesh.sample.sample_surface(ketchup, 500, seed=0)[0]
+    nn_fps = cKDTree(pts).query(pts, k=2)[0][:, 1]
+    nn_rand = cKDTree(rand).query(rand, k=2)[0][:, 1]
+    assert nn_fps.min() > 3 * nn_rand.min()
+    assert nn_fps.std() / nn_fps.mean() < nn_rand.std() / nn_rand.mean()
+    # and covers the whole bottle: the sample's box is the mesh's box within a few mm
+    np.testing.assert_allclose(pts.min(0), ketchup.bounds[0], atol=4e-3)
+    np.testing.assert_allclose(pts.max(0), ketchup.bounds[1], atol=4e-3)
+
+
+def test_mesh_diameter_matches_brute_force_and_box():
+    box = trimesh.creation.box(extents=[0.03, 0.04, 0.12])
+    assert mesh_diameter(box) == pytest.approx(0.13, abs=1e-12)
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(300, 3))
+    brute = np.max(np.linalg.norm(pts[:, None] - pts[None], axis=-1))
+    assert mesh_diameter(pts) == pytest.approx(brute, rel=1e-12)
+    # degenerate (flat) point set still works
+    flat = np.c_[rng.normal(size=(50, 2)), np.zeros(50)]
+    brute = np.max(np.linalg.norm(flat[:, None] - flat[None], axis=-1))
+    assert mesh_diameter(flat) == pytest.approx(brute, rel=1e-12)
+
+
+def test_ketchup_mesh_matches_catalog_and_y_is_vertical(ketchup):
+    size, _ = mesh_cuboid(ketchup)
+    np.testing.assert_allclose(size, get_object("Ketchup").size_array, atol=5e-4)
+    assert int(np.argmax(size)) == 1  # y: the bottle's vertical axis is its longest
+    d = mesh_diameter(ketchup)
+    assert size.max() < d <= np.linalg.norm(size)
+
+
+def test_texture_reaches_pyrender(ketchup):
+    """The loaded visuals are what pyrender needs to texture the mesh (no GL context used)."""
+    from dope_hope._gl import import_pyrender
+
+    pyrender = import_pyrender()
+    prim = pyrender.Mesh.from_trimesh(ketchup).primitives[0]
+    assert prim.material.baseColorTexture is not None
+    assert prim.texcoord_0.shape == (len(ketchup.vertices), 2)
+    np.testing.assert_allclose(prim.positions.max(0), ketchup.bounds[1], atol=1e-6)  # metres

@@ -1,0 +1,286 @@
+"""Pose error metrics: ADD family (ADD-H exact), symmetry-aware errors, VSD, BOP symmetries."""
+from __future__ import annotations
+
+import itertools
+import json
+import math
+
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial.distance import cdist
+from scipy.spatial.transform import Rotation
+
+from dope_hope import metrics
+from dope_hope.catalog import category_symmetries
+
+I3 = np.eye(3)
+Z3 = np.zeros(3)
+
+
+def rot(axis: str, deg: float) -> np.ndarray:
+    return Rotation.from_euler(axis, deg, degrees=True).as_matrix()
+
+
+def ring_cylinder(radius=0.035, height=0.1, n_angles=36, n_levels=5) -> np.ndarray:
+    """Points on a cylinder about y, on a regular angular grid (rotation-invariant by 10°)."""
+    a = np.radians(np.arange(n_angles) * 360.0 / n_angles)
+    ys = np.linspace(-height / 2, height / 2, n_levels)
+    return np.array([[radius * math.cos(t), y, radius * math.sin(t)] for y in ys for t in a])
+
+
+def box_points(size=(0.06, 0.1, 0.04), n=400, seed=0) -> np.ndarray:
+    return np.asarray(trimesh.sample.sample_surface(trimesh.creation.box(extents=size), n,
+                                                    seed=seed)[0])
+
+
+def brute_force_assignment(a: np.ndarray, b: np.ndarray) -> float:
+    return min(np.linalg.norm(a - b[list(p)], axis=1).mean()
+               for p in itertools.permutations(range(len(a))))
+
+
+# ----------------------------------------------------------------------------- ADD family
+def test_cylinder_rotated_about_its_axis_meanssd_and_addh_vanish_but_add_does_not():
+    pts = ring_cylinder()
+    R_g, t_g = rot("x", 20), np.array([0.02, -0.01, 0.7])
+    R_e = R_g @ rot("y", 40)  # a multiple of the 10° grid and of the 1° symmetry step
+    syms = category_symmetries("cylinder")
+    assert metrics.add(R_e, t_g, R_g, t_g, pts) > 0.02
+    assert metrics.addh(R_e, t_g, R_g, t_g, pts) == pytest.approx(0.0, abs=1e-12)
+    assert metrics.mean_ssd(R_e, t_g, R_g, t_g, pts, syms) == pytest.approx(0.0, abs=1e-12)
+    assert metrics.mssd(R_e, t_g, R_g, t_g, pts, syms) == pytest.approx(0.0, abs=1e-12)
+    # without the symmetry list MeanSSD is plain ADD
+    assert metrics.mean_ssd(R_e, t_g, R_g, t_g, pts, None) == pytest.approx(
+        metrics.add(R_e, t_g, R_g, t_g, pts))
+
+
+def test_addh_is_small_for_the_500_point_sample_of_a_rotated_cylinder():
+    from dope_hope.io.meshes import sample_surface_points
+
+    mesh = trimesh.creation.cylinder(radius=0.035, height=0.1, sections=64)
+    pts = sample_surface_points(mesh, 500)  # what evaluate uses (farthest-point sample)
+    R_e = rot("z", 73)  # trimesh's cylinder axis is z
+    add = metrics.add(R_e, Z3, I3, Z3, pts)
+    assert add > 0.03
+    assert metrics.addh(R_e, Z3, I3, Z3, pts) < 0.005  # about half the point spacing
+
+
+@settings(max_examples=25, deadline=None)
+@given(rv=st.lists(st.floats(-3, 3), min_size=3, max_size=3),
+       tv=st.lists(st.floats(-0.1, 0.1), min_size=3, max_size=3),
+       n=st.integers(5, 60), seed=st.integers(0, 1000))
+def test_adds_le_addh_le_add(rv, tv, n, seed):
+    pts = np.random.default_rng(seed).normal(scale=0.03, size=(n, 3))
+    R_e = Rotation.from_rotvec(rv).as_matrix()
+    t_e = np.array(tv)
+    args = (R_e, t_e, rot("y", 10), np.array([0.0, 0.0, 0.5]), pts)
+    s, h, a = metrics.adds(*args), metrics.addh(*args), metrics.add(*args)
+    assert s <= h + 1e-12
+    assert h <= a + 1e-12
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_addh_equals_brute_force_optimal_assignment(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 7))
+    pts = rng.normal(scale=0.05, size=(n, 3))
+    R_e = Rotation.random(random_state=seed).as_matrix()
+    t_e = rng.normal(scale=0.03, size=3)
+    a = pts @ I3.T
+    b = pts @ R_e.T + t_e
+    assert metrics.addh(R_e, t_e, I3, Z3, pts) == pytest.approx(brute_force_assignment(a, b), abs=1e-12)
+
+
+@pytest.mark.parametrize("deg,shift", [(30, 0.02), (120, 0.05), (180, 0.3)])
+def test_addh_fast_path_matches_plain_linear_sum_assignment_at_500_points(deg, shift, monkeypatch):
+    calls = []
+    warm = metrics._warm_potentials
+    monkeypatch.setattr(metrics, "_warm_potentials", lambda *a: calls.append(1) or warm(*a))
+    pts = box_points(n=500, seed=1)
+    R_e = Rotation.from_rotvec(np.radians(deg) * np.array([0.6, 0.0, 0.8])).as_matrix()
+    t_e = np.array([shift, -shift / 2, 0.0])
+    a, b = pts, pts @ R_e.T + t_e
+    C = cdist(a, b)
+    r, c = linear_sum_assignment(C)
+    assert metrics.addh(R_e, t_e, I3, Z3, pts) == pytest.approx(C[r, c].mean(), abs=1e-12)
+    assert calls, "the warm-started path was not exercised"
+
+
+def test_assignment_is_a_permutation_and_reaches_the_reported_value():
+    rng = np.random.default_rng(5)
+    a, b = rng.normal(size=(300, 3)), rng.normal(size=(300, 3))
+    value, perm = metrics.assignment_distance(a, b, return_assignment=True)
+    assert sorted(perm) == list(range(300))
+    assert np.linalg.norm(a - b[perm], axis=1).mean() == pytest.approx(value, abs=1e-14)
+
+
+def test_addh_of_a_pure_translation_is_the_translation_length():
+    pts = box_points()
+    t = np.array([0.03, -0.04, 0.0])
+    assert metrics.addh(I3, t, I3, Z3, pts) == pytest.approx(0.05, abs=1e-12)
+
+
+def test_addh_upper_cutoff_returns_a_bound_at_or_above_the_cutoff():
+    pts = box_points(n=200)
+    R_e, t_e = rot("x", 90), np.array([0.5, 0.0, 0.0])
+    exact = metrics.addh(R_e, t_e, I3, Z3, pts)
+    cut = metrics.addh(R_e, t_e, I3, Z3, pts, upper=0.1)
+    assert 0.1 <= cut <= exact + 1e-12
+    # below the cut-off the exact value is returned
+    R_s = rot("x", 5)
+    assert metrics.addh(R_s, Z3, I3, Z3, pts, upper=0.1) == pytest.approx(
+        metrics.addh(R_s, Z3, I3, Z3, pts))
+
+
+def test_addh_rejects_mismatched_point_sets():
+    with pytest.raises(ValueError, match="differ in size"):
+        metrics.assignment_distance(np.zeros((3, 3)), np.zeros((4, 3)))
+
+
+# ----------------------------------------------------------------------------- symmetries
+def test_mssd_of_a_box_flipped_by_one_of_its_symmetries_is_zero():
+    pts = box_points()
+    R_g, t_g = rot("z", 25) @ rot("x", 10), np.array([0.0, 0.05, 0.8])
+    R_e = R_g @ rot("y", 180)
+    syms = category_symmetries("cuboid")
+    assert metrics.mssd(R_e, t_g, R_g, t_g, pts, syms) == pytest.approx(0.0, abs=1e-12)
+    assert metrics.mssd(R_e, t_g, R_g, t_g, pts, None) > 0.03
+
+
+def test_mean_ssd_le_mssd_and_chunking_over_720_symmetries_is_consistent(monkeypatch):
+    pts = ring_cylinder()
+    syms = category_symmetries("cylinder")  # 720 transforms
+    R_e, t_e = rot("x", 7) @ rot("y", 33.4), np.array([0.004, 0.0, 0.002])
+    m1 = metrics.mean_ssd(R_e, t_e, I3, Z3, pts, syms)
+    x1 = metrics.mssd(R_e, t_e, I3, Z3, pts, syms)
+    monkeypatch.setattr(metrics, "_SYM_CHUNK_ELEMENTS", 1)  # one symmetry per chunk
+    assert metrics.mean_ssd(R_e, t_e, I3, Z3, pts, syms) == pytest.approx(m1, abs=1e-15)
+    brute = min(np.linalg.norm((pts @ S[:3, :3].T + S[:3, 3]) - (pts @ R_e.T + t_e), axis=1).mean()
+                for S in syms)
+    assert m1 == pytest.approx(brute, abs=1e-14)
+    assert m1 <= x1
+
+
+def test_mspd_scales_with_focal_length():
+    pts = box_points()
+    R_g, t_g = rot("y", 20), np.array([0.0, 0.0, 0.6])
+    R_e, t_e = R_g @ rot("x", 8), t_g + np.array([0.01, 0.0, 0.0])
+    K1 = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    K2 = np.array([[1000.0, 0, 320], [0, 1000.0, 240], [0, 0, 1]])
+    e1 = metrics.mspd(R_e, t_e, R_g, t_g, K1, pts, None)
+    assert e1 > 1.0
+    assert metrics.mspd(R_e, t_e, R_g, t_g, K2, pts, None) == pytest.approx(2 * e1, rel=1e-12)
+    syms = category_symmetries("cuboid")
+    assert metrics.mspd(R_g @ rot("z", 180), t_g, R_g, t_g, K1, pts, syms) == pytest.approx(0, abs=1e-9)
+
+
+def test_symmetries_from_models_info_discretizes_like_the_bop_toolkit():
+    info = {"symmetries_discrete": [[1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 20, 0, 0, 0, 1]],
+            "symmetries_continuous": [{"axis": [0, 0, 2], "offset": [10, 0, 0]}]}
+    S = metrics.symmetries_from_models_info(info, max_sym_disc_step=0.01)
+    steps = math.ceil(math.pi / 0.01)  # 315
+    assert S.shape == (2 * steps, 4, 4)
+    np.testing.assert_allclose(S[0], np.eye(4), atol=1e-12)
+    for M in S:
+        np.testing.assert_allclose(M[:3, :3] @ M[:3, :3].T, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(M[3], [0, 0, 0, 1])
+    # continuous part: rotations about z through the offset (10 mm -> 0.01 m) fix that point
+    p = np.array([0.01, 0.0, 0.3])
+    for M in S[:steps]:
+        np.testing.assert_allclose(M[:3, :3] @ p + M[:3, 3], p, atol=1e-12)
+    np.testing.assert_allclose(Rotation.from_matrix(S[1, :3, :3]).as_rotvec(),
+                               [0, 0, 2 * math.pi / steps], atol=1e-12)
+    # discrete part combined: translation in metres (20 mm)
+    np.testing.assert_allclose(S[steps, :3, 3], [0, 0, 0.02], atol=1e-12)
+    only_discrete = metrics.symmetries_from_models_info({"symmetries_discrete": info["symmetries_discrete"]})
+    assert only_discrete.shape == (2, 4, 4)
+    assert metrics.symmetries_from_models_info({}).shape == (1, 4, 4)
+
+
+def test_symmetries_of_the_shared_cylinder_model_make_axis_rotations_nearly_free(shared_data):
+    info = json.loads((shared_data / "symmetric_models" / "cylinder" / "model_info.json").read_text())
+    syms = metrics.symmetries_from_models_info(info)
+    mesh = trimesh.load(str(shared_data / "symmetric_models" / "cylinder" / "textured.obj"), force="mesh")
+    pts = np.asarray(mesh.vertices)
+    pts = pts - (pts.max(0) + pts.min(0)) / 2
+    radius = np.linalg.norm(pts[:, :2], axis=1).max()
+    R_e = rot("z", 47.3) @ rot("x", 180)
+    assert metrics.mssd(R_e, Z3, I3, Z3, pts, syms) <= radius * (math.pi / 315) + 1e-9
+    assert metrics.mssd(R_e, Z3, I3, Z3, pts, None) > radius
+
+
+def test_te_and_re():
+    assert metrics.te([0, 0, 1], [0, 3, 5]) == pytest.approx(5.0)
+    assert metrics.re(rot("x", 30), I3) == pytest.approx(30.0)
+    assert metrics.re(rot("y", 180), I3) == pytest.approx(180.0)
+
+
+# ----------------------------------------------------------------------------- VSD
+@pytest.fixture(scope="module")
+def renderer():
+    r = metrics.DepthRenderer()
+    yield r
+    r.close()
+
+
+K_VSD = np.array([[300.0, 0, 79.5], [0, 300.0, 59.5], [0, 0, 1]])
+
+
+def test_depth_renderer_matches_the_projection_convention(renderer):
+    mesh = trimesh.creation.box(extents=(0.1, 0.06, 0.04))
+    t = np.array([0.01, -0.02, 0.6])
+    depth = renderer.render_depth(mesh, I3, t, K_VSD, 160, 120)
+    ys, xs = np.nonzero(depth > 0)
+    uv = (mesh.vertices + t) @ K_VSD.T
+    uv = uv[:, :2] / uv[:, 2:3]
+    assert xs.min() == math.ceil(uv[:, 0].min()) and xs.max() == math.floor(uv[:, 0].max())
+    assert ys.min() == math.ceil(uv[:, 1].min()) and ys.max() == math.floor(uv[:, 1].max())
+    assert depth[ys[0], xs[0]] == pytest.approx(0.58, abs=1e-4)  # front face at z = 0.6 - 0.02
+
+
+def test_vsd_is_zero_for_identical_poses_and_one_for_disjoint_ones(renderer):
+    mesh = trimesh.creation.box(extents=(0.08, 0.08, 0.08))
+    t_g = np.array([0.0, 0.0, 0.6])
+    depth = renderer.render_depth(mesh, I3, t_g, K_VSD, 160, 120)
+    e_same = metrics.vsd(I3, t_g, I3, t_g, depth, K_VSD, mesh, renderer=renderer)
+    assert e_same.shape == (10,)
+    np.testing.assert_allclose(e_same, 0.0)
+    e_far = metrics.vsd(I3, t_g + [0.3, 0, 0], I3, t_g, depth, K_VSD, mesh, renderer=renderer)
+    np.testing.assert_allclose(e_far, 1.0)
+    # missing test depth counts as visible (BOP19 mode): still 0 for identical poses
+    np.testing.assert_allclose(metrics.vsd(I3, t_g, I3, t_g, np.zeros_like(depth), K_VSD, mesh,
+                                           renderer=renderer), 0.0)
+
+
+def test_vsd_depth_offset_is_forgiven_only_by_tolerances_above_it(renderer):
+    mesh = trimesh.creation.box(extents=(0.08, 0.08, 0.08))
+    diameter = float(np.linalg.norm([0.08] * 3))
+    t_g = np.array([0.0, 0.0, 0.6])
+    depth = renderer.render_depth(mesh, I3, t_g, K_VSD, 160, 120)
+    shift = 0.01  # 1 cm behind: within delta (15 mm), so the estimate stays "visible"
+    e = metrics.vsd(I3, t_g + [0, 0, shift], I3, t_g, depth, K_VSD, mesh, diameter=diameter,
+                    renderer=renderer)
+    taus = np.array(metrics.BOP19_VSD_TAUS)
+    assert np.all(e[taus * diameter > shift * 1.02] < 0.2)
+    assert np.all(e[taus * diameter < shift * 0.98] > 0.8)
+    assert np.all(np.diff(e) <= 1e-12)
+
+
+def test_vsd_tlinear_cost_and_bad_cost_type(renderer):
+    mesh = trimesh.creation.box(extents=(0.08, 0.08, 0.08))
+    t_g = np.array([0.0, 0.0, 0.6])
+    depth = renderer.render_depth(mesh, I3, t_g, K_VSD, 160, 120)
+    e = metrics.vsd(I3, t_g + [0, 0, 0.005], I3, t_g, depth, K_VSD, mesh, cost_type="tlinear",
+                    renderer=renderer)
+    assert 0 < e[-1] < e[0] < 1
+    with pytest.raises(ValueError, match="cost type"):
+        metrics.vsd(I3, t_g, I3, t_g, depth, K_VSD, mesh, cost_type="nope", renderer=renderer)
+
+
+def test_sphere_projections_overlap():
+    assert metrics.sphere_projections_overlap(0.05, [0, 0, 1], [0.05, 0, 1])
+    assert not metrics.sphere_projections_overlap(0.05, [0, 0, 1], [0.2, 0, 1])
+    assert not metrics.sphere_projections_overlap(0.05, [0, 0, 0], [0, 0, 1])

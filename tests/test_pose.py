@@ -1,0 +1,306 @@
+"""pose: PnP-RANSAC from (partial) decoded keypoints, and the depth line search (-LS)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from dope_hope.catalog import get_object
+from dope_hope.decode import decode_maps
+from dope_hope.geometry import (
+    cuboid_keypoints,
+    intrinsics_matrix,
+    project_points,
+    rotation_error_deg,
+    scale_intrinsics,
+)
+from dope_hope.pose import (
+    HOPE_REALSENSE_DEPTH_CALIBRATION,
+    PoseEstimate,
+    auto_splat_px,
+    depth_line_search,
+    solve_pnp,
+    visible_points,
+)
+from dope_hope.synth.depth_noise import add_realsense_noise
+from dope_hope.targets import make_targets
+
+K640 = intrinsics_matrix(615.0, 615.0, 319.5, 239.5)
+K400 = scale_intrinsics(K640, 400 / 640, 300 / 480)  # the network's 400x300 input
+HW400 = (300, 400)
+CUBOID = cuboid_keypoints(get_object("Popcorn").size_array)  # 12.7 x 8.5 x 3.8 cm
+
+
+def _poses(seed: int, n: int = 3):
+    rng = np.random.default_rng(seed)
+    Rs = Rotation.random(n, random_state=seed).as_matrix()
+    xs = np.linspace(-0.16, 0.16, n)
+    ts = [np.array([x, rng.uniform(-0.08, 0.08), rng.uniform(0.5, 1.0)]) for x in xs]
+    return list(Rs), ts
+
+
+def _check_all_found(poses: list[PoseEstimate], Rs, ts, rot_deg=1.0, trans_m=0.002):
+    assert len(poses) == len(ts)
+    matched = set()
+    for p in poses:
+        j = int(np.argmin([np.linalg.norm(p.t - t) for t in ts]))
+        matched.add(j)
+        assert rotation_error_deg(p.R, Rs[j]) < rot_deg
+        assert np.linalg.norm(p.t - ts[j]) < trans_m
+    assert matched == set(range(len(ts)))
+
+
+@pytest.mark.parametrize("stride", [8, 1])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_targets_decode_pnp_returns_every_instance(stride, seed):
+    Rs, ts = _poses(seed)
+    kp = np.stack([project_points(CUBOID, K400, R, t) for R, t in zip(Rs, ts)])
+    belief, affinity = make_targets(kp, HW400, stride)
+    instances = decode_maps(belief, affinity, stride)
+    poses = [solve_pnp(i.keypoints, i.scores, CUBOID, K400) for i in instances]
+    assert all(p is not None for p in poses)
+    _check_all_found(poses, Rs, ts)
+    for p in poses:
+        assert p.inliers.all() and p.score == pytest.approx(1.0, abs=1e-3)
+        assert p.reprojection_error_px < 0.05
+
+
+@pytest.mark.parametrize("stride", [8, 1])
+def test_three_corners_missing_per_instance_still_gives_every_pose(stride):
+    Rs, ts = _poses(2)
+    kp = np.stack([project_points(CUBOID, K400, R, t) for R, t in zip(Rs, ts)])
+    rng = np.random.default_rng(3)
+    for i in range(len(kp)):
+        kp[i, rng.choice(8, 3, replace=False)] = np.nan
+    belief, affinity = make_targets(kp, HW400, stride)
+    instances = decode_maps(belief, affinity, stride)
+    assert [int(i.present.sum()) for i in instances] == [6, 6, 6]
+    poses = [solve_pnp(i.keypoints, i.scores, CUBOID, K400) for i in instances]
+    assert all(p is not None for p in poses)
+    _check_all_found(poses, Rs, ts)
+    for p in poses:
+        assert p.inliers.sum() == 6 and p.score == pytest.approx(6 / 9, abs=1e-3)
+
+
+def _exact_keypoints(seed=0):
+    R = Rotation.random(random_state=seed).as_matrix()
+    t = np.array([0.03, -0.02, 0.7])
+    return R, t, project_points(CUBOID, K640, R, t)
+
+
+def test_an_outlying_keypoint_is_rejected_and_lowers_the_score():
+    R, t, kp = _exact_keypoints()
+    kp[2] += [60.0, -40.0]
+    p = solve_pnp(kp, np.full(9, 0.9), CUBOID, K640)
+    assert p is not None
+    assert p.inliers.tolist() == [True, True, False] + [True] * 6
+    assert rotation_error_deg(p.R, R) < 0.01 and np.linalg.norm(p.t - t) < 1e-4
+    assert p.score == pytest.approx(0.9 * 8 / 9)
+    np.testing.assert_allclose(p.projected, project_points(CUBOID, K640, R, t), atol=1e-3)
+    np.testing.assert_array_equal(p.keypoints, kp)
+
+
+def test_min_points_is_honoured_down_to_four():
+    R, t, kp = _exact_keypoints(1)
+    kp[[0, 2, 5, 6, 7]] = np.nan  # 4 left (3 corners + centre)
+    assert solve_pnp(kp, None, CUBOID, K640) is None  # default min_points = 5
+    p = solve_pnp(kp, None, CUBOID, K640, min_points=4)
+    assert p is not None and rotation_error_deg(p.R, R) < 0.1 and np.linalg.norm(p.t - t) < 1e-3
+    with pytest.raises(ValueError):
+        solve_pnp(kp, None, CUBOID, K640, min_points=3)
+    # Low-confidence keypoints count as missing.
+    R, t, kp = _exact_keypoints(2)
+    scores = np.array([1, 1, 1, 1, 0, 0, 0, 0, 1.0])
+    assert solve_pnp(kp, scores, CUBOID, K640) is not None
+    assert solve_pnp(kp, scores, CUBOID, K640, min_score=0.5, min_points=6) is None
+
+
+def test_inconsistent_keypoints_give_no_pose():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        kp = np.stack([rng.uniform(0, 640, 9), rng.uniform(0, 480, 9)], axis=1)
+        assert solve_pnp(kp, np.ones(9), CUBOID, K640) is None
+
+
+def test_a_pose_behind_the_camera_is_rejected(monkeypatch):
+    """Points behind the camera project too (u = fx x / z + cx); such a pose must not pass."""
+    import cv2
+
+    import dope_hope.pose as pose_mod
+
+    R = Rotation.random(random_state=4).as_matrix()
+    t = np.array([0.02, 0.01, -0.7])
+    kp = project_points(CUBOID, K640, R, t)
+    rvec = cv2.Rodrigues(R)[0]
+    monkeypatch.setattr(pose_mod.cv2, "solvePnPRansac",
+                        lambda *a, **k: (True, rvec, t.reshape(3, 1), np.arange(9).reshape(-1, 1)))
+    monkeypatch.setattr(pose_mod.cv2, "solvePnPRefineLM", lambda o, i, K, d, r, tv: (r, tv))
+    assert solve_pnp(kp, np.ones(9), CUBOID, K640) is None
+    t_front = np.array([0.02, 0.01, 0.7])  # the same stubbed solver in front: accepted
+    kp = project_points(CUBOID, K640, R, t_front)
+    monkeypatch.setattr(pose_mod.cv2, "solvePnPRansac",
+                        lambda *a, **k: (True, rvec, t_front.reshape(3, 1), np.arange(9).reshape(-1, 1)))
+    assert solve_pnp(kp, np.ones(9), CUBOID, K640) is not None
+
+
+# ---------------------------------------------------------------------------------------
+# Depth line search. Depth is ray-cast analytically (exact, no GL needed).
+
+K320 = intrinsics_matrix(307.5, 307.5, 159.5, 119.5)
+HW320 = (240, 320)
+BOX = get_object("Cookies").size_array  # 12.3 x 16.7 x 4.0 cm
+
+
+def render_box_depth(size, R, t, K, hw):
+    """(H, W) metres: depth of a box (centred, axis-aligned in its frame) under (R, t); 0 = miss."""
+    H, W = hw
+    u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T  # z = 1: t_hit = depth
+    origin = -R.T @ t
+    d = rays @ R  # ray directions in the box frame
+    half = np.asarray(size) / 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (-half - origin) / d, (half - origin) / d
+    near = np.nanmax(np.minimum(t1, t2), axis=-1)
+    far = np.nanmin(np.maximum(t1, t2), axis=-1)
+    return np.where((near <= far) & (near > 0), near, 0.0)
+
+
+def box_surface_points(size, spacing=0.004):
+    """(N, 3) points on a grid over the six faces of the box, metres."""
+    half = np.asarray(size) / 2
+    pts = []
+    for ax in range(3):
+        a, b = [i for i in range(3) if i != ax]
+        A, B = np.meshgrid(np.arange(-half[a], half[a] + 1e-9, spacing),
+                           np.arange(-half[b], half[b] + 1e-9, spacing))
+        for sign in (-1, 1):
+            p = np.zeros((A.size, 3))
+            p[:, a], p[:, b], p[:, ax] = A.ravel(), B.ravel(), sign * half[ax]
+            pts.append(p)
+    return np.vstack(pts)
+
+
+POINTS = box_surface_points(BOX)
+
+
+def _ls_pose(seed):
+    rng = np.random.default_rng(seed)
+    R = Rotation.random(random_state=seed + 10).as_matrix()
+    t = np.array([rng.uniform(-0.1, 0.1), rng.uniform(-0.06, 0.06), rng.uniform(0.5, 1.0)])
+    return R, t
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("factor", [0.9, 1.1])
+def test_line_search_pulls_a_translation_off_by_ten_percent_back(seed, factor):
+    R, t = _ls_pose(seed)
+    depth = render_box_depth(BOX, R, t, K320, HW320)
+    res = depth_line_search(R, factor * t, POINTS, depth, K320)
+    assert res.applied and res.reason == "ok"
+    assert np.linalg.norm(res.t - t) < 0.002
+    assert res.scale == pytest.approx(1 / factor, abs=0.003)
+    assert res.n_valid >= 50 and res.residual_m < 0.001
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_line_search_with_realsense_noise_is_within_five_mm(seed):
+    R, t = _ls_pose(seed)
+    depth = render_box_depth(BOX, R, t, K320, HW320)
+    noisy = add_realsense_noise(depth, None, K320, np.random.default_rng(seed))
+    for factor in (0.9, 1.1):
+        res = depth_line_search(R, factor * t, POINTS, noisy, K320)
+        assert res.applied, res.reason
+        assert np.linalg.norm(res.t - t) < 0.005
+
+
+def test_line_search_survives_partial_occlusion():
+    R, t = _ls_pose(1)
+    depth = render_box_depth(BOX, R, t, K320, HW320)
+    obj = depth > 0
+    cols = np.nonzero(obj.any(axis=0))[0]
+    cut = cols[0] + int(0.35 * (cols[-1] - cols[0]))  # an occluder over the left third
+    occluded = depth.copy()
+    occluded[:, :cut][obj[:, :cut]] = t[2] - 0.15
+    res = depth_line_search(R, 1.08 * t, POINTS, occluded, K320)
+    assert res.applied and np.linalg.norm(res.t - t) < 0.003
+
+
+def test_uint16_depth_scale_and_calibration_factor():
+    R, t = _ls_pose(2)
+    depth = render_box_depth(BOX, R, t, K320, HW320)
+    # Tenth-of-millimetre units.
+    d_u16 = np.round(depth / 0.0001).astype(np.uint16)
+    res = depth_line_search(R, 1.1 * t, POINTS, d_u16, K320, depth_scale_m=0.0001)
+    assert res.applied and np.linalg.norm(res.t - t) < 0.002
+    # A sensor whose raw depth must be multiplied by the calibration factor (HOPE RealSense).
+    raw_mm = np.round(depth / HOPE_REALSENSE_DEPTH_CALIBRATION * 1000).astype(np.uint16)
+    uncal = depth_line_search(R, 1.1 * t, POINTS, raw_mm, K320)
+    cal = depth_line_search(R, 1.1 * t, POINTS, raw_mm, K320,
+                            calibration=HOPE_REALSENSE_DEPTH_CALIBRATION)
+    assert cal.applied and np.linalg.norm(cal.t - t) < 0.002
+    assert np.linalg.norm(uncal.t - t) > 0.01  # 2 % scale error: ~1.5 cm at 0.75 m
+
+
+@pytest.mark.parametrize(
+    "make_depth,reason",
+    [
+        (lambda d: None, "no depth"),
+        (lambda d: np.zeros_like(d), "no valid pixel"),
+        (lambda d: np.full_like(d, np.nan), "no valid pixel"),
+        (lambda d: d[::2, ::2], "K implies"),
+        (lambda d: np.zeros((5,)), "2-D"),
+        (lambda d: np.where(np.random.default_rng(0).random(d.shape) < 0.985, 0.0, d),
+         "too few visible points"),
+    ],
+)
+def test_bad_depth_leaves_the_pose_unchanged_with_a_reason(make_depth, reason):
+    R, t = _ls_pose(0)
+    depth = render_box_depth(BOX, R, t, K320, HW320)
+    t_in = 1.1 * t
+    res = depth_line_search(R, t_in, POINTS, make_depth(depth), K320)
+    assert not res.applied and reason in res.reason
+    np.testing.assert_array_equal(res.t, t_in)
+    assert res.scale == 1.0
+
+
+def test_other_refusals():
+    R, t = _ls_pose(0)
+    depth = render_box_depth(BOX, R, t, K320, HW320)
+    res = depth_line_search(R, 1.1 * t, POINTS, depth, K320, image_hw=(480, 640))
+    assert not res.applied and "the image is 640x480" in res.reason
+    # The object is nowhere near where the pose says: optimum far outside the search range.
+    far = depth_line_search(R, 0.5 * t, POINTS, depth, K320)
+    assert not far.applied and ("bound" in far.reason or "residual" in far.reason)
+    np.testing.assert_array_equal(far.t, 0.5 * t)
+    behind = depth_line_search(R, -t, POINTS, depth, K320)
+    assert not behind.applied and "behind" in behind.reason
+    # min_valid is configurable
+    sparse = depth_line_search(R, 1.1 * t, POINTS, depth, K320, min_valid=100000)
+    assert not sparse.applied and "too few" in sparse.reason
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_visible_points_are_on_the_visible_surface(seed):
+    R, t = _ls_pose(seed)
+    Xc = POINTS @ R.T + t
+    depth = render_box_depth(BOX, R, t, K320, HW320)
+    uv = project_points(Xc, K320)
+    u, v = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+    inside = (u >= 0) & (u < 320) & (v >= 0) & (v < 240)
+    surface = np.full(len(Xc), np.nan)
+    surface[inside] = depth[v[inside], u[inside]]
+    surface[surface == 0] = np.nan  # silhouette-edge points rounding onto the background
+    on_surface = np.abs(surface - Xc[:, 2]) < 0.004  # truly visible (within a pixel's slope)
+    behind = Xc[:, 2] - surface > 0.01  # hidden by more than 1 cm
+
+    splat = auto_splat_px(POINTS, K320, t[2])
+    vis = visible_points(Xc, K320, HW320, splat)
+    assert (vis & behind).sum() <= 0.05 * vis.sum()  # few harmful outliers
+    assert (vis & on_surface).sum() >= 0.5 * on_surface.sum()  # most of the surface kept
+    # With normals the back faces are culled: no harmful point at all.
+    half = BOX / 2
+    normals = np.where(np.isclose(np.abs(POINTS), half), np.sign(POINTS), 0.0) @ R.T
+    vis_n = visible_points(Xc, K320, HW320, splat, normals_c=normals)
+    assert (vis_n & behind).sum() == 0
+    assert (vis_n & on_surface).sum() >= 0.7 * on_surface.sum()

@@ -1,0 +1,370 @@
+"""DopePredictor: images of any layout -> mesh-frame poses, for mesh and legacy (official) models.
+
+The whole chain (resize, pad, K scaling, decode, PnP, legacy frame conversion, keypoints back
+to the original image, depth line search) runs against ``TargetsBackend``, which renders
+perfect maps of known poses, so detections must equal the poses. Real networks (a tiny lite
+checkpoint, a fake official DOPE-DR-50 import) check the torch backend and the metadata.
+"""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from _targets_backend import TargetsBackend
+from dope_hope.catalog import get_object
+from dope_hope.config import load_config
+from dope_hope.errors import CameraError, ConfigError, ModelFileError
+from dope_hope.geometry import (
+    cuboid_keypoints,
+    intrinsics_matrix,
+    mesh_rotation_to_legacy,
+    project_points,
+    rotation_error_deg,
+    scale_intrinsics,
+)
+from dope_hope.model import build_model
+from dope_hope.model.checkpoint import import_official, make_object_info, save_checkpoint
+from dope_hope.predictor import (
+    DEFAULT_HEIGHT,
+    DopePredictor,
+    MapBackend,
+    TorchBackend,
+    predict_many,
+    to_rgb8,
+)
+
+torch.set_num_threads(1)
+
+K640 = intrinsics_matrix(600.0, 600.0, 319.5, 239.5)
+OBJ = get_object("Cookies")  # a box: the cuboid surface is the object's surface
+POSES = [
+    (Rotation.from_euler("xyz", [20, 35, 10], degrees=True).as_matrix(), np.array([0.08, -0.02, 0.60])),
+    (Rotation.from_euler("xyz", [-15, -120, 5], degrees=True).as_matrix(), np.array([-0.14, 0.04, 0.75])),
+]
+LITE = {"model": {"arch": "lite", "head": 50, "stages": 2,
+                  "lite": {"width": 8, "feature_channels": 16, "stage_channels": 16}},
+        "input": {"size": [64, 64]}}
+
+
+def white(hw):
+    return np.full((*hw, 3), 255, np.uint8)
+
+
+def backend(poses=POSES, K=K640, hw=(480, 640), **kw):
+    return TargetsBackend(OBJ.name, OBJ.size_array, poses, K, hw, **kw)
+
+
+def match(dets, poses, rot_deg=0.05, t_m=5e-4):
+    """Each GT pose has exactly one detection within the tolerances."""
+    assert len(dets) == len(poses)
+    for R, t in poses:
+        errs = [(rotation_error_deg(d.R, R), np.linalg.norm(d.t - t)) for d in dets]
+        assert sum(r < rot_deg and e < t_m for r, e in errs) == 1, errs
+
+
+def test_mesh_frame_chain_returns_the_rendered_poses():
+    p = DopePredictor(backend(), height=400)
+    dets = p.predict(white((480, 640)), K640)
+    match(dets, POSES)
+    for d in dets:
+        R, t = min(POSES, key=lambda pose: np.linalg.norm(pose[1] - d.t))
+        gt_uv = project_points(cuboid_keypoints(OBJ.size_array), K640, R, t)
+        # keypoints are reported in ORIGINAL-image pixels and the current order
+        assert np.abs(d.keypoints_2d - gt_uv).max() < 0.01
+        assert np.abs(d.projected_2d - gt_uv).max() < 0.01
+        assert d.inliers.all() and 0.9 < d.score <= 1.0
+        assert d.reprojection_error_px < 0.01
+        assert d.class_name == "Cookies" and not d.ls_applied and d.ls_reason == "no depth image"
+        q = d.quaternion_xyzw
+        assert q[3] >= 0 and rotation_error_deg(Rotation.from_quat(q).as_matrix(), d.R) < 1e-6
+    assert dets[0].score >= dets[1].score
+
+
+def test_legacy_frame_model_returns_mesh_frame_poses():
+    legacy_poses = [(mesh_rotation_to_legacy(R), t) for R, t in POSES]
+    # The legacy frame is a real rotation away: skipping the conversion would be caught.
+    assert rotation_error_deg(legacy_poses[0][0], POSES[0][0]) > 90
+    p = DopePredictor(backend(poses=legacy_poses, frame="legacy"), height=400)
+    assert p.legacy
+    dets = p.predict(white((480, 640)), K640)
+    match(dets, POSES)
+    for d in dets:
+        R, t = min(POSES, key=lambda pose: np.linalg.norm(pose[1] - d.t))
+        gt_uv = project_points(cuboid_keypoints(OBJ.size_array), K640, R, t)
+        assert np.abs(d.keypoints_2d - gt_uv).max() < 0.01  # reordered into the current order
+        np.testing.assert_allclose(d.cuboid_size_m, OBJ.size_array)
+
+
+def test_fake_official_checkpoint_metadata_and_frame_conversion(tmp_path):
+    official = build_model(load_config("dope_dr_50")).state_dict()
+    pth = tmp_path / "Cookies.pth"
+    torch.save({f"module.{k}": v for k, v in official.items()}, pth)
+    del official
+    import_official(pth, "Cookies", out_path=tmp_path / "cookies_official.pt")
+    p = DopePredictor(tmp_path / "cookies_official.pt")
+    real = p.backend
+    assert isinstance(real, TorchBackend) and isinstance(real, MapBackend)
+    assert (real.frame, real.keypoint_order, real.stride) == ("legacy", "dope-legacy", 8)
+    assert real.mean == pytest.approx((0.485, 0.456, 0.406))
+    assert real.std == pytest.approx((0.229, 0.224, 0.225))
+    np.testing.assert_allclose(real.size_m, OBJ.size_array)
+    # official weights run at DOPE's height 400, whatever the recorded 400x400 input size
+    assert p.working_size((480, 640)) == ((400, 533), (400, 536))
+    p.height = 64  # the real network's last stage, on a small input (CPU time)
+    belief, affinity, net_in = p.infer_maps(white((64, 80)) // 2)
+    assert belief.shape == (9, 8, 10) and affinity.shape == (16, 8, 10)
+    assert net_in.batch.shape == (1, 3, 64, 80)
+
+    # Same metadata, maps of known legacy-frame poses: the output must be mesh-frame poses.
+    mocked = backend(poses=[(mesh_rotation_to_legacy(R), t) for R, t in POSES], frame="legacy")
+    mocked.mean, mocked.std, mocked.input_hw = real.mean, real.std, real.input_hw
+    mocked.size_m = real.size_m
+    dets = DopePredictor(mocked).predict(white((480, 640)), K640)
+    match(dets, POSES)
+
+
+def test_resize_keeps_K_consistent():
+    """640x480 with K and 1280x960 with the scaled K: the same scene, the same poses."""
+    small = DopePredictor(backend(), height=400).predict(white((480, 640)), K640)
+    K_big = scale_intrinsics(K640, 2.0, 2.0)
+    big_backend = backend(K=K_big, hw=(960, 1280))
+    big = DopePredictor(big_backend, height=400).predict(white((960, 1280)), K_big)
+    assert big_backend.calls[-1] == {"padded": (400, 536), "resized": (400, 533)}
+    assert len(small) == len(big) == 2
+    for a, b in zip(small, big):
+        assert rotation_error_deg(a.R, b.R) < 0.05
+        assert np.linalg.norm(a.t - b.t) < 2e-4
+        np.testing.assert_allclose(b.keypoints_2d, 2 * (a.keypoints_2d + 0.5) - 0.5, atol=0.05)
+
+
+@pytest.mark.parametrize("hw,height", [((333, 500), 400), ((481, 641), 203), ((480, 640), 120)])
+def test_odd_sizes_are_padded_and_still_exact(hw, height):
+    K = intrinsics_matrix(560.0, 570.0, hw[1] / 2 + 3.2, hw[0] / 2 - 4.1)
+    poses = [(POSES[0][0], np.array([0.03, -0.01, 0.9 * 640 / hw[1] + 0.3]))]
+    b = backend(poses=poses, K=K, hw=hw)
+    dets = DopePredictor(b, height=height).predict(white(hw), K)
+    Hp, Wp = b.calls[-1]["padded"]
+    assert Hp % 8 == 0 and Wp % 8 == 0 and b.calls[-1]["resized"][0] == height
+    match(dets, poses)
+
+
+def test_working_size_rules():
+    lite_like = backend(input_hw=(200, 200))
+    p = DopePredictor(lite_like)  # height None: fit inside the training input, as training did
+    assert p.working_size((480, 640)) == ((150, 200), (152, 200))
+    assert DopePredictor(lite_like, height=240).working_size((480, 640)) == ((240, 320), (240, 320))
+    assert DopePredictor(backend()).working_size((480, 640))[0] == (DEFAULT_HEIGHT, 533)
+    fixed = backend()
+    fixed.fixed_input_hw = (96, 96)
+    assert DopePredictor(fixed).working_size((480, 640)) == ((72, 96), (96, 96))
+    with pytest.raises(ConfigError, match="height"):
+        DopePredictor(backend(), height=5)
+
+
+def test_image_layouts_and_warnings():
+    rgb = np.random.default_rng(0).integers(0, 256, (6, 7, 3), dtype=np.uint8)
+    gray = rgb[:, :, 0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # lossless conversions stay silent
+        np.testing.assert_array_equal(to_rgb8(gray), np.repeat(gray[:, :, None], 3, 2))
+        np.testing.assert_array_equal(to_rgb8(gray[:, :, None]), to_rgb8(gray))
+        opaque = np.dstack([rgb, np.full(gray.shape, 255, np.uint8)])
+        np.testing.assert_array_equal(to_rgb8(opaque), rgb)
+        np.testing.assert_array_equal(to_rgb8(rgb / 255.0), rgb)
+    rgba = np.dstack([rgb, np.full(gray.shape, 255, np.uint8)])
+    rgba[0, 0, 3] = 0
+    with pytest.warns(UserWarning, match="alpha channel dropped"):
+        np.testing.assert_array_equal(to_rgb8(rgba), rgb)
+    with pytest.warns(UserWarning, match="16-bit"):
+        np.testing.assert_array_equal(to_rgb8(rgb.astype(np.uint16) * 257), rgb)
+    for bad in (np.zeros((4, 4, 5), np.uint8), np.zeros((4, 4, 3), np.int32), np.full((4, 4), 2.0)):
+        with pytest.raises(ValueError):
+            to_rgb8(bad)
+
+
+def test_every_layout_gives_the_same_detections():
+    p = DopePredictor(backend(), height=400)
+    ref = p.predict(white((480, 640)), K640)
+    gray = np.full((480, 640), 255, np.uint8)
+    rgba = np.dstack([white((480, 640)), np.full((480, 640), 255, np.uint8)])
+    rgba[:10, :10, 3] = 0
+    with pytest.warns(UserWarning, match="16-bit"):
+        d16 = p.predict(np.full((480, 640, 3), 65535, np.uint16), K640)
+    with pytest.warns(UserWarning, match="alpha"):
+        d_rgba = p.predict(rgba, K640)
+    for dets in (p.predict(gray, K640), d16, d_rgba):
+        assert len(dets) == len(ref)
+        for a, b in zip(ref, dets):
+            np.testing.assert_allclose(a.t, b.t)
+            np.testing.assert_allclose(a.R, b.R)
+
+
+@pytest.mark.parametrize("frame", ["mesh", "legacy"])
+def test_mesh_box_and_off_centre_origin(tmp_path, frame):
+    """With mesh=, the cuboid is the mesh's box (size AND centre) and t is the mesh origin's."""
+    import trimesh
+
+    center = np.array([0.01, -0.02, 0.005])
+    mesh = trimesh.creation.box(extents=OBJ.size_array)
+    mesh.apply_translation(center)
+    if frame == "legacy":
+        b = backend(poses=[(mesh_rotation_to_legacy(R), t) for R, t in POSES], frame="legacy",
+                    center=center)
+    else:
+        b = backend(center=center)
+    p = DopePredictor(b, height=400, mesh=mesh)
+    np.testing.assert_allclose(p.cuboid_center_m, center, atol=1e-12)
+    match(p.predict(white((480, 640)), K640), POSES)
+    # Ignoring the offset would move t by R @ center (about 2 cm): the test would notice.
+    assert min(np.linalg.norm(R @ center) for R, _ in POSES) > 0.015
+    mesh_cm = mesh.copy()
+    mesh_cm.apply_scale(100.0)  # a mesh in the wrong units is refused, not used
+    path = tmp_path / "cookies_cm_as_m.obj"
+    mesh_cm.export(path)
+    with pytest.raises(ConfigError, match="wrong object or wrong mesh units"):
+        DopePredictor(backend(), mesh=path, mesh_units="m")
+
+
+def render_box_depth(size, R, t, K, hw):
+    """(H, W) float metres of a box (x_c = R x + t), 0 where no hit: ray/slab intersection."""
+    H, W = hw
+    u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T  # camera rays, z = 1
+    o = -R.T @ t
+    d = rays @ R  # R^T applied to each ray
+    half = np.asarray(size) / 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a, b = (-half - o) / d, (half - o) / d
+    tmin = np.nanmax(np.minimum(a, b), -1)
+    tmax = np.nanmin(np.maximum(a, b), -1)
+    hit = (tmin <= tmax) & (tmin > 0)
+    return np.where(hit, tmin, 0.0)
+
+
+def test_depth_line_search_fixes_the_distance():
+    R, t = POSES[0]
+    depth_m = render_box_depth(OBJ.size_array, R, t, K640, (480, 640))
+    depth_mm = np.round(depth_m * 1000).astype(np.uint16)
+    # The "network" sees the object 8 % too far (a monocular scale error): PnP says 1.08 t.
+    p = DopePredictor(backend(poses=[(R, 1.08 * t)]), height=400)
+    (mono,) = p.predict(white((480, 640)), K640)
+    assert abs(np.linalg.norm(mono.t) / np.linalg.norm(t) - 1.08) < 0.003
+    (ls,) = p.predict(white((480, 640)), K640, depth=depth_mm, depth_scale_m=0.001)
+    assert ls.ls_applied and ls.ls_reason == "ok"
+    assert ls.ls_scale == pytest.approx(1 / 1.08, abs=0.003)
+    assert np.linalg.norm(ls.t - t) < 0.003
+    np.testing.assert_allclose(ls.R, mono.R)
+    # projected_2d follows the refined pose
+    np.testing.assert_allclose(ls.projected_2d, project_points(cuboid_keypoints(OBJ.size_array), K640, R, ls.t))
+    (bad,) = p.predict(white((480, 640)), K640, depth=depth_mm[::2, ::2])
+    assert not bad.ls_applied and "depth is 320x240" in bad.ls_reason
+    np.testing.assert_allclose(bad.t, mono.t)
+
+
+def test_predict_many_runs_each_model_once_and_merges():
+    a = backend(poses=POSES[:1])
+    b = TargetsBackend("Ketchup", get_object("Ketchup").size_array,
+                       [(POSES[1][0], POSES[1][1])], K640, (480, 640))
+    dets = predict_many([DopePredictor(a, height=400), DopePredictor(b, height=400)],
+                        white((480, 640)), K640)
+    assert sorted(d.class_name for d in dets) == ["Cookies", "Ketchup"]
+    assert [d.score for d in dets] == sorted((d.score for d in dets), reverse=True)
+    assert len(a.calls) == len(b.calls) == 1
+
+
+def test_bad_intrinsics_are_a_camera_error():
+    p = DopePredictor(backend(), height=400)
+    for K in (np.eye(2), intrinsics_matrix(-600, 600, 320, 240), np.full((3, 3), np.nan)):
+        with pytest.raises(CameraError):
+            p.predict(white((48, 64)), K)
+
+
+def test_tiny_torch_checkpoint_runs_end_to_end(tmp_path):
+    path = tmp_path / "lite.pt"
+    save_checkpoint(path, build_model(LITE), LITE, make_object_info("Ketchup"))
+    p = DopePredictor(path, backend="auto")
+    assert isinstance(p.backend, TorchBackend) and p.backend.input_hw == (64, 64)
+    img = np.random.default_rng(1).integers(0, 256, (96, 128, 3), dtype=np.uint8)
+    belief, affinity, net_in = p.infer_maps(img)
+    assert net_in.resized_hw == (48, 64) and belief.shape == (9, 6, 8) and affinity.shape == (16, 6, 8)
+    # the maps are the network's LAST stage
+    with torch.inference_mode():
+        last = p.backend.model(torch.from_numpy(net_in.batch))[-1]
+    np.testing.assert_allclose(belief, last[0][0].numpy(), atol=1e-6)
+    dets = p.predict(img, scale_intrinsics(K640, 0.2, 0.2))
+    assert all(d.class_name == "Ketchup" and np.isfinite(d.t).all() for d in dets)
+
+
+def test_bad_weights_files(tmp_path):
+    with pytest.raises(ModelFileError, match="not found"):
+        DopePredictor(tmp_path / "missing.pt")
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(np.random.default_rng(0).bytes(2000))
+    with pytest.raises(ModelFileError, match="junk.pt"):
+        DopePredictor(junk)
+    # a checkpoint whose state dict belongs to another network
+    other = tmp_path / "other.pt"
+    save_checkpoint(other, build_model(LITE), LITE, make_object_info("Ketchup"))
+    ckpt = torch.load(other, weights_only=True)
+    ckpt["model"] = torch.nn.Linear(3, 2).state_dict()
+    torch.save(ckpt, other)
+    with pytest.raises(ModelFileError, match="another architecture"):
+        DopePredictor(other)
+    onnx_named = tmp_path / "model.onnx"
+    onnx_named.write_bytes(b"not really")
+    with pytest.raises(ModelFileError, match="ONNX"):
+        DopePredictor(onnx_named, backend="torch")
+    with pytest.raises(ConfigError, match="backend"):
+        DopePredictor(junk, backend="tensorrt")
+
+
+def test_auto_backend_runs_exported_onnx_like_torch(tmp_path):
+    from dope_hope.export import export_model
+    from dope_hope.model.checkpoint import load_model
+    from dope_hope.onnx_backend import OnnxBackend
+
+    path = tmp_path / "lite.pt"
+    save_checkpoint(path, build_model(LITE), LITE, make_object_info("Ketchup"))
+    model, ckpt = load_model(path)
+    export_model(model, ckpt, tmp_path / "lite.onnx", dynamic=True)
+    torch_p = DopePredictor(path)
+    onnx_p = DopePredictor(tmp_path / "lite.onnx", threads=1)  # auto: onnxruntime for .onnx
+    assert isinstance(onnx_p.backend, OnnxBackend)
+    assert onnx_p.backend.providers == ["CPUExecutionProvider"]
+    img = np.random.default_rng(2).integers(0, 256, (96, 128, 3), dtype=np.uint8)
+    assert onnx_p.working_size(img.shape[:2]) == torch_p.working_size(img.shape[:2])
+    b_t, a_t, _ = torch_p.infer_maps(img)
+    b_o, a_o, _ = onnx_p.infer_maps(img)
+    for onnx_maps, torch_maps in ((b_o, b_t), (a_o, a_t)):
+        scale = np.abs(torch_maps).max()
+        assert scale > 0 and np.abs(onnx_maps - torch_maps).max() < 1e-3 * scale
+
+
+def test_partly_outside_object_and_strict_json(tmp_path):
+    """Corners off the image are missing (NaN -> null in JSON); the pose still comes out."""
+    import json
+
+    from dope_hope.io.predictions import read_predictions, write_predictions_jsonl
+
+    R = POSES[0][0]
+    t = np.array([0.25, 0.0, 0.6])  # the box crosses the right border
+    uv = project_points(cuboid_keypoints(OBJ.size_array), K640, R, t)
+    outside = uv[:, 0] > 639.5
+    assert outside.sum() == 2 and uv[outside, 0].min() > 644  # beyond the padded map too
+    (det,) = DopePredictor(backend(poses=[(R, t)]), height=400).predict(white((480, 640)), K640)
+    assert np.isnan(det.keypoints_2d[outside]).all() and not det.inliers[outside].any()
+    assert rotation_error_deg(det.R, R) < 0.05 and np.linalg.norm(det.t - t) < 5e-4
+    assert det.score == pytest.approx((~outside).sum() / 9, abs=0.01)
+    rec = det.to_json("000001.png", time=0.5)
+    json.dumps(rec, allow_nan=False)  # strict JSON
+    assert all(rec["keypoints_2d"][k] == [None, None] for k in np.flatnonzero(outside))
+    write_predictions_jsonl(tmp_path / "p.jsonl", [rec])
+    (pred,), _ = read_predictions(tmp_path / "p.jsonl")
+    assert pred.image == "000001.png" and pred.class_name == "Cookies" and pred.time == 0.5
+    np.testing.assert_allclose(pred.R, det.R, atol=1e-9)
+    np.testing.assert_allclose(pred.t, det.t)
+    assert "image" not in det.to_json()

@@ -1,0 +1,188 @@
+"""dope_hope.train + `dope-hope train`: exact resume, Ctrl-C checkpoint, time budget, the
+validation metric, bad files, torchrun (2 CPU processes), CLI errors."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
+from dope_hope.config import load_config
+from dope_hope.geometry import cuboid_keypoints, intrinsics_matrix, project_points
+from dope_hope.io.dope_json import write_dope_json
+from dope_hope.io.images import write_rgb
+from dope_hope.model.checkpoint import load_checkpoint
+from dope_hope.targets import make_targets
+from dope_hope.train import LrLambda, TrainJob, keypoint_hits, train, validation_hits
+
+torch.set_num_threads(1)
+REPO = Path(__file__).resolve().parent.parent
+#: lite at 64x64, tiny batches, no time limit (a time-estimated schedule is not reproducible)
+TINY = {"input": {"size": [64, 64]},
+        "train": {"batch_size": 2, "workers": 0, "time_limit_min": None, "log_every": 1, "threads": 1}}
+
+
+def write_frames(folder: Path, n: int, wh=(80, 64), seed=0) -> None:
+    rng = np.random.default_rng(seed)
+    W, H = wh
+    K = intrinsics_matrix(1.2 * W, 1.2 * W, (W - 1) / 2, (H - 1) / 2)
+    for i in range(n):
+        R = Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix()
+        t = np.array([rng.uniform(-0.03, 0.03), rng.uniform(-0.03, 0.03), rng.uniform(0.4, 0.5)])
+        kp = project_points(cuboid_keypoints([0.06, 0.15, 0.04]), K, R, t)
+        write_rgb(folder / f"{i:06d}.png", rng.integers(0, 255, (H, W, 3), dtype=np.uint8))
+        write_dope_json(folder / f"{i:06d}.json", FrameAnnotation(
+            folder / f"{i:06d}.json", K, W, H, [ObjectAnnotation("Ketchup", R, t, kp, 1.0)]))
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("frames")
+    write_frames(folder, 11)  # 10 train + 1 val: 5 steps per epoch at batch 2
+    return folder
+
+
+def _weights(path: Path) -> dict[str, torch.Tensor]:
+    return load_checkpoint(path)["model"]
+
+
+def _overrides(**train_values):
+    out = json.loads(json.dumps(TINY))
+    out["train"].update(train_values)
+    return out
+
+
+# ----------------------------------------------------------------------------- resume
+@pytest.mark.parametrize("stop_at", [3, 5])  # mid-epoch; at the epoch's end before validation
+def test_interrupted_and_resumed_run_ends_with_the_same_weights(frames, tmp_path, stop_at):
+    config = load_config("lite")
+    ov = _overrides(steps=8)
+    full = train(TrainJob([frames], "ketchup", tmp_path / "full", progress=False, overrides=ov), config)
+    assert full["status"] == "completed" and full["step"] == 8
+
+    def ctrl_c(trainer, step):  # a real SIGINT, delivered after optimizer step `stop_at`
+        if step == stop_at:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    part = train(TrainJob([frames], "ketchup", tmp_path / "part", progress=False, overrides=ov,
+                          on_step=ctrl_c), config)
+    assert part["status"] == "interrupted" and part["step"] == stop_at
+    ck = load_checkpoint(tmp_path / "part" / "last.pt")
+    assert ck["step"] == stop_at and ck["optimizer"] is not None and ck["scheduler"] is not None
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handler restored
+
+    # resume from the checkpoint alone: config, data folders and object come from it
+    done = train(TrainJob([], "", tmp_path / "part", resume=tmp_path / "part" / "last.pt", progress=False), {})
+    assert done["status"] == "completed" and done["step"] == 8
+    a, b = _weights(tmp_path / "full" / "last.pt"), _weights(tmp_path / "part" / "last.pt")
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    ck = load_checkpoint(tmp_path / "part" / "last.pt")
+    assert ck["object"] == {"class_name": "Ketchup", "size_m": ck["object"]["size_m"], "frame": "mesh"}
+    assert ck["keypoint_order"] == "dope-current" and len(ck["object"]["size_m"]) == 3
+
+
+def test_time_budget_stops_with_validation_and_checkpoint(frames, tmp_path):
+    ov = _overrides(epochs=1000, time_limit_min=0.05 / 60)  # 0.05 s
+    out = train(TrainJob([frames], "Ketchup", tmp_path, progress=False, overrides=ov), load_config("lite"))
+    assert out["status"] == "time_limit" and 0 < out["step"] < 5000
+    assert np.isfinite(out["val_loss"]) and out["val_frames"] == 1
+    assert load_checkpoint(tmp_path / "last.pt")["step"] == out["step"]
+    rows = (tmp_path / "metrics.csv").read_text().splitlines()
+    assert rows[0].startswith("event,step") and rows[-1].startswith("val,")
+    assert json.loads((tmp_path / "summary.json").read_text())["status"] == "time_limit"
+
+
+def test_training_skips_a_corrupt_frame_and_lowers_the_loss(tmp_path, caplog):
+    write_frames(tmp_path / "d", 9, seed=2)
+    (tmp_path / "d" / "000004.json").write_text("{ not json")
+    ov = _overrides(steps=30, lr=3e-3, warmup_steps=0)
+    out = train(TrainJob([tmp_path / "d"], "Ketchup", tmp_path / "o", progress=False, overrides=ov),
+                load_config("lite"))
+    assert out["status"] == "completed" and out["train_frames"] + out["val_frames"] == 8
+    assert sum("000004.json" in r.getMessage() for r in caplog.records) == 1
+    losses = [json.loads(line)["loss"] for line in (tmp_path / "o" / "metrics.jsonl").read_text().splitlines()
+              if json.loads(line)["event"] == "train"]
+    assert len(losses) == 30 and np.all(np.isfinite(losses))
+    assert np.mean(losses[-10:]) < 0.95 * np.mean(losses[:3])  # it learns (noisy: 2-image batches)
+
+
+# ----------------------------------------------------------------------------- metric
+def test_validation_hits_perfect_for_target_maps_and_matched_per_instance():
+    rng = np.random.default_rng(0)
+    gt = np.stack([np.stack([rng.uniform(8, 120, 9), rng.uniform(8, 88, 9)], 1) for _ in range(2)])
+    gt[1] += 0.0
+    belief, affinity = make_targets(gt, (96, 128), stride=8, sigma=1.0, radius=1.0)
+    f, v, fd, vd = validation_hits(belief, affinity, gt, 8, 5.0, 0.1)
+    # two instances whose same-index keypoints come closer than a few cells merge; most are found
+    assert v == 18 and f >= 14
+    one = gt[:1]
+    belief, affinity = make_targets(one, (96, 128), stride=8, sigma=1.0, radius=1.0)
+    assert validation_hits(belief, affinity, one, 8, 5.0, 0.1) == (9, 9, 9, 9)
+    assert validation_hits(np.zeros_like(belief), affinity, one, 8, 5.0, 0.1)[0::2] == (0, 0)
+
+
+def test_keypoint_hits_nearest_instance_and_radius():
+    gt = np.full((2, 9, 2), np.nan)
+    gt[0, 0], gt[1, 0] = [10, 10], [50, 10]
+    gt[0, 1] = [20, 20]
+    pred = [np.array([[13, 10], [30, 10]]), np.array([[26, 20]])] + [np.zeros((0, 2))] * 7
+    # (13,10) finds instance 0; (30,10) is nearest to instance 0 too but 20 px away; (26,20) > 5 px
+    assert keypoint_hits(pred, gt, 5.0) == (1, 3)
+    assert keypoint_hits(pred, gt, 6.5) == (2, 3)
+
+
+def test_cosine_schedule_with_warmup():
+    f = LrLambda("cosine", horizon=110, warmup=10, min_factor=0.1)
+    assert f(0) == pytest.approx(0.1) and f(9) == pytest.approx(1.0)
+    assert f(10) == pytest.approx(1.0) and f(60) == pytest.approx(0.55) and f(110) == pytest.approx(0.1)
+    assert LrLambda("step", 100, step_every=30, gamma=0.5)(65) == pytest.approx(0.25)
+
+
+# ----------------------------------------------------------------------------- CLI
+def _cli(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    return subprocess.run([sys.executable, "-m", "dope_hope.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, cwd=REPO, env=env)
+
+
+def test_cli_bad_data_is_a_one_line_error(tmp_path):
+    r = _cli("train", "--data", str(tmp_path / "missing"), "--object", "Ketchup", "--out", str(tmp_path / "o"))
+    assert r.returncode == 2
+    assert r.stderr.strip().count("\n") == 0 and "missing" in r.stderr and "not found" in r.stderr
+    (tmp_path / "empty").mkdir()
+    r = _cli("train", "--data", str(tmp_path / "empty"), "--object", "Ketchup", "--out", str(tmp_path / "o"))
+    assert r.returncode == 2 and "no DOPE frames" in r.stderr and r.stderr.strip().count("\n") == 0
+
+
+def test_cli_unknown_class_is_a_one_line_error(frames, tmp_path):
+    r = _cli("train", "--data", str(frames), "--object", "Mustard", "--out", str(tmp_path / "o"),
+             "--set", "input.size=[64,64]")
+    assert r.returncode == 2 and "Mustard" in r.stderr and r.stderr.strip().count("\n") == 0
+
+
+@pytest.mark.slow
+def test_torchrun_two_cpu_processes_write_one_checkpoint(frames, tmp_path):
+    out = tmp_path / "ddp"
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+           "-m", "dope_hope.cli", "train", "--config", "lite", "--data", str(frames), "--object", "Ketchup",
+           "--out", str(out), "--steps", "2", "--batch-size", "2", "--workers", "0", "--no-progress",
+           "--set", "input.size=[64,64]", "train.time_limit_min=null", "train.log_every=1"]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=REPO, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert sorted(p.name for p in out.iterdir() if p.suffix == ".pt") == ["best.pt", "last.pt"]
+    assert not [p for p in out.iterdir() if ".tmp" in p.name]
+    ck = load_checkpoint(out / "last.pt")
+    assert ck["step"] == 2 and ck["extra"]["world_size"] == 2
+    assert not any(k.startswith("module.") for k in ck["model"])
+    rows = (out / "metrics.csv").read_text().splitlines()
+    assert rows.count(rows[0]) == 1 and len([x for x in rows if x.startswith("train,")]) == 2  # rank 0 only
+    assert r.stdout.count("completed") == 1
