@@ -22,6 +22,9 @@ COMMANDS: tuple[tuple[str, str, str], ...] = (
     ("synth", "synth", "generate domain-randomized synthetic frames (DOPE format)"),
     ("evaluate", "evaluate", "evaluate pose predictions: HOPE tables, curves, BOP19 AR"),
     ("export", "export", "export a checkpoint to ONNX (native or Isaac ROS layout, fp32 or INT8)"),
+    ("demo", "demo", "run the shipped demo model on freshly rendered scenes (PyTorch + ONNX, -LS, errors)"),
+    ("import-official", "import_official", "import NVIDIA's published DOPE weights (.pth) as checkpoints"),
+    ("bop-submit", "bop_submit", "run models on a BOP test split and write a BOP19 submission CSV"),
 )
 
 

@@ -20,7 +20,9 @@ CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 def config_path(name_or_path: str | Path) -> Path:
     """Resolve a config name ("lite") or a path to an existing YAML file."""
     p = Path(name_or_path)
-    if p.suffix in (".yaml", ".yml") or p.exists():
+    # A bare name ("synth") is a config name even when a folder of that name exists in the
+    # working directory (e.g. the output folder of `dope-hope synth --out synth/...`).
+    if p.suffix in (".yaml", ".yml") or p.is_file():
         if not p.is_file():
             raise InputFileError(p, "config file not found")
         return p

@@ -79,7 +79,7 @@ import tempfile
 import time
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -157,7 +157,10 @@ class MapDeviation:
     instances; instances_matched: pairs matched by centroid. keypoints_compared: keypoints
     found in both of a matched pair; keypoints_lost / keypoints_added: found in only the
     reference / only the test instance. median_px / max_px: keypoint distance, image px
-    (NaN when nothing was compared).
+    (NaN when nothing was compared). peaks_*: the same per belief peak, without grouping
+    (every sub-pixel peak of the reference above the decode threshold, matched one-to-one
+    to the test's peaks of the same channel within one map cell): meaningful even for
+    maps that decode no instance (e.g. untrained weights).
     """
 
     images: int
@@ -172,6 +175,10 @@ class MapDeviation:
     keypoints_added: int
     median_px: float
     max_px: float
+    peaks_ref: int = 0
+    peaks_matched: int = 0
+    peak_median_px: float = float("nan")
+    peak_max_px: float = float("nan")
 
     def summary(self) -> str:
         """One line for reports."""
@@ -180,8 +187,10 @@ class MapDeviation:
               f"instances {self.instances_matched}/{self.instances_ref} matched)"
               if self.keypoints_compared else
               f"keypoints: none to compare (reference decodes {self.instances_ref} instances)")
+        peaks = (f"; peaks: median {self.peak_median_px:.3f} px, max {self.peak_max_px:.3f} px, "
+                 f"{self.peaks_matched}/{self.peaks_ref} matched" if self.peaks_ref else "")
         return (f"maps max |d| {self.max_abs:.4g}, mean |d| {self.mean_abs:.3g} "
-                f"(belief max {self.belief_max_abs:.4g}) over {self.images} images; {kp}")
+                f"(belief max {self.belief_max_abs:.4g}) over {self.images} images; {kp}{peaks}")
 
 
 @dataclass
@@ -215,6 +224,27 @@ def _match_instances(ref, test, max_px: float):
     return [(r, c) for r, c in zip(rows, cols) if d[r, c] <= max_px]
 
 
+def _peak_distances(ref_belief: np.ndarray, test_belief: np.ndarray, stride: int,
+                    threshold: float, smooth_sigma: float) -> tuple[int, np.ndarray]:
+    """(number of reference peaks, distances of the matched ones in image px)."""
+    from scipy.optimize import linear_sum_assignment
+
+    from dope_hope.decode import find_peaks
+
+    pr = find_peaks(ref_belief, threshold=threshold, smooth_sigma=smooth_sigma)
+    pt = find_peaks(test_belief, threshold=threshold, smooth_sigma=smooth_sigma)
+    out = []
+    for c in np.unique(pr.channel):
+        a, b = pr.xy[pr.channel == c], pt.xy[pt.channel == c]
+        if not len(b):
+            continue
+        d = np.linalg.norm(a[:, None] - b[None], axis=2)
+        rows, cols = linear_sum_assignment(d)
+        keep = d[rows, cols] <= 1.0  # map cells
+        out.append(d[rows, cols][keep] * stride)
+    return len(pr.channel), (np.concatenate(out) if out else np.zeros(0))
+
+
 def compare_maps(reference: Sequence[tuple[np.ndarray, np.ndarray]],
                  test: Sequence[tuple[np.ndarray, np.ndarray]], stride: int,
                  match_px: float | None = None, **decode_options: Any) -> MapDeviation:
@@ -224,8 +254,9 @@ def compare_maps(reference: Sequence[tuple[np.ndarray, np.ndarray]],
     both are decoded with :func:`dope_hope.decode.decode_maps` (``decode_options``),
     instances are matched one-to-one by centroid (within ``match_px`` image px, default 4
     map cells), and the distance of every keypoint found in both is measured, image px.
+    Belief peaks are also compared one by one, without grouping (:class:`MapDeviation`).
     """
-    from dope_hope.decode import decode_maps
+    from dope_hope.decode import DEFAULT_SMOOTH_SIGMA, DEFAULT_THRESHOLD, decode_maps
 
     if len(reference) != len(test) or not reference:
         raise ValueError("compare_maps needs the same non-zero number of reference and test images")
@@ -234,6 +265,7 @@ def compare_maps(reference: Sequence[tuple[np.ndarray, np.ndarray]],
     abs_sum, count = 0.0, 0
     n_ref = n_test = n_match = lost = added = 0
     dists: list[np.ndarray] = []
+    n_peaks, peak_d = 0, []
     for (rb, ra), (tb, ta) in zip(reference, test):
         rb, ra, tb, ta = (np.asarray(x, np.float32).reshape(x.shape[-3:]) for x in (rb, ra, tb, ta))
         db, da = np.abs(rb - tb), np.abs(ra - ta)
@@ -251,13 +283,21 @@ def compare_maps(reference: Sequence[tuple[np.ndarray, np.ndarray]],
             lost += int((pr & ~pt).sum())
             added += int((pt & ~pr).sum())
             dists.append(np.linalg.norm(ri[r].keypoints[both] - ti[c].keypoints[both], axis=1))
+        n, pd = _peak_distances(rb, tb, stride, decode_options.get("threshold", DEFAULT_THRESHOLD),
+                                decode_options.get("smooth_sigma", DEFAULT_SMOOTH_SIGMA))
+        n_peaks += n
+        peak_d.append(pd)
     d = np.concatenate(dists) if dists else np.zeros(0)
+    p = np.concatenate(peak_d)
     return MapDeviation(
         images=len(reference), max_abs=max_abs, mean_abs=abs_sum / max(count, 1), belief_max_abs=belief_max,
         instances_ref=n_ref, instances_test=n_test, instances_matched=n_match,
         keypoints_compared=int(d.size), keypoints_lost=lost, keypoints_added=added,
         median_px=float(np.median(d)) if d.size else float("nan"),
-        max_px=float(d.max()) if d.size else float("nan"))
+        max_px=float(d.max()) if d.size else float("nan"),
+        peaks_ref=n_peaks, peaks_matched=int(p.size),
+        peak_median_px=float(np.median(p)) if p.size else float("nan"),
+        peak_max_px=float(p.max()) if p.size else float("nan"))
 
 
 # ----------------------------------------------------------------------------- export
@@ -462,10 +502,14 @@ class ImageFolderReader:
         self.files = list(files)
         self._iter = None
 
-    def feeds(self, path: Path) -> list[dict[str, np.ndarray]]:
+    def prepare(self, path: Path) -> np.ndarray:
+        """(1, 3, H, W) model-normalized batch of one image file, as the predictor makes it."""
         from dope_hope.io.images import read_rgb
 
-        return self.backend.feeds(self.predictor.prepare(read_rgb(path)).batch)
+        return self.predictor.prepare(read_rgb(path)).batch
+
+    def feeds(self, path: Path) -> list[dict[str, np.ndarray]]:
+        return self.backend.feeds(self.prepare(path))
 
     def get_next(self) -> dict[str, np.ndarray] | None:
         if self._iter is None:
@@ -474,6 +518,28 @@ class ImageFolderReader:
 
     def rewind(self) -> None:
         self._iter = None
+
+
+def output_convs(model_proto) -> list[str]:
+    """Names of the Conv nodes whose outputs reach the graph outputs through data-movement ops.
+
+    These (the last 1x1 convs of the final stage) stay in float during INT8 quantization: the
+    maps come out unquantized (no 1/255-of-range output step on the belief peaks) for a
+    negligible share of the compute.
+    """
+    producer = {o: n for n in model_proto.graph.node for o in n.output}
+    passthrough = {"Slice", "Concat", "Split", "Identity", "Reshape", "Squeeze", "Unsqueeze"}
+    found, stack, seen = [], [o.name for o in model_proto.graph.output], set()
+    while stack:
+        node = producer.get(stack.pop())
+        if node is None or node.name in seen:
+            continue
+        seen.add(node.name)
+        if node.op_type == "Conv":
+            found.append(node.name)
+        elif node.op_type in passthrough:
+            stack.extend(node.input[:1] if node.op_type != "Concat" else node.input)
+    return found
 
 
 def quantize_int8(fp32_path: str | os.PathLike, out: str | os.PathLike, calibration: str | os.PathLike,
@@ -506,22 +572,24 @@ def quantize_int8(fp32_path: str | os.PathLike, out: str | os.PathLike, calibrat
     reader = ImageFolderReader(fp32, files)
     calib = {"minmax": CalibrationMethod.MinMax, "entropy": CalibrationMethod.Entropy,
              "percentile": CalibrationMethod.Percentile}[method]
-    info = fp32.info
-    info.precision = "int8"
-    info.extra = dict(info.extra, quantization=json.dumps({
+    settings = {
         "tool": "onnxruntime.quantization.quantize_static", "format": "QDQ", "per_channel": True,
         "weights": "int8 symmetric", "activations": "uint8" if activation_uint8 else "int8",
-        "calibration": method, "calibration_images": len(files)}))
+        "calibration": method, "calibration_images": len(files)}
     with atomic_path(out) as tmp, tempfile.TemporaryDirectory(prefix="dope-hope-quant-") as tmpdir:
         # onnxruntime's recommended pre-processing: shape inference + graph cleanup (folds the
         # exporter's Identity/Constant nodes, so every conv bias is an initializer it can quantize).
         pre = Path(tmpdir) / "preprocessed.onnx"
         quant_pre_process(str(fp32_path), str(pre))
+        keep_float = output_convs(onnx.load(str(pre)))
         quantize_static(str(pre), str(tmp), reader, quant_format=QuantFormat.QDQ, per_channel=True,
-                        reduce_range=False,
+                        reduce_range=False, nodes_to_exclude=keep_float,
                         activation_type=QuantType.QUInt8 if activation_uint8 else QuantType.QInt8,
                         weight_type=QuantType.QInt8, calibrate_method=calib,
                         calibration_providers=["CPUExecutionProvider"])
+        settings["float_nodes"] = keep_float
+        info = replace(fp32.info, precision="int8",
+                       extra=dict(fp32.info.extra, quantization=json.dumps(settings)))
         proto = onnx.load(str(tmp))
         _set_metadata(proto, info, _doc(info))
         onnx.checker.check_model(proto)
@@ -530,18 +598,12 @@ def quantize_int8(fp32_path: str | os.PathLike, out: str | os.PathLike, calibrat
         int8 = OnnxBackend(tmp, threads=threads, providers=["CPUExecutionProvider"])
         ref, test = [], []
         for path in files[:max(1, eval_images)]:
-            batch = reader.predictor.prepare(_read(path)).batch
+            batch = reader.prepare(path)
             ref.append(tuple(m[0] for m in fp32.run(batch)))
             test.append(tuple(m[0] for m in int8.run(batch)))
         deviation = compare_maps(ref, test, info.stride)
         del int8
     return info, deviation
-
-
-def _read(path: Path) -> np.ndarray:
-    from dope_hope.io.images import read_rgb
-
-    return read_rgb(path)
 
 
 # ----------------------------------------------------------------------------- top level

@@ -191,15 +191,18 @@ def assignment_distance(a: np.ndarray, b: np.ndarray, upper: float | None = None
        least the centroid distance (triangle inequality: ``sum |a_i - b_s(i)| >=
        |sum a_i - sum b_i|``) and at least the mean nearest-neighbour distance in either
        direction (ADD-S). When the bounds meet (e.g. a pure translation) the upper bound is
-       the answer; when each point's nearest neighbour is a different point, that
-       nearest-neighbour map is a permutation reaching the lower bound, so it is optimal.
+       the answer; when the points of ``a`` all have different nearest neighbours in ``b``,
+       that nearest-neighbour map is a permutation reaching the lower bound: optimal.
     2. Otherwise scipy's ``linear_sum_assignment`` on the full distance matrix (in a reused
        buffer). For hard problems (n >= 160, fewer than 72% distinct nearest neighbours)
-       the matrix is first reduced by dual potentials warm-started from an exact solve of a
-       125-point subsample: subtracting per-row and per-column
-       constants changes every permutation's cost by the same amount, so the optimal
-       permutation is unchanged, but the solver's augmenting paths get short (2-4x faster
-       on hard cases; ``bench/addh_speed.py``).
+       the matrix is first reduced by dual potentials warm-started from an exact solve of
+       a 125-point subsample: subtracting per-row and per-column constants changes every
+       permutation's cost by the same amount, so the optimal permutation is unchanged, but
+       the solver's augmenting paths get short (about 2x faster on hard cases;
+       ``bench/addh_speed.py``).
+
+    "Exact" means up to floating-point rounding (the short-cuts accept bounds that meet to
+    1e-12 relative), as for the plain solver.
 
     Args:
         a, b: (n, 3) point sets, metres.
@@ -222,8 +225,13 @@ def assignment_distance(a: np.ndarray, b: np.ndarray, upper: float | None = None
 
     identity = np.arange(n)
     ub = float(np.linalg.norm(a - b, axis=1).mean())
-    d_ab, nn_ab = cKDTree(b).query(a, k=1)
-    d_ba, nn_ba = cKDTree(a).query(b, k=1)
+    # Nearest-neighbour bounds from the full distance matrix, which the solver needs anyway
+    # (at n = 500 this is cheaper than two KD-trees).
+    C = _BUFFERS.get(n)
+    cdist(a, b, out=C)
+    nn_ab = C.argmin(axis=1)
+    d_ab = C[identity, nn_ab]
+    d_ba = C.min(axis=0)  # (a column-wise argmin would cost as much as the rest together)
     lb = max(float(np.linalg.norm(a.mean(0) - b.mean(0))), float(d_ab.mean()), float(d_ba.mean()))
     tol = 1e-12 * max(ub, 1e-12)
     if ub <= lb + tol:
@@ -231,15 +239,9 @@ def assignment_distance(a: np.ndarray, b: np.ndarray, upper: float | None = None
     unique_nn = len(np.unique(nn_ab))
     if unique_nn == n:
         return result(float(d_ab.mean()), nn_ab)
-    if len(np.unique(nn_ba)) == n:  # b_j -> a_nn(j) is a bijection: invert it
-        perm = np.empty(n, dtype=np.int64)
-        perm[nn_ba] = identity
-        return result(float(d_ba.mean()), perm)
     if upper is not None and lb >= upper:
         return result(lb, None)
 
-    C = _BUFFERS.get(n)
-    cdist(a, b, out=C)
     if n >= _WARM_START_MIN_N and unique_nn < _WARM_START_MAX_UNIQUE_NN * n:
         v = _warm_potentials(a, b, C)
         C -= v[None, :]
@@ -250,25 +252,32 @@ def assignment_distance(a: np.ndarray, b: np.ndarray, upper: float | None = None
 
 
 # --------------------------------------------------------------------------- symmetry-aware
-def _sym_point_sets(pts: np.ndarray, R_g: np.ndarray, t_g: np.ndarray, syms: np.ndarray):
-    """Yield chunks of (s, N, 3) GT-pose points under the symmetry transforms ``syms``."""
-    per_chunk = max(1, _SYM_CHUNK_ELEMENTS // len(pts))
+def _sym_chunks(syms: np.ndarray, n_points: int):
+    per_chunk = max(1, _SYM_CHUNK_ELEMENTS // n_points)
     for start in range(0, len(syms), per_chunk):
-        S = syms[start:start + per_chunk]
-        R_s = np.einsum("ij,sjk->sik", R_g, S[:, :3, :3])      # R_g S_R
-        t_s = S[:, :3, 3] @ R_g.T + t_g                        # R_g S_t + t_g
-        yield np.einsum("sij,nj->sni", R_s, pts) + t_s[:, None, :]
+        yield syms[start:start + per_chunk]
+
+
+def _sym_model_points(pts: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """(s, N, 3) model points under the symmetry transforms ``S`` (s, 4, 4)."""
+    out = np.matmul(pts[None], S[:, :3, :3].transpose(0, 2, 1))
+    out += S[:, None, :3, 3]
+    return out
 
 
 def _sym_reduce(R_e, t_e, R_g, t_g, pts, syms, reduce: str) -> float:
+    """min over symmetries of the mean / max point distance, evaluated in the model frame
+    (distances are invariant to the GT pose: ``|R_g p' + t_g - e| = |p' - R_g^T (e - t_g)|``)."""
     R_e, t_e = _pose(R_e, t_e)
     R_g, t_g = _pose(R_g, t_g)
     pts = _points(pts)
     syms = _symmetries(syms)
-    e = pts @ R_e.T + t_e
+    q = (pts @ R_e.T + t_e - t_g) @ R_g  # estimated points in the GT model frame
     best = math.inf
-    for g in _sym_point_sets(pts, R_g, t_g, syms):
-        d = np.linalg.norm(g - e[None], axis=2)
+    for S in _sym_chunks(syms, len(pts)):
+        diff = _sym_model_points(pts, S)
+        diff -= q[None]
+        d = np.sqrt(np.einsum("sni,sni->sn", diff, diff))
         per_sym = d.mean(axis=1) if reduce == "mean" else d.max(axis=1)
         best = min(best, float(per_sym.min()))
     return best
@@ -298,10 +307,11 @@ def mspd(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray, K: 
     e2 = (e @ K.T)
     e2 = e2[:, :2] / e2[:, 2:3]
     best = math.inf
-    for g in _sym_point_sets(pts, R_g, t_g, syms):
+    for S in _sym_chunks(syms, len(pts)):
+        g = _sym_model_points(pts, S) @ R_g.T + t_g  # (s, N, 3) camera frame
         g2 = g @ K.T
-        g2 = g2[..., :2] / g2[..., 2:3]
-        best = min(best, float(np.linalg.norm(g2 - e2[None], axis=2).max(axis=1).min()))
+        diff = g2[..., :2] / g2[..., 2:3] - e2[None]
+        best = min(best, float(np.sqrt(np.einsum("sni,sni->sn", diff, diff)).max(axis=1).min()))
     return best
 
 

@@ -509,7 +509,9 @@ class Trainer:
 
     def _agree_stop(self) -> bool:
         """True on every rank when any rank wants to stop (time limit, signal)."""
-        if self.time_limit_s is not None and self.elapsed() >= self.time_limit_s and self.stop_reason is None:
+        # the final validation must fit in the budget too: stop when the last one would not
+        if (self.time_limit_s is not None and self.stop_reason is None
+                and self.elapsed() + self._val_seconds >= self.time_limit_s):
             self.stop_reason = "time_limit"
         if not self.dist.active:
             return self.stop_reason is not None
@@ -527,7 +529,7 @@ class Trainer:
         remaining = max(0.0, self.time_limit_s - self.elapsed())
         horizon = self.step + int(remaining / max(per_step, 1e-9))
         if self.dist.active:
-            t = torch.tensor([horizon], dtype=torch.int64)
+            t = torch.tensor([horizon], dtype=torch.int64, device=self.device if self.cuda else "cpu")
             dist.broadcast(t, 0)
             horizon = int(t.item())
         self.lr_lambda.horizon = max(self.step + 1, min(horizon, self.total_steps))
@@ -608,13 +610,16 @@ class Trainer:
         every = int(self.ts["val_every"])
         last_epoch = self.epoch + 1 >= self.epochs or self.step >= self.total_steps or self.stop_reason is not None
         if (every > 0 and ((self.epoch + 1) % every == 0 or last_epoch)) or (every > 0 and self.stop_reason == "time_limit"):
+            t0 = time.monotonic()
             self.last_val = self.validate()
+            self._val_seconds = time.monotonic() - t0
             self.val_done_epoch = self.epoch
             if self.dist.main:
                 self.metrics.write("val", step=self.step, epoch=self.epoch, time_s=round(self._time_used_before + self.elapsed(), 2),
                                    **{k: self.last_val[k] for k in ("val_loss", "val_kp_acc", "val_kp_acc_decoded")})
-                log.info("epoch %d step %d: val loss %.5f, keypoint accuracy %.3f", self.epoch, self.step,
-                         self.last_val["val_loss"], self.last_val["val_kp_acc"])
+                log.info("epoch %d step %d: val loss %.5f, keypoints within %g px %.3f (peaks) %.3f (decoded)",
+                         self.epoch, self.step, self.last_val["val_loss"], self.last_val["val_radius_px"],
+                         self.last_val["val_kp_acc"], self.last_val["val_kp_acc_decoded"])
                 acc = self._primary_acc()
                 if acc is not None and acc > self.best_acc:
                     self.best_acc = acc
@@ -630,6 +635,7 @@ class Trainer:
     def run(self) -> dict[str, Any]:
         self._t0 = time.monotonic()
         self._steps_this_run = 0
+        self._val_seconds = 0.0
         self.out.mkdir(parents=True, exist_ok=True)
         self.metrics = MetricsLog(self.out, self.dist.main)
         handlers = {}
@@ -714,6 +720,7 @@ class Trainer:
                 # the epoch's batches are done (or the step / time budget ran out inside it)
                 if self.val_done_epoch != self.epoch:
                     self._end_of_epoch()
+                    t_log += self._val_seconds  # images/s counts training time only
                 if self.step >= self.total_steps or self.stop_reason is not None:
                     break
                 self.epoch += 1

@@ -243,3 +243,20 @@ def test_split_is_deterministic_and_disjoint(tmp_path):
     tr2, va2 = split_records(records, 0.2, seed=1)
     assert [r.json_path for r in va] == [r.json_path for r in va2] and len(va) == 2 and len(tr) == 8
     assert not {r.json_path for r in tr} & {r.json_path for r in va}
+
+
+def test_official_ndds_and_nvisii_samples(shared_data):
+    """The official formats go through the same dataset (NViSII: legacy order converted)."""
+    from dope_hope.data import legacy_to_current_permutation
+    from dope_hope.io.dope_json import read_dope_json
+
+    samples = shared_data / "dope_format_samples"
+    records, bad = scan_frames([samples / "ndds"], "cracker")
+    assert len(records) == 4 and not bad
+    item = DopeDataset(records, (400, 400), 8, 2.0, 1.0)[0]
+    assert item["belief"].shape == (9, 50, 50) and float(item["belief"].max()) > 0.9
+    frame = read_dope_json(samples / "nvisii" / "00000.json")
+    obj = next(o for o in frame.objects if o.class_name == "Shark")
+    assert obj.keypoint_order == "dope-legacy"
+    records, _ = scan_frames([samples / "nvisii"], "shark")
+    np.testing.assert_allclose(records[0].keypoints[0], obj.projected_cuboid[legacy_to_current_permutation()])

@@ -194,6 +194,10 @@ def test_int8_export_stays_close_to_fp32(fitted, tmp_path):
     assert res.size_bytes < 0.5 * fp32.size_bytes  # int8 weights
     q = json.loads({p.key: p.value for p in proto.metadata_props}["dope_hope.quantization"])
     assert q["per_channel"] and q["format"] == "QDQ" and q["calibration_images"] == 4
+    # The maps come out of a float conv (no 1/255-of-range output quantization step).
+    producer = {o: n for n in proto.graph.node for o in n.output}
+    conv = producer[producer["belief"].input[0]]
+    assert conv.op_type == "Conv" and q["float_nodes"] == [conv.name]
 
 
 def test_compare_maps_measures_keypoint_shift():
@@ -205,6 +209,7 @@ def test_compare_maps_measures_keypoint_shift():
     dev = compare_maps([ref], [shifted], stride=8)
     assert dev.instances_matched == 1 and dev.keypoints_compared == 9
     assert dev.median_px == pytest.approx(2.0, abs=0.05)
+    assert dev.peaks_ref == dev.peaks_matched == 9 and dev.peak_median_px == pytest.approx(2.0, abs=0.05)
     same = compare_maps([ref], [ref], stride=8)
     assert same.max_abs == 0 and same.max_px == 0
 

@@ -61,6 +61,16 @@ def _overrides(**train_values):
 
 
 # ----------------------------------------------------------------------------- resume
+@pytest.fixture
+def default_sigint():
+    """Python's own Ctrl-C handler for the test, whatever the runner inherited (a CI job
+    started in the background has SIGINT ignored)."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+@pytest.mark.usefixtures("default_sigint")
 @pytest.mark.parametrize("stop_at", [3, 5])  # mid-epoch; at the epoch's end before validation
 def test_interrupted_and_resumed_run_ends_with_the_same_weights(frames, tmp_path, stop_at):
     config = load_config("lite")
@@ -176,8 +186,15 @@ def test_torchrun_two_cpu_processes_write_one_checkpoint(frames, tmp_path):
            "-m", "dope_hope.cli", "train", "--config", "lite", "--data", str(frames), "--object", "Ketchup",
            "--out", str(out), "--steps", "2", "--batch-size", "2", "--workers", "0", "--no-progress",
            "--set", "input.size=[64,64]", "train.time_limit_min=null", "train.log_every=1"]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=REPO, env=env)
-    assert r.returncode == 0, r.stderr[-2000:]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=env,
+                            start_new_session=True)  # its own process group: a hang is killed whole
+    try:
+        stdout, stderr = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        pytest.fail("torchrun did not finish in 120 s")
+    assert proc.returncode == 0, stderr[-2000:]
     assert sorted(p.name for p in out.iterdir() if p.suffix == ".pt") == ["best.pt", "last.pt"]
     assert not [p for p in out.iterdir() if ".tmp" in p.name]
     ck = load_checkpoint(out / "last.pt")
@@ -185,4 +202,4 @@ def test_torchrun_two_cpu_processes_write_one_checkpoint(frames, tmp_path):
     assert not any(k.startswith("module.") for k in ck["model"])
     rows = (out / "metrics.csv").read_text().splitlines()
     assert rows.count(rows[0]) == 1 and len([x for x in rows if x.startswith("train,")]) == 2  # rank 0 only
-    assert r.stdout.count("completed") == 1
+    assert stdout.count("completed") == 1

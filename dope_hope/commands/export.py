@@ -42,7 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--calibration-images", type=int, default=32, metavar="N",
                         help="calibration images used (default 32)")
     parser.add_argument("--calibration-method", choices=("minmax", "entropy", "percentile"),
-                        default="minmax", help="activation range calibration (default minmax)")
+                        default="minmax", help="activation range calibration (default minmax; entropy "
+                                               "and percentile hold whole activations of every "
+                                               "calibration image in memory: few images for DR-50)")
     parser.add_argument("--opset", type=int, default=17, help="ONNX opset, 11..20 (default 17)")
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
 

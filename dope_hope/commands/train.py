@@ -55,9 +55,13 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.config import apply_overrides, load_config
     from dope_hope.errors import ConfigError, InputFileError
 
+    from dope_hope.io.dope_json import list_dope_frames
+
     for folder in [*(args.data or []), *args.val]:  # fail fast, before importing torch
         if not folder.is_dir():
             raise InputFileError(folder, "data folder not found")
+        if not list_dope_frames(folder):
+            raise InputFileError(folder, "no DOPE frames (NNNNNN.json beside an image) in this folder")
     from dope_hope.train import TrainJob, train
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")

@@ -63,7 +63,9 @@ def annotate_frame(spec: SceneSpec, render: RenderOutput, class_name: str, cuboi
                          np.any(corners[:, 1] > H - 0.5))
         objects.append(ObjectAnnotation(
             class_name=class_name, R=obj.R.copy(), t=obj.t.copy(), projected_cuboid=uv,
-            visibility=float(visib / total) if total > 0 else 0.0, bbox_xyxy=mask_bbox(mask),
+            # Clamped: the alone pass can rasterize a pixel or two fewer than the scene pass
+            # (seen: 1.00004), and readers require a fraction in [0, 1].
+            visibility=min(1.0, float(visib / total)) if total > 0 else 0.0, bbox_xyxy=mask_bbox(mask),
             instance_id=obj.seg_id, keypoint_order=KEYPOINT_ORDER))
         occluders = sorted(int(o.seg_id) for o in spec.objects if o.occluder_of == obj.seg_id)
         stats.append(InstanceStats(obj.seg_id, visib, total, truncated, occluders))

@@ -1,0 +1,252 @@
+"""End-to-end accuracy of the whole pipeline on a real HOPE mesh (Ketchup), with the real CLI.
+
+Stages (each one a `dope-hope` command run as a subprocess, exactly what a user types; the
+commands are printed and logged to OUT/logs/):
+
+1. ``synth-train``: `dope-hope synth` a training set for the mesh (procedural backgrounds,
+   seed 1).
+2. ``train``: `dope-hope train --config lite` for a fixed wall-clock budget (default 25
+   minutes on the 2 CPU cores; `--train-minutes`), validation on a seeded 10 % split.
+3. ``synth-test``: a held-out test set with other seeds (1001), photo backgrounds
+   (`--backgrounds`) and RealSense-like depth noise (`--depth-noise`).
+4. ``infer-ls`` / ``infer``: `dope-hope infer TEST --depth auto` (with the depth line search,
+   "-LS") and the same without `--depth` (no -LS), with the mesh for the line search's points.
+5. ``eval-meanssd`` / ``eval-addh``: `dope-hope evaluate` of both prediction files: recall at
+   2 cm and 10 cm and the median error of the true positives (at 10 cm) for MeanSSD and ADD-H
+   (500 model points, the bottle category's symmetries), and the BOP19 AR_MSSD / AR_MSPD /
+   AR_VSD.
+
+Prints the table (and writes OUT/results.md + OUT/results.json). Resumable at stage
+granularity: a stage whose marker OUT/stages/<stage>.json exists is skipped (an interrupted
+synth resumes frame by frame, an interrupted train with --resume); OUT/e2e_settings.json
+refuses a rerun with other settings in the same folder.
+
+    python bench/e2e_accuracy.py                                   # 2 CPU cores, ~45 min
+    python bench/e2e_accuracy.py --quick --out /tmp/e2e_quick      # tiny, < 1 min: checks the plumbing
+    python bench/e2e_accuracy.py --config dope_dr_50 --train-minutes 240 --train-count 20000 \\
+        --workers 8 --device cuda --out bench/out/e2e_dr50         # on a GPU machine
+
+The mesh defaults to $DOPE_HOPE_SHARED_DATA/hope_ketchup/textured.obj, else
+../shared/data/hope_ketchup/textured.obj next to the repository (never copied into it);
+the backgrounds to the `backgrounds/` folder beside it.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+#: Synth seeds: training and held-out test frames never share a (seed, index) pair.
+TRAIN_SEED, TEST_SEED = 1, 1001
+
+
+def shared_data_dir() -> Path | None:
+    """$DOPE_HOPE_SHARED_DATA, else ../shared/data beside the repository (None if absent)."""
+    env = os.environ.get("DOPE_HOPE_SHARED_DATA")
+    for c in ([Path(env)] if env else []) + [REPO.parent / "shared" / "data", REPO / "shared" / "data"]:
+        if (c / "hope_ketchup" / "textured.obj").is_file():
+            return c
+    return None
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, help="work folder (default bench/out/e2e, --quick: bench/out/e2e_quick)")
+    p.add_argument("--mesh", type=Path, help="object mesh (default: the shared HOPE Ketchup textured.obj)")
+    p.add_argument("--object", default="Ketchup", help="class name (default Ketchup)")
+    p.add_argument("--backgrounds", type=Path, help="background photos of the test set "
+                                                    "(default: the shared data's backgrounds/)")
+    p.add_argument("--config", default="lite", help="training config (lite; dope_dr_50 on a GPU)")
+    p.add_argument("--train-minutes", type=float, help="training wall-clock budget (default 25; --quick 0.2)")
+    p.add_argument("--train-count", type=int, help="training frames (default 2000; --quick 8)")
+    p.add_argument("--test-count", type=int, help="test frames (default 200; --quick 3)")
+    p.add_argument("--size", help="frame size WxH (default 640x480; --quick 160x120)")
+    p.add_argument("--workers", type=int, default=1, help="synth render processes (default 1)")
+    p.add_argument("--device", help="torch device for train and infer (default: train auto, infer cpu)")
+    p.add_argument("--quick", action="store_true",
+                   help="tiny sizes and budget: checks that every stage runs (numbers meaningless)")
+    args = p.parse_args(argv)
+    q = args.quick
+    defaults = {"train_minutes": 0.2 if q else 25.0, "train_count": 8 if q else 2000,
+                "test_count": 3 if q else 200, "size": "160x120" if q else "640x480",
+                "out": REPO / "bench" / "out" / ("e2e_quick" if q else "e2e")}
+    for key, value in defaults.items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+    shared = shared_data_dir()
+    if args.mesh is None:
+        if shared is None:
+            p.error("no --mesh and no shared data (set DOPE_HOPE_SHARED_DATA or pass --mesh)")
+        args.mesh = shared / "hope_ketchup" / "textured.obj"
+    if args.backgrounds is None and shared is not None and (shared / "backgrounds").is_dir():
+        args.backgrounds = shared / "backgrounds"
+    if not args.mesh.is_file():
+        p.error(f"{args.mesh}: mesh not found")
+    return args
+
+
+class Pipeline:
+    """Runs the stages in order, skipping those whose marker exists."""
+
+    def __init__(self, out: Path):
+        self.out = out
+        (out / "stages").mkdir(parents=True, exist_ok=True)
+        (out / "logs").mkdir(parents=True, exist_ok=True)
+        self.timings: dict[str, float] = {}
+
+    def stage(self, name: str, argv: list[str], stdout_to_log: bool = True) -> None:
+        """Run ``dope-hope *argv`` unless stage ``name`` is done; raise on failure."""
+        marker = self.out / "stages" / f"{name}.json"
+        shown = "dope-hope " + " ".join(shlex.quote(str(a)) for a in argv)
+        if marker.is_file():
+            print(f"[{name}] done earlier, skipped: {shown}", flush=True)
+            self.timings[name] = float(json.loads(marker.read_text())["seconds"])
+            return
+        print(f"[{name}] $ {shown}", flush=True)
+        log = self.out / "logs" / f"{name}.log"
+        t0 = time.perf_counter()
+        cmd = [sys.executable, "-m", "dope_hope.cli", *map(str, argv)]
+        with open(log, "w") as f:
+            f.write(f"$ {shown}\n")
+            f.flush()
+            proc = subprocess.run(cmd, stdout=f if stdout_to_log else None, stderr=subprocess.STDOUT
+                                  if stdout_to_log else None, cwd=REPO)
+        seconds = time.perf_counter() - t0
+        if proc.returncode != 0:
+            tail = log.read_text(errors="replace").strip().splitlines()[-5:]
+            raise SystemExit(f"[{name}] failed with status {proc.returncode} after {seconds:.0f} s; "
+                             f"log {log}:\n  " + "\n  ".join(tail))
+        marker.write_text(json.dumps({"command": shown, "seconds": round(seconds, 1)}) + "\n")
+        self.timings[name] = seconds
+        print(f"[{name}] {seconds:.0f} s (log {log})", flush=True)
+
+
+def check_settings(out: Path, settings: dict) -> None:
+    """Record the run's settings; refuse to mix stages made with other settings."""
+    path = out / "e2e_settings.json"
+    if path.is_file():
+        old = json.loads(path.read_text())
+        if old != settings:
+            diff = sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k))
+            raise SystemExit(f"{out} holds a run with other settings ({', '.join(diff)}); "
+                             "use another --out or delete it")
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(settings, indent=1) + "\n")
+
+
+def checkpoint_of(run_dir: Path) -> Path:
+    """best.pt (best validation keypoint accuracy) if the run wrote one, else last.pt."""
+    for name in ("best.pt", "last.pt"):
+        if (run_dir / name).is_file():
+            return run_dir / name
+    raise SystemExit(f"{run_dir}: no checkpoint (best.pt / last.pt) after training")
+
+
+def _pct(v) -> str:
+    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{100 * v:.1f} %"
+
+
+def _num(v, digits: int = 2) -> str:
+    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
+
+
+def results_table(out: Path, methods: dict[str, str]) -> tuple[str, dict]:
+    """Markdown table from the evaluate summaries; ``methods``: label -> method name."""
+    ms = json.loads((out / "eval_meanssd" / "summary.json").read_text())
+    ah = json.loads((out / "eval_addh" / "summary.json").read_text())
+    rows, data = [], {}
+    header = ("| method | -LS | recall 2 cm MeanSSD | recall 10 cm MeanSSD | median MeanSSD (cm) | "
+              "recall 2 cm ADD-H | recall 10 cm ADD-H | median ADD-H (cm) | AR_MSSD | AR_MSPD | AR_VSD |")
+    rows.append(header)
+    rows.append("|" + "|".join(["---"] * (header.count("|") - 1)) + "|")
+    for label, name in methods.items():
+        m = ms["methods"][name]
+        a = ah["methods"][name]
+        mo, ao, bop = m["overall"] or {}, a["overall"] or {}, m.get("bop19") or {}
+        rec = {"recall_2cm_meanssd": mo.get("recall_2cm"), "recall_10cm_meanssd": mo.get("recall_10cm"),
+               "median_meanssd_cm": mo.get("median_tp_error_cm"),
+               "recall_2cm_addh": ao.get("recall_2cm"), "recall_10cm_addh": ao.get("recall_10cm"),
+               "median_addh_cm": ao.get("median_tp_error_cm"),
+               "ar_mssd": bop.get("ar_mssd"), "ar_mspd": bop.get("ar_mspd"), "ar_vsd": bop.get("ar_vsd"),
+               "detections": m["detections"]}
+        data[label] = rec
+        method, ls = label.rsplit(" ", 1)
+        rows.append(f"| {method} | {ls} | {_pct(rec['recall_2cm_meanssd'])} | {_pct(rec['recall_10cm_meanssd'])} | "
+                    f"{_num(rec['median_meanssd_cm'])} | {_pct(rec['recall_2cm_addh'])} | "
+                    f"{_pct(rec['recall_10cm_addh'])} | {_num(rec['median_addh_cm'])} | "
+                    f"{_num(rec['ar_mssd'], 3)} | {_num(rec['ar_mspd'], 3)} | {_num(rec['ar_vsd'], 3)} |")
+    return "\n".join(rows), data
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    out: Path = args.out.resolve()
+    settings = {"mesh": str(args.mesh.resolve()), "object": args.object, "config": args.config,
+                "train_minutes": args.train_minutes, "train_count": args.train_count,
+                "test_count": args.test_count, "size": args.size, "device": args.device,
+                "backgrounds": None if args.backgrounds is None else str(args.backgrounds.resolve()),
+                "quick": args.quick, "train_seed": TRAIN_SEED, "test_seed": TEST_SEED}
+    check_settings(out, settings)
+    print(f"e2e accuracy: {args.object} ({args.mesh}), {args.train_count} training frames, "
+          f"{args.config} for {args.train_minutes:g} min, {args.test_count} test frames at {args.size}, "
+          f"{os.cpu_count()} CPU core(s){' [--quick: numbers are meaningless]' if args.quick else ''}; "
+          f"work folder {out}", flush=True)
+    pipe = Pipeline(out)
+    mesh = args.mesh.resolve()
+    train_dir, test_dir, run_dir = out / "train", out / "test", out / "run"
+    common = ["--mesh", mesh, "--class-name", args.object, "--size", args.size, "--no-progress"]
+    pipe.stage("synth-train", ["synth", *common, "--out", train_dir, "--count", args.train_count,
+                               "--seed", TRAIN_SEED, "--workers", args.workers])
+    train = ["train", "--config", args.config, "--data", train_dir, "--object", args.object,
+             "--mesh", mesh, "--out", run_dir, "--time-budget", args.train_minutes, "--resume", "--no-progress"]
+    if args.device:
+        train += ["--device", args.device]
+    if args.quick:  # a few steps of a tiny-input run: checks the plumbing only
+        train += ["--steps", "2", "--batch-size", "2", "--workers", "0", "--set", "input.size=[64,64]"]
+    pipe.stage("train", train)
+    ckpt = checkpoint_of(run_dir)
+    test = ["synth", *common, "--out", test_dir, "--count", args.test_count, "--seed", TEST_SEED,
+            "--workers", args.workers, "--depth-noise"]
+    if args.backgrounds is not None:
+        test += ["--backgrounds", args.backgrounds.resolve()]
+    pipe.stage("synth-test", test)
+    infer = ["infer", test_dir, "--weights", ckpt, "--mesh", mesh, "--no-overlay", "--no-progress"]
+    if args.device:
+        infer += ["--device", args.device]
+    pipe.stage("infer-ls", infer + ["--depth", "auto", "--out", out / "infer_ls"])
+    pipe.stage("infer", infer + ["--out", out / "infer"])
+    name = Path(args.config).stem.replace("_", "-")
+    methods = {f"{name} yes": f"{name}-LS", f"{name} no": name}
+    evaluate = ["evaluate", "-p", out / "infer_ls" / "predictions.jsonl", out / "infer" / "predictions.jsonl",
+                "--method", f"{name}-LS", name, "-d", test_dir, "--mesh", f"{args.object}={mesh}",
+                "--no-progress"]
+    pipe.stage("eval-meanssd", evaluate + ["--metric", "meanssd,addh", "--bop-ar", "--out", out / "eval_meanssd"])
+    pipe.stage("eval-addh", evaluate + ["--metric", "addh,meanssd", "--no-bop-ar", "--out", out / "eval_addh"])
+
+    table, data = results_table(out, methods)
+    times = ", ".join(f"{k} {v:.0f} s" for k, v in pipe.timings.items())
+    text = (f"# e2e accuracy: {args.object}, {args.config}, {args.train_minutes:g} min training\n\n"
+            f"Held-out synthetic test set: {args.test_count} frames at {args.size} (seed {TEST_SEED}, photo "
+            f"backgrounds, RealSense-like depth noise); {args.train_count} training frames (seed "
+            f"{TRAIN_SEED}); checkpoint {ckpt.name}. Recall = true positives / GT instances "
+            f"(matching per image, greedy by score, error < threshold); median = median error of the "
+            f"true positives at 10 cm; AR = BOP19 average recall.\n\n{table}\n\nStage times: {times}\n")
+    (out / "results.md").write_text(text)
+    (out / "results.json").write_text(json.dumps({"settings": settings, "checkpoint": str(ckpt),
+                                                  "results": data, "stage_seconds": pipe.timings},
+                                                 indent=1, default=float) + "\n")
+    print("\n" + table + f"\n\nstage times: {times}\nwritten: {out / 'results.md'}, {out / 'results.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
