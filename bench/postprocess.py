@@ -17,7 +17,9 @@ depth of a ray-cast box, ~4200 surface points.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -43,6 +45,9 @@ from dope_hope.pose import (
     visible_points,
 )
 from dope_hope.targets import make_targets
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the tests' box helpers (one definition)
+from box_depth import box_surface_points, render_box_depth  # noqa: E402
 
 STRIDE = 8
 HW = (400, 400)
@@ -158,31 +163,6 @@ def timed(fn, *args, repeats=3):
         out = fn(*args)
         best = min(best, time.perf_counter() - t0)
     return best, out
-
-
-# ------------------------------------------------------------------ -LS
-def render_box_depth(size, R, t, K, hw):
-    H, W = hw
-    u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
-    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T
-    origin, d, half = -R.T @ t, rays @ R, np.asarray(size) / 2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1, t2 = (-half - origin) / d, (half - origin) / d
-    near, far = np.nanmax(np.minimum(t1, t2), -1), np.nanmin(np.maximum(t1, t2), -1)
-    return np.where((near <= far) & (near > 0), near, 0.0)
-
-
-def box_surface_points(size, spacing=0.004):
-    half, pts = np.asarray(size) / 2, []
-    for ax in range(3):
-        a, b = [i for i in range(3) if i != ax]
-        A, B = np.meshgrid(np.arange(-half[a], half[a] + 1e-9, spacing),
-                           np.arange(-half[b], half[b] + 1e-9, spacing))
-        for sign in (-1, 1):
-            p = np.zeros((A.size, 3))
-            p[:, a], p[:, b], p[:, ax] = A.ravel(), B.ravel(), sign * half[ax]
-            pts.append(p)
-    return np.vstack(pts)
 
 
 def main() -> int:

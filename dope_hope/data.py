@@ -33,8 +33,8 @@ import torch
 from torch.utils.data import Dataset, Sampler
 
 from dope_hope.errors import ConfigError, DopeHopeError, InputFileError
-from dope_hope.geometry import (CUBOID_CORNER_SIGNS, KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER,
-                                LEGACY_TO_MESH, NUM_KEYPOINTS)
+from dope_hope.geometry import (KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER, LEGACY_TO_CURRENT_INDEX,
+                                NUM_KEYPOINTS, legacy_keypoints_to_current)
 
 log = logging.getLogger(__name__)
 
@@ -55,24 +55,10 @@ PAD_RGB = (124, 116, 104)
 
 
 # --------------------------------------------------------------------------- keypoint order
-def legacy_to_current_permutation() -> np.ndarray:
-    """(9,) int: ``current[j] = legacy[perm[j]]``.
-
-    The legacy order lists the corners by CUBOID_CORNER_SIGNS in the legacy object frame,
-    ``p_mesh = LEGACY_TO_MESH @ p_legacy``; LEGACY_TO_MESH is a signed permutation, so legacy
-    corner k is the mesh corner with signs ``LEGACY_TO_MESH @ signs_k``. The centre stays 8.
-    """
-    mesh_signs = CUBOID_CORNER_SIGNS @ LEGACY_TO_MESH.T  # row k: signs of legacy corner k
-    perm = np.empty(NUM_KEYPOINTS, dtype=np.int64)
-    for k, s in enumerate(mesh_signs):
-        j = int(np.flatnonzero(np.all(np.isclose(CUBOID_CORNER_SIGNS, s), axis=1))[0])
-        perm[j] = k
-    perm[8] = 8
-    return perm
-
-
 def convert_keypoint_order(keypoints: np.ndarray, from_order: str, to_order: str) -> np.ndarray:
     """Reorder (..., 9, 2) keypoints between "dope-current" and "dope-legacy".
+
+    The permutation is :data:`dope_hope.geometry.LEGACY_TO_CURRENT_INDEX`.
 
     Raises:
         ConfigError: an order name that is neither.
@@ -84,10 +70,9 @@ def convert_keypoint_order(keypoints: np.ndarray, from_order: str, to_order: str
     kp = np.asarray(keypoints)
     if from_order == to_order:
         return kp
-    perm = legacy_to_current_permutation()
     if from_order == LEGACY_KEYPOINT_ORDER:
-        return kp[..., perm, :]
-    return kp[..., np.argsort(perm), :]
+        return legacy_keypoints_to_current(kp)
+    return kp[..., LEGACY_TO_CURRENT_INDEX, :]  # current[LEGACY_TO_CURRENT_INDEX[k]] = legacy[k]
 
 
 # --------------------------------------------------------------------------- augmentation
@@ -324,7 +309,7 @@ def scan_frames(
     Raises:
         InputFileError: a folder that does not exist or holds no DOPE frames.
     """
-    from dope_hope.io.dope_json import list_dope_frames, read_dope_json
+    from dope_hope.io.dope_json import find_image, list_dope_frames, read_dope_json
 
     want = class_name.lower()
     records: list[FrameRecord] = []
@@ -360,19 +345,13 @@ def scan_frames(
             kps.append(convert_keypoint_order(kp, obj.keypoint_order, keypoint_order))
         if not kps and not include_empty:
             continue
-        image = frame.image_path if frame.image_path is not None else _sibling_image(Path(path))
+        image = frame.image_path if frame.image_path is not None else find_image(path)
+        if image is None:
+            raise InputFileError(path, "no image beside this annotation")
         records.append(FrameRecord(
             Path(path), Path(image),
             np.stack(kps) if kps else np.zeros((0, NUM_KEYPOINTS, 2))))
     return records, bad
-
-
-def _sibling_image(json_path: Path) -> Path:
-    for ext in (".png", ".jpg", ".jpeg"):
-        p = json_path.with_suffix(ext)
-        if p.is_file():
-            return p
-    raise InputFileError(json_path, "no image beside this annotation")
 
 
 class DopeDataset(Dataset):

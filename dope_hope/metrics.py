@@ -29,7 +29,6 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
-from scipy.spatial.transform import Rotation
 
 #: BOP19 VSD misalignment tolerances, fractions of the object diameter (0.05 .. 0.5).
 BOP19_VSD_TAUS = tuple(round(0.05 * k, 2) for k in range(1, 11))
@@ -329,7 +328,9 @@ def symmetries_from_models_info(info: dict[str, Any], max_sym_disc_step: float =
     Returns:
         (S, 4, 4) float, metres, identity first.
     """
-    discrete = [np.eye(4)]
+    from dope_hope.io.bop import compose_symmetries
+
+    discrete = []
     for k, sym in enumerate(info.get("symmetries_discrete") or []):
         M = np.asarray(sym, dtype=np.float64)
         if M.size != 16:
@@ -345,17 +346,9 @@ def symmetries_from_models_info(info: dict[str, Any], max_sym_disc_step: float =
         if norm == 0:
             raise ValueError(f"symmetries_continuous[{k}]: zero axis")
         offset = 0.001 * np.asarray(sym.get("offset", (0, 0, 0)), dtype=np.float64).reshape(3)
-        steps = int(np.ceil(np.pi / max_sym_disc_step))
-        angles = np.arange(steps) * (2.0 * np.pi / steps)
-        rots = Rotation.from_rotvec(angles[:, None] * (axis / norm)[None]).as_matrix()
-        for R in rots:
-            M = np.eye(4)
-            M[:3, :3] = R
-            M[:3, 3] = offset - R @ offset
-            continuous.append(M)
-    if not continuous:
-        return np.stack(discrete)
-    return np.stack([C @ D for D in discrete for C in continuous])
+        continuous.append((axis / norm, offset))
+    steps = int(np.ceil(np.pi / max_sym_disc_step)) if continuous else 0
+    return compose_symmetries(discrete, continuous, steps)
 
 
 # --------------------------------------------------------------------------- VSD

@@ -1,10 +1,15 @@
-"""Test helper (not a test file): a lite model briefly fitted so that its maps detect a box.
+"""Test helper (not a test file): lite models briefly fitted so that their maps detect a box.
 
 Untrained networks output near-zero maps: nothing decodes, so comparing the detections of two
 backends would compare empty lists. Here a lite network is fitted for a few dozen Adam steps
-to the belief/affinity targets of ONE synthetic image (a drawn box whose cuboid keypoints are
-known), which is enough for its maps to hold one clean instance at that image. The fit is
-deterministic (seeded, one thread) and takes a few seconds.
+to the belief/affinity targets of ONE image whose cuboid keypoints are known, which is enough
+for its maps to hold one clean instance at that image. The fit is deterministic (seeded) and
+takes a few seconds. Two images:
+
+* :func:`scene` / :func:`fit_lite_checkpoint`: a drawn Ketchup box (one thread);
+* :func:`fit_demo_checkpoint`: demo scene (seed, 0) of `dope-hope demo`, which renders scene i
+  of seed S deterministically, so the fitted network detects the box there: tests get a real
+  detection (with a pose to score) without the shipped, trained weights.
 """
 from __future__ import annotations
 
@@ -16,6 +21,8 @@ import numpy as np
 IMAGE_HW = (96, 128)
 CLASS_NAME = "Ketchup"
 K = np.array([[110.0, 0.0, 63.5], [0.0, 110.0, 47.5], [0.0, 0.0, 1.0]])
+#: Network input (H, W) of the demo model: the demo's 640x480 scenes at 1/4.
+DEMO_INPUT_HW = (120, 160)
 
 
 def scene() -> tuple[np.ndarray, np.ndarray]:
@@ -41,22 +48,21 @@ def scene() -> tuple[np.ndarray, np.ndarray]:
     return rgb, kp
 
 
-def fit_lite_checkpoint(path: Path, steps: int = 60) -> Path:
-    """Fit a lite network to :func:`scene`'s targets and save it as a dope-hope checkpoint."""
+def fit_lite_model(rgb: np.ndarray, kp: np.ndarray, input_hw: tuple[int, int], steps: int):
+    """A lite network (config "lite" at ``input_hw``) fitted with ``steps`` Adam steps to the
+    belief/affinity targets of one image: rgb (H, W, 3) uint8 of size ``input_hw``, kp (9, 2)
+    image px. Returns (model in eval mode, its config)."""
     import torch
 
     from dope_hope.config import load_config
-    from dope_hope.model.checkpoint import save_checkpoint
     from dope_hope.model.network import build_model, normalize_image
     from dope_hope.targets import make_targets
 
     torch.manual_seed(0)
-    torch.set_num_threads(1)
     cfg = load_config("lite")
-    cfg["input"]["size"] = list(IMAGE_HW)
+    cfg["input"]["size"] = list(input_hw)
     model = build_model(cfg)
-    rgb, kp = scene()
-    belief, affinity = make_targets(kp[None], IMAGE_HW, model.stride, sigma=1.0, radius=1.0)
+    belief, affinity = make_targets(kp[None], input_hw, model.stride, sigma=1.0, radius=1.0)
     x = normalize_image(rgb)[None]
     tb, ta = torch.from_numpy(belief)[None], torch.from_numpy(affinity)[None]
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
@@ -67,5 +73,38 @@ def fit_lite_checkpoint(path: Path, steps: int = 60) -> Path:
         loss.backward()
         opt.step()
     model.eval()
+    return model, cfg
+
+
+def fit_lite_checkpoint(path: Path, steps: int = 60) -> Path:
+    """Fit a lite network to :func:`scene`'s targets and save it as a dope-hope checkpoint."""
+    import torch
+
+    from dope_hope.model.checkpoint import save_checkpoint
+
+    torch.set_num_threads(1)
+    rgb, kp = scene()
+    model, cfg = fit_lite_model(rgb, kp, IMAGE_HW, steps)
     save_checkpoint(path, model, cfg, {"class_name": CLASS_NAME})
+    return path
+
+
+def fit_demo_checkpoint(path: Path, seed: int, steps: int = 80) -> Path:
+    """A lite network fitted to the belief/affinity targets of demo scene (seed, 0), saved at path."""
+    from dope_hope.commands import demo as demo_cmd
+    from dope_hope.demo_object import DEMO_CLASS_NAME, DEMO_SIZE_M, write_demo_object
+    from dope_hope.model.checkpoint import make_object_info, save_checkpoint
+    from dope_hope.synth import FrameGenerator
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    mesh = write_demo_object(path.parent / "fit_mesh")
+    with FrameGenerator(mesh, size=demo_cmd.IMAGE_SIZE, config=demo_cmd.DEMO_CONFIG,
+                        class_name=DEMO_CLASS_NAME, seed=seed) as gen:
+        frame = gen.render_frame(0)
+    H, W = DEMO_INPUT_HW
+    s = W / frame.rgb.shape[1]
+    rgb = cv2.resize(frame.rgb, (W, H), interpolation=cv2.INTER_AREA)
+    kp = s * (frame.annotation.objects[0].projected_cuboid + 0.5) - 0.5
+    model, cfg = fit_lite_model(rgb, kp, DEMO_INPUT_HW, steps)
+    save_checkpoint(path, model, cfg, make_object_info(DEMO_CLASS_NAME, DEMO_SIZE_M))
     return path

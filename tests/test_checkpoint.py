@@ -17,6 +17,7 @@ from dope_hope.model.checkpoint import (
     make_object_info,
     restore_rng_state,
     save_checkpoint,
+    save_inference_checkpoint,
 )
 
 torch.set_num_threads(1)
@@ -72,6 +73,18 @@ def test_round_trip_restores_weights_optimizer_and_rng(tmp_path):
     sched2 = torch.optim.lr_scheduler.CosineAnnealingLR(opt2, T_max=10)
     sched2.load_state_dict(ckpt2["scheduler"])
     assert sched2.last_epoch == 1
+
+
+def test_inference_checkpoint_drops_training_state_and_keeps_the_model(tmp_path):
+    model, opt, sched = _trained_lite()
+    full = save_checkpoint(tmp_path / "last.pt", model, LITE, make_object_info("Ketchup"), opt, sched, step=3)
+    slim = save_inference_checkpoint(full, tmp_path / "ship.pt")
+    assert slim.stat().st_size < 0.6 * full.stat().st_size  # Adam's two moments are gone
+    loaded, ckpt = load_model(slim)
+    assert ckpt["optimizer"] is None and ckpt["scheduler"] is None and ckpt["rng"] is None
+    assert ckpt["object"]["class_name"] == "Ketchup" and ckpt["step"] == 3
+    for key, value in model.state_dict().items():
+        assert torch.equal(loaded.state_dict()[key], value), key
 
 
 def test_failed_write_leaves_old_file_and_no_partial(tmp_path, monkeypatch):

@@ -16,7 +16,7 @@ from dope_hope.data import (PAD_RGB, AugmentParams, DopeDataset, EpochSampler, a
                             convert_keypoint_order, recorded_cuboid_size, scan_frames, split_records)
 from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.geometry import (LEGACY_TO_MESH, cuboid_keypoints, intrinsics_matrix,
-                                project_points, scale_intrinsics)
+                                legacy_keypoints_to_current, project_points, scale_intrinsics)
 from dope_hope.io.dope_json import write_dope_json
 from dope_hope.io.images import write_rgb
 from dope_hope.mapgrid import image_to_map
@@ -247,7 +247,6 @@ def test_split_is_deterministic_and_disjoint(tmp_path):
 
 def test_official_ndds_and_nvisii_samples(shared_data):
     """The official formats go through the same dataset (NViSII: legacy order converted)."""
-    from dope_hope.data import legacy_to_current_permutation
     from dope_hope.io.dope_json import read_dope_json
 
     samples = shared_data / "dope_format_samples"
@@ -259,4 +258,4 @@ def test_official_ndds_and_nvisii_samples(shared_data):
     obj = next(o for o in frame.objects if o.class_name == "Shark")
     assert obj.keypoint_order == "dope-legacy"
     records, _ = scan_frames([samples / "nvisii"], "shark")
-    np.testing.assert_allclose(records[0].keypoints[0], obj.projected_cuboid[legacy_to_current_permutation()])
+    np.testing.assert_allclose(records[0].keypoints[0], legacy_keypoints_to_current(obj.projected_cuboid))

@@ -2,7 +2,7 @@
 DOPE frames that `dope-hope infer` reads by itself, the ONNX cache, and the one-line errors.
 
 The checkpoint is a lite network fitted in a few seconds to the first demo scene of SEED
-(tests/demo_model.py; the demo renders exactly that scene again), so the demo has a real
+(tests/fitted_model.py; the demo renders exactly that scene again), so the demo has a real
 detection to score and to compare between the two backends.
 """
 from __future__ import annotations
@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 import torch
 
-from demo_model import INPUT_HW, fit_demo_checkpoint
 from dope_hope import cli
 from dope_hope.commands import demo as demo_cmd
 from dope_hope.commands import infer as infer_cmd
+from fitted_model import DEMO_INPUT_HW, fit_demo_checkpoint
 
 torch.set_num_threads(1)
 SEED = 11
@@ -85,7 +85,7 @@ def test_demo_writes_overlays_frames_onnx_and_predictions(demo_run, ckpt):
     assert (out / "mesh" / "DemoBox.obj").is_file()
     onnx_path = out / f"{ckpt.stem}.onnx"
     stamp = json.loads((out / f"{ckpt.stem}.onnx.json").read_text())
-    assert onnx_path.is_file() and stamp["input_hw"] == list(INPUT_HW)
+    assert onnx_path.is_file() and stamp["input_hw"] == list(DEMO_INPUT_HW)
     preds, _ = read_predictions(out / "predictions.jsonl")
     assert preds and all(p.class_name == "DemoBox" for p in preds)
 

@@ -34,6 +34,7 @@ from dope_hope.io.dope_json import (
 )
 from dope_hope.io.images import read_depth_m, read_image_raw
 from dope_hope.io.meshes import load_mesh, mesh_cuboid
+from json_edit import with_field
 
 # The official DOPE NDDS samples were rendered with the FAT camera (512 x 512 crop) and show
 # the YCB cracker box; its cuboid size from the official DOPE config, centimetres.
@@ -353,19 +354,6 @@ def _good_doc() -> dict:
                          "visibility": 1.0}]}
 
 
-def _break(doc: dict, dotted: str, value) -> dict:
-    doc = copy.deepcopy(doc)
-    node = doc
-    keys = [int(k) if k.isdigit() else k for k in dotted.split(".")]
-    for k in keys[:-1]:
-        node = node[k]
-    if value is KeyError:
-        del node[keys[-1]]
-    else:
-        node[keys[-1]] = value
-    return doc
-
-
 @pytest.mark.parametrize("dotted, value, message", [
     ("objects.0.projected_cuboid", [[0.0, 0.0]] * 8,
      "objects[0].projected_cuboid: expected 9 points, got 8"),
@@ -386,7 +374,7 @@ def _break(doc: dict, dotted: str, value) -> dict:
 ])
 def test_malformed_fields_name_file_and_field(tmp_path, dotted, value, message):
     path = tmp_path / "000000.json"
-    path.write_text(json.dumps(_break(_good_doc(), dotted, value)))
+    path.write_text(json.dumps(with_field(_good_doc(), dotted, value)))
     with pytest.raises(InputFileError) as err:
         read_dope_json(path)
     assert str(err.value).startswith(f"{path}: ")

@@ -1,7 +1,6 @@
 """dope_hope.io.hope_json on HOPE-Image-style files synthesized here (no sample is shipped)."""
 from __future__ import annotations
 
-import copy
 import json
 from pathlib import Path
 
@@ -11,6 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from dope_hope.errors import InputFileError
 from dope_hope.io.hope_json import list_hope_frames, read_hope_json
+from json_edit import with_field
 
 K = [[1390.53, 0.0, 964.957], [0.0, 1386.99, 522.586], [0.0, 0.0, 1.0]]
 R1 = Rotation.from_euler("xyz", [10, -35, 120], degrees=True).as_matrix()
@@ -80,19 +80,6 @@ def test_nearly_orthonormal_pose_is_cleaned(tmp_path):
     np.testing.assert_allclose(R, R1, atol=1e-4)
 
 
-def _set(doc, dotted, value):
-    doc = copy.deepcopy(doc)
-    keys = [int(k) if k.isdigit() else k for k in dotted.split(".")]
-    node = doc
-    for k in keys[:-1]:
-        node = node[k]
-    if value is KeyError:
-        del node[keys[-1]]
-    else:
-        node[keys[-1]] = value
-    return doc
-
-
 @pytest.mark.parametrize("dotted, value, message", [
     ("camera", KeyError, "camera: missing field"),
     ("camera.intrinsics", KeyError, "camera.intrinsics: missing field"),
@@ -108,7 +95,7 @@ def _set(doc, dotted, value):
     ("depth_scale", -1, "depth_scale: must be positive"),
 ])
 def test_malformed_inputs_name_file_and_field(tmp_path, dotted, value, message):
-    path = _write(tmp_path, _set(_doc(), dotted, value))
+    path = _write(tmp_path, with_field(_doc(), dotted, value))
     with pytest.raises(InputFileError) as err:
         read_hope_json(path)
     assert str(err.value).startswith(f"{path}: ")

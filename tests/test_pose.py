@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from box_depth import box_surface_points, render_box_depth
 from dope_hope.catalog import get_object
 from dope_hope.decode import decode_maps
 from dope_hope.geometry import (
@@ -149,36 +150,6 @@ def test_a_pose_behind_the_camera_is_rejected(monkeypatch):
 K320 = intrinsics_matrix(307.5, 307.5, 159.5, 119.5)
 HW320 = (240, 320)
 BOX = get_object("Cookies").size_array  # 12.3 x 16.7 x 4.0 cm
-
-
-def render_box_depth(size, R, t, K, hw):
-    """(H, W) metres: depth of a box (centred, axis-aligned in its frame) under (R, t); 0 = miss."""
-    H, W = hw
-    u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
-    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T  # z = 1: t_hit = depth
-    origin = -R.T @ t
-    d = rays @ R  # ray directions in the box frame
-    half = np.asarray(size) / 2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1, t2 = (-half - origin) / d, (half - origin) / d
-    near = np.nanmax(np.minimum(t1, t2), axis=-1)
-    far = np.nanmin(np.maximum(t1, t2), axis=-1)
-    return np.where((near <= far) & (near > 0), near, 0.0)
-
-
-def box_surface_points(size, spacing=0.004):
-    """(N, 3) points on a grid over the six faces of the box, metres."""
-    half = np.asarray(size) / 2
-    pts = []
-    for ax in range(3):
-        a, b = [i for i in range(3) if i != ax]
-        A, B = np.meshgrid(np.arange(-half[a], half[a] + 1e-9, spacing),
-                           np.arange(-half[b], half[b] + 1e-9, spacing))
-        for sign in (-1, 1):
-            p = np.zeros((A.size, 3))
-            p[:, a], p[:, b], p[:, ax] = A.ravel(), B.ravel(), sign * half[ax]
-            pts.append(p)
-    return np.vstack(pts)
 
 
 POINTS = box_surface_points(BOX)

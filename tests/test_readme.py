@@ -16,7 +16,7 @@ two-image test split rendered here), ``photos/`` (the shared backgrounds), ``rea
 (colour, aligned depth and K.json of a rendered frame) and ``weights/Ketchup.pth`` (a stand-in
 for NVIDIA's weights: the importer's DR-50 architecture is swapped for a tiny lite network,
 as in tests/test_import_official.py). The demo runs the shipped model when the installation
-has it, else a checkpoint fitted in seconds (tests/demo_model.py).
+has it, else a checkpoint fitted in seconds (tests/fitted_model.py).
 """
 from __future__ import annotations
 
@@ -140,9 +140,9 @@ def test_readme_has_every_task_section_and_the_commands_parse():
 
 
 def test_demo_section(tmp_path, monkeypatch):
-    from demo_model import fit_demo_checkpoint
     from dope_hope.commands import demo as demo_cmd
     from dope_hope.commands import infer as infer_cmd
+    from fitted_model import fit_demo_checkpoint
 
     if not demo_cmd.DEMO_WEIGHTS.is_file():  # not shipped yet: a quickly fitted stand-in
         weights = fit_demo_checkpoint(tmp_path / "fit" / "demo_lite.pt", seed=7)

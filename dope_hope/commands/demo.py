@@ -266,9 +266,8 @@ def run(args: argparse.Namespace) -> int:
             header = (f"[{i + 1:>{len(str(args.scenes))}}/{args.scenes}] {res.name}: "
                       f"{len(dets_ls)} detection(s)")
             if res.onnx_diff_px is not None:
-                header += ("; ONNX keypoints within " + (f"{res.onnx_diff_px:.3f} px of PyTorch"
-                                                          if math.isfinite(res.onnx_diff_px)
-                                                          else "-: ONNX found other objects than PyTorch"))
+                header += (f"; ONNX keypoints within {res.onnx_diff_px:.3f} px of PyTorch"
+                           if math.isfinite(res.onnx_diff_px) else "; ONNX found other objects than PyTorch")
             print("\n".join([header] + res.lines), flush=True)
             # Overlay: ground truth in white under the detections (-LS poses).
             img = frame.rgb

@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -33,6 +33,7 @@ _UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 #: Largest accepted deviation of a stored 3x3 rotation from orthonormal (Frobenius norm);
 #: BOP files store rounded numbers (e.g. 0.866 for cos 30°).
 _ROTATION_TOLERANCE = 1e-2
+_Item = TypeVar("_Item")
 
 
 # --------------------------------------------------------------------------- helpers
@@ -68,6 +69,15 @@ def _list(f: JsonFields, value: Any, field: str) -> list:
     return value
 
 
+def _per_image_lists(path: str | os.PathLike, what: str,
+                     parse: Callable[[JsonFields, Any, str], _Item]) -> dict[int, list[_Item]]:
+    """A scene file keyed by image id whose values are lists (``scene_gt``, ``scene_gt_info``):
+    {im_id: [parse(fields, item, "<im_id>[<j>]")]}, ids sorted, list order kept."""
+    f = JsonFields(path)
+    return {im_id: [parse(f, item, f"{im_id}[{j}]") for j, item in enumerate(_list(f, items, str(im_id)))]
+            for im_id, items in _keyed_by_int(f, load_json_object(path, what), "image id")}
+
+
 # --------------------------------------------------------------------------- scene files
 def read_scene_camera(path: str | os.PathLike) -> dict[int, tuple[np.ndarray, float]]:
     """``scene_camera.json`` -> {im_id: (K (3, 3), depth_scale_m)}.
@@ -89,17 +99,12 @@ def read_scene_camera(path: str | os.PathLike) -> dict[int, tuple[np.ndarray, fl
 def read_scene_gt(path: str | os.PathLike) -> dict[int, list[tuple[int, np.ndarray, np.ndarray]]]:
     """``scene_gt.json`` -> {im_id: [(obj_id, R (3, 3), t (3,) metres)]}, list order kept
     (the index is the ``gt_id`` of the mask files)."""
-    f = JsonFields(path)
-    out = {}
-    for im_id, gts in _keyed_by_int(f, load_json_object(path, "scene_gt file"), "image id"):
-        items = []
-        for j, gt in enumerate(_list(f, gts, str(im_id))):
-            where = f"{im_id}[{j}]"
-            R = _rotation(f, f.get(gt, "cam_R_m2c", where), f"{where}.cam_R_m2c")
-            t = f.array(f.get(gt, "cam_t_m2c", where), f"{where}.cam_t_m2c", (3,)) * MM
-            items.append((_int(f, f.get(gt, "obj_id", where), f"{where}.obj_id"), R, t))
-        out[im_id] = items
-    return out
+    def parse(f: JsonFields, gt: Any, where: str) -> tuple[int, np.ndarray, np.ndarray]:
+        R = _rotation(f, f.get(gt, "cam_R_m2c", where), f"{where}.cam_R_m2c")
+        t = f.array(f.get(gt, "cam_t_m2c", where), f"{where}.cam_t_m2c", (3,)) * MM
+        return _int(f, f.get(gt, "obj_id", where), f"{where}.obj_id"), R, t
+
+    return _per_image_lists(path, "scene_gt file", parse)
 
 
 @dataclass(frozen=True)
@@ -128,22 +133,17 @@ class GtInfo:
 
 def read_scene_gt_info(path: str | os.PathLike) -> dict[int, list[GtInfo]]:
     """``scene_gt_info.json`` -> {im_id: [GtInfo]} in ``scene_gt.json`` order."""
-    f = JsonFields(path)
-    out = {}
-    for im_id, infos in _keyed_by_int(f, load_json_object(path, "scene_gt_info file"), "image id"):
-        items = []
-        for j, info in enumerate(_list(f, infos, str(im_id))):
-            where = f"{im_id}[{j}]"
-            vf = f.number(f.get(info, "visib_fract", where), f"{where}.visib_fract")
-            if not 0.0 <= vf <= 1.0:
-                raise f.fail(f"{where}.visib_fract", f"expected a fraction in [0, 1], got {vf}")
-            counts = [_int(f, info.get(k, 0), f"{where}.{k}")
-                      for k in ("px_count_all", "px_count_valid", "px_count_visib")]
-            boxes = [f.array(info.get(k, [0, 0, 0, 0]), f"{where}.{k}", (4,))
-                     for k in ("bbox_obj", "bbox_visib")]
-            items.append(GtInfo(vf, *counts, *boxes))
-        out[im_id] = items
-    return out
+    def parse(f: JsonFields, info: Any, where: str) -> GtInfo:
+        vf = f.number(f.get(info, "visib_fract", where), f"{where}.visib_fract")
+        if not 0.0 <= vf <= 1.0:
+            raise f.fail(f"{where}.visib_fract", f"expected a fraction in [0, 1], got {vf}")
+        counts = [_int(f, info.get(k, 0), f"{where}.{k}")
+                  for k in ("px_count_all", "px_count_valid", "px_count_visib")]
+        boxes = [f.array(info.get(k, [0, 0, 0, 0]), f"{where}.{k}", (4,))
+                 for k in ("bbox_obj", "bbox_visib")]
+        return GtInfo(vf, *counts, *boxes)
+
+    return _per_image_lists(path, "scene_gt_info file", parse)
 
 
 # --------------------------------------------------------------------------- models
@@ -307,31 +307,52 @@ def iter_bop_split(split_dir: str | os.PathLike, scene_ids: list[int] | None = N
             yield BopFrame(scene_id, im_id, frame)
 
 
+def compose_symmetries(discrete: Sequence[np.ndarray],
+                       continuous: Sequence[tuple[np.ndarray, np.ndarray]], steps: int) -> np.ndarray:
+    """Discrete symmetries combined with discretized continuous ones, as the BOP toolkit's
+    ``get_symmetry_transformations`` builds them.
+
+    Args:
+        discrete: (4, 4) model-frame transforms, metres, the identity NOT included (it is
+            put first here).
+        continuous: (unit axis (3,), offset (3,) metres) rotational symmetries; each is
+            sampled at ``k * 360° / steps``, k = 0 .. steps - 1 (so the identity is kept),
+            about the axis through ``offset``.
+        steps: rotations per continuous symmetry.
+
+    Returns:
+        (S, 4, 4) float, identity first: each discrete symmetry (identity included) composed
+        with each continuous rotation, ``R = R_c R_d``, ``t = R_c t_d + t_c``; just the
+        discrete ones when no continuous rotation is sampled.
+    """
+    from scipy.spatial.transform import Rotation
+
+    discrete = [np.eye(4)] + list(discrete)
+    rotations = []
+    for axis, offset in continuous:
+        angles = np.arange(steps) * (2.0 * np.pi / steps)
+        offset = np.asarray(offset, dtype=np.float64).reshape(3)
+        unit = np.asarray(axis, dtype=np.float64).reshape(3)
+        for R in Rotation.from_rotvec(angles[:, None] * unit[None]).as_matrix():
+            T = np.eye(4)
+            T[:3, :3] = R
+            T[:3, 3] = offset - R @ offset
+            rotations.append(T)
+    if not rotations:
+        return np.stack(discrete)
+    return np.stack([C @ D for D in discrete for C in rotations])
+
+
 def symmetry_transforms(info: dict, step_deg: float = 1.0) -> np.ndarray:
     """All symmetry transforms of a model (from :func:`parse_model_info`), metres.
 
     Continuous symmetries (rotation about ``axis`` through ``offset``) are sampled every
-    ``step_deg`` (at most; the step divides 360°) and composed with the discrete ones, as in
-    the BOP toolkit's ``get_symmetry_transformations`` but with the identity kept.
+    ``step_deg`` (at most; the step divides 360°) and composed with the discrete ones by
+    :func:`compose_symmetries`; discrete entries equal to the identity are dropped.
 
     Returns:
         (S, 4, 4) float, identity first: ``x' = T[:3, :3] x + T[:3, 3]``.
     """
-    from scipy.spatial.transform import Rotation
-
-    discrete = [np.eye(4)] + [T for T in info.get("symmetries_discrete", [])
-                              if not np.allclose(T, np.eye(4))]
-    continuous = [np.eye(4)]
-    for axis, offset in info.get("symmetries_continuous", []):
-        n = max(1, int(np.ceil(360.0 / step_deg)))
-        rots = Rotation.from_rotvec(np.outer(np.arange(1, n) * (2 * np.pi / n), axis)).as_matrix()
-        for R in rots:
-            T = np.eye(4)
-            T[:3, :3] = R
-            T[:3, 3] = offset - R @ offset
-            continuous.append(T)
-    return np.stack([C @ D for D in discrete for C in continuous])
-
-
-#: Alias of :func:`iter_bop_split` (the name ``dope_hope.evaluate`` uses).
-iter_bop_frames = iter_bop_split
+    discrete = [T for T in info.get("symmetries_discrete", []) if not np.allclose(T, np.eye(4))]
+    steps = max(1, int(np.ceil(360.0 / step_deg)))
+    return compose_symmetries(discrete, info.get("symmetries_continuous", []), steps)

@@ -26,6 +26,7 @@ import numpy as np
 
 from dope_hope.errors import InputFileError
 from dope_hope.io.atomic import atomic_write_text
+from dope_hope.io.jsonfields import read_text_file
 
 HEADER = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
 #: Two estimates of one image whose times differ by more than this (s) are rejected (BOP).
@@ -147,12 +148,7 @@ def read_bop_csv(path: str | os.PathLike, check_name: bool = False) -> list[BopE
     path = Path(path)
     if check_name:
         parse_bop_result_filename(path)
-    if not path.is_file():
-        raise InputFileError(path, "BOP result file not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise InputFileError(path, "not a UTF-8 text file") from None
+    text = read_text_file(path, "BOP result file")
     rows = list(csv.reader(io.StringIO(text)))
     if not rows or tuple(c.strip() for c in rows[0]) != HEADER:
         raise InputFileError(path, f"line 1: expected the header {','.join(HEADER)}")

@@ -61,15 +61,23 @@ class JsonFields:
         return int(value)
 
 
-def load_json(path: str | os.PathLike, what: str = "annotation file") -> Any:
-    """Parse a UTF-8 JSON file; missing or malformed -> InputFileError naming the file."""
+def read_text_file(path: str | os.PathLike, what: str = "file") -> str:
+    """The text of a UTF-8 file; missing or not UTF-8 -> InputFileError naming the file."""
     path = Path(path)
     if not path.is_file():
         raise InputFileError(path, f"{what} not found")
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        return path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
         raise InputFileError(path, "not a UTF-8 text file") from None
+
+
+def load_json(path: str | os.PathLike, what: str = "annotation file") -> Any:
+    """Parse a UTF-8 JSON file; missing or malformed -> InputFileError naming the file."""
+    path = Path(path)
+    text = read_text_file(path, what)
+    try:
+        return json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputFileError(path, f"malformed JSON (line {exc.lineno}: {exc.msg})") from None
 

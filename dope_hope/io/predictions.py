@@ -38,6 +38,7 @@ import numpy as np
 from dope_hope.errors import DopeHopeError, InputFileError
 from dope_hope.geometry import nearest_rotation, quaternion_xyzw_to_matrix
 from dope_hope.io.atomic import atomic_write_text
+from dope_hope.io.jsonfields import read_text_file
 
 FORMAT_NAME = "dope-hope-predictions"
 #: Largest accepted deviation of a given R from a rotation matrix (Frobenius norm).
@@ -198,12 +199,7 @@ def read_predictions(path: str | os.PathLike) -> tuple[list[Prediction], dict[st
     path = Path(path)
     if path.suffix.lower() == ".csv":
         return _read_bop(path)
-    if not path.is_file():
-        raise InputFileError(path, "predictions file not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise InputFileError(path, "not a UTF-8 text file") from None
+    text = read_text_file(path, "predictions file")
     preds: list[Prediction] = []
     meta: dict[str, Any] = {}
     for lineno, line in enumerate(text.splitlines(), start=1):

@@ -273,6 +273,17 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     return ckpt
 
 
+def save_inference_checkpoint(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
+    """Copy a checkpoint without its training state (optimizer, scheduler, RNG): what a
+    model ships as. Adam's moments double a checkpoint's size and are useless for inference;
+    ``--resume`` needs the full file. Written atomically; returns ``dst``."""
+    ckpt = load_checkpoint(src)
+    ckpt.update(optimizer=None, scheduler=None, rng=None)
+    with atomic_path(dst) as tmp:
+        torch.save(ckpt, tmp)
+    return Path(dst)
+
+
 def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[DopeNetwork, dict[str, Any]]:
     """Load a checkpoint and build its network: ``(model in eval mode on device, checkpoint)``."""
     ckpt = load_checkpoint(path)
