@@ -21,6 +21,10 @@ exact for ReLU networks) brings the maps to the ~0-1 range of a trained model. T
 have structure (smooth blobs with sub-pixel peaks) but no meaning: the DR-50 INT8 figures
 (map difference; deviation of every belief peak, matched one-to-one within one cell) say how
 much INT8 moves peaks of maps like these; decoded-instance keypoints are meaningless there.
+A second DR-50 figure adds the measured INT8-minus-fp32 map differences to ideal target maps
+of the images' true keypoints (the sharp isolated peaks a trained DR-50 aims for, sigma of
+``dope_dr_50.yaml``) and decodes them: what an error of that absolute size does to such
+peaks (a trained network's INT8 error may be smaller or larger than a random one's).
 The **keypoint** deviation of decoded instances is measured on a lite network briefly fitted
 end to end on a synthetic box scene (``tests/fitted_model.py``, the same model the tests
 use: a trained network whose maps decode one clean instance) and on held-out jittered
@@ -124,82 +128,122 @@ def scene_image(hw: tuple[int, int], seed: int) -> tuple[np.ndarray, np.ndarray]
     return rgb, kp
 
 
-def dr50_checkpoint(path: Path, seed: int = 0) -> Path:
-    """Seeded random DR-50, LSUV-rescaled to unit output std (module docstring)."""
+def lsuv_rescale(model, rgb: np.ndarray) -> None:
+    """Divide each conv's weights (and bias) by its output std on ``rgb``, in one forward pass.
+
+    The hooks run in forward order, so every layer sees its already rescaled inputs; exact for
+    ReLU networks (eval-mode BatchNorm is affine). Random init -> unit-scale activations.
+    """
     import torch
 
-    from dope_hope.config import load_config
-    from dope_hope.model.checkpoint import save_checkpoint
-    from dope_hope.model.network import build_model, normalize_image
+    from dope_hope.model.network import normalize_image
 
-    torch.manual_seed(seed)
-    cfg = load_config("dope_dr_50")
-    model = build_model(cfg).eval()
-
-    def rescale(module, inputs, output):  # runs in forward order: later layers see the result
+    def rescale(module, inputs, output):
         s = output.std().clamp_min(1e-8)
         module.weight.div_(s)
-        module.bias.div_(s)
+        if module.bias is not None:
+            module.bias.div_(s)
         return output / s
 
+    model.eval()
     hooks = [m.register_forward_hook(rescale) for m in model.modules() if isinstance(m, torch.nn.Conv2d)]
-    rgb, _ = scene_image((200, 200), seed=10_000)
     with torch.no_grad():
         model(normalize_image(rgb)[None])
     for h in hooks:
         h.remove()
-    save_checkpoint(path, model, cfg, {"class_name": "Ketchup"},
-                    source="bench/cpu_inference.py: random DR-50, LSUV-rescaled (untrained)")
+
+
+def random_checkpoint(path: Path, config: dict, seed: int = 0) -> Path:
+    """Seeded random network of ``config``, LSUV-rescaled (module docstring), as a checkpoint."""
+    import torch
+
+    from dope_hope.model.checkpoint import save_checkpoint
+    from dope_hope.model.network import build_model
+
+    torch.manual_seed(seed)
+    model = build_model(config)
+    lsuv_rescale(model, scene_image(tuple(config["input"]["size"]), seed=10_000)[0])
+    save_checkpoint(path, model, config, {"class_name": "Ketchup"},
+                    source="bench/cpu_inference.py: random weights, LSUV-rescaled (untrained)")
     return path
 
 
-def write_images(folder: Path, hw: tuple[int, int], seeds: range) -> list[Path]:
+def write_images(folder: Path, hw: tuple[int, int], seeds: range) -> list[tuple[Path, np.ndarray]]:
+    """Scene images written as PNG: [(path, keypoints (9, 2) image px)]."""
     from dope_hope.io.images import write_rgb
 
-    paths = []
+    out = []
     for s in seeds:
         p = folder / f"{s:06d}.png"
-        write_rgb(p, scene_image(hw, s)[0])
-        paths.append(p)
-    return paths
+        rgb, kp = scene_image(hw, s)
+        write_rgb(p, rgb)
+        out.append((p, kp))
+    return out
 
 
-def int8_deviation(fp32_path: Path, int8_path: Path, images: list[Path]):
-    """compare_maps of INT8 vs fp32 on held-out images prepared by the predictor."""
+def int8_deviation(fp32_path: Path, int8_path: Path, images: list[tuple[Path, np.ndarray]],
+                   transfer_sigma: float | None = None):
+    """INT8 vs fp32 on held-out images prepared by the predictor: (compare_maps, transfer).
+
+    ``transfer`` (with ``transfer_sigma``): the measured INT8-minus-fp32 map differences added
+    to ideal target maps of the image's true keypoints (``targets.make_targets``, sigma in map
+    px), decoded and compared with the clean targets' decoding: what INT8's error would do to
+    the sharp, isolated peaks of a trained model (None without ``transfer_sigma``).
+    """
     from dope_hope.export import compare_maps
     from dope_hope.io.images import read_rgb
     from dope_hope.onnx_backend import OnnxBackend
     from dope_hope.predictor import DopePredictor
+    from dope_hope.targets import make_targets
 
     fp32, int8 = OnnxBackend(fp32_path), OnnxBackend(int8_path)
     prep = DopePredictor(fp32)
-    ref, test = [], []
-    for p in images:
-        batch = prep.prepare(read_rgb(p)).batch
-        ref.append(tuple(m[0] for m in fp32.run(batch)))
-        test.append(tuple(m[0] for m in int8.run(batch)))
-    return compare_maps(ref, test, fp32.stride)
+    ref, test, clean, noisy = [], [], [], []
+    for p, kp in images:
+        net_in = prep.prepare(read_rgb(p))
+        r = tuple(m[0] for m in fp32.run(net_in.batch))
+        t = tuple(m[0] for m in int8.run(net_in.batch))
+        ref.append(r)
+        test.append(t)
+        if transfer_sigma is not None:
+            b, a = make_targets(net_in.to_network_px(kp)[None], net_in.batch.shape[2:], fp32.stride,
+                                sigma=transfer_sigma, radius=1.0)
+            clean.append((b, a))
+            noisy.append((b + (t[0] - r[0]), a + (t[1] - r[1])))
+    transfer = compare_maps(clean, noisy, fp32.stride) if clean else None
+    return compare_maps(ref, test, fp32.stride), transfer
 
 
 def lite_keypoints(tmp: Path, n_eval: int) -> tuple:
-    """INT8 vs fp32 decoded keypoints of the fitted lite model on held-out jittered scenes."""
+    """INT8 vs fp32 of the fitted lite model and, as a control, the same lite untrained.
+
+    Both calibrate and evaluate on the same jittered copies of the fitted scene (held out from
+    calibration). Returns (input (H, W), fitted deviation, untrained deviation).
+    """
     sys.path.insert(0, str(REPO / "tests"))  # the tests' fitted-model helper (one definition)
     from fitted_model import IMAGE_HW, fit_lite_checkpoint, scene
 
+    from dope_hope.config import load_config
     from dope_hope.export import export_checkpoint
     from dope_hope.io.images import write_rgb
 
-    ckpt = fit_lite_checkpoint(tmp / "lite_fitted.pt")
     rgb, _ = scene()
     rng = np.random.default_rng(123)
     calib, evald = tmp / "lite_calib", tmp / "lite_eval"
     for i in range(8 + n_eval):
         img = np.clip(rgb.astype(int) + rng.integers(-25, 25, rgb.shape), 0, 255).astype(np.uint8)
         write_rgb((calib if i < 8 else evald) / f"{i:06d}.png", img)
-    fp32 = export_checkpoint(ckpt, tmp / "lite_fp32.onnx")
-    export_checkpoint(ckpt, tmp / "lite_int8.onnx", int8=True, calibration=calib)
-    dev = int8_deviation(fp32.path, tmp / "lite_int8.onnx", sorted(evald.iterdir()))
-    return IMAGE_HW, dev
+    cfg = load_config("lite")
+    cfg["input"]["size"] = list(IMAGE_HW)
+    out = []
+    for name, ckpt in (("fitted", fit_lite_checkpoint(tmp / "lite_fitted.pt")),
+                       ("untrained", random_checkpoint(tmp / "lite_random.pt", cfg))):
+        fp32 = export_checkpoint(ckpt, tmp / f"lite_{name}.onnx")
+        export_checkpoint(ckpt, tmp / f"lite_{name}_int8.onnx", int8=True, calibration=calib)
+        dev, _ = int8_deviation(fp32.path, tmp / f"lite_{name}_int8.onnx",
+                                [(p, None) for p in sorted(evald.iterdir())])
+        out.append(dev)
+    return (IMAGE_HW, *out)
 
 
 # ----------------------------------------------------------------------------- main
@@ -223,6 +267,7 @@ def main() -> None:
     import onnxruntime
     import torch
 
+    from dope_hope.config import load_config
     from dope_hope.export import export_checkpoint, quantize_int8
 
     print(f"torch {torch.__version__}, onnxruntime {onnxruntime.__version__}, {args.threads} threads, "
@@ -231,7 +276,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench-cpu-inference-") as tmpdir:
         tmp = Path(tmpdir)
         t0 = time.perf_counter()
-        ckpt = dr50_checkpoint(tmp / "dr50.pt")
+        cfg = load_config("dope_dr_50")
+        cfg["input"]["size"] = [200, 200]  # the LSUV image; the exports set their own size
+        ckpt = random_checkpoint(tmp / "dr50.pt", cfg)
+        sigma = float(cfg["targets"]["sigma"])  # training target blob, map px
         print(f"DR-50 checkpoint (random, LSUV-rescaled): {time.perf_counter() - t0:.1f} s", flush=True)
         calib = write_images(tmp / "calib", (480, 640), range(args.calibration_images))
         evals = write_images(tmp / "eval", (480, 640), range(1000, 1000 + args.eval_images))
@@ -242,11 +290,12 @@ def main() -> None:
             t_export = time.perf_counter() - t0
             t0 = time.perf_counter()
             int8_path = tmp / f"dr50_{size}_int8.onnx"
-            quantize_int8(fp32.path, int8_path, calib[0].parent, max_images=len(calib), eval_images=1)
+            quantize_int8(fp32.path, int8_path, calib[0][0].parent, max_images=len(calib), eval_images=1)
             t_quant = time.perf_counter() - t0
-            dev = int8_deviation(fp32.path, int8_path, evals)
+            dev, transfer = int8_deviation(fp32.path, int8_path, evals, transfer_sigma=sigma)
             print(f"[{size}] export {t_export:.1f} s (verify max |d| {fp32.verify_max_abs:.1e}), INT8 "
-                  f"quantization {t_quant:.1f} s; INT8 vs fp32: {dev.summary()}", flush=True)
+                  f"quantization {t_quant:.1f} s; INT8 vs fp32: {dev.summary()}; transfer to ideal "
+                  f"maps: {transfer.summary()}", flush=True)
             res = {}
             for name, kind, model in (("pytorch", "torch", ckpt), ("ort_fp32", "onnx", fp32.path),
                                       ("ort_int8", "onnx", int8_path)):
@@ -255,12 +304,12 @@ def main() -> None:
                 print(f"[{size}] {name:9s} median {1000 * r['median_s']:8.1f} ms (min {1000 * r['min_s']:.1f}), "
                       f"peak RSS {r['peak_rss_mb']:.0f} MB (after imports {r['rss_after_imports_mb']:.0f} MB); "
                       f"load {os.getloadavg()[0]:.2f}", flush=True)
-            rows.append((size, res, dev, fp32.size_bytes, int8_path.stat().st_size))
+            rows.append((size, res, dev, transfer, fp32.size_bytes, int8_path.stat().st_size))
         lite = None if args.no_lite else lite_keypoints(tmp, args.eval_images)
 
     print("\n| input HxW | backend | median ms | x PyTorch | peak RSS MB | model file MB |")
     print("|---|---|---|---|---|---|")
-    for size, res, dev, fp32_bytes, int8_bytes in rows:
+    for size, res, _, _, fp32_bytes, int8_bytes in rows:
         base = res["pytorch"]["median_s"]
         for name, label, mb in (("pytorch", "PyTorch eager (fp32)", None), ("ort_fp32", "onnxruntime fp32", fp32_bytes),
                                 ("ort_int8", "onnxruntime INT8 (QDQ)", int8_bytes)):
@@ -268,10 +317,13 @@ def main() -> None:
             print(f"| {size} | {label} | {1000 * r['median_s']:.0f} | {base / r['median_s']:.2f}x | "
                   f"{r['peak_rss_mb']:.0f} | {'' if mb is None else f'{mb / 1e6:.0f}'} |")
     print("\nINT8 vs fp32 (held-out images):")
-    for size, _, dev, _, _ in rows:
-        print(f"- DR-50 {size} (untrained, structure only): {dev.summary()}")
+    for size, _, dev, transfer, _, _ in rows:
+        print(f"- DR-50 {size}, untrained (maps of random blobs): {dev.summary()}")
+        print(f"- DR-50 {size}, its INT8 error added to ideal sigma-{sigma:g} target maps of the true "
+              f"keypoints: {transfer.summary()}")
     if lite is not None:
-        print(f"- fitted lite {lite[0][0]}x{lite[0][1]} (decoded instances): {lite[1].summary()}")
+        print(f"- lite fitted to the scene, {lite[0][0]}x{lite[0][1]} (decoded instances): {lite[1].summary()}")
+        print(f"- control, the same lite untrained (LSUV-rescaled), same images: {lite[2].summary()}")
     print(f"load average at end {os.getloadavg()[0]:.2f}")
 
 
