@@ -246,6 +246,34 @@ def lite_keypoints(tmp: Path, n_eval: int) -> tuple:
     return (IMAGE_HW, *out)
 
 
+def demo_keypoints(tmp: Path, n_calib: int, n_eval: int):
+    """INT8 vs fp32 of the shipped demo model (trained lite, DemoBox) on synthetic demo frames.
+
+    Frames come from ``dope-hope synth`` with the demo object (as in bench/RESULTS.md, demo
+    section): calibration and evaluation folders use different seeds. None without the model.
+    """
+    demo = REPO / "dope_hope" / "assets" / "demo_lite.pt"
+    if not demo.is_file():
+        return None
+    from dope_hope.demo_object import write_demo_object
+    from dope_hope.export import export_checkpoint
+
+    mesh = write_demo_object(tmp / "demo_mesh")
+    folders = {}
+    for name, seed, count in (("calib", 3, n_calib), ("eval", 4, n_eval)):
+        folders[name] = tmp / f"demo_{name}"
+        subprocess.run([sys.executable, "-m", "dope_hope.cli", "synth", "--mesh", str(mesh),
+                        "--class-name", "DemoBox", "--out", str(folders[name]), "--count", str(count),
+                        "--seed", str(seed), "--size", "320x240", "--no-progress", "--set",
+                        "target.count=[1,2]", "target.distance_m=[0.4,1.0]"],
+                       check=True, capture_output=True)
+    fp32 = export_checkpoint(demo, tmp / "demo_fp32.onnx")
+    export_checkpoint(demo, tmp / "demo_int8.onnx", int8=True, calibration=folders["calib"])
+    frames = sorted(p for p in folders["eval"].glob("*.png") if p.name.count(".") == 1)
+    dev, _ = int8_deviation(fp32.path, tmp / "demo_int8.onnx", [(p, None) for p in frames])
+    return fp32.info.fixed_input_hw, dev
+
+
 # ----------------------------------------------------------------------------- main
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -255,7 +283,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--calibration-images", type=int, default=8)
     ap.add_argument("--eval-images", type=int, default=4)
-    ap.add_argument("--no-lite", action="store_true", help="skip the fitted-lite keypoint check")
+    ap.add_argument("--no-lite", action="store_true", help="skip the lite / demo-model keypoint checks")
     ap.add_argument("--worker", choices=("torch", "onnx"), help=argparse.SUPPRESS)
     ap.add_argument("--model", help=argparse.SUPPRESS)
     ap.add_argument("--size", help=argparse.SUPPRESS)
@@ -306,6 +334,7 @@ def main() -> None:
                       f"load {os.getloadavg()[0]:.2f}", flush=True)
             rows.append((size, res, dev, transfer, fp32.size_bytes, int8_path.stat().st_size))
         lite = None if args.no_lite else lite_keypoints(tmp, args.eval_images)
+        demo = None if args.no_lite else demo_keypoints(tmp, 8, 8)
 
     print("\n| input HxW | backend | median ms | x PyTorch | peak RSS MB | model file MB |")
     print("|---|---|---|---|---|---|")
@@ -324,6 +353,9 @@ def main() -> None:
     if lite is not None:
         print(f"- lite fitted to the scene, {lite[0][0]}x{lite[0][1]} (decoded instances): {lite[1].summary()}")
         print(f"- control, the same lite untrained (LSUV-rescaled), same images: {lite[2].summary()}")
+    if demo is not None:
+        print(f"- shipped demo model (trained lite, DemoBox), {demo[0][0]}x{demo[0][1]}, 8 held-out "
+              f"synthetic frames: {demo[1].summary()}")
     print(f"load average at end {os.getloadavg()[0]:.2f}")
 
 

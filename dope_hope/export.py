@@ -157,10 +157,10 @@ class MapDeviation:
     instances; instances_matched: pairs matched by centroid. keypoints_compared: keypoints
     found in both of a matched pair; keypoints_lost / keypoints_added: found in only the
     reference / only the test instance. median_px / max_px: keypoint distance, image px
-    (NaN when nothing was compared). peaks_*: the same per belief peak, without grouping
-    (every sub-pixel peak of the reference above the decode threshold, matched one-to-one
-    to the test's peaks of the same channel within one map cell): meaningful even for
-    maps that decode no instance (e.g. untrained weights).
+    (NaN when nothing was compared); p95_px: its 95th percentile. peaks_*: the same per
+    belief peak, without grouping (every sub-pixel peak of the reference above the decode
+    threshold, matched one-to-one to the test's peaks of the same channel within one map
+    cell): meaningful even for maps that decode no instance (e.g. untrained weights).
     """
 
     images: int
@@ -175,6 +175,7 @@ class MapDeviation:
     keypoints_added: int
     median_px: float
     max_px: float
+    p95_px: float = float("nan")
     peaks_ref: int = 0
     peaks_matched: int = 0
     peak_median_px: float = float("nan")
@@ -182,9 +183,9 @@ class MapDeviation:
 
     def summary(self) -> str:
         """One line for reports."""
-        kp = (f"keypoints: median {self.median_px:.3f} px, max {self.max_px:.3f} px over "
-              f"{self.keypoints_compared} ({self.keypoints_lost} lost, {self.keypoints_added} added; "
-              f"instances {self.instances_matched}/{self.instances_ref} matched)"
+        kp = (f"keypoints: median {self.median_px:.3f} px, p95 {self.p95_px:.3f} px, max "
+              f"{self.max_px:.3f} px over {self.keypoints_compared} ({self.keypoints_lost} lost, "
+              f"{self.keypoints_added} added; instances {self.instances_matched}/{self.instances_ref} matched)"
               if self.keypoints_compared else
               f"keypoints: none to compare (reference decodes {self.instances_ref} instances)")
         peaks = (f"; peaks: median {self.peak_median_px:.3f} px, max {self.peak_max_px:.3f} px, "
@@ -295,6 +296,7 @@ def compare_maps(reference: Sequence[tuple[np.ndarray, np.ndarray]],
         keypoints_compared=int(d.size), keypoints_lost=lost, keypoints_added=added,
         median_px=float(np.median(d)) if d.size else float("nan"),
         max_px=float(d.max()) if d.size else float("nan"),
+        p95_px=float(np.percentile(d, 95)) if d.size else float("nan"),
         peaks_ref=n_peaks, peaks_matched=int(p.size),
         peak_median_px=float(np.median(p)) if p.size else float("nan"),
         peak_max_px=float(p.max()) if p.size else float("nan"))
