@@ -90,6 +90,7 @@ from torch import nn
 from dope_hope import __version__
 from dope_hope.errors import ConfigError, DopeHopeError, InputFileError
 from dope_hope.io.atomic import atomic_path
+from dope_hope.io.images import IMAGE_SUFFIXES, image_files
 from dope_hope.onnx_backend import LAYOUT_NAMES, LAYOUTS, OnnxBackend, OnnxModelInfo
 
 #: Default ONNX opset and the range the TorchScript exporter handles here.
@@ -104,7 +105,6 @@ ISAAC_ENCODERS: dict[str, tuple[tuple[float, ...], tuple[float, ...]]] = {
     "imagenet": ((0.485, 0.456, 0.406), (0.229, 0.224, 0.225)),
 }
 CALIBRATION_METHODS = ("minmax", "entropy", "percentile")
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 #: Verification tolerance: max |onnxruntime - torch| <= VERIFY_TOL * max(1, max |torch|).
 VERIFY_TOL = 1e-3
 
@@ -480,8 +480,7 @@ def list_images(folder: str | os.PathLike, limit: int | None = None) -> list[Pat
     folder = Path(folder)
     if not folder.is_dir():
         raise InputFileError(folder, "calibration folder not found")
-    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
-                   and not p.name.lower().endswith((".depth.png", ".seg.png")))
+    files = [p for p in image_files(folder) if not p.name.lower().endswith((".depth.png", ".seg.png"))]
     if not files:
         raise InputFileError(folder, f"no calibration images ({', '.join(IMAGE_SUFFIXES)}) in the folder")
     return files[:limit] if limit else files

@@ -10,6 +10,16 @@ import numpy as np
 from dope_hope.errors import InputFileError
 from dope_hope.io.atomic import atomic_path
 
+#: Suffixes taken as photographs when a folder of images is scanned (backgrounds, calibration).
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+
+
+def image_files(folder: str | os.PathLike, recursive: bool = False) -> list[Path]:
+    """Sorted image files (by :data:`IMAGE_SUFFIXES`) in ``folder``; sorted so that indices
+    are reproducible. The caller checks that the folder exists and says what it is for."""
+    entries = Path(folder).rglob("*") if recursive else Path(folder).iterdir()
+    return sorted(p for p in entries if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+
 
 def read_image_raw(path: str | os.PathLike) -> np.ndarray:
     """Read any image unchanged (bit depth and channels kept); BGR(A) turned into RGB(A)."""

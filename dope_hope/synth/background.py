@@ -10,11 +10,9 @@ import cv2
 import numpy as np
 
 from dope_hope.errors import InputFileError
-from dope_hope.io.images import read_rgb
+from dope_hope.io.images import IMAGE_SUFFIXES, image_files, read_rgb
 from dope_hope.synth.textures import procedural_image
 
-#: File suffixes taken as background photographs.
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 
 
 def list_images(folder: str | os.PathLike) -> list[Path]:
@@ -22,7 +20,7 @@ def list_images(folder: str | os.PathLike) -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():
         raise InputFileError(folder, "background folder not found")
-    files = sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    files = image_files(folder, recursive=True)
     if not files:
         raise InputFileError(folder, f"no images ({', '.join(IMAGE_SUFFIXES)}) in the background folder")
     return files
