@@ -4,11 +4,14 @@ Stages (each one a `dope-hope` command run as a subprocess, exactly what a user 
 commands are printed and logged to OUT/logs/):
 
 1. ``synth-train``: `dope-hope synth` a training set for the mesh (procedural backgrounds,
-   seed 1).
-2. ``train``: `dope-hope train --config lite` for a fixed wall-clock budget (default 25
+   seed 1), rendered at the lite input size (256x192: no resampling in training).
+2. ``train``: `dope-hope train --config lite` for a fixed wall-clock budget (default 20
    minutes on the 2 CPU cores; `--train-minutes`), validation on a seeded 10 % split.
-3. ``synth-test``: a held-out test set with other seeds (1001), photo backgrounds
-   (`--backgrounds`) and RealSense-like depth noise (`--depth-noise`).
+3. ``synth-test``: a held-out test set at 640x480 (the RealSense colour size) with other seeds
+   (1001), photo backgrounds (`--backgrounds`) and RealSense-like depth noise (`--depth-noise`).
+
+Both sets share the scene ranges of :data:`SCENE` (one or two instances at 0.45-1.0 m, as in
+the HOPE scenes' table-top views) over configs/synth.yaml's distractors, occluders and lights.
 4. ``infer-ls`` / ``infer``: `dope-hope infer TEST --depth auto` (with the depth line search,
    "-LS") and the same without `--depth` (no -LS), with the mesh for the line search's points.
 5. ``eval-meanssd`` / ``eval-addh``: `dope-hope evaluate` of both prediction files: recall at
@@ -21,7 +24,7 @@ granularity: a stage whose marker OUT/stages/<stage>.json exists is skipped (an 
 synth resumes frame by frame, an interrupted train with --resume); OUT/e2e_settings.json
 refuses a rerun with other settings in the same folder.
 
-    python bench/e2e_accuracy.py                                   # 2 CPU cores, ~45 min
+    python bench/e2e_accuracy.py                                   # 2 CPU cores, ~35 min
     python bench/e2e_accuracy.py --quick --out /tmp/e2e_quick      # tiny, < 1 min: checks the plumbing
     python bench/e2e_accuracy.py --config dope_dr_50 --train-minutes 240 --train-count 20000 \\
         --workers 8 --device cuda --out bench/out/e2e_dr50         # on a GPU machine
@@ -45,6 +48,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 #: Synth seeds: training and held-out test frames never share a (seed, index) pair.
 TRAIN_SEED, TEST_SEED = 1, 1001
+#: Scene ranges of both sets (`dope-hope synth --set`), over configs/synth.yaml.
+SCENE = ["target.count=[1,2]", "target.distance_m=[0.45,1.0]"]
 
 
 def shared_data_dir() -> Path | None:
@@ -65,17 +70,19 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--backgrounds", type=Path, help="background photos of the test set "
                                                     "(default: the shared data's backgrounds/)")
     p.add_argument("--config", default="lite", help="training config (lite; dope_dr_50 on a GPU)")
-    p.add_argument("--train-minutes", type=float, help="training wall-clock budget (default 25; --quick 0.2)")
-    p.add_argument("--train-count", type=int, help="training frames (default 2000; --quick 8)")
+    p.add_argument("--train-minutes", type=float, help="training wall-clock budget (default 20; --quick 0.2)")
+    p.add_argument("--train-count", type=int, help="training frames (default 12000; --quick 8)")
+    p.add_argument("--train-size", help="training frame size WxH (default 256x192, the lite input; --quick 64x64)")
     p.add_argument("--test-count", type=int, help="test frames (default 200; --quick 3)")
-    p.add_argument("--size", help="frame size WxH (default 640x480; --quick 160x120)")
-    p.add_argument("--workers", type=int, default=1, help="synth render processes (default 1)")
+    p.add_argument("--size", help="test frame size WxH (default 640x480; --quick 160x120)")
+    p.add_argument("--workers", type=int, default=2, help="synth render processes (default 2)")
     p.add_argument("--device", help="torch device for train and infer (default: train auto, infer cpu)")
     p.add_argument("--quick", action="store_true",
                    help="tiny sizes and budget: checks that every stage runs (numbers meaningless)")
     args = p.parse_args(argv)
     q = args.quick
-    defaults = {"train_minutes": 0.2 if q else 25.0, "train_count": 8 if q else 2000,
+    defaults = {"train_minutes": 0.2 if q else 20.0, "train_count": 8 if q else 12000,
+                "train_size": "64x64" if q else "256x192",
                 "test_count": 3 if q else 200, "size": "160x120" if q else "640x480",
                 "out": REPO / "bench" / "out" / ("e2e_quick" if q else "e2e")}
     for key, value in defaults.items():
@@ -192,6 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     out: Path = args.out.resolve()
     settings = {"mesh": str(args.mesh.resolve()), "object": args.object, "config": args.config,
                 "train_minutes": args.train_minutes, "train_count": args.train_count,
+                "train_size": args.train_size, "scene": SCENE,
                 "test_count": args.test_count, "size": args.size, "device": args.device,
                 "backgrounds": None if args.backgrounds is None else str(args.backgrounds.resolve()),
                 "quick": args.quick, "train_seed": TRAIN_SEED, "test_seed": TEST_SEED}
@@ -203,18 +211,19 @@ def main(argv: list[str] | None = None) -> int:
     pipe = Pipeline(out)
     mesh = args.mesh.resolve()
     train_dir, test_dir, run_dir = out / "train", out / "test", out / "run"
-    common = ["--mesh", mesh, "--class-name", args.object, "--size", args.size, "--no-progress"]
-    pipe.stage("synth-train", ["synth", *common, "--out", train_dir, "--count", args.train_count,
-                               "--seed", TRAIN_SEED, "--workers", args.workers])
+    common = ["--mesh", mesh, "--class-name", args.object, "--no-progress", "--set", *SCENE]
+    pipe.stage("synth-train", ["synth", *common, "--size", args.train_size, "--out", train_dir,
+                               "--count", args.train_count, "--seed", TRAIN_SEED, "--workers", args.workers])
     train = ["train", "--config", args.config, "--data", train_dir, "--object", args.object,
              "--mesh", mesh, "--out", run_dir, "--time-budget", args.train_minutes, "--resume", "--no-progress"]
     if args.device:
         train += ["--device", args.device]
     if args.quick:  # a few steps of a tiny-input run: checks the plumbing only
-        train += ["--steps", "2", "--batch-size", "2", "--workers", "0", "--set", "input.size=[64,64]"]
+        train += ["--steps", "2", "--batch-size", "2", "--workers", "0", "--set", "input.size=[64,64]",
+                  "train.threads=1"]
     pipe.stage("train", train)
     ckpt = checkpoint_of(run_dir)
-    test = ["synth", *common, "--out", test_dir, "--count", args.test_count, "--seed", TEST_SEED,
+    test = ["synth", *common, "--size", args.size, "--out", test_dir, "--count", args.test_count, "--seed", TEST_SEED,
             "--workers", args.workers, "--depth-noise"]
     if args.backgrounds is not None:
         test += ["--backgrounds", args.backgrounds.resolve()]
@@ -236,8 +245,8 @@ def main(argv: list[str] | None = None) -> int:
     times = ", ".join(f"{k} {v:.0f} s" for k, v in pipe.timings.items())
     text = (f"# e2e accuracy: {args.object}, {args.config}, {args.train_minutes:g} min training\n\n"
             f"Held-out synthetic test set: {args.test_count} frames at {args.size} (seed {TEST_SEED}, photo "
-            f"backgrounds, RealSense-like depth noise); {args.train_count} training frames (seed "
-            f"{TRAIN_SEED}); checkpoint {ckpt.name}. Recall = true positives / GT instances "
+            f"backgrounds, RealSense-like depth noise); {args.train_count} training frames at "
+            f"{args.train_size} (seed {TRAIN_SEED}); scenes {' '.join(SCENE)}; checkpoint {ckpt.name}. Recall = true positives / GT instances "
             f"(matching per image, greedy by score, error < threshold); median = median error of the "
             f"true positives at 10 cm; AR = BOP19 average recall.\n\n{table}\n\nStage times: {times}\n")
     (out / "results.md").write_text(text)

@@ -33,8 +33,8 @@ import torch
 from torch.utils.data import Dataset, Sampler
 
 from dope_hope.errors import ConfigError, DopeHopeError, InputFileError
-from dope_hope.geometry import (KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER, LEGACY_TO_CURRENT_INDEX,
-                                NUM_KEYPOINTS, legacy_keypoints_to_current)
+from dope_hope.geometry import (CENTROID_INDEX, KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER,
+                                LEGACY_TO_CURRENT_INDEX, NUM_KEYPOINTS, legacy_keypoints_to_current)
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +95,15 @@ class AugmentParams:
         noise_std: maximum std of additive Gaussian noise, uint8 units (drawn in [0, max]).
         blur_prob: probability of a Gaussian blur; blur_sigma: its (min, max) sigma, pixels.
         prob_geometric: probability of the random scale/rotation/shift (else fit + centre).
+        crop: (H, W) of object-centred training crops, or None (train on the whole input).
+            With a crop the training items are this size and centred on a random instance's
+            centroid (plus ``crop_jitter``), after the same fit, zoom and rotation as a whole
+            frame, so objects keep their size in pixels; validation and inference still see
+            whole frames (the network is fully convolutional). A frame that is mostly
+            background costs as much as one full of object: crops give each step several
+            times more object pixels - the part that teaches which corner is which.
+        crop_jitter: maximum offset of that centroid from the crop's centre, fraction of the
+            crop size.
     """
 
     enabled: bool = True
@@ -111,6 +120,8 @@ class AugmentParams:
     blur_prob: float = 0.2
     blur_sigma: tuple[float, float] = (0.3, 1.2)
     prob_geometric: float = 1.0
+    crop: tuple[int, int] | None = None
+    crop_jitter: float = 0.25
 
     @classmethod
     def from_config(cls, section: dict[str, Any] | None, enabled: bool = True) -> AugmentParams:
@@ -125,6 +136,11 @@ class AugmentParams:
         params.blur_sigma = tuple(float(v) for v in params.blur_sigma)  # type: ignore[assignment]
         if params.fit not in ("contain", "cover"):
             raise ConfigError(f"augment.fit must be 'contain' or 'cover', got {params.fit!r}")
+        if params.crop is not None:
+            crop = tuple(int(v) for v in params.crop)
+            if len(crop) != 2 or crop[0] % 8 or crop[1] % 8 or min(crop) <= 0:
+                raise ConfigError(f"augment.crop must be [H, W], positive multiples of 8, got {params.crop!r}")
+            params.crop = crop  # type: ignore[assignment]
         if not (0 < params.scale[0] <= params.scale[1]):
             raise ConfigError(f"augment.scale must be 0 < min <= max, got {list(params.scale)}")
         params.enabled = bool(params.enabled) and enabled
@@ -184,11 +200,24 @@ def warp_image(rgb: np.ndarray, M: np.ndarray, dst_hw: tuple[int, int]) -> np.nd
                           borderMode=cv2.BORDER_CONSTANT, borderValue=PAD_RGB)
 
 
+def crop_size(params: AugmentParams, input_hw: tuple[int, int]) -> tuple[int, int]:
+    """(H, W) of augmented training items: ``params.crop`` capped at the input size, or the
+    input size without a crop."""
+    if params.crop is None:
+        return int(input_hw[0]), int(input_hw[1])
+    return min(int(params.crop[0]), int(input_hw[0])), min(int(params.crop[1]), int(input_hw[1]))
+
+
 def sample_affine(
     src_hw: tuple[int, int], dst_hw: tuple[int, int], params: AugmentParams,
-    rng: np.random.Generator | None,
+    rng: np.random.Generator | None, centres: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The 2x3 matrix for one item: base fit, then (when augmenting) zoom, rotation, crop."""
+    """The 2x3 matrix for one item: base fit, then (when augmenting) zoom, rotation, crop.
+
+    ``dst_hw`` is the input size the fit refers to; with ``params.crop`` (and augmenting) the
+    matrix maps into a crop of that size centred near one of ``centres`` ((I, 2) source
+    pixels of the instances' centroids, NaN rows ignored; none: anywhere in the frame).
+    """
     H, W = src_hw
     Ho, Wo = dst_hw
     ratios = (Wo / W, Ho / H)
@@ -207,7 +236,20 @@ def sample_affine(
     room_x = max(0.0, ext_w - Wo) / 2.0 + params.translate * Wo
     room_y = max(0.0, ext_h - Ho) / 2.0 + params.translate * Ho
     shift = (rng.uniform(-room_x, room_x), rng.uniform(-room_y, room_y))
-    return affine_matrix(src_hw, dst_hw, s, angle, shift)
+    if params.crop is None:
+        return affine_matrix(src_hw, dst_hw, s, angle, shift)
+    Hc, Wc = crop_size(params, dst_hw)
+    M = affine_matrix(src_hw, dst_hw, s, angle, shift)
+    c = np.empty((0, 2)) if centres is None else np.asarray(centres, np.float64).reshape(-1, 2)
+    c = c[np.all(np.isfinite(c), axis=1)]
+    if len(c):  # a random instance's centroid near the crop's centre
+        centre = apply_affine(M, c[rng.integers(len(c))])
+        j = params.crop_jitter
+        centre = centre + rng.uniform(-j, j, 2) * (Wc, Hc)
+    else:  # no instance: any crop of the warped frame
+        centre = np.array([rng.uniform(0, Wo - 1), rng.uniform(0, Ho - 1)])
+    M[:, 2] += np.array([(Wc - 1) / 2.0, (Hc - 1) / 2.0]) - centre
+    return M
 
 
 def color_jitter(rgb: np.ndarray, params: AugmentParams, rng: np.random.Generator) -> np.ndarray:
@@ -252,9 +294,13 @@ def augment(
         rng: the item's generator.
 
     Returns:
-        image (Ho, Wo, 3) uint8, keypoints (I, 9, 2) input pixels, M (2, 3).
+        image (Ho, Wo, 3) uint8 - or ``params.crop`` sized when augmenting with a crop -,
+        keypoints (I, 9, 2) output pixels, M (2, 3).
     """
-    M = sample_affine(rgb.shape[:2], dst_hw, params, rng)
+    kp = np.asarray(keypoints, dtype=np.float64).reshape(-1, NUM_KEYPOINTS, 2)
+    M = sample_affine(rgb.shape[:2], dst_hw, params, rng, centres=kp[:, CENTROID_INDEX])
+    if rng is not None and params.enabled:
+        dst_hw = crop_size(params, dst_hw)
     out = warp_image(rgb, M, dst_hw)
     if rng is not None and params.enabled:
         out = color_jitter(out, params, rng)
@@ -443,8 +489,8 @@ class DopeDataset(Dataset):
 
         img, kp, _ = augment(rgb, keypoints, self.input_hw, self.augment,
                              rng if self.augment.enabled else None)
-        belief, affinity = make_targets(kp, self.input_hw, self.stride, self.sigma, self.radius)
-        H, W = self.input_hw
+        H, W = img.shape[:2]  # the input size, or the augmentation's object-centred crop
+        belief, affinity = make_targets(kp, (H, W), self.stride, self.sigma, self.radius)
         out_kp = np.full((self.max_instances, NUM_KEYPOINTS, 2), np.nan, np.float32)
         m = min(len(kp), self.max_instances)
         if m:

@@ -135,6 +135,30 @@ def _log_parabola(maps: np.ndarray, c: np.ndarray, y: np.ndarray, x: np.ndarray,
     return np.where(valid, vertex, pos.astype(np.float64)), valid, log_height
 
 
+def _snap_to_raw_max(raw: np.ndarray, c: np.ndarray, y: np.ndarray, x: np.ndarray,
+                     max_steps: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Climb from each peak cell to the raw map's local maximum (3x3 steps, at most
+    ``max_steps``; ties keep the current cell).
+
+    raw (C, h, w); c, y, x (P,) int cells. Returns the new (y, x), each (P,) int."""
+    h, w = raw.shape[1:]
+    y, x = y.copy(), x.copy()
+    for _ in range(max_steps):
+        best_y, best_x = y.copy(), x.copy()
+        best = raw[c, y, x]
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                yy, xx = np.clip(y + dy, 0, h - 1), np.clip(x + dx, 0, w - 1)
+                v = raw[c, yy, xx]
+                better = v > best
+                best = np.where(better, v, best)
+                best_y, best_x = np.where(better, yy, best_y), np.where(better, xx, best_x)
+        if np.array_equal(best_y, y) and np.array_equal(best_x, x):
+            break
+        y, x = best_y, best_x
+    return y, x
+
+
 def find_peaks(
     belief,
     threshold: float = DEFAULT_THRESHOLD,
@@ -185,6 +209,13 @@ def find_peaks(
     _, first = np.unique(labels.ravel()[idx], return_index=True)
     c, y, x = np.unravel_index(idx[first], labels.shape)
 
+    if refine_on == "raw" and smooth is not raw:
+        # Smoothing finds the peaks (and keeps close instances apart) but shifts a skewed
+        # peak's cell; fit the raw map around its own maximum next to the detected cell.
+        y, x = _snap_to_raw_max(raw, c, y, x)
+        _, keep = np.unique(np.stack([c, y, x], 1), axis=0, return_index=True)  # climbed together
+        keep.sort()
+        c, y, x = c[keep], y[keep], x[keep]
     primary, secondary = (raw, smooth) if refine_on == "raw" else (smooth, raw)
     coords, heights, raw_ok = [], [], []
     inside = np.ones(len(c), dtype=bool)

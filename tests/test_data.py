@@ -147,6 +147,54 @@ def test_dataset_items_targets_and_keypoints(tmp_path):
     assert np.unravel_index(b.argmax(), b.shape) == (cy, cx)
 
 
+def test_object_centred_crops_hold_the_object_and_keep_keypoints_on_their_dots():
+    """augment.crop: training items are crops centred near an instance, at the scale of the
+    whole-frame transform; the drawn dots stay under their keypoints."""
+    hw_src, crop = (120, 160), (48, 64)
+    rng = np.random.default_rng(3)
+    colours = rng.integers(60, 255, (9, 3))
+    params = AugmentParams.from_config({**GEOMETRIC_ONLY, "crop": list(crop), "crop_jitter": 0.1,
+                                        "rotation_deg": 20.0, "scale": [0.9, 1.1]})
+    for trial in range(20):
+        grid = np.stack(np.meshgrid([-14.0, 0.0, 14.0], [-12.0, 0.0, 12.0]), -1).reshape(9, 2)
+        kp = (grid[[0, 1, 2, 3, 5, 6, 7, 8, 4]] + [rng.uniform(25, 135), rng.uniform(20, 100)])[None]
+        img = dot_image(hw_src, kp[0], colours, radius=3)
+        out, kp_out, M = augment(img, kp, (96, 128), params, np.random.default_rng(trial))
+        assert out.shape == (*crop, 3)
+        centroid = kp_out[0, 8]
+        # the centroid lies within crop_jitter of the crop's centre
+        assert abs(centroid[0] - (crop[1] - 1) / 2) <= 0.1 * crop[1] + 1e-6
+        assert abs(centroid[1] - (crop[0] - 1) / 2) <= 0.1 * crop[0] + 1e-6
+        # scale of the whole-frame fit (96x128 from 120x160: 0.8) times the zoom: unchanged by the crop
+        assert 0.8 * 0.9 - 1e-6 <= np.sqrt(abs(np.linalg.det(M[:, :2]))) <= 0.8 * 1.1 + 1e-6
+        for (u, v), c in zip(kp_out[0], colours):
+            if 1 <= u < crop[1] - 1 and 1 <= v < crop[0] - 1:
+                np.testing.assert_allclose(out[int(round(v)), int(round(u))], c, atol=40)
+    # validation items (no augmentation) are whole frames; a frame without instances still crops
+    assert augment(img, kp, (96, 128), AugmentParams(enabled=False), None)[0].shape == (96, 128, 3)
+    empty = augment(img, np.zeros((0, 9, 2)), (96, 128), params, np.random.default_rng(0))
+    assert empty[0].shape == (*crop, 3)
+    with pytest.raises(ConfigError, match="augment.crop"):
+        AugmentParams.from_config({"crop": [50, 64]})
+
+
+def test_dataset_trains_on_crops_and_validates_on_whole_frames(tmp_path):
+    write_frames(tmp_path, 2, wh=(96, 72))
+    records, _ = scan_frames([tmp_path], "Ketchup")
+    aug = AugmentParams.from_config({"crop": [32, 48]})
+    train = DopeDataset(records, (64, 96), stride=8, sigma=1.0, radius=1.0, augment=aug)
+    val = DopeDataset(records, (64, 96), stride=8, sigma=1.0, radius=1.0)
+    item = train[0]
+    assert item["image"].shape == (3, 32, 48) and item["belief"].shape == (9, 4, 6)
+    assert item["affinity"].shape == (16, 4, 6)
+    assert val[0]["image"].shape == (3, 64, 96) and val[0]["belief"].shape == (9, 8, 12)
+    assert collate([train[0], train[1]])["image"].shape == (2, 3, 32, 48)
+    # a crop larger than the input is capped at the input size
+    big = DopeDataset(records, (64, 96), stride=8, sigma=1.0, radius=1.0,
+                      augment=AugmentParams.from_config({"crop": [128, 64]}))
+    assert big[0]["image"].shape == (3, 64, 64)
+
+
 def test_items_are_a_function_of_seed_epoch_and_index(tmp_path):
     write_frames(tmp_path, 2)
     records, _ = scan_frames([tmp_path], "Ketchup")

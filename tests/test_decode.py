@@ -148,3 +148,23 @@ def test_refinement_on_the_smoothed_map_stays_within_a_pixel():
         assert np.abs(i.keypoints - kp[j]).max() < 1.0
     with pytest.raises(ValueError):
         decode_maps(b, a, 8, refine_on="centroid")
+
+
+def test_a_peak_with_a_shoulder_is_fitted_at_its_raw_maximum_not_the_smoothed_one():
+    """Smoothing (for detection) moves a skewed peak's cell towards its shoulder; the
+    sub-cell fit must still happen around the raw maximum (a trained net's peaks are rarely
+    symmetric: fitting at the smoothed cell put keypoints ~1 cell = 8 px off)."""
+    from dope_hope.decode import find_peaks
+
+    h, w = 16, 20
+    ys, xs = np.mgrid[0:h, 0:w].astype(float)
+
+    def blob(x0, y0, s, a):
+        return a * np.exp(-((xs - x0) ** 2 + (ys - y0) ** 2) / (2 * s * s))
+
+    raw = np.zeros((9, h, w), np.float32)
+    raw[0] = blob(8.3, 7.0, 0.7, 1.0) + blob(10.6, 7.0, 0.9, 0.8)  # keypoint + a strong shoulder
+    for sigma in (1.0, 2.0):
+        peaks = find_peaks(raw, 0.1, smooth_sigma=sigma)
+        assert len(peaks.xy) == 1 and tuple(peaks.cell[0]) == (8, 7)
+        assert abs(peaks.xy[0, 0] - 8.3) < 0.2 and peaks.xy[0, 1] == pytest.approx(7.0)

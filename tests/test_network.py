@@ -136,6 +136,8 @@ def test_build_model_rejects_bad_configs():
         build_model({"arch": "dope", "head": 100})
     with pytest.raises(ConfigError, match="stagez"):
         build_model({"arch": "lite", "stagez": 2})
+    with pytest.raises(ConfigError, match="model.lite options: depth"):
+        build_model({"arch": "lite", "lite": {"depth": 3}})
 
 
 def test_normalize_image_and_batch_agree():

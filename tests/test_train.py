@@ -203,3 +203,28 @@ def test_torchrun_two_cpu_processes_write_one_checkpoint(frames, tmp_path):
     rows = (out / "metrics.csv").read_text().splitlines()
     assert rows.count(rows[0]) == 1 and len([x for x in rows if x.startswith("train,")]) == 2  # rank 0 only
     assert stdout.count("completed") == 1
+
+
+# ----------------------------------------------------------------------------- losses
+def test_foreground_weight_makes_a_missed_peak_cost_more_than_a_false_one():
+    from dope_hope.train import stage_loss
+
+    target_b = torch.zeros(1, 9, 8, 8)
+    target_b[0, 0, 4, 4] = 1.0
+    target_a = torch.zeros(1, 16, 8, 8)
+    target_a[0, 0, 4, 4] = 1.0
+    missed = torch.zeros_like(target_b)  # predicts nothing at the peak
+    false = target_b.clone()
+    false[0, 0, 1, 1] = 1.0  # the peak plus a false one elsewhere
+    stages = lambda b: [(b, target_a.clone())]  # noqa: E731
+    # plain MSE (the official loss): both errors cost the same
+    assert stage_loss(stages(missed), target_b, target_a) == pytest.approx(
+        float(stage_loss(stages(false), target_b, target_a)))
+    plain = float(stage_loss(stages(missed), target_b, target_a))
+    weighted = float(stage_loss(stages(missed), target_b, target_a, foreground_weight=10.0))
+    assert weighted == pytest.approx(11 * plain)
+    assert float(stage_loss(stages(false), target_b, target_a, foreground_weight=10.0)) == pytest.approx(plain)
+    # affinity cells inside a corner's disk are weighted the same way
+    wrong_a = [(target_b.clone(), torch.zeros_like(target_a))]
+    assert float(stage_loss(wrong_a, target_b, target_a, foreground_weight=4.0)) == pytest.approx(
+        5 * float(stage_loss(wrong_a, target_b, target_a)))

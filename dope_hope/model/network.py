@@ -211,6 +211,10 @@ class DopeNetwork(nn.Module):
                     raise ConfigError(f"unknown model.decoder options: {', '.join(sorted(opts))}")
         elif arch == "lite":
             from dope_hope.model.lite import LiteTrunk
+            known = {"width", "feature_channels", "stage_channels"}
+            unknown = sorted(set(lite or {}) - known)
+            if unknown:
+                raise ConfigError(f"unknown model.lite options: {', '.join(unknown)} (known: {', '.join(sorted(known))})")
             self.lite = LiteTrunk(head=self.head, stages=self.num_stages, **(lite or {}))
             self.stride = self.lite.stride
             _init_weights(self)
