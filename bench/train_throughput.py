@@ -1,8 +1,9 @@
 """Training throughput: lite vs DOPE-DR-50, images/s of full training steps, side by side.
 
 Each model trains with the project's own step (``dope_hope.train.optimizer_step``: forward,
-per-stage MSE, backward, Adam step) on batches of ``--batch`` images at its config's input
-size (lite 200x200, DOPE-DR-50 400x400), with real belief/affinity targets. A warm-up
+per-stage MSE, backward, Adam step) on batches of ``--batch`` images of its config's training
+item size (lite: its 128x128 object-centred crops, ``augment.crop``; DOPE-DR-50 400x400),
+with real belief/affinity targets. A warm-up
 step is not timed. Besides wall-clock images/s it prints the process CPU time per image,
 which on a shared machine (other jobs competing for the cores) tracks the uncontended cost
 better than wall time does, above all with one thread. On CUDA (when available) it runs the trainer's CUDA path too: bf16
@@ -19,13 +20,19 @@ import numpy as np
 import torch
 
 from dope_hope.config import load_config
+from dope_hope.data import AugmentParams, crop_size
 from dope_hope.model import build_model
 from dope_hope.targets import make_targets
 from dope_hope.train import input_hw, optimizer_step
 
 
+def item_hw(config: dict) -> tuple[int, int]:
+    """(H, W) of the config's training items: the input size, or its augmentation crop."""
+    return crop_size(AugmentParams.from_config(config.get("augment")), input_hw(config))
+
+
 def batch_for(config: dict, stride: int, batch: int, device: torch.device):
-    H, W = input_hw(config)
+    H, W = item_hw(config)
     rng = np.random.default_rng(0)
     tc = config.get("targets") or {}
     beliefs, affinities = [], []
@@ -61,7 +68,7 @@ def measure(name: str, batch: int, steps: int, warmup: int, device: torch.device
         torch.cuda.synchronize()
     dt, cpu = time.perf_counter() - t0, time.process_time() - c0
     ips = steps * batch / dt
-    H, W = input_hw(config)
+    H, W = item_hw(config)
     print(f"  {name:<11} {W}x{H}  batch {batch}: {dt / steps * 1000:9.1f} ms/step  {ips:8.2f} images/s  "
           f"(process CPU {cpu / (steps * batch) * 1000:.0f} ms/image)")
     return ips, cpu / (steps * batch)

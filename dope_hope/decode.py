@@ -7,8 +7,10 @@ Pipeline (all channels at once, no Python loops over pixels):
    ``(2*nms_radius+1)^2`` neighbourhood (``maximum_filter``) and its belief (the largest raw
    value in its 3x3 neighbourhood) exceeds ``threshold``. Plateaus of equal maxima yield one
    peak (connected components, ``scipy.ndimage.label``).
-2. **Sub-pixel position.** A separable *log-parabola* (Gaussian) fit on the three samples
-   through the peak cell along x and along y: for ``f = exp(-(x-m)^2 / 2s^2)`` the log is
+2. **Sub-pixel position.** The peak cell first climbs to the raw map's local maximum next to
+   it (smoothing moves a skewed peak's cell towards its shoulder; fitting there put a trained
+   model's keypoints ~1 cell off). Then a separable *log-parabola* (Gaussian) fit on the three
+   samples through the peak cell along x and along y: for ``f = exp(-(x-m)^2 / 2s^2)`` the log is
    an exact parabola, so the vertex is the Gaussian's centre whatever its sigma. The fit
    uses the raw map (exact on ``targets`` output, as DOPE also refines on the unsmoothed
    map), falling back to the smoothed map where the raw samples are not log-concave. At the
@@ -21,11 +23,13 @@ Pipeline (all channels at once, no Python loops over pixels):
    corner peak reads the affinity vector ``v`` at its cell; for each centroid ``c`` the
    direction ``u`` from that cell centre to ``c`` is compared with ``v``: the pair is feasible
    when ``|v/|v| - u| < angle_threshold`` (DOPE's test, 0.5 = about 29 deg) and ``|v| >=
-   min_affinity``. Among feasible pairs the nearest centroid wins (DOPE's rule), solved as a
-   one-to-one assignment per corner type (``scipy.optimize.linear_sum_assignment`` on the
-   corner-centroid distance), so an instance never receives two corners of one type and two
-   touching instances do not steal each other's corners. The field gives only a direction
-   (no length), so the centroid distance is the only distance cue.
+   min_affinity``. Among feasible pairs stronger peaks go first and each takes the nearest
+   centroid (DOPE's rule), solved as a one-to-one assignment per corner type
+   (``scipy.optimize.linear_sum_assignment`` on corner-centroid distance plus a peak-height
+   priority), so an instance never receives two corners of one type, two touching instances
+   do not steal each other's corners, and a weak secondary peak next to the centroid does not
+   displace the strong true corner. The field gives only a direction (no length), so the
+   centroid distance is the only distance cue.
 
 Scores: ``Instance2D.scores[k]`` is the height of keypoint k's peak: the fitted Gaussian
 height on the raw map (``ln h = h_x + h_y - ln f(cell)``, exact for a separable Gaussian, so
@@ -51,6 +55,9 @@ DEFAULT_ANGLE_THRESHOLD = 0.5
 #: DOPE smooths with sigma 3 map px; with 0.5-px targets that merges peaks of neighbouring
 #: instances closer than ~3 cells (24 image px at stride 8), so we smooth less by default.
 DEFAULT_SMOOTH_SIGMA = 1.0
+#: Grouping cost per unit of missing peak height, map px: a peak's height outranks any
+#: centroid distance (see :func:`assign_corners`).
+SCORE_PRIORITY = 1e4
 
 
 @dataclass
@@ -260,8 +267,15 @@ def assign_corners(
     centroids_xy: np.ndarray,
     angle_threshold: float = DEFAULT_ANGLE_THRESHOLD,
     min_affinity: float = 0.0,
+    corner_scores: np.ndarray | None = None,
 ) -> np.ndarray:
     """One-to-one assignment of the peaks of one corner type to centroids.
+
+    Among feasible pairs, stronger peaks go first and each takes its nearest centroid: the
+    cost is ``distance + SCORE_PRIORITY * (1 - score)``. With more peaks of a type than
+    centroids (a trained net leaves weak secondary peaks near strong ones), the weak ones
+    stay unassigned even when they lie nearer to the centroid; with equal scores it is
+    DOPE's nearest-centroid rule.
 
     Args:
         corner_cells: (n, 2) int map cells (x, y) of the corner peaks.
@@ -270,6 +284,7 @@ def assign_corners(
         centroids_xy: (m, 2) centroid positions, map px.
         angle_threshold: maximum |v/|v| - u| (unit-vector distance; 0.5 ~ 29 deg).
         min_affinity: minimum |v| for the field to count.
+        corner_scores: (n,) peak heights (None: all equal).
 
     Returns:
         (n,) int: the centroid index of each corner peak, -1 where none is feasible.
@@ -287,7 +302,10 @@ def assign_corners(
     feasible = (angle_dist < angle_threshold) & (vnorm[:, None] > max(min_affinity, 0.0))
     feasible &= dist_c > 0
     cost = np.linalg.norm(centroids_xy[None] - corner_xy[:, None], axis=2)
-    big = 1e6 + cost.max()
+    if corner_scores is not None:
+        weak = 1.0 - np.clip(np.asarray(corner_scores, dtype=np.float64), 0.0, 1.0)
+        cost = cost + SCORE_PRIORITY * weak[:, None]
+    big = 1e9 + cost.max()
     rows, cols = linear_sum_assignment(np.where(feasible, cost, big))
     keep = feasible[rows, cols]
     out[rows[keep]] = cols[keep]
@@ -347,7 +365,8 @@ def decode_maps(
             continue
         cells = peaks.cell[sel]
         vec = np.stack([aff[2 * k, cells[:, 1], cells[:, 0]], aff[2 * k + 1, cells[:, 1], cells[:, 0]]], 1)
-        owner = assign_corners(cells, peaks.xy[sel], vec, centroids_xy, angle_threshold, min_affinity)
+        owner = assign_corners(cells, peaks.xy[sel], vec, centroids_xy, angle_threshold, min_affinity,
+                               corner_scores=peaks.score[sel])
         got = owner >= 0
         kp_map[owner[got], k] = peaks.xy[sel][got]
         scores[owner[got], k] = peaks.score[sel][got]

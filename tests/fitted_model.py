@@ -61,6 +61,7 @@ def fit_lite_model(rgb: np.ndarray, kp: np.ndarray, input_hw: tuple[int, int], s
     torch.manual_seed(0)
     cfg = load_config("lite")
     cfg["input"]["size"] = list(input_hw)
+    cfg["model"]["head"] = 50  # stride 8: what the Isaac ROS layout and the x8 tests need
     model = build_model(cfg)
     belief, affinity = make_targets(kp[None], input_hw, model.stride, sigma=1.0, radius=1.0)
     x = normalize_image(rgb)[None]

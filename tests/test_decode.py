@@ -168,3 +168,18 @@ def test_a_peak_with_a_shoulder_is_fitted_at_its_raw_maximum_not_the_smoothed_on
         peaks = find_peaks(raw, 0.1, smooth_sigma=sigma)
         assert len(peaks.xy) == 1 and tuple(peaks.cell[0]) == (8, 7)
         assert abs(peaks.xy[0, 0] - 8.3) < 0.2 and peaks.xy[0, 1] == pytest.approx(7.0)
+
+
+def test_a_strong_corner_peak_beats_a_weak_one_nearer_to_the_centroid():
+    """Trained nets leave weak secondary peaks; grouping by distance alone took the weak one
+    next to the centroid instead of the true corner (a third of a trained model's corners)."""
+    centroids = np.array([[10.0, 10.0]])
+    corners = np.array([[18.0, 10.0], [12.0, 10.0]])  # the true corner far, a weak peak near
+    vectors = centroids - corners                      # both point at the centroid
+    owner = assign_corners(corners.astype(int), corners, vectors, centroids,
+                           corner_scores=np.array([0.9, 0.2]))
+    assert owner.tolist() == [0, -1]
+    # equal scores: DOPE's nearest-centroid rule
+    owner = assign_corners(corners.astype(int), corners, vectors, centroids,
+                           corner_scores=np.array([0.5, 0.5]))
+    assert owner.tolist() == [-1, 0]

@@ -112,21 +112,21 @@ def test_lite_shapes_and_size():
     model = build_model(load_config("lite"))
     n = sum(p.numel() for p in model.parameters())
     assert 0.3e6 <= n <= 1.5e6
-    assert model.stride == 8
+    assert model.stride == 4  # configs/lite.yaml: head 100
     model.train()
     out = model(torch.randn(2, 3, 200, 200))
     assert len(out) == load_config("lite")["model"]["stages"]
     for belief, affinity in out:
-        assert belief.shape == (2, 9, 25, 25) and affinity.shape == (2, 16, 25, 25)
+        assert belief.shape == (2, 9, 50, 50) and affinity.shape == (2, 16, 50, 50)
     sum(b.mean() + a.mean() for b, a in out).backward()
     assert all(p.grad is not None for p in model.parameters())
     # lite weights are not DOPE weights: no name in common with the official layout
     assert not set(model.state_dict()) & set(official_state_dict())
 
-    fine = build_model({"arch": "lite", "head": 100, "stages": 1}).eval()
+    coarse = build_model({"arch": "lite", "head": 50, "stages": 1}).eval()
     with torch.no_grad():
-        b, a = fine(torch.randn(1, 3, 96, 64))[0]
-    assert fine.stride == 4 and b.shape == (1, 9, 24, 16) and a.shape == (1, 16, 24, 16)
+        b, a = coarse(torch.randn(1, 3, 96, 64))[0]
+    assert coarse.stride == 8 and b.shape == (1, 9, 12, 8) and a.shape == (1, 16, 12, 8)
 
 
 def test_build_model_rejects_bad_configs():
