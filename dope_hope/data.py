@@ -224,22 +224,25 @@ def sample_affine(
     base = min(ratios) if params.fit == "contain" else max(ratios)
     if not params.upscale:
         base = min(base, 1.0)
-    if rng is None or not params.enabled or rng.random() >= params.prob_geometric:
-        return affine_matrix(src_hw, dst_hw, base, 0.0)
-    lo, hi = params.scale
-    s = base * math.exp(rng.uniform(math.log(lo), math.log(hi)))
-    angle = rng.uniform(-params.rotation_deg, params.rotation_deg)
-    # Extent of the rotated, scaled source; the crop may move over whatever exceeds the input.
-    a = math.radians(angle)
-    ext_w = s * (abs(math.cos(a)) * W + abs(math.sin(a)) * H)
-    ext_h = s * (abs(math.sin(a)) * W + abs(math.cos(a)) * H)
-    room_x = max(0.0, ext_w - Wo) / 2.0 + params.translate * Wo
-    room_y = max(0.0, ext_h - Ho) / 2.0 + params.translate * Ho
-    shift = (rng.uniform(-room_x, room_x), rng.uniform(-room_y, room_y))
-    if params.crop is None:
-        return affine_matrix(src_hw, dst_hw, s, angle, shift)
+    augmenting = rng is not None and params.enabled
+    if not augmenting or rng.random() >= params.prob_geometric:
+        M = affine_matrix(src_hw, dst_hw, base, 0.0)
+    else:
+        lo, hi = params.scale
+        s = base * math.exp(rng.uniform(math.log(lo), math.log(hi)))
+        angle = rng.uniform(-params.rotation_deg, params.rotation_deg)
+        # Extent of the rotated, scaled source; the crop may move over whatever exceeds the input.
+        a = math.radians(angle)
+        ext_w = s * (abs(math.cos(a)) * W + abs(math.sin(a)) * H)
+        ext_h = s * (abs(math.sin(a)) * W + abs(math.cos(a)) * H)
+        room_x = max(0.0, ext_w - Wo) / 2.0 + params.translate * Wo
+        room_y = max(0.0, ext_h - Ho) / 2.0 + params.translate * Ho
+        shift = (rng.uniform(-room_x, room_x), rng.uniform(-room_y, room_y))
+        M = affine_matrix(src_hw, dst_hw, s, angle, shift)
+    if not augmenting or params.crop is None:
+        return M
+    # Object-centred crop (also of the frames that skip the random geometry).
     Hc, Wc = crop_size(params, dst_hw)
-    M = affine_matrix(src_hw, dst_hw, s, angle, shift)
     c = np.empty((0, 2)) if centres is None else np.asarray(centres, np.float64).reshape(-1, 2)
     c = c[np.all(np.isfinite(c), axis=1)]
     if len(c):  # a random instance's centroid near the crop's centre

@@ -170,6 +170,11 @@ def test_object_centred_crops_hold_the_object_and_keep_keypoints_on_their_dots()
         for (u, v), c in zip(kp_out[0], colours):
             if 1 <= u < crop[1] - 1 and 1 <= v < crop[0] - 1:
                 np.testing.assert_allclose(out[int(round(v)), int(round(u))], c, atol=40)
+    # frames that skip the random geometry (prob_geometric) are cropped around the object too
+    plain = AugmentParams.from_config({**GEOMETRIC_ONLY, "crop": list(crop), "crop_jitter": 0.0,
+                                       "prob_geometric": 0.0})
+    _, kp_plain, _ = augment(img, kp, (96, 128), plain, np.random.default_rng(0))
+    np.testing.assert_allclose(kp_plain[0, 8], [(crop[1] - 1) / 2, (crop[0] - 1) / 2], atol=1e-9)
     # validation items (no augmentation) are whole frames; a frame without instances still crops
     assert augment(img, kp, (96, 128), AugmentParams(enabled=False), None)[0].shape == (96, 128, 3)
     empty = augment(img, np.zeros((0, 9, 2)), (96, 128), params, np.random.default_rng(0))

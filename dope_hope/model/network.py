@@ -28,6 +28,7 @@ The ``arch: lite`` variant lives in :mod:`dope_hope.model.lite`.
 """
 from __future__ import annotations
 
+import inspect
 import os
 from typing import Any
 
@@ -211,7 +212,7 @@ class DopeNetwork(nn.Module):
                     raise ConfigError(f"unknown model.decoder options: {', '.join(sorted(opts))}")
         elif arch == "lite":
             from dope_hope.model.lite import LiteTrunk
-            known = {"width", "feature_channels", "stage_channels"}
+            known = set(inspect.signature(LiteTrunk).parameters) - {"head", "stages"}
             unknown = sorted(set(lite or {}) - known)
             if unknown:
                 raise ConfigError(f"unknown model.lite options: {', '.join(unknown)} (known: {', '.join(sorted(known))})")
