@@ -23,7 +23,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +35,7 @@ from torch.utils.data import Dataset, Sampler
 from dope_hope.errors import ConfigError, DopeHopeError, InputFileError
 from dope_hope.geometry import (CENTROID_INDEX, KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER,
                                 LEGACY_TO_CURRENT_INDEX, NUM_KEYPOINTS, legacy_keypoints_to_current)
+from dope_hope.symmetric_labels import camera_direction, canonical_keypoints
 
 log = logging.getLogger(__name__)
 
@@ -318,6 +319,9 @@ class FrameRecord:
     json_path: Path
     image_path: Path
     keypoints: np.ndarray  # (I, 9, 2) float64 in the model's keypoint order
+    #: (I, 3) unit camera direction in each instance's object frame (NaN without a pose);
+    #: what symmetry-aware relabelling (dope_hope.symmetric_labels) decides on.
+    view_dirs: np.ndarray | None = None
 
 
 def recorded_cuboid_size(json_path: str | Path, class_name: str) -> np.ndarray | None:
@@ -385,6 +389,7 @@ def scan_frames(
             report_bad_file(path, f"unreadable annotation ({problem})")
             continue
         kps: list[np.ndarray] = []
+        dirs: list[np.ndarray] = []
         for obj in frame.objects:
             if obj.class_name.lower() != want or obj.projected_cuboid is None:
                 continue
@@ -392,6 +397,7 @@ def scan_frames(
                 continue
             kp = np.asarray(obj.projected_cuboid, dtype=np.float64).reshape(NUM_KEYPOINTS, 2)
             kps.append(convert_keypoint_order(kp, obj.keypoint_order, keypoint_order))
+            dirs.append(camera_direction(obj.R, obj.t))
         if not kps and not include_empty:
             continue
         image = frame.image_path if frame.image_path is not None else find_image(path)
@@ -399,7 +405,8 @@ def scan_frames(
             raise InputFileError(path, "no image beside this annotation")
         records.append(FrameRecord(
             Path(path), Path(image),
-            np.stack(kps) if kps else np.zeros((0, NUM_KEYPOINTS, 2))))
+            np.stack(kps) if kps else np.zeros((0, NUM_KEYPOINTS, 2)),
+            np.stack(dirs) if dirs else np.zeros((0, 3))))
     return records, bad
 
 
@@ -560,6 +567,19 @@ class EpochSampler(Sampler):
 
     def __len__(self) -> int:
         return max(0, math.ceil(self.n / self.world_size) - self.skip)
+
+
+def relabel_symmetric(records: list[FrameRecord], rotations: np.ndarray,
+                      permutations: np.ndarray) -> list[FrameRecord]:
+    """Records with each instance's keypoints in the canonical order of its view (see
+    :mod:`dope_hope.symmetric_labels`); ``rotations``/``permutations`` from
+    :func:`~dope_hope.symmetric_labels.corner_permutations`. Instances without a recorded
+    pose keep their order."""
+    out = []
+    for r in records:
+        dirs = r.view_dirs if r.view_dirs is not None else np.full((len(r.keypoints), 3), np.nan)
+        out.append(replace(r, keypoints=canonical_keypoints(r.keypoints, dirs, rotations, permutations)))
+    return out
 
 
 def split_records(records: list[FrameRecord], val_fraction: float, seed: int) -> tuple[list[FrameRecord], list[FrameRecord]]:

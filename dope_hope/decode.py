@@ -29,7 +29,9 @@ Pipeline (all channels at once, no Python loops over pixels):
    priority), so an instance never receives two corners of one type, two touching instances
    do not steal each other's corners, and a weak secondary peak next to the centroid does not
    displace the strong true corner. The field gives only a direction (no length), so the
-   centroid distance is the only distance cue.
+   centroid distance is the only distance cue. ``grouping="shared"`` drops the one-to-one
+   constraint (each centroid takes its own best feasible peak): the predictor's second try
+   for a centroid whose one-to-one group yields no pose.
 
 Scores: ``Instance2D.scores[k]`` is the height of keypoint k's peak: the fitted Gaussian
 height on the raw map (``ln h = h_x + h_y - ln f(cell)``, exact for a separable Gaussian, so
@@ -293,6 +295,21 @@ def assign_corners(
     out = np.full(n, -1, dtype=int)
     if n == 0 or m == 0:
         return out
+    feasible, cost = corner_centroid_costs(corner_cells, corner_xy, vectors, centroids_xy,
+                                           angle_threshold, min_affinity, corner_scores)
+    big = 1e9 + cost.max()
+    rows, cols = linear_sum_assignment(np.where(feasible, cost, big))
+    keep = feasible[rows, cols]
+    out[rows[keep]] = cols[keep]
+    return out
+
+
+def corner_centroid_costs(corner_cells: np.ndarray, corner_xy: np.ndarray, vectors: np.ndarray,
+                          centroids_xy: np.ndarray, angle_threshold: float = DEFAULT_ANGLE_THRESHOLD,
+                          min_affinity: float = 0.0, corner_scores: np.ndarray | None = None,
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """(n, m) bool feasibility (affinity direction test) and (n, m) float grouping cost of
+    corner peaks vs centroids; arguments as in :func:`assign_corners`."""
     vnorm = np.linalg.norm(vectors, axis=1)
     v_hat = vectors / np.where(vnorm > 0, vnorm, 1.0)[:, None]
     to_c = centroids_xy[None, :, :] - corner_cells[:, None, :].astype(np.float64)  # (n, m, 2)
@@ -305,11 +322,28 @@ def assign_corners(
     if corner_scores is not None:
         weak = 1.0 - np.clip(np.asarray(corner_scores, dtype=np.float64), 0.0, 1.0)
         cost = cost + SCORE_PRIORITY * weak[:, None]
-    big = 1e9 + cost.max()
-    rows, cols = linear_sum_assignment(np.where(feasible, cost, big))
-    keep = feasible[rows, cols]
-    out[rows[keep]] = cols[keep]
-    return out
+    return feasible, cost
+
+
+def best_corner_per_centroid(feasible: np.ndarray, cost: np.ndarray) -> np.ndarray:
+    """Each centroid's own choice among the peaks of one corner type (peaks may be shared).
+
+    Same feasibility and cost as :func:`assign_corners` (strongest feasible peak, then the
+    nearest), but without the one-to-one constraint: a spurious centroid cannot take a
+    true corner away from the real instance.
+
+    Args:
+        feasible, cost: (n, m) from :func:`corner_centroid_costs`.
+
+    Returns:
+        (m,) int: the peak index chosen by each centroid, -1 where none is feasible.
+    """
+    n, m = cost.shape
+    if n == 0:
+        return np.full(m, -1, dtype=int)
+    masked = np.where(feasible, cost, np.inf)
+    best = masked.argmin(axis=0)
+    return np.where(np.isfinite(masked[best, np.arange(m)]), best, -1)
 
 
 def decode_maps(
@@ -323,6 +357,7 @@ def decode_maps(
     min_affinity: float = 0.0,
     refine_on: str = "raw",
     min_keypoints: int = 1,
+    grouping: str = "exclusive",
 ) -> list[Instance2D]:
     """Decode one image's maps into instances.
 
@@ -337,10 +372,15 @@ def decode_maps(
         min_affinity: minimum affinity vector length at a corner peak.
         refine_on: "raw" or "smoothed" (see :func:`find_peaks`).
         min_keypoints: drop instances with fewer keypoints (the centroid counts).
+        grouping: "exclusive" (one-to-one per corner type, :func:`assign_corners`) or
+            "shared" (each centroid takes its own best peak, :func:`best_corner_per_centroid`;
+            the predictor's second try for a centroid whose exclusive group gives no pose).
 
     Returns:
         Instances sorted by decreasing score; keypoints in image px via mapgrid.
     """
+    if grouping not in ("exclusive", "shared"):
+        raise ValueError(f"grouping must be 'exclusive' or 'shared', got {grouping!r}")
     bel = _to_numpy(belief)
     aff = _to_numpy(affinity)
     if bel.ndim != 3 or bel.shape[0] != NUM_KEYPOINTS:
@@ -365,6 +405,13 @@ def decode_maps(
             continue
         cells = peaks.cell[sel]
         vec = np.stack([aff[2 * k, cells[:, 1], cells[:, 0]], aff[2 * k + 1, cells[:, 1], cells[:, 0]]], 1)
+        if grouping == "shared":
+            choice = best_corner_per_centroid(*corner_centroid_costs(
+                cells, peaks.xy[sel], vec, centroids_xy, angle_threshold, min_affinity, peaks.score[sel]))
+            got = choice >= 0
+            kp_map[got, k] = peaks.xy[sel][choice[got]]
+            scores[got, k] = peaks.score[sel][choice[got]]
+            continue
         owner = assign_corners(cells, peaks.xy[sel], vec, centroids_xy, angle_threshold, min_affinity,
                                corner_scores=peaks.score[sel])
         got = owner >= 0

@@ -78,6 +78,8 @@ class TrainJob:
         resume: checkpoint to continue from, or None.
         mesh: optional mesh whose AABB gives the cuboid size recorded in the checkpoint.
         backbone_weights: optional local VGG19 state dict (arch dope).
+        init_weights: optional dope-hope checkpoint whose network weights start this run
+            (fine-tuning: fresh optimizer, schedule and step count; same architecture).
         device: "auto" (CUDA when available), "cpu" or "cuda[:i]".
         progress: show tqdm bars (rank 0).
         overrides: nested config values set on the command line (``--epochs``, ``--set``...);
@@ -93,6 +95,7 @@ class TrainJob:
     resume: Path | None = None
     mesh: Path | None = None
     backbone_weights: Path | None = None
+    init_weights: Path | None = None
     device: str = "auto"
     progress: bool = True
     overrides: dict[str, Any] = field(default_factory=dict)
@@ -286,6 +289,32 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None) -> tuple[d
     return make_object_info(name, hope.size_array, "mesh"), "catalog"
 
 
+def symmetry_category(setting: Any, object_name: str) -> str | None:
+    """Category whose symmetries relabel the keypoints (config ``targets.symmetry``), or None.
+
+    "none" (default, the official DOPE labels), "auto" (the HOPE catalog's category of the
+    object, or the demo box's), or a category name: "cuboid", "bottle", "cylinder".
+    """
+    from dope_hope.catalog import CATEGORIES, get_object
+
+    value = "none" if setting in (None, False) else str(setting).lower()
+    if value == "none":
+        return None
+    if value == "auto":
+        from dope_hope.demo_object import DEMO_CATEGORY, DEMO_CLASS_NAME
+
+        if object_name.lower() == DEMO_CLASS_NAME.lower():
+            return DEMO_CATEGORY
+        try:
+            return get_object(object_name).category
+        except UnknownObjectError:
+            raise ConfigError(f"targets.symmetry auto: {object_name!r} is not a HOPE object; set "
+                              f"targets.symmetry to one of {', '.join(CATEGORIES)} or none") from None
+    if value not in CATEGORIES:
+        raise ConfigError(f"targets.symmetry must be none, auto or one of {', '.join(CATEGORIES)}; got {setting!r}")
+    return value
+
+
 class MetricsLog:
     """Scalars to ``metrics.csv`` + ``metrics.jsonl`` (+ TensorBoard when installed); rank 0."""
 
@@ -409,6 +438,8 @@ class Trainer:
         if job.backbone_weights is not None:
             from dope_hope.model.network import load_backbone_weights
             load_backbone_weights(self.model, job.backbone_weights)
+        if job.init_weights is not None and ck is None:
+            load_init_weights(self.model, job.init_weights)
         stride = int(self.model.stride)
         scan = dict(min_visibility=float(ts["min_visibility"]), include_empty=bool(ts["include_empty_frames"]),
                     progress=job.progress and self.dist.main)
@@ -422,6 +453,20 @@ class Trainer:
                 raise InputFileError(", ".join(str(p) for p in job.val), "no readable validation frames")
         else:
             records, val_records = split_records(records, float(ts["val_fraction"]), self.seed)
+        self.object, self.size_source = object_info(job.object_name, records, job.mesh)
+        symmetry = symmetry_category(tcfg.get("symmetry", "none"), job.object_name)
+        self.symmetry_permutations = 1
+        if symmetry is not None:
+            from dope_hope.catalog import category_symmetries
+            from dope_hope.data import relabel_symmetric
+            from dope_hope.symmetric_labels import corner_permutations
+
+            rots, perms = corner_permutations(np.asarray(self.object["size_m"]),
+                                              category_symmetries(symmetry, step_deg=90.0))
+            self.symmetry_permutations = len(perms)
+            records = relabel_symmetric(records, rots, perms)
+            val_records = relabel_symmetric(val_records, rots, perms)
+            log.info("symmetry-aware labels: %s category, %d corner-permuting symmetries", symmetry, len(perms))
         common = dict(input_hw=hw, stride=stride, sigma=float(tcfg.get("sigma", 2.0)),
                       radius=float(tcfg.get("radius", 1.0)), seed=self.seed, max_instances=int(ts["max_instances"]))
         self.train_set = DopeDataset(records, augment=AugmentParams.from_config(config.get("augment")), **common)
@@ -433,7 +478,6 @@ class Trainer:
         self.sampler = EpochSampler(len(self.train_set), self.seed, True, self.dist.rank, self.dist.world_size)
         self.val_sampler = EpochSampler(len(self.val_set), self.seed, False, self.dist.rank, self.dist.world_size)
         self.steps_per_epoch = len(self.sampler) // self.batch_size
-        self.object, self.size_source = object_info(job.object_name, records, job.mesh)
 
         # ---- model, optimizer, schedule
         self.model.to(self.device)
@@ -505,7 +549,8 @@ class Trainer:
             "val": {k: v for k, v in self.last_val.items() if isinstance(v, (int, float))},
             "world_size": self.dist.world_size,
             "job": {"data": [str(p) for p in self.job.data], "val": [str(p) for p in self.job.val],
-                    "object": self.job.object_name, "mesh": str(self.job.mesh) if self.job.mesh else None},
+                    "object": self.job.object_name, "mesh": str(self.job.mesh) if self.job.mesh else None,
+                    "init": str(self.job.init_weights) if self.job.init_weights else None},
         }
         save_checkpoint(path, self.model, self.config, self.object, optimizer=self.optimizer,
                         scheduler=self.scheduler, step=self.step, epoch=self.epoch, extra=extra)
@@ -752,6 +797,20 @@ class Trainer:
         finally:
             bar.close()
         self.save("last.pt")
+
+
+def load_init_weights(model: nn.Module, path: str | Path) -> None:
+    """Copy a dope-hope checkpoint's network weights into ``model`` (``--init``).
+
+    Raises ModelFileError naming the file when it is no checkpoint or was trained with
+    another architecture than ``model`` (compare the configs' ``model`` sections).
+    """
+    from dope_hope.model.checkpoint import check_state_dict, load_checkpoint
+
+    ck = load_checkpoint(path)
+    check_state_dict(model.state_dict(), ck["model"], path)
+    model.load_state_dict(ck["model"], strict=True)
+    log.info("initialised the network from %s", path)
 
 
 def _extra(ck: dict[str, Any]) -> dict[str, Any]:

@@ -8,7 +8,8 @@ from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
 from dope_hope.catalog import get_object
-from dope_hope.decode import Instance2D, assign_corners, decode_maps
+from dope_hope.decode import (Instance2D, assign_corners, best_corner_per_centroid, corner_centroid_costs,
+                              decode_maps)
 from dope_hope.geometry import cuboid_keypoints, intrinsics_matrix, project_points, scale_intrinsics
 from dope_hope.targets import head_defaults, make_targets
 
@@ -183,3 +184,32 @@ def test_a_strong_corner_peak_beats_a_weak_one_nearer_to_the_centroid():
     owner = assign_corners(corners.astype(int), corners, vectors, centroids,
                            corner_scores=np.array([0.5, 0.5]))
     assert owner.tolist() == [-1, 0]
+
+
+def test_a_spurious_centroid_takes_the_true_corner_only_in_the_one_to_one_grouping():
+    """The true corner's field also points at a spurious centroid lying on the way to the
+    true one; a weak stray peak is feasible for the true centroid alone. One-to-one must
+    use both peaks and crosses them; each centroid's own choice keeps the true corner."""
+    centroids = np.array([[10.0, 10.0], [16.0, 10.0]])   # true, spurious (on the segment)
+    corners = np.array([[20.0, 10.0], [10.0, 15.0]])      # true corner, weak stray peak
+    vectors = np.array([[-1.0, 0.0], [0.0, -1.0]])        # both point at the true centroid
+    scores = np.array([0.9, 0.5])
+    owner = assign_corners(corners.astype(int), corners, vectors, centroids, corner_scores=scores)
+    assert owner.tolist() == [1, 0]  # the true centroid got the stray peak
+    choice = best_corner_per_centroid(*corner_centroid_costs(corners.astype(int), corners, vectors, centroids,
+                                                             corner_scores=scores))
+    assert choice.tolist() == [0, 0]  # both centroids choose the strong true corner
+    # no feasible peak: -1
+    assert best_corner_per_centroid(*corner_centroid_costs(corners.astype(int), corners, -vectors,
+                                                           centroids)).tolist() == [-1, -1]
+
+
+def test_shared_grouping_in_decode_maps():
+    kp = _scene()
+    b, a = make_targets(kp, HW, 8)
+    shared = decode_maps(b, a, 8, grouping="shared")
+    assert sorted(_match(shared, kp)) == [0, 1, 2]
+    for i, j in zip(shared, _match(shared, kp)):
+        np.testing.assert_allclose(i.keypoints, kp[j], atol=0.05)
+    with pytest.raises(ValueError, match="grouping"):
+        decode_maps(b, a, 8, grouping="greedy")

@@ -25,6 +25,10 @@ def test_quick_run_writes_the_table_and_resumes(shared_data, ketchup_obj, tmp_pa
     for stage in STAGES:  # each stage printed the exact command a user would type
         assert f"[{stage}] $ dope-hope " in proc.stdout
     assert "--depth auto" in proc.stdout and "--depth-noise" in proc.stdout
+    train_line = next(line for line in proc.stdout.splitlines() if line.startswith("[train] $"))
+    assert "targets.symmetry=auto" in train_line and "input.size=[64,64]" in train_line  # the default, one --set
+    assert train_line.count("--set") == 1
+    assert "symmetry-aware labels: bottle category, 2 corner-permuting" in (out / "logs" / "train.log").read_text()
     table = [line for line in proc.stdout.splitlines() if line.startswith("| lite |")]
     assert [line.split("|")[2].strip() for line in table] == ["yes", "no"]  # with and without -LS
     assert all(len(line.split("|")) == 13 for line in table)

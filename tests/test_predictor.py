@@ -368,3 +368,45 @@ def test_partly_outside_object_and_strict_json(tmp_path):
     np.testing.assert_allclose(pred.R, det.R, atol=1e-9)
     np.testing.assert_allclose(pred.t, det.t)
     assert "image" not in det.to_json()
+
+
+class _SpuriousCentroidBackend(TargetsBackend):
+    """Perfect maps of one instance plus a spurious centroid between the true centroid and
+    corner 0, and a weaker stray corner-0 peak whose field points at the true centroid."""
+
+    def run(self, batch):
+        from dope_hope.targets import make_targets
+
+        belief, affinity = super().run(batch)
+        Hp, Wp = batch.shape[2:]
+        sx = sy = self.calls[-1]["resized"][1] / self.image_hw[1]
+        kp = self.network_keypoints(sx, sy)[0]
+        c1, p1 = kp[8], kp[0]
+        d = p1 - c1
+        stray = np.full((1, 9, 2), np.nan)
+        stray[0, 0], stray[0, 8] = c1 + 0.5 * np.array([-d[1], d[0]]), c1
+        spurious = np.full((1, 9, 2), np.nan)
+        spurious[0, 8] = c1 + 0.6 * d
+        bs, as_ = make_targets(stray, (Hp, Wp), self.stride, self.sigma, self.radius)
+        bc, _ = make_targets(spurious, (Hp, Wp), self.stride, self.sigma, self.radius)
+        belief = belief.copy()
+        belief[0, 0] = np.maximum(belief[0, 0], 0.6 * bs[0])
+        belief[0, 8] = np.maximum(belief[0, 8], bc[8])
+        affinity = affinity.copy()
+        affinity[0, :2] += as_[:2]
+        return belief, affinity
+
+
+def test_a_centroid_robbed_of_a_corner_by_a_spurious_one_still_gets_its_pose():
+    """One-to-one grouping gives the true corner 0 to a spurious centroid; the predictor
+    retries that centroid with its own best corners (grouping "shared")."""
+    poses = POSES[:1]
+    strict = {"min_inlier_ratio": 1.0}  # one wrong corner out of nine fails the pose
+    dets = DopePredictor(_SpuriousCentroidBackend(OBJ.name, OBJ.size_array, poses, K640, (480, 640),
+                                                  stride=4, sigma=1.0, radius=1.0),
+                         pnp_options=strict).predict(white((480, 640)), K640)
+    match(dets, poses)
+    # The second try is what finds it: one-to-one grouping alone gives no pose.
+    assert DopePredictor(_SpuriousCentroidBackend(OBJ.name, OBJ.size_array, poses, K640, (480, 640),
+                                                  stride=4, sigma=1.0, radius=1.0),
+                         pnp_options=strict, regroup_failed=False).predict(white((480, 640)), K640) == []

@@ -83,6 +83,9 @@ def _shrink_train(argv: list[str]) -> list[str]:
         return _set(_set(argv, "--steps", "2"), "--workers", "0")
     for opt, val in (("--steps", "1"), ("--batch-size", "1"), ("--workers", "0")):
         argv = _set(argv, opt, val)
+    if "--set" in argv:  # one --set option: argparse keeps only the last one given
+        i = argv.index("--set") + 1
+        return argv[:i] + ["input.size=[64,64]"] + argv[i:]
     return argv + ["--set", "input.size=[64,64]"]
 
 

@@ -19,6 +19,7 @@ from dope_hope.config import load_config
 from dope_hope.geometry import cuboid_keypoints, intrinsics_matrix, project_points
 from dope_hope.io.dope_json import write_dope_json
 from dope_hope.io.images import write_rgb
+from dope_hope.errors import ModelFileError
 from dope_hope.model.checkpoint import load_checkpoint
 from dope_hope.targets import make_targets
 from dope_hope.train import LrLambda, TrainJob, keypoint_hits, train, validation_hits
@@ -157,6 +158,54 @@ def test_cosine_schedule_with_warmup():
 
 
 # ----------------------------------------------------------------------------- CLI
+def test_init_starts_from_a_checkpoint_with_a_fresh_schedule(frames, tmp_path):
+    """--init (fine-tuning): the run starts from the given weights with its own step count;
+    weights of another architecture are refused with a one-line error."""
+    config = load_config("lite")
+    train(TrainJob([frames], "Ketchup", tmp_path / "a", progress=False, overrides=_overrides(steps=3)), config)
+    src = tmp_path / "a" / "last.pt"
+    # lr 0: the parameters stay the initial ones (BatchNorm statistics still move)
+    frozen = train(TrainJob([frames], "Ketchup", tmp_path / "b", init_weights=src, progress=False,
+                            overrides=_overrides(steps=2, lr=0.0)), config)
+    assert frozen["step"] == 2
+    a, b = _weights(src), _weights(tmp_path / "b" / "last.pt")
+    params = [k for k in a if "running_" not in k and "num_batches" not in k]
+    assert params and all(torch.equal(a[k], b[k]) for k in params)
+    fresh = train(TrainJob([frames], "Ketchup", tmp_path / "c", progress=False,
+                           overrides=_overrides(steps=2, lr=0.0)), config)
+    assert fresh["step"] == 2
+    c = _weights(tmp_path / "c" / "last.pt")
+    assert not all(torch.equal(a[k], c[k]) for k in params)  # without --init: other weights
+    assert load_checkpoint(tmp_path / "b" / "last.pt")["extra"]["job"]["init"] == str(src)
+    wider = _overrides(steps=1)
+    wider["model"] = {"lite": {"width": 32}}
+    with pytest.raises(ModelFileError, match="another architecture"):
+        train(TrainJob([frames], "Ketchup", tmp_path / "d", init_weights=src, progress=False,
+                       overrides=wider), config)
+
+
+def test_symmetry_aware_labels_relabel_the_flipped_views(frames, tmp_path):
+    """targets.symmetry auto (Ketchup: bottle, 180° about y): every instance seen from its
+    back half gets the front-half labels; the others keep theirs; validation alike."""
+    from dope_hope.train import Trainer
+
+    plain = Trainer(TrainJob([frames], "Ketchup", tmp_path / "a", progress=False, overrides=_overrides()),
+                    load_config("lite"))
+    ov = _overrides()
+    ov["targets"] = {"symmetry": "auto"}
+    sym = Trainer(TrainJob([frames], "Ketchup", tmp_path / "b", progress=False, overrides=ov), load_config("lite"))
+    assert plain.symmetry_permutations == 1 and sym.symmetry_permutations == 2
+    flipped = 0
+    for a, b in zip(plain.train_set.records + plain.val_set.records, sym.train_set.records + sym.val_set.records):
+        front = (a.view_dirs[0] @ np.array([0.2, 0.5, 1.0])) >= (a.view_dirs[0] * [-1, 1, -1]) @ np.array([0.2, 0.5, 1.0])
+        if front:
+            np.testing.assert_array_equal(a.keypoints, b.keypoints)
+        else:
+            flipped += 1
+            np.testing.assert_array_equal(a.keypoints[0][[5, 4, 7, 6, 1, 0, 3, 2, 8]], b.keypoints[0])
+    assert 0 < flipped < len(plain.train_set.records) + len(plain.val_set.records)
+
+
 def _cli(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
     env = dict(os.environ, OMP_NUM_THREADS="1")
     return subprocess.run([sys.executable, "-m", "dope_hope.cli", *args], capture_output=True, text=True,

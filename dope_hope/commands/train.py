@@ -41,6 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, help="seed of init, data order and augmentation (train.seed)")
     parser.add_argument("--resume", nargs="?", const="auto", metavar="PATH",
                         help="continue from a checkpoint (no PATH: OUT/last.pt, if it exists)")
+    parser.add_argument("--init", type=Path, metavar="PATH", dest="init_weights",
+                        help="start from this dope-hope checkpoint's network weights (fine-tuning: "
+                             "fresh optimizer and schedule; its architecture must match --config)")
     parser.add_argument("--backbone-weights", type=Path, metavar="PATH",
                         help="local torchvision VGG19 state dict to initialize the trunk (arch dope)")
     parser.add_argument("--mesh", type=Path, metavar="PATH",
@@ -90,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
     if resume is None and not args.object_name:
         raise ConfigError("--object NAME is required (the class to train)")
     job = TrainJob(data=list(args.data or []), object_name=args.object_name or "", out=args.out, val=list(args.val),
-                   resume=resume, mesh=args.mesh, backbone_weights=args.backbone_weights, device=args.device,
+                   resume=resume, mesh=args.mesh, backbone_weights=args.backbone_weights,
+                   init_weights=args.init_weights, device=args.device,
                    progress=not args.no_progress, overrides=overrides)
     summary = train(job, config)
     status = summary["status"]
