@@ -8,6 +8,12 @@ centroids for the affinity test, only complete 9-point objects) + ``cv2.solvePnP
 (SOLVEPNP_ITERATIVE) on the nine points, as DOPE does.
 Both see the same maps: targets of 10 random poses, 50x50 maps (stride 8) of a 400x400 input.
 
+Pose search: the predictor's default, ``decode.corner_candidates`` (every feasible peak, up to
+3 per corner type) + ``pose.solve_pnp_candidates`` (multi-hypothesis PnP), against the
+candidate above (one corner per type), on the same maps and on "confused" maps where corner
+maps 0-2 of every object also carry a stronger peak on corners 2, 3, 0 (a trained lite net's
+commonest error): the search's price in time and what it buys in objects found.
+
 -LS: ``depth_line_search`` (coarse 41-step grid + bounded Brent) against a dense grid search
 over the same range in 0.1 % steps (the simple way to do it), same cost function, 640x480
 depth of a ray-cast box, ~4200 surface points.
@@ -27,7 +33,7 @@ from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
 from dope_hope.catalog import get_object
-from dope_hope.decode import decode_maps
+from dope_hope.decode import corner_candidates, decode_maps
 from dope_hope.geometry import (
     cuboid_keypoints,
     intrinsics_matrix,
@@ -42,6 +48,7 @@ from dope_hope.pose import (
     auto_splat_px,
     depth_line_search,
     solve_pnp,
+    solve_pnp_candidates,
     visible_points,
 )
 from dope_hope.targets import make_targets
@@ -144,6 +151,29 @@ def candidate_image(belief, affinity, K):
     return poses
 
 
+def search_image(belief, affinity, K):
+    poses = []
+    for c in corner_candidates(belief, affinity, STRIDE):
+        p = solve_pnp_candidates(c.keypoint_ids, c.xy, c.scores, CUBOID, K)
+        if p is not None:
+            poses.append((p.R, p.t))
+    return poses
+
+
+def confuse(belief: np.ndarray, affinity: np.ndarray, kp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Maps where corner maps 0, 1, 2 of every object also peak (1.0, the true peak lowered to
+    0.7) on its corners 2, 3, 0, with fields there pointing at the object's centroid."""
+    wrong = np.full_like(kp, np.nan)
+    wrong[:, [0, 1, 2]] = kp[:, [2, 3, 0]]
+    wrong[:, 8] = kp[:, 8]
+    bw, aw = make_targets(wrong, HW, STRIDE)
+    b, a = belief.copy(), affinity.copy()
+    b[:3] = np.maximum(0.7 * belief[:3], bw[:3])
+    ring = np.repeat(np.linalg.norm(aw[:6].reshape(3, 2, *aw.shape[1:]), axis=1) > 0, 2, axis=0)
+    a[:6] = np.where(ring, aw[:6], affinity[:6])
+    return b, a
+
+
 def accuracy(poses, Rs, ts):
     """(found, median rotation error deg, median translation error mm) vs ground truth."""
     rot, tra, found = [], [], set()
@@ -191,6 +221,27 @@ def main() -> int:
     print(f"  baseline  (DOPE-style loops + PnP): {mb:7.2f} ms/image   found {ab[:, 0].mean():.2f}/"
           f"{args.objects}   rot {np.nanmedian(ab[:, 1]):.4f} deg   t {np.nanmedian(ab[:, 2]):.3f} mm")
     print(f"  speed-up baseline/candidate: {mb / mc:.1f}x")
+
+    # Pose search vs one corner per type, on clean and on confused maps.
+    rng_s = np.random.default_rng(1)
+    for kind in ("clean", "confused"):
+        t_grp, t_srch, f_grp, f_srch = [], [], [], []
+        for _ in range(args.images):
+            Rs, ts, kp = random_scene(rng_s, args.objects)
+            b, a = make_targets(kp, HW, STRIDE)
+            if kind == "confused":
+                b, a = confuse(b, a, kp)
+            tg, pg = timed(candidate_image, b, a, K400, repeats=args.repeats)
+            tsr, ps = timed(search_image, b, a, K400, repeats=args.repeats)
+            t_grp.append(tg); t_srch.append(tsr)
+            f_grp.append(accuracy(pg, Rs, ts)[0]); f_srch.append(accuracy(ps, Rs, ts)[0])
+        mg, ms_ = 1000 * np.median(t_grp), 1000 * np.median(t_srch)
+        print(f"pose search, {kind} maps ({args.objects} objects, {args.images} images):")
+        print(f"  one corner per type (decode_maps + solve_pnp):               {mg:7.2f} ms/image   "
+              f"found {np.mean(f_grp):.2f}/{args.objects}")
+        print(f"  search (corner_candidates + solve_pnp_candidates, default):  {ms_:7.2f} ms/image   "
+              f"found {np.mean(f_srch):.2f}/{args.objects}")
+        print(f"  time ratio search/one-per-type: {ms_ / mg:.1f}x")
 
     # -LS per object
     K640 = intrinsics_matrix(615.0, 615.0, 319.5, 239.5)

@@ -29,9 +29,14 @@ Pipeline (all channels at once, no Python loops over pixels):
    priority), so an instance never receives two corners of one type, two touching instances
    do not steal each other's corners, and a weak secondary peak next to the centroid does not
    displace the strong true corner. The field gives only a direction (no length), so the
-   centroid distance is the only distance cue. ``grouping="shared"`` drops the one-to-one
-   constraint (each centroid takes its own best feasible peak): the predictor's second try
-   for a centroid whose one-to-one group yields no pose.
+   centroid distance is the only distance cue.
+4. **Candidates** (:func:`corner_candidates`, what :class:`dope_hope.predictor.DopePredictor`
+   uses by default): instead of committing to one peak per corner type, each centroid keeps
+   up to ``max_per_type`` feasible peaks of every type (the one-to-one grouping's choice
+   first, then strongest, nearest among equals), shared with other centroids; :func:`dope_hope.pose.solve_pnp_candidates` then picks the combination that a
+   rigid cuboid explains. A trained net often puts a second peak of map k on another corner
+   of the same box (corner identity is the hard part); the grouping above must guess, the
+   pose search need not.
 
 Scores: ``Instance2D.scores[k]`` is the height of keypoint k's peak: the fitted Gaussian
 height on the raw map (``ln h = h_x + h_y - ln f(cell)``, exact for a separable Gaussian, so
@@ -325,27 +330,6 @@ def corner_centroid_costs(corner_cells: np.ndarray, corner_xy: np.ndarray, vecto
     return feasible, cost
 
 
-def best_corner_per_centroid(feasible: np.ndarray, cost: np.ndarray) -> np.ndarray:
-    """Each centroid's own choice among the peaks of one corner type (peaks may be shared).
-
-    Same feasibility and cost as :func:`assign_corners` (strongest feasible peak, then the
-    nearest), but without the one-to-one constraint: a spurious centroid cannot take a
-    true corner away from the real instance.
-
-    Args:
-        feasible, cost: (n, m) from :func:`corner_centroid_costs`.
-
-    Returns:
-        (m,) int: the peak index chosen by each centroid, -1 where none is feasible.
-    """
-    n, m = cost.shape
-    if n == 0:
-        return np.full(m, -1, dtype=int)
-    masked = np.where(feasible, cost, np.inf)
-    best = masked.argmin(axis=0)
-    return np.where(np.isfinite(masked[best, np.arange(m)]), best, -1)
-
-
 def decode_maps(
     belief,
     affinity,
@@ -357,7 +341,6 @@ def decode_maps(
     min_affinity: float = 0.0,
     refine_on: str = "raw",
     min_keypoints: int = 1,
-    grouping: str = "exclusive",
 ) -> list[Instance2D]:
     """Decode one image's maps into instances.
 
@@ -372,24 +355,10 @@ def decode_maps(
         min_affinity: minimum affinity vector length at a corner peak.
         refine_on: "raw" or "smoothed" (see :func:`find_peaks`).
         min_keypoints: drop instances with fewer keypoints (the centroid counts).
-        grouping: "exclusive" (one-to-one per corner type, :func:`assign_corners`) or
-            "shared" (each centroid takes its own best peak, :func:`best_corner_per_centroid`;
-            the predictor's second try for a centroid whose exclusive group gives no pose).
-
     Returns:
         Instances sorted by decreasing score; keypoints in image px via mapgrid.
     """
-    if grouping not in ("exclusive", "shared"):
-        raise ValueError(f"grouping must be 'exclusive' or 'shared', got {grouping!r}")
-    bel = _to_numpy(belief)
-    aff = _to_numpy(affinity)
-    if bel.ndim != 3 or bel.shape[0] != NUM_KEYPOINTS:
-        raise ValueError(f"belief must be ({NUM_KEYPOINTS}, h, w), got {bel.shape}")
-    if aff.shape != (2 * CENTROID_INDEX,) + bel.shape[1:]:
-        raise ValueError(f"affinity must be ({2 * CENTROID_INDEX}, h, w) like belief, got {aff.shape}")
-    aff = np.nan_to_num(aff, nan=0.0, posinf=0.0, neginf=0.0)
-    peaks = find_peaks(bel, threshold, smooth_sigma, nms_radius, refine_on)
-
+    peaks, aff = _peaks_and_field(belief, affinity, threshold, smooth_sigma, nms_radius, refine_on)
     is_c = peaks.channel == CENTROID_INDEX
     centroids_xy = peaks.xy[is_c]
     m = len(centroids_xy)
@@ -403,17 +372,8 @@ def decode_maps(
         sel = peaks.channel == k
         if not sel.any():
             continue
-        cells = peaks.cell[sel]
-        vec = np.stack([aff[2 * k, cells[:, 1], cells[:, 0]], aff[2 * k + 1, cells[:, 1], cells[:, 0]]], 1)
-        if grouping == "shared":
-            choice = best_corner_per_centroid(*corner_centroid_costs(
-                cells, peaks.xy[sel], vec, centroids_xy, angle_threshold, min_affinity, peaks.score[sel]))
-            got = choice >= 0
-            kp_map[got, k] = peaks.xy[sel][choice[got]]
-            scores[got, k] = peaks.score[sel][choice[got]]
-            continue
-        owner = assign_corners(cells, peaks.xy[sel], vec, centroids_xy, angle_threshold, min_affinity,
-                               corner_scores=peaks.score[sel])
+        owner = assign_corners(peaks.cell[sel], peaks.xy[sel], _field_at(aff, k, peaks.cell[sel]), centroids_xy,
+                               angle_threshold, min_affinity, corner_scores=peaks.score[sel])
         got = owner >= 0
         kp_map[owner[got], k] = peaks.xy[sel][got]
         scores[owner[got], k] = peaks.score[sel][got]
@@ -426,3 +386,98 @@ def decode_maps(
     ]
     instances.sort(key=lambda inst: -inst.score)
     return instances
+
+
+def _peaks_and_field(belief, affinity, threshold: float, smooth_sigma: float, nms_radius: int,
+                     refine_on: str) -> tuple[Peaks, np.ndarray]:
+    """Checked maps -> (peaks of all nine channels, (16, h, w) affinity without NaN/inf)."""
+    bel = _to_numpy(belief)
+    aff = _to_numpy(affinity)
+    if bel.ndim != 3 or bel.shape[0] != NUM_KEYPOINTS:
+        raise ValueError(f"belief must be ({NUM_KEYPOINTS}, h, w), got {bel.shape}")
+    if aff.shape != (2 * CENTROID_INDEX,) + bel.shape[1:]:
+        raise ValueError(f"affinity must be ({2 * CENTROID_INDEX}, h, w) like belief, got {aff.shape}")
+    aff = np.nan_to_num(aff, nan=0.0, posinf=0.0, neginf=0.0)
+    return find_peaks(bel, threshold, smooth_sigma, nms_radius, refine_on), aff
+
+
+def _field_at(aff: np.ndarray, k: int, cells: np.ndarray) -> np.ndarray:
+    """(n, 2) affinity vectors of corner type k read at (n, 2) int map cells (x, y)."""
+    return np.stack([aff[2 * k, cells[:, 1], cells[:, 0]], aff[2 * k + 1, cells[:, 1], cells[:, 0]]], 1)
+
+
+@dataclass
+class CornerCandidates:
+    """One centroid and the corner peaks that may belong to it (image px).
+
+    keypoint_ids: (n,) int, keypoint index of each entry; entry 0 is the centroid (id 8).
+    xy: (n, 2) float, image px (u, v).
+    scores: (n,) float, peak heights.
+    """
+
+    keypoint_ids: np.ndarray
+    xy: np.ndarray
+    scores: np.ndarray
+
+    @property
+    def score(self) -> float:
+        """Height of the centroid peak."""
+        return float(self.scores[0])
+
+
+def corner_candidates(
+    belief,
+    affinity,
+    stride: int,
+    threshold: float = DEFAULT_THRESHOLD,
+    angle_threshold: float = DEFAULT_ANGLE_THRESHOLD,
+    smooth_sigma: float = DEFAULT_SMOOTH_SIGMA,
+    nms_radius: int = 1,
+    min_affinity: float = 0.0,
+    refine_on: str = "raw",
+    max_per_type: int = 3,
+) -> list[CornerCandidates]:
+    """Per centroid peak, the corner peaks whose affinity points at it (module docstring, 4).
+
+    Args:
+        belief, affinity, stride, threshold, angle_threshold, smooth_sigma, nms_radius,
+            min_affinity, refine_on: as in :func:`decode_maps`.
+        max_per_type: keep at most this many feasible peaks of each corner type per centroid:
+            the one :func:`decode_maps` would give it, then the others by its grouping cost
+            (strongest first, nearest among equals).
+
+    Returns:
+        One :class:`CornerCandidates` per centroid peak, strongest centroid first. A corner
+        peak may be a candidate of several centroids.
+    """
+    if max_per_type < 1:
+        raise ValueError(f"max_per_type must be >= 1, got {max_per_type}")
+    peaks, aff = _peaks_and_field(belief, affinity, threshold, smooth_sigma, nms_radius, refine_on)
+    is_c = peaks.channel == CENTROID_INDEX
+    centroids_xy = peaks.xy[is_c]
+    m = len(centroids_xy)
+    ids: list[list[int]] = [[CENTROID_INDEX] for _ in range(m)]
+    xy: list[list[np.ndarray]] = [[c] for c in centroids_xy]
+    sc: list[list[float]] = [[s] for s in peaks.score[is_c]]
+    for k in range(CENTROID_INDEX):
+        sel = np.flatnonzero(peaks.channel == k)
+        if sel.size == 0 or m == 0:
+            continue
+        cells, vec = peaks.cell[sel], _field_at(aff, k, peaks.cell[sel])
+        feasible, cost = corner_centroid_costs(cells, peaks.xy[sel], vec, centroids_xy, angle_threshold,
+                                               min_affinity, peaks.score[sel])
+        owner = assign_corners(cells, peaks.xy[sel], vec, centroids_xy, angle_threshold, min_affinity,
+                               corner_scores=peaks.score[sel])
+        for c in range(m):
+            # The one-to-one grouping's choice first, then by the grouping cost (strong, then near).
+            rank = np.where(owner == c, -np.inf, np.where(feasible[:, c], cost[:, c], np.inf))
+            order = np.argsort(rank, kind="stable")
+            for j in sel[order[rank[order] < np.inf][:max_per_type]]:
+                ids[c].append(k)
+                xy[c].append(peaks.xy[j])
+                sc[c].append(float(peaks.score[j]))
+    out = [CornerCandidates(keypoint_ids=np.asarray(ids[c], dtype=int),
+                            xy=map_to_image(np.asarray(xy[c], dtype=np.float64), stride),
+                            scores=np.asarray(sc[c], dtype=np.float64)) for c in range(m)]
+    out.sort(key=lambda cand: -cand.score)
+    return out

@@ -48,6 +48,7 @@ optimum sits on the search bound or its residual exceeds ``max_residual_m``.
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import cv2
@@ -55,8 +56,15 @@ import numpy as np
 from scipy.ndimage import minimum_filter
 from scipy.optimize import minimize_scalar
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
+
+#: Pose hypotheses solved between two checks of :func:`solve_pnp_candidates`' early stop.
+_HYPOTHESIS_CHUNK = 16
+#: :func:`solve_pnp_candidates` gives up after this many hypotheses when none explained more
+#: than its own four keypoints.
+_GIVE_UP_AFTER = 128
 
 #: Depth scale factor of the HOPE RealSense frames (their depth was rescaled by this).
 HOPE_REALSENSE_DEPTH_CALIBRATION = 0.98042517
@@ -72,6 +80,7 @@ class PoseEstimate:
     reprojection_error_px: mean reprojection error of the inliers, pixels.
     keypoints: (9, 2) the input keypoints, image px (NaN where missing).
     projected: (9, 2) the cuboid keypoints projected under the pose, image px.
+    keypoint_scores: (9,) the input keypoint confidences (1 where none were given).
     """
 
     R: np.ndarray
@@ -81,6 +90,7 @@ class PoseEstimate:
     reprojection_error_px: float
     keypoints: np.ndarray
     projected: np.ndarray | None = None
+    keypoint_scores: np.ndarray | None = None
 
 
 def _reprojection_errors(obj: np.ndarray, img: np.ndarray, rvec, tvec, K, dist) -> np.ndarray:
@@ -168,8 +178,148 @@ def solve_pnp(
     proj, _ = cv2.projectPoints(obj_all, rvec, tvec, K, dist)
     return PoseEstimate(
         R=R, t=t.copy(), score=score, inliers=inliers, reprojection_error_px=mean_err,
-        keypoints=kp.copy(), projected=proj.reshape(-1, 2),
+        keypoints=kp.copy(), projected=proj.reshape(-1, 2), keypoint_scores=sc.copy(),
     )
+
+
+def _minimal_sets(by_type: list[np.ndarray], max_sets: int) -> np.ndarray:
+    """(S, 3) int: candidate indices of three corners of distinct types, the most promising
+    first: ordered by the sum of the candidates' ranks within their type (each ``by_type``
+    list is best first), so the first set is made of every type's first choice. At most
+    ``max_sets`` sets."""
+    sets, rank_sums = [], []
+    for g in itertools.combinations(range(len(by_type)), 3):
+        members = [by_type[i] for i in g]
+        ranks = np.indices([len(m) for m in members]).reshape(3, -1).T        # (n, 3)
+        sets.append(np.stack([members[i][ranks[:, i]] for i in range(3)], axis=1))
+        rank_sums.append(ranks.sum(axis=1))
+    order = np.argsort(np.concatenate(rank_sums), kind="stable")[:max_sets]
+    return np.concatenate(sets)[order]
+
+
+def solve_pnp_candidates(
+    keypoint_ids: np.ndarray,
+    points: np.ndarray,
+    scores: np.ndarray,
+    cuboid_points: np.ndarray,
+    K: np.ndarray,
+    hypothesis_threshold_px: float = 5.0,
+    max_hypotheses: int = 400,
+    **pnp_options,
+) -> PoseEstimate | None:
+    """Pose of one cuboid from several candidate peaks per keypoint (multi-hypothesis PnP).
+
+    A trained network often puts a second, sometimes stronger, peak of corner map k on
+    another corner of the same box; taking one peak per type then leaves too few consistent
+    keypoints for :func:`solve_pnp`. Here every candidate may be used: each pose hypothesis
+    is solved (``cv2.SOLVEPNP_AP3P``) from the centroid plus three corner candidates of
+    distinct types, kept only when it projects the centroid within
+    ``hypothesis_threshold_px`` of its peak (the candidates were gathered for that centroid),
+    and scored by the summed confidence (clipped to [0, 1]) of the keypoint types whose
+    nearest candidate lies within ``hypothesis_threshold_px`` of the projection - one
+    candidate per type, so duplicates cannot inflate a score. Sets are tried best-ranked
+    first (candidates are listed best first per type: the first set is every type's first
+    choice), at most ``max_hypotheses`` of them, and the search stops as soon as a hypothesis
+    explains every keypoint type present, so a clean instance costs one solve; the order is
+    fixed, so the result is reproducible. The best hypothesis picks, per type, the candidate
+    nearest its projection (or the type's strongest candidate where none is within the
+    threshold: it counts as an outlier unless within the final RANSAC threshold), and that assignment goes through
+    :func:`solve_pnp` with every one of its checks (RANSAC, refinement, inlier ratio, mean
+    error). OpenCV's RANSAC does not fit: it counts every inlying correspondence, so several
+    candidates of one type near a wrong pose outvote the right one.
+
+    Args:
+        keypoint_ids: (n,) int keypoint index of each candidate (0..7 corners, 8 the centroid),
+            best candidate of each type first.
+        points: (n, 2) candidate positions, image px.
+        scores: (n,) candidate confidences (peak heights).
+        cuboid_points: (9, 3) model-frame cuboid keypoints, metres.
+        K: (3, 3) intrinsics of the image the points are in (no distortion).
+        hypothesis_threshold_px: a candidate supports a hypothesis within this distance, px.
+        max_hypotheses: most minimal sets solved.
+        **pnp_options: keyword arguments of :func:`solve_pnp` for the final pose.
+
+    Returns:
+        :class:`PoseEstimate` (``keypoints``: the chosen candidate per type), or None: no
+        centroid, fewer than three corner types, or the chosen assignment fails
+        :func:`solve_pnp`.
+    """
+    ids = np.asarray(keypoint_ids, dtype=int).ravel()
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    sc = np.asarray(scores, dtype=np.float64).ravel()
+    if not (len(ids) == len(pts) == len(sc)):
+        raise ValueError(f"keypoint_ids, points and scores differ in length: {len(ids)}, {len(pts)}, {len(sc)}")
+    if np.any((ids < 0) | (ids >= NUM_KEYPOINTS)):
+        raise ValueError(f"keypoint ids must be in 0..{NUM_KEYPOINTS - 1}, got {sorted(set(ids.tolist()))}")
+    if max_hypotheses < 1:
+        raise ValueError(f"max_hypotheses must be >= 1, got {max_hypotheses}")
+    cuboid = np.asarray(cuboid_points, dtype=np.float64).reshape(NUM_KEYPOINTS, 3)
+    K = np.asarray(K, dtype=np.float64)
+    usable = np.all(np.isfinite(pts), axis=1) & np.isfinite(sc)
+    by_type = {k: np.flatnonzero(usable & (ids == k)) for k in range(NUM_KEYPOINTS)}
+    by_type = {k: v for k, v in by_type.items() if v.size}
+    corner_types = [k for k in by_type if k != CENTROID_INDEX]
+    if CENTROID_INDEX not in by_type or len(corner_types) < 3:
+        return None
+    anchor = by_type[CENTROID_INDEX][0]
+    sets = _minimal_sets([by_type[k] for k in corner_types], int(max_hypotheses))
+    weight = np.clip(sc, 0.0, 1.0)
+    quads = np.concatenate([sets, np.full((len(sets), 1), anchor)], axis=1)   # (S, 4): 3 corners + centroid
+    objs, imgs = cuboid[ids[quads]], np.ascontiguousarray(pts[quads])
+
+    min_points = int(pnp_options.get("min_points", 5))
+    best_score, best_nearest, best_err, most_explained = -1.0, None, None, 0
+    for start in range(0, len(sets), _HYPOTHESIS_CHUNK):
+        rvecs, tvecs = [], []
+        for q in range(start, min(start + _HYPOTHESIS_CHUNK, len(sets))):
+            try:
+                ok, rvec, tvec = cv2.solvePnP(objs[q], imgs[q], K, None, flags=cv2.SOLVEPNP_AP3P)
+            except cv2.error:
+                continue
+            if ok and np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec)):
+                rvecs.append(rvec.ravel())
+                tvecs.append(tvec.ravel())
+        if not rvecs:
+            continue
+        # Score the chunk at once: (H, 9, 3) camera-frame cuboids -> (H, 9, 2) projections.
+        cam = np.einsum("hij,kj->hki", Rotation.from_rotvec(np.asarray(rvecs)).as_matrix(), cuboid)
+        cam += np.asarray(tvecs)[:, None, :]
+        z = cam[..., 2]
+        proj = (cam @ K.T)[..., :2] / np.where(z > 0, z, np.nan)[..., None]
+        err = np.linalg.norm(proj[:, ids] - pts[None], axis=2)               # (H, n)
+        err = np.where(usable[None] & np.isfinite(err), err, np.inf)
+        centre_err = np.linalg.norm(proj[:, CENTROID_INDEX] - pts[anchor], axis=1)
+        err[~(centre_err <= hypothesis_threshold_px) | (z[:, CENTROID_INDEX] <= 0)] = np.inf
+        total = np.zeros(len(err))
+        explained = np.zeros(len(err), dtype=int)
+        nearest = {}
+        for k, cols in by_type.items():
+            j = cols[np.argmin(err[:, cols], axis=1)]                         # (H,) nearest candidate
+            inside = err[np.arange(len(err)), j] <= hypothesis_threshold_px
+            nearest[k] = j
+            total += np.where(inside, weight[j], 0.0)
+            explained += inside
+        h = int(np.argmax(total))
+        if np.isfinite(err[h]).any() and total[h] > best_score:
+            best_score, best_err = total[h], err[h]
+            best_nearest = {k: int(j[h]) for k, j in nearest.items()}
+        most_explained = max(most_explained, int(explained.max()))
+        if most_explained == len(by_type):
+            break  # a hypothesis explains every type present: none can explain more
+        if start + _HYPOTHESIS_CHUNK >= _GIVE_UP_AFTER and most_explained <= 4:
+            break  # nothing beyond its own minimal set: peaks of no rigid cuboid (clutter)
+    if best_nearest is None:
+        return None
+    final_px = float(pnp_options.get("reprojection_threshold_px", 8.0))
+    if sum(best_err[j] <= final_px for j in best_nearest.values()) < min_points:
+        return None  # fewer than min_points keypoints near the best pose: spare solve_pnp's RANSAC
+    kp = np.full((NUM_KEYPOINTS, 2), np.nan)
+    kp_scores = np.zeros(NUM_KEYPOINTS)
+    for k, j in best_nearest.items():
+        if best_err[j] > hypothesis_threshold_px:
+            j = int(by_type[k][np.argmax(sc[by_type[k]])])
+        kp[k], kp_scores[k] = pts[j], sc[j]
+    return solve_pnp(kp, kp_scores, cuboid, K, **pnp_options)
 
 
 # ----------------------------------------------------------------------------------------

@@ -20,13 +20,19 @@ run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.pr
    fixed input size (``fixed_input_hw``) gets the image fitted inside and padded up to it.
 3. **Maps** from the backend (:class:`MapBackend`, last stage), normalized with the model's
    recorded mean/std.
-4. **Decode** (:func:`dope_hope.decode.decode_maps`) and **PnP**
-   (:func:`dope_hope.pose.solve_pnp`) in network-image pixels with ``K_net``, so the pixel
-   thresholds mean the same whatever the original resolution. A centroid whose one-to-one
-   corner group gives no pose gets a second try with its own best corners
-   (``grouping="shared"``): a spurious second centroid can no longer take true corners away
-   from the real instance (demo scenes found with the shipped model: 25 -> 28 of 40). The cuboid is the model's: the
-   checkpoint's size (mesh frame) or, with ``mesh=``, the mesh's own bounding box (size and
+4. **Decode and PnP** in network-image pixels with ``K_net``, so the pixel thresholds mean
+   the same whatever the original resolution. ``pose_search="hypotheses"`` (default): each
+   centroid keeps every corner peak whose affinity points at it
+   (:func:`dope_hope.decode.corner_candidates`, up to 3 per corner type) and
+   :func:`dope_hope.pose.solve_pnp_candidates` finds the pose that explains most of them, so a
+   second peak of map k on another corner of the box (the lite models' commonest error) or a
+   spurious centroid sharing the true corners no longer costs the detection (demo scenes
+   found by the shipped model, 120 scenes: 96 with the grouping below, 105 with the search;
+   bench/RESULTS.md). Two centroids explaining the same peaks give one detection, the
+   higher-scoring. ``pose_search="groups"``: DOPE's decoding, one corner per type and
+   centroid (:func:`dope_hope.decode.decode_maps`), then :func:`dope_hope.pose.solve_pnp`.
+   The cuboid is the model's: the checkpoint's size (mesh frame) or, with ``mesh=``, the
+   mesh's own bounding box (size and
    centre; a size differing from the checkpoint's by more than 25 % is refused as a unit
    mistake). **Legacy frame** (official HOPE weights): PnP runs on the legacy cuboid
    (``LEGACY_TO_MESH^T`` applied to the mesh box, keypoints in the legacy order) and the
@@ -58,10 +64,9 @@ from typing import Any, Protocol, runtime_checkable
 import cv2
 import numpy as np
 
-from dope_hope.decode import decode_maps
+from dope_hope.decode import corner_candidates, decode_maps
 from dope_hope.errors import CameraError, ConfigError, ModelFileError
 from dope_hope.geometry import (
-    CENTROID_INDEX,
     KEYPOINT_ORDER,
     LEGACY_KEYPOINT_ORDER,
     LEGACY_TO_MESH,
@@ -73,7 +78,7 @@ from dope_hope.geometry import (
     project_points,
     scale_intrinsics,
 )
-from dope_hope.pose import depth_line_search, solve_pnp
+from dope_hope.pose import PoseEstimate, depth_line_search, solve_pnp, solve_pnp_candidates
 
 #: Official DOPE inference height (``config_pose.yaml`` ``downscale_height``), pixels.
 DEFAULT_HEIGHT = 400
@@ -84,6 +89,7 @@ DEFAULT_LS_POINTS = 1000
 #: A mesh's box may differ from the checkpoint's cuboid by at most this factor per extent.
 MESH_SIZE_TOLERANCE = 1.25
 BACKENDS = ("auto", "torch", "onnx")
+POSE_SEARCHES = ("hypotheses", "groups")
 
 
 # ----------------------------------------------------------------------------- backends
@@ -428,14 +434,16 @@ class DopePredictor:
         mesh: optional mesh file (or loaded ``trimesh.Trimesh`` in metres) of the object: its
             box replaces the checkpoint's cuboid and its surface feeds the depth line search.
         mesh_units: units of the mesh file ("m", "cm", "mm"; default by suffix).
-        decode_options: keyword arguments of :func:`dope_hope.decode.decode_maps`.
+        pose_search: "hypotheses" (default) or "groups" (see the module docstring, step 4).
+        decode_options: keyword arguments of :func:`dope_hope.decode.corner_candidates`
+            ("hypotheses") or :func:`dope_hope.decode.decode_maps` ("groups").
         pnp_options: keyword arguments of :func:`dope_hope.pose.solve_pnp`.
+        hypothesis_options: keyword arguments of :func:`dope_hope.pose.solve_pnp_candidates`
+            (``hypothesis_threshold_px``, ``max_hypotheses``, ``seed``).
         line_search_options: keyword arguments of :func:`dope_hope.pose.depth_line_search`.
         min_score: drop detections whose pose score is lower.
         ls_points: number of model points for the line search.
         threads: CPU threads (torch.set_num_threads / onnxruntime intra-op threads).
-        regroup_failed: give a centroid whose one-to-one corner group yields no pose a second
-            try with its own best corners (see the module docstring, step 4).
     """
 
     def __init__(
@@ -446,13 +454,14 @@ class DopePredictor:
         height: int | None = None,
         mesh: Any = None,
         mesh_units: str | None = None,
+        pose_search: str = "hypotheses",
         decode_options: dict[str, Any] | None = None,
         pnp_options: dict[str, Any] | None = None,
+        hypothesis_options: dict[str, Any] | None = None,
         line_search_options: dict[str, Any] | None = None,
         min_score: float = 0.0,
         ls_points: int = DEFAULT_LS_POINTS,
         threads: int | None = None,
-        regroup_failed: bool = True,
     ):
         if height is not None and (int(height) != height or height < INPUT_MULTIPLE):
             raise ConfigError(f"height must be an integer >= {INPUT_MULTIPLE}, got {height!r}")
@@ -462,12 +471,15 @@ class DopePredictor:
             self.backend = weights
         else:
             raise ConfigError(f"weights must be a file path or a MapBackend, got {type(weights).__name__}")
+        if pose_search not in POSE_SEARCHES:
+            raise ConfigError(f"pose_search must be one of {', '.join(POSE_SEARCHES)}, got {pose_search!r}")
         self.height = None if height is None else int(height)
+        self.pose_search = pose_search
         self.decode_options = dict(decode_options or {})
         self.pnp_options = dict(pnp_options or {})
+        self.hypothesis_options = dict(hypothesis_options or {})
         self.line_search_options = dict(line_search_options or {})
         self.min_score = float(min_score)
-        self.regroup_failed = bool(regroup_failed)
         self.ls_points = int(ls_points)
         b = self.backend
         self.class_name = str(b.class_name)
@@ -590,26 +602,13 @@ class DopePredictor:
         """Decode + PnP (+ line search) the maps of :meth:`infer_maps` (see :meth:`predict`)."""
         K = check_intrinsics(K)
         K_net = net_in.network_K(K)
-        instances = decode_maps(belief, affinity, self.stride, **self.decode_options)
         mean_scale = math.sqrt(net_in.scale[0] * net_in.scale[1])
         out: list[Detection] = []
-        shared: dict[tuple[float, float], Any] | None = None
-        for inst in instances:
-            est = solve_pnp(inst.keypoints, inst.scores, self.cuboid_pnp, K_net, **self.pnp_options)
-            if est is None and self.regroup_failed and self.decode_options.get("grouping", "exclusive") == "exclusive":
-                # Second try: this centroid's own best corners, even those the one-to-one
-                # grouping gave to another (often spurious) centroid.
-                if shared is None:
-                    shared = {tuple(i.keypoints[CENTROID_INDEX]): i for i in decode_maps(
-                        belief, affinity, self.stride, **{**self.decode_options, "grouping": "shared"})}
-                alt = shared.get(tuple(inst.keypoints[CENTROID_INDEX]))
-                if alt is not None and not np.array_equal(alt.keypoints, inst.keypoints, equal_nan=True):
-                    inst = alt
-                    est = solve_pnp(inst.keypoints, inst.scores, self.cuboid_pnp, K_net, **self.pnp_options)
-            if est is None or est.score < self.min_score:
+        for est in self._poses(belief, affinity, K_net):
+            if est.score < self.min_score:
                 continue
             R, t = est.R, est.t
-            kp, scores, inliers = inst.keypoints, inst.scores, est.inliers
+            kp, scores, inliers = est.keypoints, est.keypoint_scores, est.inliers
             if self.legacy:
                 R = legacy_rotation_to_mesh(R)
                 kp = legacy_keypoints_to_current(kp)
@@ -632,9 +631,33 @@ class DopePredictor:
         out.sort(key=lambda d: -d.score)
         return out
 
+    def _poses(self, belief: np.ndarray, affinity: np.ndarray, K_net: np.ndarray) -> list[PoseEstimate]:
+        """Network-image poses of the instances in one image's maps (step 4 of the module
+        docstring), best first; keypoints in the network's own order."""
+        if self.pose_search == "groups":
+            found = [solve_pnp(inst.keypoints, inst.scores, self.cuboid_pnp, K_net, **self.pnp_options)
+                     for inst in decode_maps(belief, affinity, self.stride, **self.decode_options)]
+            return [e for e in found if e is not None]
+        found = [solve_pnp_candidates(c.keypoint_ids, c.xy, c.scores, self.cuboid_pnp, K_net,
+                                      **self.hypothesis_options, **self.pnp_options)
+                 for c in corner_candidates(belief, affinity, self.stride, **self.decode_options)]
+        kept: list[PoseEstimate] = []
+        for est in sorted((e for e in found if e is not None), key=lambda e: -e.score):
+            if not any(_same_peaks(est, other) for other in kept):
+                kept.append(est)
+        return kept
+
     def __repr__(self) -> str:
         return (f"DopePredictor(class_name={self.class_name!r}, stride={self.stride}, "
                 f"frame={'legacy' if self.legacy else 'mesh'}, height={self.height})")
+
+
+def _same_peaks(a: PoseEstimate, b: PoseEstimate) -> bool:
+    """True when at least half of ``a``'s inlier keypoints are the very peaks (same type, same
+    position) among ``b``'s inliers: two centroids that explain one object."""
+    both = a.inliers & b.inliers
+    same = both & np.all(np.abs(a.keypoints - b.keypoints) < 1e-6, axis=1)
+    return 2 * int(same.sum()) >= int(a.inliers.sum())
 
 
 def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.ndarray,

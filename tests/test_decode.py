@@ -8,8 +8,7 @@ from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
 from dope_hope.catalog import get_object
-from dope_hope.decode import (Instance2D, assign_corners, best_corner_per_centroid, corner_centroid_costs,
-                              decode_maps)
+from dope_hope.decode import Instance2D, assign_corners, corner_candidates, decode_maps
 from dope_hope.geometry import cuboid_keypoints, intrinsics_matrix, project_points, scale_intrinsics
 from dope_hope.targets import head_defaults, make_targets
 
@@ -186,30 +185,48 @@ def test_a_strong_corner_peak_beats_a_weak_one_nearer_to_the_centroid():
     assert owner.tolist() == [-1, 0]
 
 
-def test_a_spurious_centroid_takes_the_true_corner_only_in_the_one_to_one_grouping():
+def test_a_spurious_centroid_takes_the_true_corner_in_the_one_to_one_grouping_not_from_the_candidates():
     """The true corner's field also points at a spurious centroid lying on the way to the
     true one; a weak stray peak is feasible for the true centroid alone. One-to-one must
-    use both peaks and crosses them; each centroid's own choice keeps the true corner."""
+    use both peaks and crosses them; as candidates, both centroids keep the true corner."""
     centroids = np.array([[10.0, 10.0], [16.0, 10.0]])   # true, spurious (on the segment)
     corners = np.array([[20.0, 10.0], [10.0, 15.0]])      # true corner, weak stray peak
     vectors = np.array([[-1.0, 0.0], [0.0, -1.0]])        # both point at the true centroid
     scores = np.array([0.9, 0.5])
     owner = assign_corners(corners.astype(int), corners, vectors, centroids, corner_scores=scores)
     assert owner.tolist() == [1, 0]  # the true centroid got the stray peak
-    choice = best_corner_per_centroid(*corner_centroid_costs(corners.astype(int), corners, vectors, centroids,
-                                                             corner_scores=scores))
-    assert choice.tolist() == [0, 0]  # both centroids choose the strong true corner
-    # no feasible peak: -1
-    assert best_corner_per_centroid(*corner_centroid_costs(corners.astype(int), corners, -vectors,
-                                                           centroids)).tolist() == [-1, -1]
+    # The same peaks as maps: corner type 0 at the two corners, centroid peaks at both.
+    belief = np.zeros((9, 24, 32), np.float32)
+    affinity = np.zeros((16, 24, 32), np.float32)
+    for (x, y), s in zip(corners.astype(int), scores):
+        belief[0, y, x] = s
+    for x, y in centroids.astype(int):
+        belief[8, y, x] = 1.0 if x == 10 else 0.8
+    for (x, y), v in zip(corners.astype(int), vectors):
+        affinity[0:2, y, x] = v
+    cands = corner_candidates(belief, affinity, 1, smooth_sigma=0)
+    assert len(cands) == 2 and cands[0].score == pytest.approx(1.0)   # strongest centroid first
+    true, spurious = cands
+    assert true.keypoint_ids.tolist() == [8, 0, 0] and spurious.keypoint_ids.tolist() == [8, 0]
+    # The one-to-one choice first (the stray peak for the true centroid), then the rest.
+    np.testing.assert_allclose(true.xy, [[10, 10], [10, 15], [20, 10]], atol=1e-6)
+    np.testing.assert_allclose(spurious.xy[1], [20, 10], atol=1e-6)
+    np.testing.assert_allclose(true.scores[1:], scores[::-1], atol=1e-6)
+    one = corner_candidates(belief, affinity, 1, smooth_sigma=0, max_per_type=1)
+    assert one[0].keypoint_ids.tolist() == [8, 0]
+    np.testing.assert_allclose(one[0].xy[1], [10, 15], atol=1e-6)
+    with pytest.raises(ValueError, match="max_per_type"):
+        corner_candidates(belief, affinity, 1, max_per_type=0)
 
 
-def test_shared_grouping_in_decode_maps():
-    kp = _scene()
-    b, a = make_targets(kp, HW, 8)
-    shared = decode_maps(b, a, 8, grouping="shared")
-    assert sorted(_match(shared, kp)) == [0, 1, 2]
-    for i, j in zip(shared, _match(shared, kp)):
-        np.testing.assert_allclose(i.keypoints, kp[j], atol=0.05)
-    with pytest.raises(ValueError, match="grouping"):
-        decode_maps(b, a, 8, grouping="greedy")
+@pytest.mark.parametrize("stride", [8, 1])
+def test_every_instance_keeps_its_own_corners_among_its_candidates(stride):
+    kp = _scene(1)
+    b, a = make_targets(kp, HW, stride)
+    cands = corner_candidates(b, a, stride)
+    assert len(cands) == 3
+    for c in cands:
+        j = int(np.argmin(np.linalg.norm(kp[:, 8] - c.xy[0], axis=1)))
+        for k in range(9):
+            own = c.xy[c.keypoint_ids == k]
+            assert np.min(np.linalg.norm(own - kp[j, k], axis=1)) < 0.05

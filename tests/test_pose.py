@@ -21,6 +21,7 @@ from dope_hope.pose import (
     auto_splat_px,
     depth_line_search,
     solve_pnp,
+    solve_pnp_candidates,
     visible_points,
 )
 from dope_hope.synth.depth_noise import add_realsense_noise
@@ -121,6 +122,77 @@ def test_inconsistent_keypoints_give_no_pose():
     for _ in range(20):
         kp = np.stack([rng.uniform(0, 640, 9), rng.uniform(0, 480, 9)], axis=1)
         assert solve_pnp(kp, np.ones(9), CUBOID, K640) is None
+
+
+def _confused_candidates(seed=0):
+    """Exact keypoints of one pose as candidates, plus, for corner maps 0, 1 and 2, a second
+    and stronger peak on the box's corners 2, 3 and 0: a net unsure which corner is which."""
+    R, t, kp = _exact_keypoints(seed)
+    ids = list(range(9)) + [0, 1, 2]
+    pts = np.vstack([kp, kp[[2, 3, 0]]])
+    scores = np.r_[np.full(9, 0.5), 0.9, 0.9, 0.9]
+    return R, t, np.array(ids), pts, scores
+
+
+def test_candidates_find_the_pose_that_the_strongest_peaks_hide():
+    R, t, ids, pts, scores = _confused_candidates()
+    # Strongest peak per type: three corners on the wrong corner, no pose.
+    strongest = pts[[9, 10, 11, 3, 4, 5, 6, 7, 8]]
+    assert solve_pnp(strongest, scores[[9, 10, 11, 3, 4, 5, 6, 7, 8]], CUBOID, K640) is None
+    p = solve_pnp_candidates(ids, pts, scores, CUBOID, K640)
+    assert p is not None
+    assert rotation_error_deg(p.R, R) < 0.01 and np.linalg.norm(p.t - t) < 1e-4
+    np.testing.assert_allclose(p.keypoints, pts[:9])        # the assignment: each corner's own peak
+    np.testing.assert_allclose(p.keypoint_scores, scores[:9])
+    assert p.inliers.all() and p.score == pytest.approx(0.5)
+    # Order of the candidates does not matter.
+    perm = np.random.default_rng(1).permutation(len(ids))
+    q = solve_pnp_candidates(ids[perm], pts[perm], scores[perm], CUBOID, K640)
+    assert q is not None and rotation_error_deg(q.R, R) < 0.01
+
+
+def test_the_search_stops_at_the_first_hypothesis_that_explains_every_type(monkeypatch):
+    import cv2
+
+    import dope_hope.pose as pose_mod
+
+    calls = []
+    real = cv2.solvePnP
+
+    def counting(*a, **kw):
+        calls.append(1)
+        return real(*a, **kw)
+
+    monkeypatch.setattr(pose_mod.cv2, "solvePnP", counting)
+    R, t, kp = _exact_keypoints(4)
+    assert solve_pnp_candidates(np.arange(9), kp, np.ones(9), CUBOID, K640) is not None
+    assert len(calls) <= pose_mod._HYPOTHESIS_CHUNK  # the first chunk holds the answer
+    # Confused candidates listed wrong-first: more hypotheses, bounded by max_hypotheses.
+    R, t, ids, pts, scores = _confused_candidates(3)
+    order = np.r_[8, 9, 10, 11, np.arange(8)]  # centroid, then each type's wrong peak first
+    calls.clear()
+    p = solve_pnp_candidates(ids[order], pts[order], scores[order], CUBOID, K640, max_hypotheses=60)
+    assert p is not None and rotation_error_deg(p.R, R) < 0.01
+    assert pose_mod._HYPOTHESIS_CHUNK < len(calls) <= 60
+    with pytest.raises(ValueError, match="max_hypotheses"):
+        solve_pnp_candidates(ids, pts, scores, CUBOID, K640, max_hypotheses=0)
+
+
+def test_candidates_without_a_pose_or_a_centroid_give_none():
+    rng = np.random.default_rng(0)
+    ids = np.r_[np.repeat(np.arange(8), 2), 8]
+    for _ in range(20):  # two random peaks per corner type around a centroid: nothing rigid
+        pts = np.vstack([rng.uniform(220, 420, (16, 2)), [[320.0, 240.0]]])
+        assert solve_pnp_candidates(ids, pts, np.ones(17), CUBOID, K640) is None
+    R, t, ids, pts, scores = _confused_candidates()
+    no_centroid = ids != 8
+    assert solve_pnp_candidates(ids[no_centroid], pts[no_centroid], scores[no_centroid], CUBOID, K640) is None
+    two_types = np.isin(ids, [0, 1, 8])
+    assert solve_pnp_candidates(ids[two_types], pts[two_types], scores[two_types], CUBOID, K640) is None
+    with pytest.raises(ValueError, match="length"):
+        solve_pnp_candidates(ids, pts[:-1], scores, CUBOID, K640)
+    with pytest.raises(ValueError, match="0..8"):
+        solve_pnp_candidates(ids + 1, pts, scores, CUBOID, K640)
 
 
 def test_a_pose_behind_the_camera_is_rejected(monkeypatch):

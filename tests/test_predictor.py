@@ -397,16 +397,53 @@ class _SpuriousCentroidBackend(TargetsBackend):
         return belief, affinity
 
 
+def _spurious(poses):
+    return _SpuriousCentroidBackend(OBJ.name, OBJ.size_array, poses, K640, (480, 640), stride=4, sigma=1.0,
+                                    radius=1.0)
+
+
 def test_a_centroid_robbed_of_a_corner_by_a_spurious_one_still_gets_its_pose():
-    """One-to-one grouping gives the true corner 0 to a spurious centroid; the predictor
-    retries that centroid with its own best corners (grouping "shared")."""
+    """One-to-one grouping gives the true corner 0 to a spurious centroid; the candidate
+    search lets both centroids use it, and the two explanations of one box give one detection."""
     poses = POSES[:1]
     strict = {"min_inlier_ratio": 1.0}  # one wrong corner out of nine fails the pose
-    dets = DopePredictor(_SpuriousCentroidBackend(OBJ.name, OBJ.size_array, poses, K640, (480, 640),
-                                                  stride=4, sigma=1.0, radius=1.0),
-                         pnp_options=strict).predict(white((480, 640)), K640)
+    dets = DopePredictor(_spurious(poses), pnp_options=strict).predict(white((480, 640)), K640)
     match(dets, poses)
-    # The second try is what finds it: one-to-one grouping alone gives no pose.
-    assert DopePredictor(_SpuriousCentroidBackend(OBJ.name, OBJ.size_array, poses, K640, (480, 640),
-                                                  stride=4, sigma=1.0, radius=1.0),
-                         pnp_options=strict, regroup_failed=False).predict(white((480, 640)), K640) == []
+    # DOPE's grouping alone gives no pose.
+    assert DopePredictor(_spurious(poses), pnp_options=strict, pose_search="groups").predict(
+        white((480, 640)), K640) == []
+
+
+class _ConfusedCornersBackend(TargetsBackend):
+    """Perfect maps, except that belief maps 0, 1 and 2 also carry a stronger peak on the
+    box's corners 2, 3 and 0, with fields pointing at the centroid (the lite nets' commonest
+    error: which corner is which)."""
+
+    def run(self, batch):
+        from dope_hope.targets import make_targets
+
+        belief, affinity = super().run(batch)
+        Hp, Wp = batch.shape[2:]
+        s = self.calls[-1]["resized"][1] / self.image_hw[1]
+        kp = self.network_keypoints(s, s)[0]
+        wrong = np.full((1, 9, 2), np.nan)
+        wrong[0, [0, 1, 2]], wrong[0, 8] = kp[[2, 3, 0]], kp[8]
+        bw, aw = make_targets(wrong, (Hp, Wp), self.stride, self.sigma, self.radius)
+        belief, affinity = belief.copy(), affinity.copy()
+        belief[0, :3] = np.maximum(0.7 * belief[0, :3], bw[:3])
+        ring = np.linalg.norm(aw[:6].reshape(3, 2, Hp // self.stride, Wp // self.stride), axis=1) > 0
+        affinity[0, :6] = np.where(np.repeat(ring, 2, axis=0), aw[:6], affinity[0, :6])
+        return belief, affinity
+
+
+def test_a_second_peak_on_the_wrong_corner_does_not_cost_the_detection():
+    poses = POSES[:1]
+    backend_ = _ConfusedCornersBackend(OBJ.name, OBJ.size_array, poses, K640, (480, 640), stride=4,
+                                       sigma=1.0, radius=1.0)
+    dets = DopePredictor(backend_).predict(white((480, 640)), K640)
+    match(dets, poses)
+    assert dets[0].inliers.all()
+    # Corner maps 0-2 peak hardest on the wrong corners: one corner per type fails.
+    assert DopePredictor(backend_, pose_search="groups").predict(white((480, 640)), K640) == []
+    with pytest.raises(ConfigError, match="pose_search"):
+        DopePredictor(backend_, pose_search="ransac")
