@@ -27,8 +27,8 @@ run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.pr
    :func:`dope_hope.pose.solve_pnp_candidates` finds the pose that explains most of them, so a
    second peak of map k on another corner of the box (the lite models' commonest error) or a
    spurious centroid sharing the true corners no longer costs the detection (demo scenes
-   found by the shipped model, 120 scenes: 96 with the grouping below, 105 with the search;
-   bench/RESULTS.md). Two centroids explaining the same peaks give one detection, the
+   found, 120 scenes: 89 -> 104 with the 40-minute model, 99 -> 109 with the shipped one;
+   bench/demo_pose_search.py). Two centroids explaining the same peaks give one detection, the
    higher-scoring. ``pose_search="groups"``: DOPE's decoding, one corner per type and
    centroid (:func:`dope_hope.decode.decode_maps`), then :func:`dope_hope.pose.solve_pnp`.
    The cuboid is the model's: the checkpoint's size (mesh frame) or, with ``mesh=``, the
