@@ -220,8 +220,11 @@ def solve_pnp_candidates(
     candidate per type, so duplicates cannot inflate a score. Sets are tried best-ranked
     first (candidates are listed best first per type: the first set is every type's first
     choice), at most ``max_hypotheses`` of them, and the search stops as soon as a hypothesis
-    explains every keypoint type present, so a clean instance costs one solve; the order is
-    fixed, so the result is reproducible. The best hypothesis picks, per type, the candidate
+    explains every keypoint type present, so a clean instance costs one chunk of solves; it
+    gives up after ``_GIVE_UP_AFTER`` when no hypothesis explains more than its own four
+    points (clutter, not a cuboid), and skips the final :func:`solve_pnp` when fewer than its
+    ``min_points`` types lie within its ``reprojection_threshold_px`` of the best hypothesis.
+    The order is fixed, so the result is reproducible. The best hypothesis picks, per type, the candidate
     nearest its projection (or the type's strongest candidate where none is within the
     threshold: it counts as an outlier unless within the final RANSAC threshold), and that assignment goes through
     :func:`solve_pnp` with every one of its checks (RANSAC, refinement, inlier ratio, mean
@@ -306,7 +309,7 @@ def solve_pnp_candidates(
         most_explained = max(most_explained, int(explained.max()))
         if most_explained == len(by_type):
             break  # a hypothesis explains every type present: none can explain more
-        if start + _HYPOTHESIS_CHUNK >= _GIVE_UP_AFTER and most_explained <= 4:
+        if start + _HYPOTHESIS_CHUNK >= _GIVE_UP_AFTER and most_explained <= quads.shape[1]:
             break  # nothing beyond its own minimal set: peaks of no rigid cuboid (clutter)
     if best_nearest is None:
         return None

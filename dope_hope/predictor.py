@@ -439,7 +439,7 @@ class DopePredictor:
             ("hypotheses") or :func:`dope_hope.decode.decode_maps` ("groups").
         pnp_options: keyword arguments of :func:`dope_hope.pose.solve_pnp`.
         hypothesis_options: keyword arguments of :func:`dope_hope.pose.solve_pnp_candidates`
-            (``hypothesis_threshold_px``, ``max_hypotheses``, ``seed``).
+            (``hypothesis_threshold_px``, ``max_hypotheses``).
         line_search_options: keyword arguments of :func:`dope_hope.pose.depth_line_search`.
         min_score: drop detections whose pose score is lower.
         ls_points: number of model points for the line search.

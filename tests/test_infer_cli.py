@@ -104,6 +104,27 @@ def test_single_frame_prints_gt_poses_and_writes_overlay(frames, tmp_path, monke
     assert (np.abs(patch - np.array(class_color("DemoBox"))).sum(1) < 60).any()
 
 
+def test_pose_search_flag_reaches_the_predictor(frames, tmp_path, monkeypatch, capsys):
+    from dope_hope.predictor import DopePredictor
+
+    searches = []
+    init = DopePredictor.__init__
+
+    def spy(self, *a, **kw):
+        searches.append(kw.get("pose_search"))
+        init(self, *a, **kw)
+
+    monkeypatch.setattr(DopePredictor, "__init__", spy)
+    gt_backends(monkeypatch, frames / "000000.json")
+    (gt,) = read_dope_json(frames / "000000.json").objects
+    for flag, expected in (([], "hypotheses"), (["--pose-search", "groups"], "groups")):
+        code, (rec,), err = run_cli([frames / "000000.png", "--weights", "w.pt", "--out", tmp_path / "o",
+                                     "--no-overlay", *flag], capsys)
+        assert code == 0, err
+        assert searches[-1] == expected
+        assert rotation_error_deg(np.array(rec["R"]), gt.R) < 0.1  # perfect maps: both exact
+
+
 def test_depth_auto_applies_the_line_search(frames, tmp_path, monkeypatch, capsys):
     gt_backends(monkeypatch, frames / "000000.json", distance_factor=1.06)
     code, records, err = run_cli([frames / "000000.png", "--weights", "w.pt", "--depth", "auto",

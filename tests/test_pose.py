@@ -174,6 +174,13 @@ def test_the_search_stops_at_the_first_hypothesis_that_explains_every_type(monke
     p = solve_pnp_candidates(ids[order], pts[order], scores[order], CUBOID, K640, max_hypotheses=60)
     assert p is not None and rotation_error_deg(p.R, R) < 0.01
     assert pose_mod._HYPOTHESIS_CHUNK < len(calls) <= 60
+    # Clutter (three random peaks per corner type): given up long before max_hypotheses.
+    rng = np.random.default_rng(2)
+    clutter_ids = np.r_[8, np.repeat(np.arange(8), 3)]
+    clutter = np.vstack([[320.0, 240.0], rng.uniform(220, 420, (24, 2))])
+    calls.clear()
+    assert solve_pnp_candidates(clutter_ids, clutter, np.ones(25), CUBOID, K640) is None
+    assert len(calls) <= pose_mod._GIVE_UP_AFTER + pose_mod._HYPOTHESIS_CHUNK < 400
     with pytest.raises(ValueError, match="max_hypotheses"):
         solve_pnp_candidates(ids, pts, scores, CUBOID, K640, max_hypotheses=0)
 

@@ -87,6 +87,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="network working height, pixels (default: the model's training scale; "
                              "400 for official DOPE weights)")
     parser.add_argument("--min-score", type=float, default=0.0, help="drop detections scoring lower")
+    parser.add_argument("--pose-search", choices=("hypotheses", "groups"), default="hypotheses",
+                        help="hypotheses (default): candidate corner peaks + multi-hypothesis PnP; "
+                             "groups: DOPE's one corner per type (faster, finds fewer)")
     parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:1)")
     parser.add_argument("--threads", type=int, help="CPU threads for the network")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -220,7 +223,7 @@ def build_predictors(args: argparse.Namespace, weights: list[Path]):
         elif meshes:
             mesh = meshes[i]
         predictors.append(DopePredictor(backend, height=args.height, mesh=mesh, mesh_units=args.mesh_units,
-                                        min_score=args.min_score))
+                                        min_score=args.min_score, pose_search=args.pose_search))
     return predictors
 
 
