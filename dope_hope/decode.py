@@ -33,8 +33,9 @@ Pipeline (all channels at once, no Python loops over pixels):
 4. **Candidates** (:func:`corner_candidates`, what :class:`dope_hope.predictor.DopePredictor`
    uses by default): instead of committing to one peak per corner type, each centroid keeps
    up to ``max_per_type`` feasible peaks of every type (the one-to-one grouping's choice
-   first, then strongest, nearest among equals), shared with other centroids; :func:`dope_hope.pose.solve_pnp_candidates` then picks the combination that a
-   rigid cuboid explains. A trained net often puts a second peak of map k on another corner
+   first, then strongest, nearest among equals), shared with other centroids;
+   :func:`dope_hope.pose.solve_pnp_candidates` then picks the combination that a rigid cuboid
+   explains. A trained net often puts a second peak of map k on another corner
    of the same box (corner identity is the hard part); the grouping above must guess, the
    pose search need not.
 
@@ -297,11 +298,18 @@ def assign_corners(
         (n,) int: the centroid index of each corner peak, -1 where none is feasible.
     """
     n, m = len(corner_xy), len(centroids_xy)
-    out = np.full(n, -1, dtype=int)
     if n == 0 or m == 0:
+        return np.full(n, -1, dtype=int)
+    return _one_to_one(*corner_centroid_costs(corner_cells, corner_xy, vectors, centroids_xy,
+                                              angle_threshold, min_affinity, corner_scores))
+
+
+def _one_to_one(feasible: np.ndarray, cost: np.ndarray) -> np.ndarray:
+    """(n,) int centroid of each corner peak under the one-to-one assignment of the (n, m)
+    ``feasible`` pairs at least total ``cost``; -1 where none (see :func:`assign_corners`)."""
+    out = np.full(cost.shape[0], -1, dtype=int)
+    if cost.size == 0:
         return out
-    feasible, cost = corner_centroid_costs(corner_cells, corner_xy, vectors, centroids_xy,
-                                           angle_threshold, min_affinity, corner_scores)
     big = 1e9 + cost.max()
     rows, cols = linear_sum_assignment(np.where(feasible, cost, big))
     keep = feasible[rows, cols]
@@ -368,12 +376,7 @@ def decode_maps(
     scores = np.zeros((m, NUM_KEYPOINTS))
     kp_map[:, CENTROID_INDEX] = centroids_xy
     scores[:, CENTROID_INDEX] = peaks.score[is_c]
-    for k in range(CENTROID_INDEX):  # 8 corner types; the work inside is vectorized
-        sel = peaks.channel == k
-        if not sel.any():
-            continue
-        owner = assign_corners(peaks.cell[sel], peaks.xy[sel], _field_at(aff, k, peaks.cell[sel]), centroids_xy,
-                               angle_threshold, min_affinity, corner_scores=peaks.score[sel])
+    for k, sel, _, _, owner in _corner_groups(peaks, aff, centroids_xy, angle_threshold, min_affinity):
         got = owner >= 0
         kp_map[owner[got], k] = peaks.xy[sel][got]
         scores[owner[got], k] = peaks.score[sel][got]
@@ -401,9 +404,21 @@ def _peaks_and_field(belief, affinity, threshold: float, smooth_sigma: float, nm
     return find_peaks(bel, threshold, smooth_sigma, nms_radius, refine_on), aff
 
 
-def _field_at(aff: np.ndarray, k: int, cells: np.ndarray) -> np.ndarray:
-    """(n, 2) affinity vectors of corner type k read at (n, 2) int map cells (x, y)."""
-    return np.stack([aff[2 * k, cells[:, 1], cells[:, 0]], aff[2 * k + 1, cells[:, 1], cells[:, 0]]], 1)
+def _corner_groups(peaks: Peaks, aff: np.ndarray, centroids_xy: np.ndarray, angle_threshold: float,
+                   min_affinity: float):
+    """For each corner type k with peaks (8 types; the work inside is vectorized), yield
+    (k, (n,) peak indices, (n, m) feasible, (n, m) cost, (n,) one-to-one centroid or -1)
+    against the (m, 2) centroids: the grouping step both :func:`decode_maps` and
+    :func:`corner_candidates` build on."""
+    for k in range(CENTROID_INDEX):
+        sel = np.flatnonzero(peaks.channel == k)
+        if sel.size == 0:
+            continue
+        cells = peaks.cell[sel]
+        vectors = np.stack([aff[2 * k, cells[:, 1], cells[:, 0]], aff[2 * k + 1, cells[:, 1], cells[:, 0]]], 1)
+        feasible, cost = corner_centroid_costs(cells, peaks.xy[sel], vectors, centroids_xy, angle_threshold,
+                                               min_affinity, peaks.score[sel])
+        yield k, sel, feasible, cost, _one_to_one(feasible, cost)
 
 
 @dataclass
@@ -456,18 +471,12 @@ def corner_candidates(
     is_c = peaks.channel == CENTROID_INDEX
     centroids_xy = peaks.xy[is_c]
     m = len(centroids_xy)
+    if m == 0:
+        return []
     ids: list[list[int]] = [[CENTROID_INDEX] for _ in range(m)]
     xy: list[list[np.ndarray]] = [[c] for c in centroids_xy]
     sc: list[list[float]] = [[s] for s in peaks.score[is_c]]
-    for k in range(CENTROID_INDEX):
-        sel = np.flatnonzero(peaks.channel == k)
-        if sel.size == 0 or m == 0:
-            continue
-        cells, vec = peaks.cell[sel], _field_at(aff, k, peaks.cell[sel])
-        feasible, cost = corner_centroid_costs(cells, peaks.xy[sel], vec, centroids_xy, angle_threshold,
-                                               min_affinity, peaks.score[sel])
-        owner = assign_corners(cells, peaks.xy[sel], vec, centroids_xy, angle_threshold, min_affinity,
-                               corner_scores=peaks.score[sel])
+    for k, sel, feasible, cost, owner in _corner_groups(peaks, aff, centroids_xy, angle_threshold, min_affinity):
         for c in range(m):
             # The one-to-one grouping's choice first, then by the grouping cost (strong, then near).
             rank = np.where(owner == c, -np.inf, np.where(feasible[:, c], cost[:, c], np.inf))

@@ -60,6 +60,10 @@ from scipy.spatial.transform import Rotation
 
 from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
 
+#: :func:`solve_pnp` defaults, also what :func:`solve_pnp_candidates` checks its best
+#: hypothesis against before calling it.
+DEFAULT_MIN_POINTS = 5
+DEFAULT_REPROJECTION_PX = 8.0
 #: Pose hypotheses solved between two checks of :func:`solve_pnp_candidates`' early stop.
 _HYPOTHESIS_CHUNK = 16
 #: :func:`solve_pnp_candidates` gives up after this many hypotheses when none explained more
@@ -103,8 +107,8 @@ def solve_pnp(
     scores: np.ndarray | None,
     cuboid_points: np.ndarray,
     K: np.ndarray,
-    min_points: int = 5,
-    reprojection_threshold_px: float = 8.0,
+    min_points: int = DEFAULT_MIN_POINTS,
+    reprojection_threshold_px: float = DEFAULT_REPROJECTION_PX,
     max_mean_error_px: float = 4.0,
     dist_coeffs: np.ndarray | None = None,
     min_score: float = 0.0,
@@ -224,10 +228,10 @@ def solve_pnp_candidates(
     gives up after ``_GIVE_UP_AFTER`` when no hypothesis explains more than its own four
     points (clutter, not a cuboid), and skips the final :func:`solve_pnp` when fewer than its
     ``min_points`` types lie within its ``reprojection_threshold_px`` of the best hypothesis.
-    The order is fixed, so the result is reproducible. The best hypothesis picks, per type, the candidate
-    nearest its projection (or the type's strongest candidate where none is within the
-    threshold: it counts as an outlier unless within the final RANSAC threshold), and that assignment goes through
-    :func:`solve_pnp` with every one of its checks (RANSAC, refinement, inlier ratio, mean
+    The order is fixed, so the result is reproducible. The best hypothesis picks, per type,
+    the candidate nearest its projection (or the type's strongest candidate where none is
+    within the threshold: it counts as an outlier unless within the final RANSAC threshold),
+    and that assignment goes through :func:`solve_pnp` with every one of its checks (RANSAC, refinement, inlier ratio, mean
     error). OpenCV's RANSAC does not fit: it counts every inlying correspondence, so several
     candidates of one type near a wrong pose outvote the right one.
 
@@ -270,7 +274,7 @@ def solve_pnp_candidates(
     quads = np.concatenate([sets, np.full((len(sets), 1), anchor)], axis=1)   # (S, 4): 3 corners + centroid
     objs, imgs = cuboid[ids[quads]], np.ascontiguousarray(pts[quads])
 
-    min_points = int(pnp_options.get("min_points", 5))
+    min_points = int(pnp_options.get("min_points", DEFAULT_MIN_POINTS))
     best_score, best_nearest, best_err, most_explained = -1.0, None, None, 0
     for start in range(0, len(sets), _HYPOTHESIS_CHUNK):
         rvecs, tvecs = [], []
@@ -313,7 +317,7 @@ def solve_pnp_candidates(
             break  # nothing beyond its own minimal set: peaks of no rigid cuboid (clutter)
     if best_nearest is None:
         return None
-    final_px = float(pnp_options.get("reprojection_threshold_px", 8.0))
+    final_px = float(pnp_options.get("reprojection_threshold_px", DEFAULT_REPROJECTION_PX))
     if sum(best_err[j] <= final_px for j in best_nearest.values()) < min_points:
         return None  # fewer than min_points keypoints near the best pose: spare solve_pnp's RANSAC
     kp = np.full((NUM_KEYPOINTS, 2), np.nan)
