@@ -13,9 +13,10 @@ commands are printed and logged to OUT/logs/):
 
 Both sets share the scene ranges of :data:`SCENE` (one or two instances at 0.45-1.0 m, as in
 the HOPE scenes' table-top views) over configs/synth.yaml's distractors, occluders and lights.
-4. ``infer-ls`` / ``infer``: `dope-hope infer TEST --depth auto` (with the depth line search,
-   "-LS") and the same without `--depth` (no -LS), with the mesh for the line search's points.
-5. ``eval-meanssd`` / ``eval-addh``: `dope-hope evaluate` of both prediction files: recall at
+4. ``infer-ls`` / ``infer`` / ``infer-icp``: `dope-hope infer TEST --depth auto` (with the
+   depth line search, "-LS"), the same without `--depth` (no -LS), and with `--depth auto
+   --icp` (-LS, then ICP against the depth: rotation too), with the mesh for the points.
+5. ``eval-meanssd`` / ``eval-addh``: `dope-hope evaluate` of the three prediction files: recall at
    2 cm and 10 cm and the median error of the true positives (at 10 cm) for MeanSSD and ADD-H
    (500 model points, the bottle category's symmetries), and the BOP19 AR_MSSD / AR_MSPD /
    AR_VSD.
@@ -175,11 +176,12 @@ def _num(v, digits: int = 2) -> str:
 
 
 def results_table(out: Path, methods: dict[str, str]) -> tuple[str, dict]:
-    """Markdown table from the evaluate summaries; ``methods``: label -> method name."""
+    """Markdown table from the evaluate summaries; ``methods``: "MODEL REFINEMENT" label ->
+    evaluate method name."""
     ms = json.loads((out / "eval_meanssd" / "summary.json").read_text())
     ah = json.loads((out / "eval_addh" / "summary.json").read_text())
     rows, data = [], {}
-    header = ("| method | -LS | recall 2 cm MeanSSD | recall 10 cm MeanSSD | median MeanSSD (cm) | "
+    header = ("| method | depth refinement | recall 2 cm MeanSSD | recall 10 cm MeanSSD | median MeanSSD (cm) | "
               "recall 2 cm ADD-H | recall 10 cm ADD-H | median ADD-H (cm) | AR_MSSD | AR_MSPD | AR_VSD |")
     rows.append(header)
     rows.append("|" + "|".join(["---"] * (header.count("|") - 1)) + "|")
@@ -245,10 +247,11 @@ def main(argv: list[str] | None = None) -> int:
     pipe.stage("infer-ls", infer + ["--depth", "auto", "--out", out / "infer_ls"])
     pipe.stage("infer", infer + ["--out", out / "infer"])
     name = Path(args.config).stem.replace("_", "-")
-    methods = {f"{name} yes": f"{name}-LS", f"{name} no": name}
+    methods = {f"{name} -LS": f"{name}-LS", f"{name} none": name, f"{name} -LS+ICP": f"{name}-LS-ICP"}
+    pipe.stage("infer-icp", infer + ["--depth", "auto", "--icp", "--out", out / "infer_icp"])
     evaluate = ["evaluate", "-p", out / "infer_ls" / "predictions.jsonl", out / "infer" / "predictions.jsonl",
-                "--method", f"{name}-LS", name, "-d", test_dir, "--mesh", f"{args.object}={mesh}",
-                "--no-progress"]
+                out / "infer_icp" / "predictions.jsonl", "--method", *methods.values(), "-d", test_dir,
+                "--mesh", f"{args.object}={mesh}", "--no-progress"]
     pipe.stage("eval-meanssd", evaluate + ["--metric", "meanssd,addh", "--bop-ar", "--out", out / "eval_meanssd"])
     pipe.stage("eval-addh", evaluate + ["--metric", "addh,meanssd", "--no-bop-ar", "--out", out / "eval_addh"])
 

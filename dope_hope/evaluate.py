@@ -1025,11 +1025,14 @@ def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[
             curves[(name, m)] = detection_rates(groups, models, m)
         bop = bop19_average_recall(dataset, by_frame, models, progress=cfg.progress) if bop_ar else None
         ls = [p.ls_applied for p in preds if p.ls_applied is not None]
+        icp = [p.extra["icp_applied"] for p in preds if isinstance(p.extra.get("icp_applied"), bool)]
         notes = [f"dataset: {dataset.root} ({dataset.fmt} format, {len(dataset.frames)} images, "
                  f"{n_gt} GT instances)",
                  f"predictions: {path} ({len(preds)} detections"
-                 + (f"; depth line search applied to {sum(ls)} of the {len(ls)} that record it)"
-                    if ls else ")"),
+                 + (f"; depth line search applied to {sum(ls)} of the {len(ls)} that record it"
+                    if ls else "")
+                 + (f"; depth ICP applied to {sum(icp)} of the {len(icp)} that record it" if icp else "")
+                 + ")",
                  f"metric: {METRIC_LABELS[primary]} ({NUM_MODEL_POINTS} model points); matching "
                  f"per image and class, one-to-one, greedy in descending score, error < threshold",
                  "models: " + "; ".join(model_notes)]

@@ -364,6 +364,44 @@ def _depth_to_metres(depth, depth_scale_m: float, calibration: float) -> np.ndar
     return m
 
 
+def depth_in_metres(depth, K: np.ndarray, t: np.ndarray, depth_scale_m: float = 0.001,
+                    calibration: float = 1.0, image_hw: tuple[int, int] | None = None,
+                    ) -> tuple[np.ndarray | None, str]:
+    """Check a depth image against the pose and K; convert it to metres.
+
+    Args:
+        depth: (H, W) integer depth in units of ``depth_scale_m``, or float metres (or None).
+        K: (3, 3). t: (3,) metres, the pose's translation. image_hw: (H, W) the depth must have.
+
+    Returns:
+        ((H, W) float metres with NaN where invalid, "") or (None, the one-line problem): no
+        depth, not 2-D, another size than the image or than K implies, the pose behind the
+        camera, no valid pixel.
+    """
+    if depth is None:
+        return None, "no depth image"
+    d = np.asarray(depth)
+    if d.ndim == 3 and d.shape[2] == 1:
+        d = d[..., 0]
+    if d.ndim != 2 or d.size == 0:
+        return None, f"depth must be a 2-D image, got shape {d.shape}"
+    H, W = d.shape
+    if image_hw is not None and (H, W) != tuple(image_hw):
+        return None, f"depth is {W}x{H}, the image is {image_hw[1]}x{image_hw[0]}"
+    # K's principal point sits near the image centre: a depth image of another resolution
+    # (e.g. half size with a full-size K) puts it far off (2cx+1 vs W by > 25 %).
+    implied_w, implied_h = 2 * K[0, 2] + 1, 2 * K[1, 2] + 1
+    if not (0.75 < implied_w / W < 1.33 and 0.75 < implied_h / H < 1.33):
+        return None, (f"depth is {W}x{H} but K implies about {implied_w:.0f}x{implied_h:.0f} "
+                      "(principal point far from the depth image centre)")
+    if t[2] <= 0:
+        return None, "pose is behind the camera (t_z <= 0)"
+    D = _depth_to_metres(d, depth_scale_m, calibration)
+    if not np.isfinite(D).any():
+        return None, "depth has no valid pixel (all zero / NaN)"
+    return D, ""
+
+
 def visible_points(
     points_c: np.ndarray, K: np.ndarray, hw: tuple[int, int], splat_px: int = 2,
     margin_m: float = 0.005, max_slope: float = 2.0, normals_c: np.ndarray | None = None,
@@ -507,36 +545,16 @@ def depth_line_search(
 
     if cost not in ("median", "huber"):
         raise ValueError(f"cost must be 'median' or 'huber', got {cost!r}")
-    if depth is None:
-        return refuse("no depth image")
-    d = np.asarray(depth)
-    if d.ndim == 3 and d.shape[2] == 1:
-        d = d[..., 0]
-    if d.ndim != 2 or d.size == 0:
-        return refuse(f"depth must be a 2-D image, got shape {d.shape}")
-    H, W = d.shape
-    if image_hw is not None and (H, W) != tuple(image_hw):
-        return refuse(f"depth is {W}x{H}, the image is {image_hw[1]}x{image_hw[0]}")
-    # K's principal point sits near the image centre: a depth image of another resolution
-    # (e.g. half size with a full-size K) puts it far off (2cx+1 vs W by > 25 %).
-    implied_w, implied_h = 2 * K[0, 2] + 1, 2 * K[1, 2] + 1
-    if not (0.75 < implied_w / W < 1.33 and 0.75 < implied_h / H < 1.33):
-        return refuse(
-            f"depth is {W}x{H} but K implies about {implied_w:.0f}x{implied_h:.0f} "
-            "(principal point far from the depth image centre)"
-        )
-    if t[2] <= 0:
-        return refuse("pose is behind the camera (t_z <= 0)")
-    D = _depth_to_metres(d, depth_scale_m, calibration)
-    if not np.isfinite(D).any():
-        return refuse("depth has no valid pixel (all zero / NaN)")
+    D, problem = depth_in_metres(depth, K, t, depth_scale_m, calibration, image_hw)
+    if problem:
+        return refuse(problem)
 
     P = np.asarray(model_points, dtype=np.float64).reshape(-1, 3)
     A = P @ R.T  # camera-frame points without translation
     if splat_px is None:
         splat_px = auto_splat_px(P, K, float(t[2]))
     normals_c = None if model_normals is None else np.asarray(model_normals, float).reshape(-1, 3) @ R.T
-    vis = visible_points(A + t, K, (H, W), splat_px, visibility_margin_m, normals_c=normals_c)
+    vis = visible_points(A + t, K, D.shape, splat_px, visibility_margin_m, normals_c=normals_c)
     if not vis.any():
         return refuse("object does not project into the depth image")
     A = A[vis]

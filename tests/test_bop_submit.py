@@ -117,6 +117,28 @@ def test_depth_line_search_uses_the_bop_depth_scale(bop_root, tmp_path, monkeypa
         assert np.linalg.norm(r.t - T_GT) < 0.004         # pulled back onto the depth image
 
 
+def test_icp_corrects_the_rotation_on_the_bop_depth(bop_root, tmp_path, monkeypatch):
+    from scipy.spatial.transform import Rotation
+
+    turn = Rotation.from_euler("y", 20, degrees=True).as_matrix()  # the "network" turns the box
+
+    def fake_open_backend(weights, backend="auto", device="cpu", threads=None):
+        return TargetsBackend("Ketchup", KETCHUP.size_array, [(R_GT @ turn, T_GT * 1.05)], K, (H, W))
+
+    monkeypatch.setattr("dope_hope.predictor.open_backend", fake_open_backend)
+    ls, icp = tmp_path / "a_hope-test.csv", tmp_path / "b_hope-test.csv"
+    assert _run(["bop-submit", "--bop-root", bop_root, "--weights", "k.pt", "--out", ls, "--no-progress"])[0] == 0
+    rc, _, stderr = _run(["bop-submit", "--bop-root", bop_root, "--weights", "k.pt", "--out", icp,
+                          "--icp", "--no-progress"])
+    assert rc == 0, stderr
+    for a, b in zip(read_bop_csv(ls), read_bop_csv(icp)):
+        assert rotation_error_deg(a.R, R_GT) > 15
+        assert rotation_error_deg(b.R, R_GT) < 1.5 and np.linalg.norm(b.t - T_GT) < 0.004
+    rc, _, stderr = _run(["bop-submit", "--bop-root", bop_root, "--weights", "k.pt", "--out",
+                          tmp_path / "c_hope-test.csv", "--icp", "--no-depth"])
+    assert rc == 2 and "--icp" in stderr and "--no-depth" in stderr
+
+
 def test_bad_names_existing_files_and_missing_split_fail_with_one_line(bop_root, tmp_path, monkeypatch):
     _patch_backend(monkeypatch)
     rc, _, err = _run(["bop-submit", "--bop-root", bop_root, "--weights", "k.pt",

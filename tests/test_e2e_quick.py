@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-STAGES = ("synth-train", "train", "synth-test", "infer-ls", "infer", "eval-meanssd", "eval-addh")
+STAGES = ("synth-train", "train", "synth-test", "infer-ls", "infer", "infer-icp", "eval-meanssd", "eval-addh")
 
 
 @pytest.mark.slow
@@ -24,20 +24,20 @@ def test_quick_run_writes_the_table_and_resumes(shared_data, ketchup_obj, tmp_pa
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     for stage in STAGES:  # each stage printed the exact command a user would type
         assert f"[{stage}] $ dope-hope " in proc.stdout
-    assert "--depth auto" in proc.stdout and "--depth-noise" in proc.stdout
+    assert "--depth auto" in proc.stdout and "--depth-noise" in proc.stdout and "--icp" in proc.stdout
     train_line = next(line for line in proc.stdout.splitlines() if line.startswith("[train] $"))
     assert "targets.symmetry=auto" in train_line and "input.size=[64,64]" in train_line  # the default, one --set
     assert train_line.count("--set") == 1
     assert "symmetry-aware labels: bottle category, 2 corner-permuting" in (out / "logs" / "train.log").read_text()
     table = [line for line in proc.stdout.splitlines() if line.startswith("| lite |")]
-    assert [line.split("|")[2].strip() for line in table] == ["yes", "no"]  # with and without -LS
+    assert [line.split("|")[2].strip() for line in table] == ["-LS", "none", "-LS+ICP"]
     assert all(len(line.split("|")) == 13 for line in table)
     results = json.loads((out / "results.json").read_text())
-    assert set(results["results"]) == {"lite yes", "lite no"}
+    assert set(results["results"]) == {"lite -LS", "lite none", "lite -LS+ICP"}
     for row in results["results"].values():
         assert {"recall_2cm_meanssd", "recall_10cm_addh", "median_addh_cm", "ar_mssd", "ar_mspd"} <= set(row)
         assert 0.0 <= row["recall_2cm_meanssd"] <= 1.0 and 0.0 <= row["ar_mssd"] <= 1.0
-    assert (out / "results.md").read_text().count("| lite |") == 2
+    assert (out / "results.md").read_text().count("| lite |") == 3
     assert len(list((out / "test").glob("*.depth.png"))) == 3
 
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=120)

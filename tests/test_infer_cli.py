@@ -54,14 +54,19 @@ def lite_weights(tmp_path_factory) -> Path:
     return path
 
 
-def gt_backends(monkeypatch, frame_json: Path, distance_factor: float = 1.0) -> list[TargetsBackend]:
-    """Patch the weights loader: every --weights opens a TargetsBackend of this frame's GT."""
+def gt_backends(monkeypatch, frame_json: Path, distance_factor: float = 1.0,
+                turn_deg: float = 0.0) -> list[TargetsBackend]:
+    """Patch the weights loader: every --weights opens a TargetsBackend of this frame's GT
+    (optionally too far by ``distance_factor`` and turned ``turn_deg`` about the object's y)."""
+    from scipy.spatial.transform import Rotation
+
+    turn = Rotation.from_euler("y", turn_deg, degrees=True).as_matrix()
     frame = read_dope_json(frame_json)
     made = []
 
     def fake_open_backend(weights, backend="auto", device="cpu", threads=None):
         b = TargetsBackend("DemoBox", [0.1227, 0.1672, 0.0402],
-                           [(o.R, o.t * distance_factor) for o in frame.objects], frame.K,
+                           [(o.R @ turn, o.t * distance_factor) for o in frame.objects], frame.K,
                            (frame.height, frame.width))
         made.append(b)
         return b
@@ -171,6 +176,23 @@ def one_line_error(code, err):
     lines = [line for line in err.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("dope-hope infer: error:"), err
     return lines[0]
+
+
+def test_icp_flag_refines_the_rotation_against_the_depth(frames, tmp_path, monkeypatch, capsys):
+    gt_backends(monkeypatch, frames / "000000.json", distance_factor=1.06, turn_deg=20.0)
+    (gt,) = read_dope_json(frames / "000000.json").objects
+    base = [frames / "000000.png", "--weights", "w.pt", "--depth", "auto",
+            "--mesh", frames.parent / "mesh" / "DemoBox.obj", "--out", tmp_path / "o", "--no-overlay"]
+    code, (ls,), err = run_cli(base, capsys)
+    assert code == 0, err
+    assert "icp_applied" not in ls and rotation_error_deg(np.array(ls["R"]), gt.R) > 15
+    code, (rec,), err = run_cli(base + ["--icp"], capsys)
+    assert code == 0, err
+    assert rec["ls_applied"] is True and rec["icp_applied"] is True, rec["icp_reason"]
+    assert rotation_error_deg(np.array(rec["R"]), gt.R) < 2.0
+    assert np.linalg.norm(np.array(rec["t"]) - gt.t) < 0.005
+    line = one_line_error(*run_cli(base[:3] + ["--icp"], capsys)[::2])
+    assert "--icp" in line and "--depth" in line
 
 
 def test_errors_exit_2_with_one_line(frames, lite_weights, tmp_path, capsys):

@@ -15,6 +15,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from _targets_backend import TargetsBackend
+from box_depth import render_box_depth
 from dope_hope.catalog import get_object
 from dope_hope.config import load_config
 from dope_hope.errors import CameraError, ConfigError, ModelFileError
@@ -229,22 +230,6 @@ def test_mesh_box_and_off_centre_origin(tmp_path, frame):
         DopePredictor(backend(), mesh=path, mesh_units="m")
 
 
-def render_box_depth(size, R, t, K, hw):
-    """(H, W) float metres of a box (x_c = R x + t), 0 where no hit: ray/slab intersection."""
-    H, W = hw
-    u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
-    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T  # camera rays, z = 1
-    o = -R.T @ t
-    d = rays @ R  # R^T applied to each ray
-    half = np.asarray(size) / 2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a, b = (-half - o) / d, (half - o) / d
-    tmin = np.nanmax(np.minimum(a, b), -1)
-    tmax = np.nanmin(np.maximum(a, b), -1)
-    hit = (tmin <= tmax) & (tmin > 0)
-    return np.where(hit, tmin, 0.0)
-
-
 def test_depth_line_search_fixes_the_distance():
     R, t = POSES[0]
     depth_m = render_box_depth(OBJ.size_array, R, t, K640, (480, 640))
@@ -263,6 +248,38 @@ def test_depth_line_search_fixes_the_distance():
     (bad,) = p.predict(white((480, 640)), K640, depth=depth_mm[::2, ::2])
     assert not bad.ls_applied and "depth is 320x240" in bad.ls_reason
     np.testing.assert_allclose(bad.t, mono.t)
+
+
+def test_icp_corrects_the_rotation_the_keypoints_got_wrong():
+    R, t = POSES[0]
+    depth_mm = np.round(render_box_depth(OBJ.size_array, R, t, K640, (480, 640)) * 1000).astype(np.uint16)
+    # The "network" turns the box 25 deg about its own long axis and puts it 6 % too far.
+    R_net = R @ Rotation.from_euler("y", 25, degrees=True).as_matrix()
+    p = DopePredictor(backend(poses=[(R_net, 1.06 * t)]), height=400, icp=True)
+    (ls_only,) = DopePredictor(backend(poses=[(R_net, 1.06 * t)]), height=400).predict(
+        white((480, 640)), K640, depth=depth_mm)
+    assert ls_only.ls_applied and rotation_error_deg(ls_only.R, R) > 20
+    assert "icp_applied" not in ls_only.to_json("a.png")
+    (det,) = p.predict(white((480, 640)), K640, depth=depth_mm)
+    assert det.ls_applied and det.icp_applied and det.icp_reason == "ok" and det.icp_fit > 0.9
+    assert rotation_error_deg(det.R, R) < 1.0 and np.linalg.norm(det.t - t) < 0.003
+    np.testing.assert_allclose(det.projected_2d, project_points(cuboid_keypoints(OBJ.size_array), K640, det.R, det.t))
+    rec = det.to_json("a.png")
+    assert rec["icp_applied"] is True and rec["icp_reason"] == "ok"
+    (mono,) = p.predict(white((480, 640)), K640)
+    assert not mono.icp_applied and mono.icp_reason == "no depth image"
+
+
+def test_icp_stage_widens_a_refused_line_search():
+    R, t = POSES[0]
+    depth_mm = np.round(render_box_depth(OBJ.size_array, R, t, K640, (480, 640)) * 1000).astype(np.uint16)
+    far = (R, 1.5 * t)  # beyond the line search's 0.8-1.25 range
+    (ls_only,) = DopePredictor(backend(poses=[far]), height=400).predict(white((480, 640)), K640, depth=depth_mm)
+    assert not ls_only.ls_applied and "search bound" in ls_only.ls_reason
+    (det,) = DopePredictor(backend(poses=[far]), height=400, icp=True).predict(
+        white((480, 640)), K640, depth=depth_mm)
+    assert det.ls_applied and "for ICP" in det.ls_reason and det.icp_applied
+    assert np.linalg.norm(det.t - t) < 0.003 and rotation_error_deg(det.R, R) < 1.0
 
 
 def test_predict_many_runs_each_model_once_and_merges():

@@ -11,7 +11,8 @@ BOP_ROOT/DATASET/test_targets_bop19.json: only the targeted images are processed
 models of its targeted objects (a model's object: the HOPE catalog's obj_id of its class, or a
 class named obj_NNNNNN). Poses are refined with the depth line search (-LS) on the split's
 depth images unless --no-depth; the line search uses BOP_ROOT/DATASET/models/obj_NNNNNN.ply
-(or --models-dir) when found. Every estimate is written with its score and the image's total
+(or --models-dir) when found; --icp adds the depth ICP after it (all six DoF, dope_hope/icp.py).
+Every estimate is written with its score and the image's total
 time (reading + all models, seconds), t in millimetres (io/bop_csv.py). Evaluate it with
   dope-hope evaluate -p dopehope-lite_hope-test.csv -d bop/hope --format bop --models-dir bop/hope/models
 """
@@ -39,6 +40,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models-dir", type=Path, metavar="DIR",
                         help="BOP models (obj_NNNNNN.ply, mm) for the line search (default DATASET/models)")
     parser.add_argument("--no-depth", action="store_true", help="no depth line search (-LS)")
+    parser.add_argument("--icp", action="store_true",
+                        help="after the line search, refine the whole pose by ICP against the depth")
     parser.add_argument("--depth-calibration", type=float, default=1.0, metavar="F",
                         help="multiply depth by F (default 1)")
     parser.add_argument("--height", type=int, metavar="H", help="network working height (default: the model's)")
@@ -87,6 +90,8 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.predictor import DopePredictor, open_backend, predict_many
 
     parse_bop_result_filename(args.out)  # fail before any work
+    if args.icp and args.no_depth:
+        raise ConfigError("--icp refines against the depth: it cannot go with --no-depth")
     if args.out.exists() and not args.overwrite:
         raise InputFileError(args.out, "file exists; pass --overwrite to replace it")
     split_dir = split_folder(args.bop_root, args.dataset, args.split)
@@ -106,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f"{w}: a second model for obj_id {obj_id} ({backend.class_name})")
         mesh = models_dir / f"obj_{obj_id:06d}.ply"
         predictors[obj_id] = DopePredictor(backend, height=args.height, min_score=args.min_score,
-                                           mesh=mesh if mesh.is_file() else None)
+                                           mesh=mesh if mesh.is_file() else None, icp=args.icp)
 
     wanted: dict[tuple[int, int], list[int]] | None = None
     if targets_path is not None:

@@ -24,7 +24,10 @@ Depth (optional, enables the depth line search "-LS"): --depth PATH (one image o
 --depth auto: each image's registered depth from its annotation's folder (DOPE
 NNNNNN.depth.png, HOPE NNNN_depth.png, BOP ../depth/NNNNNN.png); images without one are
 processed without -LS. --depth-scale gives millimetres per depth unit (BOP convention; default:
-the annotation's, else 1 = uint16 millimetres); float depth images (EXR) are metres.
+the annotation's, else 1 = uint16 millimetres); float depth images (EXR) are metres. --icp
+(needs --depth) then refines the whole pose, rotation included, by ICP against the depth
+("-LS + ICP", dope_hope/icp.py); each record says whether it was applied (icp_applied,
+icp_reason).
 """
 from __future__ import annotations
 
@@ -63,7 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     cam.add_argument("--camera", type=Path, metavar="K.json", help="camera intrinsics file (formats above)")
     for name in ("fx", "fy", "cx", "cy"):
         cam.add_argument(f"--{name}", type=float, metavar="PX", help=f"{name}, pixels (give all four)")
-    dep = parser.add_argument_group("depth line search")
+    dep = parser.add_argument_group("depth refinement: line search (-LS), ICP")
     dep.add_argument("--depth", metavar="PATH|auto",
                      help="depth image registered to the (single) input image, or 'auto' for each "
                           "image's annotated depth")
@@ -71,6 +74,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="millimetres per depth unit (default: the annotation's, else 1.0)")
     dep.add_argument("--depth-calibration", type=float, default=1.0, metavar="F",
                      help="multiply depth by F (HOPE RealSense frames: 0.98042517; default 1)")
+    dep.add_argument("--icp", action="store_true",
+                     help="after the line search, refine rotation and translation by ICP against the "
+                          "depth (needs --depth; pass --mesh for non-box objects)")
     parser.add_argument("--mesh", action="append", type=Path, metavar="PATH",
                         help="object mesh per --weights (same order), or one folder holding "
                              "CLASS.obj / CLASS/textured.obj / obj_NNNNNN.ply: its box and surface "
@@ -223,7 +229,8 @@ def build_predictors(args: argparse.Namespace, weights: list[Path]):
         elif meshes:
             mesh = meshes[i]
         predictors.append(DopePredictor(backend, height=args.height, mesh=mesh, mesh_units=args.mesh_units,
-                                        min_score=args.min_score, pose_search=args.pose_search))
+                                        min_score=args.min_score, pose_search=args.pose_search,
+                                        icp=args.icp))
     return predictors
 
 
@@ -266,6 +273,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--height must be at least 8 pixels, got {args.height}")
     if args.depth_scale is not None and args.depth_scale <= 0:
         raise ConfigError(f"--depth-scale must be positive, got {args.depth_scale}")
+    if args.icp and args.depth is None:
+        raise ConfigError("--icp refines against a depth image: give --depth PATH or --depth auto")
     images = collect_images(args.inputs)
     global_cam = _global_camera(args)
     predictors = build_predictors(args, _resolve_weights(args))

@@ -86,7 +86,7 @@ def _farthest_point_indices(points: np.ndarray, n: int) -> np.ndarray:
 
 
 def sample_surface_points(mesh: trimesh.Trimesh, n: int, seed: int = 0,
-                          oversample: int = 20) -> np.ndarray:
+                          oversample: int = 20, return_normals: bool = False):
     """Evenly spread surface points: farthest-point subsample of a dense surface sample.
 
     Args:
@@ -94,18 +94,21 @@ def sample_surface_points(mesh: trimesh.Trimesh, n: int, seed: int = 0,
         n: number of points (the HOPE paper's ADD-H uses 500).
         seed: seed of the dense area-weighted sample (same seed -> same points).
         oversample: dense sample size is ``max(oversample * n, 10000)``.
+        return_normals: also return the normal of the face each point lies on.
 
     Returns:
-        (n, 3) float64, metres, on the mesh surface.
+        (n, 3) float64, metres, on the mesh surface; with ``return_normals`` a tuple
+        (points, (n, 3) unit face normals).
     """
     if n <= 0:
         raise ValueError(f"n must be positive, got {n}")
     dense_count = max(oversample * n, 10000)
-    dense, _ = trimesh.sample.sample_surface(mesh, dense_count, seed=seed)
+    dense, faces = trimesh.sample.sample_surface(mesh, dense_count, seed=seed)
     dense = np.asarray(dense, dtype=np.float64)
-    if n >= len(dense):
-        return dense
-    return dense[_farthest_point_indices(dense, n)]
+    keep = np.arange(len(dense)) if n >= len(dense) else _farthest_point_indices(dense, n)
+    if not return_normals:
+        return dense[keep]
+    return dense[keep], np.asarray(mesh.face_normals, dtype=np.float64)[faces[keep]]
 
 
 def mesh_cuboid(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
