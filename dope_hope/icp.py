@@ -27,13 +27,15 @@ result only when it fits the depth better than the input pose did.
    keypoints of a briefly trained net often get the object turned by about 90 or 180 deg
    (the roll of a bottle about its axis, a box seen from the wrong side). ICP therefore also
    starts from the input turned by +-90 and 180 deg about each model axis
-   (:data:`TURN_STARTS`, ten runs in all). The run whose pose fits the depth best wins; runs
+   (:data:`TURN_STARTS`, ten runs in all; each does its first, coarse iterations on a
+   thinned scene, and the plain start and the three best-fitting others finish on all the
+   points). The run whose pose fits the depth best wins; runs
    within ``fit_tie`` of the best count as equal and the one nearest the input rotation wins
    among them, so the depth never flips an object onto one of its own geometric
    symmetries (a box turned 180 deg fits its depth exactly as well) - there the keypoints,
    which see the texture, decide. On the Ketchup e2e test set this raises recall at 2 cm
-   MeanSSD from 29 % (one start) to 38 % (bench/RESULTS.md), at ~10x the cost (~0.25 s
-   per detection on 2 cores).
+   MeanSSD from 29 % (one start) to 38 % (bench/RESULTS.md), at ~3.5x the cost of one start
+   (~0.2 s per object on 2 cores; 2.3x less than running all ten starts on every point).
 5. **Acceptance**: the fit is the soft fraction of scene points on the model surface (each
    point counts ``1 - (r / fit_threshold_m)^2``, ``r`` its point-to-plane distance, 0 beyond
    ``fit_threshold_m``: finer than a plain inlier count, which cannot tell a bottle's right
@@ -172,6 +174,9 @@ def icp_refine(
     max_rotation_deg: float = 180.0,
     start_rotations: Sequence[np.ndarray] = TURN_STARTS,
     fit_tie: float = 0.005,
+    coarse_points: int | None = 750,
+    coarse_iterations: int = 6,
+    finalists: int = 3,
     image_hw: tuple[int, int] | None = None,
 ) -> IcpResult:
     """Refine a pose by point-to-plane ICP against a depth image (see the module docstring).
@@ -198,6 +203,10 @@ def icp_refine(
             input pose only.
         fit_tie: runs whose fits differ by at most this are equal; the one whose rotation is
             nearest the input's wins among them.
+        coarse_points, coarse_iterations, finalists: with several starts, each first runs
+            ``coarse_iterations`` iterations on ``coarse_points`` evenly thinned scene points;
+            the plain start and the ``finalists`` best-fitting others then finish on all
+            points (None: every start runs every iteration on all points).
         image_hw: (H, W) the depth must have, when known.
 
     Returns:
@@ -224,10 +233,29 @@ def icp_refine(
         return refuse(f"too few depth pixels under the object ({len(S)} < {min_points})", n_points=len(S))
     tree = cKDTree(P)
     fit_before = _fit(tree, N, (S - t0) @ R0, fit_threshold_m)
-    runs, first_problem = [], ""
-    for start in [np.eye(3), *start_rotations]:
-        Rc, tc, rmse, problem = _iterate(S, P, N, tree, R0 @ np.asarray(start, float).reshape(3, 3), t0,
-                                         thresholds_m, min_points)
+    starts = [(R0 @ np.asarray(s, float).reshape(3, 3), t0) for s in [np.eye(3), *start_rotations]]
+    first_problem = ""
+    fine = list(thresholds_m)
+    if len(starts) > 1 and coarse_points and len(S) > coarse_points and len(fine) > coarse_iterations:
+        # Coarse phase: every start, the first iterations, a thinned scene; the plain start
+        # and the best-fitting others go on.
+        sub = S[np.linspace(0, len(S) - 1, coarse_points).round().astype(np.int64)]
+        sub_min = max(10, round(min_points * len(sub) / len(S)))
+        coarse = []
+        for i, (Rs, ts) in enumerate(starts):
+            Rc, tc, _, problem = _iterate(sub, P, N, tree, Rs, ts, fine[:coarse_iterations], sub_min)
+            if problem:
+                first_problem = first_problem or problem
+                continue
+            coarse.append((i == 0, _fit(tree, N, (sub - tc) @ Rc, fit_threshold_m), Rc, tc))
+        coarse.sort(key=lambda c: (not c[0], -c[1]))  # the plain start first, then by fit
+        plain = coarse[:1] if coarse and coarse[0][0] else []
+        others = sorted(coarse[len(plain):], key=lambda c: -c[1])[:finalists]
+        starts = [(c[2], c[3]) for c in plain + others]
+        fine = fine[coarse_iterations:]
+    runs = []
+    for Rs, ts in starts:
+        Rc, tc, rmse, problem = _iterate(S, P, N, tree, Rs, ts, fine, min_points)
         if problem:
             first_problem = first_problem or problem
             continue

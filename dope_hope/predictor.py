@@ -54,7 +54,7 @@ run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.pr
    at a wrong distance), the ICP stage first repeats it over :data:`ICP_LS_SEARCH`. The line
    search only rescales t and keeps the keypoints' rotation; ICP also corrects the rotation,
    which is where lite models err most (HOPE Ketchup e2e, bench/RESULTS.md: recall at 2 cm
-   MeanSSD 11.6 % with -LS, about 30 % with -LS + ICP on the same maps).
+   MeanSSD 11.6 % with -LS, 38.4 % with -LS + ICP on the same maps).
 
 Every detection is a :class:`Detection`; :meth:`Detection.to_json` writes one record of the
 predictions JSON-lines format (:mod:`dope_hope.io.predictions`) that ``dope-hope evaluate``

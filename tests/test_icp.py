@@ -108,8 +108,9 @@ def test_turned_starts_recover_a_quarter_turn_the_plain_start_cannot():
     R0, t0 = perturbed(80.0, [0, 1, 0], [0.004, 0.0, 0.0])  # 80 deg about the long axis
     one = icp_refine(R0, t0, POINTS, NORMALS, depth_mm(), K, start_rotations=())
     assert not one.applied or rotation_error_deg(one.R, R_GT) > 10
-    res = icp_refine(R0, t0, POINTS, NORMALS, depth_mm(), K)
-    assert res.applied and rotation_error_deg(res.R, R_GT) < 1.0 and np.linalg.norm(res.t - T_GT) < 0.002
+    for coarse_points in (750, None):  # the default coarse phase, and every start on every point
+        res = icp_refine(R0, t0, POINTS, NORMALS, depth_mm(), K, coarse_points=coarse_points)
+        assert res.applied and rotation_error_deg(res.R, R_GT) < 1.0 and np.linalg.norm(res.t - T_GT) < 0.002
 
 
 def test_a_geometric_symmetry_is_left_to_the_keypoints():
