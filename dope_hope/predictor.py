@@ -74,7 +74,7 @@ import cv2
 import numpy as np
 
 from dope_hope.decode import corner_candidates, decode_maps
-from dope_hope.errors import CameraError, ConfigError, ModelFileError
+from dope_hope.errors import CameraError, ConfigError, ModelFileError, UnknownObjectError
 from dope_hope.geometry import (
     KEYPOINT_ORDER,
     LEGACY_KEYPOINT_ORDER,
@@ -465,7 +465,8 @@ class DopePredictor:
         hypothesis_options: keyword arguments of :func:`dope_hope.pose.solve_pnp_candidates`
             (``hypothesis_threshold_px``, ``max_hypotheses``).
         line_search_options: keyword arguments of :func:`dope_hope.pose.depth_line_search`.
-        icp: with a depth image, refine each pose by ICP after the line search (step 7).
+        icp: with a depth image, refine each pose by ICP after the line search (step 7); needs
+            ``mesh=`` unless the object is a box of the HOPE catalog (ConfigError otherwise).
         icp_options: keyword arguments of :func:`dope_hope.icp.icp_refine`.
         icp_points: number of model points (with normals) for ICP.
         min_score: drop detections whose pose score is lower.
@@ -527,6 +528,8 @@ class DopePredictor:
             self.mesh, size, center = self._load_mesh(mesh, mesh_units, size)
         self.cuboid_size_m = size
         self.cuboid_center_m = center
+        if self.icp and self.mesh is None:
+            self._check_icp_surface()
         #: (9, 3) mesh-frame cuboid keypoints, current order.
         self.cuboid_mesh = cuboid_keypoints(size, center)
         if self.legacy:
@@ -565,6 +568,18 @@ class DopePredictor:
         box = trimesh.creation.box(extents=self.cuboid_size_m)
         box.apply_translation(self.cuboid_center_m)
         return box
+
+    def _check_icp_surface(self) -> None:
+        """Without a mesh ICP fits the cuboid's surface to the depth: right for a box only."""
+        from dope_hope.catalog import get_object
+
+        try:
+            category = get_object(self.class_name).category
+        except UnknownObjectError:
+            category = "object outside the HOPE catalog"
+        if category != "cuboid":
+            raise ConfigError(f"ICP for {self.class_name} ({category}) needs its mesh (mesh= / --mesh): "
+                              "without one it would fit the cuboid's surface, which is right for boxes only")
 
     @property
     def model_points(self) -> np.ndarray:

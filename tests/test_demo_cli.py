@@ -50,18 +50,20 @@ def demo_run(ckpt, tmp_path_factory) -> tuple[Path, str]:
 def test_demo_prints_errors_summary_and_backend_agreement(demo_run):
     out, stdout = demo_run
     assert f"seed {SEED}" in stdout.splitlines()[0]
-    m = re.search(r"^found (\d)/2 scenes with ADD-H < 2 cm \(with -LS; without -LS: (\d)/2\)$", stdout, re.M)
+    m = re.search(r"^found (\d)/2 scenes with ADD-H < 2 cm \(with -LS; without -LS: (\d)/2; "
+                  r"with -LS \+ ICP: (\d)/2\)$", stdout, re.M)
     assert m, stdout
     # Scene 1 is the scene the network was fitted to: detected, scored against its GT, with
     # both the plain PnP and the -LS pose, and the same keypoints from onnxruntime.
     scene1 = stdout.split("[1/2] 000000.png: ", 1)[1].split("[2/2]", 1)[0]
     assert re.match(r"[1-9]\d* detection\(s\)", scene1), scene1
     errors = [float(v) for v in re.findall(r"ADD-H +([\d.]+) cm", scene1)]
-    assert len(errors) == 2  # PnP and PnP+LS
+    assert len(errors) == 3  # PnP, PnP+LS and +ICP
+    assert re.search(r"\+ICP .* OK  \(ICP applied\)", scene1), scene1
     # The errors are against the rendered ground truth: a fitted scene must come out right
     # (this fails if the demo's frames, K, poses or metrics disagree on any convention).
     assert max(errors) < 2.0, scene1
-    assert "OK" in scene1 and int(m.group(1)) >= 1 and int(m.group(2)) >= 1
+    assert "OK" in scene1 and int(m.group(1)) >= 1 and int(m.group(2)) >= 1 and int(m.group(3)) >= 1
     diff = float(re.search(r"ONNX keypoints within ([\d.]+) px of PyTorch", scene1).group(1))
     assert diff < 0.5
     assert re.search(r"ONNX vs PyTorch: same objects in \d/2 scenes", stdout)

@@ -270,6 +270,14 @@ def test_icp_corrects_the_rotation_the_keypoints_got_wrong():
     assert not mono.icp_applied and mono.icp_reason == "no depth image"
 
 
+def test_icp_without_a_mesh_is_refused_for_non_boxes():
+    b = TargetsBackend("Ketchup", get_object("Ketchup").size_array, POSES[:1], K640, (480, 640))
+    with pytest.raises(ConfigError, match="ICP for Ketchup \\(bottle\\) needs its mesh"):
+        DopePredictor(b, icp=True)
+    DopePredictor(b)  # -LS alone keeps the cuboid fallback
+    DopePredictor(backend(), icp=True)  # Cookies is a box: its cuboid is its surface
+
+
 def test_icp_stage_widens_a_refused_line_search():
     R, t = POSES[0]
     depth_mm = np.round(render_box_depth(OBJ.size_array, R, t, K640, (480, 640)) * 1000).astype(np.uint16)

@@ -5,9 +5,10 @@ one box at 0.45-0.9 m among a few distractors, RealSense-like depth noise; confi
 runs the model through PyTorch and through onnxruntime (exported once to OUT/<weights>.onnx
 and reused while the weights are unchanged), refines the distance with the depth line search
 (-LS), and prints each detection next to the ground truth: translation and rotation error,
-ADD-H and MeanSSD (500 model points, the cuboid category's symmetries) with and without -LS,
-and how closely the ONNX keypoints agree with PyTorch's. Ends with
-"found N/10 scenes with ADD-H < 2 cm".
+ADD-H and MeanSSD (500 model points, the cuboid category's symmetries) without -LS, with -LS
+and with -LS + ICP (dope_hope/icp.py: the whole pose refined against the depth), and how
+closely the ONNX keypoints agree with PyTorch's. Ends with
+"found N/10 scenes with ADD-H < 2 cm (with -LS; ...)".
 
 Writes OUT/NNNNNN.overlay.png (detection in colour, ground truth in white), OUT/overview.png,
 OUT/predictions.jsonl (PyTorch + -LS, the `dope-hope infer` format), OUT/mesh/DemoBox.obj and
@@ -137,8 +138,10 @@ class SceneResult:
     name: str
     found: bool = False
     found_no_ls: bool = False
+    found_icp: bool = False
     errors: PoseErrors | None = None
     errors_no_ls: PoseErrors | None = None
+    errors_icp: PoseErrors | None = None
     onnx_diff_px: float | None = None
     extra_detections: int = 0
     lines: list[str] = field(default_factory=list)
@@ -218,6 +221,7 @@ def run(args: argparse.Namespace) -> int:
         raise ModelFileError(weights, f"a model of {torch_backend.class_name!r}; the demo renders "
                                       f"{DEMO_CLASS_NAME!r} (pass a demo model with --weights)")
     torch_pred = DopePredictor(torch_backend, mesh=mesh)
+    icp_pred = DopePredictor(torch_backend, mesh=mesh, icp=True)
     _, input_hw = torch_pred.working_size((IMAGE_SIZE[1], IMAGE_SIZE[0]))
     onnx_pred = None
     onnx_note = "ONNX off (--no-onnx)"
@@ -239,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
     results: list[SceneResult] = []
     records: list[dict] = []
     tiles = []
-    timing = {"render": 0.0, "torch": 0.0, "onnx": 0.0}
+    timing = {"render": 0.0, "torch": 0.0, "icp": 0.0, "onnx": 0.0}
     with FrameGenerator(mesh_path, size=IMAGE_SIZE, config=DEMO_CONFIG, class_name=DEMO_CLASS_NAME,
                         depth_noise=True, seed=seed) as gen:
         for i in range(args.scenes):
@@ -254,13 +258,16 @@ def run(args: argparse.Namespace) -> int:
             dets_plain = torch_pred.detections_from_maps(belief, affinity, net_in, K)
             dets_ls = torch_pred.detections_from_maps(belief, affinity, net_in, K, depth=frame.depth)
             timing["torch"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            dets_icp = icp_pred.detections_from_maps(belief, affinity, net_in, K, depth=frame.depth)
+            timing["icp"] += time.perf_counter() - t0
             res = SceneResult(name=f"{i:06d}.png")
             if onnx_pred is not None:
                 t0 = time.perf_counter()
                 dets_onnx = onnx_pred.predict(frame.rgb, K)
                 timing["onnx"] += time.perf_counter() - t0
                 res.onnx_diff_px = backend_agreement(dets_plain, dets_onnx)
-            _score_scene(res, gts, dets_plain, dets_ls, points, symmetries)
+            _score_scene(res, gts, dets_plain, dets_ls, dets_icp, points, symmetries)
             results.append(res)
             records += [d.to_json(res.name) for d in dets_ls]
             header = (f"[{i + 1:>{len(str(args.scenes))}}/{args.scenes}] {res.name}: "
@@ -301,10 +308,13 @@ def _clear_old_outputs(out: Path) -> None:
                     p.unlink()
 
 
-def _score_scene(res: SceneResult, gts: list, dets_plain: list, dets_ls: list, points, symmetries) -> None:
+def _score_scene(res: SceneResult, gts: list, dets_plain: list, dets_ls: list, dets_icp: list,
+                 points, symmetries) -> None:
     """Fill ``res`` (errors, found flags, printed lines) from one scene's detections."""
     matched_ls = match_detections(dets_ls, gts)
     matched_plain = dict((id(g), d) for g, d in match_detections(dets_plain, gts))
+    matched_icp = dict((id(g), d) for g, d in match_detections(dets_icp, gts))
+    all_icp = True
     used = 0
     for g, d in matched_ls:
         vis = "" if g.visibility is None else f", {100 * g.visibility:.0f} % visible"
@@ -323,11 +333,23 @@ def _score_scene(res: SceneResult, gts: list, dets_plain: list, dets_ls: list, p
         ls_note = f"scale {d.ls_scale:.4f}" if d.ls_applied else f"not applied: {d.ls_reason}"
         res.lines.append(f"    PnP+LS  t {_fmt_t(d.t)}  {_err_text(e1)}  "
                          + ("OK" if res.found else "MISS") + f"  (-LS {ls_note})")
+        d2 = matched_icp.get(id(g))
+        if d2 is None:
+            all_icp = False
+            continue
+        e2 = pose_errors(d2.R, d2.t, g.R, g.t, points, symmetries)
+        res.errors_icp = e2
+        res.found_icp = e2.addh_cm < THRESHOLD_CM
+        all_icp &= res.found_icp
+        icp_note = "applied" if d2.icp_applied else f"not applied: {d2.icp_reason}"
+        res.lines.append(f"    +ICP    t {_fmt_t(d2.t)}  {_err_text(e2)}  "
+                         + ("OK" if res.found_icp else "MISS") + f"  (ICP {icp_note})")
     res.extra_detections = len(dets_ls) - used
     if res.extra_detections:
         res.lines.append(f"    + {res.extra_detections} detection(s) without ground truth (false positives)")
     if len(gts) > 1:  # found = every instance within the threshold
         res.found = res.found and used == len(gts)
+        res.found_icp = all_icp and used == len(gts)
 
 
 def _print_summary(results: list[SceneResult], timing: dict[str, float], out: Path, seconds: float,
@@ -337,14 +359,18 @@ def _print_summary(results: list[SceneResult], timing: dict[str, float], out: Pa
     n = len(results)
     found = sum(r.found for r in results)
     found0 = sum(r.found_no_ls for r in results)
+    found2 = sum(r.found_icp for r in results)
     detected = [r for r in results if r.errors is not None]
-    lines = [f"found {found}/{n} scenes with ADD-H < {THRESHOLD_CM:g} cm (with -LS; without -LS: {found0}/{n})"]
+    lines = [f"found {found}/{n} scenes with ADD-H < {THRESHOLD_CM:g} cm (with -LS; without -LS: {found0}/{n}; "
+             f"with -LS + ICP: {found2}/{n})"]
     if detected:
         med = np.median([r.errors.addh_cm for r in detected])
         med0 = np.median([r.errors_no_ls.addh_cm for r in detected])
         medm = np.median([r.errors.meanssd_cm for r in detected])
+        with_icp = [r.errors_icp.addh_cm for r in detected if r.errors_icp is not None]
+        med2 = f", {np.median(with_icp):.2f} cm with -LS + ICP" if with_icp else ""
         lines.append(f"  median over {len(detected)} detected: ADD-H {med:.2f} cm with -LS, {med0:.2f} cm "
-                     f"without; MeanSSD {medm:.2f} cm with -LS; "
+                     f"without{med2}; MeanSSD {medm:.2f} cm with -LS; "
                      f"{sum(r.extra_detections for r in results)} false positive(s)")
     if with_onnx:
         diffs = [r.onnx_diff_px for r in results]
@@ -352,7 +378,8 @@ def _print_summary(results: list[SceneResult], timing: dict[str, float], out: Pa
         worst = max((d for d in diffs if math.isfinite(d)), default=0.0)
         lines.append(f"  ONNX vs PyTorch: same objects in {same}/{n} scenes, keypoints within {worst:.3f} px")
     lines.append(f"  time {seconds:.1f} s (rendering {timing['render']:.1f} s, PyTorch + -LS "
-                 f"{timing['torch']:.1f} s" + (f", ONNX {timing['onnx']:.1f} s" if with_onnx else "") + ")")
+                 f"{timing['torch']:.1f} s, ICP {timing['icp']:.1f} s"
+                 + (f", ONNX {timing['onnx']:.1f} s" if with_onnx else "") + ")")
     lines.append(f"  overlays: {out}/NNNNNN.overlay.png, {out / 'overview.png'}; frames: {out / 'frames'}")
     lines.append(f"  next: dope-hope infer {out / 'frames' / '000000.png'} --depth auto --out {out / 'infer'}")
     print("\n".join(lines), flush=True)

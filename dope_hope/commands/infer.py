@@ -76,7 +76,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="multiply depth by F (HOPE RealSense frames: 0.98042517; default 1)")
     dep.add_argument("--icp", action="store_true",
                      help="after the line search, refine rotation and translation by ICP against the "
-                          "depth (needs --depth; pass --mesh for non-box objects)")
+                          "depth (needs --depth, and --mesh unless the object is a catalog box)")
     parser.add_argument("--mesh", action="append", type=Path, metavar="PATH",
                         help="object mesh per --weights (same order), or one folder holding "
                              "CLASS.obj / CLASS/textured.obj / obj_NNNNNN.ply: its box and surface "
