@@ -26,7 +26,7 @@ granularity: a stage whose marker OUT/stages/<stage>.json exists is skipped (an 
 synth resumes frame by frame, an interrupted train with --resume); OUT/e2e_settings.json
 refuses a rerun with other settings in the same folder.
 
-    python bench/e2e_accuracy.py                                   # 2 CPU cores, ~35 min
+    python bench/e2e_accuracy.py                                   # 2 CPU cores, ~37 min
     python bench/e2e_accuracy.py --quick --out /tmp/e2e_quick      # tiny, < 1 min: checks the plumbing
     python bench/e2e_accuracy.py --train-set targets.symmetry=none --out runs/e2e_plain  # official labels
     python bench/e2e_accuracy.py --config dope_dr_50 --train-minutes 240 --train-count 20000 \\

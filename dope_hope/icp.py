@@ -95,7 +95,7 @@ def scene_points_under(points_c: np.ndarray, D: np.ndarray, K: np.ndarray, dilat
     """Back-projected depth pixels under the dilated silhouette of projected points.
 
     Args:
-        points_c: (N, 3) camera-frame model points, metres (z > 0).
+        points_c: (N, 3) camera-frame model points, metres (those at z <= 0 are ignored).
         D: (H, W) depth, metres, NaN = invalid. K: (3, 3).
         dilate: dilation as a fraction of the silhouette's larger bounding-box side.
         max_points: thin evenly to at most this many.
@@ -104,8 +104,10 @@ def scene_points_under(points_c: np.ndarray, D: np.ndarray, K: np.ndarray, dilat
         (M, 3) camera-frame points, metres (M may be 0).
     """
     H, W = D.shape
-    uv = points_c[:, :2] / points_c[:, 2:3] * np.diag(K)[:2] + K[:2, 2]
-    uv = uv[np.isfinite(uv).all(axis=1)]
+    uvw = points_c[points_c[:, 2] > 1e-6] @ K.T
+    uv = uvw[:, :2] / uvw[:, 2:3]
+    # far off-image points only widen the hull; clipping keeps the int32 cast exact
+    uv = np.clip(uv[np.isfinite(uv).all(axis=1)], -4.0 * max(H, W), 5.0 * max(H, W))
     if len(uv) < 3:
         return np.empty((0, 3))
     hull = cv2.convexHull(np.round(uv).astype(np.int32).reshape(-1, 1, 2))

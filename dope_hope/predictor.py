@@ -48,8 +48,10 @@ run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.pr
    expectation; pass the mesh for non-box objects).
 7. **Depth ICP** ("-ICP", optional, ``icp=True``, needs the depth; :func:`dope_hope.icp.icp_refine`):
    after the line search, point-to-plane ICP of ``icp_points`` model points (with normals)
-   against the depth pixels under the object refines all six DoF; kept only when it fits the
-   depth better. ICP needs the object's depth within a few centimetres: when the line search
+   against the depth pixels under the object refines all six DoF, from the pose and from it
+   turned by +-90 / 180 deg about each model axis; kept only when it does not fit the depth
+   worse. Without ``mesh=`` only the catalog's boxes are allowed (the cuboid's surface is
+   theirs). ICP needs the object's depth within a few centimetres: when the line search
    refused (e.g. its optimum sat on the 0.8 / 1.25 bound because the keypoints put the object
    at a wrong distance), the ICP stage first repeats it over :data:`ICP_LS_SEARCH`. The line
    search only rescales t and keeps the keypoints' rotation; ICP also corrects the rotation,
@@ -386,8 +388,9 @@ class Detection:
     ls_applied / ls_reason / ls_scale: outcome of the depth line search ("no depth image"
         when none was given).
     icp_applied / icp_reason / icp_fit: outcome of the depth ICP ("not requested" without
-        ``icp=True``); icp_fit: fraction of the depth points under the object within 1 cm of
-        the model surface under the returned pose (NaN when not evaluated).
+        ``icp=True``); icp_fit: soft fraction of the depth points under the object that lie on
+        the model surface under the returned pose (1 = all; :func:`dope_hope.icp.icp_refine`;
+        NaN when not evaluated).
     """
 
     class_name: str
