@@ -250,9 +250,8 @@ def icp_refine(
                 first_problem = first_problem or problem
                 continue
             coarse.append((i == 0, _fit(tree, N, (sub - tc) @ Rc, fit_threshold_m), Rc, tc))
-        coarse.sort(key=lambda c: (not c[0], -c[1]))  # the plain start first, then by fit
-        plain = coarse[:1] if coarse and coarse[0][0] else []
-        others = sorted(coarse[len(plain):], key=lambda c: -c[1])[:finalists]
+        plain = [c for c in coarse if c[0]]
+        others = sorted((c for c in coarse if not c[0]), key=lambda c: -c[1])[:finalists]
         starts = [(c[2], c[3]) for c in plain + others]
         fine = fine[coarse_iterations:]
     runs = []

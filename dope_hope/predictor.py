@@ -68,7 +68,7 @@ import math
 import os
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
@@ -600,6 +600,9 @@ class DopePredictor:
         if self._icp_model is None:
             from dope_hope.io.meshes import sample_surface_points
 
+            if self.mesh is None:
+                self._check_icp_surface()
+
             self._icp_model = sample_surface_points(self._surface(), self.icp_points, seed=0,
                                                     oversample=10, return_normals=True)
         return self._icp_model
@@ -702,8 +705,20 @@ class DopePredictor:
         out.sort(key=lambda d: -d.score)
         return out
 
+    def refine_icp(self, det: Detection, depth: np.ndarray, K: np.ndarray, depth_scale_m: float = 0.001,
+                   calibration: float = 1.0, image_hw: tuple[int, int] | None = None) -> Detection:
+        """Step 7 of the module docstring on one detection, whatever ``icp`` was set to: a copy
+        of ``det`` (as :meth:`predict` returns it with ``depth``, i.e. after the line search)
+        refined by ICP against ``depth``; ``det`` itself is unchanged. Lets a caller keep both
+        the -LS and the -LS + ICP pose without decoding the maps twice (``dope-hope demo``).
+        ``image_hw``: (H, W) the depth must have, when known."""
+        out = replace(det)
+        self._refine_icp(out, depth, check_intrinsics(K), depth_scale_m, calibration, image_hw)
+        out.projected_2d = project_points(self.cuboid_mesh, check_intrinsics(K), out.R, out.t)
+        return out
+
     def _refine_icp(self, det: Detection, depth: np.ndarray, K: np.ndarray, depth_scale_m: float,
-                    calibration: float, image_hw: tuple[int, int]) -> None:
+                    calibration: float, image_hw: tuple[int, int] | None) -> None:
         """Step 7 of the module docstring, in place on ``det`` (after the line search)."""
         if not det.ls_applied:  # ICP needs the depth within a few cm: a wider line search first
             options = {**self.line_search_options, "search": ICP_LS_SEARCH}

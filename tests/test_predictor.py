@@ -268,6 +268,15 @@ def test_icp_corrects_the_rotation_the_keypoints_got_wrong():
     assert rec["icp_applied"] is True and rec["icp_reason"] == "ok"
     (mono,) = p.predict(white((480, 640)), K640)
     assert not mono.icp_applied and mono.icp_reason == "no depth image"
+    # refine_icp: the same step on a -LS detection, as a copy (the -LS pose is kept)
+    ls_R, ls_t = ls_only.R.copy(), ls_only.t.copy()
+    copy = p.refine_icp(ls_only, depth_mm, K640)
+    np.testing.assert_allclose(copy.R, det.R, atol=1e-9)
+    np.testing.assert_allclose(copy.t, det.t, atol=1e-9)
+    np.testing.assert_allclose(copy.projected_2d, det.projected_2d, atol=1e-6)
+    assert copy.icp_applied and not ls_only.icp_applied
+    np.testing.assert_array_equal(ls_only.R, ls_R)
+    np.testing.assert_array_equal(ls_only.t, ls_t)
 
 
 def test_icp_without_a_mesh_is_refused_for_non_boxes():

@@ -221,7 +221,6 @@ def run(args: argparse.Namespace) -> int:
         raise ModelFileError(weights, f"a model of {torch_backend.class_name!r}; the demo renders "
                                       f"{DEMO_CLASS_NAME!r} (pass a demo model with --weights)")
     torch_pred = DopePredictor(torch_backend, mesh=mesh)
-    icp_pred = DopePredictor(torch_backend, mesh=mesh, icp=True)
     _, input_hw = torch_pred.working_size((IMAGE_SIZE[1], IMAGE_SIZE[0]))
     onnx_pred = None
     onnx_note = "ONNX off (--no-onnx)"
@@ -259,7 +258,7 @@ def run(args: argparse.Namespace) -> int:
             dets_ls = torch_pred.detections_from_maps(belief, affinity, net_in, K, depth=frame.depth)
             timing["torch"] += time.perf_counter() - t0
             t0 = time.perf_counter()
-            dets_icp = icp_pred.detections_from_maps(belief, affinity, net_in, K, depth=frame.depth)
+            dets_icp = [torch_pred.refine_icp(d, frame.depth, K, image_hw=frame.depth.shape[:2]) for d in dets_ls]
             timing["icp"] += time.perf_counter() - t0
             res = SceneResult(name=f"{i:06d}.png")
             if onnx_pred is not None:
@@ -314,7 +313,7 @@ def _score_scene(res: SceneResult, gts: list, dets_plain: list, dets_ls: list, d
     matched_ls = match_detections(dets_ls, gts)
     matched_plain = dict((id(g), d) for g, d in match_detections(dets_plain, gts))
     matched_icp = dict((id(g), d) for g, d in match_detections(dets_icp, gts))
-    all_icp = True
+    all_ls = all_icp = True
     used = 0
     for g, d in matched_ls:
         vis = "" if g.visibility is None else f", {100 * g.visibility:.0f} % visible"
@@ -329,6 +328,7 @@ def _score_scene(res: SceneResult, gts: list, dets_plain: list, dets_ls: list, d
         res.errors, res.errors_no_ls = e1, e0
         res.found_no_ls = e0.addh_cm < THRESHOLD_CM
         res.found = e1.addh_cm < THRESHOLD_CM
+        all_ls &= res.found
         res.lines.append(f"    PnP     t {_fmt_t(d0.t)}  {_err_text(e0)}  score {d0.score:.2f}")
         ls_note = f"scale {d.ls_scale:.4f}" if d.ls_applied else f"not applied: {d.ls_reason}"
         res.lines.append(f"    PnP+LS  t {_fmt_t(d.t)}  {_err_text(e1)}  "
@@ -348,7 +348,7 @@ def _score_scene(res: SceneResult, gts: list, dets_plain: list, dets_ls: list, d
     if res.extra_detections:
         res.lines.append(f"    + {res.extra_detections} detection(s) without ground truth (false positives)")
     if len(gts) > 1:  # found = every instance within the threshold
-        res.found = res.found and used == len(gts)
+        res.found = all_ls and used == len(gts)
         res.found_icp = all_icp and used == len(gts)
 
 
