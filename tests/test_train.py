@@ -228,6 +228,19 @@ def test_cli_unknown_class_is_a_one_line_error(frames, tmp_path):
     assert r.returncode == 2 and "Mustard" in r.stderr and r.stderr.strip().count("\n") == 0
 
 
+def test_cli_init_demo_starts_from_the_shipped_model(frames, tmp_path):
+    """--init demo: the shipped demo model's weights start a lite run (a pretrained start)."""
+    from dope_hope.commands.infer import DEMO_WEIGHTS
+
+    if not DEMO_WEIGHTS.is_file():
+        pytest.skip("this checkout has no shipped demo model")
+    r = _cli("train", "--config", "lite", "--data", str(frames), "--object", "Ketchup", "--out", str(tmp_path / "o"),
+             "--init", "demo", "--steps", "1", "--batch-size", "2", "--workers", "0", "--no-progress",
+             "--set", "input.size=[64,64]", "train.time_limit_min=null", timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert load_checkpoint(tmp_path / "o" / "last.pt")["extra"]["job"]["init"] == str(DEMO_WEIGHTS)
+
+
 @pytest.mark.slow
 def test_torchrun_two_cpu_processes_write_one_checkpoint(frames, tmp_path):
     out = tmp_path / "ddp"

@@ -41,9 +41,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, help="seed of init, data order and augmentation (train.seed)")
     parser.add_argument("--resume", nargs="?", const="auto", metavar="PATH",
                         help="continue from a checkpoint (no PATH: OUT/last.pt, if it exists)")
-    parser.add_argument("--init", type=Path, metavar="PATH", dest="init_weights",
+    parser.add_argument("--init", metavar="PATH", dest="init_weights",
                         help="start from this dope-hope checkpoint's network weights (fine-tuning: "
-                             "fresh optimizer and schedule; its architecture must match --config)")
+                             "fresh optimizer and schedule; its architecture must match --config); "
+                             "'demo': the shipped demo model, a pretrained start for --config lite")
     parser.add_argument("--backbone-weights", type=Path, metavar="PATH",
                         help="local torchvision VGG19 state dict to initialize the trunk (arch dope)")
     parser.add_argument("--mesh", type=Path, metavar="PATH",
@@ -92,9 +93,17 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--data DIR is required (the training folders)")
     if resume is None and not args.object_name:
         raise ConfigError("--object NAME is required (the class to train)")
+    init_weights = None
+    if args.init_weights == "demo":
+        from dope_hope.commands.infer import DEMO_WEIGHTS
+        if not DEMO_WEIGHTS.is_file():
+            raise InputFileError(DEMO_WEIGHTS, "--init demo: this installation has no shipped demo model")
+        init_weights = DEMO_WEIGHTS
+    elif args.init_weights is not None:
+        init_weights = Path(args.init_weights)
     job = TrainJob(data=list(args.data or []), object_name=args.object_name or "", out=args.out, val=list(args.val),
                    resume=resume, mesh=args.mesh, backbone_weights=args.backbone_weights,
-                   init_weights=args.init_weights, device=args.device,
+                   init_weights=init_weights, device=args.device,
                    progress=not args.no_progress, overrides=overrides)
     summary = train(job, config)
     status = summary["status"]
