@@ -9,7 +9,7 @@ which on a shared machine (other jobs competing for the cores) tracks the uncont
 better than wall time does, above all with one thread. On CUDA (when available) it runs the trainer's CUDA path too: bf16
 autocast + channels_last.
 
-    python bench/train_throughput.py [--batch 2] [--steps-lite 10] [--steps-dr50 3] [--threads 2]
+    python bench/train_throughput.py [--batch 2] [--steps-lite 10] [--steps-dr50 3] [--threads 2] [--channels-last]
 """
 from __future__ import annotations
 
@@ -46,14 +46,18 @@ def batch_for(config: dict, stride: int, batch: int, device: torch.device):
             torch.from_numpy(np.stack(affinities)).to(device))
 
 
-def measure(name: str, batch: int, steps: int, warmup: int, device: torch.device) -> float:
-    """Images per second of training steps for the config ``name``."""
+def measure(name: str, batch: int, steps: int, warmup: int, device: torch.device,
+            channels_last: bool | None = None) -> tuple[float, float]:
+    """(images per second, process CPU seconds per image) of training steps for the config
+    ``name``; ``channels_last`` None: the trainer's choice (on CUDA only)."""
     config = load_config(name)
     torch.manual_seed(0)
     model = build_model(config).to(device)
     cuda = device.type == "cuda"
     images, belief, affinity = batch_for(config, model.stride, batch, device)
-    if cuda:
+    if channels_last is None:
+        channels_last = cuda
+    if channels_last:
         model = model.to(memory_format=torch.channels_last)
         images = images.contiguous(memory_format=torch.channels_last)
     opt = torch.optim.Adam(model.parameters(), lr=1e-5)
@@ -69,7 +73,7 @@ def measure(name: str, batch: int, steps: int, warmup: int, device: torch.device
     dt, cpu = time.perf_counter() - t0, time.process_time() - c0
     ips = steps * batch / dt
     H, W = item_hw(config)
-    print(f"  {name:<11} {W}x{H}  batch {batch}: {dt / steps * 1000:9.1f} ms/step  {ips:8.2f} images/s  "
+    print(f"  {name + (' NHWC' if channels_last else ''):<11} {W}x{H}  batch {batch}: {dt / steps * 1000:9.1f} ms/step  {ips:8.2f} images/s  "
           f"(process CPU {cpu / (steps * batch) * 1000:.0f} ms/image)")
     return ips, cpu / (steps * batch)
 
@@ -81,6 +85,8 @@ def main() -> None:
     ap.add_argument("--steps-dr50", type=int, default=3, help="0: lite only")
     ap.add_argument("--warmup", type=int, default=1)
     ap.add_argument("--threads", type=int, default=2, help="torch threads on CPU")
+    ap.add_argument("--channels-last", action="store_true",
+                    help="also time lite with channels_last (NHWC) memory on the CPU, and the ratio")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
@@ -89,6 +95,9 @@ def main() -> None:
         print(f"{label}:")
         scale = 1 if device.type == "cpu" else 10
         lite, lite_cpu = measure("lite", args.batch, args.steps_lite * scale, args.warmup, device)
+        if args.channels_last and device.type == "cpu":
+            nhwc, _ = measure("lite", args.batch, args.steps_lite, args.warmup, device, channels_last=True)
+            print(f"  ratio lite NHWC / NCHW: {nhwc / lite:.2f}x images/s (wall)")
         if args.steps_dr50 <= 0:  # lite only (DR-50 on a CPU costs minutes)
             continue
         dr50, dr50_cpu = measure("dope_dr_50", args.batch, args.steps_dr50 * scale, args.warmup, device)
