@@ -602,7 +602,6 @@ class DopePredictor:
 
             if self.mesh is None:
                 self._check_icp_surface()
-
             self._icp_model = sample_surface_points(self._surface(), self.icp_points, seed=0,
                                                     oversample=10, return_normals=True)
         return self._icp_model
@@ -712,9 +711,10 @@ class DopePredictor:
         refined by ICP against ``depth``; ``det`` itself is unchanged. Lets a caller keep both
         the -LS and the -LS + ICP pose without decoding the maps twice (``dope-hope demo``).
         ``image_hw``: (H, W) the depth must have, when known."""
+        K = check_intrinsics(K)
         out = replace(det)
-        self._refine_icp(out, depth, check_intrinsics(K), depth_scale_m, calibration, image_hw)
-        out.projected_2d = project_points(self.cuboid_mesh, check_intrinsics(K), out.R, out.t)
+        self._refine_icp(out, depth, K, depth_scale_m, calibration, image_hw)
+        out.projected_2d = project_points(self.cuboid_mesh, K, out.R, out.t)
         return out
 
     def _refine_icp(self, det: Detection, depth: np.ndarray, K: np.ndarray, depth_scale_m: float,

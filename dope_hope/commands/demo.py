@@ -258,7 +258,7 @@ def run(args: argparse.Namespace) -> int:
             dets_ls = torch_pred.detections_from_maps(belief, affinity, net_in, K, depth=frame.depth)
             timing["torch"] += time.perf_counter() - t0
             t0 = time.perf_counter()
-            dets_icp = [torch_pred.refine_icp(d, frame.depth, K, image_hw=frame.depth.shape[:2]) for d in dets_ls]
+            dets_icp = [torch_pred.refine_icp(d, frame.depth, K, image_hw=frame.rgb.shape[:2]) for d in dets_ls]
             timing["icp"] += time.perf_counter() - t0
             res = SceneResult(name=f"{i:06d}.png")
             if onnx_pred is not None:
