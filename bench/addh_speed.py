@@ -1,7 +1,7 @@
-"""ADD-H time per pose at 500 points: dope_hope.metrics.addh vs plain linear_sum_assignment.
+"""ADD-H time per pose at 500 points: dope_hope.evaluation.metrics.addh vs plain linear_sum_assignment.
 
 Baseline: what the HOPE paper describes — scipy's ``linear_sum_assignment`` on the full
-500 x 500 Euclidean distance matrix. Candidate: :func:`dope_hope.metrics.addh` (exact
+500 x 500 Euclidean distance matrix. Candidate: :func:`dope_hope.evaluation.metrics.addh` (exact
 short-cuts from bounds, then the same solver on a matrix reduced by warm-started dual
 potentials). Both run on the same poses, side by side; every value is checked to agree
 (max |difference| printed). Pose regimes, on HOPE-sized box, cylinder and bottle primitives:
@@ -20,14 +20,14 @@ import statistics
 import time
 
 import numpy as np
+from metric_simulation import hope_shape
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
-from dope_hope import metrics
 from dope_hope.catalog import get_object
+from dope_hope.evaluation import metrics
 from dope_hope.io.meshes import sample_surface_points
-from metric_simulation import hope_shape
 
 REGIMES = {"near": (5.0, 0.01), "moderate": (30.0, 0.03), "arbitrary": (None, 0.10),
            "translation": (0.0, 0.10)}

@@ -7,7 +7,7 @@ Per input size (H x W) it exports the DR-50 checkpoint to a static fp32 ONNX fil
 quantizes it (static INT8, QDQ, per-channel; calibrated on synthetic images prepared like
 the predictor does), then times each backend **in its own subprocess** (batch 1, median of
 ``--runs`` forwards after ``--warmup``): PyTorch eager (``load_model`` + ``model(x)`` under
-``inference_mode``), onnxruntime fp32 and INT8 (:class:`dope_hope.onnx_backend.OnnxBackend`,
+``inference_mode``), onnxruntime fp32 and INT8 (:class:`dope_hope.inference.onnx_backend.OnnxBackend`,
 graph optimization "all"). Peak memory is the subprocess's VmHWM (/proc/self/status; native
 allocations included; tracemalloc would miss them; not ``ru_maxrss``, which Linux carries
 over fork + exec from the parent), next to its RSS after imports.
@@ -73,7 +73,7 @@ def worker(args: argparse.Namespace) -> None:
             with torch.inference_mode():
                 return model(xt)[-1]
     else:
-        from dope_hope.onnx_backend import OnnxBackend
+        from dope_hope.inference.onnx_backend import OnnxBackend
 
         base = _rss_mb()
         backend = OnnxBackend(args.model, threads=args.threads, providers=["CPUExecutionProvider"])
@@ -190,11 +190,11 @@ def int8_deviation(fp32_path: Path, int8_path: Path, images: list[tuple[Path, np
     px), decoded and compared with the clean targets' decoding: what INT8's error would do to
     the sharp, isolated peaks of a trained model (None without ``transfer_sigma``).
     """
-    from dope_hope.export import compare_maps
+    from dope_hope.export.compare import compare_maps
+    from dope_hope.inference.onnx_backend import OnnxBackend
+    from dope_hope.inference.predictor import DopePredictor
     from dope_hope.io.images import read_rgb
-    from dope_hope.onnx_backend import OnnxBackend
-    from dope_hope.predictor import DopePredictor
-    from dope_hope.targets import make_targets
+    from dope_hope.maps.targets import make_targets
 
     fp32, int8 = OnnxBackend(fp32_path), OnnxBackend(int8_path)
     prep = DopePredictor(fp32)
@@ -224,7 +224,7 @@ def lite_keypoints(tmp: Path, n_eval: int) -> tuple:
     from fitted_model import IMAGE_HW, fit_lite_checkpoint, scene
 
     from dope_hope.config import load_config
-    from dope_hope.export import export_checkpoint
+    from dope_hope.export.pipeline import export_checkpoint
     from dope_hope.io.images import write_rgb
 
     rgb, _ = scene()
@@ -256,7 +256,7 @@ def demo_keypoints(tmp: Path, n_calib: int, n_eval: int):
     if not demo.is_file():
         return None
     from dope_hope.demo_object import write_demo_object
-    from dope_hope.export import export_checkpoint
+    from dope_hope.export.pipeline import export_checkpoint
 
     mesh = write_demo_object(tmp / "demo_mesh")
     folders = {}
@@ -296,7 +296,8 @@ def main() -> None:
     import torch
 
     from dope_hope.config import load_config
-    from dope_hope.export import export_checkpoint, quantize_int8
+    from dope_hope.export.int8 import quantize_int8
+    from dope_hope.export.pipeline import export_checkpoint
 
     print(f"torch {torch.__version__}, onnxruntime {onnxruntime.__version__}, {args.threads} threads, "
           f"{os.cpu_count()} CPUs; load average at start {os.getloadavg()[0]:.2f}", flush=True)

@@ -22,11 +22,24 @@ from pathlib import Path
 from tqdm import tqdm
 
 from dope_hope.catalog import category_symmetries
-from dope_hope.commands.demo import DEMO_CONFIG, IMAGE_SIZE, MODEL_POINTS, THRESHOLD_CM, match_detections, pose_errors
+from dope_hope.commands.demo import (
+    DEMO_CONFIG,
+    IMAGE_SIZE,
+    MODEL_POINTS,
+    THRESHOLD_CM,
+    match_detections,
+    pose_errors,
+)
 from dope_hope.commands.infer import DEMO_WEIGHTS
-from dope_hope.demo_object import DEMO_CATEGORY, DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
+from dope_hope.demo_object import (
+    DEMO_CATEGORY,
+    DEMO_CLASS_NAME,
+    demo_object_mesh,
+    write_demo_object,
+)
+from dope_hope.inference.backends import open_backend
+from dope_hope.inference.predictor import DopePredictor
 from dope_hope.io.meshes import sample_surface_points
-from dope_hope.predictor import DopePredictor, open_backend
 from dope_hope.synth import FrameGenerator
 
 SEARCHES = ("hypotheses", "groups")

@@ -2,7 +2,7 @@
 
 A toy task with the real targets: a box with six differently coloured faces (one fixed
 "object"), random pose and size, over clutter, 200x200; belief/affinity targets from
-``dope_hope.targets`` at stride 8. Each network trains for the same wall-clock budget on
+``dope_hope.maps.targets`` at stride 8. Each network trains for the same wall-clock budget on
 ``--threads`` threads (AdamW, lr 2e-3, batch 16, per-stage MSE summed, as configs/lite.yaml),
 then is scored on held-out images: the fraction of the 9 keypoints whose last-stage belief
 peak (3x3 weighted sub-cell refinement) lies within 5 px, and the fraction that land within
@@ -25,10 +25,10 @@ from scipy.spatial.transform import Rotation
 from torch import nn
 
 from dope_hope.geometry import CUBOID_CORNER_SIGNS, cuboid_keypoints, project_points
-from dope_hope.mapgrid import map_to_image
+from dope_hope.maps.grid import map_to_image
+from dope_hope.maps.targets import make_targets
 from dope_hope.model import build_model, normalize_batch
 from dope_hope.model.lite import conv_bn_relu
-from dope_hope.targets import make_targets
 
 SIZE = 200
 STRIDE = 8

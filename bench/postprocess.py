@@ -1,7 +1,7 @@
 """Post-processing speed: decode + PnP per image, and the depth line search (-LS) per object.
 
-Candidate: ``dope_hope.decode.decode_maps`` (vectorized peaks, log-parabola refinement,
-one-to-one assignment) + ``dope_hope.pose.solve_pnp`` (PnP-RANSAC + LM).
+Candidate: ``dope_hope.maps.decode.decode_maps`` (vectorized peaks, log-parabola refinement,
+one-to-one assignment) + ``dope_hope.inference.pnp.solve_pnp`` (PnP-RANSAC + LM).
 Baseline: an official-DOPE-style decoder written here for comparison (a Python loop per
 peak over an 11x11 weighted-average window, Python loops over corner candidates x
 centroids for the affinity test, only complete 9-point objects) + ``cv2.solvePnP``
@@ -18,7 +18,7 @@ commonest error): the search's price in time and what it buys in objects found.
 over the same range in 0.1 % steps (the simple way to do it), same cost function, 640x480
 depth of a ray-cast box, ~4200 surface points.
 
--LS + ICP: ``dope_hope.icp.icp_refine`` with its ten starts (the default: a coarse phase on a
+-LS + ICP: ``dope_hope.refine.icp.icp_refine`` with its ten starts (the default: a coarse phase on a
 thinned scene, four finish) against the same ten starts all on every point (the baseline) and
 against one start, after the line search, per object: the box's depth as above, the input pose turned 20 deg
 (random axis) or 80 deg (about the box's long axis: a lite net's commonest rotation error)
@@ -39,7 +39,6 @@ from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
 from dope_hope.catalog import get_object
-from dope_hope.decode import corner_candidates, decode_maps
 from dope_hope.geometry import (
     cuboid_keypoints,
     intrinsics_matrix,
@@ -47,19 +46,19 @@ from dope_hope.geometry import (
     rotation_error_deg,
     scale_intrinsics,
 )
-from dope_hope.icp import icp_refine
+from dope_hope.inference.pnp import solve_pnp, solve_pnp_candidates
 from dope_hope.io.meshes import sample_surface_points
-from dope_hope.mapgrid import map_to_image
-from dope_hope.pose import (
+from dope_hope.maps.decode import corner_candidates, decode_maps
+from dope_hope.maps.grid import map_to_image
+from dope_hope.maps.targets import make_targets
+from dope_hope.refine.icp import icp_refine
+from dope_hope.refine.line_search import (
     _depth_to_metres,
     _sample_depth,
     auto_splat_px,
     depth_line_search,
-    solve_pnp,
-    solve_pnp_candidates,
     visible_points,
 )
-from dope_hope.targets import make_targets
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the tests' box helpers (one definition)
 from box_depth import box_surface_points, render_box_depth  # noqa: E402

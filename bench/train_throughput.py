@@ -1,6 +1,6 @@
 """Training throughput: lite vs DOPE-DR-50, images/s of full training steps, side by side.
 
-Each model trains with the project's own step (``dope_hope.train.optimizer_step``: forward,
+Each model trains with the project's own step (``dope_hope.training.optimizer_step``: forward,
 per-stage MSE, backward, Adam step) on batches of ``--batch`` images of its config's training
 item size (lite: its 128x128 object-centred crops, ``augment.crop``; DOPE-DR-50 400x400),
 with real belief/affinity targets. A warm-up
@@ -20,10 +20,11 @@ import numpy as np
 import torch
 
 from dope_hope.config import load_config
-from dope_hope.data import AugmentParams, crop_size
+from dope_hope.maps.targets import make_targets
 from dope_hope.model import build_model
-from dope_hope.targets import make_targets
-from dope_hope.train import input_hw, optimizer_step
+from dope_hope.training.augment import AugmentParams, crop_size
+from dope_hope.training.loss import optimizer_step
+from dope_hope.training.settings import input_hw
 
 
 def item_hw(config: dict) -> tuple[int, int]:

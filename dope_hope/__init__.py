@@ -1,9 +1,53 @@
 """dope-hope: DOPE-style 6-DoF pose estimation for the HOPE objects.
 
-Units are metres everywhere inside the package; see ARCHITECTURE.md for the conventions
+What a script needs is here; each name is imported on first use, so ``import dope_hope``
+stays light (no torch, no OpenGL)::
+
+    import dope_hope
+    predictor = dope_hope.DopePredictor("model.pt")        # or an exported .onnx
+    detections = predictor.predict(rgb, K, depth=depth)      # list[dope_hope.Detection]
+    model = dope_hope.build_model("lite")                   # a fresh lite network (packaged config)
+    ketchup = dope_hope.get_object("Ketchup")                # catalog entry (size in metres)
+
+Units are metres everywhere inside the package; see docs/ARCHITECTURE.md for the conventions
 (camera, pose, cuboid keypoint order, file formats).
 """
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from dope_hope.errors import DopeHopeError
 
 __version__ = "0.1.0"
-__all__ = ["DopeHopeError", "__version__"]
+
+#: Public name -> module that defines it (imported lazily by :func:`__getattr__`).
+_LAZY = {
+    "DopePredictor": "dope_hope.inference.predictor",
+    "predict_many": "dope_hope.inference.predictor",
+    "Detection": "dope_hope.inference.detection",
+    "load_model": "dope_hope.model.checkpoint",
+    "build_model": "dope_hope.model.network",
+    "get_object": "dope_hope.catalog",
+    "HOPE_OBJECTS": "dope_hope.catalog",
+}
+
+__all__ = ["DopeHopeError", "Detection", "DopePredictor", "HOPE_OBJECTS", "__version__", "build_model", "get_object",
+           "load_model", "predict_many"]
+
+if TYPE_CHECKING:
+    from dope_hope.catalog import HOPE_OBJECTS, get_object
+    from dope_hope.inference.detection import Detection
+    from dope_hope.inference.predictor import DopePredictor, predict_many
+    from dope_hope.model.checkpoint import load_model
+    from dope_hope.model.network import build_model
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'dope_hope' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

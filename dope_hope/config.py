@@ -1,7 +1,8 @@
 """YAML configs: find them by name, load them, apply command-line overrides.
 
-A config is a plain nested dict. ``load_config("lite")`` reads ``configs/lite.yaml`` from the
-repository; any other argument is a path to a YAML file.
+A config is a plain nested dict. ``load_config("lite")`` reads ``dope_hope/configs/lite.yaml``,
+which ships inside the package (the repository's top-level ``configs`` links to it); any other
+argument is a path to a YAML file.
 """
 from __future__ import annotations
 
@@ -13,8 +14,8 @@ import yaml
 
 from dope_hope.errors import ConfigError, InputFileError
 
-#: The repository's ``configs/`` folder (the package is installed editable, see README).
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+#: The packaged configs (``dope_hope/configs/*.yaml``), found the same way in a wheel install.
+CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 
 
 def config_path(name_or_path: str | Path) -> Path:

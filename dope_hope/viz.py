@@ -167,7 +167,7 @@ def overlay_detections(image: np.ndarray, detections: Sequence, K: np.ndarray,
         image: (H, W, 3) uint8 RGB (the original image the detections refer to).
         detections: objects with ``class_name``, ``score``, ``R`` (3, 3), ``t`` (3,) metres and
             either ``projected_2d`` (9, 2) px or ``cuboid_size_m`` (3,) (+ optional
-            ``cuboid_center_m``), e.g. :class:`dope_hope.predictor.Detection`; an optional
+            ``cuboid_center_m``), e.g. :class:`dope_hope.inference.predictor.Detection`; an optional
             ``ls_applied`` adds "LS" to the label.
         K: (3, 3) intrinsics of ``image``.
         axis_length: axis length in metres (default: half the largest cuboid extent, else 5 cm).
@@ -213,7 +213,7 @@ def belief_montage(belief: np.ndarray, image: np.ndarray | None = None,
     Args:
         belief: (C, h, w) maps (values clipped to [0, 1]) covering the same field of view as
             ``image`` (crop network padding first, e.g. with
-            :meth:`dope_hope.predictor.NetworkInput.maps_on_image`).
+            :meth:`dope_hope.inference.predictor.NetworkInput.maps_on_image`).
         image: optional (H, W, 3) uint8 RGB background (shown in gray).
         names: tile titles (default: "corner 0" .. "corner 7", "centroid" for 9 maps).
         cols: tiles per row. max_side: longer side of a tile, pixels.

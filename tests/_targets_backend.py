@@ -4,7 +4,7 @@
 size). When the predictor hands it a batch, it finds the resized image inside the padding on
 its own (the test images are one uniform colour, which normalizes to non-zero values, while
 the predictor pads with exact zeros), derives the resize factors from that, projects the
-cuboid keypoints with those factors and returns ``dope_hope.targets.make_targets`` maps. So
+cuboid keypoints with those factors and returns ``dope_hope.maps.targets.make_targets`` maps. So
 the predictor's geometry bookkeeping (resize, padding, K scaling, legacy frame) is checked
 against an independent derivation, and a correct pipeline must return the scene's poses.
 """
@@ -13,14 +13,14 @@ from __future__ import annotations
 import numpy as np
 
 from dope_hope.geometry import (
-    LEGACY_KEYPOINT_ORDER,
     KEYPOINT_ORDER,
+    LEGACY_KEYPOINT_ORDER,
     LEGACY_TO_MESH,
     cuboid_keypoints,
     project_points,
 )
+from dope_hope.maps.targets import make_targets
 from dope_hope.model.network import IMAGENET_MEAN, IMAGENET_STD
-from dope_hope.targets import make_targets
 
 
 class TargetsBackend:

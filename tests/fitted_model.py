@@ -55,8 +55,8 @@ def fit_lite_model(rgb: np.ndarray, kp: np.ndarray, input_hw: tuple[int, int], s
     import torch
 
     from dope_hope.config import load_config
+    from dope_hope.maps.targets import make_targets
     from dope_hope.model.network import build_model, normalize_image
-    from dope_hope.targets import make_targets
 
     torch.manual_seed(0)
     cfg = load_config("lite")

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from _targets_backend import TargetsBackend
 from scipy.spatial.transform import Rotation
 
-from _targets_backend import TargetsBackend
 from dope_hope import cli
 from dope_hope.catalog import get_object
 from dope_hope.geometry import rotation_error_deg
@@ -43,7 +43,7 @@ def _run(argv: list[str]) -> tuple[int, str, str]:
 @pytest.fixture(scope="module")
 def bop_root(tmp_path_factory) -> Path:
     """bop/hope/{test/000001 (2 images), test/000002 (1 image), models, test_targets_bop19.json}."""
-    from dope_hope.metrics import DepthRenderer
+    from dope_hope.render.depth import DepthRenderer
 
     root = tmp_path_factory.mktemp("bop") / "bop"
     box = trimesh.creation.box(extents=KETCHUP.size_array)
@@ -84,7 +84,7 @@ def _patch_backend(monkeypatch, distance_factor: float = 1.0) -> list[TargetsBac
         made.append(b)
         return b
 
-    monkeypatch.setattr("dope_hope.predictor.open_backend", fake_open_backend)
+    monkeypatch.setattr("dope_hope.inference.backends.open_backend", fake_open_backend)
     return made
 
 
@@ -125,7 +125,7 @@ def test_icp_corrects_the_rotation_on_the_bop_depth(bop_root, tmp_path, monkeypa
     def fake_open_backend(weights, backend="auto", device="cpu", threads=None):
         return TargetsBackend("Ketchup", KETCHUP.size_array, [(R_GT @ turn, T_GT * 1.05)], K, (H, W))
 
-    monkeypatch.setattr("dope_hope.predictor.open_backend", fake_open_backend)
+    monkeypatch.setattr("dope_hope.inference.backends.open_backend", fake_open_backend)
     ls, icp = tmp_path / "a_hope-test.csv", tmp_path / "b_hope-test.csv"
     assert _run(["bop-submit", "--bop-root", bop_root, "--weights", "k.pt", "--out", ls, "--no-progress"])[0] == 0
     rc, _, stderr = _run(["bop-submit", "--bop-root", bop_root, "--weights", "k.pt", "--out", icp,

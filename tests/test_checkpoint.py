@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import torch
 
+from dope_hope.catalog import get_object
 from dope_hope.config import load_config
 from dope_hope.errors import ModelFileError, UnknownObjectError
-from dope_hope.catalog import get_object
 from dope_hope.geometry import KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER
 from dope_hope.model import IMAGENET_MEAN, IMAGENET_STD, build_model
 from dope_hope.model.checkpoint import (

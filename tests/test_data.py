@@ -1,4 +1,4 @@
-"""dope_hope.data: augmentation keeps keypoints on their pixels, padding, skipping bad files,
+"""dope_hope.training.dataset: augmentation keeps keypoints on their pixels, padding, skipping bad files,
 determinism, keypoint order, sampler."""
 from __future__ import annotations
 
@@ -12,14 +12,28 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
-from dope_hope.data import (PAD_RGB, AugmentParams, DopeDataset, EpochSampler, augment, collate,
-                            convert_keypoint_order, recorded_cuboid_size, scan_frames, split_records)
 from dope_hope.errors import ConfigError, InputFileError
-from dope_hope.geometry import (LEGACY_TO_MESH, cuboid_keypoints, intrinsics_matrix,
-                                legacy_keypoints_to_current, project_points, scale_intrinsics)
+from dope_hope.geometry import (
+    LEGACY_TO_MESH,
+    cuboid_keypoints,
+    intrinsics_matrix,
+    legacy_keypoints_to_current,
+    project_points,
+    scale_intrinsics,
+)
 from dope_hope.io.dope_json import write_dope_json
 from dope_hope.io.images import write_rgb
-from dope_hope.mapgrid import image_to_map
+from dope_hope.maps.grid import image_to_map
+from dope_hope.training.augment import PAD_RGB, AugmentParams, augment
+from dope_hope.training.dataset import (
+    DopeDataset,
+    EpochSampler,
+    collate,
+    convert_keypoint_order,
+    recorded_cuboid_size,
+    scan_frames,
+    split_records,
+)
 
 torch.set_num_threads(1)
 SIZE = np.array([0.06, 0.15, 0.04])
@@ -225,7 +239,7 @@ def test_corrupt_json_is_reported_once_and_skipped(tmp_path, caplog):
     write_frames(tmp_path, 4)
     (tmp_path / "000001.json").write_text('{"objects": [ {"class": ')
     (tmp_path / "000002.json").write_text('{"format": "dope-hope", "objects": [{"class": "Ketchup"}]}')
-    with caplog.at_level(logging.WARNING, logger="dope_hope.data"):
+    with caplog.at_level(logging.WARNING, logger="dope_hope.training.dataset"):
         records, bad = scan_frames([tmp_path], "Ketchup")
         scan_frames([tmp_path], "Ketchup")  # a second scan (e.g. train + val) stays quiet
     assert [r.json_path.name for r in records] == ["000000.json", "000003.json"]
@@ -239,7 +253,7 @@ def test_corrupt_image_is_reported_once_and_replaced(tmp_path, caplog):
     (tmp_path / "000002.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
     records, _ = scan_frames([tmp_path], "Ketchup")
     ds = DopeDataset(records, (64, 64), 8, 1.0, 1.0)
-    with caplog.at_level(logging.WARNING, logger="dope_hope.data"):
+    with caplog.at_level(logging.WARNING, logger="dope_hope.training.dataset"):
         batches = [collate([ds[i] for i in range(4)]) for _ in range(2)]
     assert len([r for r in caplog.records if "000002.png" in r.getMessage()]) == 1
     assert batches[0]["bad_files"] == [str(tmp_path / "000002.png")]

@@ -8,9 +8,19 @@ from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
 from dope_hope.catalog import get_object
-from dope_hope.decode import Instance2D, assign_corners, corner_candidates, decode_maps
-from dope_hope.geometry import cuboid_keypoints, intrinsics_matrix, project_points, scale_intrinsics
-from dope_hope.targets import head_defaults, make_targets
+from dope_hope.geometry import (
+    cuboid_keypoints,
+    intrinsics_matrix,
+    project_points,
+    scale_intrinsics,
+)
+from dope_hope.maps.decode import (
+    Instance2D,
+    assign_corners,
+    corner_candidates,
+    decode_maps,
+)
+from dope_hope.maps.targets import head_defaults, make_targets
 
 # A 640x480 camera seen through a 400x300 network input ("the 400-px scale").
 K400 = scale_intrinsics(intrinsics_matrix(615.0, 615.0, 319.5, 239.5), 400 / 640, 300 / 480)
@@ -154,7 +164,7 @@ def test_a_peak_with_a_shoulder_is_fitted_at_its_raw_maximum_not_the_smoothed_on
     """Smoothing (for detection) moves a skewed peak's cell towards its shoulder; the
     sub-cell fit must still happen around the raw maximum (a trained net's peaks are rarely
     symmetric: fitting at the smoothed cell put keypoints ~1 cell = 8 px off)."""
-    from dope_hope.decode import find_peaks
+    from dope_hope.maps.decode import find_peaks
 
     h, w = 16, 20
     ys, xs = np.mgrid[0:h, 0:w].astype(float)

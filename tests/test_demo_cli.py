@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from fitted_model import DEMO_INPUT_HW, fit_demo_checkpoint
 
 from dope_hope import cli
 from dope_hope.commands import demo as demo_cmd
 from dope_hope.commands import infer as infer_cmd
-from fitted_model import DEMO_INPUT_HW, fit_demo_checkpoint
 
 torch.set_num_threads(1)
 SEED = 11

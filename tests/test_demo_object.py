@@ -3,8 +3,13 @@ import numpy as np
 import trimesh
 
 from dope_hope.catalog import category_symmetries
-from dope_hope.demo_object import (DEMO_CATEGORY, DEMO_SIZE_M, demo_object_mesh, demo_texture,
-                                   write_demo_object)
+from dope_hope.demo_object import (
+    DEMO_CATEGORY,
+    DEMO_SIZE_M,
+    demo_object_mesh,
+    demo_texture,
+    write_demo_object,
+)
 
 
 def test_mesh_is_a_centred_box_of_the_stated_size():

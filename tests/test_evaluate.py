@@ -9,11 +9,22 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dope_hope import evaluate as ev
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
 from dope_hope.catalog import get_object
 from dope_hope.cli import main
 from dope_hope.errors import InputFileError
+from dope_hope.evaluation import metrics
+from dope_hope.evaluation.bop19 import (
+    BOP19_MSSD_THRESHOLDS,
+    BopTarget,
+    bop_mspd_error,
+    bop_mssd_error,
+    bop_recalls,
+)
+from dope_hope.evaluation.datasets import load_dataset
+from dope_hope.evaluation.evaluate import EvalConfig, run_evaluation
+from dope_hope.evaluation.matching import greedy_match
+from dope_hope.evaluation.models import ObjectModel, load_models
 from dope_hope.io.dope_json import write_dope_json
 from dope_hope.io.images import write_depth_mm, write_rgb
 from dope_hope.io.predictions import prediction_record, write_predictions_jsonl
@@ -30,59 +41,59 @@ def rot(axis: str, deg: float) -> np.ndarray:
 def test_greedy_match_takes_estimates_by_descending_score_and_the_least_error_gt():
     errors = np.array([[1.5, 9.0],    # low score: only close to GT 0
                        [1.0, 2.0]])   # high score: closest to GT 0, also close to GT 1
-    m = ev.greedy_match(errors, np.array([0.2, 0.9]), threshold=3.0)
+    m = greedy_match(errors, np.array([0.2, 0.9]), threshold=3.0)
     # the high-scoring estimate takes GT 0; the other one finds GT 1 too far -> unmatched
     assert m.tolist() == [-1, 0]
     # with scores swapped, the first estimate takes GT 0 and the second falls back on GT 1
-    assert ev.greedy_match(errors, np.array([0.9, 0.2]), threshold=3.0).tolist() == [0, 1]
+    assert greedy_match(errors, np.array([0.9, 0.2]), threshold=3.0).tolist() == [0, 1]
 
 
 def test_greedy_match_threshold_is_strict_and_matching_one_to_one():
-    assert ev.greedy_match(np.array([[2.0]]), np.array([1.0]), 2.0).tolist() == [-1]
-    assert ev.greedy_match(np.array([[2.0]]), np.array([1.0]), 2.0 + 1e-9).tolist() == [0]
-    both = ev.greedy_match(np.array([[0.0], [0.0]]), np.array([0.5, 0.6]), 1.0)
+    assert greedy_match(np.array([[2.0]]), np.array([1.0]), 2.0).tolist() == [-1]
+    assert greedy_match(np.array([[2.0]]), np.array([1.0]), 2.0 + 1e-9).tolist() == [0]
+    both = greedy_match(np.array([[0.0], [0.0]]), np.array([0.5, 0.6]), 1.0)
     assert both.tolist() == [-1, 0]
-    assert ev.greedy_match(np.zeros((2, 0)), np.ones(2), 1.0).tolist() == [-1, -1]
+    assert greedy_match(np.zeros((2, 0)), np.ones(2), 1.0).tolist() == [-1, -1]
 
 
 # ----------------------------------------------------------------------------- BOP rules
 def target(errors, scores, vis=None, inst_count=1, kind="mssd"):
     errors = np.asarray(errors, dtype=float)
     vis = np.ones(errors.shape[1]) if vis is None else np.asarray(vis, dtype=float)
-    return ev.BopTarget(inst_count, np.asarray(scores, dtype=float), vis, {kind: errors})
+    return BopTarget(inst_count, np.asarray(scores, dtype=float), vis, {kind: errors})
 
 
 def test_bop_rule_correct_only_strictly_below_the_threshold():
-    rec = ev.bop_recalls([target([[0.1]], [1.0])], "mssd", [0.1, 0.15])
+    rec = bop_recalls([target([[0.1]], [1.0])], "mssd", [0.1, 0.15])
     assert rec.tolist() == [0.0, 1.0]
 
 
 def test_bop_rule_only_the_top_inst_count_estimates_are_evaluated():
     # the best-scoring estimate is wrong, the second one is perfect: inst_count = 1 -> missed
     t = target([[0.5], [0.0]], [0.9, 0.5], inst_count=1)
-    assert ev.bop_recalls([t], "mssd", [0.2]).tolist() == [0.0]
+    assert bop_recalls([t], "mssd", [0.2]).tolist() == [0.0]
     t2 = target([[0.5], [0.0]], [0.9, 0.5], vis=[1.0], inst_count=2)  # 2 evaluated, 1 GT
-    assert ev.bop_recalls([t2], "mssd", [0.2]).tolist() == [1.0]
+    assert bop_recalls([t2], "mssd", [0.2]).tolist() == [1.0]
 
 
 def test_bop_rule_one_to_one_matching():
     # two perfect estimates of the same GT, the other GT far away: one true positive of two
     t = target([[0.0, 1.0], [0.0, 1.0]], [0.9, 0.8], inst_count=2)
-    assert ev.bop_recalls([t], "mssd", [0.2]).tolist() == [0.5]
+    assert bop_recalls([t], "mssd", [0.2]).tolist() == [0.5]
 
 
 def test_bop_rule_only_the_inst_count_most_visible_gt_are_valid():
     # the estimate matches the less visible GT; only the most visible one is a target
     t = target([[0.0, 1.0]], [0.9], vis=[0.2, 0.9], inst_count=1)
-    assert ev.bop_recalls([t], "mssd", [0.2]).tolist() == [0.0]
+    assert bop_recalls([t], "mssd", [0.2]).tolist() == [0.0]
 
 
 def test_bop_recall_pools_targets_and_vsd_has_one_row_per_tau():
     a = target([[0.0]], [1.0])
     b = target([[0.3]], [1.0])
-    np.testing.assert_allclose(ev.bop_recalls([a, b], "mssd", [0.1, 0.5]), [0.5, 1.0])
-    v = ev.BopTarget(1, np.ones(1), np.ones(1), {"vsd": np.array([[[0.0, 0.4, 1.0]]])})
-    rec = ev.bop_recalls([v], "vsd", [0.1, 0.5])
+    np.testing.assert_allclose(bop_recalls([a, b], "mssd", [0.1, 0.5]), [0.5, 1.0])
+    v = BopTarget(1, np.ones(1), np.ones(1), {"vsd": np.array([[[0.0, 0.4, 1.0]]])})
+    rec = bop_recalls([v], "vsd", [0.1, 0.5])
     assert rec.shape == (3, 2)
     assert rec.tolist() == [[1.0, 1.0], [0.0, 1.0], [0.0, 0.0]]
 
@@ -92,27 +103,27 @@ def test_bop_rule_mssd_short_cut_when_translation_error_reaches_the_diameter():
     # puts it exactly onto itself (MSSD 0 with its symmetry), but |t_e - t_g| >= diameter
     o = np.array([0.5, 0.0, 0.0])
     size = np.array([0.04, 0.02, 0.03])
-    pts = ev.metrics.transform_pts(np.random.default_rng(0).uniform(-size / 2, size / 2, (200, 3)),
+    pts = metrics.transform_pts(np.random.default_rng(0).uniform(-size / 2, size / 2, (200, 3)),
                                    np.eye(3), o)
     S = np.eye(4)
     S[:3, :3] = rot("z", 180)
     S[:3, 3] = o - rot("z", 180) @ o  # 180° about the box's own z axis
-    model = ev.ObjectModel("box", None, "cuboid", pts, float(np.linalg.norm(size)),
+    model = ObjectModel("box", None, "cuboid", pts, float(np.linalg.norm(size)),
                            np.stack([np.eye(4), S]))
     R_g, t_g = np.eye(3), np.array([0.0, 0.0, 2.0])
     R_e, t_e = rot("z", 180), t_g + np.array([1.0, 0.0, 0.0])
-    assert ev.metrics.mssd(R_e, t_e, R_g, t_g, pts, model.symmetries) == pytest.approx(0, abs=1e-12)
-    assert ev.bop_mssd_error(R_e, t_e, R_g, t_g, model) == math.inf
+    assert metrics.mssd(R_e, t_e, R_g, t_g, pts, model.symmetries) == pytest.approx(0, abs=1e-12)
+    assert bop_mssd_error(R_e, t_e, R_g, t_g, model) == math.inf
     # below the diameter the error is the normalized MSSD
-    assert ev.bop_mssd_error(R_g, t_g + [0.01, 0, 0], R_g, t_g, model) == pytest.approx(
+    assert bop_mssd_error(R_g, t_g + [0.01, 0, 0], R_g, t_g, model) == pytest.approx(
         0.01 / model.diameter)
 
 
 def test_bop_mspd_is_scaled_to_width_640():
-    model = ev.ObjectModel("box", None, "cuboid", np.array([[0.0, 0, 0], [0.01, 0, 0]]), 0.01,
+    model = ObjectModel("box", None, "cuboid", np.array([[0.0, 0, 0], [0.01, 0, 0]]), 0.01,
                            np.eye(4)[None])
     t = np.array([0.0, 0.0, 1.0])
-    e = ev.bop_mspd_error(np.eye(3), t + [0.01, 0, 0], np.eye(3), t, K, 1280, model)
+    e = bop_mspd_error(np.eye(3), t + [0.01, 0, 0], np.eye(3), t, K, 1280, model)
     assert e == pytest.approx(60.0 * 0.01 * 640 / 1280)
 
 
@@ -126,7 +137,7 @@ GT = {  # frame -> [(class, R, t, visibility)]
 
 def write_dataset(folder, with_depth=False):
     folder.mkdir(parents=True, exist_ok=True)
-    renderer = ev.metrics.DepthRenderer() if with_depth else None
+    renderer = metrics.DepthRenderer() if with_depth else None
     for k, objs in GT.items():
         anns = [ObjectAnnotation(c, R, np.array(t, dtype=float), visibility=v) for c, R, t, v in objs]
         write_rgb(folder / f"{k:06d}.png", np.zeros((H, W, 3), np.uint8))
@@ -240,7 +251,7 @@ def test_end_to_end_bop_average_recall_without_depth(tmp_path):
     data = write_dataset(tmp_path / "data")
     pred_path = tmp_path / "mixed.jsonl"
     write_predictions_jsonl(pred_path, predictions_mixed())
-    s = ev.run_evaluation(ev.EvalConfig(predictions=[pred_path], dataset=data, out=tmp_path / "o",
+    s = run_evaluation(EvalConfig(predictions=[pred_path], dataset=data, out=tmp_path / "o",
                                         bop_ar=True), log=lambda _: None)
     bop = s["methods"]["mixed"]["bop19"]
     assert bop["ar_vsd"] is None and any("AR_VSD skipped" in n for n in bop["notes"])
@@ -248,7 +259,7 @@ def test_end_to_end_bop_average_recall_without_depth(tmp_path):
     assert bop["gt_valid"] == 5
     d_milk = get_object("Milk").diameter
     errs = [0.0, 0.054 / d_milk, 0.0, 0.033 / d_milk]  # MSSD of pure translations / diameter
-    expected = [sum(e < th for e in errs) / 5 for th in ev.BOP19_MSSD_THRESHOLDS]
+    expected = [sum(e < th for e in errs) / 5 for th in BOP19_MSSD_THRESHOLDS]
     np.testing.assert_allclose(bop["recalls"]["mssd"], expected)
     assert bop["ar_mssd"] == pytest.approx(np.mean(expected))
     assert bop["ar"] == pytest.approx((bop["ar_mssd"] + bop["ar_mspd"]) / 2)
@@ -261,7 +272,7 @@ def test_end_to_end_bop_average_recall_with_depth_perfect_predictions(tmp_path):
     perfect = [shifted(k, i, [0, 0, 0]) for k in GT for i in range(len(GT[k]))]
     pred_path = tmp_path / "perfect.jsonl"
     write_predictions_jsonl(pred_path, perfect)
-    s = ev.run_evaluation(ev.EvalConfig(predictions=[pred_path], dataset=data, out=tmp_path / "o",
+    s = run_evaluation(EvalConfig(predictions=[pred_path], dataset=data, out=tmp_path / "o",
                                         bop_ar=True), log=lambda _: None)
     bop = s["methods"]["perfect"]["bop19"]
     assert bop["ar_vsd"] == pytest.approx(1.0)
@@ -269,7 +280,7 @@ def test_end_to_end_bop_average_recall_with_depth_perfect_predictions(tmp_path):
     # move every estimate 30 cm sideways: nothing is correct any more
     far = [shifted(k, i, [0.3, 0, 0]) for k in GT for i in range(len(GT[k]))]
     write_predictions_jsonl(pred_path, far)
-    s = ev.run_evaluation(ev.EvalConfig(predictions=[pred_path], dataset=data, out=tmp_path / "o",
+    s = run_evaluation(EvalConfig(predictions=[pred_path], dataset=data, out=tmp_path / "o",
                                         bop_ar=True), log=lambda _: None)
     assert s["methods"]["perfect"]["bop19"]["ar"] == pytest.approx(0.0)
 
@@ -297,7 +308,7 @@ def test_mesh_models_use_the_mesh_and_centre_the_catalog_symmetries(tmp_path):
     trimesh.creation.cylinder(radius=0.042, height=0.034, sections=48).apply_transform(
         trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0])).apply_translation(
         [0.0, 0.0, 0.01]).export(mesh_path)
-    models = ev.load_models(["Tuna", "Milk"], [str(mesh_path)], mesh_units="m")
+    models = load_models(["Tuna", "Milk"], [str(mesh_path)], mesh_units="m")
     tuna, milk = models["Tuna"], models["Milk"]
     assert tuna.source == f"mesh {mesh_path}" and not tuna.procedural
     assert milk.procedural and milk.source.startswith("procedural cuboid")
@@ -307,13 +318,13 @@ def test_mesh_models_use_the_mesh_and_centre_the_catalog_symmetries(tmp_path):
     # the object about its own (vertical) axis costs nothing under MeanSSD
     R_e = rot("y", 57)
     t_e = np.array([0.0, 0.0, 0.01]) - R_e @ np.array([0.0, 0.0, 0.01])
-    assert ev.metrics.mean_ssd(R_e, t_e, np.eye(3), np.zeros(3), tuna.points,
+    assert metrics.mean_ssd(R_e, t_e, np.eye(3), np.zeros(3), tuna.points,
                                tuna.symmetries) == pytest.approx(0.0, abs=1e-9)
 
 
 def test_dataset_without_frames_is_an_input_error(tmp_path):
     with pytest.raises(InputFileError, match="no dope-format frames"):
-        ev.load_dataset(tmp_path, "dope")
+        load_dataset(tmp_path, "dope")
 
 
 def write_bop_dataset(root):
@@ -344,7 +355,7 @@ def test_bop_dataset_with_targets_file_and_csv_predictions(tmp_path, scores, exp
     csv_path = tmp_path / "mine_hope-test.csv"
     write_bop_csv(csv_path, [BopEstimate(1, 0, 11, s, R, np.array(t), 0.1)
                              for s, (R, t) in zip(scores, poses)])
-    s = ev.run_evaluation(ev.EvalConfig(predictions=[csv_path], dataset=tmp_path / "hope", fmt="bop",
+    s = run_evaluation(EvalConfig(predictions=[csv_path], dataset=tmp_path / "hope", fmt="bop",
                                         out=tmp_path / "o"), log=lambda _: None)
     bop = s["methods"]["mine"]["bop19"]
     assert bop["targets"] == 1 and bop["gt_valid"] == 1

@@ -7,22 +7,19 @@ import numpy as np
 import onnx
 import pytest
 import torch
+from fitted_model import IMAGE_HW, fit_lite_checkpoint, scene
 
 from dope_hope.cli import main
 from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, InputFileError
-from dope_hope.export import (
-    ISAAC_ENCODERS,
-    compare_maps,
-    export_checkpoint,
-    export_model,
-    list_images,
-)
+from dope_hope.export.compare import compare_maps
+from dope_hope.export.int8 import list_images
+from dope_hope.export.pipeline import export_checkpoint
+from dope_hope.export.to_onnx import ISAAC_ENCODERS, export_model
+from dope_hope.inference.onnx_backend import OnnxBackend
 from dope_hope.io.images import write_rgb
 from dope_hope.model.checkpoint import make_object_info, save_checkpoint
 from dope_hope.model.network import IMAGENET_MEAN, IMAGENET_STD, build_model
-from dope_hope.onnx_backend import OnnxBackend
-from fitted_model import IMAGE_HW, fit_lite_checkpoint, scene
 
 torch.set_num_threads(1)
 
@@ -201,7 +198,7 @@ def test_int8_export_stays_close_to_fp32(fitted, tmp_path):
 
 
 def test_compare_maps_measures_keypoint_shift():
-    from dope_hope.targets import make_targets
+    from dope_hope.maps.targets import make_targets
 
     _, kp = scene()
     ref = make_targets(kp[None], IMAGE_HW, 8, sigma=1.0, radius=1.0)

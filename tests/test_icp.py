@@ -1,15 +1,15 @@
-"""Depth ICP (dope_hope.icp): exact box depth in, the pose that made it out; bad depth refused."""
+"""Depth ICP (dope_hope.refine.icp): exact box depth in, the pose that made it out; bad depth refused."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import trimesh
+from box_depth import render_box_depth
 from scipy.spatial.transform import Rotation
 
-from box_depth import render_box_depth
 from dope_hope.geometry import intrinsics_matrix, rotation_error_deg
-from dope_hope.icp import icp_refine, scene_points_under
 from dope_hope.io.meshes import sample_surface_points
+from dope_hope.refine.icp import icp_refine, scene_points_under
 
 K = intrinsics_matrix(600.0, 600.0, 319.5, 239.5)
 HW = (480, 640)

@@ -54,7 +54,7 @@ def test_object_from_file_name_legacy_frame_and_default_output(tmp_path):
     assert ckpt["object"]["size_m"] == pytest.approx(list(get_object("Ketchup").size_array))
     assert "Ketchup.pt" in out and "(catalog)" in out
     # the result is what every other command takes: a predictor opens it
-    from dope_hope.predictor import DopePredictor
+    from dope_hope.inference.predictor import DopePredictor
 
     assert DopePredictor(tmp_path / "Ketchup.pt").legacy
 

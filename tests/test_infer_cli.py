@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 import pytest
 import torch
-
 from _targets_backend import TargetsBackend
+
 from dope_hope import cli
 from dope_hope.geometry import rotation_error_deg
 from dope_hope.io.dope_json import read_dope_json
@@ -71,7 +71,7 @@ def gt_backends(monkeypatch, frame_json: Path, distance_factor: float = 1.0,
         made.append(b)
         return b
 
-    monkeypatch.setattr("dope_hope.predictor.open_backend", fake_open_backend)
+    monkeypatch.setattr("dope_hope.inference.backends.open_backend", fake_open_backend)
     return made
 
 
@@ -110,7 +110,7 @@ def test_single_frame_prints_gt_poses_and_writes_overlay(frames, tmp_path, monke
 
 
 def test_pose_search_flag_reaches_the_predictor(frames, tmp_path, monkeypatch, capsys):
-    from dope_hope.predictor import DopePredictor
+    from dope_hope.inference.predictor import DopePredictor
 
     searches = []
     init = DopePredictor.__init__

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from json_edit import with_field
 from scipy.spatial.transform import Rotation
 
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
@@ -34,7 +35,6 @@ from dope_hope.io.dope_json import (
 )
 from dope_hope.io.images import read_depth_m, read_image_raw
 from dope_hope.io.meshes import load_mesh, mesh_cuboid
-from json_edit import with_field
 
 # The official DOPE NDDS samples were rendered with the FAT camera (512 x 512 crop) and show
 # the YCB cracker box; its cuboid size from the official DOPE config, centimetres.

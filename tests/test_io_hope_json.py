@@ -6,11 +6,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from json_edit import with_field
 from scipy.spatial.transform import Rotation
 
 from dope_hope.errors import InputFileError
 from dope_hope.io.hope_json import list_hope_frames, read_hope_json
-from json_edit import with_field
 
 K = [[1390.53, 0.0, 964.957], [0.0, 1386.99, 522.586], [0.0, 0.0, 1.0]]
 R1 = Rotation.from_euler("xyz", [10, -35, 120], degrees=True).as_matrix()

@@ -117,7 +117,7 @@ def test_ketchup_mesh_matches_catalog_and_y_is_vertical(ketchup):
 
 def test_texture_reaches_pyrender(ketchup):
     """The loaded visuals are what pyrender needs to texture the mesh (no GL context used)."""
-    from dope_hope._gl import import_pyrender
+    from dope_hope.render.gl import import_pyrender
 
     pyrender = import_pyrender()
     prim = pyrender.Mesh.from_trimesh(ketchup).primitives[0]

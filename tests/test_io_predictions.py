@@ -10,7 +10,11 @@ from scipy.spatial.transform import Rotation
 from dope_hope.errors import InputFileError
 from dope_hope.geometry import matrix_to_quaternion_xyzw
 from dope_hope.io.bop_csv import BopEstimate, write_bop_csv
-from dope_hope.io.predictions import prediction_record, read_predictions, write_predictions_jsonl
+from dope_hope.io.predictions import (
+    prediction_record,
+    read_predictions,
+    write_predictions_jsonl,
+)
 
 
 def test_round_trip_with_metadata_and_extra_keys(tmp_path):

@@ -14,8 +14,8 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
-from dope_hope import metrics
 from dope_hope.catalog import category_symmetries
+from dope_hope.evaluation import metrics
 
 I3 = np.eye(3)
 Z3 = np.zeros(3)

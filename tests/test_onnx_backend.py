@@ -9,14 +9,15 @@ import numpy as np
 import onnx
 import pytest
 import torch
+from fitted_model import CLASS_NAME, IMAGE_HW, K, fit_lite_checkpoint, scene
 from onnx import TensorProto, helper
 
 from dope_hope.cli import main
 from dope_hope.errors import ConfigError, ModelFileError
-from dope_hope.export import export_checkpoint
-from dope_hope.onnx_backend import OnnxBackend, OnnxModelInfo
-from dope_hope.predictor import DopePredictor, TorchBackend
-from fitted_model import CLASS_NAME, IMAGE_HW, K, fit_lite_checkpoint, scene
+from dope_hope.export.pipeline import export_checkpoint
+from dope_hope.inference.backends import TorchBackend
+from dope_hope.inference.onnx_backend import OnnxBackend, OnnxModelInfo
+from dope_hope.inference.predictor import DopePredictor
 
 torch.set_num_threads(1)
 

@@ -3,11 +3,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from box_depth import box_surface_points, render_box_depth
 from scipy.spatial.transform import Rotation
 
-from box_depth import box_surface_points, render_box_depth
 from dope_hope.catalog import get_object
-from dope_hope.decode import decode_maps
 from dope_hope.geometry import (
     cuboid_keypoints,
     intrinsics_matrix,
@@ -15,17 +14,16 @@ from dope_hope.geometry import (
     rotation_error_deg,
     scale_intrinsics,
 )
-from dope_hope.pose import (
+from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_candidates
+from dope_hope.maps.decode import decode_maps
+from dope_hope.maps.targets import make_targets
+from dope_hope.refine.line_search import (
     HOPE_REALSENSE_DEPTH_CALIBRATION,
-    PoseEstimate,
     auto_splat_px,
     depth_line_search,
-    solve_pnp,
-    solve_pnp_candidates,
     visible_points,
 )
 from dope_hope.synth.depth_noise import add_realsense_noise
-from dope_hope.targets import make_targets
 
 K640 = intrinsics_matrix(615.0, 615.0, 319.5, 239.5)
 K400 = scale_intrinsics(K640, 400 / 640, 300 / 480)  # the network's 400x300 input
@@ -153,8 +151,7 @@ def test_candidates_find_the_pose_that_the_strongest_peaks_hide():
 
 def test_the_search_stops_at_the_first_hypothesis_that_explains_every_type(monkeypatch):
     import cv2
-
-    import dope_hope.pose as pose_mod
+    import dope_hope.inference.pnp as pose_mod
 
     calls = []
     real = cv2.solvePnP
@@ -205,8 +202,7 @@ def test_candidates_without_a_pose_or_a_centroid_give_none():
 def test_a_pose_behind_the_camera_is_rejected(monkeypatch):
     """Points behind the camera project too (u = fx x / z + cx); such a pose must not pass."""
     import cv2
-
-    import dope_hope.pose as pose_mod
+    import dope_hope.inference.pnp as pose_mod
 
     R = Rotation.random(random_state=4).as_matrix()
     t = np.array([0.02, 0.01, -0.7])

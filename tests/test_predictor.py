@@ -12,10 +12,10 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from scipy.spatial.transform import Rotation
-
 from _targets_backend import TargetsBackend
 from box_depth import render_box_depth
+from scipy.spatial.transform import Rotation
+
 from dope_hope.catalog import get_object
 from dope_hope.config import load_config
 from dope_hope.errors import CameraError, ConfigError, ModelFileError
@@ -27,15 +27,14 @@ from dope_hope.geometry import (
     rotation_error_deg,
     scale_intrinsics,
 )
+from dope_hope.inference.backends import MapBackend, TorchBackend
+from dope_hope.inference.predictor import DopePredictor, predict_many
+from dope_hope.inference.preprocess import DEFAULT_HEIGHT, to_rgb8
 from dope_hope.model import build_model
-from dope_hope.model.checkpoint import import_official, make_object_info, save_checkpoint
-from dope_hope.predictor import (
-    DEFAULT_HEIGHT,
-    DopePredictor,
-    MapBackend,
-    TorchBackend,
-    predict_many,
-    to_rgb8,
+from dope_hope.model.checkpoint import (
+    import_official,
+    make_object_info,
+    save_checkpoint,
 )
 
 torch.set_num_threads(1)
@@ -357,9 +356,9 @@ def test_bad_weights_files(tmp_path):
 
 
 def test_auto_backend_runs_exported_onnx_like_torch(tmp_path):
-    from dope_hope.export import export_model
+    from dope_hope.export.to_onnx import export_model
+    from dope_hope.inference.onnx_backend import OnnxBackend
     from dope_hope.model.checkpoint import load_model
-    from dope_hope.onnx_backend import OnnxBackend
 
     path = tmp_path / "lite.pt"
     save_checkpoint(path, build_model(LITE), LITE, make_object_info("Ketchup"))
@@ -409,7 +408,7 @@ class _SpuriousCentroidBackend(TargetsBackend):
     corner 0, and a weaker stray corner-0 peak whose field points at the true centroid."""
 
     def run(self, batch):
-        from dope_hope.targets import make_targets
+        from dope_hope.maps.targets import make_targets
 
         belief, affinity = super().run(batch)
         Hp, Wp = batch.shape[2:]
@@ -454,7 +453,7 @@ class _ConfusedCornersBackend(TargetsBackend):
     error: which corner is which)."""
 
     def run(self, batch):
-        from dope_hope.targets import make_targets
+        from dope_hope.maps.targets import make_targets
 
         belief, affinity = super().run(batch)
         Hp, Wp = batch.shape[2:]

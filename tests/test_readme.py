@@ -143,9 +143,10 @@ def test_readme_has_every_task_section_and_the_commands_parse():
 
 
 def test_demo_section(tmp_path, monkeypatch):
+    from fitted_model import fit_demo_checkpoint
+
     from dope_hope.commands import demo as demo_cmd
     from dope_hope.commands import infer as infer_cmd
-    from fitted_model import fit_demo_checkpoint
 
     if not demo_cmd.DEMO_WEIGHTS.is_file():  # not shipped yet: a quickly fitted stand-in
         weights = fit_demo_checkpoint(tmp_path / "fit" / "demo_lite.pt", seed=7)

@@ -8,13 +8,13 @@ from scipy.spatial.transform import Rotation
 from dope_hope.catalog import category_symmetries, get_object
 from dope_hope.errors import ConfigError
 from dope_hope.geometry import cuboid_keypoints, intrinsics_matrix, project_points
-from dope_hope.symmetric_labels import (
+from dope_hope.training.settings import symmetry_category
+from dope_hope.training.symmetric_labels import (
     camera_direction,
     canonical_keypoints,
     canonical_permutation,
     corner_permutations,
 )
-from dope_hope.train import symmetry_category
 
 K = intrinsics_matrix(615.0, 615.0, 319.5, 239.5)
 

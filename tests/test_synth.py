@@ -15,7 +15,11 @@ from dope_hope.geometry import cuboid_keypoints, project_points
 from dope_hope.io.dope_json import list_dope_frames, read_dope_json
 from dope_hope.io.images import read_depth_m, read_image_raw, read_rgb
 from dope_hope.io.meshes import load_mesh, mesh_cuboid
-from dope_hope.synth.assets import guess_class_name, list_distractor_meshes, resolve_object_mesh
+from dope_hope.synth.assets import (
+    guess_class_name,
+    list_distractor_meshes,
+    resolve_object_mesh,
+)
 from dope_hope.synth.background import BackgroundSource
 from dope_hope.synth.camera import reference_intrinsics
 from dope_hope.synth.generate import FrameGenerator, generate_dataset

@@ -6,9 +6,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dope_hope.decode import find_peaks
-from dope_hope.mapgrid import image_to_map, map_to_image
-from dope_hope.targets import affinity_fields, belief_maps, head_defaults, make_targets
+from dope_hope.maps.decode import find_peaks
+from dope_hope.maps.grid import image_to_map, map_to_image
+from dope_hope.maps.targets import (
+    affinity_fields,
+    belief_maps,
+    head_defaults,
+    make_targets,
+)
 
 
 def _separated_keypoints(rng, n_inst, hw, min_sep, margin=0.0):

@@ -1,4 +1,4 @@
-"""dope_hope.train + `dope-hope train`: exact resume, Ctrl-C checkpoint, time budget, the
+"""dope_hope.training + `dope-hope train`: exact resume, Ctrl-C checkpoint, time budget, the
 validation metric, bad files, torchrun (2 CPU processes), CLI errors."""
 from __future__ import annotations
 
@@ -16,13 +16,16 @@ from scipy.spatial.transform import Rotation
 
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
 from dope_hope.config import load_config
+from dope_hope.errors import ModelFileError
 from dope_hope.geometry import cuboid_keypoints, intrinsics_matrix, project_points
 from dope_hope.io.dope_json import write_dope_json
 from dope_hope.io.images import write_rgb
-from dope_hope.errors import ModelFileError
+from dope_hope.maps.targets import make_targets
 from dope_hope.model.checkpoint import load_checkpoint
-from dope_hope.targets import make_targets
-from dope_hope.train import LrLambda, TrainJob, keypoint_hits, train, validation_hits
+from dope_hope.training.schedule import LrLambda
+from dope_hope.training.settings import TrainJob
+from dope_hope.training.trainer import train
+from dope_hope.training.validation import keypoint_hits, validation_hits
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parent.parent
@@ -187,8 +190,8 @@ def test_init_starts_from_a_checkpoint_with_a_fresh_schedule(frames, tmp_path):
 def test_symmetry_aware_labels_relabel_the_flipped_views(frames, tmp_path):
     """targets.symmetry auto (Ketchup: bottle, 180° about y): every instance seen from its
     back half gets the front-half labels; the others keep theirs; validation alike."""
-    from dope_hope.symmetric_labels import REFERENCE_VIEW
-    from dope_hope.train import Trainer
+    from dope_hope.training.symmetric_labels import REFERENCE_VIEW
+    from dope_hope.training.trainer import Trainer
 
     plain = Trainer(TrainJob([frames], "Ketchup", tmp_path / "a", progress=False, overrides=_overrides()),
                     load_config("lite"))
@@ -270,7 +273,7 @@ def test_torchrun_two_cpu_processes_write_one_checkpoint(frames, tmp_path):
 
 # ----------------------------------------------------------------------------- losses
 def test_foreground_weight_makes_a_missed_peak_cost_more_than_a_false_one():
-    from dope_hope.train import stage_loss
+    from dope_hope.training.loss import stage_loss
 
     target_b = torch.zeros(1, 9, 8, 8)
     target_b[0, 0, 4, 4] = 1.0

@@ -11,7 +11,7 @@ BOP_ROOT/DATASET/test_targets_bop19.json: only the targeted images are processed
 models of its targeted objects (a model's object: the HOPE catalog's obj_id of its class, or a
 class named obj_NNNNNN). Poses are refined with the depth line search (-LS) on the split's
 depth images unless --no-depth; the line search uses BOP_ROOT/DATASET/models/obj_NNNNNN.ply
-(or --models-dir) when found; --icp adds the depth ICP after it (all six DoF, dope_hope/icp.py).
+(or --models-dir) when found; --icp adds the depth ICP after it (all six DoF, dope_hope/refine/icp.py).
 Every estimate is written with its score and the image's total
 time (reading + all models, seconds), t in millimetres (io/bop_csv.py). Evaluate it with
   dope-hope evaluate -p dopehope-lite_hope-test.csv -d bop/hope --format bop --models-dir bop/hope/models
@@ -84,10 +84,15 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from dope_hope.errors import ConfigError, InputFileError
+    from dope_hope.inference.backends import open_backend
+    from dope_hope.inference.predictor import DopePredictor, predict_many
     from dope_hope.io.bop import iter_bop_split, list_bop_scenes, read_test_targets
-    from dope_hope.io.bop_csv import BopEstimate, parse_bop_result_filename, write_bop_csv
+    from dope_hope.io.bop_csv import (
+        BopEstimate,
+        parse_bop_result_filename,
+        write_bop_csv,
+    )
     from dope_hope.io.images import read_depth_m, read_rgb
-    from dope_hope.predictor import DopePredictor, open_backend, predict_many
 
     parse_bop_result_filename(args.out)  # fail before any work
     if args.icp and args.no_depth:

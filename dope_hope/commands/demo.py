@@ -6,7 +6,7 @@ runs the model through PyTorch and through onnxruntime (exported once to OUT/<we
 and reused while the weights are unchanged), refines the distance with the depth line search
 (-LS), and prints each detection next to the ground truth: translation and rotation error,
 ADD-H and MeanSSD (500 model points, the cuboid category's symmetries) without -LS, with -LS
-and with -LS + ICP (dope_hope/icp.py: the whole pose refined against the depth), and how
+and with -LS + ICP (dope_hope/refine/icp.py: the whole pose refined against the depth), and how
 closely the ONNX keypoints agree with PyTorch's. Ends with
 "found N/10 scenes with ADD-H < 2 cm (with -LS; ...)".
 
@@ -67,7 +67,7 @@ def ensure_onnx(weights: Path, out_dir: Path, input_hw: tuple[int, int]) -> tupl
     """Export ``weights`` to ``out_dir/<stem>.onnx`` at the fixed input (H, W) unless an export
     of the same weights (SHA-256) at that size is already there. Returns (path, exported)."""
     from dope_hope import __version__
-    from dope_hope.export import export_checkpoint
+    from dope_hope.export.pipeline import export_checkpoint
     from dope_hope.io.atomic import atomic_write_text
 
     onnx_path = out_dir / f"{weights.stem}.onnx"
@@ -100,7 +100,7 @@ def pose_errors(R, t, R_gt, t_gt, points, symmetries) -> PoseErrors:
     """``points`` (N, 3) model points (m); ``symmetries`` (S, 4, 4) model-frame transforms."""
     import numpy as np
 
-    from dope_hope.metrics import addh, mean_ssd, re, te
+    from dope_hope.evaluation.metrics import addh, mean_ssd, re, te
 
     rot = min(re(R, R_gt @ S[:3, :3]) for S in np.asarray(symmetries))
     return PoseErrors(te_cm=100.0 * te(t, t_gt), re_deg=rot,
@@ -207,10 +207,11 @@ def run(args: argparse.Namespace) -> int:
         raise ModelFileError(weights, "weights file not found")
 
     from dope_hope.geometry import cuboid_keypoints, project_points
+    from dope_hope.inference.backends import open_backend
+    from dope_hope.inference.predictor import DopePredictor
     from dope_hope.io.images import write_rgb
     from dope_hope.io.meshes import sample_surface_points
     from dope_hope.io.predictions import write_predictions_jsonl
-    from dope_hope.predictor import DopePredictor, open_backend
     from dope_hope.synth import FrameGenerator
     from dope_hope.synth.writer import write_frame
     from dope_hope.viz import draw_cuboid, draw_label, montage, overlay_detections

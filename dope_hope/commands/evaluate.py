@@ -3,7 +3,7 @@ detection rate vs threshold (PNG + CSV) and, for BOP data or with --bop-ar, the 
 average recall (AR_VSD, AR_MSSD, AR_MSPD).
 
 Predictions: JSON lines as printed by `dope-hope infer` (one detection per line: image,
-class, score, R or quaternion_xyzw, t in metres; see dope_hope/evaluate.py), or a BOP19
+class, score, R or quaternion_xyzw, t in metres; see dope_hope/evaluation/), or a BOP19
 submission CSV. Several files (methods) can be compared in one run.
 """
 from __future__ import annotations
@@ -42,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dope_hope.evaluate import EvalConfig, run_evaluation
+    from dope_hope.evaluation.evaluate import EvalConfig, run_evaluation
 
     cfg = EvalConfig(predictions=list(args.predictions), dataset=args.dataset, fmt=args.format,
                      metrics=[m.strip().lower() for m in args.metric.split(",") if m.strip()],

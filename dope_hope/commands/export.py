@@ -50,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dope_hope.export import export_checkpoint
+    from dope_hope.export.pipeline import export_checkpoint
 
     res = export_checkpoint(args.weights, args.out, height=args.height, width=args.width,
                             dynamic=args.dynamic, layout=args.layout, int8=args.int8,

@@ -26,7 +26,7 @@ NNNNNN.depth.png, HOPE NNNN_depth.png, BOP ../depth/NNNNNN.png); images without 
 processed without -LS. --depth-scale gives millimetres per depth unit (BOP convention; default:
 the annotation's, else 1 = uint16 millimetres); float depth images (EXR) are metres. --icp
 (needs --depth) then refines the whole pose, rotation included, by ICP against the depth
-("-LS + ICP", dope_hope/icp.py); each record says whether it was applied (icp_applied,
+("-LS + ICP", dope_hope/refine/icp.py); each record says whether it was applied (icp_applied,
 icp_reason).
 """
 from __future__ import annotations
@@ -211,7 +211,8 @@ def _find_mesh(folder: Path, class_name: str) -> Path:
 
 def build_predictors(args: argparse.Namespace, weights: list[Path]):
     from dope_hope.errors import ConfigError
-    from dope_hope.predictor import DopePredictor, open_backend
+    from dope_hope.inference.backends import open_backend
+    from dope_hope.inference.predictor import DopePredictor
 
     meshes = list(args.mesh or [])
     mesh_dir = None
@@ -263,10 +264,11 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from dope_hope.errors import CameraError, ConfigError, InputFileError
+    from dope_hope.inference.predictor import predict_many
+    from dope_hope.inference.preprocess import to_rgb8
     from dope_hope.io.camera import camera_search_description, find_image_camera
     from dope_hope.io.images import read_depth_m, read_image_raw, write_rgb
     from dope_hope.io.predictions import write_predictions_jsonl
-    from dope_hope.predictor import predict_many, to_rgb8
     from dope_hope.viz import belief_montage, overlay_detections
 
     if args.height is not None and args.height < 8:

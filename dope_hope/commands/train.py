@@ -58,7 +58,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from dope_hope.config import apply_overrides, load_config
     from dope_hope.errors import ConfigError, InputFileError
-
     from dope_hope.io.dope_json import list_dope_frames
 
     for folder in [*(args.data or []), *args.val]:  # fail fast, before importing torch
@@ -66,7 +65,8 @@ def run(args: argparse.Namespace) -> int:
             raise InputFileError(folder, "data folder not found")
         if not list_dope_frames(folder):
             raise InputFileError(folder, "no DOPE frames (NNNNNN.json beside an image) in this folder")
-    from dope_hope.train import TrainJob, train
+    from dope_hope.training.settings import TrainJob
+    from dope_hope.training.trainer import train
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     resume: Path | None = None
@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         if candidate.is_file():
             resume = candidate
         else:
-            logging.getLogger("dope_hope.train").info("--resume: %s does not exist yet, starting fresh", candidate)
+            logging.getLogger("dope_hope.training").info("--resume: %s does not exist yet, starting fresh", candidate)
     elif args.resume is not None:
         resume = Path(args.resume)
         if not resume.is_file():

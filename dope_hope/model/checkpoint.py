@@ -33,7 +33,12 @@ from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, ModelFileError
 from dope_hope.geometry import KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER
 from dope_hope.io.atomic import atomic_path
-from dope_hope.model.network import IMAGENET_MEAN, IMAGENET_STD, DopeNetwork, build_model
+from dope_hope.model.network import (
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    DopeNetwork,
+    build_model,
+)
 
 CHECKPOINT_FORMAT = "dope-hope-checkpoint"
 FORMAT_VERSION = 1

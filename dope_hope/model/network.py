@@ -2,7 +2,7 @@
 
 Input: ImageNet-normalized RGB, (N, 3, H, W) float32 with H, W divisible by 8. Output: a list
 with one ``(belief (N, 9, h, w), affinity (N, 16, h, w))`` pair per stage (deep supervision);
-``h, w = dope_hope.mapgrid.map_size((H, W), model.stride)``.
+``h, w = dope_hope.maps.grid.map_size((H, W), model.stride)``.
 
 Parameter names follow the official DOPE checkpoints (NVlabs/Deep_Object_Pose, class
 ``DopeNetwork``), so an official ``.pth`` loads with ``strict=True``:
@@ -120,7 +120,7 @@ class UpsamplingDecoder(nn.Module):
     at once and fine-tunes from there). The feature reduction runs once, not per stage.
 
     Bilinear with ``align_corners=False`` puts map cell j's centre at image ``8j + 3.5``,
-    the convention of :mod:`dope_hope.mapgrid`.
+    the convention of :mod:`dope_hope.maps.grid`.
     """
 
     def __init__(self, feature_channels: int = FEATURE_CHANNELS, reduce_channels: int = 32,
@@ -248,14 +248,18 @@ def model_section(config: dict[str, Any]) -> dict[str, Any]:
     return config
 
 
-def build_model(config: dict[str, Any], load_backbone: bool = True) -> DopeNetwork:
-    """Build a DopeNetwork from a full config or its ``model`` section.
+def build_model(config: dict[str, Any] | str, load_backbone: bool = True) -> DopeNetwork:
+    """Build a DopeNetwork from a config name (``"lite"``, ``"dope_dr_50"``, ``"dope_dr_400"``:
+    the packaged YAML files), a full config or its ``model`` section.
 
     Keys: ``arch`` (dope|lite), ``head`` (50|400, lite 50|100), ``stages``, ``decoder``
     (head 400), ``lite`` (arch lite); unknown keys raise ConfigError. ``backbone_weights``: a
     LOCAL torchvision VGG19 state-dict file loaded into the trunk when ``load_backbone``
     (nothing is ever downloaded; checkpoint loading passes False, its weights win).
     """
+    if isinstance(config, str):
+        from dope_hope.config import load_config
+        config = load_config(config)
     m = dict(model_section(config))
     backbone = m.pop("backbone_weights", None)
     known = {"arch", "head", "stages", "decoder", "lite"}

@@ -18,7 +18,13 @@ Modules, one job each:
 Importing this package does not import OpenGL; rendering starts it on first use.
 """
 from dope_hope.synth.depth_noise import add_realsense_noise
-from dope_hope.synth.generate import FrameGenerator, GenerateSummary, SynthFrame, generate_dataset, render_frame
+from dope_hope.synth.generate import (
+           FrameGenerator,
+           GenerateSummary,
+           SynthFrame,
+           generate_dataset,
+           render_frame,
+)
 
 __all__ = ["FrameGenerator", "GenerateSummary", "SynthFrame", "add_realsense_noise", "generate_dataset",
            "render_frame"]

@@ -14,7 +14,6 @@ from dope_hope.io.images import IMAGE_SUFFIXES, image_files, read_rgb
 from dope_hope.synth.textures import procedural_image
 
 
-
 def list_images(folder: str | os.PathLike) -> list[Path]:
     """Image files under ``folder`` (recursive), sorted so that indices are reproducible."""
     folder = Path(folder)

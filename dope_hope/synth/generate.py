@@ -20,7 +20,12 @@ from dope_hope import __version__
 from dope_hope.annotation import FrameAnnotation
 from dope_hope.errors import ConfigError
 from dope_hope.synth.annotate import InstanceStats, annotate_frame
-from dope_hope.synth.assets import DistractorLibrary, MeshAsset, guess_class_name, list_distractor_meshes
+from dope_hope.synth.assets import (
+    DistractorLibrary,
+    MeshAsset,
+    guess_class_name,
+    list_distractor_meshes,
+)
 from dope_hope.synth.background import BackgroundSource
 from dope_hope.synth.depth_noise import add_realsense_noise, noise_kwargs
 from dope_hope.synth.postprocess import composite, post_process

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from dope_hope._gl import import_pyrender
+from dope_hope.render.gl import import_pyrender
 from dope_hope.synth.assets import MeshAsset
 from dope_hope.synth.scene import MaterialSpec
 

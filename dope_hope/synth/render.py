@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dope_hope._gl import import_pyrender
 from dope_hope.geometry import cuboid_keypoints, project_points
+from dope_hope.render.gl import import_pyrender
 from dope_hope.synth.scene import LightSpec, ObjectSpec, SceneSpec
 
 pyrender = import_pyrender()
@@ -141,7 +141,12 @@ class SceneRenderer:
         if display is None or context is None:  # not EGL: pyrender's own cleanup is safe
             r.delete()
             return
-        from OpenGL.EGL import EGL_NO_CONTEXT, EGL_NO_SURFACE, eglDestroyContext, eglMakeCurrent
+        from OpenGL.EGL import (
+            EGL_NO_CONTEXT,
+            EGL_NO_SURFACE,
+            eglDestroyContext,
+            eglMakeCurrent,
+        )
 
         platform.make_current()
         r._renderer.delete()

@@ -17,7 +17,7 @@ Pipeline (all channels at once, no Python loops over pixels):
    map border the stencil is shifted inwards (one-sided fit), so a keypoint whose Gaussian
    centre lies *outside* the map is recognised as such and dropped: only positions inside
    ``[-0.5, w - 0.5] x [-0.5, h - 0.5]`` map px are kept. The continuous map position then
-   goes through :func:`dope_hope.mapgrid.map_to_image`, the inverse of what ``targets``
+   goes through :func:`dope_hope.maps.grid.map_to_image`, the inverse of what ``targets``
    used: no other offset anywhere (DOPE's ``OFFSET_DUE_TO_UPSAMPLING = 0.4395`` is not needed).
 3. **Grouping.** Every centroid peak (channel 8) starts an instance. For corner type k, each
    corner peak reads the affinity vector ``v`` at its cell; for each centroid ``c`` the
@@ -30,11 +30,11 @@ Pipeline (all channels at once, no Python loops over pixels):
    do not steal each other's corners, and a weak secondary peak next to the centroid does not
    displace the strong true corner. The field gives only a direction (no length), so the
    centroid distance is the only distance cue.
-4. **Candidates** (:func:`corner_candidates`, what :class:`dope_hope.predictor.DopePredictor`
+4. **Candidates** (:func:`corner_candidates`, what :class:`dope_hope.inference.predictor.DopePredictor`
    uses by default): instead of committing to one peak per corner type, each centroid keeps
    up to ``max_per_type`` feasible peaks of every type (the one-to-one grouping's choice
    first, then strongest, nearest among equals), shared with other centroids;
-   :func:`dope_hope.pose.solve_pnp_candidates` then picks the combination that a rigid cuboid
+   :func:`dope_hope.inference.pnp.solve_pnp_candidates` then picks the combination that a rigid cuboid
    explains. A trained net often puts a second peak of map k on another corner
    of the same box (corner identity is the hard part); the grouping above must guess, the
    pose search need not.
@@ -54,7 +54,7 @@ from scipy.ndimage import gaussian_filter, label, maximum_filter
 from scipy.optimize import linear_sum_assignment
 
 from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
-from dope_hope.mapgrid import map_to_image
+from dope_hope.maps.grid import map_to_image
 
 #: Official DOPE ``config_pose.yaml`` values, for reference: thresh_map 0.01 (peak detection
 #: on the smoothed map), thresh_points 0.1 (a peak is used), thresh_angle 0.5, sigma 3.

@@ -1,28 +1,21 @@
 """The training loop: data, loss, optimizer + schedule, validation, checkpoints, resume, DDP.
 
-:func:`train` runs one job described by :class:`TrainJob` and a full config (sections
-``model``, ``input``, ``targets``, ``train``, ``augment``; see ``configs/lite.yaml``).
+:func:`train` runs one job described by :class:`~dope_hope.training.settings.TrainJob` and a
+full config (sections ``model``, ``input``, ``targets``, ``train``, ``augment``; see
+``dope_hope/configs/lite.yaml``).
 
-* Loss: per stage, ``belief_weight * MSE(belief) + affinity_weight * MSE(affinity)``, summed
-  over stages (DOPE's deep supervision).
-* Optimizer Adam/AdamW; schedule ``constant | cosine | step`` with linear warm-up, as a
-  :class:`torch.optim.lr_scheduler.LambdaLR` whose horizon is the total number of steps (or,
-  under a time limit without an explicit step/epoch count, an estimate from the measured speed
-  that is refined after every epoch, so that the cosine reaches its floor when time runs out).
+* Optimizer Adam/AdamW; schedule in :mod:`~dope_hope.training.schedule`; loss in
+  :mod:`~dope_hope.training.loss`.
 * Validation after every epoch on held-out frames (``--val`` or a seeded split): loss and the
-  keypoint accuracy (fraction of visible GT keypoints with a prediction of the same keypoint
-  index within ``val_radius_px`` = 5 px at input scale; see :func:`keypoint_hits`).
+  keypoint accuracy (:mod:`~dope_hope.training.validation`).
 * Determinism and resume: the data order is a function of (seed, epoch) (EpochSampler), every
   item of (seed, epoch, index); a checkpoint records model, optimizer, scheduler, step, epoch,
   the batch position inside the epoch and the python/numpy/torch RNG states, so an interrupted
   CPU run resumed from its checkpoint ends with the same weights as an uninterrupted one.
 * Ctrl-C / SIGTERM: finish the current step, write ``last.pt``, return ``interrupted``.
-* torchrun: DistributedDataParallel (gloo on CPU, nccl on CUDA) from RANK / WORLD_SIZE /
-  LOCAL_RANK; rank 0 alone logs and writes checkpoints.
 """
 from __future__ import annotations
 
-import csv
 import json
 import logging
 import math
@@ -30,363 +23,38 @@ import os
 import random
 import signal
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 import torch.distributed as dist
-import torch.nn.functional as F
 from torch import nn
 
 from dope_hope.config import merge
-from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
-from dope_hope.geometry import KEYPOINT_ORDER, NUM_KEYPOINTS
-from dope_hope.mapgrid import map_to_image
-from dope_hope.model.checkpoint import load_checkpoint, restore_rng_state, save_checkpoint
+from dope_hope.errors import ConfigError, InputFileError
+from dope_hope.geometry import KEYPOINT_ORDER
+from dope_hope.model.checkpoint import (
+    load_checkpoint,
+    restore_rng_state,
+    save_checkpoint,
+)
+from dope_hope.training.distributed import init_distributed
+from dope_hope.training.loss import optimizer_step, stage_loss
+from dope_hope.training.metrics_log import MetricsLog
+from dope_hope.training.schedule import LrLambda
+from dope_hope.training.settings import (
+    TrainJob,
+    input_hw,
+    object_info,
+    symmetry_category,
+    train_settings,
+)
+from dope_hope.training.validation import validation_hits
 
 log = logging.getLogger(__name__)
 
-#: Defaults of the ``train`` section (a config's values override them).
-TRAIN_DEFAULTS: dict[str, Any] = {
-    "batch_size": 16, "epochs": 30, "steps": None, "time_limit_min": None,
-    "optimizer": "adam", "lr": 1e-4, "weight_decay": 0.0, "betas": [0.9, 0.999],
-    "schedule": "constant", "warmup_steps": 0, "min_lr_factor": 0.01,
-    "step_epochs": 20, "step_gamma": 0.1,
-    "grad_clip": None, "loss": "mse", "belief_weight": 1.0, "affinity_weight": 1.0,
-    "foreground_weight": 0.0,
-    "workers": 2, "threads": None, "checkpoint_every": 1, "checkpoint_every_steps": 0,
-    "amp": True, "channels_last": True, "seed": 0,
-    "val_fraction": 0.1, "val_every": 1, "val_radius_px": 5.0, "val_peak_threshold": 0.1,
-    "val_batch_size": None, "max_instances": 8, "min_visibility": 0.0,
-    "include_empty_frames": True, "log_every": 20, "horizon_estimate_after": 20,
-}
 
-
-# =============================================================================== job + config
-@dataclass
-class TrainJob:
-    """What one ``dope-hope train`` call asks for (the config holds the recipe).
-
-    Attributes:
-        data: training folders (DOPE format).
-        object_name: class to train (case-insensitive match against the annotations).
-        out: output folder (checkpoints, metrics.csv / metrics.jsonl, summary.json).
-        val: validation folders, or empty for a seeded split of ``data``.
-        resume: checkpoint to continue from, or None.
-        mesh: optional mesh whose AABB gives the cuboid size recorded in the checkpoint.
-        backbone_weights: optional local VGG19 state dict (arch dope).
-        init_weights: optional dope-hope checkpoint whose network weights start this run
-            (fine-tuning: fresh optimizer, schedule and step count; same architecture).
-        device: "auto" (CUDA when available), "cpu" or "cuda[:i]".
-        progress: show tqdm bars (rank 0).
-        overrides: nested config values set on the command line (``--epochs``, ``--set``...);
-            merged over the given config, or over the checkpoint's config when resuming.
-        on_step: hook called with (trainer, step) after every optimizer step (tests use it to
-            interrupt a run at a given step).
-    """
-
-    data: list[Path]
-    object_name: str
-    out: Path
-    val: list[Path] = field(default_factory=list)
-    resume: Path | None = None
-    mesh: Path | None = None
-    backbone_weights: Path | None = None
-    init_weights: Path | None = None
-    device: str = "auto"
-    progress: bool = True
-    overrides: dict[str, Any] = field(default_factory=dict)
-    on_step: Callable[[Trainer, int], None] | None = None
-
-
-def train_settings(config: dict[str, Any]) -> dict[str, Any]:
-    """The ``train`` section over :data:`TRAIN_DEFAULTS`; unknown keys raise ConfigError."""
-    section = dict(config.get("train") or {})
-    unknown = sorted(set(section) - set(TRAIN_DEFAULTS))
-    if unknown:
-        raise ConfigError(f"train: unknown key(s) {', '.join(unknown)}")
-    out = {**TRAIN_DEFAULTS, **section}
-    if out["schedule"] not in ("constant", "cosine", "step"):
-        raise ConfigError(f"train.schedule must be constant, cosine or step, got {out['schedule']!r}")
-    if out["optimizer"] not in ("adam", "adamw"):
-        raise ConfigError(f"train.optimizer must be adam or adamw, got {out['optimizer']!r}")
-    if out["loss"] != "mse":
-        raise ConfigError(f"train.loss must be mse, got {out['loss']!r}")
-    if int(out["batch_size"]) < 1:
-        raise ConfigError(f"train.batch_size must be >= 1, got {out['batch_size']!r}")
-    return out
-
-
-def input_hw(config: dict[str, Any]) -> tuple[int, int]:
-    """(H, W) training input size from ``input.size``."""
-    size = (config.get("input") or {}).get("size")
-    if size is None or len(size) != 2:
-        raise ConfigError("config needs input.size: [H, W]")
-    h, w = int(size[0]), int(size[1])
-    if h % 8 or w % 8 or h <= 0 or w <= 0:
-        raise ConfigError(f"input.size {size} must be positive multiples of 8")
-    return h, w
-
-
-# =============================================================================== schedule
-class LrLambda:
-    """Picklable lr factor of step: linear warm-up, then constant / cosine / step decay.
-
-    ``horizon`` (total steps) may be updated while training (time-limited runs); it is part
-    of the scheduler's state dict, so a resumed run continues with the same schedule.
-    """
-
-    def __init__(self, kind: str, horizon: int, warmup: int = 0, min_factor: float = 0.01,
-                 step_every: int = 1000, gamma: float = 0.1):
-        self.kind, self.horizon, self.warmup = kind, int(max(1, horizon)), int(warmup)
-        self.min_factor, self.step_every, self.gamma = float(min_factor), int(max(1, step_every)), float(gamma)
-
-    def __call__(self, step: int) -> float:
-        if self.warmup > 0 and step < self.warmup:
-            return (step + 1) / self.warmup
-        if self.kind == "cosine":
-            span = max(1, self.horizon - self.warmup)
-            p = min(1.0, (step - self.warmup) / span)
-            return self.min_factor + (1 - self.min_factor) * 0.5 * (1 + math.cos(math.pi * p))
-        if self.kind == "step":
-            return self.gamma ** (step // self.step_every)
-        return 1.0
-
-
-# =============================================================================== metrics
-def keypoint_hits(predicted: Sequence[np.ndarray], gt: np.ndarray, radius_px: float) -> tuple[int, int]:
-    """Count visible GT keypoints that a prediction of the same index finds.
-
-    Each predicted point of keypoint index k is matched to the nearest GT instance's keypoint
-    k; a GT keypoint is found when a point matched to it lies within ``radius_px``.
-
-    Args:
-        predicted: 9 arrays (m_k, 2) of predicted image pixels for keypoints 0..8.
-        gt: (I, 9, 2) GT image pixels, NaN = absent / outside the image.
-        radius_px: hit radius, input-image pixels.
-
-    Returns:
-        (found, visible).
-    """
-    found = visible = 0
-    for k in range(NUM_KEYPOINTS):
-        g = gt[:, k]
-        g = g[np.all(np.isfinite(g), axis=1)]
-        visible += len(g)
-        p = np.asarray(predicted[k], dtype=np.float64).reshape(-1, 2)
-        p = p[np.all(np.isfinite(p), axis=1)]
-        if len(g) == 0 or len(p) == 0:
-            continue
-        d = np.linalg.norm(p[:, None, :] - g[None, :, :], axis=2)  # (m, I)
-        nearest = d.argmin(1)
-        hit = np.zeros(len(g), bool)
-        close = d[np.arange(len(p)), nearest] <= radius_px
-        hit[nearest[close]] = True
-        found += int(hit.sum())
-    return found, visible
-
-
-def validation_hits(belief: np.ndarray, affinity: np.ndarray, gt: np.ndarray, stride: int,
-                    radius_px: float, threshold: float) -> tuple[int, int, int, int]:
-    """Keypoint hits of one image, two ways: (found, visible) for the raw belief peaks and for
-    the instances of :func:`dope_hope.decode.decode_maps`.
-
-    Both keep as many predictions as the image has GT instances with a visible keypoint (the
-    strongest peaks per keypoint index; the best-scoring decoded instances), so that a map
-    full of spurious peaks cannot score by chance.
-
-    Args:
-        belief: (9, h, w); affinity: (16, h, w); gt: (I, 9, 2) input pixels, NaN = not visible.
-        stride: map stride; radius_px: hit radius, input pixels; threshold: peak threshold.
-    """
-    from dope_hope.decode import decode_maps, find_peaks
-
-    n_inst = max(1, int(np.any(np.all(np.isfinite(gt), axis=2), axis=1).sum()))
-    peaks = find_peaks(belief, threshold)
-    pred = []
-    for k in range(NUM_KEYPOINTS):
-        sel = np.flatnonzero(peaks.channel == k)
-        sel = sel[np.argsort(-peaks.score[sel])[:n_inst]]
-        pred.append(map_to_image(peaks.xy[sel], stride))
-    found, visible = keypoint_hits(pred, gt, radius_px)
-    instances = decode_maps(belief, affinity, stride, threshold=threshold)[:n_inst]
-    pred_d = [np.array([inst.keypoints[k] for inst in instances]).reshape(-1, 2) for k in range(NUM_KEYPOINTS)]
-    found_d, visible_d = keypoint_hits(pred_d, gt, radius_px)
-    return found, visible, found_d, visible_d
-
-
-# =============================================================================== helpers
-def stage_loss(outputs: list[tuple[torch.Tensor, torch.Tensor]], belief: torch.Tensor,
-               affinity: torch.Tensor, belief_weight: float = 1.0, affinity_weight: float = 1.0,
-               foreground_weight: float = 0.0) -> torch.Tensor:
-    """Sum over stages of ``belief_weight * MSE(belief) + affinity_weight * MSE(affinity)``, in
-    float32.
-
-    ``foreground_weight`` f > 0 weights each belief cell by ``1 + f * target`` and each affinity
-    cell inside a corner's disk by ``1 + f``: the Gaussian peaks cover ~1 % of the cells, so a
-    plain MSE is dominated by the zero background and learns the peaks (and which corner is
-    which) slowly. f = 0 is the official plain MSE.
-    """
-    total = belief.new_zeros(())
-    if foreground_weight:
-        wb = 1.0 + foreground_weight * belief
-        wa = 1.0 + foreground_weight * (affinity != 0).to(affinity.dtype)
-    for b, a in outputs:
-        if foreground_weight:
-            lb = (wb * (b.float() - belief).square()).mean()
-            la = (wa * (a.float() - affinity).square()).mean()
-        else:
-            lb, la = F.mse_loss(b.float(), belief), F.mse_loss(a.float(), affinity)
-        total = total + belief_weight * lb + affinity_weight * la
-    return total
-
-
-def optimizer_step(model: nn.Module, optimizer: torch.optim.Optimizer, images: torch.Tensor, belief: torch.Tensor,
-                   affinity: torch.Tensor, amp: bool = False, belief_weight: float = 1.0,
-                   affinity_weight: float = 1.0, grad_clip: float | None = None,
-                   foreground_weight: float = 0.0) -> float:
-    """One training step: forward (bf16 autocast on CUDA when ``amp``), per-stage loss,
-    backward, optional global grad-norm clipping, optimizer step. Returns the loss."""
-    model.train()
-    with torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp):
-        outputs = model(images)
-    loss = stage_loss(outputs, belief, affinity, belief_weight, affinity_weight, foreground_weight)
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    if grad_clip:
-        torch.nn.utils.clip_grad_norm_(model.parameters(), float(grad_clip))
-    optimizer.step()
-    return float(loss.detach())
-
-
-def object_info(name: str, records: Sequence[Any], mesh: Path | None) -> tuple[dict[str, Any], str]:
-    """Checkpoint ``object`` entry (class_name, size_m in the mesh frame, frame "mesh") and
-    where the size came from: a mesh's AABB > the size the dataset records > the catalog."""
-    from dope_hope.catalog import get_object
-    from dope_hope.model.checkpoint import make_object_info
-
-    try:
-        hope = get_object(name)
-        name = hope.name
-    except UnknownObjectError:
-        hope = None
-    if mesh is not None:
-        from dope_hope.io.meshes import load_mesh, mesh_cuboid
-        size, _ = mesh_cuboid(load_mesh(mesh))
-        return make_object_info(name, size, "mesh"), f"mesh {Path(mesh).name}"
-    from dope_hope.data import recorded_cuboid_size
-
-    for r in [r for r in records if len(r.keypoints)][:5]:
-        size = recorded_cuboid_size(r.json_path, name)
-        if size is not None:
-            return make_object_info(name, size, "mesh"), f"dataset {r.json_path.name}"
-    if hope is None:
-        raise ConfigError(f"cannot tell the cuboid size of {name!r}: the dataset records none and it is "
-                          "not a HOPE object; pass --mesh")
-    return make_object_info(name, hope.size_array, "mesh"), "catalog"
-
-
-def symmetry_category(setting: Any, object_name: str) -> str | None:
-    """Category whose symmetries relabel the keypoints (config ``targets.symmetry``), or None.
-
-    "none" (default, the official DOPE labels), "auto" (the HOPE catalog's category of the
-    object, or the demo box's), or a category name: "cuboid", "bottle", "cylinder".
-    """
-    from dope_hope.catalog import CATEGORIES, get_object
-
-    value = "none" if setting in (None, False) else str(setting).lower()
-    if value == "none":
-        return None
-    if value == "auto":
-        from dope_hope.demo_object import DEMO_CATEGORY, DEMO_CLASS_NAME
-
-        if object_name.lower() == DEMO_CLASS_NAME.lower():
-            return DEMO_CATEGORY
-        try:
-            return get_object(object_name).category
-        except UnknownObjectError:
-            raise ConfigError(f"targets.symmetry auto: {object_name!r} is not a HOPE object; set "
-                              f"targets.symmetry to one of {', '.join(CATEGORIES)} or none") from None
-    if value not in CATEGORIES:
-        raise ConfigError(f"targets.symmetry must be none, auto or one of {', '.join(CATEGORIES)}; got {setting!r}")
-    return value
-
-
-class MetricsLog:
-    """Scalars to ``metrics.csv`` + ``metrics.jsonl`` (+ TensorBoard when installed); rank 0."""
-
-    COLUMNS = ("event", "step", "epoch", "time_s", "lr", "loss", "images_per_s",
-               "val_loss", "val_kp_acc", "val_kp_acc_decoded")
-
-    def __init__(self, out: Path, enabled: bool):
-        self.enabled = enabled
-        self.out = out
-        self.tb = None
-        if not enabled:
-            return
-        self.csv_path = out / "metrics.csv"
-        self.jsonl_path = out / "metrics.jsonl"
-        if not self.csv_path.exists():
-            with self.csv_path.open("w", newline="") as f:
-                csv.writer(f).writerow(self.COLUMNS)
-        try:
-            from torch.utils.tensorboard import SummaryWriter
-            self.tb = SummaryWriter(str(out / "tensorboard"))
-        except ImportError:  # tensorboard is optional
-            self.tb = None
-
-    def write(self, event: str, **values: Any) -> None:
-        if not self.enabled:
-            return
-        row = {"event": event, **values}
-        with self.csv_path.open("a", newline="") as f:
-            csv.writer(f).writerow(["" if row.get(c) is None else row.get(c) for c in self.COLUMNS])
-        with self.jsonl_path.open("a") as f:
-            f.write(json.dumps(row) + "\n")
-        if self.tb is not None:
-            for k, v in values.items():
-                if k not in ("step", "epoch") and isinstance(v, (int, float)) and v is not None:
-                    self.tb.add_scalar(f"{event}/{k}", v, values.get("step", 0))
-
-    def close(self) -> None:
-        if self.tb is not None:
-            self.tb.close()
-
-
-# =============================================================================== distributed
-@dataclass
-class DistInfo:
-    rank: int = 0
-    world_size: int = 1
-    local_rank: int = 0
-
-    @property
-    def main(self) -> bool:
-        return self.rank == 0
-
-    @property
-    def active(self) -> bool:
-        return self.world_size > 1
-
-
-def init_distributed(device: str) -> tuple[DistInfo, torch.device]:
-    """Join a torchrun job (env RANK, WORLD_SIZE, LOCAL_RANK) or run single-process."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    info = DistInfo(int(os.environ.get("RANK", "0")), world, int(os.environ.get("LOCAL_RANK", "0")))
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    dev = torch.device(device)
-    if dev.type == "cuda":
-        if not torch.cuda.is_available():
-            raise ConfigError("--device cuda: no CUDA device available")
-        dev = torch.device("cuda", info.local_rank if info.active else (dev.index or 0))
-        torch.cuda.set_device(dev)
-    if info.active and not dist.is_initialized():
-        dist.init_process_group("nccl" if dev.type == "cuda" else "gloo", init_method="env://")
-    return info, dev
 
 
 # =============================================================================== trainer
@@ -394,8 +62,14 @@ class Trainer:
     """One training job; :meth:`run` returns a summary dict (see :func:`train`)."""
 
     def __init__(self, job: TrainJob, config: dict[str, Any]):
-        from dope_hope.data import AugmentParams, DopeDataset, EpochSampler, scan_frames, split_records
         from dope_hope.model.network import build_model
+        from dope_hope.training.augment import AugmentParams
+        from dope_hope.training.dataset import (
+            DopeDataset,
+            EpochSampler,
+            scan_frames,
+            split_records,
+        )
 
         self.job = job
         self.dist, self.device = init_distributed(job.device)
@@ -458,8 +132,8 @@ class Trainer:
         self.symmetry_permutations = 1
         if symmetry is not None:
             from dope_hope.catalog import category_symmetries
-            from dope_hope.data import relabel_symmetric
-            from dope_hope.symmetric_labels import corner_permutations
+            from dope_hope.training.dataset import relabel_symmetric
+            from dope_hope.training.symmetric_labels import corner_permutations
 
             rots, perms = corner_permutations(np.asarray(self.object["size_m"]),
                                               category_symmetries(symmetry, step_deg=90.0))
@@ -598,7 +272,7 @@ class Trainer:
         self.lr_lambda.horizon = max(self.step + 1, min(horizon, self.total_steps))
 
     def _loader(self, dataset: Any, sampler: Any, batch_size: int, drop_last: bool) -> torch.utils.data.DataLoader:
-        from dope_hope.data import collate
+        from dope_hope.training.dataset import collate
 
         workers = int(self.ts["workers"])
         return torch.utils.data.DataLoader(
@@ -607,7 +281,7 @@ class Trainer:
             multiprocessing_context="fork" if workers > 0 and os.name == "posix" else None)
 
     def _report_bad(self, files: list[str]) -> None:
-        from dope_hope.data import report_bad_file
+        from dope_hope.training.dataset import report_bad_file
 
         for f in files:
             report_bad_file(f, "unreadable image, replaced by another frame")

@@ -1,6 +1,6 @@
 """Training targets: belief maps and affinity fields from projected cuboid keypoints.
 
-Encoding rules (``decode`` inverts them with the same :mod:`dope_hope.mapgrid` convention):
+Encoding rules (``decode`` inverts them with the same :mod:`dope_hope.maps.grid` convention):
 
 * **Belief map** ``k`` holds, per instance, an *untruncated* isotropic Gaussian
   ``exp(-d^2 / (2 sigma^2))`` centred on keypoint ``k``'s continuous map position
@@ -45,7 +45,7 @@ from __future__ import annotations
 import numpy as np
 
 from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
-from dope_hope.mapgrid import image_to_map, map_size
+from dope_hope.maps.grid import image_to_map, map_size
 
 #: Official DOPE footprint in *image* pixels: sigma 0.5 and radius 1 map px at stride 8.
 DOPE_SIGMA_IMAGE_PX = 4.0

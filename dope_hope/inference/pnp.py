@@ -1,4 +1,4 @@
-"""Poses from 2D cuboid keypoints (PnP-RANSAC) and the depth line search ("-LS").
+"""Poses from 2D cuboid keypoints: PnP-RANSAC and the multi-hypothesis pose search.
 
 **PnP** (:func:`solve_pnp`). The official DOPE drops an object as soon as one of its nine
 keypoints is missing; we use whatever keypoints were found, down to ``min_points`` (>= 4):
@@ -22,29 +22,8 @@ Score: ``score = sum(clip(scores[inliers], 0, 1)) / 9`` - the mean keypoint conf
 inliers times the inlier fraction of *all nine* keypoints, so missing and outlying keypoints
 both lower it. All thresholds are in pixels of the image the keypoints and ``K`` refer to.
 
-**Depth line search** (:func:`depth_line_search`, the HOPE paper's "-LS"). Monocular poses
-are most uncertain along the viewing ray; with a depth image the translation is rescaled,
-``t' = s t``, keeping R. The model points (a dense surface sampling, metres) are
-projected under the initial pose and z-buffered on the image grid (the nearest point per
-pixel, ``np.minimum.at``, then a minimum filter about as wide as the point spacing so that
-the far side does not show through the gaps between front points); points within a small,
-slope-aware margin of the nearest surface are *visible* (:func:`visible_points`; with
-``model_normals`` back faces are culled first); visibility is decided once, under the
-initial pose. For each candidate ``s`` the visible points are moved *exactly*,
-``x_c = R x + s t`` - their depth is ``(R x)_z + s t_z``, not ``s`` times the old depth, and
-they project to slightly different pixels, so the projection is recomputed for every
-candidate (the "ray model", which scales the whole camera-frame object by ``s``, would keep
-pixels fixed but change the object's size). The observed depth ``D`` is sampled bilinearly
-(nearest pixel where a neighbour is invalid) and the cost is the median of ``|D - z|``
-(``cost="median"``, robust to < 50 % occlusion) or the mean Huber loss (``cost="huber"``).
-The search is bounded (``search``): a coarse grid, then ``scipy.optimize.minimize_scalar``
-(bounded Brent) between the grid neighbours of the best node.
-
-Bad depth never changes the pose: ``applied=False`` with a ``reason`` when the depth is
-missing, not 2-D, of another size than the image (``image_hw``) or than ``K`` implies
-(``2 c + 1`` more than 25 % away from the depth's width or height),
-without valid pixels, when too few visible points have valid depth (``min_valid``), when the
-optimum sits on the search bound or its residual exceeds ``max_residual_m``.
+The multi-hypothesis search (:func:`solve_pnp_candidates`) tries minimal sets of candidate
+corner peaks per centroid and keeps the pose that explains most candidates.
 """
 from __future__ import annotations
 
@@ -53,9 +32,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.ndimage import minimum_filter
-from scipy.optimize import minimize_scalar
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
@@ -63,15 +39,18 @@ from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
 #: :func:`solve_pnp` defaults, also what :func:`solve_pnp_candidates` checks its best
 #: hypothesis against before calling it.
 DEFAULT_MIN_POINTS = 5
+
+
 DEFAULT_REPROJECTION_PX = 8.0
+
+
 #: Pose hypotheses solved between two checks of :func:`solve_pnp_candidates`' early stop.
 _HYPOTHESIS_CHUNK = 16
+
+
 #: :func:`solve_pnp_candidates` gives up after this many hypotheses when none explained more
 #: than its own four keypoints.
 _GIVE_UP_AFTER = 128
-
-#: Depth scale factor of the HOPE RealSense frames (their depth was rescaled by this).
-HOPE_REALSENSE_DEPTH_CALIBRATION = 0.98042517
 
 
 @dataclass
@@ -327,279 +306,3 @@ def solve_pnp_candidates(
             j = int(by_type[k][np.argmax(sc[by_type[k]])])
         kp[k], kp_scores[k] = pts[j], sc[j]
     return solve_pnp(kp, kp_scores, cuboid, K, **pnp_options)
-
-
-# ----------------------------------------------------------------------------------------
-# Depth line search
-
-
-@dataclass
-class LineSearchResult:
-    """Outcome of :func:`depth_line_search`.
-
-    t: (3,) translation, metres (the input t when not applied).
-    applied: whether t was changed. reason: "ok" or why not.
-    scale: s with ``t = s * t_in`` (1.0 when not applied).
-    residual_m: median |D - z| of the visible points at the optimum, metres (NaN when not
-        evaluated).
-    n_valid: visible model points with valid depth at the optimum.
-    """
-
-    t: np.ndarray
-    applied: bool
-    reason: str
-    scale: float = 1.0
-    residual_m: float = float("nan")
-    n_valid: int = 0
-
-
-def _depth_to_metres(depth, depth_scale_m: float, calibration: float) -> np.ndarray:
-    d = np.asarray(depth)
-    if np.issubdtype(d.dtype, np.integer):
-        m = d.astype(np.float64) * depth_scale_m
-    else:
-        m = d.astype(np.float64)
-    m = m * calibration
-    m[~np.isfinite(m) | (m <= 0)] = np.nan
-    return m
-
-
-def depth_in_metres(depth, K: np.ndarray, t: np.ndarray, depth_scale_m: float = 0.001,
-                    calibration: float = 1.0, image_hw: tuple[int, int] | None = None,
-                    ) -> tuple[np.ndarray | None, str]:
-    """Check a depth image against the pose and K; convert it to metres.
-
-    Args:
-        depth: (H, W) integer depth in units of ``depth_scale_m``, or float metres (or None).
-        K: (3, 3). t: (3,) metres, the pose's translation. image_hw: (H, W) the depth must have.
-
-    Returns:
-        ((H, W) float metres with NaN where invalid, "") or (None, the one-line problem): no
-        depth, not 2-D, another size than the image or than K implies, the pose behind the
-        camera, no valid pixel.
-    """
-    if depth is None:
-        return None, "no depth image"
-    d = np.asarray(depth)
-    if d.ndim == 3 and d.shape[2] == 1:
-        d = d[..., 0]
-    if d.ndim != 2 or d.size == 0:
-        return None, f"depth must be a 2-D image, got shape {d.shape}"
-    H, W = d.shape
-    if image_hw is not None and (H, W) != tuple(image_hw):
-        return None, f"depth is {W}x{H}, the image is {image_hw[1]}x{image_hw[0]}"
-    # K's principal point sits near the image centre: a depth image of another resolution
-    # (e.g. half size with a full-size K) puts it far off (2cx+1 vs W by > 25 %).
-    implied_w, implied_h = 2 * K[0, 2] + 1, 2 * K[1, 2] + 1
-    if not (0.75 < implied_w / W < 1.33 and 0.75 < implied_h / H < 1.33):
-        return None, (f"depth is {W}x{H} but K implies about {implied_w:.0f}x{implied_h:.0f} "
-                      "(principal point far from the depth image centre)")
-    if t[2] <= 0:
-        return None, "pose is behind the camera (t_z <= 0)"
-    D = _depth_to_metres(d, depth_scale_m, calibration)
-    if not np.isfinite(D).any():
-        return None, "depth has no valid pixel (all zero / NaN)"
-    return D, ""
-
-
-def visible_points(
-    points_c: np.ndarray, K: np.ndarray, hw: tuple[int, int], splat_px: int = 2,
-    margin_m: float = 0.005, max_slope: float = 2.0, normals_c: np.ndarray | None = None,
-) -> np.ndarray:
-    """Which camera-frame points are visible (front-most in their pixel neighbourhood).
-
-    The nearest point per pixel is z-buffered (``np.minimum.at``), then the buffer is
-    min-filtered over ``(2*splat_px+1)^2`` pixels so that the far side cannot show through
-    the gaps between sampled front points. A point is visible if its depth is within
-    ``margin_m + splat_px * (z / fx) * max_slope`` of that local minimum: the second term is
-    the depth change of a surface inclined up to ``atan(max_slope)`` (63 deg) across the
-    filter window, so inclined front faces are mostly not hidden by their own nearer parts
-    (faces steeper than that can lose points: harmless, they only drop out of the fit).
-    Given normals, back-facing points are dropped first, so none of the far side leaks in.
-
-    Args:
-        points_c: (N, 3) camera-frame points, metres.
-        K: (3, 3). hw: (H, W) of the image.
-        splat_px: filter radius, pixels; should be about the point spacing in pixels.
-        margin_m: depth tolerance, metres. max_slope: see above.
-        normals_c: optional (N, 3) camera-frame outward normals.
-
-    Returns:
-        (N,) bool; points behind the camera or outside the image are not visible.
-    """
-    H, W = hw
-    z = points_c[:, 2]
-    vis = np.zeros(len(points_c), dtype=bool)
-    front = z > 1e-6
-    if normals_c is not None:
-        front &= np.einsum("ij,ij->i", np.asarray(normals_c, dtype=np.float64), points_c) < 0
-    if not front.any():
-        return vis
-    uvw = points_c[front] @ K.T
-    u = np.rint(uvw[:, 0] / uvw[:, 2]).astype(np.int64)
-    v = np.rint(uvw[:, 1] / uvw[:, 2]).astype(np.int64)
-    inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
-    if not inside.any():
-        return vis
-    fi = np.flatnonzero(front)[inside]
-    u, v, zf = u[inside], v[inside], z[fi]
-    # Crop to the points' bounding box (plus the splat) to keep the filter cheap.
-    u0, v0 = max(u.min() - splat_px, 0), max(v.min() - splat_px, 0)
-    u1, v1 = min(u.max() + splat_px, W - 1), min(v.max() + splat_px, H - 1)
-    hh, ww = v1 - v0 + 1, u1 - u0 + 1
-    pix = (v - v0) * ww + (u - u0)
-    zbuf = np.full(hh * ww, np.inf)
-    np.minimum.at(zbuf, pix, zf)  # nearest point per pixel
-    zbuf = zbuf.reshape(hh, ww)
-    if splat_px > 0:
-        zbuf = minimum_filter(zbuf, size=2 * splat_px + 1, mode="nearest")
-    tol = margin_m + splat_px * zf / K[0, 0] * max_slope
-    vis[fi] = zf <= zbuf.ravel()[pix] + tol
-    return vis
-
-
-def auto_splat_px(model_points: np.ndarray, K: np.ndarray, depth_m: float) -> int:
-    """Half the typical spacing of the model points in pixels at ``depth_m``, in [1, 6].
-
-    The spacing is the median nearest-neighbour distance (scipy cKDTree, on at most 1000
-    query points); a (2r+1)-wide window then covers the gaps between front points.
-    """
-    P = np.asarray(model_points, dtype=np.float64)
-    if len(P) < 2:
-        return 1
-    query = P[:: max(1, len(P) // 1000)]
-    d, _ = cKDTree(P).query(query, k=2)
-    spacing_px = float(np.median(d[:, 1])) * float(K[0, 0]) / max(depth_m, 1e-6)
-    return int(np.clip(np.ceil(spacing_px / 2.0), 1, 6))
-
-
-def _sample_depth(D: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Bilinear depth at (u, v); nearest pixel where a neighbour is invalid; NaN outside."""
-    H, W = D.shape
-    out = np.full(u.shape, np.nan)
-    ok = (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
-    if not ok.any():
-        return out
-    uu, vv = u[ok], v[ok]
-    x0 = np.clip(np.floor(uu).astype(np.int64), 0, W - 2 if W > 1 else 0)
-    y0 = np.clip(np.floor(vv).astype(np.int64), 0, H - 2 if H > 1 else 0)
-    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
-    fx, fy = uu - x0, vv - y0
-    d00, d01, d10, d11 = D[y0, x0], D[y0, x1], D[y1, x0], D[y1, x1]
-    bil = (d00 * (1 - fx) + d01 * fx) * (1 - fy) + (d10 * (1 - fx) + d11 * fx) * fy
-    near = D[np.rint(vv).astype(np.int64), np.rint(uu).astype(np.int64)]
-    out[ok] = np.where(np.isfinite(bil), bil, near)
-    return out
-
-
-def depth_line_search(
-    R: np.ndarray,
-    t: np.ndarray,
-    model_points: np.ndarray,
-    depth,
-    K: np.ndarray,
-    depth_scale_m: float = 0.001,
-    calibration: float = 1.0,
-    search: tuple[float, float] = (0.8, 1.25),
-    min_valid: int = 50,
-    cost: str = "median",
-    huber_delta_m: float = 0.01,
-    visibility_margin_m: float = 0.005,
-    splat_px: int | None = None,
-    grid_steps: int = 41,
-    max_residual_m: float | None = 0.02,
-    image_hw: tuple[int, int] | None = None,
-    model_normals: np.ndarray | None = None,
-) -> LineSearchResult:
-    """Rescale the translation along its ray to agree with a depth image (HOPE "-LS").
-
-    Args:
-        R: (3, 3), t: (3,) metres: the pose to refine (``x_c = R x + t``).
-        model_points: (N, 3) model surface points, metres (a few thousand is plenty).
-        depth: (H, W) depth image: integer (e.g. uint16) in units of ``depth_scale_m``, or
-            float metres; 0 / NaN / inf = invalid.
-        K: (3, 3) intrinsics of the depth image (registered to the colour camera).
-        depth_scale_m: metres per integer depth unit (0.001 for uint16 millimetres).
-        calibration: multiplies the depth in metres (the HOPE RealSense frames need
-            :data:`HOPE_REALSENSE_DEPTH_CALIBRATION`).
-        search: (lo, hi) bounds of the scale s.
-        min_valid: minimum visible points with valid depth.
-        cost: "median" (median |D - z|) or "huber" (mean Huber loss, ``huber_delta_m``).
-        visibility_margin_m, splat_px: visibility test (see :func:`visible_points`);
-            ``splat_px=None`` picks half the model points' spacing in pixels
-            (:func:`auto_splat_px`).
-        grid_steps: coarse grid size over ``search``.
-        max_residual_m: refuse the result when the robust residual exceeds it (None = off).
-        image_hw: (H, W) the depth must have, when known.
-        model_normals: optional (N, 3) outward normals of the model points (back-face culling).
-
-    Returns:
-        :class:`LineSearchResult`; ``t`` unchanged with a reason when not applied.
-    """
-    R = np.asarray(R, dtype=np.float64)
-    t = np.asarray(t, dtype=np.float64).reshape(3)
-    K = np.asarray(K, dtype=np.float64)
-
-    def refuse(reason: str, **kw) -> LineSearchResult:
-        return LineSearchResult(t=t.copy(), applied=False, reason=reason, **kw)
-
-    if cost not in ("median", "huber"):
-        raise ValueError(f"cost must be 'median' or 'huber', got {cost!r}")
-    D, problem = depth_in_metres(depth, K, t, depth_scale_m, calibration, image_hw)
-    if problem:
-        return refuse(problem)
-
-    P = np.asarray(model_points, dtype=np.float64).reshape(-1, 3)
-    A = P @ R.T  # camera-frame points without translation
-    if splat_px is None:
-        splat_px = auto_splat_px(P, K, float(t[2]))
-    normals_c = None if model_normals is None else np.asarray(model_normals, float).reshape(-1, 3) @ R.T
-    vis = visible_points(A + t, K, D.shape, splat_px, visibility_margin_m, normals_c=normals_c)
-    if not vis.any():
-        return refuse("object does not project into the depth image")
-    A = A[vis]
-
-    def residuals(s: float) -> np.ndarray:
-        X = A + s * t
-        uvw = X @ K.T
-        z = uvw[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r = _sample_depth(D, uvw[:, 0] / z, uvw[:, 1] / z) - z
-        return r[np.isfinite(r)]
-
-    def objective(s: float) -> float:
-        r = residuals(s)
-        if r.size < min_valid:
-            return np.inf
-        a = np.abs(r)
-        if cost == "median":
-            return float(np.median(a))
-        quad = a <= huber_delta_m
-        return float(np.mean(np.where(quad, 0.5 * a * a, huber_delta_m * (a - 0.5 * huber_delta_m))))
-
-    n0 = residuals(1.0).size
-    if n0 < min_valid:
-        return refuse(f"too few visible points with valid depth ({n0} < {min_valid})", n_valid=n0)
-
-    lo, hi = float(search[0]), float(search[1])
-    grid = np.linspace(lo, hi, max(int(grid_steps), 3))
-    costs = np.array([objective(s) for s in grid])
-    if not np.isfinite(costs).any():
-        return refuse("no valid depth along the search range", n_valid=n0)
-    i = int(np.argmin(costs))
-    a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
-    res = minimize_scalar(objective, bounds=(a, b), method="bounded", options={"xatol": 1e-6})
-    s_best, c_best = (float(res.x), float(res.fun)) if res.fun <= costs[i] else (grid[i], costs[i])
-    n_valid = int(residuals(s_best).size)
-    residual = float(np.median(np.abs(residuals(s_best))))
-    step = grid[1] - grid[0]
-    at_lo = i == 0 and s_best <= lo + 0.5 * step
-    at_hi = i == len(grid) - 1 and s_best >= hi - 0.5 * step
-    if at_lo or at_hi:
-        return refuse(f"optimum at the search bound (s = {s_best:.3f})",
-                      residual_m=residual, n_valid=n_valid)
-    if max_residual_m is not None and residual > max_residual_m:
-        return refuse(f"depth residual {residual * 1000:.1f} mm > {max_residual_m * 1000:.1f} mm",
-                      residual_m=residual, n_valid=n_valid)
-    return LineSearchResult(t=s_best * t, applied=True, reason="ok", scale=s_best,
-                            residual_m=residual, n_valid=n_valid)

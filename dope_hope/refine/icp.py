@@ -1,6 +1,6 @@
 """Depth ICP refinement ("-ICP"): align the model surface with the depth image, all six DoF.
 
-The HOPE paper's "-LS" (:func:`dope_hope.pose.depth_line_search`) only rescales the
+The HOPE paper's "-LS" (:func:`dope_hope.refine.line_search.depth_line_search`) only rescales the
 translation along its ray; the rotation stays what the keypoints gave. With a registered depth
 image the whole pose can be refined: :func:`icp_refine` runs point-to-plane ICP between the
 depth pixels under the object's projected silhouette and the model surface, and keeps the
@@ -58,7 +58,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from dope_hope.pose import depth_in_metres
+from dope_hope.refine.line_search import depth_in_metres
 
 #: Extra ICP starts: the input turned by +-90 and 180 deg about the model's x, y and z axes.
 TURN_STARTS: tuple[np.ndarray, ...] = tuple(

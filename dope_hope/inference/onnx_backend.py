@@ -192,7 +192,7 @@ def default_providers() -> list[str]:
 
 
 class OnnxBackend:
-    """:class:`dope_hope.predictor.MapBackend` over an exported ``.onnx`` file (onnxruntime).
+    """:class:`dope_hope.inference.predictor.MapBackend` over an exported ``.onnx`` file (onnxruntime).
 
     Args:
         path: the ``.onnx`` file (native or isaac-ros layout, fp32 or INT8).

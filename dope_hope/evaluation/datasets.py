@@ -1,0 +1,196 @@
+"""Ground truth for evaluation: the frames of a DOPE, HOPE or BOP dataset folder.
+
+:func:`load_dataset` reads every annotated frame once (GT poses in metres, K, image size,
+visibility, the depth path when there is one); :func:`assign_predictions` maps each prediction
+record's ``image`` (relative path, absolute path, unique file name or stem, or BOP
+``scene_id``/``im_id``) to its frame.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dope_hope.annotation import ObjectAnnotation
+from dope_hope.errors import ConfigError, InputFileError
+from dope_hope.io.predictions import Prediction
+
+VISIB_GT_MIN = 0.1
+
+
+# =========================================================================== dataset
+@dataclass
+class EvalFrame:
+    """One test image with its ground truth.
+
+    Attributes:
+        key: unique id: image path relative to the dataset folder (posix).
+        K: (3, 3) intrinsics or None; width, height: pixels or None.
+        objects: GT instances (metres, mesh frame).
+        aliases: names a prediction may use for this image (relative paths, file name, stem).
+        image_path, depth_path, depth_scale_m: files and the depth unit (metres per unit).
+        scene_id, im_id: BOP ids when known.
+    """
+
+    key: str
+    K: np.ndarray | None
+    width: int | None
+    height: int | None
+    objects: list[ObjectAnnotation]
+    aliases: set[str] = field(default_factory=set)
+    image_path: Path | None = None
+    depth_path: Path | None = None
+    depth_scale_m: float = 0.001
+    scene_id: int | None = None
+    im_id: int | None = None
+
+
+@dataclass
+class Dataset:
+    """Frames plus optional BOP targets {(scene_id, im_id, obj_id): inst_count}."""
+
+    root: Path
+    fmt: str
+    frames: list[EvalFrame]
+    targets: dict[tuple[int, int, int], int] | None = None
+
+
+def _aliases(root: Path, *paths: Path | None) -> set[str]:
+    out: set[str] = set()
+    for p in paths:
+        if p is None:
+            continue
+        try:
+            rel = p.resolve().relative_to(root.resolve()).as_posix()
+        except ValueError:
+            rel = p.as_posix()
+        out |= {rel, rel.rsplit(".", 1)[0] if "." in Path(rel).name else rel, p.name,
+                p.name.split(".", 1)[0], str(p.resolve())}
+    return out
+
+
+def _subfolders(root: Path) -> list[Path]:
+    return [root] + sorted(p for p in root.rglob("*") if p.is_dir())
+
+
+def _frame_from_annotation(root: Path, ann, json_path: Path) -> EvalFrame:
+    image = ann.image_path
+    key_path = image if image is not None else json_path
+    try:
+        key = key_path.resolve().relative_to(root.resolve()).as_posix()
+    except ValueError:
+        key = key_path.as_posix()
+    return EvalFrame(key=key, K=ann.K, width=ann.width, height=ann.height,
+                     objects=list(ann.objects), aliases=_aliases(root, image, json_path),
+                     image_path=image, depth_path=ann.depth_path, depth_scale_m=ann.depth_scale_m)
+
+
+def load_dataset(root: str | os.PathLike, fmt: str = "dope") -> Dataset:
+    """Read the ground truth of a test set.
+
+    Args:
+        root: dataset folder (searched recursively for DOPE / HOPE frames).
+        fmt: "dope" (``dope_hope.io.dope_json``), "hope" (``io.hope_json``) or "bop"
+            (``io.bop``, a BOP split folder or a dataset folder with ``test/``).
+
+    Raises:
+        InputFileError: no frames found or a malformed annotation.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise InputFileError(root, "dataset folder not found")
+    if fmt == "dope":
+        from dope_hope.io.dope_json import list_dope_frames, read_dope_json
+
+        frames = [_frame_from_annotation(root, read_dope_json(p), p)
+                  for d in _subfolders(root) for p in list_dope_frames(d)]
+        ds = Dataset(root, fmt, frames)
+    elif fmt == "hope":
+        from dope_hope.io.hope_json import list_hope_frames, read_hope_json
+
+        frames = [_frame_from_annotation(root, read_hope_json(p), p)
+                  for d in _subfolders(root) for p in list_hope_frames(d)]
+        ds = Dataset(root, fmt, frames)
+    elif fmt == "bop":
+        ds = _load_bop(root)
+    else:
+        raise ConfigError(f"unknown dataset format {fmt!r}; use dope, hope or bop")
+    if not ds.frames:
+        raise InputFileError(root, f"no {fmt}-format frames found (annotation + image pairs)")
+    return ds
+
+
+def _load_bop(root: Path) -> Dataset:
+    """A BOP split folder (``<split>/<scene_id>/scene_gt.json`` ...) or a dataset folder with
+    a ``test/`` split, through :mod:`dope_hope.io.bop`; targets from
+    ``test_targets_bop19.json`` in the split or dataset folder when present."""
+    from dope_hope.io import bop as bop_io
+
+    split_dir = root
+    if not bop_io.list_bop_scenes(root) and (root / "test").is_dir():
+        split_dir = root / "test"
+    frames = []
+    for bf in bop_io.iter_bop_split(split_dir):
+        ann = bf.annotation
+        ids = f"{bf.scene_id:06d}/{bf.im_id:06d}"
+        key = ids
+        if ann.image_path is not None:
+            key = ann.image_path.resolve().relative_to(split_dir.resolve()).as_posix()
+        frames.append(EvalFrame(
+            key=key, K=ann.K, width=ann.width, height=ann.height, objects=list(ann.objects),
+            aliases=_aliases(split_dir, ann.image_path) | {ids},
+            image_path=ann.image_path, depth_path=ann.depth_path,
+            depth_scale_m=ann.depth_scale_m, scene_id=bf.scene_id, im_id=bf.im_id))
+    targets = None
+    for candidate in (split_dir / "test_targets_bop19.json", split_dir.parent / "test_targets_bop19.json"):
+        if candidate.is_file():
+            targets = {(s, i, o): n for s, i, o, n in bop_io.read_test_targets(candidate)}
+            break
+    return Dataset(split_dir, "bop", frames, targets)
+
+
+# =========================================================================== predictions
+def assign_predictions(dataset: Dataset, preds: list[Prediction],
+                       source: str | os.PathLike = "predictions") -> list[list[Prediction]]:
+    """Group predictions by dataset frame (index-aligned with ``dataset.frames``).
+
+    A prediction's ``image`` is matched against each frame's aliases (relative path, path
+    without suffix, file name, stem, absolute path); BOP rows by (scene_id, im_id).
+
+    Raises:
+        InputFileError: an image that is not in the dataset, or a name shared by two frames.
+    """
+    alias_map: dict[str, int] = {}
+    ambiguous: set[str] = set()
+    for i, f in enumerate(dataset.frames):
+        for a in f.aliases:
+            if a in alias_map and alias_map[a] != i:
+                ambiguous.add(a)
+            alias_map.setdefault(a, i)
+    by_id = {(f.scene_id, f.im_id): i for i, f in enumerate(dataset.frames)
+             if f.scene_id is not None and f.im_id is not None}
+    out: list[list[Prediction]] = [[] for _ in dataset.frames]
+    for p in preds:
+        idx = None
+        if p.image is not None:
+            name = p.image.replace("\\", "/")
+            candidates = [name, name.lstrip("./")]
+            if os.path.isabs(name) or Path(name).exists():
+                candidates.insert(0, str(Path(name).resolve()))
+            for c in candidates:
+                if c in ambiguous:
+                    raise InputFileError(source, f"line {p.line}: image {p.image!r} names several "
+                                                 f"frames of {dataset.root}; use its relative path")
+                if c in alias_map:
+                    idx = alias_map[c]
+                    break
+        if idx is None and p.scene_id is not None and p.im_id is not None:
+            idx = by_id.get((p.scene_id, p.im_id))
+        if idx is None:
+            what = repr(p.image) if p.image is not None else f"scene {p.scene_id} image {p.im_id}"
+            raise InputFileError(source, f"line {p.line}: image {what} is not in the dataset "
+                                         f"{dataset.root} ({dataset.fmt} format)")
+        out[idx].append(p)
+    return out

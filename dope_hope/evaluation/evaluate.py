@@ -1,0 +1,169 @@
+"""``dope-hope evaluate``: predictions + dataset -> tables, curves and BOP19 AR in a folder.
+
+**Predictions file** (what ``dope-hope infer`` prints; reader and writer in
+:mod:`dope_hope.io.predictions`): JSON lines, one detection per line::
+
+    {"image": "000123.png", "class": "Ketchup", "score": 0.93,
+     "R": [[r11, r12, r13], [r21, r22, r23], [r31, r32, r33]], "t": [0.012, -0.034, 0.651],
+     "ls_applied": true}
+
+``image`` is the image path relative to the dataset folder (or absolute, or a file name /
+stem that is unique in the dataset); ``class`` the HOPE object name (or ``obj_id``);
+``score`` the confidence; ``R`` (3x3, model -> camera, or ``quaternion_xyzw``) and ``t``
+(metres, OpenCV camera, ``x_c = R x + t``); optional ``ls_applied`` (depth line search
+used), ``time`` (s per image), ``scene_id``/``im_id`` (BOP). An optional first line
+``{"format": "dope-hope-predictions", "method": "NAME"}`` names the method. A BOP19
+submission CSV (``METHOD_hope-test.csv``) is accepted too.
+
+Errors are ADD-H by default (500 model points); ``add``, ``adds``, ``meanssd``, ``mssd`` on
+request (:mod:`~dope_hope.evaluation.matching`); tables and curves in
+:mod:`~dope_hope.evaluation.reports`; BOP19 AR in :mod:`~dope_hope.evaluation.bop19`.
+"""
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from dope_hope.errors import ConfigError, InputFileError
+from dope_hope.evaluation.bop19 import bop19_average_recall
+from dope_hope.evaluation.datasets import assign_predictions, load_dataset
+from dope_hope.evaluation.matching import (
+    DEFAULT_METRIC,
+    METRIC_LABELS,
+    METRICS,
+    compute_errors,
+)
+from dope_hope.evaluation.models import NUM_MODEL_POINTS, load_models
+from dope_hope.evaluation.reports import (
+    _f,
+    _th_label,
+    detection_rates,
+    object_table,
+    summary_rows,
+    table_csv,
+    table_markdown,
+    write_curves,
+)
+from dope_hope.io.atomic import atomic_write_text
+
+
+# =========================================================================== orchestration
+@dataclass
+class EvalConfig:
+    """Settings of one ``dope-hope evaluate`` run."""
+
+    predictions: list[Path]
+    dataset: Path
+    fmt: str = "dope"
+    metrics: list[str] = field(default_factory=lambda: [DEFAULT_METRIC])
+    mesh: list[str] = field(default_factory=list)
+    models_dir: Path | None = None
+    mesh_units: str | None = None
+    out: Path = Path("out/eval")
+    methods: list[str] | None = None
+    bop_ar: bool | None = None
+    progress: bool = False
+
+
+def _safe_name(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "-", name).strip("-") or "method"
+
+
+def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Evaluate one or more prediction files; write tables, curves and ``summary.json``.
+
+    Returns:
+        The summary dict (also written to ``<out>/summary.json``).
+    """
+    from dope_hope.io.predictions import read_predictions
+
+    for m in cfg.metrics:
+        if m not in METRICS:
+            raise ConfigError(f"unknown metric {m!r}; use one of {', '.join(METRICS)}")
+    if cfg.methods is not None and len(cfg.methods) != len(cfg.predictions):
+        raise ConfigError(f"--method: {len(cfg.methods)} names for {len(cfg.predictions)} "
+                          f"prediction files")
+    dataset = load_dataset(cfg.dataset, cfg.fmt)
+    loaded = []
+    for k, path in enumerate(cfg.predictions):
+        preds, meta = read_predictions(path)
+        name = (cfg.methods[k] if cfg.methods else None) or meta.get("method") or Path(path).stem
+        if any(p.image is None for p in preds) and dataset.fmt != "bop":
+            raise InputFileError(path, "BOP CSV predictions need a BOP dataset (--format bop)")
+        loaded.append((name, path, preds, assign_predictions(dataset, preds, path)))
+    names = [n for n, *_ in loaded]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"two prediction files have the same method name ({', '.join(names)}); "
+                          f"name them with --method")
+    classes = sorted({o.class_name for f in dataset.frames for o in f.objects} |
+                     {p.class_name for _, _, preds, _ in loaded for p in preds})
+    bop_ar = cfg.bop_ar if cfg.bop_ar is not None else dataset.fmt == "bop"
+    models = load_models(classes, cfg.mesh, cfg.models_dir, cfg.mesh_units)
+    out_dir = Path(cfg.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    primary = cfg.metrics[0]
+    n_gt = sum(len(f.objects) for f in dataset.frames)
+    model_notes = [f"{n}: {m.source}" for n, m in sorted(models.items())]
+    summary: dict[str, Any] = {"dataset": str(dataset.root), "format": dataset.fmt,
+                               "frames": len(dataset.frames), "gt_instances": n_gt,
+                               "metric": primary, "metrics": list(cfg.metrics),
+                               "models": {n: m.source for n, m in models.items()}, "methods": {}}
+    curves = {}
+    for name, path, preds, by_frame in loaded:
+        log(f"{name}: {len(preds)} detections in {sum(1 for b in by_frame if b)} of "
+            f"{len(dataset.frames)} images; {n_gt} GT instances")
+        groups = compute_errors(dataset, by_frame, models, cfg.metrics, progress=cfg.progress)
+        rows = object_table(dataset, groups, models, primary)
+        for m in cfg.metrics:
+            curves[(name, m)] = detection_rates(groups, models, m)
+        bop = bop19_average_recall(dataset, by_frame, models, progress=cfg.progress) if bop_ar else None
+        ls = [p.ls_applied for p in preds if p.ls_applied is not None]
+        icp = [p.extra["icp_applied"] for p in preds if isinstance(p.extra.get("icp_applied"), bool)]
+        notes = [f"dataset: {dataset.root} ({dataset.fmt} format, {len(dataset.frames)} images, "
+                 f"{n_gt} GT instances)",
+                 f"predictions: {path} ({len(preds)} detections"
+                 + (f"; depth line search applied to {sum(ls)} of the {len(ls)} that record it"
+                    if ls else "")
+                 + (f"; depth ICP applied to {sum(icp)} of the {len(icp)} that record it" if icp else "")
+                 + ")",
+                 f"metric: {METRIC_LABELS[primary]} ({NUM_MODEL_POINTS} model points); matching "
+                 f"per image and class, one-to-one, greedy in descending score, error < threshold",
+                 "models: " + "; ".join(model_notes)]
+        stem = _safe_name(name)
+        md_path, csv_path = out_dir / f"per_object_{stem}.md", out_dir / f"per_object_{stem}.csv"
+        atomic_write_text(md_path, table_markdown(rows, f"dope-hope evaluation: {name}", notes, bop))
+        atomic_write_text(csv_path, table_csv(rows))
+        overall = dict(summary_rows(rows)).get("overall")
+        summary["methods"][name] = {
+            "predictions": str(path), "detections": len(preds), "table_md": str(md_path),
+            "table_csv": str(csv_path),
+            "overall": None if overall is None else {
+                **{f"precision_{_th_label(t)}": overall.precision[t] for t in overall.precision},
+                **{f"recall_{_th_label(t)}": overall.recall[t] for t in overall.recall},
+                "median_tp_error_cm": overall.median_tp_error_cm},
+            "bop19": bop}
+        if overall is not None:
+            log(f"{name}: overall (mean of objects) " + ", ".join(
+                f"P@{_th_label(t)} {_f(overall.precision[t], 3)} R@{_th_label(t)} "
+                f"{_f(overall.recall[t], 3)}" for t in overall.precision))
+        if bop is not None:
+            log(f"{name}: BOP19 AR {_f(bop['ar'], 3)} (VSD "
+                f"{'skipped' if bop['ar_vsd'] is None else _f(bop['ar_vsd'], 3)}, MSSD "
+                f"{_f(bop['ar_mssd'], 3)}, MSPD {_f(bop['ar_mspd'], 3)})")
+            for n in bop["notes"]:
+                log(f"  {n}")
+        log(f"  table: {md_path}")
+    curve_csv, curve_png = write_curves(out_dir, curves, models)
+    summary["detection_rate_csv"] = str(curve_csv)
+    summary["detection_rate_png"] = str(curve_png)
+    procedural = sorted(n for n, m in models.items() if m.procedural)
+    if procedural:
+        log("note: no mesh for " + ", ".join(procedural) + ": model points sampled on the catalog "
+            "cuboid (procedural stand-in); pass --mesh or --models-dir for exact errors")
+    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=1, default=float) + "\n")
+    log(f"curves: {curve_png}, {curve_csv}; summary: {out_dir / 'summary.json'}")
+    return summary

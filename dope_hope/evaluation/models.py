@@ -1,0 +1,175 @@
+"""Object models for evaluation: points, diameter, symmetries and cuboid of each class.
+
+:func:`load_models` builds one :class:`ObjectModel` per class from a mesh (``--mesh``, a BOP
+models folder) or, without one, from the catalog's cuboid; symmetries come from
+``models_info.json`` (BOP) or the catalog category.
+"""
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
+from dope_hope.evaluation import metrics
+
+#: Number of model points for the ADD family (the HOPE paper: 500).
+NUM_MODEL_POINTS = 500
+
+BOP19_MAX_SYM_DISC_STEP = 0.01
+
+
+
+# =========================================================================== object models
+@dataclass
+class ObjectModel:
+    """What the metrics need of one object.
+
+    Attributes:
+        name, obj_id, category: identity ("other" for a class outside the catalog).
+        points: (N, 3) model points, metres.
+        diameter: metres.
+        symmetries: (S, 4, 4) model-frame symmetry transforms, metres, identity first.
+        mesh: trimesh in metres (for VSD), or None.
+        source: where points / mesh come from, for the report.
+        procedural: True when the points are sampled on the catalog cuboid (no mesh given).
+    """
+
+    name: str
+    obj_id: int | None
+    category: str
+    points: np.ndarray
+    diameter: float
+    symmetries: np.ndarray
+    mesh: Any = None
+    source: str = ""
+    procedural: bool = False
+
+
+def _centred_symmetries(syms: np.ndarray, center: np.ndarray) -> np.ndarray:
+    """Symmetries about ``center`` instead of the origin: ``T(c) S T(-c)``."""
+    if np.allclose(center, 0.0, atol=1e-6):
+        return syms
+    T = np.eye(4)
+    T[:3, 3] = center
+    Ti = np.eye(4)
+    Ti[:3, 3] = -center
+    return np.einsum("ij,sjk,kl->sil", T, syms, Ti)
+
+
+def _catalog_entry(name: str):
+    from dope_hope.catalog import get_object
+
+    try:
+        return get_object(name)
+    except UnknownObjectError:
+        return None
+
+
+def parse_mesh_args(mesh_args: Sequence[str]) -> dict[str | None, Path]:
+    """``--mesh [NAME=]PATH`` values -> {class name or None: path}.
+
+    Without ``NAME=``, the class is the catalog object named by the file stem or by its
+    folder (``Ketchup.obj``, ``Ketchup/textured.obj``); None if neither names one.
+    """
+    out: dict[str | None, Path] = {}
+    for arg in mesh_args:
+        if "=" in arg and not Path(arg).exists():
+            name, path = arg.split("=", 1)
+            obj = _catalog_entry(name)
+            out[obj.name if obj else name] = Path(path)
+            continue
+        p = Path(arg)
+        obj = _catalog_entry(p.stem) or _catalog_entry(p.parent.name)
+        out[obj.name if obj else None] = p
+    return out
+
+
+def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
+                models_dir: str | os.PathLike | None = None, mesh_units: str | None = None,
+                n_points: int = NUM_MODEL_POINTS, cyl_step_deg: float = 1.0) -> dict[str, ObjectModel]:
+    """Model points, diameter and symmetries of every class.
+
+    Sources, in order: ``--mesh`` files; ``--models-dir`` (BOP ``models_info.json`` +
+    ``obj_XXXXXX.ply`` in mm, or HOPE ``<Name>/textured.obj`` / ``<Name>.obj`` in cm); else a
+    **procedural** stand-in: points on the surface of the catalog cuboid (reported as such).
+    Symmetries: BOP ``models_info`` when used (discretized as the toolkit does), else the
+    catalog category's (cylinders in ``cyl_step_deg`` steps) about the mesh's box centre.
+
+    Raises:
+        InputFileError / UnknownObjectError: unreadable mesh; a class neither in the catalog
+        nor given a mesh.
+    """
+    import trimesh
+
+    from dope_hope.catalog import category_symmetries
+    from dope_hope.io.meshes import (
+        load_mesh,
+        mesh_cuboid,
+        mesh_diameter,
+        sample_surface_points,
+    )
+
+    meshes = parse_mesh_args(mesh_args)
+    if None in meshes:
+        if len(class_names) == 1 and len(meshes) == 1:
+            meshes = {class_names[0]: meshes[None]}
+        else:
+            raise ConfigError(f"--mesh {meshes[None]}: cannot tell which object it is; "
+                              f"write --mesh NAME=PATH (classes: {', '.join(class_names)})")
+    models_info: dict[int, dict] = {}
+    mdir = Path(models_dir) if models_dir is not None else None
+    if mdir is not None:
+        if not mdir.is_dir():
+            raise InputFileError(mdir, "models folder not found")
+        info_path = mdir / "models_info.json"
+        if info_path.is_file():
+            try:
+                models_info = {int(k): v for k, v in
+                               json.loads(info_path.read_text(encoding="utf-8")).items()}
+            except (ValueError, json.JSONDecodeError, AttributeError) as exc:
+                raise InputFileError(info_path, f"malformed models_info.json ({exc})") from None
+    out: dict[str, ObjectModel] = {}
+    for name in class_names:
+        obj = _catalog_entry(name)
+        category = obj.category if obj else "other"
+        obj_id = obj.obj_id if obj else None
+        mesh, source, info = None, "", None
+        if name in meshes:
+            mesh = load_mesh(meshes[name], units=mesh_units)
+            source = f"mesh {meshes[name]}"
+        elif mdir is not None:
+            candidates = []
+            if obj_id is not None:
+                candidates.append(mdir / f"obj_{obj_id:06d}.ply")
+            candidates += [mdir / name / "textured.obj", mdir / f"{name}.obj", mdir / f"{name}.ply"]
+            path = next((c for c in candidates if c.is_file()), None)
+            if path is not None:
+                mesh = load_mesh(path, units=mesh_units)
+                source = f"mesh {path}"
+                if path.suffix.lower() == ".ply" and obj_id in models_info:
+                    info = models_info[obj_id]
+                    source += " + models_info.json"
+        if mesh is None:
+            if obj is None:
+                raise UnknownObjectError(f"class {name!r} is not a HOPE object and no mesh was "
+                                         f"given for it (--mesh {name}=PATH)")
+            mesh = trimesh.creation.box(extents=obj.size_array)
+            source = "procedural cuboid (catalog size; no mesh given)"
+        points = sample_surface_points(mesh, n_points)
+        if info is not None:
+            syms = metrics.symmetries_from_models_info(info, BOP19_MAX_SYM_DISC_STEP)
+            diameter = 0.001 * float(info["diameter"]) if "diameter" in info else mesh_diameter(mesh)
+        else:
+            syms = (category_symmetries(category, step_deg=cyl_step_deg) if obj else np.eye(4)[None])
+            syms = _centred_symmetries(syms, mesh_cuboid(mesh)[1])
+            diameter = mesh_diameter(mesh)
+        out[name] = ObjectModel(name=name, obj_id=obj_id, category=category, points=points,
+                                diameter=diameter, symmetries=syms, mesh=mesh, source=source,
+                                procedural=source.startswith("procedural"))
+    return out

@@ -1,0 +1,165 @@
+"""Static INT8 quantization of an exported fp32 ONNX file (onnxruntime ``quantize_static``).
+
+QDQ format with per-channel symmetric INT8 weights and UINT8 activations, calibrated (MinMax by
+default) on images of a folder prepared exactly as the predictor prepares them. After
+quantization fp32 and INT8 run on up to ``eval_images`` of the calibration images and
+:func:`~dope_hope.export.compare.compare_maps` reports the map and keypoint deviation
+(in-sample: the same images calibrated the ranges).
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from dope_hope.errors import ConfigError, InputFileError
+from dope_hope.export.compare import MapDeviation, compare_maps
+from dope_hope.export.to_onnx import INT8_MIN_OPSET, _doc, _set_metadata
+from dope_hope.inference.onnx_backend import OnnxBackend, OnnxModelInfo
+from dope_hope.io.atomic import atomic_path
+from dope_hope.io.images import IMAGE_SUFFIXES, image_files
+
+CALIBRATION_METHODS = ("minmax", "entropy", "percentile")
+
+
+# ----------------------------------------------------------------------------- INT8
+def list_images(folder: str | os.PathLike, limit: int | None = None) -> list[Path]:
+    """Sorted RGB image files of a folder (depth/segmentation images of DOPE folders skipped)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputFileError(folder, "calibration folder not found")
+    files = [p for p in image_files(folder) if not p.name.lower().endswith((".depth.png", ".seg.png"))]
+    if not files:
+        raise InputFileError(folder, f"no calibration images ({', '.join(IMAGE_SUFFIXES)}) in the folder")
+    return files[:limit] if limit else files
+
+
+class ImageFolderReader:
+    """onnxruntime ``CalibrationDataReader`` over images prepared like the predictor does.
+
+    Each image is read as RGB, resized/padded/normalized by
+    :meth:`dope_hope.inference.predictor.DopePredictor.prepare` for ``backend`` (the fp32 model being
+    quantized) and converted to the graph input's normalization by
+    :meth:`OnnxBackend.feeds` (isaac-ros: the encoder's).
+    """
+
+    def __init__(self, backend: OnnxBackend, files: Sequence[Path]):
+        from dope_hope.inference.predictor import DopePredictor
+
+        self.backend = backend
+        self.predictor = DopePredictor(backend)
+        self.files = list(files)
+        self._iter = None
+
+    def prepare(self, path: Path) -> np.ndarray:
+        """(1, 3, H, W) model-normalized batch of one image file, as the predictor makes it."""
+        from dope_hope.io.images import read_rgb
+
+        return self.predictor.prepare(read_rgb(path)).batch
+
+    def feeds(self, path: Path) -> list[dict[str, np.ndarray]]:
+        return self.backend.feeds(self.prepare(path))
+
+    def get_next(self) -> dict[str, np.ndarray] | None:
+        if self._iter is None:
+            self._iter = (f for p in self.files for f in self.feeds(p))
+        return next(self._iter, None)
+
+    def rewind(self) -> None:
+        self._iter = None
+
+
+def output_convs(model_proto) -> list[str]:
+    """Names of the Conv nodes whose outputs reach the graph outputs through data-movement ops.
+
+    These (the last 1x1 convs of the final stage) stay in float during INT8 quantization: the
+    maps come out unquantized (no 1/255-of-range output step on the belief peaks) for a
+    negligible share of the compute.
+    """
+    producer = {o: n for n in model_proto.graph.node for o in n.output}
+    passthrough = {"Slice", "Concat", "Split", "Identity", "Reshape", "Squeeze", "Unsqueeze"}
+    found, stack, seen = [], [o.name for o in model_proto.graph.output], set()
+    while stack:
+        node = producer.get(stack.pop())
+        if node is None or node.name in seen:
+            continue
+        seen.add(node.name)
+        if node.op_type == "Conv":
+            found.append(node.name)
+        elif node.op_type in passthrough:
+            stack.extend(node.input[:1] if node.op_type != "Concat" else node.input)
+    return found
+
+
+def quantize_int8(fp32_path: str | os.PathLike, out: str | os.PathLike, calibration: str | os.PathLike,
+                  max_images: int = 32, method: str = "minmax", eval_images: int = 8,
+                  activation_uint8: bool = True, threads: int | None = None) -> tuple[OnnxModelInfo, MapDeviation]:
+    """Static INT8 quantization (QDQ, per-channel weights) of a dope-hope fp32 ONNX file.
+
+    Args:
+        fp32_path: an fp32 file written by :func:`export_model`.
+        out: INT8 file to write (atomically; metadata copied, ``precision`` "int8").
+        calibration: folder of RGB images (a DOPE-format folder works: depth/seg are skipped).
+        max_images: calibration images used (sorted by name).
+        method: "minmax", "entropy" or "percentile" (onnxruntime CalibrationMethod).
+        eval_images: images on which INT8 is compared with fp32 afterwards.
+        activation_uint8: UINT8 activations (x86 CPU recommendation) or INT8 (ARM/TensorRT).
+    Returns (metadata, deviation of INT8 from fp32).
+    """
+    import onnx
+    from onnxruntime.quantization import (
+        CalibrationMethod,
+        QuantFormat,
+        QuantType,
+        quant_pre_process,
+        quantize_static,
+    )
+
+    if method not in CALIBRATION_METHODS:
+        raise ConfigError(f"calibration method must be one of {', '.join(CALIBRATION_METHODS)}, got {method!r}")
+    fp32 = OnnxBackend(fp32_path, threads=threads, providers=["CPUExecutionProvider"])
+    if fp32.info.precision != "fp32":
+        raise ConfigError(f"{fp32_path}: already {fp32.info.precision}; quantize the fp32 export")
+    if fp32.info.opset < INT8_MIN_OPSET:
+        raise ConfigError(f"INT8 (per-channel QDQ) needs opset >= {INT8_MIN_OPSET}, the model has {fp32.info.opset}")
+    files = list_images(calibration, max_images)
+    reader = ImageFolderReader(fp32, files)
+    calib = {"minmax": CalibrationMethod.MinMax, "entropy": CalibrationMethod.Entropy,
+             "percentile": CalibrationMethod.Percentile}[method]
+    settings = {
+        "tool": "onnxruntime.quantization.quantize_static", "format": "QDQ", "per_channel": True,
+        "weights": "int8 symmetric", "activations": "uint8" if activation_uint8 else "int8",
+        "calibration": method, "calibration_images": len(files)}
+    with atomic_path(out) as tmp, tempfile.TemporaryDirectory(prefix="dope-hope-quant-") as tmpdir:
+        # onnxruntime's recommended pre-processing: shape inference + graph cleanup (folds the
+        # exporter's Identity/Constant nodes, so every conv bias is an initializer it can quantize).
+        pre = Path(tmpdir) / "preprocessed.onnx"
+        quant_pre_process(str(fp32_path), str(pre))
+        keep_float = output_convs(onnx.load(str(pre)))
+        quantize_static(str(pre), str(tmp), reader, quant_format=QuantFormat.QDQ, per_channel=True,
+                        reduce_range=False, nodes_to_exclude=keep_float,
+                        activation_type=QuantType.QUInt8 if activation_uint8 else QuantType.QInt8,
+                        weight_type=QuantType.QInt8, calibrate_method=calib,
+                        calibration_providers=["CPUExecutionProvider"])
+        settings["float_nodes"] = keep_float
+        info = replace(fp32.info, precision="int8",
+                       extra=dict(fp32.info.extra, quantization=json.dumps(settings)))
+        proto = onnx.load(str(tmp))
+        _set_metadata(proto, info, _doc(info))
+        onnx.checker.check_model(proto)
+        onnx.save(proto, str(tmp))
+        del proto
+        int8 = OnnxBackend(tmp, threads=threads, providers=["CPUExecutionProvider"])
+        ref, test = [], []
+        for path in files[:max(1, eval_images)]:
+            batch = reader.prepare(path)
+            ref.append(tuple(m[0] for m in fp32.run(batch)))
+            test.append(tuple(m[0] for m in int8.run(batch)))
+        deviation = compare_maps(ref, test, info.stride)
+        del int8
+    return info, deviation

@@ -1,0 +1,339 @@
+"""ONNX export of a dope-hope model: native or Isaac ROS layout, metadata, verification.
+
+**Exporter.** ``torch.onnx.export(..., dynamo=False)``: the TorchScript exporter. torch 2.14's
+default (dynamo) exporter needs ``onnxscript`` (not a dependency) and writes the weights to a
+separate ``.onnx.data`` file; the TorchScript one writes ONE self-contained file (DOPE-DR-50
+is ~210 MB, far below protobuf's 2 GB limit) and exports every op used here (conv, ReLU, max
+pool, concat, bilinear resize, transposed conv, global average pool; BatchNorm is folded
+into the convs in eval mode). It is deprecated in torch >= 2.9 and says so with two
+``DeprecationWarning`` s, which :func:`_torchscript_export` silences deliberately (by exact
+message, nothing else). Default opset **17** (:data:`OPSET`; 11..20 accepted, INT8 needs
+>= 13 for per-channel QDQ); the opset is recorded in the metadata. Every export is checked
+with ``onnx.checker`` and then *verified*: onnxruntime and PyTorch run the same random input
+and the largest map difference must stay below 1e-3 (relative to the map scale), else
+:class:`ExportError` and nothing is written. Files are written atomically.
+
+**Native layout** (``layout="native"``): input ``image`` (N, 3, H, W) float32, RGB normalized
+with the checkpoint's mean/std (ImageNet); outputs ``belief`` (N, 9, h, w) and ``affinity``
+(N, 16, h, w) of the LAST stage only (:class:`LastStageMaps`). The batch axis is always
+dynamic; H and W are fixed (``input_hw``, default the training input size) or dynamic
+(``dynamic=True``). The file's ``metadata_props`` carry what inference needs
+(:class:`dope_hope.inference.onnx_backend.OnnxModelInfo`): ``dope_hope.format``, ``format_version``,
+``class_name``, ``size_m`` (mesh frame, m), ``frame``, ``keypoint_order``, ``mean``/``std``,
+``input_mean``/``input_std``, ``stride``, ``head``, ``arch``, ``layout``, ``input_hw``,
+``fixed_input_hw``, ``opset``, ``precision``, ``version``, ``exporter``, ``source``, plus
+``config`` (the checkpoint's config as JSON), ``input_layout`` and, for INT8,
+``quantization``; isaac-ros files add ``isaac_ros.*`` keys (below).
+
+**Isaac ROS layout** (``layout="isaac-ros"``), checked against NVIDIA-ISAAC-ROS/
+isaac_ros_pose_estimation (package isaac_ros_dope):
+
+- ``scripts/dope_converter.py`` exports the official network with ``input_names=['input']``,
+  ``output_names=['output']``, a ``torch.randn(1, 3, row, col)`` dummy (defaults ``--row 480
+  --col 640``, static shapes) and a forward returning ``torch.cat([out6_2, out6_1], 1)``: the
+  9 last-stage belief maps, then the 16 affinity fields. ``launch/isaac_ros_dope_tensor_rt
+  .launch.py`` binds ``input_binding_names ["input"]`` / ``output_binding_names ["output"]``
+  with ``network_image_width 640`` / ``height 480``. The Isaac ROS docs ("Using DOPE at
+  Different Image Resolutions") state that the exported ONNX does not support other image
+  sizes: the size is fixed at export (so ``dynamic`` is refused here).
+- ``gxf/dope/dope_decoder.cpp`` checks the tensor is (1, 25, h, w) (``kNumTensors = 1``,
+  ``kInputMapsChannels = 25``), reads channels 0..8 as belief maps (8 corners + centroid)
+  and 9 + 2k, 10 + 2k as corner k's affinity, and maps a peak to the image as
+  ``(peak + kOffsetDueToUpsampling 0.4395) * kImageToMapScale 8``: stride 8 only (our
+  :mod:`dope_hope.maps.grid` puts cell j at 8j + 3.5, i.e. an offset of 0.4375: the same to
+  0.016 px). Older ``src/dope_decoder_node.cpp`` hard-codes 60 x 80 maps (640x480 input).
+  Its ``CuboidVertices`` corner order (x: + - - + + - - +, y: - - + + - - + +, z: + + + + -
+  - - -) is exactly :data:`dope_hope.geometry.CUBOID_CORNER_SIGNS`; its ``dimensions`` are
+  the cuboid extents in centimetres (``config/dope_config.yaml``, HOPE entries in the legacy
+  frame, e.g. Ketchup [14.86, 4.34, 6.45]), recorded here as
+  ``isaac_ros.object_dimensions_cm`` (legacy-frame extents for legacy models, mesh-frame
+  extents otherwise).
+- The image encoder (isaac_ros_dnn_image_encoder) normalizes with launch arguments
+  ``encoder_image_mean`` / ``encoder_image_stddev``: ``[0.5, 0.5, 0.5]`` / ``[0.5, 0.5, 0.5]``
+  in ``isaac_ros_dope_tensor_rt.launch.py`` (the default here, ``isaac_encoder="half"``);
+  the newer launch fragment ``isaac_ros_dope_core.launch.py`` defaults to ImageNet
+  mean/std (``isaac_encoder="imagenet"``). The conversion to this model's normalization is
+  folded into the graph as a fixed per-channel affine op at the input,
+  ``x_model = (x_isaac * enc_std + enc_mean - mean) / std`` (:class:`IsaacRosMaps`; an
+  exact Mul + Add, not folded into the first conv's weights, whose zero padding would then
+  no longer pad with the normalized zero). The batch axis is fixed at 1.
+- A model whose maps are not at 1/8 (DOPE-DR-400, stride 1; lite head 100, stride 4) is
+  **refused** for this layout (:class:`~dope_hope.errors.ConfigError`): the decoder hard-codes
+  the x8 scale, and pooling full-resolution maps down by 8 would discard exactly what the
+  400-px head is for. Export those in the native layout.
+
+INT8: :mod:`dope_hope.export.int8`.
+"""
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from dope_hope import __version__
+from dope_hope.errors import ConfigError, DopeHopeError
+from dope_hope.export.compare import MapDeviation
+from dope_hope.inference.onnx_backend import LAYOUT_NAMES, LAYOUTS, OnnxModelInfo
+from dope_hope.io.atomic import atomic_path
+
+#: Default ONNX opset and the range the TorchScript exporter handles here.
+OPSET = 17
+
+
+MIN_OPSET, MAX_OPSET = 11, 20
+
+
+INT8_MIN_OPSET = 13
+
+
+#: Isaac ROS DOPE defaults: network input (H, W) (dope_converter.py --row/--col).
+ISAAC_ROS_INPUT_HW = (480, 640)
+
+
+#: Isaac ROS image-encoder normalizations (mean, std) by name (see the module docstring).
+ISAAC_ENCODERS: dict[str, tuple[tuple[float, ...], tuple[float, ...]]] = {
+    "half": ((0.5, 0.5, 0.5), (0.5, 0.5, 0.5)),
+    "imagenet": ((0.485, 0.456, 0.406), (0.229, 0.224, 0.225)),
+}
+
+
+#: Verification tolerance: max |onnxruntime - torch| <= VERIFY_TOL * max(1, max |torch|).
+VERIFY_TOL = 1e-3
+
+
+class ExportError(DopeHopeError):
+    """The exported graph does not reproduce the PyTorch model (nothing was written)."""
+
+
+# ----------------------------------------------------------------------------- wrappers
+class LastStageMaps(nn.Module):
+    """(N, 3, H, W) -> (belief (N, 9, h, w), affinity (N, 16, h, w)) of the last stage."""
+
+    def __init__(self, model: nn.Module):
+        super().__init__()
+        self.model = model
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        belief, affinity = self.model(x)[-1]
+        return belief, affinity
+
+
+class IsaacRosMaps(nn.Module):
+    """Isaac ROS DOPE graph: encoder-normalized (1, 3, H, W) -> (1, 25, H/8, W/8).
+
+    ``x_model = x * (enc_std / std) + (enc_mean - mean) / std`` (fixed per-channel affine op),
+    then the network; output = cat(belief (9), affinity (16)) of the last stage.
+    """
+
+    def __init__(self, model: nn.Module, mean: Sequence[float], std: Sequence[float],
+                 enc_mean: Sequence[float], enc_std: Sequence[float]):
+        super().__init__()
+        self.model = model
+        m, s = torch.tensor(mean, dtype=torch.float32), torch.tensor(std, dtype=torch.float32)
+        em, es = torch.tensor(enc_mean, dtype=torch.float32), torch.tensor(enc_std, dtype=torch.float32)
+        self.register_buffer("scale", (es / s).view(1, 3, 1, 1))
+        self.register_buffer("shift", ((em - m) / s).view(1, 3, 1, 1))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        belief, affinity = self.model(x * self.scale + self.shift)[-1]
+        return torch.cat([belief, affinity], 1)
+
+
+@dataclass
+class ExportResult:
+    """What :func:`export_checkpoint` wrote.
+
+    path: the .onnx file. info: its metadata. verify_max_abs: max |onnxruntime - torch|
+    of the fp32 graph on a random input. int8: INT8-vs-fp32 deviation (None for fp32).
+    seconds: wall time. size_bytes: file size.
+    """
+
+    path: Path
+    info: OnnxModelInfo
+    verify_max_abs: float
+    int8: MapDeviation | None
+    seconds: float
+    size_bytes: int
+
+
+# ----------------------------------------------------------------------------- export
+def _check_hw(hw: Sequence[int], what: str) -> tuple[int, int]:
+    try:
+        h, w = (int(v) for v in hw)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{what} must be two integers (H, W), got {hw!r}") from None
+    if h < 8 or w < 8 or h % 8 or w % 8:
+        raise ConfigError(f"{what} must be multiples of 8 (the network's stride), got {h}x{w}")
+    return h, w
+
+
+def _torchscript_export(module: nn.Module, dummy: torch.Tensor, path: Path, opset: int,
+                        input_names: list[str], output_names: list[str],
+                        dynamic_axes: dict[str, dict[int, str]] | None) -> None:
+    with warnings.catch_warnings():
+        # The TorchScript exporter is deprecated in torch >= 2.9 but is the one that writes a
+        # single self-contained file without onnxscript (module docstring): silence exactly
+        # its two deprecation notices, nothing else.
+        warnings.filterwarnings("ignore", message=r".*legacy TorchScript-based ONNX export",
+                                category=DeprecationWarning)
+        warnings.filterwarnings("ignore", message=r"The feature will be removed",
+                                category=DeprecationWarning)
+        torch.onnx.export(module, (dummy,), str(path), dynamo=False, opset_version=opset,
+                          input_names=input_names, output_names=output_names,
+                          dynamic_axes=dynamic_axes, do_constant_folding=True)
+
+
+def _set_metadata(model_proto, info: OnnxModelInfo, doc: str) -> None:
+    del model_proto.metadata_props[:]
+    for key, value in sorted(info.to_metadata().items()):
+        entry = model_proto.metadata_props.add()
+        entry.key, entry.value = key, value
+    model_proto.producer_name = "dope-hope"
+    model_proto.producer_version = __version__
+    model_proto.doc_string = doc
+
+
+def _doc(info: OnnxModelInfo) -> str:
+    names = LAYOUT_NAMES[info.layout]
+    size = "dynamic H, W" if info.fixed_input_hw is None else f"{info.fixed_input_hw[0]}x{info.fixed_input_hw[1]}"
+    return (f"dope-hope {info.precision} DOPE belief/affinity network for {info.class_name} "
+            f"({info.arch}, head {info.head}, stride {info.stride}, {info.layout} layout: "
+            f"{', '.join(names[0])} -> {', '.join(names[1])}, input {size}, RGB normalized "
+            f"with mean {list(info.input_mean)} std {list(info.input_std)}). Metadata keys dope_hope.*.")
+
+
+def model_info(checkpoint: dict[str, Any], model: nn.Module, layout: str,
+               fixed_input_hw: tuple[int, int] | None, opset: int, isaac_encoder: str = "half",
+               source: str = "") -> OnnxModelInfo:
+    """The :class:`OnnxModelInfo` of a checkpoint exported in ``layout``."""
+    from dope_hope.inference.backends import metadata_from_checkpoint
+
+    meta = metadata_from_checkpoint(checkpoint, source or "<checkpoint>")
+    mean, std = meta["mean"], meta["std"]
+    input_mean, input_std = (mean, std) if layout == "native" else ISAAC_ENCODERS[isaac_encoder]
+    extra = {
+        "config": json.dumps(checkpoint.get("config"), default=str, sort_keys=True),
+        "input_layout": "NCHW float32 RGB, (rgb / 255 - input_mean) / input_std",
+    }
+    if layout == "isaac-ros":
+        size = np.asarray(meta["size_m"], dtype=np.float64)
+        if meta["frame"] == "legacy":  # Isaac ROS lists the legacy-frame extents (dope_config.yaml)
+            from dope_hope.geometry import LEGACY_TO_MESH
+
+            size = np.abs(LEGACY_TO_MESH).T @ size
+        extra["isaac_ros.object_dimensions_cm"] = json.dumps([round(float(v) * 100.0, 4) for v in size])
+        extra["isaac_ros.encoder"] = isaac_encoder
+    return OnnxModelInfo(
+        class_name=meta["class_name"], size_m=tuple(float(v) for v in meta["size_m"]),
+        frame=meta["frame"], keypoint_order=meta["keypoint_order"], mean=tuple(mean), std=tuple(std),
+        input_mean=tuple(float(v) for v in input_mean), input_std=tuple(float(v) for v in input_std),
+        stride=int(model.stride), head=int(getattr(model, "head", 0)), arch=str(getattr(model, "arch", "")),
+        layout=layout, input_hw=meta["input_hw"], fixed_input_hw=fixed_input_hw, opset=int(opset),
+        precision="fp32", version=__version__,
+        exporter=f"torch.onnx.export(dynamo=False) TorchScript exporter, torch {torch.__version__}",
+        source=source, extra=extra)
+
+
+def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.PathLike,
+                 layout: str = "native", input_hw: Sequence[int] | None = None,
+                 dynamic: bool = False, opset: int = OPSET, isaac_encoder: str = "half",
+                 source: str = "", seed: int = 0) -> tuple[OnnxModelInfo, float]:
+    """Export ``model`` (fp32) to ``out`` atomically; returns (metadata, verify max |d|).
+
+    Args:
+        model: a DopeNetwork (any module with ``stride`` returning per-stage map pairs).
+        checkpoint: its checkpoint dict (object, keypoint order, normalization, config).
+        layout: "native" or "isaac-ros" (see the module docstring).
+        input_hw: (H, W), multiples of 8. Default: the training input size (native) or
+            480x640 (isaac-ros). With ``dynamic`` it only sizes the tracing input.
+        dynamic: native only: H and W dynamic (the batch axis always is).
+        opset: ONNX opset (11..20).
+        isaac_encoder: "half" (mean = std = 0.5) or "imagenet": the Isaac ROS encoder's.
+    Raises ConfigError for impossible options, ExportError if the graph does not reproduce
+    the model.
+    """
+    import onnx
+
+    if layout not in LAYOUTS:
+        raise ConfigError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
+    if not MIN_OPSET <= int(opset) <= MAX_OPSET:
+        raise ConfigError(f"opset must be {MIN_OPSET}..{MAX_OPSET} (TorchScript exporter), got {opset}")
+    if isaac_encoder not in ISAAC_ENCODERS:
+        raise ConfigError(f"isaac encoder normalization must be one of {', '.join(ISAAC_ENCODERS)}, "
+                          f"got {isaac_encoder!r}")
+    stride = int(model.stride)
+    if layout == "isaac-ros":
+        if stride != 8:
+            raise ConfigError(
+                f"the isaac-ros layout needs maps at 1/8 of the input (Isaac ROS DOPE's decoder scales "
+                f"peaks by 8); this model's maps are at stride {stride} (head "
+                f"{getattr(model, 'head', '?')}): export it with --layout native")
+        if dynamic:
+            raise ConfigError("the isaac-ros layout has a fixed input size (Isaac ROS builds a static "
+                              "TensorRT engine); give --height/--width instead of --dynamic")
+    if input_hw is None:
+        from dope_hope.inference.backends import metadata_from_checkpoint
+
+        train_hw = metadata_from_checkpoint(checkpoint, source or "<checkpoint>")["input_hw"]
+        input_hw = ISAAC_ROS_INPUT_HW if layout == "isaac-ros" else (train_hw or (400, 400))
+    h, w = _check_hw(input_hw, "export input size")
+    fixed = None if dynamic else (h, w)
+    info = model_info(checkpoint, model, layout, fixed, int(opset), isaac_encoder, source)
+
+    was_training = model.training
+    model.eval()  # the wrapper must be in eval mode too: BatchNorm with running statistics
+    try:
+        if layout == "native":
+            wrapper: nn.Module = LastStageMaps(model).eval()
+            dyn = {"image": {0: "N"}, "belief": {0: "N"}, "affinity": {0: "N"}}
+            if dynamic:
+                dyn = {"image": {0: "N", 2: "H", 3: "W"}, "belief": {0: "N", 2: "h", 3: "w"},
+                       "affinity": {0: "N", 2: "h", 3: "w"}}
+        else:
+            enc_mean, enc_std = ISAAC_ENCODERS[isaac_encoder]
+            wrapper = IsaacRosMaps(model, info.mean, info.std, enc_mean, enc_std).eval()
+            dyn = None
+        in_names, out_names = (list(v) for v in LAYOUT_NAMES[layout])
+        gen = torch.Generator().manual_seed(seed)
+        dummy = torch.randn(1, 3, h, w, generator=gen)
+        with atomic_path(out) as tmp:
+            _torchscript_export(wrapper, dummy, tmp, int(opset), in_names, out_names, dyn)
+            proto = onnx.load(str(tmp))
+            _set_metadata(proto, info, _doc(info))
+            onnx.checker.check_model(proto)
+            onnx.save(proto, str(tmp))
+            del proto
+            verify = _verify(wrapper, tmp, dummy, layout)
+    finally:
+        model.train(was_training)
+    return info, verify
+
+
+def _verify(wrapper: nn.Module, path: Path, x: torch.Tensor, layout: str) -> float:
+    """max |onnxruntime - torch| on ``x`` (graph-normalized input); ExportError if too large."""
+    import onnxruntime as ort
+
+    with torch.inference_mode():
+        ref = wrapper(x)
+    ref = torch.cat(list(ref), 1) if isinstance(ref, (tuple, list)) else ref
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    got = sess.run(None, {sess.get_inputs()[0].name: x.numpy()})
+    got = np.concatenate(got, 1)
+    ref = ref.numpy()
+    err = float(np.abs(got - ref).max())
+    scale = max(1.0, float(np.abs(ref).max()))
+    if not np.isfinite(err) or err > VERIFY_TOL * scale:
+        raise ExportError(f"{path.name}: onnxruntime differs from PyTorch by {err:.3g} (maps up to "
+                          f"{scale:.3g}); the export is wrong, nothing written")
+    return err
+
+
+# ----------------------------------------------------------------------------- top level

@@ -1,0 +1,92 @@
+"""One detection of one object: class, score, mesh-frame pose, keypoints, refinement record.
+
+:meth:`Detection.to_json` writes one record of the predictions JSON-lines format
+(:mod:`dope_hope.io.predictions`) that ``dope-hope evaluate`` reads.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from dope_hope.geometry import (
+    matrix_to_quaternion_xyzw,
+)
+
+
+# ----------------------------------------------------------------------------- detections
+@dataclass
+class Detection:
+    """One detected object, mesh-frame pose (``x_c = R x + t``).
+
+    class_name: the model's object. score: pose score in [0, 1] (:func:`pose.solve_pnp`).
+    R: (3, 3). t: (3,) metres (after the line search when applied).
+    keypoints_2d: (9, 2) detected cuboid keypoints, original-image px, current keypoint order
+        (geometry.CUBOID_CORNER_SIGNS, then the centre); NaN where not found.
+    keypoint_scores: (9,) belief at each keypoint (0 where missing), same order.
+    inliers: (9,) bool, keypoints consistent with the pose, same order.
+    projected_2d: (9, 2) the cuboid keypoints projected under (R, t), original-image px.
+    reprojection_error_px: mean inlier reprojection error, original-image px.
+    cuboid_size_m, cuboid_center_m: the mesh-frame box used, metres.
+    ls_applied / ls_reason / ls_scale: outcome of the depth line search ("no depth image"
+        when none was given).
+    icp_applied / icp_reason / icp_fit: outcome of the depth ICP ("not requested" without
+        ``icp=True``); icp_fit: soft fraction of the depth points under the object that lie on
+        the model surface under the returned pose (1 = all; :func:`dope_hope.refine.icp.icp_refine`;
+        NaN when not evaluated).
+    """
+
+    class_name: str
+    score: float
+    R: np.ndarray
+    t: np.ndarray
+    keypoints_2d: np.ndarray
+    keypoint_scores: np.ndarray
+    inliers: np.ndarray
+    projected_2d: np.ndarray
+    reprojection_error_px: float
+    cuboid_size_m: np.ndarray
+    cuboid_center_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    ls_applied: bool = False
+    ls_reason: str = "no depth image"
+    ls_scale: float = 1.0
+    icp_applied: bool = False
+    icp_reason: str = "not requested"
+    icp_fit: float = float("nan")
+
+    @property
+    def quaternion_xyzw(self) -> np.ndarray:
+        """(4,) scalar-last quaternion of R (w >= 0)."""
+        return matrix_to_quaternion_xyzw(self.R)
+
+    def to_json(self, image: str | None = None, **extra: Any) -> dict[str, Any]:
+        """One record of the predictions JSON-lines format (:mod:`dope_hope.io.predictions`,
+        read by :mod:`dope_hope.evaluation`): ``image``, ``class``, ``score``, ``R`` (3x3 rows),
+        ``t`` (m), ``ls_applied``, plus ``quaternion_xyzw``, ``ls_reason``, ``ls_scale``,
+        ``keypoints_2d`` (9 x [u, v] original px, null where missing), ``keypoint_scores``,
+        ``reprojection_error_px``, ``cuboid_size_m`` and, with ICP requested, ``icp_applied``,
+        ``icp_reason`` and ``icp_fit``, which the evaluation ignores.
+
+        ``image`` names the frame (omitted when None: then pass ``scene_id``/``im_id``);
+        ``extra`` adds keys (e.g. ``time``, ``scene_id``). The result is strict JSON (no NaN).
+        """
+        from dope_hope.io.predictions import prediction_record
+
+        kp = [[None if not math.isfinite(v) else round(float(v), 3) for v in row]
+              for row in np.asarray(self.keypoints_2d, dtype=np.float64)]
+        rec = prediction_record(
+            "" if image is None else image, self.class_name, self.score, self.R, self.t,
+            ls_applied=self.ls_applied,
+            quaternion_xyzw=[float(v) for v in self.quaternion_xyzw],
+            ls_reason=self.ls_reason, ls_scale=float(self.ls_scale), keypoints_2d=kp,
+            keypoint_scores=[round(float(v), 4) for v in self.keypoint_scores],
+            reprojection_error_px=round(float(self.reprojection_error_px), 4),
+            cuboid_size_m=[float(v) for v in self.cuboid_size_m], **extra)
+        if self.icp_reason != "not requested":
+            rec.update(icp_applied=self.icp_applied, icp_reason=self.icp_reason,
+                       icp_fit=None if not math.isfinite(self.icp_fit) else round(float(self.icp_fit), 4))
+        if image is None:
+            del rec["image"]
+        return rec

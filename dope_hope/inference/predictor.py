@@ -1,0 +1,437 @@
+"""DopePredictor: an image (+ K, optional depth) -> mesh-frame 6-DoF detections of one object.
+
+One predictor owns one network (one object class per model, as DOPE); several predictors can
+run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.predict`:
+
+1. **Image** (:mod:`~dope_hope.inference.preprocess`): layout, working size and letterbox.
+   ``height=None`` (default) fits the image inside the checkpoint's training input size;
+   official DOPE weights (legacy frame) and models without a recorded input size use height
+   400, the official DOPE inference height. A backend with a fixed input size
+   (``fixed_input_hw``) gets the image fitted inside and padded up to it.
+2. **Maps** from the backend (:class:`~dope_hope.inference.backends.MapBackend`, last stage),
+   normalized with the model's recorded mean/std.
+3. **Decode and PnP** in network-image pixels with ``K_net``, so the pixel thresholds mean
+   the same whatever the original resolution. ``pose_search="hypotheses"`` (default): each
+   centroid keeps every corner peak whose affinity points at it
+   (:func:`dope_hope.maps.decode.corner_candidates`) and
+   :func:`dope_hope.inference.pnp.solve_pnp_candidates` finds the pose that explains most of
+   them; two centroids explaining the same peaks give one detection, the higher-scoring.
+   ``pose_search="groups"``: DOPE's decoding, one corner per type and centroid
+   (:func:`dope_hope.maps.decode.decode_maps`), then :func:`dope_hope.inference.pnp.solve_pnp`.
+   The cuboid is the model's: the checkpoint's size (mesh frame) or, with ``mesh=``, the
+   mesh's own bounding box (size and centre; a size differing from the checkpoint's by more
+   than 25 % is refused as a unit mistake). **Legacy frame** (official HOPE weights): PnP runs
+   on the legacy cuboid and the rotation is converted with
+   :func:`geometry.legacy_rotation_to_mesh`, so every returned pose is a mesh-frame pose.
+4. **Back to the original image**: keypoints ``u = (u' + 0.5) / s - 0.5``; the pose needs no
+   change (K_net and K describe the same camera).
+5. **Depth line search** ("-LS", optional, :func:`dope_hope.refine.line_search.depth_line_search`)
+   with the original K and a depth image of the original size. Model points: ``ls_points``
+   farthest-point samples of the mesh surface when ``mesh=`` is given, else of the cuboid's
+   surface (for a non-box object the box's front face lies in front of the real surface, which
+   biases the distance: pass the mesh for non-box objects).
+6. **Depth ICP** (optional, ``icp=True``, :func:`dope_hope.refine.icp.icp_refine`): after the
+   line search, point-to-plane ICP of ``icp_points`` model points against the depth under the
+   object refines all six DoF; kept only when it does not fit the depth worse. Without
+   ``mesh=`` only the catalog's boxes are allowed. When the line search refused, the ICP stage
+   first repeats it over :data:`ICP_LS_SEARCH`.
+"""
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from dope_hope.errors import ConfigError, ModelFileError, UnknownObjectError
+from dope_hope.geometry import (
+    LEGACY_KEYPOINT_ORDER,
+    LEGACY_TO_MESH,
+    NUM_KEYPOINTS,
+    cuboid_keypoints,
+    legacy_keypoints_to_current,
+    legacy_rotation_to_mesh,
+    project_points,
+)
+from dope_hope.inference.backends import MapBackend, open_backend
+from dope_hope.inference.detection import Detection
+from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_candidates
+from dope_hope.inference.preprocess import (
+    DEFAULT_HEIGHT,
+    INPUT_MULTIPLE,
+    NetworkInput,
+    _round_up,
+    check_intrinsics,
+    prepare_input,
+    to_rgb8,
+)
+from dope_hope.maps.decode import corner_candidates, decode_maps
+from dope_hope.refine.icp import icp_refine
+from dope_hope.refine.line_search import depth_line_search
+
+#: Model points used by the depth line search.
+DEFAULT_LS_POINTS = 1000
+
+
+#: Model points (with normals) used by the depth ICP.
+DEFAULT_ICP_POINTS = 2000
+
+
+#: Scale range of the line search the ICP stage repeats when the default one refused.
+ICP_LS_SEARCH = (0.5, 2.0)
+
+
+#: A mesh's box may differ from the checkpoint's cuboid by at most this factor per extent.
+MESH_SIZE_TOLERANCE = 1.25
+
+
+POSE_SEARCHES = ("hypotheses", "groups")
+
+
+# ----------------------------------------------------------------------------- predictor
+class DopePredictor:
+    """A network for one object and everything to turn images into :class:`Detection` s.
+
+    Args:
+        weights: a dope-hope checkpoint (``.pth``/``.pt``), an exported ``.onnx`` model, or a
+            ready :class:`MapBackend` instance.
+        backend: "auto" (ONNX for ``.onnx``, else torch), "torch" or "onnx".
+        device: torch device, or "cuda..." to ask onnxruntime for its CUDA provider.
+        height: network working height in pixels, or None for the model's training scale
+            (see the module docstring).
+        mesh: optional mesh file (or loaded ``trimesh.Trimesh`` in metres) of the object: its
+            box replaces the checkpoint's cuboid and its surface feeds the depth line search.
+        mesh_units: units of the mesh file ("m", "cm", "mm"; default by suffix).
+        pose_search: "hypotheses" (default) or "groups" (see the module docstring, step 4).
+        decode_options: keyword arguments of :func:`dope_hope.maps.decode.corner_candidates`
+            ("hypotheses") or :func:`dope_hope.maps.decode.decode_maps` ("groups").
+        pnp_options: keyword arguments of :func:`dope_hope.inference.pnp.solve_pnp`.
+        hypothesis_options: keyword arguments of :func:`dope_hope.inference.pnp.solve_pnp_candidates`
+            (``hypothesis_threshold_px``, ``max_hypotheses``).
+        line_search_options: keyword arguments of :func:`dope_hope.refine.line_search.depth_line_search`.
+        icp: with a depth image, refine each pose by ICP after the line search (step 7); needs
+            ``mesh=`` unless the object is a box of the HOPE catalog (ConfigError otherwise).
+        icp_options: keyword arguments of :func:`dope_hope.refine.icp.icp_refine`.
+        icp_points: number of model points (with normals) for ICP.
+        min_score: drop detections whose pose score is lower.
+        ls_points: number of model points for the line search.
+        threads: CPU threads (torch.set_num_threads / onnxruntime intra-op threads).
+    """
+
+    def __init__(
+        self,
+        weights: str | os.PathLike | MapBackend,
+        backend: str = "auto",
+        device: str = "cpu",
+        height: int | None = None,
+        mesh: Any = None,
+        mesh_units: str | None = None,
+        pose_search: str = "hypotheses",
+        decode_options: dict[str, Any] | None = None,
+        pnp_options: dict[str, Any] | None = None,
+        hypothesis_options: dict[str, Any] | None = None,
+        line_search_options: dict[str, Any] | None = None,
+        icp: bool = False,
+        icp_options: dict[str, Any] | None = None,
+        icp_points: int = DEFAULT_ICP_POINTS,
+        min_score: float = 0.0,
+        ls_points: int = DEFAULT_LS_POINTS,
+        threads: int | None = None,
+    ):
+        if height is not None and (int(height) != height or height < INPUT_MULTIPLE):
+            raise ConfigError(f"height must be an integer >= {INPUT_MULTIPLE}, got {height!r}")
+        if isinstance(weights, (str, os.PathLike)):
+            self.backend: MapBackend = open_backend(weights, backend, device, threads)
+        elif hasattr(weights, "run") and hasattr(weights, "stride"):
+            self.backend = weights
+        else:
+            raise ConfigError(f"weights must be a file path or a MapBackend, got {type(weights).__name__}")
+        if pose_search not in POSE_SEARCHES:
+            raise ConfigError(f"pose_search must be one of {', '.join(POSE_SEARCHES)}, got {pose_search!r}")
+        self.height = None if height is None else int(height)
+        self.pose_search = pose_search
+        self.decode_options = dict(decode_options or {})
+        self.pnp_options = dict(pnp_options or {})
+        self.hypothesis_options = dict(hypothesis_options or {})
+        self.line_search_options = dict(line_search_options or {})
+        self.icp = bool(icp)
+        self.icp_options = dict(icp_options or {})
+        self.icp_points = int(icp_points)
+        self.min_score = float(min_score)
+        self.ls_points = int(ls_points)
+        b = self.backend
+        self.class_name = str(b.class_name)
+        self.legacy = b.frame == "legacy" or b.keypoint_order == LEGACY_KEYPOINT_ORDER
+        self.mean = tuple(float(v) for v in b.mean)
+        self.std = tuple(float(v) for v in b.std)
+        self.stride = int(b.stride)
+        self.mesh = None
+        size = np.asarray(b.size_m, dtype=np.float64).reshape(3)
+        center = np.zeros(3)
+        if mesh is not None:
+            self.mesh, size, center = self._load_mesh(mesh, mesh_units, size)
+        self.cuboid_size_m = size
+        self.cuboid_center_m = center
+        if self.icp and self.mesh is None:
+            self._check_icp_surface()
+        #: (9, 3) mesh-frame cuboid keypoints, current order.
+        self.cuboid_mesh = cuboid_keypoints(size, center)
+        if self.legacy:
+            # The same box in the legacy frame (p_legacy = L^T p_mesh), listed in the legacy
+            # order: corner k at CUBOID_CORNER_SIGNS[k] * legacy extents / 2.
+            size_leg = np.abs(LEGACY_TO_MESH).T @ size
+            self.cuboid_pnp = cuboid_keypoints(size_leg, LEGACY_TO_MESH.T @ center)
+        else:
+            self.cuboid_pnp = self.cuboid_mesh
+        self._model_points: np.ndarray | None = None
+        self._icp_model: tuple[np.ndarray, np.ndarray] | None = None
+
+    # ------------------------------------------------------------------ setup helpers
+    def _load_mesh(self, mesh: Any, units: str | None, ckpt_size: np.ndarray):
+        from dope_hope.io.meshes import load_mesh, mesh_cuboid
+
+        source = "<mesh>"
+        if isinstance(mesh, (str, os.PathLike)):
+            source = str(mesh)
+            mesh = load_mesh(mesh, units=units)
+        size, center = mesh_cuboid(mesh)
+        ratio = size / ckpt_size
+        if np.any(ratio > MESH_SIZE_TOLERANCE) or np.any(ratio < 1.0 / MESH_SIZE_TOLERANCE):
+            raise ConfigError(
+                f"{source}: mesh box {np.round(size * 100, 2).tolist()} cm does not match the "
+                f"model's cuboid {np.round(ckpt_size * 100, 2).tolist()} cm for {self.class_name} "
+                "(wrong object or wrong mesh units?)")
+        return mesh, size, center
+
+    def _surface(self):
+        """The mesh, else the cuboid's surface (see the module docstring), metres."""
+        if self.mesh is not None:
+            return self.mesh
+        import trimesh
+
+        box = trimesh.creation.box(extents=self.cuboid_size_m)
+        box.apply_translation(self.cuboid_center_m)
+        return box
+
+    def _check_icp_surface(self) -> None:
+        """Without a mesh ICP fits the cuboid's surface to the depth: right for a box only."""
+        from dope_hope.catalog import get_object
+
+        try:
+            category = get_object(self.class_name).category
+        except UnknownObjectError:
+            category = "object outside the HOPE catalog"
+        if category != "cuboid":
+            raise ConfigError(f"ICP for {self.class_name} ({category}) needs its mesh (mesh= / --mesh): "
+                              "without one it would fit the cuboid's surface, which is right for boxes only")
+
+    @property
+    def model_points(self) -> np.ndarray:
+        """(ls_points, 3) mesh-frame surface points for the line search, metres (cached)."""
+        if self._model_points is None:
+            from dope_hope.io.meshes import sample_surface_points
+
+            self._model_points = sample_surface_points(self._surface(), self.ls_points, seed=0)
+        return self._model_points
+
+    @property
+    def icp_model(self) -> tuple[np.ndarray, np.ndarray]:
+        """((icp_points, 3) mesh-frame surface points, metres; their (icp_points, 3) unit
+        normals) for ICP (cached)."""
+        if self._icp_model is None:
+            from dope_hope.io.meshes import sample_surface_points
+
+            if self.mesh is None:
+                self._check_icp_surface()
+            self._icp_model = sample_surface_points(self._surface(), self.icp_points, seed=0,
+                                                    oversample=10, return_normals=True)
+        return self._icp_model
+
+    def working_size(self, image_hw: tuple[int, int]) -> tuple[tuple[int, int], tuple[int, int]]:
+        """((H', W') resized content, (Hp, Wp) padded network input) for an image of (H, W)."""
+        H, W = int(image_hw[0]), int(image_hw[1])
+        fixed = getattr(self.backend, "fixed_input_hw", None)
+        if fixed is not None:
+            s = min(fixed[0] / H, fixed[1] / W)
+            if self.height is not None:
+                s = min(s, self.height / H)
+            hw = (max(1, min(fixed[0], round(H * s))), max(1, min(fixed[1], round(W * s))))
+            return hw, (int(fixed[0]), int(fixed[1]))
+        input_hw = getattr(self.backend, "input_hw", None)
+        if self.height is not None:
+            s = self.height / H
+        elif input_hw is None or self.legacy:
+            s = DEFAULT_HEIGHT / H
+        else:
+            s = min(input_hw[0] / H, input_hw[1] / W)
+        hw = (max(1, round(H * s)), max(1, round(W * s)))
+        return hw, (_round_up(hw[0], INPUT_MULTIPLE), _round_up(hw[1], INPUT_MULTIPLE))
+
+    # ------------------------------------------------------------------ inference
+    def prepare(self, image: np.ndarray) -> NetworkInput:
+        """Image of any layout -> :class:`NetworkInput` at the working size."""
+        rgb = to_rgb8(image)
+        resized, padded = self.working_size(rgb.shape[:2])
+        return prepare_input(rgb, resized, self.mean, self.std, padded)
+
+    def infer_maps(self, image: np.ndarray | NetworkInput) -> tuple[np.ndarray, np.ndarray, NetworkInput]:
+        """Run the network: (belief (9, h, w), affinity (16, h, w), the NetworkInput)."""
+        net_in = image if isinstance(image, NetworkInput) else self.prepare(image)
+        belief, affinity = self.backend.run(net_in.batch)
+        belief, affinity = np.asarray(belief)[0], np.asarray(affinity)[0]
+        Hp, Wp = net_in.batch.shape[2:]
+        if belief.shape != (NUM_KEYPOINTS, Hp // self.stride, Wp // self.stride) or \
+                affinity.shape != (2 * (NUM_KEYPOINTS - 1),) + belief.shape[1:]:
+            raise ModelFileError(getattr(self.backend, "source", "<model>"),
+                                 f"network returned maps {belief.shape} / {affinity.shape} for an "
+                                 f"input of {Hp}x{Wp} at stride {self.stride}")
+        return belief, affinity, net_in
+
+    def predict(self, image: np.ndarray, K: np.ndarray, depth: np.ndarray | None = None,
+                depth_scale_m: float = 0.001, calibration: float = 1.0) -> list[Detection]:
+        """Detect this predictor's object in one image.
+
+        Args:
+            image: (H, W[, C]) RGB image array (see :func:`to_rgb8`).
+            K: (3, 3) intrinsics of ``image``.
+            depth: optional (H, W) depth registered to the image: integer units of
+                ``depth_scale_m`` metres, or float metres; enables the line search.
+            depth_scale_m: metres per integer depth unit (0.001 = millimetres).
+            calibration: depth multiplier (HOPE RealSense frames: pose.HOPE_REALSENSE_DEPTH_CALIBRATION).
+
+        Returns:
+            Detections sorted by decreasing score, mesh-frame poses.
+        """
+        K = check_intrinsics(K)
+        belief, affinity, net_in = self.infer_maps(image)
+        return self.detections_from_maps(belief, affinity, net_in, K, depth, depth_scale_m, calibration)
+
+    def detections_from_maps(self, belief: np.ndarray, affinity: np.ndarray, net_in: NetworkInput,
+                             K: np.ndarray, depth: np.ndarray | None = None,
+                             depth_scale_m: float = 0.001, calibration: float = 1.0) -> list[Detection]:
+        """Decode + PnP (+ line search) the maps of :meth:`infer_maps` (see :meth:`predict`)."""
+        K = check_intrinsics(K)
+        K_net = net_in.network_K(K)
+        mean_scale = math.sqrt(net_in.scale[0] * net_in.scale[1])
+        out: list[Detection] = []
+        for est in self._poses(belief, affinity, K_net):
+            if est.score < self.min_score:
+                continue
+            R, t = est.R, est.t
+            kp, scores, inliers = est.keypoints, est.keypoint_scores, est.inliers
+            if self.legacy:
+                R = legacy_rotation_to_mesh(R)
+                kp = legacy_keypoints_to_current(kp)
+                scores = legacy_keypoints_to_current(scores[:, None])[:, 0]
+                inliers = legacy_keypoints_to_current(inliers[:, None])[:, 0]
+            det = Detection(
+                class_name=self.class_name, score=float(est.score), R=R, t=t.copy(),
+                keypoints_2d=net_in.to_original_px(kp), keypoint_scores=np.asarray(scores, float),
+                inliers=np.asarray(inliers, bool), projected_2d=np.zeros((NUM_KEYPOINTS, 2)),
+                reprojection_error_px=float(est.reprojection_error_px / mean_scale),
+                cuboid_size_m=self.cuboid_size_m.copy(), cuboid_center_m=self.cuboid_center_m.copy(),
+            )
+            if depth is not None:
+                ls = depth_line_search(R, t, self.model_points, depth, K, depth_scale_m=depth_scale_m,
+                                       calibration=calibration, image_hw=net_in.original_hw,
+                                       **self.line_search_options)
+                det.t, det.ls_applied, det.ls_reason, det.ls_scale = ls.t, ls.applied, ls.reason, ls.scale
+                if self.icp:
+                    self._refine_icp(det, depth, K, depth_scale_m, calibration, net_in.original_hw)
+            elif self.icp:
+                det.icp_reason = "no depth image"
+            det.projected_2d = project_points(self.cuboid_mesh, K, det.R, det.t)
+            out.append(det)
+        out.sort(key=lambda d: -d.score)
+        return out
+
+    def refine_icp(self, det: Detection, depth: np.ndarray, K: np.ndarray, depth_scale_m: float = 0.001,
+                   calibration: float = 1.0, image_hw: tuple[int, int] | None = None) -> Detection:
+        """Step 7 of the module docstring on one detection, whatever ``icp`` was set to: a copy
+        of ``det`` (as :meth:`predict` returns it with ``depth``, i.e. after the line search)
+        refined by ICP against ``depth``; ``det`` itself is unchanged. Lets a caller keep both
+        the -LS and the -LS + ICP pose without decoding the maps twice (``dope-hope demo``).
+        ``image_hw``: (H, W) the depth must have, when known."""
+        K = check_intrinsics(K)
+        out = replace(det)
+        self._refine_icp(out, depth, K, depth_scale_m, calibration, image_hw)
+        out.projected_2d = project_points(self.cuboid_mesh, K, out.R, out.t)
+        return out
+
+    def _refine_icp(self, det: Detection, depth: np.ndarray, K: np.ndarray, depth_scale_m: float,
+                    calibration: float, image_hw: tuple[int, int] | None) -> None:
+        """Step 7 of the module docstring, in place on ``det`` (after the line search)."""
+        if not det.ls_applied:  # ICP needs the depth within a few cm: a wider line search first
+            options = {**self.line_search_options, "search": ICP_LS_SEARCH}
+            wide = depth_line_search(det.R, det.t, self.model_points, depth, K, depth_scale_m=depth_scale_m,
+                                     calibration=calibration, image_hw=image_hw, **options)
+            if wide.applied:
+                det.t, det.ls_applied, det.ls_scale = wide.t, True, wide.scale
+                det.ls_reason = f"ok (search {ICP_LS_SEARCH[0]:g}-{ICP_LS_SEARCH[1]:g}, for ICP)"
+        points, normals = self.icp_model
+        res = icp_refine(det.R, det.t, points, normals, depth, K, depth_scale_m=depth_scale_m,
+                         calibration=calibration, image_hw=image_hw, **self.icp_options)
+        det.icp_applied, det.icp_reason = res.applied, res.reason
+        det.icp_fit = res.fit_after if res.applied else res.fit_before
+        if res.applied:
+            det.R, det.t = res.R, res.t
+
+    def _poses(self, belief: np.ndarray, affinity: np.ndarray, K_net: np.ndarray) -> list[PoseEstimate]:
+        """Network-image poses of the instances in one image's maps (step 4 of the module
+        docstring), best first; keypoints in the network's own order."""
+        if self.pose_search == "groups":
+            found = [solve_pnp(inst.keypoints, inst.scores, self.cuboid_pnp, K_net, **self.pnp_options)
+                     for inst in decode_maps(belief, affinity, self.stride, **self.decode_options)]
+            return [e for e in found if e is not None]
+        found = [solve_pnp_candidates(c.keypoint_ids, c.xy, c.scores, self.cuboid_pnp, K_net,
+                                      **self.hypothesis_options, **self.pnp_options)
+                 for c in corner_candidates(belief, affinity, self.stride, **self.decode_options)]
+        kept: list[PoseEstimate] = []
+        for est in sorted((e for e in found if e is not None), key=lambda e: -e.score):
+            if not any(_same_peaks(est, other) for other in kept):
+                kept.append(est)
+        return kept
+
+    def __repr__(self) -> str:
+        return (f"DopePredictor(class_name={self.class_name!r}, stride={self.stride}, "
+                f"frame={'legacy' if self.legacy else 'mesh'}, height={self.height})")
+
+
+def _same_peaks(a: PoseEstimate, b: PoseEstimate) -> bool:
+    """True when at least half of ``a``'s inlier keypoints are the very peaks (same type, same
+    position) among ``b``'s inliers: two centroids that explain one object."""
+    both = a.inliers & b.inliers
+    same = both & np.all(np.abs(a.keypoints - b.keypoints) < 1e-6, axis=1)
+    return 2 * int(same.sum()) >= int(a.inliers.sum())
+
+
+def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.ndarray,
+                 depth: np.ndarray | None = None, depth_scale_m: float = 0.001,
+                 calibration: float = 1.0,
+                 on_maps: Callable[[DopePredictor, np.ndarray, np.ndarray, NetworkInput], None] | None = None,
+                 ) -> list[Detection]:
+    """Run several one-object predictors on one image; detections sorted by decreasing score.
+
+    The image is converted once, and resized/normalized once per distinct working size and
+    normalization (predictors with equal settings share the network input).
+    ``on_maps(predictor, belief, affinity, network_input)`` is called with each model's maps
+    (e.g. to draw them).
+    """
+    K = check_intrinsics(K)
+    rgb = to_rgb8(image)
+    cache: dict[tuple, NetworkInput] = {}
+    out: list[Detection] = []
+    for p in predictors:
+        resized, padded = p.working_size(rgb.shape[:2])
+        key = (resized, padded, p.mean, p.std)
+        if key not in cache:
+            cache[key] = prepare_input(rgb, resized, p.mean, p.std, padded)
+        belief, affinity, net_in = p.infer_maps(cache[key])
+        if on_maps is not None:
+            on_maps(p, belief, affinity, net_in)
+        out.extend(p.detections_from_maps(belief, affinity, net_in, K, depth, depth_scale_m, calibration))
+    out.sort(key=lambda d: -d.score)
+    return out

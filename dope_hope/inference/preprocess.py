@@ -1,0 +1,155 @@
+"""Network input: any image array -> RGB uint8 -> resized, padded, normalized NCHW float32.
+
+:func:`to_rgb8` accepts (H, W), (H, W, 1|2|3|4) arrays, uint8 / uint16 / float in [0, 1], RGB
+order; grayscale is replicated, uint16 reduced to 8 bits and non-opaque alpha dropped, each
+with a ``warnings.warn``. :func:`prepare_input` resizes keeping the aspect ratio
+(``cv2.INTER_AREA`` down, ``INTER_LINEAR`` up), pads right/bottom to a multiple of
+:data:`INPUT_MULTIPLE` with the normalization mean (zeros after normalization) and returns a
+:class:`NetworkInput` whose ``K`` only scales (pixel centres at integer coordinates:
+``u' = s (u + 0.5) - 0.5``).
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from dope_hope.errors import CameraError
+from dope_hope.geometry import (
+    scale_intrinsics,
+)
+
+#: Official DOPE inference height (``config_pose.yaml`` ``downscale_height``), pixels.
+DEFAULT_HEIGHT = 400
+
+
+#: The network input must have H and W divisible by this (the trunk's stride).
+INPUT_MULTIPLE = 8
+
+
+# ----------------------------------------------------------------------------- images
+def to_rgb8(image: np.ndarray) -> np.ndarray:
+    """Any image array -> (H, W, 3) uint8 RGB (see the module docstring for what is accepted).
+
+    Warns (``UserWarning``) when information is lost: 16 -> 8 bits, a non-opaque alpha dropped.
+    Raises ValueError for other layouts / dtypes.
+    """
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (2, 3, 4)):
+        raise ValueError(f"expected an (H, W), (H, W, 1), (H, W, 2), (H, W, 3) or (H, W, 4) "
+                         f"image, got shape {img.shape}")
+    if img.shape[0] < 1 or img.shape[1] < 1:
+        raise ValueError(f"empty image of shape {img.shape}")
+    if img.dtype == np.uint16:
+        warnings.warn("16-bit image reduced to 8 bits per channel (the network takes 8-bit RGB)",
+                      UserWarning, stacklevel=3)
+        img = (img / 257.0 + 0.5).astype(np.uint8)
+    elif np.issubdtype(img.dtype, np.floating):
+        finite = img[np.isfinite(img)]
+        if finite.size != img.size or (finite.size and (finite.min() < -1e-6 or finite.max() > 1 + 1e-6)):
+            raise ValueError("a float image must hold finite values in [0, 1]")
+        img = np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        raise ValueError(f"unsupported image dtype {img.dtype} (use uint8, uint16 or float in [0, 1])")
+    if img.ndim == 3 and img.shape[2] in (2, 4):
+        alpha = img[:, :, -1]
+        if np.any(alpha != 255):
+            frac = float(np.mean(alpha != 255))
+            warnings.warn(f"alpha channel dropped ({100 * frac:.1f} % of the pixels are not opaque; "
+                          "their colour is used as is)", UserWarning, stacklevel=3)
+        img = img[:, :, :-1]
+        if img.shape[2] == 1:
+            img = img[:, :, 0]
+    if img.ndim == 2:
+        img = np.repeat(img[:, :, None], 3, axis=2)
+    return np.ascontiguousarray(img)
+
+
+def _round_up(n: int, multiple: int) -> int:
+    return int(math.ceil(n / multiple) * multiple)
+
+
+@dataclass
+class NetworkInput:
+    """An image prepared for the network.
+
+    batch: (1, 3, Hp, Wp) float32 normalized, padded (zeros) right/bottom.
+    resized_hw: (H', W') of the resized image content inside the batch.
+    original_hw: (H, W) of the original image.
+    scale: (sx, sy) = (W'/W, H'/H).
+    """
+
+    batch: np.ndarray
+    resized_hw: tuple[int, int]
+    original_hw: tuple[int, int]
+    scale: tuple[float, float]
+
+    def to_network_px(self, uv: np.ndarray) -> np.ndarray:
+        """(..., 2) original-image pixels -> network-input pixels."""
+        s = np.asarray(self.scale)
+        return s * (np.asarray(uv, dtype=np.float64) + 0.5) - 0.5
+
+    def to_original_px(self, uv: np.ndarray) -> np.ndarray:
+        """(..., 2) network-input pixels -> original-image pixels (NaN stays NaN)."""
+        s = np.asarray(self.scale)
+        return (np.asarray(uv, dtype=np.float64) + 0.5) / s - 0.5
+
+    def network_K(self, K: np.ndarray) -> np.ndarray:
+        """(3, 3) intrinsics of the network input for the original image's K."""
+        return scale_intrinsics(K, *self.scale)
+
+    def maps_on_image(self, maps: np.ndarray, stride: int) -> np.ndarray:
+        """(C, h, w) maps of this input -> (C, H', W') on the resized image (padding cropped).
+
+        Bilinear, cell ``j`` centred at network pixel ``j*stride + (stride-1)/2`` (mapgrid);
+        the result covers exactly the original image's field of view (for display).
+        """
+        m = np.asarray(maps, dtype=np.float32)
+        Hp, Wp = self.batch.shape[2:]
+        Hr, Wr = self.resized_hw
+        if stride != 1:
+            up = cv2.resize(np.ascontiguousarray(m.transpose(1, 2, 0)), (m.shape[2] * stride, m.shape[1] * stride),
+                            interpolation=cv2.INTER_LINEAR)
+            m = up.reshape(up.shape[0], up.shape[1], -1).transpose(2, 0, 1)
+        return np.ascontiguousarray(m[:, :Hr, :Wr])
+
+
+def prepare_input(rgb: np.ndarray, resized_hw: tuple[int, int], mean: Sequence[float],
+                  std: Sequence[float], padded_hw: tuple[int, int] | None = None) -> NetworkInput:
+    """Resize (H, W, 3) uint8 RGB to ``resized_hw``, normalize, pad to ``padded_hw``.
+
+    ``padded_hw`` defaults to ``resized_hw`` rounded up to multiples of 8.
+    """
+    H, W = rgb.shape[:2]
+    Hr, Wr = int(resized_hw[0]), int(resized_hw[1])
+    if (Hr, Wr) != (H, W):
+        interp = cv2.INTER_AREA if Hr < H and Wr < W else cv2.INTER_LINEAR
+        rgb = cv2.resize(rgb, (Wr, Hr), interpolation=interp)
+    if padded_hw is None:
+        padded_hw = (_round_up(Hr, INPUT_MULTIPLE), _round_up(Wr, INPUT_MULTIPLE))
+    x = rgb.astype(np.float32) / np.float32(255.0)
+    x = (x - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)
+    batch = np.zeros((1, 3, int(padded_hw[0]), int(padded_hw[1])), np.float32)
+    batch[0, :, :Hr, :Wr] = x.transpose(2, 0, 1)
+    return NetworkInput(batch=batch, resized_hw=(Hr, Wr), original_hw=(H, W), scale=(Wr / W, Hr / H))
+
+
+def check_intrinsics(K: Any) -> np.ndarray:
+    """(3, 3) float64 K with positive focal lengths; CameraError otherwise."""
+    try:
+        K = np.asarray(K, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise CameraError("camera intrinsics K must be a 3x3 matrix of numbers") from None
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+        raise CameraError(f"camera intrinsics K must be a finite 3x3 matrix, got shape {K.shape}")
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]):
+        raise CameraError(f"camera intrinsics K is not a pinhole matrix (fx, fy > 0, last row "
+                          f"0 0 1): {K.tolist()}")
+    return K

@@ -1,0 +1,1 @@
+"""Depth refinement of a pose: the line search ("-LS") and point-to-plane ICP."""

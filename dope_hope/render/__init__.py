@@ -1,0 +1,1 @@
+"""Headless rendering shared by synth and evaluation: the pyrender/EGL loader and depth renders."""

@@ -1,0 +1,1 @@
+"""Training: dataset and augmentation, targets' labels, loss, schedule, validation, the loop."""

@@ -1,0 +1,148 @@
+"""Training settings: the job, the ``train`` section's defaults and checks, the object's info."""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from dope_hope.errors import ConfigError, UnknownObjectError
+
+if TYPE_CHECKING:
+    from dope_hope.training.trainer import Trainer
+
+
+#: Defaults of the ``train`` section (a config's values override them).
+TRAIN_DEFAULTS: dict[str, Any] = {
+    "batch_size": 16, "epochs": 30, "steps": None, "time_limit_min": None,
+    "optimizer": "adam", "lr": 1e-4, "weight_decay": 0.0, "betas": [0.9, 0.999],
+    "schedule": "constant", "warmup_steps": 0, "min_lr_factor": 0.01,
+    "step_epochs": 20, "step_gamma": 0.1,
+    "grad_clip": None, "loss": "mse", "belief_weight": 1.0, "affinity_weight": 1.0,
+    "foreground_weight": 0.0,
+    "workers": 2, "threads": None, "checkpoint_every": 1, "checkpoint_every_steps": 0,
+    "amp": True, "channels_last": True, "seed": 0,
+    "val_fraction": 0.1, "val_every": 1, "val_radius_px": 5.0, "val_peak_threshold": 0.1,
+    "val_batch_size": None, "max_instances": 8, "min_visibility": 0.0,
+    "include_empty_frames": True, "log_every": 20, "horizon_estimate_after": 20,
+}
+
+
+
+# =============================================================================== job + config
+@dataclass
+class TrainJob:
+    """What one ``dope-hope train`` call asks for (the config holds the recipe).
+
+    Attributes:
+        data: training folders (DOPE format).
+        object_name: class to train (case-insensitive match against the annotations).
+        out: output folder (checkpoints, metrics.csv / metrics.jsonl, summary.json).
+        val: validation folders, or empty for a seeded split of ``data``.
+        resume: checkpoint to continue from, or None.
+        mesh: optional mesh whose AABB gives the cuboid size recorded in the checkpoint.
+        backbone_weights: optional local VGG19 state dict (arch dope).
+        init_weights: optional dope-hope checkpoint whose network weights start this run
+            (fine-tuning: fresh optimizer, schedule and step count; same architecture).
+        device: "auto" (CUDA when available), "cpu" or "cuda[:i]".
+        progress: show tqdm bars (rank 0).
+        overrides: nested config values set on the command line (``--epochs``, ``--set``...);
+            merged over the given config, or over the checkpoint's config when resuming.
+        on_step: hook called with (trainer, step) after every optimizer step (tests use it to
+            interrupt a run at a given step).
+    """
+
+    data: list[Path]
+    object_name: str
+    out: Path
+    val: list[Path] = field(default_factory=list)
+    resume: Path | None = None
+    mesh: Path | None = None
+    backbone_weights: Path | None = None
+    init_weights: Path | None = None
+    device: str = "auto"
+    progress: bool = True
+    overrides: dict[str, Any] = field(default_factory=dict)
+    on_step: Callable[["Trainer", int], None] | None = None
+
+
+def train_settings(config: dict[str, Any]) -> dict[str, Any]:
+    """The ``train`` section over :data:`TRAIN_DEFAULTS`; unknown keys raise ConfigError."""
+    section = dict(config.get("train") or {})
+    unknown = sorted(set(section) - set(TRAIN_DEFAULTS))
+    if unknown:
+        raise ConfigError(f"train: unknown key(s) {', '.join(unknown)}")
+    out = {**TRAIN_DEFAULTS, **section}
+    if out["schedule"] not in ("constant", "cosine", "step"):
+        raise ConfigError(f"train.schedule must be constant, cosine or step, got {out['schedule']!r}")
+    if out["optimizer"] not in ("adam", "adamw"):
+        raise ConfigError(f"train.optimizer must be adam or adamw, got {out['optimizer']!r}")
+    if out["loss"] != "mse":
+        raise ConfigError(f"train.loss must be mse, got {out['loss']!r}")
+    if int(out["batch_size"]) < 1:
+        raise ConfigError(f"train.batch_size must be >= 1, got {out['batch_size']!r}")
+    return out
+
+
+def input_hw(config: dict[str, Any]) -> tuple[int, int]:
+    """(H, W) training input size from ``input.size``."""
+    size = (config.get("input") or {}).get("size")
+    if size is None or len(size) != 2:
+        raise ConfigError("config needs input.size: [H, W]")
+    h, w = int(size[0]), int(size[1])
+    if h % 8 or w % 8 or h <= 0 or w <= 0:
+        raise ConfigError(f"input.size {size} must be positive multiples of 8")
+    return h, w
+
+
+def object_info(name: str, records: Sequence[Any], mesh: Path | None) -> tuple[dict[str, Any], str]:
+    """Checkpoint ``object`` entry (class_name, size_m in the mesh frame, frame "mesh") and
+    where the size came from: a mesh's AABB > the size the dataset records > the catalog."""
+    from dope_hope.catalog import get_object
+    from dope_hope.model.checkpoint import make_object_info
+
+    try:
+        hope = get_object(name)
+        name = hope.name
+    except UnknownObjectError:
+        hope = None
+    if mesh is not None:
+        from dope_hope.io.meshes import load_mesh, mesh_cuboid
+        size, _ = mesh_cuboid(load_mesh(mesh))
+        return make_object_info(name, size, "mesh"), f"mesh {Path(mesh).name}"
+    from dope_hope.training.dataset import recorded_cuboid_size
+
+    for r in [r for r in records if len(r.keypoints)][:5]:
+        size = recorded_cuboid_size(r.json_path, name)
+        if size is not None:
+            return make_object_info(name, size, "mesh"), f"dataset {r.json_path.name}"
+    if hope is None:
+        raise ConfigError(f"cannot tell the cuboid size of {name!r}: the dataset records none and it is "
+                          "not a HOPE object; pass --mesh")
+    return make_object_info(name, hope.size_array, "mesh"), "catalog"
+
+
+def symmetry_category(setting: Any, object_name: str) -> str | None:
+    """Category whose symmetries relabel the keypoints (config ``targets.symmetry``), or None.
+
+    "none" (default, the official DOPE labels), "auto" (the HOPE catalog's category of the
+    object, or the demo box's), or a category name: "cuboid", "bottle", "cylinder".
+    """
+    from dope_hope.catalog import CATEGORIES, get_object
+
+    value = "none" if setting in (None, False) else str(setting).lower()
+    if value == "none":
+        return None
+    if value == "auto":
+        from dope_hope.demo_object import DEMO_CATEGORY, DEMO_CLASS_NAME
+
+        if object_name.lower() == DEMO_CLASS_NAME.lower():
+            return DEMO_CATEGORY
+        try:
+            return get_object(object_name).category
+        except UnknownObjectError:
+            raise ConfigError(f"targets.symmetry auto: {object_name!r} is not a HOPE object; set "
+                              f"targets.symmetry to one of {', '.join(CATEGORIES)} or none") from None
+    if value not in CATEGORIES:
+        raise ConfigError(f"targets.symmetry must be none, auto or one of {', '.join(CATEGORIES)}; got {setting!r}")
+    return value
