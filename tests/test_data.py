@@ -24,7 +24,8 @@ from dope_hope.geometry import (
 from dope_hope.io.dope_json import write_dope_json
 from dope_hope.io.images import write_rgb
 from dope_hope.maps.grid import image_to_map
-from dope_hope.training.augment import PAD_RGB, AugmentParams, augment
+from dope_hope.preprocess import PAD_RGB
+from dope_hope.training.augment import AugmentParams, augment
 from dope_hope.training.dataset import (
     DopeDataset,
     EpochSampler,

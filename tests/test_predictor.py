@@ -29,7 +29,7 @@ from dope_hope.geometry import (
 )
 from dope_hope.inference.backends import MapBackend, TorchBackend
 from dope_hope.inference.predictor import DopePredictor, predict_many
-from dope_hope.inference.preprocess import DEFAULT_HEIGHT, to_rgb8
+from dope_hope.preprocess import DEFAULT_HEIGHT, to_rgb8
 from dope_hope.model import build_model
 from dope_hope.model.checkpoint import (
     import_official,

@@ -265,10 +265,10 @@ def run(args: argparse.Namespace) -> int:
 
     from dope_hope.errors import CameraError, ConfigError, InputFileError
     from dope_hope.inference.predictor import predict_many
-    from dope_hope.inference.preprocess import to_rgb8
     from dope_hope.io.camera import camera_search_description, find_image_camera
     from dope_hope.io.images import read_depth_m, read_image_raw, write_rgb
     from dope_hope.io.predictions import write_predictions_jsonl
+    from dope_hope.preprocess import to_rgb8
     from dope_hope.viz import belief_montage, overlay_detections
 
     if args.height is not None and args.height < 8:

@@ -40,27 +40,29 @@ def list_images(folder: str | os.PathLike, limit: int | None = None) -> list[Pat
 
 
 class ImageFolderReader:
-    """onnxruntime ``CalibrationDataReader`` over images prepared like the predictor does.
+    """onnxruntime ``CalibrationDataReader`` over images prepared as the predictor prepares them.
 
-    Each image is read as RGB, resized/padded/normalized by
-    :meth:`dope_hope.inference.predictor.DopePredictor.prepare` for ``backend`` (the fp32 model being
-    quantized) and converted to the graph input's normalization by
-    :meth:`OnnxBackend.feeds` (isaac-ros: the encoder's).
+    Each image is read as RGB, fitted, padded and normalized by :mod:`dope_hope.preprocess`
+    for ``backend`` (the fp32 model being quantized: its sizes, frame and normalization) and
+    converted to the graph input's normalization by :meth:`OnnxBackend.feeds` (isaac-ros: the
+    encoder's).
     """
 
     def __init__(self, backend: OnnxBackend, files: Sequence[Path]):
-        from dope_hope.inference.predictor import DopePredictor
-
         self.backend = backend
-        self.predictor = DopePredictor(backend)
         self.files = list(files)
         self._iter = None
 
     def prepare(self, path: Path) -> np.ndarray:
         """(1, 3, H, W) model-normalized batch of one image file, as the predictor makes it."""
         from dope_hope.io.images import read_rgb
+        from dope_hope.preprocess import prepare_input, to_rgb8, working_size
 
-        return self.predictor.prepare(read_rgb(path)).batch
+        rgb = to_rgb8(read_rgb(path))
+        info = self.backend.info
+        resized, padded = working_size(rgb.shape[:2], input_hw=info.input_hw,
+                                       fixed_input_hw=info.fixed_input_hw, legacy=info.frame == "legacy")
+        return prepare_input(rgb, resized, info.mean, info.std, padded).batch
 
     def feeds(self, path: Path) -> list[dict[str, np.ndarray]]:
         return self.backend.feeds(self.prepare(path))

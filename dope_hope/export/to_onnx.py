@@ -83,6 +83,7 @@ from dope_hope.errors import ConfigError, DopeHopeError
 from dope_hope.export.compare import MapDeviation
 from dope_hope.inference.onnx_backend import LAYOUT_NAMES, LAYOUTS, OnnxModelInfo
 from dope_hope.io.atomic import atomic_path
+from dope_hope.model.info import ModelInfo
 
 #: Default ONNX opset and the range the TorchScript exporter handles here.
 OPSET = 17
@@ -214,29 +215,27 @@ def model_info(checkpoint: dict[str, Any], model: nn.Module, layout: str,
                fixed_input_hw: tuple[int, int] | None, opset: int, isaac_encoder: str = "half",
                source: str = "") -> OnnxModelInfo:
     """The :class:`OnnxModelInfo` of a checkpoint exported in ``layout``."""
-    from dope_hope.inference.backends import metadata_from_checkpoint
-
-    meta = metadata_from_checkpoint(checkpoint, source or "<checkpoint>")
-    mean, std = meta["mean"], meta["std"]
+    meta = ModelInfo.from_checkpoint(checkpoint, source or "<checkpoint>")
+    mean, std = meta.mean, meta.std
     input_mean, input_std = (mean, std) if layout == "native" else ISAAC_ENCODERS[isaac_encoder]
     extra = {
         "config": json.dumps(checkpoint.get("config"), default=str, sort_keys=True),
         "input_layout": "NCHW float32 RGB, (rgb / 255 - input_mean) / input_std",
     }
     if layout == "isaac-ros":
-        size = np.asarray(meta["size_m"], dtype=np.float64)
-        if meta["frame"] == "legacy":  # Isaac ROS lists the legacy-frame extents (dope_config.yaml)
+        size = np.asarray(meta.size_m, dtype=np.float64)
+        if meta.legacy:  # Isaac ROS lists the legacy-frame extents (dope_config.yaml)
             from dope_hope.geometry import LEGACY_TO_MESH
 
             size = np.abs(LEGACY_TO_MESH).T @ size
         extra["isaac_ros.object_dimensions_cm"] = json.dumps([round(float(v) * 100.0, 4) for v in size])
         extra["isaac_ros.encoder"] = isaac_encoder
     return OnnxModelInfo(
-        class_name=meta["class_name"], size_m=tuple(float(v) for v in meta["size_m"]),
-        frame=meta["frame"], keypoint_order=meta["keypoint_order"], mean=tuple(mean), std=tuple(std),
+        class_name=meta.class_name, size_m=meta.size_m,
+        frame=meta.frame, keypoint_order=meta.keypoint_order, mean=tuple(mean), std=tuple(std),
         input_mean=tuple(float(v) for v in input_mean), input_std=tuple(float(v) for v in input_std),
         stride=int(model.stride), head=int(getattr(model, "head", 0)), arch=str(getattr(model, "arch", "")),
-        layout=layout, input_hw=meta["input_hw"], fixed_input_hw=fixed_input_hw, opset=int(opset),
+        layout=layout, input_hw=meta.input_hw, fixed_input_hw=fixed_input_hw, opset=int(opset),
         precision="fp32", version=__version__,
         exporter=f"torch.onnx.export(dynamo=False) TorchScript exporter, torch {torch.__version__}",
         source=source, extra=extra)
@@ -280,9 +279,7 @@ def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.Pat
             raise ConfigError("the isaac-ros layout has a fixed input size (Isaac ROS builds a static "
                               "TensorRT engine); give --height/--width instead of --dynamic")
     if input_hw is None:
-        from dope_hope.inference.backends import metadata_from_checkpoint
-
-        train_hw = metadata_from_checkpoint(checkpoint, source or "<checkpoint>")["input_hw"]
+        train_hw = ModelInfo.from_checkpoint(checkpoint, source or "<checkpoint>").input_hw
         input_hw = ISAAC_ROS_INPUT_HW if layout == "isaac-ros" else (train_hw or (400, 400))
     h, w = _check_hw(input_hw, "export input size")
     fixed = None if dynamic else (h, w)

@@ -13,10 +13,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from dope_hope.errors import ConfigError, ModelFileError
-from dope_hope.geometry import (
-    KEYPOINT_ORDER,
-    LEGACY_KEYPOINT_ORDER,
-)
+from dope_hope.model.info import ModelInfo
 
 BACKENDS = ("auto", "torch", "onnx")
 
@@ -53,41 +50,6 @@ class MapBackend(Protocol):
         ...
 
 
-def metadata_from_checkpoint(ckpt: dict[str, Any], path: str | os.PathLike = "<checkpoint>") -> dict[str, Any]:
-    """Backend metadata of a loaded checkpoint dict (see :class:`MapBackend`), validated.
-
-    Returns ``{class_name, size_m, keypoint_order, frame, mean, std, input_hw}``; the stride
-    comes from the built network. Raises ModelFileError for inconsistent or missing fields.
-    """
-    obj = ckpt.get("object") or {}
-    try:
-        size = np.asarray(obj.get("size_m"), dtype=np.float64).reshape(3)
-    except (TypeError, ValueError):
-        raise ModelFileError(path, "checkpoint 'object.size_m' must hold 3 extents in metres") from None
-    if not np.all(np.isfinite(size)) or np.any(size <= 0):
-        raise ModelFileError(path, f"checkpoint cuboid size {size.tolist()} is not positive")
-    frame = obj.get("frame", "mesh")
-    order = ckpt.get("keypoint_order", KEYPOINT_ORDER)
-    expected = LEGACY_KEYPOINT_ORDER if frame == "legacy" else KEYPOINT_ORDER
-    if frame not in ("mesh", "legacy") or order != expected:
-        raise ModelFileError(path, f"checkpoint frame {frame!r} with keypoint order {order!r} is "
-                                   f"not supported (expected {expected!r})")
-    norm = ckpt.get("normalization") or {}
-    try:
-        mean = tuple(float(v) for v in norm["mean"])
-        std = tuple(float(v) for v in norm["std"])
-    except (KeyError, TypeError, ValueError):
-        raise ModelFileError(path, "checkpoint 'normalization' must hold mean and std") from None
-    if len(mean) != 3 or len(std) != 3 or min(std) <= 0:
-        raise ModelFileError(path, f"checkpoint normalization mean {mean} / std {std} is invalid")
-    input_hw = None
-    size_in = ((ckpt.get("config") or {}).get("input") or {}).get("size")
-    if isinstance(size_in, (list, tuple)) and len(size_in) == 2:
-        input_hw = (int(size_in[0]), int(size_in[1]))
-    return {"class_name": str(obj.get("class_name")), "size_m": size, "keypoint_order": order,
-            "frame": frame, "mean": mean, "std": std, "input_hw": input_hw}
-
-
 class TorchBackend:
     """:class:`MapBackend` running a PyTorch network (its LAST stage) under inference mode.
 
@@ -102,14 +64,15 @@ class TorchBackend:
     def __init__(self, model, checkpoint: dict[str, Any], device: str = "cpu",
                  source: str | os.PathLike = "<model>"):
         self.source = str(source)
-        meta = metadata_from_checkpoint(checkpoint, self.source)
-        self.class_name: str = meta["class_name"]
-        self.size_m: np.ndarray = meta["size_m"]
-        self.keypoint_order: str = meta["keypoint_order"]
-        self.frame: str = meta["frame"]
-        self.mean: tuple[float, float, float] = meta["mean"]
-        self.std: tuple[float, float, float] = meta["std"]
-        self.input_hw: tuple[int, int] | None = meta["input_hw"]
+        self.info = ModelInfo.from_checkpoint(checkpoint, self.source)
+        i = self.info
+        self.class_name: str = i.class_name
+        self.size_m: np.ndarray = np.asarray(i.size_m, dtype=np.float64)
+        self.keypoint_order: str = i.keypoint_order
+        self.frame: str = i.frame
+        self.mean: tuple[float, float, float] = i.mean
+        self.std: tuple[float, float, float] = i.std
+        self.input_hw: tuple[int, int] | None = i.input_hw
         self.stride: int = int(model.stride)
         self.device = device
         self.model = model.to(device).eval()

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from dope_hope.errors import ConfigError, ModelFileError
-from dope_hope.geometry import KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER
+from dope_hope.model.info import ModelInfo
 
 #: ``metadata_props`` key prefix and the format marker of a dope-hope ONNX file.
 META_PREFIX = "dope_hope."
@@ -49,12 +49,11 @@ OPTIMIZATION_LEVELS = ("disable", "basic", "extended", "all")
 
 
 @dataclass
-class OnnxModelInfo:
+class OnnxModelInfo(ModelInfo):
     """The metadata of a dope-hope ONNX file (``metadata_props``, all values strings there).
 
-    class_name: object the model detects. size_m: (3,) cuboid extents, mesh frame, metres.
-    frame: "mesh" | "legacy". keypoint_order: "dope-current" | "dope-legacy".
-    mean, std: the model's normalization of RGB in [0, 1] (what its first conv expects).
+    The :class:`~dope_hope.model.info.ModelInfo` fields (class_name, size_m, frame,
+    keypoint_order, mean, std, input_hw), plus:
     input_mean, input_std: the normalization the GRAPH input expects (= mean/std for the
         native layout; the Isaac ROS encoder's for the isaac-ros layout, converted in-graph).
     stride: image px per map cell. head: 50 | 400 | 100. arch: "dope" | "lite".
@@ -65,19 +64,12 @@ class OnnxModelInfo:
     extra: other ``dope_hope.*`` keys (e.g. isaac_ros.object_dimensions_cm, quantization).
     """
 
-    class_name: str
-    size_m: tuple[float, float, float]
-    frame: str
-    keypoint_order: str
-    mean: tuple[float, float, float]
-    std: tuple[float, float, float]
     input_mean: tuple[float, float, float]
     input_std: tuple[float, float, float]
     stride: int
     head: int
     arch: str
     layout: str
-    input_hw: tuple[int, int] | None
     fixed_input_hw: tuple[int, int] | None
     opset: int
     precision: str = "fp32"
@@ -145,27 +137,24 @@ class OnnxModelInfo:
         return info
 
     def validate(self, path: str | os.PathLike) -> None:
-        """Raise ModelFileError for inconsistent values."""
+        """:meth:`ModelInfo.validate`, then the ONNX fields; ModelFileError if inconsistent."""
+        super().validate(path)
+
         def bad(problem: str):
             raise ModelFileError(path, f"dope-hope metadata: {problem}")
 
         if self.layout not in LAYOUTS:
             bad(f"layout {self.layout!r} is not one of {', '.join(LAYOUTS)}")
-        for name in ("size_m", "mean", "std", "input_mean", "input_std"):
+        for name in ("input_mean", "input_std"):
             v = getattr(self, name)
             if v is None or len(v) != 3 or not np.all(np.isfinite(v)):
                 bad(f"{name} must hold 3 finite numbers, got {v}")
-        if min(self.size_m) <= 0 or min(self.std) <= 0 or min(self.input_std) <= 0:
-            bad("size_m and std must be positive")
-        expected = LEGACY_KEYPOINT_ORDER if self.frame == "legacy" else KEYPOINT_ORDER
-        if self.frame not in ("mesh", "legacy") or self.keypoint_order != expected:
-            bad(f"frame {self.frame!r} with keypoint order {self.keypoint_order!r} (expected {expected!r})")
+        if min(self.input_std) <= 0:
+            bad("input_std must be positive")
         if self.stride not in (1, 4, 8):
             bad(f"stride {self.stride} is not 1, 4 or 8")
-        for name in ("input_hw", "fixed_input_hw"):
-            v = getattr(self, name)
-            if v is not None and (len(v) != 2 or min(v) < 1):
-                bad(f"{name} must be [H, W] or null, got {v}")
+        if self.fixed_input_hw is not None and (len(self.fixed_input_hw) != 2 or min(self.fixed_input_hw) < 1):
+            bad(f"fixed_input_hw must be [H, W] or null, got {self.fixed_input_hw}")
         if self.layout == "isaac-ros" and (self.fixed_input_hw is None or self.stride != 8):
             bad("an isaac-ros model must have a fixed input size and stride 8")
 

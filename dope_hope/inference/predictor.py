@@ -3,7 +3,7 @@
 One predictor owns one network (one object class per model, as DOPE); several predictors can
 run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.predict`:
 
-1. **Image** (:mod:`~dope_hope.inference.preprocess`): layout, working size and letterbox.
+1. **Image** (:mod:`~dope_hope.preprocess`): layout, working size and letterbox.
    ``height=None`` (default) fits the image inside the checkpoint's training input size;
    official DOPE weights (legacy frame) and models without a recorded input size use height
    400, the official DOPE inference height. A backend with a fixed input size
@@ -59,16 +59,15 @@ from dope_hope.geometry import (
 from dope_hope.inference.backends import MapBackend, open_backend
 from dope_hope.inference.detection import Detection
 from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_candidates
-from dope_hope.inference.preprocess import (
-    DEFAULT_HEIGHT,
+from dope_hope.maps.decode import corner_candidates, decode_maps
+from dope_hope.preprocess import (
     INPUT_MULTIPLE,
     NetworkInput,
-    _round_up,
     check_intrinsics,
     prepare_input,
     to_rgb8,
+    working_size,
 )
-from dope_hope.maps.decode import corner_candidates, decode_maps
 from dope_hope.refine.icp import icp_refine
 from dope_hope.refine.line_search import depth_line_search
 
@@ -251,24 +250,10 @@ class DopePredictor:
         return self._icp_model
 
     def working_size(self, image_hw: tuple[int, int]) -> tuple[tuple[int, int], tuple[int, int]]:
-        """((H', W') resized content, (Hp, Wp) padded network input) for an image of (H, W)."""
-        H, W = int(image_hw[0]), int(image_hw[1])
-        fixed = getattr(self.backend, "fixed_input_hw", None)
-        if fixed is not None:
-            s = min(fixed[0] / H, fixed[1] / W)
-            if self.height is not None:
-                s = min(s, self.height / H)
-            hw = (max(1, min(fixed[0], round(H * s))), max(1, min(fixed[1], round(W * s))))
-            return hw, (int(fixed[0]), int(fixed[1]))
-        input_hw = getattr(self.backend, "input_hw", None)
-        if self.height is not None:
-            s = self.height / H
-        elif input_hw is None or self.legacy:
-            s = DEFAULT_HEIGHT / H
-        else:
-            s = min(input_hw[0] / H, input_hw[1] / W)
-        hw = (max(1, round(H * s)), max(1, round(W * s)))
-        return hw, (_round_up(hw[0], INPUT_MULTIPLE), _round_up(hw[1], INPUT_MULTIPLE))
+        """((H', W') resized content, (Hp, Wp) padded network input) for an image of (H, W)
+        (:func:`dope_hope.preprocess.working_size` with this model's sizes)."""
+        return working_size(image_hw, height=self.height, input_hw=getattr(self.backend, "input_hw", None),
+                            fixed_input_hw=getattr(self.backend, "fixed_input_hw", None), legacy=self.legacy)
 
     # ------------------------------------------------------------------ inference
     def prepare(self, image: np.ndarray) -> NetworkInput:

@@ -33,6 +33,7 @@ from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, ModelFileError
 from dope_hope.geometry import KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER
 from dope_hope.io.atomic import atomic_path
+from dope_hope.model.info import OBJECT_FRAMES, ModelInfo
 from dope_hope.model.network import (
     IMAGENET_MEAN,
     IMAGENET_STD,
@@ -42,7 +43,6 @@ from dope_hope.model.network import (
 
 CHECKPOINT_FORMAT = "dope-hope-checkpoint"
 FORMAT_VERSION = 1
-OBJECT_FRAMES = ("mesh", "legacy")
 _REQUIRED = ("model", "config", "object", "keypoint_order", "normalization")
 
 #: What the official DOPE inference code feeds the network (NVlabs/Deep_Object_Pose
@@ -270,6 +270,7 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     obj = ckpt["object"]
     if not isinstance(obj, dict) or "class_name" not in obj or obj.get("frame") not in OBJECT_FRAMES:
         raise ModelFileError(path, "checkpoint 'object' must hold class_name, size_m and frame")
+    ModelInfo.from_checkpoint(ckpt, path)
     try:
         expected = expected_state(ckpt["config"])
     except ConfigError as exc:

@@ -40,10 +40,7 @@ from torchvision.models.vgg import cfgs as _vgg_cfgs
 from torchvision.models.vgg import make_layers as _vgg_make_layers
 
 from dope_hope.errors import ConfigError, ModelFileError
-
-#: ImageNet statistics used to normalize RGB in [0, 1] (torchvision convention).
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
+from dope_hope.preprocess import IMAGENET_MEAN, IMAGENET_STD, normalize_rgb
 
 NUM_BELIEF = 9
 NUM_AFFINITY = 16
@@ -58,14 +55,8 @@ HEAD_STRIDES = {50: 8, 400: 1}
 
 # ----------------------------------------------------------------------------- normalization
 def normalize_image(rgb: np.ndarray, mean=IMAGENET_MEAN, std=IMAGENET_STD) -> torch.Tensor:
-    """(H, W, 3) uint8 RGB -> (3, H, W) float32 tensor, ``(rgb / 255 - mean) / std``."""
-    rgb = np.asarray(rgb)
-    if rgb.ndim != 3 or rgb.shape[2] != 3:
-        raise ValueError(f"expected an (H, W, 3) RGB image, got shape {rgb.shape}")
-    x = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).float().div_(255.0)
-    m = torch.tensor(mean, dtype=torch.float32).view(3, 1, 1)
-    s = torch.tensor(std, dtype=torch.float32).view(3, 1, 1)
-    return (x - m) / s
+    """(H, W, 3) uint8 RGB -> (3, H, W) float32 tensor (:func:`dope_hope.preprocess.normalize_rgb`)."""
+    return torch.from_numpy(normalize_rgb(rgb, mean, std))
 
 
 def normalize_batch(images: torch.Tensor, mean=IMAGENET_MEAN, std=IMAGENET_STD) -> torch.Tensor:

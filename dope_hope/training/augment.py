@@ -15,9 +15,7 @@ import numpy as np
 
 from dope_hope.errors import ConfigError
 from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
-
-#: Padding colour (RGB uint8): the ImageNet mean, i.e. zero after normalization.
-PAD_RGB = (124, 116, 104)
+from dope_hope.preprocess import PAD_RGB, contain_scale
 
 
 # --------------------------------------------------------------------------- augmentation
@@ -166,7 +164,7 @@ def sample_affine(
     H, W = src_hw
     Ho, Wo = dst_hw
     ratios = (Wo / W, Ho / H)
-    base = min(ratios) if params.fit == "contain" else max(ratios)
+    base = contain_scale(src_hw, dst_hw) if params.fit == "contain" else max(ratios)
     if not params.upscale:
         base = min(base, 1.0)
     augmenting = rng is not None and params.enabled

@@ -1,4 +1,9 @@
-"""Network input: any image array -> RGB uint8 -> resized, padded, normalized NCHW float32.
+"""The network's input, defined once for training, inference and INT8 calibration.
+
+Normalization: RGB in [0, 1] minus ``mean`` over ``std`` (ImageNet statistics by default,
+:func:`normalize_rgb`); padding shows the mean colour (:data:`PAD_RGB`, zeros after
+normalization). Fitting: an image goes *inside* a box keeping its aspect ratio
+(:func:`contain_scale`); :func:`working_size` is the inference-time rule built on it.
 
 :func:`to_rgb8` accepts (H, W), (H, W, 1|2|3|4) arrays, uint8 / uint16 / float in [0, 1], RGB
 order; grayscale is replicated, uint16 reduced to 8 bits and non-opaque alpha dropped, each
@@ -23,6 +28,12 @@ from dope_hope.errors import CameraError
 from dope_hope.geometry import (
     scale_intrinsics,
 )
+
+#: ImageNet statistics used to normalize RGB in [0, 1] (torchvision convention).
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+#: The mean colour as uint8 RGB: what padding shows before normalization (zeros after it).
+PAD_RGB = tuple(int(round(255 * m)) for m in IMAGENET_MEAN)
 
 #: Official DOPE inference height (``config_pose.yaml`` ``downscale_height``), pixels.
 DEFAULT_HEIGHT = 400
@@ -74,6 +85,49 @@ def to_rgb8(image: np.ndarray) -> np.ndarray:
 
 def _round_up(n: int, multiple: int) -> int:
     return int(math.ceil(n / multiple) * multiple)
+
+
+def normalize_rgb(rgb: np.ndarray, mean: Sequence[float] = IMAGENET_MEAN,
+                  std: Sequence[float] = IMAGENET_STD) -> np.ndarray:
+    """(H, W, 3) uint8 RGB -> (3, H, W) float32 ``(rgb / 255 - mean) / std``."""
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"expected an (H, W, 3) RGB image, got shape {rgb.shape}")
+    x = rgb.astype(np.float32) / np.float32(255.0)
+    x = (x - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)
+    return np.ascontiguousarray(x.transpose(2, 0, 1))
+
+
+def contain_scale(src_hw: Sequence[int], box_hw: Sequence[int]) -> float:
+    """Largest scale that fits an (H, W) image inside an (Hb, Wb) box, aspect ratio kept."""
+    return min(box_hw[0] / src_hw[0], box_hw[1] / src_hw[1])
+
+
+def working_size(image_hw: Sequence[int], *, height: int | None = None,
+                 input_hw: Sequence[int] | None = None, fixed_input_hw: Sequence[int] | None = None,
+                 legacy: bool = False) -> tuple[tuple[int, int], tuple[int, int]]:
+    """((H', W') resized content, (Hp, Wp) padded network input) for an (H, W) image.
+
+    ``fixed_input_hw``: the only size the model takes (the image is fitted inside, no taller
+    than ``height``). Otherwise ``height`` when given; else the model's training input size
+    ``input_hw`` (contain fit); else (official weights, ``legacy``, or no recorded size)
+    :data:`DEFAULT_HEIGHT`. The padded size rounds up to multiples of :data:`INPUT_MULTIPLE`.
+    """
+    H, W = int(image_hw[0]), int(image_hw[1])
+    if fixed_input_hw is not None:
+        s = contain_scale((H, W), fixed_input_hw)
+        if height is not None:
+            s = min(s, height / H)
+        hw = (max(1, min(fixed_input_hw[0], round(H * s))), max(1, min(fixed_input_hw[1], round(W * s))))
+        return hw, (int(fixed_input_hw[0]), int(fixed_input_hw[1]))
+    if height is not None:
+        s = height / H
+    elif input_hw is None or legacy:
+        s = DEFAULT_HEIGHT / H
+    else:
+        s = contain_scale((H, W), input_hw)
+    hw = (max(1, round(H * s)), max(1, round(W * s)))
+    return hw, (_round_up(hw[0], INPUT_MULTIPLE), _round_up(hw[1], INPUT_MULTIPLE))
 
 
 @dataclass
@@ -134,10 +188,8 @@ def prepare_input(rgb: np.ndarray, resized_hw: tuple[int, int], mean: Sequence[f
         rgb = cv2.resize(rgb, (Wr, Hr), interpolation=interp)
     if padded_hw is None:
         padded_hw = (_round_up(Hr, INPUT_MULTIPLE), _round_up(Wr, INPUT_MULTIPLE))
-    x = rgb.astype(np.float32) / np.float32(255.0)
-    x = (x - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)
     batch = np.zeros((1, 3, int(padded_hw[0]), int(padded_hw[1])), np.float32)
-    batch[0, :, :Hr, :Wr] = x.transpose(2, 0, 1)
+    batch[0, :, :Hr, :Wr] = normalize_rgb(rgb, mean, std)
     return NetworkInput(batch=batch, resized_hw=(Hr, Wr), original_hw=(H, W), scale=(Wr / W, Hr / H))
 
 
