@@ -51,9 +51,9 @@ from dope_hope.io.meshes import sample_surface_points
 from dope_hope.maps.decode import corner_candidates, decode_maps
 from dope_hope.maps.grid import map_to_image
 from dope_hope.maps.targets import make_targets
+from dope_hope.refine.depth import DepthImage
 from dope_hope.refine.icp import icp_refine
 from dope_hope.refine.line_search import (
-    _depth_to_metres,
     _sample_depth,
     auto_splat_px,
     depth_line_search,
@@ -265,12 +265,12 @@ def main() -> int:
         t = np.array([rng.uniform(-0.1, 0.1), rng.uniform(-0.06, 0.06), rng.uniform(0.5, 1.0)])
         depth = render_box_depth(size, R, t, K640, (480, 640))
         t0 = 1.1 * t
-        dt, res = timed(depth_line_search, R, t0, pts, depth, K640, repeats=args.repeats)
+        dt, res = timed(depth_line_search, R, t0, pts, DepthImage.from_raw(depth, K640), repeats=args.repeats)
         tl.append(dt); el.append(1000 * np.linalg.norm(res.t - t))
 
         def dense_cost_only():
             # The same visibility pass and median cost, evaluated at every 0.1 % step.
-            D = _depth_to_metres(depth, 0.001, 1.0)
+            D = DepthImage.from_raw(depth, K640).metres
             A = pts @ R.T
             vis = visible_points(A + t0, K640, (480, 640), auto_splat_px(pts, K640, t0[2]), 0.005)
             A = A[vis]
@@ -315,11 +315,11 @@ def icp_section(repeats: int) -> int:
             axis = rng.normal(size=3) if kind.startswith("20") else np.array([0.0, 1.0, 0.0])
             deg = 20.0 if kind.startswith("20") else 80.0
             R0 = R @ Rotation.from_rotvec(np.radians(deg) * axis / np.linalg.norm(axis)).as_matrix()
-            ls = depth_line_search(R0, 1.1 * t, pts, depth, K640)
+            ls = depth_line_search(R0, 1.1 * t, pts, DepthImage.from_raw(depth, K640))
             for name, kw in (("one start", {"start_rotations": ()}),
                              ("ten starts, all points", {"coarse_points": None}),
                              ("ten starts (default)", {})):
-                dt, res = timed(icp_refine, R0, ls.t, icp_pts, icp_nrm, depth, K640, repeats=repeats, **kw)
+                dt, res = timed(icp_refine, R0, ls.t, icp_pts, icp_nrm, DepthImage.from_raw(depth, K640), repeats=repeats, **kw)
                 ok = res.applied and rotation_error_deg(res.R, R) < 1.0 and np.linalg.norm(res.t - t) < 0.002
                 rows[name].append((dt, ok))
         print(f"-LS + ICP per object (640x480 depth, 2000 model points; input {kind}, 10 % too far):")

@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from dope_hope.geometry import intrinsics_matrix, rotation_error_deg
 from dope_hope.io.meshes import sample_surface_points
+from dope_hope.refine.depth import DepthImage
 from dope_hope.refine.icp import icp_refine, scene_points_under
 
 K = intrinsics_matrix(600.0, 600.0, 319.5, 239.5)
@@ -36,7 +37,7 @@ def perturbed(deg: float, axis, shift_m):
 ])
 def test_icp_recovers_the_pose_that_made_the_depth(deg, axis, shift):
     R0, t0 = perturbed(deg, axis, shift)
-    res = icp_refine(R0, t0, POINTS, NORMALS, depth_mm(), K, depth_scale_m=0.001, image_hw=HW)
+    res = icp_refine(R0, t0, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K, depth_scale_m=0.001, image_hw=HW))
     assert res.applied and res.reason == "ok"
     assert rotation_error_deg(res.R, R_GT) < 1.0
     assert np.linalg.norm(res.t - T_GT) < 0.002
@@ -50,7 +51,7 @@ def test_icp_ignores_an_occluder_in_front():
     occluder[:, :330] = True  # a wall 15 cm in front of the object's left part
     depth[occluder & (depth > 0)] = T_GT[2] - 0.15
     R0, t0 = perturbed(10.0, [1, 0, 1], [0.006, 0.004, -0.005])
-    res = icp_refine(R0, t0, POINTS, NORMALS, depth, K, image_hw=HW)
+    res = icp_refine(R0, t0, POINTS, NORMALS, DepthImage.from_raw(depth, K, image_hw=HW))
     assert res.applied
     assert rotation_error_deg(res.R, R_GT) < 1.5 and np.linalg.norm(res.t - T_GT) < 0.003
 
@@ -63,7 +64,7 @@ def test_icp_ignores_an_occluder_in_front():
 ])
 def test_bad_or_foreign_depth_never_changes_the_pose(depth, hw, reason):
     R0, t0 = perturbed(5.0, [0, 0, 1], [0.002, 0.0, 0.0])
-    res = icp_refine(R0, t0, POINTS, NORMALS, depth, K, image_hw=hw)
+    res = icp_refine(R0, t0, POINTS, NORMALS, DepthImage.from_raw(depth, K, image_hw=hw))
     assert not res.applied and reason in res.reason
     np.testing.assert_array_equal(res.R, R0)
     np.testing.assert_array_equal(res.t, t0)
@@ -71,17 +72,17 @@ def test_bad_or_foreign_depth_never_changes_the_pose(depth, hw, reason):
 
 def test_object_outside_the_depth_is_refused():
     R0, t0 = R_GT, np.array([2.0, 0.0, 0.7])  # projects far right of the image
-    res = icp_refine(R0, t0, POINTS, NORMALS, depth_mm(), K)
+    res = icp_refine(R0, t0, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K))
     assert not res.applied and "too few depth pixels" in res.reason
 
 
 def test_a_move_beyond_the_bounds_is_refused():
     R0, t0 = perturbed(0.0, [1, 0, 0], [0.015, 0.0, 0.0])
-    res = icp_refine(R0, t0, POINTS, NORMALS, depth_mm(), K, max_translation_m=0.005)
+    res = icp_refine(R0, t0, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K), max_translation_m=0.005)
     assert not res.applied and "moved the object" in res.reason
     np.testing.assert_array_equal(res.t, t0)
     R0, _ = perturbed(30.0, [0, 1, 0], [0, 0, 0])
-    res = icp_refine(R0, T_GT, POINTS, NORMALS, depth_mm(), K, max_rotation_deg=10.0)
+    res = icp_refine(R0, T_GT, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K), max_rotation_deg=10.0)
     assert not res.applied and "turned the object" in res.reason
 
 
@@ -99,17 +100,17 @@ def test_scene_points_are_the_depth_under_the_dilated_silhouette():
 
 def test_bad_arguments_raise():
     with pytest.raises(ValueError, match="normals"):
-        icp_refine(R_GT, T_GT, POINTS, NORMALS[:10], depth_mm(), K)
+        icp_refine(R_GT, T_GT, POINTS, NORMALS[:10], DepthImage.from_raw(depth_mm(), K))
     with pytest.raises(ValueError, match="thresholds_m"):
-        icp_refine(R_GT, T_GT, POINTS, NORMALS, depth_mm(), K, thresholds_m=())
+        icp_refine(R_GT, T_GT, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K), thresholds_m=())
 
 
 def test_turned_starts_recover_a_quarter_turn_the_plain_start_cannot():
     R0, t0 = perturbed(80.0, [0, 1, 0], [0.004, 0.0, 0.0])  # 80 deg about the long axis
-    one = icp_refine(R0, t0, POINTS, NORMALS, depth_mm(), K, start_rotations=())
+    one = icp_refine(R0, t0, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K), start_rotations=())
     assert not one.applied or rotation_error_deg(one.R, R_GT) > 10
     for coarse_points in (750, None):  # the default coarse phase, and every start on every point
-        res = icp_refine(R0, t0, POINTS, NORMALS, depth_mm(), K, coarse_points=coarse_points)
+        res = icp_refine(R0, t0, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K), coarse_points=coarse_points)
         assert res.applied and rotation_error_deg(res.R, R_GT) < 1.0 and np.linalg.norm(res.t - T_GT) < 0.002
 
 
@@ -118,7 +119,7 @@ def test_a_geometric_symmetry_is_left_to_the_keypoints():
     # the input rotation wins, so the refined pose stays on the input's side.
     R0, t0 = perturbed(180.0, [0, 1, 0], [0.0, 0.0, 0.0])
     R0 = R0 @ Rotation.from_euler("x", 8, degrees=True).as_matrix()
-    res = icp_refine(R0, t0, POINTS, NORMALS, depth_mm(), K)
+    res = icp_refine(R0, t0, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K))
     assert res.applied
     flipped = R_GT @ Rotation.from_euler("y", 180, degrees=True).as_matrix()
     assert rotation_error_deg(res.R, flipped) < 1.0

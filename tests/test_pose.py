@@ -17,8 +17,8 @@ from dope_hope.geometry import (
 from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_candidates
 from dope_hope.maps.decode import decode_maps
 from dope_hope.maps.targets import make_targets
+from dope_hope.refine.depth import HOPE_REALSENSE_DEPTH_CALIBRATION, DepthImage
 from dope_hope.refine.line_search import (
-    HOPE_REALSENSE_DEPTH_CALIBRATION,
     auto_splat_px,
     depth_line_search,
     visible_points,
@@ -151,6 +151,7 @@ def test_candidates_find_the_pose_that_the_strongest_peaks_hide():
 
 def test_the_search_stops_at_the_first_hypothesis_that_explains_every_type(monkeypatch):
     import cv2
+
     import dope_hope.inference.pnp as pose_mod
 
     calls = []
@@ -202,6 +203,7 @@ def test_candidates_without_a_pose_or_a_centroid_give_none():
 def test_a_pose_behind_the_camera_is_rejected(monkeypatch):
     """Points behind the camera project too (u = fx x / z + cx); such a pose must not pass."""
     import cv2
+
     import dope_hope.inference.pnp as pose_mod
 
     R = Rotation.random(random_state=4).as_matrix()
@@ -242,7 +244,7 @@ def _ls_pose(seed):
 def test_line_search_pulls_a_translation_off_by_ten_percent_back(seed, factor):
     R, t = _ls_pose(seed)
     depth = render_box_depth(BOX, R, t, K320, HW320)
-    res = depth_line_search(R, factor * t, POINTS, depth, K320)
+    res = depth_line_search(R, factor * t, POINTS, DepthImage.from_raw(depth, K320))
     assert res.applied and res.reason == "ok"
     assert np.linalg.norm(res.t - t) < 0.002
     assert res.scale == pytest.approx(1 / factor, abs=0.003)
@@ -255,7 +257,7 @@ def test_line_search_with_realsense_noise_is_within_five_mm(seed):
     depth = render_box_depth(BOX, R, t, K320, HW320)
     noisy = add_realsense_noise(depth, None, K320, np.random.default_rng(seed))
     for factor in (0.9, 1.1):
-        res = depth_line_search(R, factor * t, POINTS, noisy, K320)
+        res = depth_line_search(R, factor * t, POINTS, DepthImage.from_raw(noisy, K320))
         assert res.applied, res.reason
         assert np.linalg.norm(res.t - t) < 0.005
 
@@ -268,7 +270,7 @@ def test_line_search_survives_partial_occlusion():
     cut = cols[0] + int(0.35 * (cols[-1] - cols[0]))  # an occluder over the left third
     occluded = depth.copy()
     occluded[:, :cut][obj[:, :cut]] = t[2] - 0.15
-    res = depth_line_search(R, 1.08 * t, POINTS, occluded, K320)
+    res = depth_line_search(R, 1.08 * t, POINTS, DepthImage.from_raw(occluded, K320))
     assert res.applied and np.linalg.norm(res.t - t) < 0.003
 
 
@@ -277,13 +279,12 @@ def test_uint16_depth_scale_and_calibration_factor():
     depth = render_box_depth(BOX, R, t, K320, HW320)
     # Tenth-of-millimetre units.
     d_u16 = np.round(depth / 0.0001).astype(np.uint16)
-    res = depth_line_search(R, 1.1 * t, POINTS, d_u16, K320, depth_scale_m=0.0001)
+    res = depth_line_search(R, 1.1 * t, POINTS, DepthImage.from_raw(d_u16, K320, depth_scale_m=0.0001))
     assert res.applied and np.linalg.norm(res.t - t) < 0.002
     # A sensor whose raw depth must be multiplied by the calibration factor (HOPE RealSense).
     raw_mm = np.round(depth / HOPE_REALSENSE_DEPTH_CALIBRATION * 1000).astype(np.uint16)
-    uncal = depth_line_search(R, 1.1 * t, POINTS, raw_mm, K320)
-    cal = depth_line_search(R, 1.1 * t, POINTS, raw_mm, K320,
-                            calibration=HOPE_REALSENSE_DEPTH_CALIBRATION)
+    uncal = depth_line_search(R, 1.1 * t, POINTS, DepthImage.from_raw(raw_mm, K320))
+    cal = depth_line_search(R, 1.1 * t, POINTS, DepthImage.from_raw(raw_mm, K320, calibration=HOPE_REALSENSE_DEPTH_CALIBRATION))
     assert cal.applied and np.linalg.norm(cal.t - t) < 0.002
     assert np.linalg.norm(uncal.t - t) > 0.01  # 2 % scale error: ~1.5 cm at 0.75 m
 
@@ -304,7 +305,7 @@ def test_bad_depth_leaves_the_pose_unchanged_with_a_reason(make_depth, reason):
     R, t = _ls_pose(0)
     depth = render_box_depth(BOX, R, t, K320, HW320)
     t_in = 1.1 * t
-    res = depth_line_search(R, t_in, POINTS, make_depth(depth), K320)
+    res = depth_line_search(R, t_in, POINTS, DepthImage.from_raw(make_depth(depth), K320))
     assert not res.applied and reason in res.reason
     np.testing.assert_array_equal(res.t, t_in)
     assert res.scale == 1.0
@@ -313,16 +314,16 @@ def test_bad_depth_leaves_the_pose_unchanged_with_a_reason(make_depth, reason):
 def test_other_refusals():
     R, t = _ls_pose(0)
     depth = render_box_depth(BOX, R, t, K320, HW320)
-    res = depth_line_search(R, 1.1 * t, POINTS, depth, K320, image_hw=(480, 640))
+    res = depth_line_search(R, 1.1 * t, POINTS, DepthImage.from_raw(depth, K320, image_hw=(480, 640)))
     assert not res.applied and "the image is 640x480" in res.reason
     # The object is nowhere near where the pose says: optimum far outside the search range.
-    far = depth_line_search(R, 0.5 * t, POINTS, depth, K320)
+    far = depth_line_search(R, 0.5 * t, POINTS, DepthImage.from_raw(depth, K320))
     assert not far.applied and ("bound" in far.reason or "residual" in far.reason)
     np.testing.assert_array_equal(far.t, 0.5 * t)
-    behind = depth_line_search(R, -t, POINTS, depth, K320)
+    behind = depth_line_search(R, -t, POINTS, DepthImage.from_raw(depth, K320))
     assert not behind.applied and "behind" in behind.reason
     # min_valid is configurable
-    sparse = depth_line_search(R, 1.1 * t, POINTS, depth, K320, min_valid=100000)
+    sparse = depth_line_search(R, 1.1 * t, POINTS, DepthImage.from_raw(depth, K320), min_valid=100000)
     assert not sparse.applied and "too few" in sparse.reason
 
 

@@ -29,13 +29,14 @@ from dope_hope.geometry import (
 )
 from dope_hope.inference.backends import MapBackend, TorchBackend
 from dope_hope.inference.predictor import DopePredictor, predict_many
-from dope_hope.preprocess import DEFAULT_HEIGHT, to_rgb8
 from dope_hope.model import build_model
 from dope_hope.model.checkpoint import (
     import_official,
     make_object_info,
     save_checkpoint,
 )
+from dope_hope.preprocess import DEFAULT_HEIGHT, to_rgb8
+from dope_hope.refine.depth import DepthImage
 
 torch.set_num_threads(1)
 
@@ -269,7 +270,7 @@ def test_icp_corrects_the_rotation_the_keypoints_got_wrong():
     assert not mono.icp_applied and mono.icp_reason == "no depth image"
     # refine_icp: the same step on a -LS detection, as a copy (the -LS pose is kept)
     ls_R, ls_t = ls_only.R.copy(), ls_only.t.copy()
-    copy = p.refine_icp(ls_only, depth_mm, K640)
+    copy = p.refine_icp(ls_only, DepthImage.from_raw(depth_mm, K640))
     np.testing.assert_allclose(copy.R, det.R, atol=1e-9)
     np.testing.assert_allclose(copy.t, det.t, atol=1e-9)
     np.testing.assert_allclose(copy.projected_2d, det.projected_2d, atol=1e-6)

@@ -212,6 +212,7 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.io.images import write_rgb
     from dope_hope.io.meshes import sample_surface_points
     from dope_hope.io.predictions import write_predictions_jsonl
+    from dope_hope.refine.depth import DepthImage
     from dope_hope.synth import FrameGenerator
     from dope_hope.synth.writer import write_frame
     from dope_hope.viz import draw_cuboid, draw_label, montage, overlay_detections
@@ -255,11 +256,12 @@ def run(args: argparse.Namespace) -> int:
             K, gts = frame.annotation.K, frame.annotation.objects
             t0 = time.perf_counter()
             belief, affinity, net_in = torch_pred.infer_maps(frame.rgb)
+            depth = DepthImage.from_raw(frame.depth, K, image_hw=frame.rgb.shape[:2])
             dets_plain = torch_pred.detections_from_maps(belief, affinity, net_in, K)
-            dets_ls = torch_pred.detections_from_maps(belief, affinity, net_in, K, depth=frame.depth)
+            dets_ls = torch_pred.detections_from_maps(belief, affinity, net_in, K, depth=depth)
             timing["torch"] += time.perf_counter() - t0
             t0 = time.perf_counter()
-            dets_icp = [torch_pred.refine_icp(d, frame.depth, K, image_hw=frame.rgb.shape[:2]) for d in dets_ls]
+            dets_icp = [torch_pred.refine_icp(d, depth) for d in dets_ls]
             timing["icp"] += time.perf_counter() - t0
             res = SceneResult(name=f"{i:06d}.png")
             if onnx_pred is not None:

@@ -68,6 +68,7 @@ from dope_hope.preprocess import (
     to_rgb8,
     working_size,
 )
+from dope_hope.refine.depth import DepthImage
 from dope_hope.refine.icp import icp_refine
 from dope_hope.refine.line_search import depth_line_search
 
@@ -275,7 +276,7 @@ class DopePredictor:
                                  f"input of {Hp}x{Wp} at stride {self.stride}")
         return belief, affinity, net_in
 
-    def predict(self, image: np.ndarray, K: np.ndarray, depth: np.ndarray | None = None,
+    def predict(self, image: np.ndarray, K: np.ndarray, depth: np.ndarray | DepthImage | None = None,
                 depth_scale_m: float = 0.001, calibration: float = 1.0) -> list[Detection]:
         """Detect this predictor's object in one image.
 
@@ -283,21 +284,24 @@ class DopePredictor:
             image: (H, W[, C]) RGB image array (see :func:`to_rgb8`).
             K: (3, 3) intrinsics of ``image``.
             depth: optional (H, W) depth registered to the image: integer units of
-                ``depth_scale_m`` metres, or float metres; enables the line search.
+                ``depth_scale_m`` metres, or float metres, or a ready
+                :class:`~dope_hope.refine.depth.DepthImage`; enables the line search.
             depth_scale_m: metres per integer depth unit (0.001 = millimetres).
-            calibration: depth multiplier (HOPE RealSense frames: pose.HOPE_REALSENSE_DEPTH_CALIBRATION).
+            calibration: depth multiplier (raw RealSense captures of the HOPE setup:
+                :data:`dope_hope.refine.depth.HOPE_REALSENSE_DEPTH_CALIBRATION`; the HOPE
+                dataset's depth images already include it).
 
         Returns:
             Detections sorted by decreasing score, mesh-frame poses.
         """
         K = check_intrinsics(K)
         belief, affinity, net_in = self.infer_maps(image)
-        return self.detections_from_maps(belief, affinity, net_in, K, depth, depth_scale_m, calibration)
+        depth = as_depth_image(depth, K, depth_scale_m, calibration, net_in.original_hw)
+        return self.detections_from_maps(belief, affinity, net_in, K, depth)
 
     def detections_from_maps(self, belief: np.ndarray, affinity: np.ndarray, net_in: NetworkInput,
-                             K: np.ndarray, depth: np.ndarray | None = None,
-                             depth_scale_m: float = 0.001, calibration: float = 1.0) -> list[Detection]:
-        """Decode + PnP (+ line search) the maps of :meth:`infer_maps` (see :meth:`predict`)."""
+                             K: np.ndarray, depth: DepthImage | None = None) -> list[Detection]:
+        """Decode + PnP (+ line search, ICP) the maps of :meth:`infer_maps` (see :meth:`predict`)."""
         K = check_intrinsics(K)
         K_net = net_in.network_K(K)
         mean_scale = math.sqrt(net_in.scale[0] * net_in.scale[1])
@@ -320,12 +324,10 @@ class DopePredictor:
                 cuboid_size_m=self.cuboid_size_m.copy(), cuboid_center_m=self.cuboid_center_m.copy(),
             )
             if depth is not None:
-                ls = depth_line_search(R, t, self.model_points, depth, K, depth_scale_m=depth_scale_m,
-                                       calibration=calibration, image_hw=net_in.original_hw,
-                                       **self.line_search_options)
+                ls = depth_line_search(R, t, self.model_points, depth, **self.line_search_options)
                 det.t, det.ls_applied, det.ls_reason, det.ls_scale = ls.t, ls.applied, ls.reason, ls.scale
                 if self.icp:
-                    self._refine_icp(det, depth, K, depth_scale_m, calibration, net_in.original_hw)
+                    self._refine_icp(det, depth)
             elif self.icp:
                 det.icp_reason = "no depth image"
             det.projected_2d = project_points(self.cuboid_mesh, K, det.R, det.t)
@@ -333,32 +335,26 @@ class DopePredictor:
         out.sort(key=lambda d: -d.score)
         return out
 
-    def refine_icp(self, det: Detection, depth: np.ndarray, K: np.ndarray, depth_scale_m: float = 0.001,
-                   calibration: float = 1.0, image_hw: tuple[int, int] | None = None) -> Detection:
-        """Step 7 of the module docstring on one detection, whatever ``icp`` was set to: a copy
-        of ``det`` (as :meth:`predict` returns it with ``depth``, i.e. after the line search)
-        refined by ICP against ``depth``; ``det`` itself is unchanged. Lets a caller keep both
-        the -LS and the -LS + ICP pose without decoding the maps twice (``dope-hope demo``).
-        ``image_hw``: (H, W) the depth must have, when known."""
-        K = check_intrinsics(K)
+    def refine_icp(self, det: Detection, depth: DepthImage) -> Detection:
+        """The ICP step of the module docstring on one detection, whatever ``icp`` was set to:
+        a copy of ``det`` (as :meth:`predict` returns it with ``depth``, i.e. after the line
+        search) refined by ICP against ``depth``; ``det`` itself is unchanged. Lets a caller
+        keep both the -LS and the -LS + ICP pose without decoding the maps twice."""
         out = replace(det)
-        self._refine_icp(out, depth, K, depth_scale_m, calibration, image_hw)
-        out.projected_2d = project_points(self.cuboid_mesh, K, out.R, out.t)
+        self._refine_icp(out, depth)
+        out.projected_2d = project_points(self.cuboid_mesh, depth.K, out.R, out.t)
         return out
 
-    def _refine_icp(self, det: Detection, depth: np.ndarray, K: np.ndarray, depth_scale_m: float,
-                    calibration: float, image_hw: tuple[int, int] | None) -> None:
-        """Step 7 of the module docstring, in place on ``det`` (after the line search)."""
+    def _refine_icp(self, det: Detection, depth: DepthImage) -> None:
+        """The ICP step of the module docstring, in place on ``det`` (after the line search)."""
         if not det.ls_applied:  # ICP needs the depth within a few cm: a wider line search first
             options = {**self.line_search_options, "search": ICP_LS_SEARCH}
-            wide = depth_line_search(det.R, det.t, self.model_points, depth, K, depth_scale_m=depth_scale_m,
-                                     calibration=calibration, image_hw=image_hw, **options)
+            wide = depth_line_search(det.R, det.t, self.model_points, depth, **options)
             if wide.applied:
                 det.t, det.ls_applied, det.ls_scale = wide.t, True, wide.scale
                 det.ls_reason = f"ok (search {ICP_LS_SEARCH[0]:g}-{ICP_LS_SEARCH[1]:g}, for ICP)"
         points, normals = self.icp_model
-        res = icp_refine(det.R, det.t, points, normals, depth, K, depth_scale_m=depth_scale_m,
-                         calibration=calibration, image_hw=image_hw, **self.icp_options)
+        res = icp_refine(det.R, det.t, points, normals, depth, **self.icp_options)
         det.icp_applied, det.icp_reason = res.applied, res.reason
         det.icp_fit = res.fit_after if res.applied else res.fit_before
         if res.applied:
@@ -385,6 +381,15 @@ class DopePredictor:
                 f"frame={'legacy' if self.legacy else 'mesh'}, height={self.height})")
 
 
+def as_depth_image(depth: np.ndarray | DepthImage | None, K: np.ndarray, depth_scale_m: float,
+                   calibration: float, image_hw: tuple[int, int]) -> DepthImage | None:
+    """The predictor's depth boundary: None stays None, a raw array becomes a checked
+    :class:`DepthImage` (metres, this K, the colour image's size), a DepthImage passes."""
+    if depth is None or isinstance(depth, DepthImage):
+        return depth
+    return DepthImage.from_raw(depth, K, depth_scale_m, calibration, image_hw)
+
+
 def _same_peaks(a: PoseEstimate, b: PoseEstimate) -> bool:
     """True when at least half of ``a``'s inlier keypoints are the very peaks (same type, same
     position) among ``b``'s inliers: two centroids that explain one object."""
@@ -394,7 +399,7 @@ def _same_peaks(a: PoseEstimate, b: PoseEstimate) -> bool:
 
 
 def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.ndarray,
-                 depth: np.ndarray | None = None, depth_scale_m: float = 0.001,
+                 depth: np.ndarray | DepthImage | None = None, depth_scale_m: float = 0.001,
                  calibration: float = 1.0,
                  on_maps: Callable[[DopePredictor, np.ndarray, np.ndarray, NetworkInput], None] | None = None,
                  ) -> list[Detection]:
@@ -407,6 +412,7 @@ def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.n
     """
     K = check_intrinsics(K)
     rgb = to_rgb8(image)
+    depth = as_depth_image(depth, K, depth_scale_m, calibration, rgb.shape[:2])
     cache: dict[tuple, NetworkInput] = {}
     out: list[Detection] = []
     for p in predictors:
@@ -417,6 +423,6 @@ def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.n
         belief, affinity, net_in = p.infer_maps(cache[key])
         if on_maps is not None:
             on_maps(p, belief, affinity, net_in)
-        out.extend(p.detections_from_maps(belief, affinity, net_in, K, depth, depth_scale_m, calibration))
+        out.extend(p.detections_from_maps(belief, affinity, net_in, K, depth))
     out.sort(key=lambda d: -d.score)
     return out

@@ -58,7 +58,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from dope_hope.refine.line_search import depth_in_metres
+from dope_hope.refine.depth import DepthImage
 
 #: Extra ICP starts: the input turned by +-90 and 180 deg about the model's x, y and z axes.
 TURN_STARTS: tuple[np.ndarray, ...] = tuple(
@@ -163,10 +163,7 @@ def icp_refine(
     t: np.ndarray,
     model_points: np.ndarray,
     model_normals: np.ndarray,
-    depth,
-    K: np.ndarray,
-    depth_scale_m: float = 0.001,
-    calibration: float = 1.0,
+    depth: DepthImage,
     thresholds_m: Sequence[float] = DEFAULT_THRESHOLDS_M,
     mask_dilate: float = 0.15,
     max_scene_points: int = 3000,
@@ -179,7 +176,6 @@ def icp_refine(
     coarse_points: int | None = 750,
     coarse_iterations: int = 6,
     finalists: int = 3,
-    image_hw: tuple[int, int] | None = None,
 ) -> IcpResult:
     """Refine a pose by point-to-plane ICP against a depth image (see the module docstring).
 
@@ -188,9 +184,7 @@ def icp_refine(
             line search.
         model_points: (N, 3) model surface points, metres (a few thousand).
         model_normals: (N, 3) their unit normals (sign irrelevant).
-        depth: (H, W) integer depth in units of ``depth_scale_m``, or float metres; 0 / NaN =
-            invalid. K: (3, 3) intrinsics of the depth image (registered to the colour).
-        calibration: multiplies the depth in metres.
+        depth: the depth image in metres with its K (:class:`~dope_hope.refine.depth.DepthImage`).
         thresholds_m: correspondence distance of each iteration, metres.
         mask_dilate: silhouette dilation, fraction of its bounding-box size.
         max_scene_points: depth pixels used at most.
@@ -209,14 +203,13 @@ def icp_refine(
             ``coarse_iterations`` iterations on ``coarse_points`` evenly thinned scene points;
             the plain start and the ``finalists`` best-fitting others then finish on all
             points (None: every start runs every iteration on all points).
-        image_hw: (H, W) the depth must have, when known.
 
     Returns:
         :class:`IcpResult`; the input pose with a reason when not applied.
     """
     R0 = np.asarray(R, dtype=np.float64).reshape(3, 3)
     t0 = np.asarray(t, dtype=np.float64).reshape(3)
-    K = np.asarray(K, dtype=np.float64)
+    K = depth.K
 
     def refuse(reason: str, **kw) -> IcpResult:
         return IcpResult(R=R0.copy(), t=t0.copy(), applied=False, reason=reason, **kw)
@@ -227,7 +220,8 @@ def icp_refine(
     N = np.asarray(model_normals, dtype=np.float64).reshape(-1, 3)
     if len(P) != len(N):
         raise ValueError(f"{len(P)} model points but {len(N)} normals")
-    D, problem = depth_in_metres(depth, K, t0, depth_scale_m, calibration, image_hw)
+    problem = depth.problem_for(t0)
+    D = depth.metres
     if problem:
         return refuse(problem)
     S = scene_points_under(P @ R0.T + t0, D, K, mask_dilate, max_scene_points)

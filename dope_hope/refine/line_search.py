@@ -33,8 +33,7 @@ from scipy.ndimage import minimum_filter
 from scipy.optimize import minimize_scalar
 from scipy.spatial import cKDTree
 
-#: Depth scale factor of the HOPE RealSense frames (their depth was rescaled by this).
-HOPE_REALSENSE_DEPTH_CALIBRATION = 0.98042517
+from dope_hope.refine.depth import DepthImage
 
 
 @dataclass
@@ -55,55 +54,6 @@ class LineSearchResult:
     scale: float = 1.0
     residual_m: float = float("nan")
     n_valid: int = 0
-
-
-def _depth_to_metres(depth, depth_scale_m: float, calibration: float) -> np.ndarray:
-    d = np.asarray(depth)
-    if np.issubdtype(d.dtype, np.integer):
-        m = d.astype(np.float64) * depth_scale_m
-    else:
-        m = d.astype(np.float64)
-    m = m * calibration
-    m[~np.isfinite(m) | (m <= 0)] = np.nan
-    return m
-
-
-def depth_in_metres(depth, K: np.ndarray, t: np.ndarray, depth_scale_m: float = 0.001,
-                    calibration: float = 1.0, image_hw: tuple[int, int] | None = None,
-                    ) -> tuple[np.ndarray | None, str]:
-    """Check a depth image against the pose and K; convert it to metres.
-
-    Args:
-        depth: (H, W) integer depth in units of ``depth_scale_m``, or float metres (or None).
-        K: (3, 3). t: (3,) metres, the pose's translation. image_hw: (H, W) the depth must have.
-
-    Returns:
-        ((H, W) float metres with NaN where invalid, "") or (None, the one-line problem): no
-        depth, not 2-D, another size than the image or than K implies, the pose behind the
-        camera, no valid pixel.
-    """
-    if depth is None:
-        return None, "no depth image"
-    d = np.asarray(depth)
-    if d.ndim == 3 and d.shape[2] == 1:
-        d = d[..., 0]
-    if d.ndim != 2 or d.size == 0:
-        return None, f"depth must be a 2-D image, got shape {d.shape}"
-    H, W = d.shape
-    if image_hw is not None and (H, W) != tuple(image_hw):
-        return None, f"depth is {W}x{H}, the image is {image_hw[1]}x{image_hw[0]}"
-    # K's principal point sits near the image centre: a depth image of another resolution
-    # (e.g. half size with a full-size K) puts it far off (2cx+1 vs W by > 25 %).
-    implied_w, implied_h = 2 * K[0, 2] + 1, 2 * K[1, 2] + 1
-    if not (0.75 < implied_w / W < 1.33 and 0.75 < implied_h / H < 1.33):
-        return None, (f"depth is {W}x{H} but K implies about {implied_w:.0f}x{implied_h:.0f} "
-                      "(principal point far from the depth image centre)")
-    if t[2] <= 0:
-        return None, "pose is behind the camera (t_z <= 0)"
-    D = _depth_to_metres(d, depth_scale_m, calibration)
-    if not np.isfinite(D).any():
-        return None, "depth has no valid pixel (all zero / NaN)"
-    return D, ""
 
 
 def visible_points(
@@ -200,10 +150,7 @@ def depth_line_search(
     R: np.ndarray,
     t: np.ndarray,
     model_points: np.ndarray,
-    depth,
-    K: np.ndarray,
-    depth_scale_m: float = 0.001,
-    calibration: float = 1.0,
+    depth: DepthImage,
     search: tuple[float, float] = (0.8, 1.25),
     min_valid: int = 50,
     cost: str = "median",
@@ -212,7 +159,6 @@ def depth_line_search(
     splat_px: int | None = None,
     grid_steps: int = 41,
     max_residual_m: float | None = 0.02,
-    image_hw: tuple[int, int] | None = None,
     model_normals: np.ndarray | None = None,
 ) -> LineSearchResult:
     """Rescale the translation along its ray to agree with a depth image (HOPE "-LS").
@@ -220,12 +166,7 @@ def depth_line_search(
     Args:
         R: (3, 3), t: (3,) metres: the pose to refine (``x_c = R x + t``).
         model_points: (N, 3) model surface points, metres (a few thousand is plenty).
-        depth: (H, W) depth image: integer (e.g. uint16) in units of ``depth_scale_m``, or
-            float metres; 0 / NaN / inf = invalid.
-        K: (3, 3) intrinsics of the depth image (registered to the colour camera).
-        depth_scale_m: metres per integer depth unit (0.001 for uint16 millimetres).
-        calibration: multiplies the depth in metres (the HOPE RealSense frames need
-            :data:`HOPE_REALSENSE_DEPTH_CALIBRATION`).
+        depth: the depth image in metres with its K (:class:`~dope_hope.refine.depth.DepthImage`).
         search: (lo, hi) bounds of the scale s.
         min_valid: minimum visible points with valid depth.
         cost: "median" (median |D - z|) or "huber" (mean Huber loss, ``huber_delta_m``).
@@ -234,7 +175,6 @@ def depth_line_search(
             (:func:`auto_splat_px`).
         grid_steps: coarse grid size over ``search``.
         max_residual_m: refuse the result when the robust residual exceeds it (None = off).
-        image_hw: (H, W) the depth must have, when known.
         model_normals: optional (N, 3) outward normals of the model points (back-face culling).
 
     Returns:
@@ -242,14 +182,15 @@ def depth_line_search(
     """
     R = np.asarray(R, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64).reshape(3)
-    K = np.asarray(K, dtype=np.float64)
+    K = depth.K
 
     def refuse(reason: str, **kw) -> LineSearchResult:
         return LineSearchResult(t=t.copy(), applied=False, reason=reason, **kw)
 
     if cost not in ("median", "huber"):
         raise ValueError(f"cost must be 'median' or 'huber', got {cost!r}")
-    D, problem = depth_in_metres(depth, K, t, depth_scale_m, calibration, image_hw)
+    problem = depth.problem_for(t)
+    D = depth.metres
     if problem:
         return refuse(problem)
 
