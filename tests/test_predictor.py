@@ -441,10 +441,10 @@ def test_a_centroid_robbed_of_a_corner_by_a_spurious_one_still_gets_its_pose():
     search lets both centroids use it, and the two explanations of one box give one detection."""
     poses = POSES[:1]
     strict = {"min_inlier_ratio": 1.0}  # one wrong corner out of nine fails the pose
-    dets = DopePredictor(_spurious(poses), pnp_options=strict).predict(white((480, 640)), K640)
+    dets = DopePredictor(_spurious(poses), pnp=strict).predict(white((480, 640)), K640)
     match(dets, poses)
     # DOPE's grouping alone gives no pose.
-    assert DopePredictor(_spurious(poses), pnp_options=strict, pose_search="groups").predict(
+    assert DopePredictor(_spurious(poses), pnp=strict, pose_search="groups").predict(
         white((480, 640)), K640) == []
 
 

@@ -36,9 +36,6 @@ BOP19_MSPD_THRESHOLDS = tuple(5.0 * k for k in range(1, 11))              # px a
 BOP19_VSD_THRESHOLDS = tuple(round(0.05 * k, 2) for k in range(1, 11))
 
 
-
-
-
 # =========================================================================== BOP19
 @dataclass
 class BopTarget:

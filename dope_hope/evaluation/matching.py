@@ -28,7 +28,6 @@ TABLE_THRESHOLDS_M = (0.02, 0.10)
 CURVE_THRESHOLDS_M = tuple(round(0.005 * k, 4) for k in range(1, 21))
 
 
-
 METRIC_LABELS = {"addh": "ADD-H", "add": "ADD", "adds": "ADD-S", "meanssd": "MeanSSD",
                  "mssd": "MSSD"}
 

@@ -362,8 +362,6 @@ def symmetries_from_models_info(info: dict[str, Any], max_sym_disc_step: float =
     return compose_symmetries(discrete, continuous, steps)
 
 
-
-
 def vsd(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray,
         depth_test: np.ndarray, K: np.ndarray, mesh, delta: float = BOP19_VSD_DELTA,
         taus: Sequence[float] = BOP19_VSD_TAUS, cost_type: str = "step",

@@ -24,7 +24,6 @@ NUM_MODEL_POINTS = 500
 BOP19_MAX_SYM_DISC_STEP = 0.01
 
 
-
 # =========================================================================== object models
 @dataclass
 class ObjectModel:

@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -57,11 +57,11 @@ from dope_hope.geometry import (
     project_points,
 )
 from dope_hope.inference.backends import MapBackend, open_backend
+from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.detection import Detection
 from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_candidates
 from dope_hope.maps.decode import corner_candidates, decode_maps
 from dope_hope.preprocess import (
-    INPUT_MULTIPLE,
     NetworkInput,
     check_intrinsics,
     prepare_input,
@@ -72,13 +72,6 @@ from dope_hope.refine.depth import DepthImage
 from dope_hope.refine.icp import icp_refine
 from dope_hope.refine.line_search import depth_line_search
 
-#: Model points used by the depth line search.
-DEFAULT_LS_POINTS = 1000
-
-
-#: Model points (with normals) used by the depth ICP.
-DEFAULT_ICP_POINTS = 2000
-
 
 #: Scale range of the line search the ICP stage repeats when the default one refused.
 ICP_LS_SEARCH = (0.5, 2.0)
@@ -86,9 +79,6 @@ ICP_LS_SEARCH = (0.5, 2.0)
 
 #: A mesh's box may differ from the checkpoint's cuboid by at most this factor per extent.
 MESH_SIZE_TOLERANCE = 1.25
-
-
-POSE_SEARCHES = ("hypotheses", "groups")
 
 
 # ----------------------------------------------------------------------------- predictor
@@ -100,25 +90,14 @@ class DopePredictor:
             ready :class:`MapBackend` instance.
         backend: "auto" (ONNX for ``.onnx``, else torch), "torch" or "onnx".
         device: torch device, or "cuda..." to ask onnxruntime for its CUDA provider.
-        height: network working height in pixels, or None for the model's training scale
-            (see the module docstring).
-        mesh: optional mesh file (or loaded ``trimesh.Trimesh`` in metres) of the object: its
-            box replaces the checkpoint's cuboid and its surface feeds the depth line search.
-        mesh_units: units of the mesh file ("m", "cm", "mm"; default by suffix).
-        pose_search: "hypotheses" (default) or "groups" (see the module docstring, step 4).
-        decode_options: keyword arguments of :func:`dope_hope.maps.decode.corner_candidates`
-            ("hypotheses") or :func:`dope_hope.maps.decode.decode_maps` ("groups").
-        pnp_options: keyword arguments of :func:`dope_hope.inference.pnp.solve_pnp`.
-        hypothesis_options: keyword arguments of :func:`dope_hope.inference.pnp.solve_pnp_candidates`
-            (``hypothesis_threshold_px``, ``max_hypotheses``).
-        line_search_options: keyword arguments of :func:`dope_hope.refine.line_search.depth_line_search`.
-        icp: with a depth image, refine each pose by ICP after the line search (step 7); needs
-            ``mesh=`` unless the object is a box of the HOPE catalog (ConfigError otherwise).
-        icp_options: keyword arguments of :func:`dope_hope.refine.icp.icp_refine`.
-        icp_points: number of model points (with normals) for ICP.
-        min_score: drop detections whose pose score is lower.
-        ls_points: number of model points for the line search.
         threads: CPU threads (torch.set_num_threads / onnxruntime intra-op threads).
+        mesh: optional mesh file (or loaded ``trimesh.Trimesh`` in metres) of the object: its
+            box replaces the checkpoint's cuboid and its surface feeds the depth steps.
+        mesh_units: units of the mesh file ("m", "cm", "mm"; default by suffix).
+        options: :class:`~dope_hope.inference.options.InferenceOptions`, or a mapping of
+            overrides of the packaged defaults (``dope_hope/configs/infer.yaml``).
+        **overrides: single options on top (``height=400``, ``icp=True``, ``pnp={...}``, ...);
+            an unknown name is a ConfigError.
     """
 
     def __init__(
@@ -126,42 +105,33 @@ class DopePredictor:
         weights: str | os.PathLike | MapBackend,
         backend: str = "auto",
         device: str = "cpu",
-        height: int | None = None,
+        threads: int | None = None,
         mesh: Any = None,
         mesh_units: str | None = None,
-        pose_search: str = "hypotheses",
-        decode_options: dict[str, Any] | None = None,
-        pnp_options: dict[str, Any] | None = None,
-        hypothesis_options: dict[str, Any] | None = None,
-        line_search_options: dict[str, Any] | None = None,
-        icp: bool = False,
-        icp_options: dict[str, Any] | None = None,
-        icp_points: int = DEFAULT_ICP_POINTS,
-        min_score: float = 0.0,
-        ls_points: int = DEFAULT_LS_POINTS,
-        threads: int | None = None,
+        options: InferenceOptions | Mapping[str, Any] | None = None,
+        **overrides: Any,
     ):
-        if height is not None and (int(height) != height or height < INPUT_MULTIPLE):
-            raise ConfigError(f"height must be an integer >= {INPUT_MULTIPLE}, got {height!r}")
+        if isinstance(options, InferenceOptions):
+            options = options.to_dict()
+        self.options = InferenceOptions.from_mapping({**(options or {}), **overrides})
         if isinstance(weights, (str, os.PathLike)):
             self.backend: MapBackend = open_backend(weights, backend, device, threads)
         elif hasattr(weights, "run") and hasattr(weights, "stride"):
             self.backend = weights
         else:
             raise ConfigError(f"weights must be a file path or a MapBackend, got {type(weights).__name__}")
-        if pose_search not in POSE_SEARCHES:
-            raise ConfigError(f"pose_search must be one of {', '.join(POSE_SEARCHES)}, got {pose_search!r}")
-        self.height = None if height is None else int(height)
-        self.pose_search = pose_search
-        self.decode_options = dict(decode_options or {})
-        self.pnp_options = dict(pnp_options or {})
-        self.hypothesis_options = dict(hypothesis_options or {})
-        self.line_search_options = dict(line_search_options or {})
-        self.icp = bool(icp)
-        self.icp_options = dict(icp_options or {})
-        self.icp_points = int(icp_points)
-        self.min_score = float(min_score)
-        self.ls_points = int(ls_points)
+        o = self.options
+        self.height = o.height
+        self.pose_search = o.pose_search
+        self.decode_options = dict(o.decode)
+        self.pnp_options = dict(o.pnp)
+        self.hypothesis_options = dict(o.hypotheses)
+        self.line_search_options = dict(o.line_search)
+        self.icp = o.icp
+        self.icp_options = dict(o.icp_refine)
+        self.icp_points = o.icp_points
+        self.min_score = o.min_score
+        self.ls_points = o.ls_points
         b = self.backend
         self.class_name = str(b.class_name)
         self.legacy = b.frame == "legacy" or b.keypoint_order == LEGACY_KEYPOINT_ORDER

@@ -28,7 +28,6 @@ TRAIN_DEFAULTS: dict[str, Any] = {
 }
 
 
-
 # =============================================================================== job + config
 @dataclass
 class TrainJob:

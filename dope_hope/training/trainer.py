@@ -55,8 +55,6 @@ from dope_hope.training.validation import validation_hits
 log = logging.getLogger(__name__)
 
 
-
-
 # =============================================================================== trainer
 class Trainer:
     """One training job; :meth:`run` returns a summary dict (see :func:`train`)."""

@@ -1,0 +1,35 @@
+"""dope_hope.inference.options: the packaged defaults load, every key is checked."""
+from __future__ import annotations
+
+import pytest
+
+from dope_hope.errors import ConfigError
+from dope_hope.inference.options import InferenceOptions
+
+
+def test_packaged_defaults():
+    o = InferenceOptions.from_mapping()
+    assert o.height is None and o.pose_search == "hypotheses" and o.min_score == 0.0
+    assert o.icp is False and o.ls_points == 1000 and dict(o.line_search) == {}
+
+
+def test_overrides_and_stage_keywords_are_accepted():
+    o = InferenceOptions.from_mapping({"height": 240, "icp": True,
+                                       "line_search": {"search": [0.7, 1.4]}, "pnp": {"min_points": 6},
+                                       "hypotheses": {"max_hypotheses": 50}, "decode": {"threshold": 0.2}})
+    assert o.height == 240 and o.icp and o.line_search["search"] == [0.7, 1.4]
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ({"hieght": 240}, "unknown inference option 'hieght'"),
+    ({"line_search": {"serach": [0.7, 1.4]}}, "unknown line_search option(s) serach"),
+    ({"pnp": {"K": 1}}, "unknown pnp option(s) K"),
+    ({"height": 5}, "height must be an integer >= 8"),
+    ({"min_score": float("nan")}, "min_score must be a finite number"),
+    ({"pose_search": "brute"}, "pose_search must be one of hypotheses, groups"),
+    ({"icp": "yes"}, "icp must be true or false"),
+])
+def test_mistakes_are_refused_in_one_line(overrides, message):
+    with pytest.raises(ConfigError) as exc:
+        InferenceOptions.from_mapping(overrides)
+    assert message in str(exc.value) and "\n" not in str(exc.value)
