@@ -51,6 +51,7 @@ class FrameAnnotation:
         objects: the instances.
         image_path, depth_path, seg_path: sibling files when they exist.
         depth_scale_m: metres per depth unit of ``depth_path`` (0.001 for uint16 millimetres).
+        scene_id, im_id: BOP ids when the frame comes from a BOP split.
     """
 
     source: Path
@@ -62,3 +63,5 @@ class FrameAnnotation:
     depth_path: Path | None = None
     seg_path: Path | None = None
     depth_scale_m: float = 0.001
+    scene_id: int | None = None
+    im_id: int | None = None

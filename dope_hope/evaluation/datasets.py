@@ -11,9 +11,8 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 
-from dope_hope.annotation import ObjectAnnotation
+from dope_hope.annotation import FrameAnnotation
 from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.io.predictions import Prediction
 
@@ -22,29 +21,17 @@ VISIB_GT_MIN = 0.1
 
 # =========================================================================== dataset
 @dataclass
-class EvalFrame:
-    """One test image with its ground truth.
+class EvalFrame(FrameAnnotation):
+    """One test image with its ground truth: a :class:`~dope_hope.annotation.FrameAnnotation`
+    (GT in metres, mesh frame; ``source`` is the annotation file) plus how predictions name it.
 
     Attributes:
         key: unique id: image path relative to the dataset folder (posix).
-        K: (3, 3) intrinsics or None; width, height: pixels or None.
-        objects: GT instances (metres, mesh frame).
         aliases: names a prediction may use for this image (relative paths, file name, stem).
-        image_path, depth_path, depth_scale_m: files and the depth unit (metres per unit).
-        scene_id, im_id: BOP ids when known.
     """
 
-    key: str
-    K: np.ndarray | None
-    width: int | None
-    height: int | None
-    objects: list[ObjectAnnotation]
+    key: str = ""
     aliases: set[str] = field(default_factory=set)
-    image_path: Path | None = None
-    depth_path: Path | None = None
-    depth_scale_m: float = 0.001
-    scene_id: int | None = None
-    im_id: int | None = None
 
 
 @dataclass
@@ -82,7 +69,7 @@ def _frame_from_annotation(root: Path, ann, json_path: Path) -> EvalFrame:
         key = key_path.resolve().relative_to(root.resolve()).as_posix()
     except ValueError:
         key = key_path.as_posix()
-    return EvalFrame(key=key, K=ann.K, width=ann.width, height=ann.height,
+    return EvalFrame(source=ann.source, key=key, K=ann.K, width=ann.width, height=ann.height,
                      objects=list(ann.objects), aliases=_aliases(root, image, json_path),
                      image_path=image, depth_path=ann.depth_path, depth_scale_m=ann.depth_scale_m)
 
@@ -139,7 +126,7 @@ def _load_bop(root: Path) -> Dataset:
         if ann.image_path is not None:
             key = ann.image_path.resolve().relative_to(split_dir.resolve()).as_posix()
         frames.append(EvalFrame(
-            key=key, K=ann.K, width=ann.width, height=ann.height, objects=list(ann.objects),
+            source=ann.source, key=key, K=ann.K, width=ann.width, height=ann.height, objects=list(ann.objects),
             aliases=_aliases(split_dir, ann.image_path) | {ids},
             image_path=ann.image_path, depth_path=ann.depth_path,
             depth_scale_m=ann.depth_scale_m, scene_id=bf.scene_id, im_id=bf.im_id))
