@@ -5,6 +5,7 @@ Readers for the scene-wise BOP files, everything converted to metres at this bou
 
 - ``scene_camera.json``  -> :func:`read_scene_camera`  {im_id: (K (3, 3), depth_scale_m)}
 - ``scene_gt.json``      -> :func:`read_scene_gt`      {im_id: [(obj_id, R (3, 3), t (3,) m)]}
+  (:func:`read_scene_gt_stored`: the numbers as stored, millimetres, for BOP19 scoring)
 - ``scene_gt_info.json`` -> :func:`read_scene_gt_info` {im_id: [GtInfo]}
 - ``models_info.json`` / per-model ``model_info.json`` -> :func:`read_models_info`
 - ``test_targets_bop19.json`` -> :func:`read_test_targets`
@@ -48,12 +49,12 @@ def _keyed_by_int(f: JsonFields, data: dict, what: str) -> list[tuple[int, Any]]
     return sorted(out, key=lambda kv: kv[0])
 
 
-def _rotation(f: JsonFields, value: Any, field: str) -> np.ndarray:
+def _stored_rotation(f: JsonFields, value: Any, field: str) -> np.ndarray:
+    """(3, 3) as stored, checked to be within ``_ROTATION_TOLERANCE`` of a rotation."""
     M = f.array(value, field, (9,)).reshape(3, 3)
-    R = nearest_rotation(M)
-    if np.linalg.norm(R - M) > _ROTATION_TOLERANCE:
+    if np.linalg.norm(nearest_rotation(M) - M) > _ROTATION_TOLERANCE:
         raise f.fail(field, "not a rotation matrix")
-    return R
+    return M
 
 
 def _int(f: JsonFields, value: Any, field: str) -> int:
@@ -96,15 +97,24 @@ def read_scene_camera(path: str | os.PathLike) -> dict[int, tuple[np.ndarray, fl
     return out
 
 
-def read_scene_gt(path: str | os.PathLike) -> dict[int, list[tuple[int, np.ndarray, np.ndarray]]]:
-    """``scene_gt.json`` -> {im_id: [(obj_id, R (3, 3), t (3,) metres)]}, list order kept
-    (the index is the ``gt_id`` of the mask files)."""
+def read_scene_gt_stored(path: str | os.PathLike) -> dict[int, list[tuple[int, np.ndarray, np.ndarray]]]:
+    """``scene_gt.json`` as stored -> {im_id: [(obj_id, R (3, 3), t (3,) millimetres)]}, list
+    order kept (the index is the ``gt_id`` of the mask files). R is checked to be a rotation
+    (within ``_ROTATION_TOLERANCE``) but not re-orthonormalized: the BOP toolkit scores the
+    stored numbers."""
     def parse(f: JsonFields, gt: Any, where: str) -> tuple[int, np.ndarray, np.ndarray]:
-        R = _rotation(f, f.get(gt, "cam_R_m2c", where), f"{where}.cam_R_m2c")
-        t = f.array(f.get(gt, "cam_t_m2c", where), f"{where}.cam_t_m2c", (3,)) * MM
+        R = _stored_rotation(f, f.get(gt, "cam_R_m2c", where), f"{where}.cam_R_m2c")
+        t = f.array(f.get(gt, "cam_t_m2c", where), f"{where}.cam_t_m2c", (3,))
         return _int(f, f.get(gt, "obj_id", where), f"{where}.obj_id"), R, t
 
     return _per_image_lists(path, "scene_gt file", parse)
+
+
+def read_scene_gt(path: str | os.PathLike) -> dict[int, list[tuple[int, np.ndarray, np.ndarray]]]:
+    """``scene_gt.json`` -> {im_id: [(obj_id, R (3, 3) nearest rotation, t (3,) metres)]}, list
+    order kept (see :func:`read_scene_gt_stored`)."""
+    return {im_id: [(obj_id, nearest_rotation(R), t * MM) for obj_id, R, t in gts]
+            for im_id, gts in read_scene_gt_stored(path).items()}
 
 
 @dataclass(frozen=True)
@@ -273,8 +283,9 @@ def iter_bop_split(split_dir: str | os.PathLike, scene_ids: list[int] | None = N
     """Every image of a BOP split as a FrameAnnotation (metres), scene by scene.
 
     Objects come from ``scene_gt.json`` (none when the split has no ground truth), with
-    visibility and ``bbox_xyxy`` (visible part) from ``scene_gt_info.json`` when present and
-    ``instance_id`` = the gt index (the ``NNNNNN_<gt_id>.png`` mask numbering). Class names
+    visibility and ``bbox_xyxy`` (visible part) from ``scene_gt_info.json`` when present,
+    ``instance_id`` = the gt index (the ``NNNNNN_<gt_id>.png`` mask numbering) and
+    ``stored_pose`` = (R, t mm) as stored. Class names
     come from ``class_name(obj_id)`` (default: the HOPE catalog, obj_id 1..28).
 
     Args:
@@ -287,17 +298,18 @@ def iter_bop_split(split_dir: str | os.PathLike, scene_ids: list[int] | None = N
         scene = split_dir / f"{scene_id:06d}"
         cams = read_scene_camera(scene / "scene_camera.json")
         gt_path, info_path = scene / "scene_gt.json", scene / "scene_gt_info.json"
-        gts = read_scene_gt(gt_path) if gt_path.is_file() else {}
+        gts = read_scene_gt_stored(gt_path) if gt_path.is_file() else {}
         infos = read_scene_gt_info(info_path) if info_path.is_file() else {}
         for im_id, (K, depth_scale_m) in cams.items():
             objects = []
             im_infos = infos.get(im_id, [])
-            for gt_id, (obj_id, R, t) in enumerate(gts.get(im_id, [])):
+            for gt_id, (obj_id, R, t_mm) in enumerate(gts.get(im_id, [])):
                 info = im_infos[gt_id] if gt_id < len(im_infos) else None
                 objects.append(ObjectAnnotation(
-                    class_name=class_name(obj_id), R=R, t=t, instance_id=gt_id,
-                    visibility=None if info is None else info.visib_fract,
-                    bbox_xyxy=None if info is None else info.bbox_visib_xyxy))
+                    class_name=class_name(obj_id), R=nearest_rotation(R), t=t_mm * MM,
+                    instance_id=gt_id, visibility=None if info is None else info.visib_fract,
+                    bbox_xyxy=None if info is None else info.bbox_visib_xyxy,
+                    stored_pose=(R, t_mm)))
             image = _image_file(scene / image_folder, im_id)
             width, height = image_size(image) if image is not None else (None, None)
             frame = FrameAnnotation(

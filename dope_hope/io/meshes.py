@@ -4,6 +4,8 @@ Every mesh leaves this module in metres, as one ``trimesh.Trimesh`` (multi-part 
 concatenated) with its texture kept (``TextureVisuals``: per-vertex uv + material image) so
 that pyrender can render it. Also the derived quantities other modules need: a deterministic
 surface point sample (ADD-style metrics), the axis-aligned cuboid and the diameter.
+:func:`read_ply_vertices` is the exception: the vertices of a PLY file exactly as stored
+(file units, file order), which is what the BOP toolkit's errors are computed on.
 """
 from __future__ import annotations
 
@@ -63,6 +65,84 @@ def load_mesh(path: str | os.PathLike, units: str | None = None) -> trimesh.Trim
     loaded.metadata["source_path"] = str(path)
     loaded.metadata["source_units"] = units
     return loaded
+
+
+#: PLY scalar types -> numpy type codes (both the PLY 1.0 names and the sized aliases).
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2",
+              "int16": "i2", "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4",
+              "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4", "double": "f8",
+              "float64": "f8"}
+
+
+def read_ply_vertices(path: str | os.PathLike) -> np.ndarray:
+    """Every vertex of a PLY file, in file order and file units, as the BOP toolkit reads them.
+
+    ASCII coordinates are parsed as float64 from the text, binary ones widened exactly from
+    their stored type (``inout.load_ply``); faces and other properties are not read, so a
+    point cloud (no ``face`` element) is fine. Unlike :func:`load_mesh` nothing is merged,
+    dropped, reordered or scaled.
+
+    Args:
+        path: the ``.ply`` file (ascii, binary_little_endian or binary_big_endian); the
+            ``vertex`` element must come first, as in every BOP model.
+
+    Returns:
+        (N, 3) float64 x, y, z, file units (BOP models: millimetres).
+
+    Raises:
+        InputFileError: missing file, not a PLY, no x/y/z vertex properties, an element
+        before ``vertex``, or fewer vertices than the header announces.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(path, "PLY file not found")
+    data = path.read_bytes()
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise InputFileError(path, "not a PLY file (no 'ply' ... 'end_header' header)")
+    body_start = data.index(b"\n", end) + 1 if b"\n" in data[end:] else len(data)
+    fmt, count, props, element = None, 0, [], None
+    for line in data[:end].decode("ascii", errors="replace").splitlines():
+        words = line.split()
+        if not words:
+            continue
+        if words[0] == "format" and len(words) >= 2:
+            fmt = words[1]
+        elif words[0] == "element" and len(words) >= 3:
+            if element is None and words[1] != "vertex":
+                raise InputFileError(path, f"element {words[1]!r} comes before 'vertex' "
+                                           f"(the vertices must be the first element)")
+            element = words[1]
+            if element == "vertex":
+                count = int(words[2]) if words[2].isdigit() else -1
+                if count < 0:
+                    raise InputFileError(path, f"bad vertex count {words[2]!r}")
+        elif words[0] == "property" and element == "vertex":
+            if len(words) < 3 or words[1] == "list" or words[1] not in _PLY_TYPES:
+                raise InputFileError(path, f"unsupported vertex property {line.strip()!r}")
+            props.append((words[2], _PLY_TYPES[words[1]]))
+    names = [n for n, _ in props]
+    if element is None or not {"x", "y", "z"} <= set(names):
+        raise InputFileError(path, "no vertex element with x, y, z properties")
+    cols = [names.index(a) for a in "xyz"]
+    if fmt == "ascii":
+        lines = data[body_start:].decode("ascii", errors="replace").splitlines()
+        rows = [ln.split() for ln in lines[:count]]
+        if len(rows) < count or any(len(r) < len(props) for r in rows):
+            raise InputFileError(path, f"expected {count} vertex lines of {len(props)} values")
+        try:
+            return np.array([[float(r[c]) for c in cols] for r in rows], dtype=np.float64
+                            ).reshape(count, 3)
+        except ValueError as exc:
+            raise InputFileError(path, f"vertex coordinates: not a number ({exc})") from None
+    order = {"binary_little_endian": "<", "binary_big_endian": ">"}.get(fmt or "")
+    if order is None:
+        raise InputFileError(path, f"unknown PLY format {fmt!r}")
+    dtype = np.dtype([(f"p{k}", order + t) for k, (_, t) in enumerate(props)])
+    if len(data) - body_start < count * dtype.itemsize:
+        raise InputFileError(path, f"file ends before its {count} vertices")
+    verts = np.frombuffer(data, dtype=dtype, count=count, offset=body_start)
+    return np.stack([verts[f"p{c}"].astype(np.float64) for c in cols], axis=1)
 
 
 def _farthest_point_indices(points: np.ndarray, n: int) -> np.ndarray:
