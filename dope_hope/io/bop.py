@@ -319,17 +319,30 @@ def iter_bop_split(split_dir: str | os.PathLike, scene_ids: list[int] | None = N
             yield BopFrame(scene_id, im_id, frame)
 
 
+def _axis_rotation(angle: float, axis: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation by ``angle`` (rad) about ``axis`` (normalized here), with the
+    operations of the BOP toolkit's ``transform.rotation_matrix`` (Gohlke's transformations)."""
+    sina, cosa = math.sin(angle), math.cos(angle)
+    d = np.array(axis[:3], dtype=np.float64, copy=True)
+    d /= math.sqrt(np.dot(d, d))
+    R = np.diag([cosa, cosa, cosa])
+    R += np.outer(d, d) * (1.0 - cosa)
+    d *= sina
+    R += np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
+    return R
+
+
 def compose_symmetries(discrete: Sequence[np.ndarray],
                        continuous: Sequence[tuple[np.ndarray, np.ndarray]], steps: int) -> np.ndarray:
     """Discrete symmetries combined with discretized continuous ones, as the BOP toolkit's
-    ``get_symmetry_transformations`` builds them.
+    ``get_symmetry_transformations`` builds them (same operations, so the same numbers).
 
     Args:
-        discrete: (4, 4) model-frame transforms, metres, the identity NOT included (it is
-            put first here).
-        continuous: (unit axis (3,), offset (3,) metres) rotational symmetries; each is
-            sampled at ``k * 360° / steps``, k = 0 .. steps - 1 (so the identity is kept),
-            about the axis through ``offset``.
+        discrete: (4, 4) model-frame transforms, the identity NOT included (it is put first
+            here); used as given.
+        continuous: (axis (3,), offset (3,)) rotational symmetries, lengths in the unit of the
+            discrete translations; each is sampled at ``k * 2 pi / steps``, k = 0 .. steps - 1
+            (so the identity is kept), about the axis through ``offset``.
         steps: rotations per continuous symmetry.
 
     Returns:
@@ -337,22 +350,25 @@ def compose_symmetries(discrete: Sequence[np.ndarray],
         with each continuous rotation, ``R = R_c R_d``, ``t = R_c t_d + t_c``; just the
         discrete ones when no continuous rotation is sampled.
     """
-    from scipy.spatial.transform import Rotation
-
-    discrete = [np.eye(4)] + list(discrete)
+    discrete = [np.eye(4)] + [np.asarray(D, dtype=np.float64) for D in discrete]
     rotations = []
     for axis, offset in continuous:
-        angles = np.arange(steps) * (2.0 * np.pi / steps)
-        offset = np.asarray(offset, dtype=np.float64).reshape(3)
-        unit = np.asarray(axis, dtype=np.float64).reshape(3)
-        for R in Rotation.from_rotvec(angles[:, None] * unit[None]).as_matrix():
-            T = np.eye(4)
-            T[:3, :3] = R
-            T[:3, 3] = offset - R @ offset
-            rotations.append(T)
+        step = 2.0 * np.pi / steps
+        offset = np.asarray(offset, dtype=np.float64).reshape((3, 1))
+        for i in range(steps):
+            R = _axis_rotation(i * step, np.asarray(axis, dtype=np.float64))
+            rotations.append((R, -R.dot(offset) + offset))
     if not rotations:
         return np.stack(discrete)
-    return np.stack([C @ D for D in discrete for C in rotations])
+    out = []
+    for D in discrete:
+        R_d, t_d = D[:3, :3], D[:3, 3].reshape((3, 1))
+        for R_c, t_c in rotations:
+            T = np.eye(4)
+            T[:3, :3] = R_c.dot(R_d)
+            T[:3, 3:] = R_c.dot(t_d) + t_c
+            out.append(T)
+    return np.stack(out)
 
 
 def symmetry_transforms(info: dict, step_deg: float = 1.0) -> np.ndarray:
