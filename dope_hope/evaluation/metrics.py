@@ -4,10 +4,13 @@ Conventions: a pose is ``R`` (3, 3), ``t`` (3,) metres with ``x_c = R x + t``; m
 are (N, 3) metres in the model frame; symmetries are (S, 4, 4) model-frame rigid transforms
 (metres) with the identity first (:func:`dope_hope.catalog.category_symmetries` or
 :func:`symmetries_from_models_info`). All errors are in metres, except MSPD (pixels), re
-(degrees) and VSD (a fraction in [0, 1]).
+(degrees) and VSD (a fraction in [0, 1]). The BOP errors (``mssd``, ``mspd``, ``vsd``) work in
+whatever length unit they are given; BOP19 scoring gives them millimetres, as the toolkit.
 
 Names and definitions follow the BOP toolkit (``bop_toolkit_lib/pose_error.py``):
-``add``, ``adi`` (here :func:`adds`), ``mssd``, ``mspd``, ``vsd``, ``re``, ``te``. Two are
+``add``, ``adi`` (here :func:`adds`), ``mssd``, ``mspd``, ``vsd``, ``re``, ``te``; ``mssd``,
+``mspd``, ``vsd`` and the point transforms also repeat its operations, so that exact ties at
+thresholds decide as there. Two are
 from the HOPE paper (Tyree et al., IROS 2022):
 
 * **ADD-H** — mean distance between the model points in the two poses under the optimal
