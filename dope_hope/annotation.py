@@ -23,6 +23,9 @@ class ObjectAnnotation:
         bbox_xyxy: (4,) 2D box (x_min, y_min, x_max, y_max), pixels, or None.
         instance_id: id in the segmentation image, or None.
         keypoint_order: "dope-current" or "dope-legacy" (order of ``projected_cuboid``).
+        stored_pose: (R (3, 3), t (3,) millimetres) exactly as a BOP file stores them (R not
+            re-orthonormalized), or None; BOP19 scoring uses it to compute what the BOP
+            toolkit computes.
     """
 
     class_name: str
@@ -33,6 +36,7 @@ class ObjectAnnotation:
     bbox_xyxy: np.ndarray | None = None
     instance_id: int | None = None
     keypoint_order: str = "dope-current"
+    stored_pose: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def quaternion_xyzw(self) -> np.ndarray:

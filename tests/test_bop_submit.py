@@ -48,7 +48,7 @@ def bop_root(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("bop") / "bop"
     box = trimesh.creation.box(extents=KETCHUP.size_array)
     renderer = DepthRenderer()
-    depth_m = renderer.render_depth(box, R_GT, T_GT, K, W, H)
+    depth_m = renderer.render_depth((box.vertices, box.faces), R_GT, T_GT, K, W, H)
     renderer.close()
     assert np.count_nonzero(depth_m) > 500
     for scene_id, n_images in ((1, 2), (2, 1)):

@@ -137,7 +137,9 @@ GT = {  # frame -> [(class, R, t, visibility)]
 
 def write_dataset(folder, with_depth=False):
     folder.mkdir(parents=True, exist_ok=True)
-    renderer = metrics.DepthRenderer() if with_depth else None
+    from dope_hope.render.depth import DepthRenderer
+
+    renderer = DepthRenderer() if with_depth else None
     for k, objs in GT.items():
         anns = [ObjectAnnotation(c, R, np.array(t, dtype=float), visibility=v) for c, R, t, v in objs]
         write_rgb(folder / f"{k:06d}.png", np.zeros((H, W, 3), np.uint8))
@@ -146,8 +148,8 @@ def write_dataset(folder, with_depth=False):
             for a in anns:
                 import trimesh
 
-                d = renderer.render_depth(trimesh.creation.box(extents=get_object(a.class_name).size_array),
-                                          a.R, a.t, K, W, H)
+                box = trimesh.creation.box(extents=get_object(a.class_name).size_array)
+                d = renderer.render_depth((box.vertices, box.faces), a.R, a.t, K, W, H)
                 depth = np.where((d > 0) & ((depth == 0) | (d < depth)), d, depth)
             write_depth_mm(folder / f"{k:06d}.depth.png", depth)
         write_dope_json(folder / f"{k:06d}.json", FrameAnnotation(folder / f"{k:06d}.json", K, W, H, anns))
@@ -349,13 +351,14 @@ def write_bop_dataset(root):
 def test_bop_dataset_with_targets_file_and_csv_predictions(tmp_path, scores, expected):
     from dope_hope.io.bop_csv import BopEstimate, write_bop_csv
 
-    poses = write_bop_dataset(tmp_path / "hope")
+    # not named "hope": MSPD takes the width of this 80-pixel image, not HOPE's 1920
+    poses = write_bop_dataset(tmp_path / "tiny")
     # two perfect estimates, one per instance; inst_count = 1 keeps only the top-scoring one,
     # and only the most visible instance (the first) is a valid target
     csv_path = tmp_path / "mine_hope-test.csv"
     write_bop_csv(csv_path, [BopEstimate(1, 0, 11, s, R, np.array(t), 0.1)
                              for s, (R, t) in zip(scores, poses)])
-    s = run_evaluation(EvalConfig(predictions=[csv_path], dataset=tmp_path / "hope", fmt="bop",
+    s = run_evaluation(EvalConfig(predictions=[csv_path], dataset=tmp_path / "tiny", fmt="bop",
                                         out=tmp_path / "o"), log=lambda _: None)
     bop = s["methods"]["mine"]["bop19"]
     assert bop["targets"] == 1 and bop["gt_valid"] == 1
@@ -364,3 +367,69 @@ def test_bop_dataset_with_targets_file_and_csv_predictions(tmp_path, scores, exp
     # the HOPE table counts both instances and both detections
     row = read_rows(tmp_path / "o" / "per_object_mine.csv")[0]
     assert (row["object"], row["gt"], row["recall_2cm"]) == ("Ketchup", "2", "1.0")
+
+
+# ----------------------------------------------------------------------------- BOP19 = toolkit
+SQUARE_PLY = ("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+              "property float z\nend_header\n-50 -50 0\n50 -50 0\n-50 50 0\n50 50 0\n")
+
+
+def write_hope_bop(root, R_gt_stored):
+    """hope/test/000001 image 0 (no rgb, no depth): one Ketchup (obj 11) at t = (0, 0, 1000) mm
+    with the stored rotation ``R_gt_stored``; models_eval/obj_000011.ply is a point cloud (a
+    100 mm flat square, 4 vertices) with a models_info diameter of 100 mm."""
+    scene = root / "test" / "000001"
+    scene.mkdir(parents=True)
+    K_hope = [1000.0, 0.0, 960.0, 0.0, 1000.0, 540.0, 0.0, 0.0, 1.0]
+    (scene / "scene_camera.json").write_text(json.dumps({"0": {"cam_K": K_hope, "depth_scale": 1.0}}))
+    (scene / "scene_gt.json").write_text(json.dumps({"0": [
+        {"obj_id": 11, "cam_R_m2c": list(R_gt_stored), "cam_t_m2c": [0.0, 0.0, 1000.0]}]}))
+    (scene / "scene_gt_info.json").write_text(json.dumps({"0": [{"visib_fract": 1.0}]}))
+    (root / "test_targets_bop19.json").write_text(json.dumps(
+        [{"scene_id": 1, "im_id": 0, "obj_id": 11, "inst_count": 1}]))
+    (root / "models_eval").mkdir()
+    (root / "models_eval" / "obj_000011.ply").write_text(SQUARE_PLY)
+    (root / "models_eval" / "models_info.json").write_text(json.dumps({"11": {"diameter": 100.0}}))
+
+
+@pytest.mark.parametrize("R_gt_stored,ar_mssd", [
+    ((1, 0, 0, 0, 1, 0, 0, 0, 1), 0.8),
+    # stored GT rotations are used as stored: x scaled by 1 + 1e-6 makes the MSSD 15.00005 mm
+    ((1.000001, 0, 0, 0, 1, 0, 0, 0, 1), 0.7),
+])
+def test_bop19_ties_and_inputs_as_the_toolkit(tmp_path, R_gt_stored, ar_mssd):
+    """By hand from the toolkit's definitions: the estimate is the GT shifted 15 mm along x.
+    MSSD = 15 mm = 0.15 x the 100 mm diameter, correct for thresholds np.arange(0.05, 0.51,
+    0.05)[2:] (0.15 < 0.15000000000000002): AR_MSSD 0.8 (0.7 with rounded thresholds).
+    MSPD: every vertex at depth 1000 with f = 1000 moves 15 px; x 640 / 1920 (HOPE's width,
+    not from image files: there are none) = 5.0, not < 5: AR_MSPD 0.9. Estimates that are not
+    of a target (object 12; an image not in the dataset) are ignored, time -1 is "unknown"."""
+    root = tmp_path / "hope"
+    write_hope_bop(root, R_gt_stored)
+    csv_path = tmp_path / "mine_hope-test.csv"
+    csv_path.write_text("scene_id,im_id,obj_id,score,R,t,time\n"
+                        "1,0,11,0.9,1 0 0 0 1 0 0 0 1,15 0 1000,-1\n"
+                        "1,0,12,0.9,1 0 0 0 1 0 0 0 1,0 0 1000,-1\n"
+                        "2,500,11,0.9,1 0 0 0 1 0 0 0 1,0 0 1000,-1\n")
+    logs = []
+    s = run_evaluation(EvalConfig(predictions=[csv_path], dataset=root, fmt="bop",
+                                  models_dir=root / "models_eval", out=tmp_path / "o"),
+                       log=logs.append)
+    bop = s["methods"]["mine"]["bop19"]
+    assert bop["ar_mssd"] == ar_mssd and bop["ar_mspd"] == 0.9
+    assert bop["recalls"]["mspd"] == [0.0] + [1.0] * 9
+    assert bop["ar_vsd"] is None and bop["ar"] == np.mean([ar_mssd, 0.9])
+    assert any("1 estimates of images that are not in" in m for m in logs)
+    assert any("1 of 2 estimates are not of a target" in n for n in bop["notes"])
+    assert any("MSPD image width: 1920 px" in n for n in bop["notes"])
+
+
+def test_bop_models_use_every_vertex_of_the_file_in_millimetres(tmp_path):
+    root = tmp_path / "hope"
+    write_hope_bop(root, (1, 0, 0, 0, 1, 0, 0, 0, 1))
+    m = load_models(["Ketchup"], models_dir=root / "models_eval")["Ketchup"]
+    np.testing.assert_array_equal(m.bop.points, [[-50, -50, 0], [50, -50, 0], [-50, 50, 0], [50, 50, 0]])
+    assert m.bop.faces is None and m.bop.diameter == 100.0 and m.bop.exact
+    np.testing.assert_array_equal(m.bop.symmetries, np.eye(4)[None])
+    # the tables keep their metres (the 4 points are all the cloud has)
+    assert m.diameter == pytest.approx(0.1) and m.points.shape == (4, 3)

@@ -19,6 +19,7 @@ from dope_hope.io.bop import (
     read_scene_camera,
     read_scene_gt,
     read_scene_gt_info,
+    read_scene_gt_stored,
     read_test_targets,
     symmetry_transforms,
 )
@@ -79,6 +80,10 @@ def test_scene_files_values(split):
     np.testing.assert_allclose(R, R_A, atol=1e-12)
     np.testing.assert_allclose(t, [0.010, -0.020, 0.800])  # mm -> m
     assert [g[0] for g in gts[0]] == [11, 13]
+    # as stored (for BOP19 scoring): millimetres, R exactly the file's numbers
+    _, R_s, t_s = read_scene_gt_stored(split / "000001" / "scene_gt.json")[0][0]
+    np.testing.assert_array_equal(R_s, np.reshape(np.asarray(R_A).ravel().tolist(), (3, 3)))
+    np.testing.assert_array_equal(t_s, [10.0, -20.0, 800.0])
 
     infos = read_scene_gt_info(split / "000001" / "scene_gt_info.json")
     a = infos[0][0]
@@ -102,6 +107,9 @@ def test_iter_bop_split(split):
     assert fr.objects[0].visibility == 0.75
     np.testing.assert_allclose(fr.objects[0].bbox_xyxy, [100, 50, 120, 80])
     np.testing.assert_allclose(fr.objects[0].t, [0.010, -0.020, 0.800])
+    R_s, t_s = fr.objects[0].stored_pose
+    np.testing.assert_array_equal(t_s, [10.0, -20.0, 800.0])
+    np.testing.assert_array_equal(R_s.ravel(), np.asarray(R_A).ravel().tolist())
     assert frames[1].frame.image_path.suffix == ".jpg"
     assert frames[1].frame.depth_path is None
     assert frames[1].frame.objects[0].class_name == "AlphabetSoup"

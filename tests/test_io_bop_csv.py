@@ -95,3 +95,29 @@ def test_non_finite_numbers_are_refused(tmp_path):
     ests[0].t = np.array([0.0, np.nan, 1.0])
     with pytest.raises(InputFileError, match="non-finite"):
         write_bop_csv(tmp_path / "m_hope-test.csv", ests)
+
+
+@pytest.mark.parametrize("R", ["-1 0 0 0 1 0 0 0 1", "0.01 0 0 0 0.01 0 0 0 0.01", "1 2 3 4 5 6 7 8 9"])
+def test_an_r_that_is_no_rotation_is_refused_with_its_line(tmp_path, R):
+    """The same rule as the JSON-lines reader (one owner: io.predictions.checked_rotation);
+    the line number counts the blank line before the row."""
+    path = tmp_path / "m_hope-test.csv"
+    path.write_text("scene_id,im_id,obj_id,score,R,t,time\n"
+                    "1,0,11,0.9,1 0 0 0 1 0 0 0 1,0 0 800,-1\n\n"
+                    f"1,1,11,0.9,{R},0 0 800,-1\n")
+    with pytest.raises(InputFileError, match="line 4: R: not a rotation matrix") as err:
+        read_bop_csv(path)
+    assert str(path) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_numbers_are_kept_as_written_and_unknown_time_is_allowed(tmp_path):
+    """R is scored as written (a rotation to 1e-4, not re-orthonormalized) and t keeps the
+    file's millimetres next to the metres, as the BOP toolkit reads them; time -1 = unknown."""
+    path = tmp_path / "m_hope-test.csv"
+    path.write_text("scene_id,im_id,obj_id,score,R,t,time\n"
+                    "1,0,11,0.9,0.99995 0.01 0 -0.01 0.99995 0 0 0 1,0.1 -2.7 801.3,-1\n")
+    (e,) = read_bop_csv(path)
+    np.testing.assert_array_equal(e.R, [[0.99995, 0.01, 0], [-0.01, 0.99995, 0], [0, 0, 1]])
+    np.testing.assert_array_equal(e.t_mm, [0.1, -2.7, 801.3])
+    np.testing.assert_array_equal(e.t, 0.001 * np.array([0.1, -2.7, 801.3]))
+    assert e.time == -1.0 and e.line == 2

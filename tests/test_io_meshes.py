@@ -12,6 +12,7 @@ from dope_hope.io.meshes import (
     load_mesh,
     mesh_cuboid,
     mesh_diameter,
+    read_ply,
     sample_surface_points,
 )
 
@@ -124,3 +125,76 @@ def test_texture_reaches_pyrender(ketchup):
     assert prim.material.baseColorTexture is not None
     assert prim.texcoord_0.shape == (len(ketchup.vertices), 2)
     np.testing.assert_allclose(prim.positions.max(0), ketchup.bounds[1], atol=1e-6)  # metres
+
+
+PLY_HEADER = "ply\nformat {fmt} 1.0\ncomment a point cloud: no faces\nelement vertex {n}\n" \
+             "property float x\nproperty float y\nproperty double z\nproperty uchar red\n" \
+             "end_header\n"
+
+
+def test_read_ply_vertices_ascii_keeps_text_precision_order_and_duplicates(tmp_path):
+    """Every vertex as the BOP toolkit's load_ply reads it: ascii parsed as float64 (0.1 is
+    the double 0.1, not the float32 0.1 that trimesh gives), duplicates and order kept, no
+    faces needed, file units (no scaling)."""
+    rows = ["0.1 -12.345678 1000.0000001 7", "0.1 -12.345678 1000.0000001 7", "3 2 1 0"]
+    path = tmp_path / "cloud.ply"
+    path.write_text(PLY_HEADER.format(fmt="ascii", n=3) + "\n".join(rows) + "\n")
+    v, faces = read_ply(path)
+    assert v.dtype == np.float64 and faces is None
+    np.testing.assert_array_equal(v, [[0.1, -12.345678, 1000.0000001]] * 2 + [[3.0, 2.0, 1.0]])
+
+
+@pytest.mark.parametrize("fmt,order", [("binary_little_endian", "<"), ("binary_big_endian", ">")])
+def test_read_ply_vertices_binary_widens_the_stored_values_exactly(tmp_path, fmt, order):
+    dtype = np.dtype([("x", order + "f4"), ("y", order + "f4"), ("z", order + "f8"), ("r", "u1")])
+    rec = np.array([(0.1, 2.5, 0.1, 9), (-7.25, 1e-3, 1e6, 0)], dtype=dtype)
+    path = tmp_path / "m.ply"
+    path.write_bytes(PLY_HEADER.format(fmt=fmt, n=2).encode() + rec.tobytes())
+    v, _ = read_ply(path)
+    np.testing.assert_array_equal(v[:, 0], np.array([0.1, -7.25], np.float32).astype(np.float64))
+    np.testing.assert_array_equal(v[:, 1], np.array([2.5, 1e-3], np.float32).astype(np.float64))
+    np.testing.assert_array_equal(v[:, 2], [0.1, 1e6])
+
+
+@pytest.mark.parametrize("encoding", ["binary", "ascii"])
+def test_read_ply_of_a_mesh_gives_its_file_vertices_and_triangles(tmp_path, encoding):
+    box = trimesh.creation.box(extents=[10.0, 20.0, 30.0])
+    (tmp_path / "box.ply").write_bytes(trimesh.exchange.ply.export_ply(box, encoding=encoding))
+    v, faces = read_ply(tmp_path / "box.ply")
+    np.testing.assert_array_equal(v, np.asarray(box.vertices, np.float32).astype(np.float64))
+    np.testing.assert_array_equal(faces, box.faces)
+
+
+@pytest.mark.parametrize("content,problem", [
+    (None, "not found"), (b"solid stl\n", "not a PLY"),
+    (b"ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int vertex_indices\n"
+     b"element vertex 1\nproperty float x\nend_header\n", "first element must be 'vertex'"),
+    (b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+     b"property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+     b"0 0 0\n1 0 0\n0 1 0\n4 0 1 2 0\n", "only triangular faces"),
+    (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+     b"property float z\nend_header\n1 2 3\n", "expected 2 vertex lines"),
+    (b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\n"
+     b"property float y\nproperty float z\nend_header\n" + bytes(12), "ends before its 2 vertices"),
+])
+def test_read_ply_vertices_bad_files_name_the_file(tmp_path, content, problem):
+    path = tmp_path / "bad.ply"
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(InputFileError, match=problem) as err:
+        read_ply(path)
+    assert str(path) in str(err.value)
+
+
+def test_read_ply_reads_triangles_past_texcoord_lists(tmp_path):
+    """BOP models with per-face texture coordinates (a second face list), binary."""
+    head = (b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n"
+            b"property float y\nproperty float z\nelement face 2\n"
+            b"property list uchar int vertex_indices\nproperty list uchar float texcoord\nend_header\n")
+    fdtype = np.dtype([("n", "u1"), ("i", "<i4", (3,)), ("m", "u1"), ("t", "<f4", (6,))])
+    faces = np.array([(3, (0, 1, 2), 6, (0.5,) * 6), (3, (2, 1, 0), 6, (1.0,) * 6)], dtype=fdtype)
+    path = tmp_path / "tex.ply"
+    path.write_bytes(head + np.arange(9, dtype="<f4").tobytes() + faces.tobytes())
+    v, f = read_ply(path)
+    np.testing.assert_array_equal(v, np.arange(9.0).reshape(3, 3))
+    np.testing.assert_array_equal(f, [[0, 1, 2], [2, 1, 0]])

@@ -200,6 +200,22 @@ def test_symmetries_from_models_info_discretizes_like_the_bop_toolkit():
     assert metrics.symmetries_from_models_info({}).shape == (1, 4, 4)
 
 
+def test_bop_units_keep_the_stored_numbers_and_errors_are_exact_on_integer_data():
+    """In the file's millimetres (unit=1.0) a discrete symmetry is used as stored (R not
+    re-orthonormalized, t = 20 mm); a 15 mm shift gives MSSD 15.0 and, at depth 1000 with
+    f = 1000, MSPD 15.0 px, exactly: the ties the BOP thresholds are compared with."""
+    R_s = [1.0000001, 0, 0, 0, -1, 0, 0, 0, -1]
+    info = {"symmetries_discrete": [R_s[0:3] + [0] + R_s[3:6] + [0] + R_s[6:9] + [20, 0, 0, 0, 1]]}
+    S = metrics.symmetries_from_models_info(info, unit=1.0)
+    np.testing.assert_array_equal(S[1, :3, :3].ravel(), R_s)
+    assert S[1, 2, 3] == 20.0
+    square = np.array([[-50.0, -50, 0], [50, -50, 0], [-50, 50, 0], [50, 50, 0]])
+    t_g = np.array([0.0, 0.0, 1000.0])
+    assert metrics.mssd(I3, t_g + [15, 0, 0], I3, t_g, square, None) == 15.0
+    K = np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]])
+    assert metrics.mspd(I3, t_g + [15, 0, 0], I3, t_g, K, square, None) == 15.0
+
+
 def test_symmetries_of_the_shared_cylinder_model_make_axis_rotations_nearly_free(shared_data):
     info = json.loads((shared_data / "symmetric_models" / "cylinder" / "model_info.json").read_text())
     syms = metrics.symmetries_from_models_info(info)
@@ -221,7 +237,9 @@ def test_te_and_re():
 # ----------------------------------------------------------------------------- VSD
 @pytest.fixture(scope="module")
 def renderer():
-    r = metrics.DepthRenderer()
+    from dope_hope.render.depth import DepthRenderer
+
+    r = DepthRenderer()
     yield r
     r.close()
 
@@ -229,40 +247,93 @@ def renderer():
 K_VSD = np.array([[300.0, 0, 79.5], [0, 300.0, 59.5], [0, 0, 1]])
 
 
-def test_depth_renderer_matches_the_projection_convention(renderer):
-    mesh = trimesh.creation.box(extents=(0.1, 0.06, 0.04))
-    t = np.array([0.01, -0.02, 0.6])
-    depth = renderer.render_depth(mesh, I3, t, K_VSD, 160, 120)
-    ys, xs = np.nonzero(depth > 0)
-    uv = (mesh.vertices + t) @ K_VSD.T
-    uv = uv[:, :2] / uv[:, 2:3]
-    assert xs.min() == math.ceil(uv[:, 0].min()) and xs.max() == math.floor(uv[:, 0].max())
-    assert ys.min() == math.ceil(uv[:, 1].min()) and ys.max() == math.floor(uv[:, 1].max())
-    assert depth[ys[0], xs[0]] == pytest.approx(0.58, abs=1e-4)  # front face at z = 0.6 - 0.02
+def box_model(size_mm: float = 80.0):
+    box = trimesh.creation.box(extents=(size_mm,) * 3)
+    return np.asarray(box.vertices, np.float64), np.asarray(box.faces)
+
+
+def test_depth_renderer_samples_pixel_centres_at_half_integers_as_the_toolkit(renderer):
+    """The toolkit's renderer puts pixel column i at u = i + 0.5 of K (OpenGL pixel centres)
+    and its depth is exact on a fronto-parallel face (near plane at the box's front)."""
+    K = np.array([[1000.0, 0, 320], [0, 1000.0, 240], [0, 0, 1]])
+    depth = renderer.render_depth(box_model(100.0), I3, np.array([0.0, 0.0, 1000.0]), K, 640, 480)
+    ys, xs = np.nonzero(depth)
+    # front face at z = 950: u in 320 +- 1000 * 50 / 950 = [267.37, 372.63] -> columns whose
+    # centre i + 0.5 is inside: 267 .. 372 (with centres at integers it would be 268 .. 372)
+    assert (xs.min(), xs.max(), ys.min(), ys.max()) == (267, 372, 187, 292)
+    assert depth.dtype == np.float64 and np.all(depth[ys, xs] == 950.0)
+    assert np.count_nonzero(depth) == 106 * 106
+
+
+def test_depth_to_distance_is_the_toolkits_formula():
+    K = np.array([[500.0, 0, 2.0], [0, 400.0, 1.0], [0, 0, 1]])
+    depth = np.full((3, 5), 800.0, np.float32)
+    depth[0, 0] = 0.0
+    d = metrics.depth_to_distance(depth, K)
+    y, x = 2, 4
+    assert d[y, x] == math.sqrt((((x - 2.0) / 500.0) * 800.0) ** 2 + (((y - 1.0) / 400.0) * 800.0) ** 2
+                                + 800.0 ** 2)
+    assert d[1, 2] == 800.0 and d[0, 0] == 0.0
+
+
+class PlaneRenderer:
+    """A stand-in renderer: a 1x1 image whose pixel (at the principal point, so distance =
+    depth exactly) shows depth ``z[t]`` for a pose with translation ``t``."""
+
+    def __init__(self, z: dict):
+        self.z = z
+
+    def render_depth(self, model, R, t, K, width, height):
+        return np.full((height, width), self.z[tuple(np.asarray(t, float).ravel())], np.float64)
+
+
+K_1PX = np.array([[1000.0, 0, 0.0], [0, 1000.0, 0.0], [0, 0, 1]])
+T_G, T_E = (0.0, 0.0, 1000.0), (0.0, 0.0, 1015.0)
+
+
+def test_vsd_step_cost_ties_at_tau_follow_the_toolkits_thresholds():
+    """|1015 - 1000| / 100 = 0.15 exactly: a cost at tau 0.05 and 0.1 (dists >= tau) but not
+    at the toolkit's third tau 0.15000000000000002 (np.arange); with a tau of 0.15 it would be."""
+    r = PlaneRenderer({T_G: 1000.0, T_E: 1015.0})
+    depth = np.full((1, 1), 1000.0, np.float32)
+    e = metrics.vsd(I3, np.array(T_E), I3, np.array(T_G), depth, K_1PX, None, delta=15.0,
+                    diameter=100.0, renderer=r)
+    assert e == [1.0, 1.0] + [0.0] * 8
+    assert metrics.BOP19_VSD_TAUS[2] == 0.15000000000000002
+    e_rounded = metrics.vsd(I3, np.array(T_E), I3, np.array(T_G), depth, K_1PX, None, delta=15.0,
+                            diameter=100.0, taus=[0.15], renderer=r)
+    assert e_rounded == [1.0]
+
+
+@pytest.mark.parametrize("test_depth,expected", [(985.0, 0.0), (984.9, 1.0), (0.0, 0.0)])
+def test_vsd_visibility_tolerance_is_inclusive_and_missing_depth_is_visible(test_depth, expected):
+    """GT surface 15 mm behind the test surface is still visible (d_diff <= delta); 15.1 mm is
+    not, and then nothing is visible: VSD = 1; no test depth counts as visible."""
+    r = PlaneRenderer({T_G: 1000.0})
+    depth = np.full((1, 1), test_depth, np.float32)
+    e = metrics.vsd(I3, np.array(T_G), I3, np.array(T_G), depth, K_1PX, None, delta=15.0,
+                    diameter=100.0, renderer=r)
+    assert e == [expected] * 10
 
 
 def test_vsd_is_zero_for_identical_poses_and_one_for_disjoint_ones(renderer):
-    mesh = trimesh.creation.box(extents=(0.08, 0.08, 0.08))
-    t_g = np.array([0.0, 0.0, 0.6])
-    depth = renderer.render_depth(mesh, I3, t_g, K_VSD, 160, 120)
-    e_same = metrics.vsd(I3, t_g, I3, t_g, depth, K_VSD, mesh, renderer=renderer)
-    assert e_same.shape == (10,)
-    np.testing.assert_allclose(e_same, 0.0)
-    e_far = metrics.vsd(I3, t_g + [0.3, 0, 0], I3, t_g, depth, K_VSD, mesh, renderer=renderer)
-    np.testing.assert_allclose(e_far, 1.0)
-    # missing test depth counts as visible (BOP19 mode): still 0 for identical poses
-    np.testing.assert_allclose(metrics.vsd(I3, t_g, I3, t_g, np.zeros_like(depth), K_VSD, mesh,
-                                           renderer=renderer), 0.0)
+    model = box_model()
+    t_g = np.array([0.0, 0.0, 600.0])
+    depth = renderer.render_depth(model, I3, t_g, K_VSD, 160, 120).astype(np.float32)
+    kw = dict(delta=15.0, diameter=float(np.linalg.norm([80.0] * 3)), renderer=renderer)
+    assert metrics.vsd(I3, t_g, I3, t_g, depth, K_VSD, model, **kw) == [0.0] * 10
+    assert metrics.vsd(I3, t_g + [300.0, 0, 0], I3, t_g, depth, K_VSD, model, **kw) == [1.0] * 10
+    assert metrics.vsd(I3, t_g, I3, t_g, np.zeros_like(depth), K_VSD, model, **kw) == [0.0] * 10
 
 
 def test_vsd_depth_offset_is_forgiven_only_by_tolerances_above_it(renderer):
-    mesh = trimesh.creation.box(extents=(0.08, 0.08, 0.08))
-    diameter = float(np.linalg.norm([0.08] * 3))
-    t_g = np.array([0.0, 0.0, 0.6])
-    depth = renderer.render_depth(mesh, I3, t_g, K_VSD, 160, 120)
-    shift = 0.01  # 1 cm behind: within delta (15 mm), so the estimate stays "visible"
-    e = metrics.vsd(I3, t_g + [0, 0, shift], I3, t_g, depth, K_VSD, mesh, diameter=diameter,
-                    renderer=renderer)
+    model = box_model()
+    diameter = float(np.linalg.norm([80.0] * 3))
+    t_g = np.array([0.0, 0.0, 600.0])
+    depth = renderer.render_depth(model, I3, t_g, K_VSD, 160, 120).astype(np.float32)
+    shift = 10.0  # behind: within delta (15 mm), so the estimate stays "visible"
+    e = np.array(metrics.vsd(I3, t_g + [0, 0, shift], I3, t_g, depth, K_VSD, model, delta=15.0,
+                             diameter=diameter, renderer=renderer))
     taus = np.array(metrics.BOP19_VSD_TAUS)
     assert np.all(e[taus * diameter > shift * 1.02] < 0.2)
     assert np.all(e[taus * diameter < shift * 0.98] > 0.8)
@@ -270,14 +341,14 @@ def test_vsd_depth_offset_is_forgiven_only_by_tolerances_above_it(renderer):
 
 
 def test_vsd_tlinear_cost_and_bad_cost_type(renderer):
-    mesh = trimesh.creation.box(extents=(0.08, 0.08, 0.08))
-    t_g = np.array([0.0, 0.0, 0.6])
-    depth = renderer.render_depth(mesh, I3, t_g, K_VSD, 160, 120)
-    e = metrics.vsd(I3, t_g + [0, 0, 0.005], I3, t_g, depth, K_VSD, mesh, cost_type="tlinear",
-                    renderer=renderer)
+    model = box_model()
+    t_g = np.array([0.0, 0.0, 600.0])
+    depth = renderer.render_depth(model, I3, t_g, K_VSD, 160, 120).astype(np.float32)
+    kw = dict(delta=15.0, diameter=138.6, renderer=renderer)
+    e = metrics.vsd(I3, t_g + [0, 0, 5.0], I3, t_g, depth, K_VSD, model, cost_type="tlinear", **kw)
     assert 0 < e[-1] < e[0] < 1
     with pytest.raises(ValueError, match="cost type"):
-        metrics.vsd(I3, t_g, I3, t_g, depth, K_VSD, mesh, cost_type="nope", renderer=renderer)
+        metrics.vsd(I3, t_g, I3, t_g, depth, K_VSD, model, cost_type="nope", **kw)
 
 
 def test_sphere_projections_overlap():

@@ -1,15 +1,20 @@
-"""BOP19 average recall (localization task), as the BOP toolkit computes it.
-
-Targets from ``test_targets_bop19.json`` when the dataset has one, else every (image, object)
-with GT instances of visibility >= 0.1 (inst_count = their number; a missing visibility counts
-as visible); for each target only the ``inst_count`` top-scoring estimates are evaluated and
-the ``inst_count`` most visible GT instances are the valid ones; greedy matching. A pose is
-correct when its error is strictly below the threshold. AR_MSSD: thresholds 0.05 .. 0.5 of the
-diameter, the error is infinite when ``|t_e - t_g| >= diameter`` (the toolkit's short-cut);
-AR_MSPD: 5 .. 50 px scaled by 640 / image width; AR_VSD: delta 15 mm, tau 0.05 .. 0.5 of the
-diameter, thresholds 0.05 .. 0.5 (VSD is 1 when the projections of the bounding spheres do not
-overlap; needs test depth and meshes, skipped and reported so when a frame has no depth);
-AR = mean of the three. Recall = true positives / valid GT instances, over all targets.
+"""BOP19 average recall (localization task) as the BOP toolkit's ``eval_bop19_pose.py`` computes
+it, with its arithmetic (millimetres, the poses as stored in ``scene_gt.json`` and the CSV
+(``stored_pose``; ``1000 t`` for other inputs), every vertex of the model file (``BopModel``),
+``models_info`` diameter and symmetries): targets from ``test_targets_bop19.json`` when the
+dataset has one, else every (image, object) with GT instances of visibility >= 0.1 (inst_count
+= their number; a missing visibility counts as visible); estimates that are not of a target are
+ignored; for each target only the ``inst_count`` top-scoring estimates are evaluated and the
+``inst_count`` most visible GT instances are the valid ones; greedy matching
+(:func:`dope_hope.evaluation.matching.greedy_match`), redone per threshold. A pose is correct
+when its error is strictly below the threshold; thresholds ``np.arange(0.05, 0.51, 0.05)``
+exactly (0.15000000000000002, ...). AR_MSSD: MSSD / diameter, infinite unless ``|t_e - t_g| <
+diameter`` (the toolkit's short-cut); AR_MSPD: ``(640 / width) * MSPD`` against 5 .. 50 px,
+width 1920 for HOPE (the toolkit's dataset constant, not the image files); AR_VSD: delta 15 mm,
+taus as the thresholds, normalized by the diameter, depth rendered as the toolkit's renderer
+(:mod:`dope_hope.render.depth`; VSD is 1 when the projections of the bounding spheres do not
+overlap; needs test depth and a triangle mesh, skipped and reported so otherwise); AR = mean of
+the three. Recall = true positives / valid GT instances, over all targets.
 """
 from __future__ import annotations
 
@@ -20,20 +25,19 @@ from typing import Any
 
 import numpy as np
 
+from dope_hope.annotation import ObjectAnnotation
 from dope_hope.errors import InputFileError
 from dope_hope.evaluation import metrics
-from dope_hope.evaluation.datasets import VISIB_GT_MIN, Dataset
+from dope_hope.evaluation.datasets import VISIB_GT_MIN, Dataset, EvalFrame
 from dope_hope.evaluation.matching import greedy_match
-from dope_hope.evaluation.models import ObjectModel
+from dope_hope.evaluation.models import BopModel, ObjectModel
 from dope_hope.io.predictions import Prediction
 
-BOP19_MSSD_THRESHOLDS = tuple(round(0.05 * k, 2) for k in range(1, 11))   # x diameter
-
-
-BOP19_MSPD_THRESHOLDS = tuple(5.0 * k for k in range(1, 11))              # px at width 640
-
-
-BOP19_VSD_THRESHOLDS = tuple(round(0.05 * k, 2) for k in range(1, 11))
+# Thresholds exactly as the toolkit's eval_bop19_pose.py builds them (np.arange: the third is
+# 0.15000000000000002, so an error of exactly 0.15 is correct there).
+BOP19_MSSD_THRESHOLDS = tuple(float(x) for x in np.arange(0.05, 0.51, 0.05))  # x diameter
+BOP19_MSPD_THRESHOLDS = tuple(float(x) for x in np.arange(5, 51, 5))          # px at width 640
+BOP19_VSD_THRESHOLDS = BOP19_MSSD_THRESHOLDS
 
 
 # =========================================================================== BOP19
@@ -100,29 +104,64 @@ def bop_recalls(targets: list[BopTarget], error_type: str,
     if tp is None:
         shape = (len(thresholds),) if error_type != "vsd" else (len(metrics.BOP19_VSD_TAUS), len(thresholds))
         return np.zeros(shape)
-    rec = tp / total if total else np.zeros_like(tp)
+    rec = tp / float(total) if total else np.zeros_like(tp)
     return rec if error_type == "vsd" else rec[0]
 
 
-def bop_mssd_error(R_e, t_e, R_g, t_g, model: ObjectModel) -> float:
-    """MSSD / diameter with the BOP toolkit's short-cut: inf when ``|t_e - t_g| >= diameter``."""
-    if metrics.te(t_e, t_g) >= model.diameter:
+def bop_pose_mm(x: ObjectAnnotation | Prediction) -> tuple[np.ndarray, np.ndarray]:
+    """(R (3, 3), t (3,) mm) of a GT instance or an estimate as the BOP toolkit sees it: the
+    numbers of the BOP file when it came from one (``stored_pose``), else ``(R, 1000 t)`` (what
+    ``write_bop_csv`` writes)."""
+    if x.stored_pose is not None:
+        return x.stored_pose
+    return np.asarray(x.R, dtype=np.float64), 1000.0 * np.asarray(x.t, dtype=np.float64)
+
+
+def bop_mssd_error(R_e, t_e, R_g, t_g, model: BopModel) -> float:
+    """MSSD / diameter as the toolkit scores it (poses in mm): infinite unless
+    ``|t_e - t_g| < diameter`` (its short-cut), else ``mssd / float(diameter)``."""
+    center_dist = np.linalg.norm(np.asarray(t_e, np.float64).reshape(3)
+                                 - np.asarray(t_g, np.float64).reshape(3))
+    if not center_dist < model.diameter:
         return math.inf
-    return metrics.mssd(R_e, t_e, R_g, t_g, model.points, model.symmetries) / model.diameter
+    return metrics.mssd(R_e, t_e, R_g, t_g, model.points, model.symmetries) / float(model.diameter)
 
 
-def bop_mspd_error(R_e, t_e, R_g, t_g, K, width: int, model: ObjectModel) -> float:
-    """MSPD in pixels scaled to an image width of 640 (no short-cut, as in the toolkit)."""
-    return metrics.mspd(R_e, t_e, R_g, t_g, K, model.points, model.symmetries) * 640.0 / width
+def bop_mspd_error(R_e, t_e, R_g, t_g, K, width: int, model: BopModel) -> float:
+    """MSPD in pixels scaled to an image width of 640 as the toolkit scores it:
+    ``(640.0 / width) * mspd`` (poses in mm; no short-cut)."""
+    factor = 640.0 / width
+    return factor * metrics.mspd(R_e, t_e, R_g, t_g, K, model.points, model.symmetries)
 
 
-def bop_vsd_errors(R_e, t_e, R_g, t_g, depth, K, model: ObjectModel,
-                   renderer: metrics.DepthRenderer | None = None) -> np.ndarray:
-    """BOP19 VSD errors (one per tau); all 1 when the bounding-sphere projections are apart."""
-    if not metrics.sphere_projections_overlap(0.5 * model.diameter, t_e, t_g):
-        return np.ones(len(metrics.BOP19_VSD_TAUS))
-    return metrics.vsd(R_e, t_e, R_g, t_g, depth, K, model.mesh, diameter=model.diameter,
+def bop_vsd_errors(R_e, t_e, R_g, t_g, depth_mm, K, model: BopModel,
+                   renderer: Any = None) -> list[float]:
+    """BOP19 VSD errors (one per tau; poses and depth in mm, delta 15 mm): all 1.0 when the
+    projections of the bounding spheres (radius = diameter / 2) do not overlap."""
+    radius = 0.5 * model.diameter
+    if not metrics.sphere_projections_overlap(radius, t_e, t_g):
+        return [1.0] * len(metrics.BOP19_VSD_TAUS)
+    return metrics.vsd(R_e, t_e, R_g, t_g, depth_mm, K, (model.points, model.faces),
+                       delta=metrics.BOP19_VSD_DELTA_MM, diameter=model.diameter,
                        renderer=renderer)
+
+
+#: Image size (width, height) of the BOP datasets this package evaluates, as the toolkit's
+#: ``dataset_params`` gives it; MSPD is scaled by 640 / width.
+BOP_DATASET_IMAGE_SIZE = {"hope": (1920, 1080), "hopev2": (1920, 1080)}
+
+
+def _bop_depth_mm(frame: EvalFrame) -> np.ndarray:
+    """(H, W) float32 test depth in mm, as the toolkit loads it (``load_depth`` as float32,
+    times the scene's ``depth_scale`` in float32)."""
+    from dope_hope.io.images import read_depth_m, read_image_raw
+
+    img = read_image_raw(frame.depth_path)
+    if img.ndim == 3:
+        img = img[:, :, 0]
+    if np.issubdtype(img.dtype, np.integer):
+        return img.astype(np.float32) * np.float32(frame.depth_scale_m / 0.001)
+    return read_depth_m(frame.depth_path) * np.float32(1000.0)
 
 
 def bop_targets_from_gt(dataset: Dataset) -> tuple[dict[tuple[int, str], int], bool]:
@@ -147,11 +186,16 @@ def bop_targets_from_gt(dataset: Dataset) -> tuple[dict[tuple[int, str], int], b
 
 def bop19_average_recall(dataset: Dataset, preds_by_frame: list[list[Prediction]],
                          models: dict[str, ObjectModel], use_vsd: bool | None = None,
-                         progress: bool = False) -> dict[str, Any]:
-    """BOP19 AR_VSD, AR_MSSD, AR_MSPD and AR (see the module docstring).
+                         progress: bool = False, renderer: Any = None) -> dict[str, Any]:
+    """BOP19 AR_VSD, AR_MSSD, AR_MSPD and AR, as the BOP toolkit computes them.
+
+    Errors are computed in the toolkit's units and operations (mm, every model vertex, the
+    stored poses, thresholds ``np.arange``); see the module docstring.
 
     Args:
-        use_vsd: compute AR_VSD (None: when every frame with targets has depth and K).
+        use_vsd: compute AR_VSD (None: when every frame with targets has depth and K and
+            every model has triangles).
+        renderer: for VSD (default: the shared :class:`dope_hope.render.depth.DepthRenderer`).
 
     Returns:
         {"ar", "ar_vsd" (None when skipped), "ar_mssd", "ar_mspd", "recalls": {...},
@@ -175,22 +219,39 @@ def bop19_average_recall(dataset: Dataset, preds_by_frame: list[list[Prediction]
                      f"({len(targets)} image-object targets)")
         if missing:
             notes.append("some GT instances have no visibility: counted as visible")
+    n_est = sum(len(p) for p in preds_by_frame)
+    n_target_est = sum(1 for fi, ps in enumerate(preds_by_frame) for p in ps
+                       if (fi, p.class_name) in targets)
+    if n_est > n_target_est:
+        notes.append(f"{n_est - n_target_est} of {n_est} estimates are not of a target "
+                     f"(image, object): ignored, as the toolkit ignores them")
     frames_used = sorted({fi for fi, _ in targets})
+    classes_used = sorted({c for _, c in targets})
     if use_vsd is None:
         use_vsd = all(dataset.frames[fi].depth_path is not None and dataset.frames[fi].K is not None
                       for fi in frames_used)
         if not use_vsd:
             notes.append("AR_VSD skipped: not every test image has a depth image "
                          "(AR is the mean of AR_MSSD and AR_MSPD only)")
+        elif any(models[c].bop.faces is None for c in classes_used):
+            use_vsd = False
+            notes.append("AR_VSD skipped: a model is a point cloud (no triangles to render)")
+    image_size = BOP_DATASET_IMAGE_SIZE.get(dataset.name or "") if dataset.fmt == "bop" else None
+    if image_size is not None:
+        notes.append(f"MSPD image width: {image_size[0]} px ({dataset.name}, as the toolkit's "
+                     f"dataset_params)")
     for fi in frames_used:
         f = dataset.frames[fi]
-        if f.K is None or not f.width:
-            raise InputFileError(f.key, "BOP AR needs the camera intrinsics and the image width")
+        if f.K is None or not (image_size or f.width):
+            raise InputFileError(f.key, "BOP AR needs the camera intrinsics and the image width "
+                                        "(an image file, or a BOP dataset named hope / hopev2)")
+    inexact = sorted(c for c in classes_used if not models[c].bop.exact)
+    if inexact:
+        notes.append("not the toolkit's inputs (a BOP obj_XXXXXX.ply + models_info.json in mm) "
+                     "for: " + ", ".join(inexact))
     procedural = sorted(n for n, m in models.items() if m.procedural)
     if procedural:
         notes.append("procedural cuboid models (no mesh) for: " + ", ".join(procedural))
-    renderer = metrics.default_renderer() if use_vsd else None
-    from dope_hope.io.images import read_depth_m
 
     per_frame: dict[int, list[tuple[str, int]]] = {}
     for (fi, cls), count in sorted(targets.items()):
@@ -198,37 +259,41 @@ def bop19_average_recall(dataset: Dataset, preds_by_frame: list[list[Prediction]
     bop_targets: list[BopTarget] = []
     for fi in tqdm(frames_used, desc="BOP errors", unit="img", disable=not progress):
         f = dataset.frames[fi]
-        depth = read_depth_m(f.depth_path, f.depth_scale_m) if use_vsd else None
+        width = image_size[0] if image_size is not None else f.width
+        depth = _bop_depth_mm(f) if use_vsd else None
         for cls, count in per_frame[fi]:
-            model = models[cls]
-            gts = [o for o in f.objects if o.class_name == cls]
+            model = models[cls].bop
+            gts = [bop_pose_mm(o) for o in f.objects if o.class_name == cls]
             ests = [p for p in preds_by_frame[fi] if p.class_name == cls]
             scores = np.array([p.score for p in ests], dtype=np.float64)
             top = _top_estimates(scores, count)
-            ests = [ests[i] for i in top]
+            ests = [bop_pose_mm(ests[i]) for i in top]
             E, G = len(ests), len(gts)
             errs = {"mssd": np.empty((E, G)), "mspd": np.empty((E, G))}
             if use_vsd:
                 errs["vsd"] = np.empty((E, G, len(metrics.BOP19_VSD_TAUS)))
-            for i, p in enumerate(ests):
-                for j, g in enumerate(gts):
-                    errs["mssd"][i, j] = bop_mssd_error(p.R, p.t, g.R, g.t, model)
-                    errs["mspd"][i, j] = bop_mspd_error(p.R, p.t, g.R, g.t, f.K, f.width, model)
+            for i, (R_e, t_e) in enumerate(ests):
+                for j, (R_g, t_g) in enumerate(gts):
+                    errs["mssd"][i, j] = bop_mssd_error(R_e, t_e, R_g, t_g, model)
+                    errs["mspd"][i, j] = bop_mspd_error(R_e, t_e, R_g, t_g, f.K, width, model)
                     if use_vsd:
-                        errs["vsd"][i, j] = bop_vsd_errors(p.R, p.t, g.R, g.t, depth, f.K, model,
+                        errs["vsd"][i, j] = bop_vsd_errors(R_e, t_e, R_g, t_g, depth, f.K, model,
                                                            renderer)
-            vis = np.array([1.0 if o.visibility is None else o.visibility for o in gts])
+            vis = np.array([1.0 if o.visibility is None else o.visibility
+                            for o in f.objects if o.class_name == cls])
             bop_targets.append(BopTarget(count, scores[top], vis, errs))
     rec_mssd = bop_recalls(bop_targets, "mssd", BOP19_MSSD_THRESHOLDS)
     rec_mspd = bop_recalls(bop_targets, "mspd", BOP19_MSPD_THRESHOLDS)
-    out: dict[str, Any] = {"ar_mssd": float(rec_mssd.mean()), "ar_mspd": float(rec_mspd.mean()),
+    # AR = np.mean over the list of recalls, as eval_bop19_pose.py averages them
+    out: dict[str, Any] = {"ar_mssd": float(np.mean(list(rec_mssd))),
+                           "ar_mspd": float(np.mean(list(rec_mspd))),
                            "recalls": {"mssd": rec_mssd.tolist(), "mspd": rec_mspd.tolist()},
                            "targets": len(targets),
                            "gt_valid": int(sum(_valid_gt(t.visibility, t.inst_count).sum()
                                                for t in bop_targets))}
     if use_vsd:
         rec_vsd = bop_recalls(bop_targets, "vsd", BOP19_VSD_THRESHOLDS)
-        out["ar_vsd"] = float(rec_vsd.mean())
+        out["ar_vsd"] = float(np.mean(list(rec_vsd.ravel())))  # tau outer, threshold inner
         out["recalls"]["vsd"] = rec_vsd.tolist()
         out["ar"] = float(np.mean([out["ar_vsd"], out["ar_mssd"], out["ar_mspd"]]))
     else:

@@ -36,12 +36,14 @@ class EvalFrame(FrameAnnotation):
 
 @dataclass
 class Dataset:
-    """Frames plus optional BOP targets {(scene_id, im_id, obj_id): inst_count}."""
+    """Frames plus optional BOP targets {(scene_id, im_id, obj_id): inst_count}; ``name`` is
+    the BOP dataset name (the folder above the split, e.g. "hope") for BOP datasets."""
 
     root: Path
     fmt: str
     frames: list[EvalFrame]
     targets: dict[tuple[int, int, int], int] | None = None
+    name: str | None = None
 
 
 def _aliases(root: Path, *paths: Path | None) -> set[str]:
@@ -135,19 +137,26 @@ def _load_bop(root: Path) -> Dataset:
         if candidate.is_file():
             targets = {(s, i, o): n for s, i, o, n in bop_io.read_test_targets(candidate)}
             break
-    return Dataset(split_dir, "bop", frames, targets)
+    return Dataset(split_dir, "bop", frames, targets, name=split_dir.resolve().parent.name)
 
 
 # =========================================================================== predictions
 def assign_predictions(dataset: Dataset, preds: list[Prediction],
-                       source: str | os.PathLike = "predictions") -> list[list[Prediction]]:
+                       source: str | os.PathLike = "predictions"
+                       ) -> tuple[list[list[Prediction]], int]:
     """Group predictions by dataset frame (index-aligned with ``dataset.frames``).
 
     A prediction's ``image`` is matched against each frame's aliases (relative path, path
-    without suffix, file name, stem, absolute path); BOP rows by (scene_id, im_id).
+    without suffix, file name, stem, absolute path); BOP rows by (scene_id, im_id). A
+    prediction given only by BOP ids whose image is not in the dataset is ignored, as the BOP
+    toolkit ignores estimates of images that are not targets.
+
+    Returns:
+        (predictions per frame, number ignored).
 
     Raises:
-        InputFileError: an image that is not in the dataset, or a name shared by two frames.
+        InputFileError: a named image that is not in the dataset, or a name shared by two
+        frames.
     """
     alias_map: dict[str, int] = {}
     ambiguous: set[str] = set()
@@ -159,6 +168,7 @@ def assign_predictions(dataset: Dataset, preds: list[Prediction],
     by_id = {(f.scene_id, f.im_id): i for i, f in enumerate(dataset.frames)
              if f.scene_id is not None and f.im_id is not None}
     out: list[list[Prediction]] = [[] for _ in dataset.frames]
+    ignored = 0
     for p in preds:
         idx = None
         if p.image is not None:
@@ -175,9 +185,12 @@ def assign_predictions(dataset: Dataset, preds: list[Prediction],
                     break
         if idx is None and p.scene_id is not None and p.im_id is not None:
             idx = by_id.get((p.scene_id, p.im_id))
+            if idx is None and p.image is None:
+                ignored += 1
+                continue
         if idx is None:
             what = repr(p.image) if p.image is not None else f"scene {p.scene_id} image {p.im_id}"
             raise InputFileError(source, f"line {p.line}: image {what} is not in the dataset "
                                          f"{dataset.root} ({dataset.fmt} format)")
         out[idx].append(p)
-    return out
+    return out, ignored

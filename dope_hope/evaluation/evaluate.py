@@ -94,7 +94,11 @@ def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[
         name = (cfg.methods[k] if cfg.methods else None) or meta.get("method") or Path(path).stem
         if any(p.image is None for p in preds) and dataset.fmt != "bop":
             raise InputFileError(path, "BOP CSV predictions need a BOP dataset (--format bop)")
-        loaded.append((name, path, preds, assign_predictions(dataset, preds, path)))
+        by_frame, ignored = assign_predictions(dataset, preds, path)
+        if ignored:
+            log(f"{name}: {ignored} estimates of images that are not in {dataset.root} ignored "
+                f"(as the BOP toolkit ignores estimates that are not targets)")
+        loaded.append((name, path, preds, by_frame))
     names = [n for n, *_ in loaded]
     if len(set(names)) != len(names):
         raise ConfigError(f"two prediction files have the same method name ({', '.join(names)}); "

@@ -75,7 +75,7 @@ def greedy_match(errors: np.ndarray, scores: np.ndarray, threshold: float,
         return match
     taken = np.zeros(G, dtype=bool) if valid is None else ~np.asarray(valid, dtype=bool)
     for p in np.argsort(-np.asarray(scores, dtype=np.float64), kind="stable"):
-        e = np.where(taken, np.inf, errors[p])
+        e = np.where(taken | np.isnan(errors[p]), np.inf, errors[p])  # NaN never matches
         g = int(np.argmin(e))
         if e[g] < threshold:
             match[p] = g

@@ -4,10 +4,13 @@ Conventions: a pose is ``R`` (3, 3), ``t`` (3,) metres with ``x_c = R x + t``; m
 are (N, 3) metres in the model frame; symmetries are (S, 4, 4) model-frame rigid transforms
 (metres) with the identity first (:func:`dope_hope.catalog.category_symmetries` or
 :func:`symmetries_from_models_info`). All errors are in metres, except MSPD (pixels), re
-(degrees) and VSD (a fraction in [0, 1]).
+(degrees) and VSD (a fraction in [0, 1]). The BOP errors (``mssd``, ``mspd``, ``vsd``) work in
+whatever length unit they are given; BOP19 scoring gives them millimetres, as the toolkit.
 
 Names and definitions follow the BOP toolkit (``bop_toolkit_lib/pose_error.py``):
-``add``, ``adi`` (here :func:`adds`), ``mssd``, ``mspd``, ``vsd``, ``re``, ``te``. Two are
+``add``, ``adi`` (here :func:`adds`), ``mssd``, ``mspd``, ``vsd``, ``re``, ``te``; ``mssd``,
+``mspd``, ``vsd`` and the point transforms also repeat its operations, so that exact ties at
+thresholds decide as there. Two are
 from the HOPE paper (Tyree et al., IROS 2022):
 
 * **ADD-H** — mean distance between the model points in the two poses under the optimal
@@ -30,14 +33,11 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from dope_hope.render.depth import DepthRenderer, default_renderer
-
-#: BOP19 VSD misalignment tolerances, fractions of the object diameter (0.05 .. 0.5).
-BOP19_VSD_TAUS = tuple(round(0.05 * k, 2) for k in range(1, 11))
-
-
-#: BOP19 VSD visibility tolerance, metres (15 mm for HOPE and most BOP datasets).
-BOP19_VSD_DELTA = 0.015
+#: BOP19 VSD misalignment tolerances, fractions of the object diameter, exactly the toolkit's
+#: ``np.arange(0.05, 0.51, 0.05)`` (0.05, 0.1, 0.15000000000000002, ...).
+BOP19_VSD_TAUS = tuple(float(x) for x in np.arange(0.05, 0.51, 0.05))
+#: BOP19 VSD visibility tolerance, millimetres (15 for HOPE and most BOP datasets).
+BOP19_VSD_DELTA_MM = 15.0
 
 
 # Symmetry transforms are evaluated in chunks of this many points x symmetries, so that
@@ -60,9 +60,27 @@ def _points(pts: np.ndarray) -> np.ndarray:
 
 
 def transform_pts(pts: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """(N, 3) model points -> (N, 3) camera-frame points ``R p + t``."""
+    """(N, 3) model points -> (N, 3) camera-frame points ``R p + t``, with the BOP toolkit's
+    operations (``misc.transform_pts_Rt``: ``(R.dot(pts.T) + t).T``)."""
     R, t = _pose(R, t)
-    return _points(pts) @ R.T + t
+    return (R.dot(_points(pts).T) + t.reshape((3, 1))).T
+
+
+def project_pts(pts: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(N, 3) model points -> (N, 2) pixel coordinates, with the BOP toolkit's operations
+    (``misc.project_pts``: ``P = K [R | t]`` applied to homogeneous points)."""
+    R, t = _pose(R, t)
+    pts = _points(pts)
+    P = np.asarray(K, dtype=np.float64).reshape(3, 3).dot(np.hstack((R, t.reshape((3, 1)))))
+    pts_im = P.dot(np.hstack((pts, np.ones((pts.shape[0], 1)))).T)
+    pts_im /= pts_im[2, :]
+    return pts_im[:2, :].T
+
+
+def _sym_list(syms: np.ndarray | None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(S, 4, 4) transforms -> [(R (3, 3), t (3, 1))], contiguous, as the toolkit holds them."""
+    return [(np.ascontiguousarray(S[:3, :3]), np.ascontiguousarray(S[:3, 3]).reshape((3, 1)))
+            for S in _symmetries(syms)]
 
 
 def _symmetries(syms: np.ndarray | None) -> np.ndarray:
@@ -275,9 +293,13 @@ def _sym_model_points(pts: np.ndarray, S: np.ndarray) -> np.ndarray:
     return out
 
 
-def _sym_reduce(R_e, t_e, R_g, t_g, pts, syms, reduce: str) -> float:
-    """min over symmetries of the mean / max point distance, evaluated in the model frame
-    (distances are invariant to the GT pose: ``|R_g p' + t_g - e| = |p' - R_g^T (e - t_g)|``)."""
+def mean_ssd(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray,
+             pts: np.ndarray, syms: np.ndarray | None) -> float:
+    """MeanSSD (HOPE paper): min over symmetries of the mean point distance, metres.
+
+    Evaluated in the GT model frame, symmetries in chunks (distances are invariant to the GT
+    pose: ``|R_g p' + t_g - e| = |p' - R_g^T (e - t_g)|``).
+    """
     R_e, t_e = _pose(R_e, t_e)
     R_g, t_g = _pose(R_g, t_g)
     pts = _points(pts)
@@ -287,57 +309,60 @@ def _sym_reduce(R_e, t_e, R_g, t_g, pts, syms, reduce: str) -> float:
     for S in _sym_chunks(syms, len(pts)):
         diff = _sym_model_points(pts, S)
         diff -= q[None]
-        d = np.sqrt(np.einsum("sni,sni->sn", diff, diff))
-        per_sym = d.mean(axis=1) if reduce == "mean" else d.max(axis=1)
-        best = min(best, float(per_sym.min()))
+        best = min(best, float(np.sqrt(np.einsum("sni,sni->sn", diff, diff)).mean(axis=1).min()))
     return best
-
-
-def mean_ssd(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray,
-             pts: np.ndarray, syms: np.ndarray | None) -> float:
-    """MeanSSD (HOPE paper): min over symmetries of the mean point distance, metres."""
-    return _sym_reduce(R_e, t_e, R_g, t_g, pts, syms, "mean")
 
 
 def mssd(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray,
          pts: np.ndarray, syms: np.ndarray | None) -> float:
-    """MSSD (BOP19): min over symmetries of the max point distance, metres."""
-    return _sym_reduce(R_e, t_e, R_g, t_g, pts, syms, "max")
+    """MSSD (BOP19): min over symmetries of the max point distance, in the unit of ``pts``
+    and ``t``, with the BOP toolkit's operations (``pose_error.mssd``), so that its exact
+    ties at thresholds decide as there."""
+    R_e, t_e = _pose(R_e, t_e)
+    R_g, t_g = _pose(R_g, t_g)
+    pts = _points(pts)
+    t_g = t_g.reshape((3, 1))
+    pts_est = transform_pts(pts, R_e, t_e)
+    es = []
+    for R_s, t_s in _sym_list(syms):
+        pts_gt_sym = transform_pts(pts, R_g.dot(R_s), R_g.dot(t_s) + t_g)
+        es.append(np.linalg.norm(pts_est - pts_gt_sym, axis=1).max())
+    return float(min(es))
 
 
 def mspd(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray, K: np.ndarray,
          pts: np.ndarray, syms: np.ndarray | None) -> float:
-    """MSPD (BOP19): min over symmetries of the max 2D distance of projections, pixels."""
-    R_e, t_e = _pose(R_e, t_e)
+    """MSPD (BOP19): min over symmetries of the max 2D distance of projections, pixels, with
+    the BOP toolkit's operations (``pose_error.mspd``)."""
     R_g, t_g = _pose(R_g, t_g)
-    pts = _points(pts)
-    syms = _symmetries(syms)
-    K = np.asarray(K, dtype=np.float64).reshape(3, 3)
-    e = pts @ R_e.T + t_e
-    e2 = (e @ K.T)
-    e2 = e2[:, :2] / e2[:, 2:3]
-    best = math.inf
-    for S in _sym_chunks(syms, len(pts)):
-        g = _sym_model_points(pts, S) @ R_g.T + t_g  # (s, N, 3) camera frame
-        g2 = g @ K.T
-        diff = g2[..., :2] / g2[..., 2:3] - e2[None]
-        best = min(best, float(np.sqrt(np.einsum("sni,sni->sn", diff, diff)).max(axis=1).min()))
-    return best
+    t_g = t_g.reshape((3, 1))
+    proj_est = project_pts(pts, K, R_e, t_e)
+    es = []
+    for R_s, t_s in _sym_list(syms):
+        proj_gt_sym = project_pts(pts, K, R_g.dot(R_s), R_g.dot(t_s) + t_g)
+        es.append(np.linalg.norm(proj_est - proj_gt_sym, axis=1).max())
+    return float(min(es))
 
 
 # --------------------------------------------------------------------------- symmetries
-def symmetries_from_models_info(info: dict[str, Any], max_sym_disc_step: float = 0.01) -> np.ndarray:
-    """Symmetry transforms of one BOP ``models_info.json`` entry, as the BOP toolkit builds them.
+def symmetries_from_models_info(info: dict[str, Any], max_sym_disc_step: float = 0.01,
+                                unit: float = 0.001) -> np.ndarray:
+    """Symmetry transforms of one BOP ``models_info.json`` entry, as the BOP toolkit builds them
+    (``misc.get_symmetry_transformations``, same operations).
 
-    ``symmetries_discrete``: 4x4 row-major lists, translation in millimetres.
-    ``symmetries_continuous``: ``{"axis": [x, y, z], "offset": [x, y, z] mm}``, discretized
-    into ``ceil(pi / max_sym_disc_step)`` rotations about the axis through ``offset`` (so the
-    point farthest from the axis moves at most ``max_sym_disc_step`` x diameter per step);
-    each discrete symmetry (identity included) is combined with each of these rotations:
-    ``R = R_c R_d``, ``t = R_c t_d + t_c``.
+    ``symmetries_discrete``: 4x4 row-major lists (R used as stored), translation in the file's
+    millimetres. ``symmetries_continuous``: ``{"axis": [x, y, z], "offset": [x, y, z] mm}``,
+    discretized into ``ceil(pi / max_sym_disc_step)`` rotations about the axis through
+    ``offset`` (so the point farthest from the axis moves at most ``max_sym_disc_step`` x
+    diameter per step); each discrete symmetry (identity included) is combined with each of
+    these rotations (:func:`dope_hope.io.bop.compose_symmetries`).
+
+    Args:
+        unit: output units per file unit: 0.001 -> metres (default), 1.0 -> the file's
+            millimetres exactly (BOP19 scoring).
 
     Returns:
-        (S, 4, 4) float, metres, identity first.
+        (S, 4, 4) float, identity first.
     """
     from dope_hope.io.bop import compose_symmetries
 
@@ -347,85 +372,127 @@ def symmetries_from_models_info(info: dict[str, Any], max_sym_disc_step: float =
         if M.size != 16:
             raise ValueError(f"symmetries_discrete[{k}]: expected 16 numbers, got {M.size}")
         M = M.reshape(4, 4).copy()
-        M[:3, 3] *= 0.001
         M[3] = (0.0, 0.0, 0.0, 1.0)
         discrete.append(M)
     continuous = []
     for k, sym in enumerate(info.get("symmetries_continuous") or []):
         axis = np.asarray(sym["axis"], dtype=np.float64).reshape(3)
-        norm = np.linalg.norm(axis)
-        if norm == 0:
+        if not np.any(axis):
             raise ValueError(f"symmetries_continuous[{k}]: zero axis")
-        offset = 0.001 * np.asarray(sym.get("offset", (0, 0, 0)), dtype=np.float64).reshape(3)
-        continuous.append((axis / norm, offset))
+        continuous.append((axis, np.asarray(sym.get("offset", (0, 0, 0)), dtype=np.float64).reshape(3)))
     steps = int(np.ceil(np.pi / max_sym_disc_step)) if continuous else 0
-    return compose_symmetries(discrete, continuous, steps)
+    out = compose_symmetries(discrete, continuous, steps)
+    if unit != 1.0:
+        out[:, :3, 3] *= unit
+    return out
+
+
+def depth_to_distance(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(H, W) depth (z) -> (H, W) float64 distance from the camera centre, same unit, 0 stays 0.
+
+    The BOP toolkit's ``misc.depth_im_to_dist_im_fast`` operations (pixel ``(x, y)`` at the
+    integer coordinates of ``K``).
+    """
+    K = np.asarray(K, dtype=np.float64).reshape(3, 3)
+    pre_x, pre_y = _pixel_rays(K, depth.shape)
+    return np.sqrt(np.multiply(pre_x, depth) ** 2 + np.multiply(pre_y, depth) ** 2
+                   + depth.astype(np.float64) ** 2)
+
+
+_RAYS: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _pixel_rays(K: np.ndarray, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """``((x - cx) / fx, (y - cy) / fy)`` over the pixel grid (cached per K and shape)."""
+    key = (K.tobytes(), tuple(shape))
+    rays = _RAYS.get(key)
+    if rays is None:
+        if len(_RAYS) > 8:
+            _RAYS.clear()
+        xs, ys = np.meshgrid(np.arange(shape[1]), np.arange(shape[0]))
+        rays = _RAYS[key] = ((xs - K[0, 2]) / np.float64(K[0, 0]), (ys - K[1, 2]) / np.float64(K[1, 1]))
+    return rays
+
+
+def _visible(d_test: np.ndarray, d_model: np.ndarray, delta: float) -> np.ndarray:
+    """The toolkit's "bop19" visibility: model surface not behind the test surface by more
+    than ``delta``, or no test depth (difference taken in float32, as there)."""
+    d_diff = d_model.astype(np.float32) - d_test.astype(np.float32)
+    return np.logical_and(np.logical_or(d_diff <= delta, d_test == 0), d_model > 0)
 
 
 def vsd(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray,
-        depth_test: np.ndarray, K: np.ndarray, mesh, delta: float = BOP19_VSD_DELTA,
-        taus: Sequence[float] = BOP19_VSD_TAUS, cost_type: str = "step",
-        diameter: float | None = None, renderer: DepthRenderer | None = None) -> np.ndarray:
-    """Visible Surface Discrepancy (Hodan et al.), BOP19 settings by default.
+        depth_test: np.ndarray, K: np.ndarray, model: tuple[np.ndarray, np.ndarray],
+        delta: float, diameter: float, taus: Sequence[float] = BOP19_VSD_TAUS,
+        cost_type: str = "step", renderer: Any = None) -> list[float]:
+    """Visible Surface Discrepancy (Hodan et al.) with the BOP toolkit's operations
+    (``pose_error.vsd``, visibility mode "bop19", normalized by the diameter).
 
-    Depth of the mesh is rendered in both poses; visibility masks are estimated against the
-    test depth as in the BOP toolkit ("bop19" mode: pixels without test depth count as
-    visible); distances are compared as distance-from-camera images.
+    All lengths in one unit (BOP: millimetres): ``t_e``, ``t_g``, ``depth_test``, the model,
+    ``delta`` and ``diameter``. The model is rendered in both poses
+    (:class:`dope_hope.render.depth.DepthRenderer`, as the toolkit renders it), depths
+    become distance images (:func:`depth_to_distance`), visibility masks are estimated against the
+    test depth (pixels without test depth count as visible; the estimate's mask includes its
+    pixels where the GT is visible).
 
     Args:
-        depth_test: (H, W) test depth, metres, 0 = no measurement.
+        depth_test: (H, W) test depth, 0 = no measurement (the toolkit: float32).
         K: (3, 3) intrinsics of the test image.
-        mesh: ``trimesh.Trimesh`` in metres (rendered; cached by the renderer).
-        delta: visibility tolerance, metres (BOP19: 15 mm).
-        taus: misalignment tolerances as fractions of ``diameter`` (BOP19: 0.05 .. 0.5).
+        model: (vertices (N, 3), faces (M, 3)) as in the model file.
+        delta: visibility tolerance (BOP19: 15 mm).
+        diameter: object diameter (the pixel distances are divided by it).
+        taus: misalignment tolerances, fractions of the diameter (BOP19: 0.05 .. 0.5).
         cost_type: "step" (BOP19) or "tlinear" (the ECCVW'16 definition).
-        diameter: object diameter, metres (default: the mesh's vertex diameter).
-        renderer: a :class:`DepthRenderer` (default: a shared one).
+        renderer: an object with ``render_depth(model, R, t, K, width, height)`` (default: a
+            shared :class:`~dope_hope.render.depth.DepthRenderer`).
 
     Returns:
-        (len(taus),) VSD errors in [0, 1].
+        One VSD error in [0, 1] per tau.
     """
     if cost_type not in ("step", "tlinear"):
         raise ValueError(f"unknown VSD cost type {cost_type!r}; use 'step' or 'tlinear'")
-    depth_test = np.nan_to_num(np.asarray(depth_test, dtype=np.float64), nan=0.0)
     if depth_test.ndim != 2:
         raise ValueError(f"depth_test must be (H, W), got shape {depth_test.shape}")
-    renderer = renderer or default_renderer()
-    if diameter is None:
-        from dope_hope.io.meshes import mesh_diameter
+    if renderer is None:
+        from dope_hope.render.depth import default_renderer
 
-        diameter = mesh_diameter(mesh)
+        renderer = default_renderer()
     h, w = depth_test.shape
-    factor = renderer.distance_factor(K, (h, w))
-    dist_test = depth_test * factor
-    dist_gt = renderer.render_depth(mesh, R_g, t_g, K, w, h) * factor
-    dist_est = renderer.render_depth(mesh, R_e, t_e, K, w, h) * factor
-    visib_gt = (dist_gt > 0) & ((dist_gt - dist_test <= delta) | (dist_test == 0))
-    visib_est = (dist_est > 0) & ((dist_est - dist_test <= delta) | (dist_test == 0))
-    visib_est |= visib_gt & (dist_est > 0)
-    inter = visib_gt & visib_est
-    union_count = int(np.count_nonzero(visib_gt | visib_est))
-    taus_arr = np.asarray(taus, dtype=np.float64)
-    if union_count == 0:
-        return np.ones(len(taus_arr))
-    comp_count = union_count - int(np.count_nonzero(inter))
-    dists = np.abs(dist_gt[inter] - dist_est[inter]) / diameter
-    if cost_type == "step":
-        costs = (dists[None, :] >= taus_arr[:, None]).sum(axis=1)
-    else:
-        costs = np.minimum(dists[None, :] / taus_arr[:, None], 1.0).sum(axis=1)
-    return (costs + comp_count) / float(union_count)
+    depth_est = renderer.render_depth(model, R_e, t_e, K, w, h)
+    depth_gt = renderer.render_depth(model, R_g, t_g, K, w, h)
+    dist_test = depth_to_distance(depth_test, K)
+    dist_gt = depth_to_distance(depth_gt, K)
+    dist_est = depth_to_distance(depth_est, K)
+    visib_gt = _visible(dist_test, dist_gt, delta)
+    visib_est = np.logical_or(_visible(dist_test, dist_est, delta),
+                              np.logical_and(visib_gt, dist_est > 0))
+    visib_inter = np.logical_and(visib_gt, visib_est)
+    visib_union_count = np.logical_or(visib_gt, visib_est).sum()
+    visib_comp_count = visib_union_count - visib_inter.sum()
+    dists = np.abs(dist_gt[visib_inter] - dist_est[visib_inter])
+    dists /= diameter
+    if visib_union_count == 0:
+        return [1.0] * len(taus)
+    errors = []
+    for tau in taus:
+        if cost_type == "step":
+            costs = dists >= tau
+        else:
+            costs = dists / tau
+            costs[costs > 1.0] = 1.0
+        errors.append(float((np.sum(costs) + visib_comp_count) / float(visib_union_count)))
+    return errors
 
 
 def sphere_projections_overlap(radius: float, t_a: np.ndarray, t_b: np.ndarray) -> bool:
     """Whether the image projections of two spheres of ``radius`` at ``t_a``, ``t_b`` overlap.
 
-    The BOP toolkit's approximate test (``misc.overlapping_sphere_projections``), used to
-    skip rendering for VSD when the poses are far apart.
+    The BOP toolkit's approximate test (``misc.overlapping_sphere_projections``, same
+    operations), used to skip rendering for VSD when the poses are far apart.
     """
-    t_a = np.asarray(t_a, dtype=np.float64).reshape(3)
-    t_b = np.asarray(t_b, dtype=np.float64).reshape(3)
-    if t_a[2] == 0 or t_b[2] == 0:
+    p1 = np.asarray(t_a, dtype=np.float64).reshape(3)
+    p2 = np.asarray(t_b, dtype=np.float64).reshape(3)
+    if p1[2] == 0 or p2[2] == 0:
         return False
-    proj_dist = np.linalg.norm(t_a[:2] / t_a[2] - t_b[:2] / t_b[2])
-    return bool(proj_dist < radius * (1.0 / t_a[2] + 1.0 / t_b[2]))
+    proj_dist = np.linalg.norm((p1 / p1[2])[:2] - (p2 / p2[2])[:2])
+    return bool(proj_dist < radius * (1.0 / p1[2] + 1.0 / p2[2]))

@@ -2,7 +2,8 @@
 
 :func:`load_models` builds one :class:`ObjectModel` per class from a mesh (``--mesh``, a BOP
 models folder) or, without one, from the catalog's cuboid; symmetries come from
-``models_info.json`` (BOP) or the catalog category.
+``models_info.json`` (BOP) or the catalog category. Each also carries a :class:`BopModel`:
+the model as BOP19 scoring uses it (every vertex of the file, millimetres).
 """
 from __future__ import annotations
 
@@ -26,6 +27,27 @@ BOP19_MAX_SYM_DISC_STEP = 0.01
 
 # =========================================================================== object models
 @dataclass
+class BopModel:
+    """What BOP19 scoring needs of an object, in millimetres as the BOP toolkit uses them.
+
+    Attributes:
+        points: (N, 3) every vertex of the model file (a BOP ``obj_XXXXXX.ply`` as stored;
+            other meshes: their vertices x 1000), mm.
+        faces: (M, 3) vertex indices of the triangles (VSD rendering), None for a point cloud.
+        diameter: ``models_info.json``'s diameter as stored, else 1000 x the vertex diameter, mm.
+        symmetries: (S, 4, 4) model-frame transforms, mm, identity first.
+        exact: True when points, diameter and symmetries are the toolkit's own inputs (a BOP
+            PLY with its ``models_info.json`` entry).
+    """
+
+    points: np.ndarray
+    faces: np.ndarray | None
+    diameter: float
+    symmetries: np.ndarray
+    exact: bool = False
+
+
+@dataclass
 class ObjectModel:
     """What the metrics need of one object.
 
@@ -34,9 +56,10 @@ class ObjectModel:
         points: (N, 3) model points, metres.
         diameter: metres.
         symmetries: (S, 4, 4) model-frame symmetry transforms, metres, identity first.
-        mesh: trimesh in metres (for VSD), or None.
+        mesh: trimesh in metres (a ``trimesh.PointCloud`` for a PLY without faces).
         source: where points / mesh come from, for the report.
         procedural: True when the points are sampled on the catalog cuboid (no mesh given).
+        bop: the model for BOP19 scoring (all vertices, millimetres).
     """
 
     name: str
@@ -48,6 +71,7 @@ class ObjectModel:
     mesh: Any = None
     source: str = ""
     procedural: bool = False
+    bop: BopModel | None = None
 
 
 def _centred_symmetries(syms: np.ndarray, center: np.ndarray) -> np.ndarray:
@@ -99,6 +123,8 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
     **procedural** stand-in: points on the surface of the catalog cuboid (reported as such).
     Symmetries: BOP ``models_info`` when used (discretized as the toolkit does), else the
     catalog category's (cylinders in ``cyl_step_deg`` steps) about the mesh's box centre.
+    The tables use ``n_points`` surface samples; BOP19 scoring (``ObjectModel.bop``) every
+    vertex of the file, as the toolkit (a PLY is read as stored: :func:`io.meshes.read_ply`).
 
     Raises:
         InputFileError / UnknownObjectError: unreadable mesh; a class neither in the catalog
@@ -107,12 +133,8 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
     import trimesh
 
     from dope_hope.catalog import category_symmetries
-    from dope_hope.io.meshes import (
-        load_mesh,
-        mesh_cuboid,
-        mesh_diameter,
-        sample_surface_points,
-    )
+    from dope_hope.io.meshes import (UNIT_SCALE, load_mesh, mesh_cuboid, mesh_diameter, read_ply,
+                                     sample_surface_points)
 
     meshes = parse_mesh_args(mesh_args)
     if None in meshes:
@@ -138,22 +160,30 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
         obj = _catalog_entry(name)
         category = obj.category if obj else "other"
         obj_id = obj.obj_id if obj else None
-        mesh, source, info = None, "", None
+        mesh, source, info, path, ply, in_dir = None, "", None, None, None, False
         if name in meshes:
-            mesh = load_mesh(meshes[name], units=mesh_units)
-            source = f"mesh {meshes[name]}"
+            path = meshes[name]
         elif mdir is not None:
             candidates = []
             if obj_id is not None:
                 candidates.append(mdir / f"obj_{obj_id:06d}.ply")
             candidates += [mdir / name / "textured.obj", mdir / f"{name}.obj", mdir / f"{name}.ply"]
             path = next((c for c in candidates if c.is_file()), None)
-            if path is not None:
-                mesh = load_mesh(path, units=mesh_units)
-                source = f"mesh {path}"
-                if path.suffix.lower() == ".ply" and obj_id in models_info:
+            in_dir = path is not None
+        if path is not None:
+            path = Path(path)
+            source = f"mesh {path}"
+            if path.suffix.lower() == ".ply":
+                ply = read_ply(path)  # as stored (BOP19 scoring); faces may be absent
+                if in_dir and obj_id in models_info:
                     info = models_info[obj_id]
                     source += " + models_info.json"
+            if ply is not None and ply[1] is None:
+                scale = UNIT_SCALE[mesh_units or "mm"]
+                mesh = trimesh.PointCloud(ply[0] * scale)
+                source += " (point cloud: no VSD)"
+            else:
+                mesh = load_mesh(path, units=mesh_units)
         if mesh is None:
             if obj is None:
                 raise UnknownObjectError(f"class {name!r} is not a HOPE object and no mesh was "
@@ -168,7 +198,21 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
             syms = (category_symmetries(category, step_deg=cyl_step_deg) if obj else np.eye(4)[None])
             syms = _centred_symmetries(syms, mesh_cuboid(mesh)[1])
             diameter = mesh_diameter(mesh)
+        if ply is not None:  # the file's vertices as stored; to mm unless in mm (BOP)
+            to_mm = UNIT_SCALE[mesh_units or "mm"] / UNIT_SCALE["mm"]
+            verts, faces = (ply[0] if to_mm == 1.0 else ply[0] * to_mm), ply[1]
+        else:
+            verts, faces = 1000.0 * np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces)
+        exact = info is not None and "diameter" in info and (mesh_units or "mm") == "mm"
+        if exact:
+            bop = BopModel(verts, faces, info["diameter"],
+                           metrics.symmetries_from_models_info(info, BOP19_MAX_SYM_DISC_STEP, unit=1.0),
+                           exact=True)
+        else:
+            syms_mm = syms.copy()
+            syms_mm[:, :3, 3] *= 1000.0
+            bop = BopModel(verts, faces, 1000.0 * diameter, syms_mm)
         out[name] = ObjectModel(name=name, obj_id=obj_id, category=category, points=points,
                                 diameter=diameter, symmetries=syms, mesh=mesh, source=source,
-                                procedural=source.startswith("procedural"))
+                                procedural=source.startswith("procedural"), bop=bop)
     return out

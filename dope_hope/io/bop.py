@@ -5,6 +5,7 @@ Readers for the scene-wise BOP files, everything converted to metres at this bou
 
 - ``scene_camera.json``  -> :func:`read_scene_camera`  {im_id: (K (3, 3), depth_scale_m)}
 - ``scene_gt.json``      -> :func:`read_scene_gt`      {im_id: [(obj_id, R (3, 3), t (3,) m)]}
+  (:func:`read_scene_gt_stored`: the numbers as stored, millimetres, for BOP19 scoring)
 - ``scene_gt_info.json`` -> :func:`read_scene_gt_info` {im_id: [GtInfo]}
 - ``models_info.json`` / per-model ``model_info.json`` -> :func:`read_models_info`
 - ``test_targets_bop19.json`` -> :func:`read_test_targets`
@@ -48,12 +49,12 @@ def _keyed_by_int(f: JsonFields, data: dict, what: str) -> list[tuple[int, Any]]
     return sorted(out, key=lambda kv: kv[0])
 
 
-def _rotation(f: JsonFields, value: Any, field: str) -> np.ndarray:
+def _stored_rotation(f: JsonFields, value: Any, field: str) -> np.ndarray:
+    """(3, 3) as stored, checked to be within ``_ROTATION_TOLERANCE`` of a rotation."""
     M = f.array(value, field, (9,)).reshape(3, 3)
-    R = nearest_rotation(M)
-    if np.linalg.norm(R - M) > _ROTATION_TOLERANCE:
+    if np.linalg.norm(nearest_rotation(M) - M) > _ROTATION_TOLERANCE:
         raise f.fail(field, "not a rotation matrix")
-    return R
+    return M
 
 
 def _int(f: JsonFields, value: Any, field: str) -> int:
@@ -96,15 +97,24 @@ def read_scene_camera(path: str | os.PathLike) -> dict[int, tuple[np.ndarray, fl
     return out
 
 
-def read_scene_gt(path: str | os.PathLike) -> dict[int, list[tuple[int, np.ndarray, np.ndarray]]]:
-    """``scene_gt.json`` -> {im_id: [(obj_id, R (3, 3), t (3,) metres)]}, list order kept
-    (the index is the ``gt_id`` of the mask files)."""
+def read_scene_gt_stored(path: str | os.PathLike) -> dict[int, list[tuple[int, np.ndarray, np.ndarray]]]:
+    """``scene_gt.json`` as stored -> {im_id: [(obj_id, R (3, 3), t (3,) millimetres)]}, list
+    order kept (the index is the ``gt_id`` of the mask files). R is checked to be a rotation
+    (within ``_ROTATION_TOLERANCE``) but not re-orthonormalized: the BOP toolkit scores the
+    stored numbers."""
     def parse(f: JsonFields, gt: Any, where: str) -> tuple[int, np.ndarray, np.ndarray]:
-        R = _rotation(f, f.get(gt, "cam_R_m2c", where), f"{where}.cam_R_m2c")
-        t = f.array(f.get(gt, "cam_t_m2c", where), f"{where}.cam_t_m2c", (3,)) * MM
+        R = _stored_rotation(f, f.get(gt, "cam_R_m2c", where), f"{where}.cam_R_m2c")
+        t = f.array(f.get(gt, "cam_t_m2c", where), f"{where}.cam_t_m2c", (3,))
         return _int(f, f.get(gt, "obj_id", where), f"{where}.obj_id"), R, t
 
     return _per_image_lists(path, "scene_gt file", parse)
+
+
+def read_scene_gt(path: str | os.PathLike) -> dict[int, list[tuple[int, np.ndarray, np.ndarray]]]:
+    """``scene_gt.json`` -> {im_id: [(obj_id, R (3, 3) nearest rotation, t (3,) metres)]}, list
+    order kept (see :func:`read_scene_gt_stored`)."""
+    return {im_id: [(obj_id, nearest_rotation(R), t * MM) for obj_id, R, t in gts]
+            for im_id, gts in read_scene_gt_stored(path).items()}
 
 
 @dataclass(frozen=True)
@@ -273,8 +283,9 @@ def iter_bop_split(split_dir: str | os.PathLike, scene_ids: list[int] | None = N
     """Every image of a BOP split as a FrameAnnotation (metres), scene by scene.
 
     Objects come from ``scene_gt.json`` (none when the split has no ground truth), with
-    visibility and ``bbox_xyxy`` (visible part) from ``scene_gt_info.json`` when present and
-    ``instance_id`` = the gt index (the ``NNNNNN_<gt_id>.png`` mask numbering). Class names
+    visibility and ``bbox_xyxy`` (visible part) from ``scene_gt_info.json`` when present,
+    ``instance_id`` = the gt index (the ``NNNNNN_<gt_id>.png`` mask numbering) and
+    ``stored_pose`` = (R, t mm) as stored. Class names
     come from ``class_name(obj_id)`` (default: the HOPE catalog, obj_id 1..28).
 
     Args:
@@ -287,17 +298,18 @@ def iter_bop_split(split_dir: str | os.PathLike, scene_ids: list[int] | None = N
         scene = split_dir / f"{scene_id:06d}"
         cams = read_scene_camera(scene / "scene_camera.json")
         gt_path, info_path = scene / "scene_gt.json", scene / "scene_gt_info.json"
-        gts = read_scene_gt(gt_path) if gt_path.is_file() else {}
+        gts = read_scene_gt_stored(gt_path) if gt_path.is_file() else {}
         infos = read_scene_gt_info(info_path) if info_path.is_file() else {}
         for im_id, (K, depth_scale_m) in cams.items():
             objects = []
             im_infos = infos.get(im_id, [])
-            for gt_id, (obj_id, R, t) in enumerate(gts.get(im_id, [])):
+            for gt_id, (obj_id, R, t_mm) in enumerate(gts.get(im_id, [])):
                 info = im_infos[gt_id] if gt_id < len(im_infos) else None
                 objects.append(ObjectAnnotation(
-                    class_name=class_name(obj_id), R=R, t=t, instance_id=gt_id,
-                    visibility=None if info is None else info.visib_fract,
-                    bbox_xyxy=None if info is None else info.bbox_visib_xyxy))
+                    class_name=class_name(obj_id), R=nearest_rotation(R), t=t_mm * MM,
+                    instance_id=gt_id, visibility=None if info is None else info.visib_fract,
+                    bbox_xyxy=None if info is None else info.bbox_visib_xyxy,
+                    stored_pose=(R, t_mm)))
             image = _image_file(scene / image_folder, im_id)
             width, height = image_size(image) if image is not None else (None, None)
             frame = FrameAnnotation(
@@ -307,17 +319,30 @@ def iter_bop_split(split_dir: str | os.PathLike, scene_ids: list[int] | None = N
             yield BopFrame(scene_id, im_id, frame)
 
 
+def _axis_rotation(angle: float, axis: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation by ``angle`` (rad) about ``axis`` (normalized here), with the
+    operations of the BOP toolkit's ``transform.rotation_matrix`` (Gohlke's transformations)."""
+    sina, cosa = math.sin(angle), math.cos(angle)
+    d = np.array(axis[:3], dtype=np.float64, copy=True)
+    d /= math.sqrt(np.dot(d, d))
+    R = np.diag([cosa, cosa, cosa])
+    R += np.outer(d, d) * (1.0 - cosa)
+    d *= sina
+    R += np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
+    return R
+
+
 def compose_symmetries(discrete: Sequence[np.ndarray],
                        continuous: Sequence[tuple[np.ndarray, np.ndarray]], steps: int) -> np.ndarray:
     """Discrete symmetries combined with discretized continuous ones, as the BOP toolkit's
-    ``get_symmetry_transformations`` builds them.
+    ``get_symmetry_transformations`` builds them (same operations, so the same numbers).
 
     Args:
-        discrete: (4, 4) model-frame transforms, metres, the identity NOT included (it is
-            put first here).
-        continuous: (unit axis (3,), offset (3,) metres) rotational symmetries; each is
-            sampled at ``k * 360° / steps``, k = 0 .. steps - 1 (so the identity is kept),
-            about the axis through ``offset``.
+        discrete: (4, 4) model-frame transforms, the identity NOT included (it is put first
+            here); used as given.
+        continuous: (axis (3,), offset (3,)) rotational symmetries, lengths in the unit of the
+            discrete translations; each is sampled at ``k * 2 pi / steps``, k = 0 .. steps - 1
+            (so the identity is kept), about the axis through ``offset``.
         steps: rotations per continuous symmetry.
 
     Returns:
@@ -325,22 +350,25 @@ def compose_symmetries(discrete: Sequence[np.ndarray],
         with each continuous rotation, ``R = R_c R_d``, ``t = R_c t_d + t_c``; just the
         discrete ones when no continuous rotation is sampled.
     """
-    from scipy.spatial.transform import Rotation
-
-    discrete = [np.eye(4)] + list(discrete)
+    discrete = [np.eye(4)] + [np.asarray(D, dtype=np.float64) for D in discrete]
     rotations = []
     for axis, offset in continuous:
-        angles = np.arange(steps) * (2.0 * np.pi / steps)
-        offset = np.asarray(offset, dtype=np.float64).reshape(3)
-        unit = np.asarray(axis, dtype=np.float64).reshape(3)
-        for R in Rotation.from_rotvec(angles[:, None] * unit[None]).as_matrix():
-            T = np.eye(4)
-            T[:3, :3] = R
-            T[:3, 3] = offset - R @ offset
-            rotations.append(T)
+        step = 2.0 * np.pi / steps
+        offset = np.asarray(offset, dtype=np.float64).reshape((3, 1))
+        for i in range(steps):
+            R = _axis_rotation(i * step, np.asarray(axis, dtype=np.float64))
+            rotations.append((R, -R.dot(offset) + offset))
     if not rotations:
         return np.stack(discrete)
-    return np.stack([C @ D for D in discrete for C in rotations])
+    out = []
+    for D in discrete:
+        R_d, t_d = D[:3, :3], D[:3, 3].reshape((3, 1))
+        for R_c, t_c in rotations:
+            T = np.eye(4)
+            T[:3, :3] = R_c.dot(R_d)
+            T[:3, 3:] = R_c.dot(t_d) + t_c
+            out.append(T)
+    return np.stack(out)
 
 
 def symmetry_transforms(info: dict, step_deg: float = 1.0) -> np.ndarray:

@@ -5,8 +5,11 @@ Format (BOP Challenge 2019+, ``docs/bop_challenge_2019.md`` of the BOP toolkit):
     scene_id,im_id,obj_id,score,R,t,time
     1,0,11,0.93,r11 r12 r13 r21 r22 r23 r31 r32 r33,tx ty tz,0.153
 
-* ``R``: the 3x3 rotation, row-major, 9 numbers separated by spaces (model -> camera);
-* ``t``: translation in **millimetres**, 3 numbers separated by spaces (metres in memory);
+* ``R``: the 3x3 rotation, row-major, 9 numbers separated by spaces (model -> camera); the
+  reader refuses a matrix that is no rotation (:func:`dope_hope.io.predictions.checked_rotation`)
+  and keeps the numbers as written (the BOP toolkit scores them as written);
+* ``t``: translation in **millimetres**, 3 numbers separated by spaces (metres in memory, and
+  the millimetres as written in ``t_mm``, which BOP19 scoring uses);
 * ``time``: seconds spent on the whole image, the same value on every line of an image
   (``-1`` when unknown);
 * the file name is ``METHOD_DATASET-SPLIT[-TYPE].csv``; the method name must not contain an
@@ -27,6 +30,7 @@ import numpy as np
 from dope_hope.errors import InputFileError
 from dope_hope.io.atomic import atomic_write_text
 from dope_hope.io.jsonfields import read_text_file
+from dope_hope.io.predictions import checked_rotation
 
 HEADER = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
 #: Two estimates of one image whose times differ by more than this (s) are rejected (BOP).
@@ -46,6 +50,9 @@ class BopEstimate:
         R: (3, 3) rotation, model -> camera.
         t: (3,) translation, metres.
         time: seconds for the whole image, or -1 when unknown.
+        t_mm: (3,) translation in millimetres as read from a file (None when built in memory:
+            then ``1000 * t``).
+        line: line number in the file read (0 when built in memory).
     """
 
     scene_id: int
@@ -55,6 +62,8 @@ class BopEstimate:
     R: np.ndarray
     t: np.ndarray
     time: float = -1.0
+    t_mm: np.ndarray | None = None
+    line: int = 0
 
 
 def bop_result_filename(method: str, dataset: str = "hope", split: str = "test",
@@ -143,7 +152,8 @@ def read_bop_csv(path: str | os.PathLike, check_name: bool = False) -> list[BopE
         check_name: also require the ``METHOD_DATASET-SPLIT.csv`` naming.
 
     Raises:
-        InputFileError: missing file, wrong header, or a malformed line (named by number).
+        InputFileError: missing file, wrong header, or a malformed line (named by number),
+        e.g. an R that is no rotation.
     """
     path = Path(path)
     if check_name:
@@ -172,6 +182,12 @@ def read_bop_csv(path: str | os.PathLike, check_name: bool = False) -> list[BopE
             raise InputFileError(path, f"line {lineno}: t needs 3 numbers, got {t.size}")
         if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and math.isfinite(score)):
             raise InputFileError(path, f"line {lineno}: contains NaN or infinity")
-        out.append(BopEstimate(scene_id, im_id, obj_id, score, R.reshape(3, 3), 0.001 * t, time))
+        R = R.reshape(3, 3)
+        try:
+            checked_rotation(R)
+        except ValueError as exc:
+            raise InputFileError(path, f"line {lineno}: R: {exc}") from None
+        out.append(BopEstimate(scene_id, im_id, obj_id, score, R, 0.001 * t, time, t_mm=t,
+                               line=lineno))
     _check_times(out, path)
     return out

@@ -4,6 +4,8 @@ Every mesh leaves this module in metres, as one ``trimesh.Trimesh`` (multi-part 
 concatenated) with its texture kept (``TextureVisuals``: per-vertex uv + material image) so
 that pyrender can render it. Also the derived quantities other modules need: a deterministic
 surface point sample (ADD-style metrics), the axis-aligned cuboid and the diameter.
+:func:`read_ply` is the exception: the vertices (and triangles) of a PLY file exactly as
+stored (file units, file order), which is what the BOP toolkit computes its errors on.
 """
 from __future__ import annotations
 
@@ -65,6 +67,133 @@ def load_mesh(path: str | os.PathLike, units: str | None = None) -> trimesh.Trim
     return loaded
 
 
+#: PLY scalar types -> numpy type codes (both the PLY 1.0 names and the sized aliases).
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2",
+              "int16": "i2", "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4",
+              "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4", "double": "f8",
+              "float64": "f8"}
+
+
+def _ply_header(path: Path, data: bytes) -> tuple[str, int, list[tuple[str, int, list]]]:
+    """(format, body offset, [(element, count, [(name, type code | (count code, item code))])])."""
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise InputFileError(path, "not a PLY file (no 'ply' ... 'end_header' header)")
+    nl = data.find(b"\n", end)
+    body = nl + 1 if nl >= 0 else len(data)
+    fmt, elements = "", []
+    for line in data[:end].decode("ascii", errors="replace").splitlines():
+        w = line.split()
+        if len(w) >= 2 and w[0] == "format":
+            fmt = w[1]
+        elif len(w) >= 3 and w[0] == "element":
+            if not w[2].isdigit():
+                raise InputFileError(path, f"bad element count in {line.strip()!r}")
+            elements.append((w[1], int(w[2]), []))
+        elif w and w[0] == "property" and elements:
+            known = len(w) == 3 and w[1] in _PLY_TYPES or (
+                len(w) == 5 and w[1] == "list" and w[2] in _PLY_TYPES and w[3] in _PLY_TYPES)
+            if not known:
+                raise InputFileError(path, f"unsupported property {line.strip()!r}")
+            kind = _PLY_TYPES[w[1]] if len(w) == 3 else (_PLY_TYPES[w[2]], _PLY_TYPES[w[3]])
+            elements[-1][2].append((w[-1], kind))
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise InputFileError(path, f"unknown PLY format {fmt!r}")
+    return fmt, body, elements
+
+
+#: Items of the face list properties the BOP toolkit reads (triangles only).
+_PLY_FACE_LISTS = {"vertex_indices": 3, "vertex_index": 3, "texcoord": 6}
+
+
+def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """Every vertex (and triangle) of a PLY file, in file order and file units, as the BOP
+    toolkit's ``inout.load_ply`` reads them.
+
+    ASCII coordinates are parsed as float64 from the text, binary ones widened exactly from
+    their stored type. Unlike :func:`load_mesh` nothing is merged, dropped, reordered or
+    scaled, and a point cloud (no ``face`` element) is fine.
+
+    Args:
+        path: the ``.ply`` file (ascii, binary_little_endian or binary_big_endian) with the
+            ``vertex`` element first, as in every BOP model; faces must be triangles.
+
+    Returns:
+        (vertices (N, 3) float64 x, y, z in file units (BOP models: millimetres), faces
+        (M, 3) int64 vertex indices or None when the file has no faces).
+
+    Raises:
+        InputFileError: missing file, not a PLY, no x/y/z vertex properties, an element
+        before ``vertex``, a face that is not a triangle, or fewer items than announced.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(path, "PLY file not found")
+    data = path.read_bytes()
+    fmt, body, elements = _ply_header(path, data)
+    if not elements or elements[0][0] != "vertex":
+        raise InputFileError(path, "the first element must be 'vertex'")
+    _, n_vert, vprops = elements[0]
+    names = [n for n, _ in vprops]
+    if not {"x", "y", "z"} <= set(names) or any(isinstance(k, tuple) for _, k in vprops):
+        raise InputFileError(path, "vertex element needs x, y, z and no list properties")
+    cols = [names.index(a) for a in "xyz"]
+    face = elements[1] if len(elements) > 1 and elements[1][0] == "face" else None
+    fprops = face[2] if face else []
+    if face and not any(n in ("vertex_indices", "vertex_index") for n, _ in fprops):
+        raise InputFileError(path, "face element without vertex_indices")
+    for n, k in fprops:
+        if isinstance(k, tuple) and n not in _PLY_FACE_LISTS:
+            raise InputFileError(path, f"unsupported face list property {n!r}")
+    if fmt == "ascii":
+        lines = data[body:].decode("ascii", errors="replace").splitlines()
+        rows = [ln.split() for ln in lines[:n_vert]]
+        if len(rows) < n_vert or any(len(r) < len(vprops) for r in rows):
+            raise InputFileError(path, f"expected {n_vert} vertex lines of {len(vprops)} values")
+        try:
+            verts = np.array([[float(r[c]) for c in cols] for r in rows], dtype=np.float64)
+            faces = None
+            if face:
+                frows = [ln.split() for ln in lines[n_vert:n_vert + face[1]]]
+                if len(frows) < face[1]:
+                    raise InputFileError(path, f"expected {face[1]} face lines")
+                idx = next(i for i, (n, _) in enumerate(fprops) if n in ("vertex_indices", "vertex_index"))
+                offset = sum(1 + _PLY_FACE_LISTS[n] if isinstance(k, tuple) else 1
+                             for n, k in fprops[:idx])
+                if any(len(r) < offset + 4 or int(r[offset]) != 3 for r in frows):
+                    raise InputFileError(path, "only triangular faces are supported")
+                faces = np.array([[int(v) for v in r[offset + 1:offset + 4]] for r in frows],
+                                 dtype=np.int64)
+        except ValueError as exc:
+            raise InputFileError(path, f"not a number ({exc})") from None
+        return verts.reshape(n_vert, 3), faces
+    order = "<" if fmt == "binary_little_endian" else ">"
+    vdtype = np.dtype([(f"p{k}", order + t) for k, (_, t) in enumerate(vprops)])
+    if len(data) - body < n_vert * vdtype.itemsize:
+        raise InputFileError(path, f"file ends before its {n_vert} vertices")
+    v = np.frombuffer(data, dtype=vdtype, count=n_vert, offset=body)
+    verts = np.stack([v[f"p{c}"].astype(np.float64) for c in cols], axis=1).reshape(n_vert, 3)
+    if not face:
+        return verts, None
+    fields = []
+    for k, (n, kind) in enumerate(fprops):
+        if isinstance(kind, tuple):
+            fields += [(f"n{k}", order + kind[0]), (f"l{k}", order + kind[1], (_PLY_FACE_LISTS[n],))]
+        else:
+            fields.append((f"s{k}", order + kind))
+    fdtype = np.dtype(fields)
+    start = body + n_vert * vdtype.itemsize
+    if len(data) - start < face[1] * fdtype.itemsize:
+        raise InputFileError(path, f"file ends before its {face[1]} triangles (or a face is "
+                                   f"not a triangle)")
+    f = np.frombuffer(data, dtype=fdtype, count=face[1], offset=start)
+    for k, (n, kind) in enumerate(fprops):
+        if isinstance(kind, tuple) and np.any(f[f"n{k}"] != _PLY_FACE_LISTS[n]):
+            raise InputFileError(path, "only triangular faces are supported")
+    k = next(i for i, (n, _) in enumerate(fprops) if n in ("vertex_indices", "vertex_index"))
+    return verts, f[f"l{k}"].astype(np.int64)
+
+
 def _farthest_point_indices(points: np.ndarray, n: int) -> np.ndarray:
     """Greedy farthest-point sampling, (M, 3) -> (n,) indices.
 
@@ -87,10 +216,11 @@ def _farthest_point_indices(points: np.ndarray, n: int) -> np.ndarray:
 
 def sample_surface_points(mesh: trimesh.Trimesh, n: int, seed: int = 0,
                           oversample: int = 20, return_normals: bool = False):
-    """Evenly spread surface points: farthest-point subsample of a dense surface sample.
+    """Evenly spread surface points: farthest-point subsample of a dense surface sample (of
+    the points themselves for a point cloud, e.g. ``trimesh.PointCloud``).
 
     Args:
-        mesh: mesh in metres.
+        mesh: mesh (or point cloud) in metres.
         n: number of points (the HOPE paper's ADD-H uses 500).
         seed: seed of the dense area-weighted sample (same seed -> same points).
         oversample: dense sample size is ``max(oversample * n, 10000)``.
@@ -102,6 +232,11 @@ def sample_surface_points(mesh: trimesh.Trimesh, n: int, seed: int = 0,
     """
     if n <= 0:
         raise ValueError(f"n must be positive, got {n}")
+    if len(getattr(mesh, "faces", ())) == 0:  # a point cloud: spread over its points
+        if return_normals:
+            raise ValueError("a point cloud has no face normals")
+        pts = np.asarray(mesh.vertices, dtype=np.float64)
+        return pts if n >= len(pts) else pts[_farthest_point_indices(pts, n)]
     dense_count = max(oversample * n, 10000)
     dense, faces = trimesh.sample.sample_surface(mesh, dense_count, seed=seed)
     dense = np.asarray(dense, dtype=np.float64)

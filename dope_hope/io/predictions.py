@@ -58,6 +58,8 @@ class Prediction:
         time: seconds for the whole image, or None.
         scene_id, im_id: BOP ids, or None.
         line: line number in the file (for messages).
+        stored_pose: (R (3, 3), t (3,) millimetres) exactly as a BOP CSV row writes them, or
+            None (JSON lines); BOP19 scoring uses it (see ``ObjectAnnotation.stored_pose``).
     """
 
     image: str | None
@@ -71,6 +73,7 @@ class Prediction:
     im_id: int | None = None
     line: int = 0
     extra: dict[str, Any] = field(default_factory=dict)
+    stored_pose: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def prediction_record(image: str, class_name: str, score: float, R: np.ndarray, t: np.ndarray,
@@ -98,6 +101,25 @@ def write_predictions_jsonl(path: str | os.PathLike, records: list[dict[str, Any
     atomic_write_text(path, "\n".join(lines) + ("\n" if lines else ""))
 
 
+def checked_rotation(M: np.ndarray) -> np.ndarray:
+    """The rule for a predicted R (JSON lines and BOP CSV alike): within
+    ``ROTATION_TOLERANCE`` (Frobenius) of a rotation.
+
+    Args:
+        M: (3, 3) finite matrix.
+
+    Returns:
+        (3, 3) the nearest rotation.
+
+    Raises:
+        ValueError: M is no rotation (a reflection, a scaled or sheared matrix).
+    """
+    R = nearest_rotation(M)
+    if np.linalg.norm(R - np.asarray(M, dtype=np.float64)) > ROTATION_TOLERANCE:
+        raise ValueError("not a rotation matrix (rows must be orthonormal, det +1)")
+    return R
+
+
 def _fail(path: Path, lineno: int, problem: str) -> InputFileError:
     return InputFileError(path, f"line {lineno}: {problem}")
 
@@ -113,10 +135,10 @@ def _rotation(path: Path, lineno: int, obj: dict) -> np.ndarray:
         M = M.reshape(3, 3)
         if not np.all(np.isfinite(M)):
             raise _fail(path, lineno, "R: contains NaN or infinity")
-        R = nearest_rotation(M)
-        if np.linalg.norm(R - M) > ROTATION_TOLERANCE:
-            raise _fail(path, lineno, "R: not a rotation matrix (rows must be orthonormal, det +1)")
-        return R
+        try:
+            return checked_rotation(M)
+        except ValueError as exc:
+            raise _fail(path, lineno, f"R: {exc}") from None
     if obj.get("quaternion_xyzw") is not None:
         try:
             q = np.asarray(obj["quaternion_xyzw"], dtype=np.float64).reshape(4)
@@ -229,12 +251,12 @@ def _read_bop(path: Path) -> tuple[list[Prediction], dict[str, Any]]:
     except InputFileError:
         pass
     preds = []
-    for k, e in enumerate(read_bop_csv(path)):
+    for e in read_bop_csv(path):
         try:
             name = get_object(e.obj_id).name
         except DopeHopeError as exc:
-            raise InputFileError(path, f"line {k + 2}: {exc}") from None
+            raise InputFileError(path, f"line {e.line}: {exc}") from None
         preds.append(Prediction(image=None, class_name=name, score=e.score, R=e.R, t=e.t,
                                 time=None if e.time < 0 else e.time, scene_id=e.scene_id,
-                                im_id=e.im_id, line=k + 2))
+                                im_id=e.im_id, line=e.line, stored_pose=(e.R, e.t_mm)))
     return preds, meta
