@@ -18,11 +18,8 @@ Parameter names follow the official DOPE checkpoints (NVlabs/Deep_Object_Pose, c
 
 Head 400 (DOPE-DR-400) adds :class:`UpsamplingDecoder` under the name ``decoder.*`` (no clash
 with official names, so the 50-px part loads official weights with ``strict=False`` and only
-``decoder.*`` keys missing). Its cost, measured by ``bench/model_cost.py`` (400x400 input,
-all 6 stages decoded): 0.046 M parameters vs 7.34 M for the trunk (0.6 %; 0.09 % of the
-whole 50.3 M network) and 2.3 GMAC vs 48.2 GMAC for the trunk (4.8 %; the whole network is
-158 GMAC); CPU time ~0.3 s vs ~1.9 s for the trunk on one thread (transposed convs at full
-resolution are memory-bound on CPU). ``decoder.stages: last`` decodes only the last stage
+``decoder.*`` keys missing); ``bench/model_cost.py`` measures what it costs beside the trunk
+(figures in bench/RESULTS.md). ``decoder.stages: last`` decodes only the last stage
 (the others are bilinear-upsampled), e.g. for inference, where only ``outputs[-1]`` is used.
 The ``arch: lite`` variant lives in :mod:`dope_hope.model.lite`.
 """

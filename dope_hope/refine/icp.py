@@ -33,9 +33,8 @@ result only when it fits the depth better than the input pose did.
    within ``fit_tie`` of the best count as equal and the one nearest the input rotation wins
    among them, so the depth never flips an object onto one of its own geometric
    symmetries (a box turned 180 deg fits its depth exactly as well) - there the keypoints,
-   which see the texture, decide. On the Ketchup e2e test set this raises recall at 2 cm
-   MeanSSD from 29 % (one start) to 38 % (bench/RESULTS.md), at ~3.5x the cost of one start
-   (~0.2 s per object on 2 cores; 2.3x less than running all ten starts on every point).
+   which see the texture, decide (what the starts and the coarse phase buy and cost:
+   bench/RESULTS.md, ``bench/postprocess.py --only-icp``).
 5. **Acceptance**: the fit is the soft fraction of scene points on the model surface (each
    point counts ``1 - (r / fit_threshold_m)^2``, ``r`` its point-to-plane distance, 0 beyond
    ``fit_threshold_m``: finer than a plain inlier count, which cannot tell a bottle's right
