@@ -8,16 +8,35 @@ import onnx
 import pytest
 import torch
 from fitted_model import IMAGE_HW, fit_lite_checkpoint, scene
+from scipy.spatial.transform import Rotation
 
 from dope_hope.cli import main
 from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.export.compare import compare_maps
 from dope_hope.export.int8 import list_images
+from dope_hope.export.isaac_ros import ENCODERS as ISAAC_ENCODERS
+from dope_hope.export.isaac_ros import (
+    ISAAC_ROS_CURRENT,
+    channel_order,
+    cuboid_vertices,
+    decode,
+    dope_config_entry,
+    isaac_ros_release,
+)
 from dope_hope.export.pipeline import export_checkpoint
-from dope_hope.export.to_onnx import ISAAC_ENCODERS, export_model
-from dope_hope.inference.onnx_backend import OnnxBackend
+from dope_hope.export.to_onnx import export_model
+from dope_hope.geometry import (
+    CUBOID_CORNER_SIGNS,
+    LEGACY_TO_MESH,
+    cuboid_keypoints,
+    mesh_rotation_to_legacy,
+    project_points,
+    rotation_error_deg,
+)
+from dope_hope.inference.onnx_backend import OnnxBackend, output_order
 from dope_hope.io.images import write_rgb
+from dope_hope.maps.targets import make_targets
 from dope_hope.model.checkpoint import make_object_info, save_checkpoint
 from dope_hope.model.network import IMAGENET_MEAN, IMAGENET_STD, build_model
 
@@ -116,18 +135,19 @@ def test_metadata_makes_the_file_self_describing(lite, tmp_path):
 def test_isaac_ros_layout_names_shapes_and_normalization(lite, tmp_path):
     model, ckpt = lite
     path = tmp_path / "isaac.onnx"
-    info, _ = export_model(model, ckpt, path, layout="isaac-ros")
-    assert info.fixed_input_hw == (480, 640)  # Isaac ROS DOPE's default network size
+    info, _ = export_model(model, ckpt, path, layout="isaac-ros", isaac_ros_version="3.1")
+    assert info.fixed_input_hw == (480, 640)  # dope_converter.py's default network size
     proto = onnx.load(str(path))
     dims = lambda v: [d.dim_value for d in v.type.tensor_type.shape.dim]  # noqa: E731
     assert [(i.name, dims(i)) for i in proto.graph.input] == [("input", [1, 3, 480, 640])]
     assert [(o.name, dims(o)) for o in proto.graph.output] == [("output", [1, 25, 60, 80])]
     meta = {p.key: p.value for p in proto.metadata_props}
-    assert json.loads(meta["dope_hope.input_mean"]) == [0.5, 0.5, 0.5]
+    assert json.loads(meta["dope_hope.input_mean"]) == [0.5, 0.5, 0.5]  # 3.1's launch default
     assert json.loads(meta["dope_hope.isaac_ros.object_dimensions_cm"]) == pytest.approx(
         [6.4514, 14.8608, 4.3368])
+    assert meta["dope_hope.isaac_ros.version"] == "3.1"
 
-    # Fed a 0.5/0.5-normalized image, the graph reproduces the native maps.
+    # Fed a 0.5/0.5-normalized image, the graph reproduces the native maps (3.1: same order).
     import onnxruntime as ort
 
     rgb = np.random.default_rng(2).random((1, 3, 480, 640), dtype=np.float32)
@@ -137,20 +157,126 @@ def test_isaac_ros_layout_names_shapes_and_normalization(lite, tmp_path):
     b, a = _torch_maps(model, ((rgb - mean[:, None, None]) / std[:, None, None]).astype(np.float32))
     assert np.abs(out[:, :9] - b).max() < TOL and np.abs(out[:, 9:] - a).max() < TOL
 
-    # ImageNet encoder variant (isaac_ros_dope_core.launch.py default): identity conversion.
-    info, _ = export_model(model, ckpt, tmp_path / "isaac_in.onnx", layout="isaac-ros",
-                           input_hw=(64, 64), isaac_encoder="imagenet")
+    # The current release: ImageNet encoder (an identity conversion) and Isaac's vertex order.
+    info, _ = export_model(model, ckpt, tmp_path / "isaac_in.onnx", layout="isaac-ros", input_hw=(64, 64))
     assert info.input_mean == ISAAC_ENCODERS["imagenet"][0]
+    assert info.extra["isaac_ros.version"] == ISAAC_ROS_CURRENT
+    x = ((rgb[:, :, :64, :64] - mean[:, None, None]) / std[:, None, None]).astype(np.float32)
+    sess = ort.InferenceSession(str(tmp_path / "isaac_in.onnx"), providers=["CPUExecutionProvider"])
+    (out,) = sess.run(None, {"input": x})
+    b, a = _torch_maps(model, x)
+    order = output_order(channel_order("mesh", isaac_ros_release(ISAAC_ROS_CURRENT)))
+    assert order.tolist() != list(range(25))
+    assert np.abs(out - np.concatenate([b, a], 1)[:, order]).max() < TOL
+    # OnnxBackend puts the channels back in the model's order.
+    got = OnnxBackend(tmp_path / "isaac_in.onnx", threads=1).run(x)
+    assert np.abs(got[0] - b).max() < TOL and np.abs(got[1] - a).max() < TOL
 
 
-def test_isaac_ros_refuses_maps_not_at_one_eighth_and_dynamic(tmp_path):
-    cfg = _lite_config(head=100)  # stride 4 maps: Isaac ROS DOPE's decoder hard-codes x8
+# ----------------------------------------------------------------------------- Isaac ROS decoding
+class ConstantMaps(torch.nn.Module):
+    """A stand-in network whose last stage always returns the given (9, h, w), (16, h, w) maps."""
+
+    def __init__(self, belief: np.ndarray, affinity: np.ndarray, stride: int):
+        super().__init__()
+        self.stride, self.head, self.arch = stride, 0, "constant"
+        self.register_buffer("belief", torch.from_numpy(belief)[None])
+        self.register_buffer("affinity", torch.from_numpy(affinity)[None])
+
+    def forward(self, x):
+        zero = x.mean() * 0  # keeps the input in the graph
+        return [(self.belief + zero, self.affinity + zero)]
+
+
+ISAAC_HW = (480, 640)
+ISAAC_K = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])
+ISAAC_R = Rotation.from_euler("xyz", [20, -30, 15], degrees=True).as_matrix()
+ISAAC_T = np.array([0.031, -0.017, 0.52])
+
+
+def _model_keypoints(frame: str) -> np.ndarray:
+    """(9, 2) image px of the Ketchup box at the test pose, in the model's keypoint order."""
+    size = np.asarray(make_object_info("Ketchup")["size_m"])
+    if frame == "legacy":  # the same box in the legacy frame of the official weights
+        return project_points(cuboid_keypoints(np.abs(LEGACY_TO_MESH).T @ size), ISAAC_K,
+                              mesh_rotation_to_legacy(ISAAC_R), ISAAC_T)
+    return project_points(cuboid_keypoints(size), ISAAC_K, ISAAC_R, ISAAC_T)
+
+
+def _isaac_output(tmp_path, frame: str, stride: int, version: str):
+    """(info, (1, 25, 60, 80) output of the exported graph) for maps of the box at the test pose."""
+    import onnxruntime as ort
+
+    belief, affinity = make_targets(_model_keypoints(frame)[None], ISAAC_HW, stride)
+    path = tmp_path / f"{frame}_{stride}_{version}.onnx"
+    info, _ = export_model(ConstantMaps(belief, affinity, stride), _ckpt({}, frame=frame), path,
+                           layout="isaac-ros", isaac_ros_version=version)
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    return info, sess.run(None, {"input": np.zeros((1, 3) + ISAAC_HW, np.float32)})[0]
+
+
+@pytest.mark.parametrize("version,frame,stride", [
+    ("3.1", "mesh", 8), ("3.1", "legacy", 8), ("3.2", "mesh", 8), ("4.0", "legacy", 8), ("4.0", "mesh", 4)])
+def test_isaac_ros_publishes_the_mesh_frame_pose(tmp_path, version, frame, stride):
+    """Isaac ROS's decoder (transcribed: dope_hope.export.isaac_ros.decode) on the exported output, with
+    the printed dope_config.yaml dimensions, returns the mesh-frame pose of the box."""
+    info, out = _isaac_output(tmp_path, frame, stride, version)
+    assert out.shape == (1, 25, 60, 80) and info.stride == 8
+    assert dope_config_entry(info.class_name, info.size_m) == '"Ketchup": [6.4514, 14.8608, 4.3368]'
+    dims = json.loads(info.extra["isaac_ros.object_dimensions_cm"])
+    poses = decode(out, ISAAC_K, dims, isaac_ros_release(version))
+    assert len(poses) == 1
+    R, t = poses[0]
+    # Up to 3.1 the decoder's 5x5 window reads (x, y) as (row, col) and mostly falls back to
+    # the integer peak (+-4 px): a coarser pose; 3.2+ refines on an 11x11 window.
+    deg, mm = (3.0, 10.0) if version == "3.1" else (0.3, 1.0)
+    assert rotation_error_deg(R, ISAAC_R) < deg and np.abs(t - ISAAC_T).max() * 1000 < mm
+
+
+def test_isaac_ros_3_2_turned_the_vertex_order(tmp_path):
+    """The channel order is what makes 3.2+ publish the mesh-frame pose: the model's own order
+    (what a 3.1 export holds) read by 3.2 gives R_mesh Rz(180 deg)."""
+    info, out = _isaac_output(tmp_path, "mesh", 8, "3.1")
+    dims = json.loads(info.extra["isaac_ros.object_dimensions_cm"])
+    (R, _), = decode(out, ISAAC_K, dims, isaac_ros_release("3.2"))
+    Rz180 = np.diag([-1.0, -1.0, 1.0])
+    assert rotation_error_deg(R, ISAAC_R @ Rz180) < 0.3 and rotation_error_deg(R, ISAAC_R) > 179
+    # The vertex tables as the C++ source writes them (CuboidVertices: right/left, top/bottom).
+    old, new = (np.sign(cuboid_vertices((2, 4, 6), isaac_ros_release(v)))[:, :8] for v in ("3.1", "3.2"))
+    assert old.tolist() == [[1, -1, -1, 1, 1, -1, -1, 1], [-1, -1, 1, 1, -1, -1, 1, 1],
+                            [1, 1, 1, 1, -1, -1, -1, -1]]
+    assert np.array_equal(old.T, CUBOID_CORNER_SIGNS) and np.array_equal(new, Rz180 @ old)
+
+
+def test_isaac_ros_lite_head_100_is_pooled_to_stride_8(tmp_path):
+    cfg = _lite_config(head=100)  # stride-4 maps
+    torch.manual_seed(3)
     model = build_model(cfg).eval()
-    with pytest.raises(ConfigError, match="stride 4"):
-        export_model(model, _ckpt(cfg), tmp_path / "x.onnx", layout="isaac-ros")
+    for block in model.lite.stages:
+        torch.nn.init.normal_(block[-1].weight, std=0.1)
+    path = tmp_path / "lite100.onnx"
+    info, verify = export_model(model, _ckpt(cfg), path, layout="isaac-ros", input_hw=(64, 64))
+    assert verify < TOL and info.stride == 8 and info.head == 100
+    assert info.extra["isaac_ros.resampled_from_stride"] == "4"
+    x = np.random.default_rng(4).standard_normal((1, 3, 64, 64)).astype(np.float32)
+    got = OnnxBackend(path, threads=1).run(x)  # the model's order, stride 8
+    ref = [torch.nn.functional.avg_pool2d(torch.from_numpy(m), 2).numpy() for m in _torch_maps(model, x)]
+    assert got[0].shape == (1, 9, 8, 8) and max(np.abs(g - r).max() for g, r in zip(got, ref)) < TOL
+    assert np.abs(ref[0]).max() > 0.05  # not trivially ~0
+
+
+def test_isaac_ros_refuses_stride_1_dynamic_and_unknown_versions(tmp_path):
+    belief, affinity = np.zeros((9, 64, 64), np.float32), np.zeros((16, 64, 64), np.float32)
+    with pytest.raises(ConfigError, match="stride 1"):  # DOPE-DR-400: Isaac ROS's decoder scales by 8
+        export_model(ConstantMaps(belief, affinity, 1), _ckpt({}), tmp_path / "x.onnx", layout="isaac-ros",
+                     input_hw=(64, 64))
+    lite = build_model(_lite_config()).eval()
     with pytest.raises(ConfigError, match="fixed input size"):
-        export_model(build_model(_lite_config()).eval(), _ckpt(_lite_config()), tmp_path / "y.onnx",
-                     layout="isaac-ros", dynamic=True)
+        export_model(lite, _ckpt(_lite_config()), tmp_path / "y.onnx", layout="isaac-ros", dynamic=True)
+    for bad in ("three", "1.0", "3"):
+        with pytest.raises(ConfigError, match="isaac-ros-version"):
+            export_model(lite, _ckpt(_lite_config()), tmp_path / "z.onnx", layout="isaac-ros",
+                         isaac_ros_version=bad)
     assert not list(tmp_path.iterdir())  # nothing written
 
 
@@ -192,14 +318,26 @@ def test_int8_export_stays_close_to_fp32(fitted, tmp_path):
     q = json.loads({p.key: p.value for p in proto.metadata_props}["dope_hope.quantization"])
     assert q["per_channel"] and q["format"] == "QDQ" and q["calibration_images"] == 4
     # The maps come out of a float conv (no 1/255-of-range output quantization step).
+    assert _ops_to_last_conv(proto, "belief") == ["Slice", "Conv"]
+    # isaac-ros too: concat + channel gather stay float.
+    isaac = export_checkpoint(fitted, tmp_path / "isaac8.onnx", layout="isaac-ros", height=IMAGE_HW[0],
+                              width=IMAGE_HW[1], int8=True, calibration=calib, calibration_images=2)
+    assert isaac.int8.median_px < 1.0
+    assert _ops_to_last_conv(onnx.load(str(tmp_path / "isaac8.onnx")), "output") == ["Gather", "Concat", "Slice", "Conv"]
+
+
+def _ops_to_last_conv(proto, output: str) -> list[str]:
+    """Op types from a graph output back to the first Conv (first inputs followed)."""
     producer = {o: n for n in proto.graph.node for o in n.output}
-    conv = producer[producer["belief"].input[0]]
-    assert conv.op_type == "Conv" and q["float_nodes"] == [conv.name]
+    ops, node = [], producer[output]
+    while True:
+        ops.append(node.op_type)
+        if node.op_type == "Conv":
+            return ops
+        node = producer[node.input[0]]
 
 
 def test_compare_maps_measures_keypoint_shift():
-    from dope_hope.maps.targets import make_targets
-
     _, kp = scene()
     ref = make_targets(kp[None], IMAGE_HW, 8, sigma=1.0, radius=1.0)
     shifted = make_targets(kp[None] + [2.0, 0.0], IMAGE_HW, 8, sigma=1.0, radius=1.0)
@@ -214,10 +352,25 @@ def test_compare_maps_measures_keypoint_shift():
 def test_cli_export_and_one_line_errors(fitted, tmp_path, capsys):
     out = tmp_path / "cli.onnx"
     assert main(["export", "--weights", str(fitted), "--out", str(out), "--layout", "isaac-ros",
-                 "--height", "96", "--width", "128"]) == 0
+                 "--height", "96", "--width", "128", "--isaac-ros-version", "3.1"]) == 0
     text = capsys.readouterr().out
-    assert "isaac-ros" in text and "encoder_image_mean:='[0.5, 0.5, 0.5]'" in text
+    assert "Isaac ROS 3.1: isaac_ros_dope_tensor_rt.launch.py arguments" in text
+    for arg in ("network_image_width:=128", "network_image_height:=96", "encoder_image_mean:='[0.5, 0.5, 0.5]'",
+                f"model_file_path:={out.resolve()}", "object_name:=Ketchup", "input_image_width:=1920",
+                "input_binding_names:='[\"input\"]'", "output_binding_names:='[\"output\"]'"):
+        assert arg in text, arg
+    assert '"Ketchup": [6.4514, 14.8608, 4.3368]' in text and "mesh-frame pose" in text
+    assert "replaces the stock entry" in text and "your camera's image size" in text
     assert OnnxBackend(out).layout == "isaac-ros"
+    # The current release: its core launch file's arguments, ImageNet encoder by default.
+    assert main(["export", "--weights", str(fitted), "--out", str(out), "--layout", "isaac-ros",
+                 "--height", "96", "--width", "128", "--json"]) == 0
+    isaac = json.loads(capsys.readouterr().out)["isaac_ros"]
+    assert isaac["version"] == ISAAC_ROS_CURRENT and isaac["launch_file"] == "isaac_ros_dope_core.launch.py"
+    args = isaac["launch_arguments"]
+    assert args["encoder_image_mean"] == "[0.485, 0.456, 0.406]" and args["map_peak_threshold"] == "0.1"
+    assert args["network_image_width"] == "128" and "network_image_width" in isaac["changed"]
+    assert isaac["channel_order"] == [2, 3, 0, 1, 6, 7, 4, 5, 8]
 
     bad = [
         (["--height", "100", "--width", "128"], "multiples of 8"),
@@ -226,6 +379,7 @@ def test_cli_export_and_one_line_errors(fitted, tmp_path, capsys):
         (["--int8"], "--calibration"),
         (["--int8", "--calibration", str(tmp_path / "none")], "calibration folder not found"),
         (["--opset", "9"], "opset"),
+        (["--layout", "isaac-ros", "--isaac-ros-version", "1.1"], "--isaac-ros-version 1.1"),
     ]
     for extra, message in bad:
         assert main(["export", "--weights", str(fitted), "--out", str(tmp_path / "b.onnx")] + extra) == 2

@@ -29,7 +29,9 @@ def models(tmp_path_factory):
     ckpt = fit_lite_checkpoint(d / "fitted.pt")
     export_checkpoint(ckpt, d / "native.onnx")
     export_checkpoint(ckpt, d / "dynamic.onnx", dynamic=True)
-    export_checkpoint(ckpt, d / "isaac.onnx", layout="isaac-ros", height=IMAGE_HW[0], width=IMAGE_HW[1])
+    # The current Isaac ROS release (channels in its vertex order) with the 0.5/0.5 encoder.
+    export_checkpoint(ckpt, d / "isaac.onnx", layout="isaac-ros", height=IMAGE_HW[0], width=IMAGE_HW[1],
+                      isaac_encoder="half")
     return ckpt, d / "native.onnx", d / "dynamic.onnx", d / "isaac.onnx"
 
 
@@ -98,7 +100,7 @@ def test_isaac_ros_file_runs_batches_and_converts_normalization(models):
 
 
 def test_unusable_files_give_one_line_errors(models, tmp_path, capsys):
-    _, native, _, _ = models
+    _, native, _, isaac = models
     image = tmp_path / "img.png"
     cv2.imwrite(str(image), scene()[0])
     data = native.read_bytes()
@@ -127,6 +129,12 @@ def test_unusable_files_give_one_line_errors(models, tmp_path, capsys):
             p.value = "[0.1, 0.2]"
     onnx.save(tampered, str(tmp_path / "tampered.onnx"))
     cases["tampered.onnx"] = "size_m must hold 3 finite numbers"
+    reordered = onnx.load(str(isaac))
+    for p in reordered.metadata_props:
+        if p.key == "dope_hope.isaac_ros.channel_order":
+            p.value = "[0, 0, 1, 2, 3, 4, 5, 6, 8]"
+    onnx.save(reordered, str(tmp_path / "reordered.onnx"))
+    cases["reordered.onnx"] = "isaac_ros.channel_order: not a permutation"
     cases["missing.onnx"] = "not found"
     for name, problem in cases.items():
         with pytest.raises(ModelFileError) as err:

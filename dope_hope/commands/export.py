@@ -4,14 +4,18 @@ Examples:
   dope-hope export --weights runs/ketchup/best.pt --out ketchup.onnx
   dope-hope export --weights best.pt --out ketchup.onnx --dynamic
   dope-hope export --weights best.pt --out ketchup_isaac.onnx --layout isaac-ros
+  dope-hope export --weights best.pt --out ketchup_isaac.onnx --layout isaac-ros --isaac-ros-version 3.1
   dope-hope export --weights best.pt --out ketchup_int8.onnx --int8 --calibration synth/val
 
 The .onnx file is self-contained: `dope-hope infer IMAGE --weights ketchup.onnx` needs no
 checkpoint (object class, cuboid size, keypoint order, normalization and map stride are in
 its metadata). native: input `image` (N,3,H,W) ImageNet-normalized, outputs `belief` and
 `affinity` of the last stage. isaac-ros: input `input` (1,3,480,640 by default) normalized
-like the Isaac ROS image encoder (mean = std = 0.5, or --isaac-normalization imagenet),
-output `output` (1,25,H/8,W/8) = 9 belief + 16 affinity channels, for Isaac ROS DOPE.
+like the Isaac ROS image encoder, output `output` (1,25,H/8,W/8) = 9 belief + 16 affinity
+channels in the vertex order of --isaac-ros-version's DOPE decoder (3.2 turned it 180 deg
+about z), so that Isaac ROS publishes the mesh-frame pose; stride-4 maps (lite head 100) are
+average-pooled to stride 8 in the graph. The command prints every launch argument and the
+dope_config.yaml `dimensions` entry (cm, mesh frame) to use.
 --int8 writes a statically quantized model (QDQ, per-channel) calibrated on --calibration
 images and prints its deviation from fp32.
 """
@@ -20,6 +24,8 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+
+from dope_hope.export.isaac_ros import ISAAC_ROS_CURRENT
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,10 +39,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dynamic", action="store_true", help="dynamic input height and width (native only)")
     parser.add_argument("--layout", choices=("native", "isaac-ros"), default="native",
                         help="graph layout (default native)")
-    parser.add_argument("--isaac-normalization", choices=("half", "imagenet"), default="half",
-                        help="isaac-ros: the Isaac ROS image encoder's mean/std (half = 0.5/0.5, the "
-                             "isaac_ros_dope_tensor_rt.launch.py default; imagenet = the newer "
-                             "isaac_ros_dope_core.launch.py default)")
+    parser.add_argument("--isaac-ros-version", default=ISAAC_ROS_CURRENT, metavar="X.Y",
+                        help=f"isaac-ros: the Isaac ROS release to deploy on (default {ISAAC_ROS_CURRENT}); "
+                             "3.2 and later order the cuboid vertices differently from 3.1 and earlier")
+    parser.add_argument("--isaac-normalization", choices=("half", "imagenet"),
+                        help="isaac-ros: the image encoder's mean/std (half = 0.5/0.5, imagenet) "
+                             "(default: the release's launch default: half up to 3.1, imagenet since 3.2)")
     parser.add_argument("--int8", action="store_true", help="static INT8 quantization (needs --calibration)")
     parser.add_argument("--calibration", type=Path, metavar="DIR", help="folder of calibration images")
     parser.add_argument("--calibration-images", type=int, default=32, metavar="N",
@@ -57,15 +65,19 @@ def run(args: argparse.Namespace) -> int:
                             calibration=args.calibration, opset=args.opset,
                             isaac_encoder=args.isaac_normalization,
                             calibration_images=args.calibration_images,
-                            calibration_method=args.calibration_method)
+                            calibration_method=args.calibration_method,
+                            isaac_ros_version=args.isaac_ros_version)
     info = res.info
     size = "dynamic" if info.fixed_input_hw is None else f"{info.fixed_input_hw[0]}x{info.fixed_input_hw[1]}"
+    isaac = isaac_ros_deployment(info, res.path) if info.layout == "isaac-ros" else None
     if args.json:
         record = {"path": str(res.path), "size_bytes": res.size_bytes, "seconds": round(res.seconds, 2),
                   "layout": info.layout, "precision": info.precision, "opset": info.opset, "input": size,
                   "verify_max_abs": res.verify_max_abs, "metadata": info.to_metadata()}
         if res.int8 is not None:
             record["int8_deviation"] = vars(res.int8)
+        if isaac is not None:
+            record["isaac_ros"] = isaac
         print(json.dumps(record))
         return 0
     print(f"wrote {res.path} ({res.size_bytes / 1e6:.1f} MB, {res.seconds:.1f} s): {info.class_name}, "
@@ -74,10 +86,49 @@ def run(args: argparse.Namespace) -> int:
     print(f"  fp32 graph vs PyTorch on a random input: max |d| = {res.verify_max_abs:.2e}")
     if res.int8 is not None:
         print(f"  INT8 vs fp32: {res.int8.summary()}")
-    if info.layout == "isaac-ros":
-        dims = json.loads(info.extra["isaac_ros.object_dimensions_cm"])
-        print(f"  Isaac ROS: network_image_height:={info.fixed_input_hw[0]} network_image_width:="
-              f"{info.fixed_input_hw[1]} encoder_image_mean:='{list(info.input_mean)}' "
-              f"encoder_image_stddev:='{list(info.input_std)}'; dope_config.yaml dimensions "
-              f"\"{info.class_name}\": {dims} (cm, {info.frame} frame)")
+    if isaac is not None:
+        resampled = info.extra.get("isaac_ros.resampled_from_stride")
+        print(f"  Isaac ROS {isaac['version']}: {isaac['launch_file']} arguments (all of them; "
+              f"* = not the default):")
+        for name, value in isaac["launch_arguments"].items():
+            mark = "*" if name in isaac["changed"] else " "
+            print(f"   {mark} {name}:={_shell_word(value)}")
+        if "input_image_width" in isaac["launch_arguments"]:
+            print("    (input_image_width/height: your camera's image size)")
+        print(f"  dope_config.yaml (dope: ros__parameters: dimensions:, cm, mesh-frame x, y, z): "
+              f"{isaac['dope_config_entry']}")
+        if _is_hope_object(info.class_name):
+            print("    (replaces the stock entry, which lists the legacy frame of NVIDIA's HOPE weights)")
+        print(f"  Isaac ROS then publishes the mesh-frame pose (output channels in its vertex order "
+              f"{isaac['channel_order']}" + (f"; stride-{resampled} maps average-pooled to stride 8"
+                                             if resampled else "") + ")")
     return 0
+
+
+def isaac_ros_deployment(info, path: Path) -> dict:
+    """What Isaac ROS needs for an isaac-ros file: launch arguments, config entry, channel order."""
+    from dope_hope.export.isaac_ros import (
+        dope_config_entry,
+        isaac_ros_release,
+        launch_arguments,
+    )
+
+    release = isaac_ros_release(info.extra["isaac_ros.version"])
+    args = launch_arguments(release, path, info.fixed_input_hw, info.extra["isaac_ros.encoder"], info.class_name)
+    return {"version": release.version, "launch_file": release.launch_file, "launch_arguments": args,
+            "changed": [k for k, v in args.items() if v != release.launch_defaults[k]],
+            "dope_config_entry": dope_config_entry(info.class_name, info.size_m),
+            "channel_order": json.loads(info.extra["isaac_ros.channel_order"])}
+
+
+def _is_hope_object(name: str) -> bool:
+    from dope_hope.catalog import HOPE_OBJECTS
+
+    return name.lower() in {o.name.lower() for o in HOPE_OBJECTS}
+
+
+def _shell_word(value: str) -> str:
+    """A launch argument value as one shell word ('...' when it holds spaces or brackets)."""
+    import shlex
+
+    return shlex.quote(value) if value else "''"

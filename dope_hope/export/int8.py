@@ -76,15 +76,17 @@ class ImageFolderReader:
         self._iter = None
 
 
-def output_convs(model_proto) -> list[str]:
-    """Names of the Conv nodes whose outputs reach the graph outputs through data-movement ops.
+def float_output_nodes(model_proto) -> list[str]:
+    """Names of the last Conv nodes and of the data-movement nodes between them and the outputs.
 
-    These (the last 1x1 convs of the final stage) stay in float during INT8 quantization: the
-    maps come out unquantized (no 1/255-of-range output step on the belief peaks) for a
-    negligible share of the compute.
+    These (the last 1x1 convs of the final stage, plus the isaac-ros layout's concat, channel
+    gather and stride-4 average pool) stay in float during INT8 quantization: the maps come
+    out unquantized (no 1/255-of-range output step on the belief peaks) for a negligible
+    share of the compute. Order: as found walking back from the outputs.
     """
     producer = {o: n for n in model_proto.graph.node for o in n.output}
-    passthrough = {"Slice", "Concat", "Split", "Identity", "Reshape", "Squeeze", "Unsqueeze"}
+    passthrough = {"Slice", "Concat", "Split", "Identity", "Reshape", "Squeeze", "Unsqueeze",
+                   "Gather", "AveragePool"}
     found, stack, seen = [], [o.name for o in model_proto.graph.output], set()
     while stack:
         node = producer.get(stack.pop())
@@ -94,6 +96,7 @@ def output_convs(model_proto) -> list[str]:
         if node.op_type == "Conv":
             found.append(node.name)
         elif node.op_type in passthrough:
+            found.append(node.name)
             stack.extend(node.input[:1] if node.op_type != "Concat" else node.input)
     return found
 
@@ -142,7 +145,7 @@ def quantize_int8(fp32_path: str | os.PathLike, out: str | os.PathLike, calibrat
         # exporter's Identity/Constant nodes, so every conv bias is an initializer it can quantize).
         pre = Path(tmpdir) / "preprocessed.onnx"
         quant_pre_process(str(fp32_path), str(pre))
-        keep_float = output_convs(onnx.load(str(pre)))
+        keep_float = float_output_nodes(onnx.load(str(pre)))
         quantize_static(str(pre), str(tmp), reader, quant_format=QuantFormat.QDQ, per_channel=True,
                         reduce_range=False, nodes_to_exclude=keep_float,
                         activation_type=QuantType.QUInt8 if activation_uint8 else QuantType.QInt8,

@@ -8,14 +8,16 @@ from pathlib import Path
 
 from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.export.int8 import list_images, quantize_int8
+from dope_hope.export.isaac_ros import ISAAC_ROS_CURRENT, isaac_ros_release
 from dope_hope.export.to_onnx import OPSET, ExportResult, export_model
 
 
 def export_checkpoint(weights: str | os.PathLike, out: str | os.PathLike, height: int | None = None,
                       width: int | None = None, dynamic: bool = False, layout: str = "native",
                       int8: bool = False, calibration: str | os.PathLike | None = None,
-                      opset: int = OPSET, isaac_encoder: str = "half", calibration_images: int = 32,
-                      calibration_method: str = "minmax") -> ExportResult:
+                      opset: int = OPSET, isaac_encoder: str | None = None, calibration_images: int = 32,
+                      calibration_method: str = "minmax",
+                      isaac_ros_version: str = ISAAC_ROS_CURRENT) -> ExportResult:
     """Load a checkpoint and export it (see :func:`export_model`, :func:`quantize_int8`).
 
     With ``int8`` the fp32 graph goes to a temporary file and ``out`` receives the INT8 model.
@@ -38,16 +40,19 @@ def export_checkpoint(weights: str | os.PathLike, out: str | os.PathLike, height
         raise InputFileError(weights, "already an ONNX model; export takes a dope-hope checkpoint")
     if int8:
         list_images(calibration)  # fail before the (slow) export if the folder is unusable
+    if layout == "isaac-ros":
+        isaac_ros_release(isaac_ros_version)  # a bad version fails before the model loads
     model, ckpt = load_model(weights)
     hw = None if height is None else (height, width)
     if not int8:
-        info, verify = export_model(model, ckpt, out, layout, hw, dynamic, opset, isaac_encoder, weights.name)
+        info, verify = export_model(model, ckpt, out, layout, hw, dynamic, opset, isaac_encoder, weights.name,
+                                    isaac_ros_version=isaac_ros_version)
         deviation = None
     else:
         with tempfile.TemporaryDirectory(prefix="dope-hope-export-") as tmpdir:
             fp32_path = Path(tmpdir) / f"{out.stem}.fp32.onnx"
             _, verify = export_model(model, ckpt, fp32_path, layout, hw, dynamic, opset, isaac_encoder,
-                                     weights.name)
+                                     weights.name, isaac_ros_version=isaac_ros_version)
             del model
             info, deviation = quantize_int8(fp32_path, out, calibration, calibration_images,
                                             calibration_method)

@@ -25,42 +25,40 @@ dynamic; H and W are fixed (``input_hw``, default the training input size) or dy
 ``config`` (the checkpoint's config as JSON), ``input_layout`` and, for INT8,
 ``quantization``; isaac-ros files add ``isaac_ros.*`` keys (below).
 
-**Isaac ROS layout** (``layout="isaac-ros"``), checked against NVIDIA-ISAAC-ROS/
-isaac_ros_pose_estimation (package isaac_ros_dope):
+**Isaac ROS layout** (``layout="isaac-ros"``), for NVIDIA-ISAAC-ROS/isaac_ros_pose_estimation
+(package isaac_ros_dope; what each release expects is in :mod:`dope_hope.export.isaac_ros`):
 
 - ``scripts/dope_converter.py`` exports the official network with ``input_names=['input']``,
   ``output_names=['output']``, a ``torch.randn(1, 3, row, col)`` dummy (defaults ``--row 480
-  --col 640``, static shapes) and a forward returning ``torch.cat([out6_2, out6_1], 1)``: the
-  9 last-stage belief maps, then the 16 affinity fields. ``launch/isaac_ros_dope_tensor_rt
-  .launch.py`` binds ``input_binding_names ["input"]`` / ``output_binding_names ["output"]``
-  with ``network_image_width 640`` / ``height 480``. The Isaac ROS docs ("Using DOPE at
-  Different Image Resolutions") state that the exported ONNX does not support other image
-  sizes: the size is fixed at export (so ``dynamic`` is refused here).
-- ``gxf/dope/dope_decoder.cpp`` checks the tensor is (1, 25, h, w) (``kNumTensors = 1``,
-  ``kInputMapsChannels = 25``), reads channels 0..8 as belief maps (8 corners + centroid)
-  and 9 + 2k, 10 + 2k as corner k's affinity, and maps a peak to the image as
-  ``(peak + kOffsetDueToUpsampling 0.4395) * kImageToMapScale 8``: stride 8 only (our
-  :mod:`dope_hope.maps.grid` puts cell j at 8j + 3.5, i.e. an offset of 0.4375: the same to
-  0.016 px). Older ``src/dope_decoder_node.cpp`` hard-codes 60 x 80 maps (640x480 input).
-  Its ``CuboidVertices`` corner order (x: + - - + + - - +, y: - - + + - - + +, z: + + + + -
-  - - -) is exactly :data:`dope_hope.geometry.CUBOID_CORNER_SIGNS`; its ``dimensions`` are
-  the cuboid extents in centimetres (``config/dope_config.yaml``, HOPE entries in the legacy
-  frame, e.g. Ketchup [14.86, 4.34, 6.45]), recorded here as
-  ``isaac_ros.object_dimensions_cm`` (legacy-frame extents for legacy models, mesh-frame
-  extents otherwise).
-- The image encoder (isaac_ros_dnn_image_encoder) normalizes with launch arguments
-  ``encoder_image_mean`` / ``encoder_image_stddev``: ``[0.5, 0.5, 0.5]`` / ``[0.5, 0.5, 0.5]``
-  in ``isaac_ros_dope_tensor_rt.launch.py`` (the default here, ``isaac_encoder="half"``);
-  the newer launch fragment ``isaac_ros_dope_core.launch.py`` defaults to ImageNet
-  mean/std (``isaac_encoder="imagenet"``). The conversion to this model's normalization is
-  folded into the graph as a fixed per-channel affine op at the input,
-  ``x_model = (x_isaac * enc_std + enc_mean - mean) / std`` (:class:`IsaacRosMaps`; an
-  exact Mul + Add, not folded into the first conv's weights, whose zero padding would then
-  no longer pad with the normalized zero). The batch axis is fixed at 1.
-- A model whose maps are not at 1/8 (DOPE-DR-400, stride 1; lite head 100, stride 4) is
-  **refused** for this layout (:class:`~dope_hope.errors.ConfigError`): the decoder hard-codes
-  the x8 scale, and pooling full-resolution maps down by 8 would discard exactly what the
-  400-px head is for. Export those in the native layout.
+  --col 640`` in every release, static shapes) and a forward returning ``torch.cat([out6_2,
+  out6_1], 1)``: 9 belief maps, then 16 affinity fields. The launch files bind
+  ``input_binding_names ["input"]`` / ``output_binding_names ["output"]``. The Isaac ROS docs
+  ("Using DOPE at Different Image Resolutions") state that the exported ONNX does not support
+  other image sizes: the size is fixed at export (``dynamic`` is refused here), default 480x640.
+- The decoder checks the tensor is (1, 25, h, w), reads channel k as cuboid vertex k (8 =
+  centroid) with affinity channels 9 + 2k, 10 + 2k, and maps a peak to the image as ``(peak +
+  0.4395) * 8``: stride 8 (:mod:`dope_hope.maps.grid` puts cell j at 8j + 3.5, an offset of
+  0.4375: the same to 0.016 px). Its vertex order is release-dependent (3.2 turned it 180
+  degrees about z), so the graph's output channels are permuted for ``isaac_ros_version``
+  (:func:`dope_hope.export.isaac_ros.channel_order`, recorded as ``isaac_ros.channel_order``): Isaac
+  ROS then publishes the **mesh-frame** pose when its ``dope_config.yaml`` ``dimensions`` entry
+  holds the mesh-frame extents in cm (``isaac_ros.object_dimensions_cm``; legacy-frame models
+  too, whose stock HOPE entries list the legacy frame). :class:`OnnxBackend` undoes the
+  permutation, so dope-hope reads the file like any other.
+- The image encoder (isaac_ros_dnn_image_encoder) normalizes with the launch arguments
+  ``encoder_image_mean`` / ``encoder_image_stddev``; ``isaac_encoder`` defaults to the
+  release's launch default (mean = std = 0.5 up to 3.1, ImageNet since 3.2). The conversion to
+  this model's normalization is folded into the graph as a fixed per-channel affine op at the
+  input, ``x_model = (x_isaac * enc_std + enc_mean - mean) / std`` (:class:`IsaacRosMaps`; an
+  exact Mul + Add, not folded into the first conv's weights, whose zero padding would then no
+  longer pad with the normalized zero). The batch axis is fixed at 1.
+- Maps at stride 4 (lite head 100) are resampled to stride 8 inside the graph by a 2x2 average
+  pool: stride-8 cell i is centred (8i + 3.5) exactly between stride-4 cells 2i and 2i + 1, so
+  the pool is the bilinear sample there and a symmetric peak keeps its position (measured on
+  the demo frames: bench/isaac_ros_lite.py). The file then records ``stride`` 8 and
+  ``isaac_ros.resampled_from_stride`` 4. DOPE-DR-400 (stride 1) is refused
+  (:class:`~dope_hope.errors.ConfigError`): pooling by 8 would discard exactly what the 400-px
+  head is for. Export it in the native layout.
 
 INT8: :mod:`dope_hope.export.int8`.
 """
@@ -81,7 +79,19 @@ from torch import nn
 from dope_hope import __version__
 from dope_hope.errors import ConfigError, DopeHopeError
 from dope_hope.export.compare import MapDeviation
-from dope_hope.inference.onnx_backend import LAYOUT_NAMES, LAYOUTS, OnnxModelInfo
+from dope_hope.export.isaac_ros import ENCODERS as ISAAC_ENCODERS
+from dope_hope.export.isaac_ros import (
+    ISAAC_ROS_CURRENT,
+    channel_order,
+    isaac_ros_release,
+)
+from dope_hope.inference.onnx_backend import (
+    CHANNEL_ORDER_KEY,
+    LAYOUT_NAMES,
+    LAYOUTS,
+    OnnxModelInfo,
+    output_order,
+)
 from dope_hope.io.atomic import atomic_path
 from dope_hope.model.info import ModelInfo
 
@@ -99,11 +109,9 @@ INT8_MIN_OPSET = 13
 ISAAC_ROS_INPUT_HW = (480, 640)
 
 
-#: Isaac ROS image-encoder normalizations (mean, std) by name (see the module docstring).
-ISAAC_ENCODERS: dict[str, tuple[tuple[float, ...], tuple[float, ...]]] = {
-    "half": ((0.5, 0.5, 0.5), (0.5, 0.5, 0.5)),
-    "imagenet": ((0.485, 0.456, 0.406), (0.229, 0.224, 0.225)),
-}
+#: The map stride the Isaac ROS decoder assumes, and the strides resampled to it in-graph.
+ISAAC_ROS_STRIDE = 8
+ISAAC_ROS_RESAMPLED_STRIDES = (4,)
 
 
 #: Verification tolerance: max |onnxruntime - torch| <= VERIFY_TOL * max(1, max |torch|).
@@ -131,21 +139,33 @@ class IsaacRosMaps(nn.Module):
     """Isaac ROS DOPE graph: encoder-normalized (1, 3, H, W) -> (1, 25, H/8, W/8).
 
     ``x_model = x * (enc_std / std) + (enc_mean - mean) / std`` (fixed per-channel affine op),
-    then the network; output = cat(belief (9), affinity (16)) of the last stage.
+    then the network; its last stage's cat(belief (9), affinity (16)) is average-pooled by
+    ``pool`` (stride-4 maps -> stride 8; 1 = none) and its channels gathered in ``order``
+    ((25,) int, :func:`dope_hope.inference.onnx_backend.output_order`; None = as the model has
+    them).
     """
 
     def __init__(self, model: nn.Module, mean: Sequence[float], std: Sequence[float],
-                 enc_mean: Sequence[float], enc_std: Sequence[float]):
+                 enc_mean: Sequence[float], enc_std: Sequence[float], order: Sequence[int] | None = None,
+                 pool: int = 1):
         super().__init__()
         self.model = model
+        self.pool = int(pool)
         m, s = torch.tensor(mean, dtype=torch.float32), torch.tensor(std, dtype=torch.float32)
         em, es = torch.tensor(enc_mean, dtype=torch.float32), torch.tensor(enc_std, dtype=torch.float32)
         self.register_buffer("scale", (es / s).view(1, 3, 1, 1))
         self.register_buffer("shift", ((em - m) / s).view(1, 3, 1, 1))
+        identity = order is None or list(order) == list(range(len(order)))
+        self.register_buffer("order", None if identity else torch.as_tensor(list(order), dtype=torch.int64))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         belief, affinity = self.model(x * self.scale + self.shift)[-1]
-        return torch.cat([belief, affinity], 1)
+        maps = torch.cat([belief, affinity], 1)
+        if self.pool > 1:
+            maps = nn.functional.avg_pool2d(maps, self.pool)
+        if self.order is not None:
+            maps = maps.index_select(1, self.order)
+        return maps
 
 
 @dataclass
@@ -212,29 +232,41 @@ def _doc(info: OnnxModelInfo) -> str:
 
 
 def model_info(checkpoint: dict[str, Any], model: nn.Module, layout: str,
-               fixed_input_hw: tuple[int, int] | None, opset: int, isaac_encoder: str = "half",
-               source: str = "") -> OnnxModelInfo:
-    """The :class:`OnnxModelInfo` of a checkpoint exported in ``layout``."""
+               fixed_input_hw: tuple[int, int] | None, opset: int, isaac_encoder: str | None = None,
+               source: str = "", isaac_ros_version: str = ISAAC_ROS_CURRENT) -> OnnxModelInfo:
+    """The :class:`OnnxModelInfo` of a checkpoint exported in ``layout``.
+
+    isaac-ros: ``stride`` is the graph output's (8, after any resampling); ``isaac_encoder``
+    None = the release's launch default.
+    """
     meta = ModelInfo.from_checkpoint(checkpoint, source or "<checkpoint>")
     mean, std = meta.mean, meta.std
-    input_mean, input_std = (mean, std) if layout == "native" else ISAAC_ENCODERS[isaac_encoder]
+    stride = int(model.stride)
     extra = {
         "config": json.dumps(checkpoint.get("config"), default=str, sort_keys=True),
         "input_layout": "NCHW float32 RGB, (rgb / 255 - input_mean) / input_std",
     }
+    input_mean, input_std = mean, std
     if layout == "isaac-ros":
-        size = np.asarray(meta.size_m, dtype=np.float64)
-        if meta.legacy:  # Isaac ROS lists the legacy-frame extents (dope_config.yaml)
-            from dope_hope.geometry import LEGACY_TO_MESH
-
-            size = np.abs(LEGACY_TO_MESH).T @ size
-        extra["isaac_ros.object_dimensions_cm"] = json.dumps([round(float(v) * 100.0, 4) for v in size])
+        release = isaac_ros_release(isaac_ros_version)
+        isaac_encoder = release.encoder if isaac_encoder is None else isaac_encoder
+        if isaac_encoder not in ISAAC_ENCODERS:
+            raise ConfigError(f"isaac encoder normalization must be one of {', '.join(ISAAC_ENCODERS)}, "
+                              f"got {isaac_encoder!r}")
+        input_mean, input_std = ISAAC_ENCODERS[isaac_encoder]
+        extra["isaac_ros.version"] = release.version
         extra["isaac_ros.encoder"] = isaac_encoder
+        extra[CHANNEL_ORDER_KEY] = json.dumps(channel_order(meta.frame, release).tolist())
+        # Mesh-frame extents: with the channel order above Isaac ROS publishes mesh-frame poses.
+        extra["isaac_ros.object_dimensions_cm"] = json.dumps([round(float(v) * 100.0, 4) for v in meta.size_m])
+        if stride != ISAAC_ROS_STRIDE:
+            extra["isaac_ros.resampled_from_stride"] = str(stride)
+            stride = ISAAC_ROS_STRIDE
     return OnnxModelInfo(
         class_name=meta.class_name, size_m=meta.size_m,
         frame=meta.frame, keypoint_order=meta.keypoint_order, mean=tuple(mean), std=tuple(std),
         input_mean=tuple(float(v) for v in input_mean), input_std=tuple(float(v) for v in input_std),
-        stride=int(model.stride), head=int(getattr(model, "head", 0)), arch=str(getattr(model, "arch", "")),
+        stride=stride, head=int(getattr(model, "head", 0)), arch=str(getattr(model, "arch", "")),
         layout=layout, input_hw=meta.input_hw, fixed_input_hw=fixed_input_hw, opset=int(opset),
         precision="fp32", version=__version__,
         exporter=f"torch.onnx.export(dynamo=False) TorchScript exporter, torch {torch.__version__}",
@@ -243,8 +275,9 @@ def model_info(checkpoint: dict[str, Any], model: nn.Module, layout: str,
 
 def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.PathLike,
                  layout: str = "native", input_hw: Sequence[int] | None = None,
-                 dynamic: bool = False, opset: int = OPSET, isaac_encoder: str = "half",
-                 source: str = "", seed: int = 0) -> tuple[OnnxModelInfo, float]:
+                 dynamic: bool = False, opset: int = OPSET, isaac_encoder: str | None = None,
+                 source: str = "", seed: int = 0,
+                 isaac_ros_version: str = ISAAC_ROS_CURRENT) -> tuple[OnnxModelInfo, float]:
     """Export ``model`` (fp32) to ``out`` atomically; returns (metadata, verify max |d|).
 
     Args:
@@ -255,7 +288,10 @@ def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.Pat
             480x640 (isaac-ros). With ``dynamic`` it only sizes the tracing input.
         dynamic: native only: H and W dynamic (the batch axis always is).
         opset: ONNX opset (11..20).
-        isaac_encoder: "half" (mean = std = 0.5) or "imagenet": the Isaac ROS encoder's.
+        isaac_encoder: "half" (mean = std = 0.5) or "imagenet": the Isaac ROS encoder's
+            (None: the launch default of ``isaac_ros_version``).
+        isaac_ros_version: the Isaac ROS release ("3.1", "4.0", ...) whose decoder the output
+            channels are ordered for (:mod:`dope_hope.export.isaac_ros`).
     Raises ConfigError for impossible options, ExportError if the graph does not reproduce
     the model.
     """
@@ -265,16 +301,14 @@ def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.Pat
         raise ConfigError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
     if not MIN_OPSET <= int(opset) <= MAX_OPSET:
         raise ConfigError(f"opset must be {MIN_OPSET}..{MAX_OPSET} (TorchScript exporter), got {opset}")
-    if isaac_encoder not in ISAAC_ENCODERS:
-        raise ConfigError(f"isaac encoder normalization must be one of {', '.join(ISAAC_ENCODERS)}, "
-                          f"got {isaac_encoder!r}")
     stride = int(model.stride)
     if layout == "isaac-ros":
-        if stride != 8:
+        if stride != ISAAC_ROS_STRIDE and stride not in ISAAC_ROS_RESAMPLED_STRIDES:
             raise ConfigError(
                 f"the isaac-ros layout needs maps at 1/8 of the input (Isaac ROS DOPE's decoder scales "
                 f"peaks by 8); this model's maps are at stride {stride} (head "
-                f"{getattr(model, 'head', '?')}): export it with --layout native")
+                f"{getattr(model, 'head', '?')}), and pooling them by {ISAAC_ROS_STRIDE // stride} would "
+                f"discard what that head is for: export it with --layout native")
         if dynamic:
             raise ConfigError("the isaac-ros layout has a fixed input size (Isaac ROS builds a static "
                               "TensorRT engine); give --height/--width instead of --dynamic")
@@ -283,7 +317,7 @@ def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.Pat
         input_hw = ISAAC_ROS_INPUT_HW if layout == "isaac-ros" else (train_hw or (400, 400))
     h, w = _check_hw(input_hw, "export input size")
     fixed = None if dynamic else (h, w)
-    info = model_info(checkpoint, model, layout, fixed, int(opset), isaac_encoder, source)
+    info = model_info(checkpoint, model, layout, fixed, int(opset), isaac_encoder, source, isaac_ros_version)
 
     was_training = model.training
     model.eval()  # the wrapper must be in eval mode too: BatchNorm with running statistics
@@ -295,8 +329,9 @@ def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.Pat
                 dyn = {"image": {0: "N", 2: "H", 3: "W"}, "belief": {0: "N", 2: "h", 3: "w"},
                        "affinity": {0: "N", 2: "h", 3: "w"}}
         else:
-            enc_mean, enc_std = ISAAC_ENCODERS[isaac_encoder]
-            wrapper = IsaacRosMaps(model, info.mean, info.std, enc_mean, enc_std).eval()
+            order = output_order(json.loads(info.extra[CHANNEL_ORDER_KEY]))
+            wrapper = IsaacRosMaps(model, info.mean, info.std, info.input_mean, info.input_std,
+                                   order=order.tolist(), pool=ISAAC_ROS_STRIDE // stride).eval()
             dyn = None
         in_names, out_names = (list(v) for v in LAYOUT_NAMES[layout])
         gen = torch.Generator().manual_seed(seed)

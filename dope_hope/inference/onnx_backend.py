@@ -9,9 +9,12 @@ the model's ``metadata_props`` under the keys of :class:`OnnxModelInfo` (prefix
   outputs ``belief`` (N, 9, h, w) and ``affinity`` (N, 16, h, w) of the last stage.
 - ``isaac-ros``: what Isaac ROS DOPE's TensorRT node + decoder consume: input ``input``
   (1, 3, H, W) normalized with the Isaac ROS image encoder's mean/std (recorded as
-  ``dope_hope.input_mean/std``), output ``output`` (1, 25, H/8, W/8) = belief then affinity.
-  This backend converts the predictor's batch to that normalization, runs images one at a
-  time (batch 1) and splits the output.
+  ``dope_hope.input_mean/std``), output ``output`` (1, 25, H/8, W/8) = belief then affinity,
+  channels in an Isaac ROS release's vertex order (metadata ``dope_hope.isaac_ros.channel_order``,
+  :func:`parse_channel_order`, written by :mod:`dope_hope.export.isaac_ros`; absent = the
+  model's order). This backend converts the predictor's batch to that normalization, runs
+  images one at a time (batch 1), splits the output and puts the channels back in the model's
+  keypoint order (:func:`output_order`).
 
 Anything else (random bytes, a truncated file, an ONNX model with other inputs/outputs or
 without dope-hope metadata) raises :class:`~dope_hope.errors.ModelFileError` with one line
@@ -44,6 +47,8 @@ LAYOUT_NAMES = {
     "isaac-ros": (("input",), ("output",)),
 }
 NUM_BELIEF, NUM_AFFINITY = 9, 16
+#: ``extra`` key of an isaac-ros file's belief channel order (JSON list of 9 ints).
+CHANNEL_ORDER_KEY = "isaac_ros.channel_order"
 #: onnxruntime graph optimization levels by name.
 OPTIMIZATION_LEVELS = ("disable", "basic", "extended", "all")
 
@@ -157,6 +162,34 @@ class OnnxModelInfo(ModelInfo):
             bad(f"fixed_input_hw must be [H, W] or null, got {self.fixed_input_hw}")
         if self.layout == "isaac-ros" and (self.fixed_input_hw is None or self.stride != 8):
             bad("an isaac-ros model must have a fixed input size and stride 8")
+        try:
+            parse_channel_order(self.extra.get(CHANNEL_ORDER_KEY))
+        except (ValueError, TypeError) as exc:
+            bad(f"{CHANNEL_ORDER_KEY}: {exc}")
+
+
+def parse_channel_order(text: str | None) -> np.ndarray:
+    """(9,) int belief order of an isaac-ros file: graph channel k = model channel ``order[k]``.
+
+    ``text``: the ``isaac_ros.channel_order`` metadata (JSON); None (files written before it
+    existed) = identity. ValueError unless a permutation of the corners 0..7 followed by 8.
+    """
+    if text is None:
+        return np.arange(NUM_BELIEF)
+    order = np.asarray(json.loads(text), dtype=np.int64)
+    if order.shape != (NUM_BELIEF,) or order[-1] != NUM_BELIEF - 1 or \
+            sorted(order[:-1].tolist()) != list(range(NUM_BELIEF - 1)):
+        raise ValueError(f"not a permutation of the 8 corners followed by 8: {text[:60]}")
+    return order
+
+
+def output_order(order: Sequence[int]) -> np.ndarray:
+    """(25,) int: graph output channel c = model map channel ``cat(belief, affinity)[idx[c]]``
+    for a belief ``order`` (9,); corner k's affinity pair (2k, 2k + 1) moves with it."""
+    order = np.asarray(order, dtype=np.int64)
+    corners = order[:NUM_BELIEF - 1]
+    affinity = np.stack([2 * corners, 2 * corners + 1], axis=1).reshape(-1)
+    return np.concatenate([order, NUM_BELIEF + affinity])
 
 
 def _ort_problem(exc: BaseException, limit: int = 160) -> str:
@@ -255,6 +288,9 @@ class OnnxBackend:
         self._a = (s / is_).reshape(1, 3, 1, 1)
         self._b = ((m - im) / is_).reshape(1, 3, 1, 1)
         self._identity_input = bool(np.allclose(m, im) and np.allclose(s, is_))
+        #: graph output channel c holds model map channel _order[c] (isaac-ros); None = same order.
+        order = output_order(parse_channel_order(i.extra.get(CHANNEL_ORDER_KEY)))
+        self._order = None if np.array_equal(order, np.arange(order.size)) else order
 
     def _check_io(self) -> None:
         ins = tuple(x.name for x in self.session.get_inputs())
@@ -301,7 +337,10 @@ class OnnxBackend:
                              f"inputs only, got {batch.shape[2]}x{batch.shape[3]}")
         results = [self.session.run(None, feed) for feed in self.feeds(batch)]
         if self.layout == "isaac-ros":
-            maps = np.concatenate([r[0] for r in results], axis=0)
+            out = np.concatenate([r[0] for r in results], axis=0)
+            maps = out if self._order is None else np.empty_like(out)
+            if self._order is not None:
+                maps[:, self._order] = out
             return maps[:, :NUM_BELIEF], maps[:, NUM_BELIEF:]
         belief, affinity = results[0]
         return belief, affinity
