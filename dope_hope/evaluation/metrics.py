@@ -200,8 +200,8 @@ def _linear_potential(a: np.ndarray, b: np.ndarray, shift: np.ndarray, add: floa
     the motion is small against the object (identity cost ``add`` (mean) << the points' RMS
     radius) the optimal assignment is nearly the identity, whose displacements are only
     partly aligned with ``e``: the slope then falls towards their mean alignment
-    ``|shift| / add`` (``k = (|shift| / add) ** max(0, 1 - add / rms)``, a speed heuristic
-    fitted on bench/addh_speed.py; the result does not depend on it).
+    ``|shift| / add``: ``k = (|shift| / add) ** max(0, 1 - add / rms)`` (a speed heuristic;
+    results do not depend on it).
     """
     length = float(np.linalg.norm(shift))
     if length == 0 or add == 0:
@@ -244,7 +244,8 @@ def _reduce(C: np.ndarray, v: np.ndarray, out: np.ndarray) -> tuple[bool, np.nda
 
     Returns:
         (whether the row-wise minimisers of ``C - v`` form a permutation — then it is an
-        optimal assignment —, those (n,) minimisers, ``D``).
+        optimal assignment, ``out`` is left as ``C - v`` and ``D`` is ``inf`` —, those (n,)
+        minimisers, ``D``).
     """
     np.subtract(C, v[None, :], out=out)
     arg = out.argmin(axis=1)
