@@ -94,19 +94,107 @@ def test_addh_equals_brute_force_optimal_assignment(seed):
     assert metrics.addh(R_e, t_e, I3, Z3, pts) == pytest.approx(brute_force_assignment(a, b), abs=1e-12)
 
 
-@pytest.mark.parametrize("deg,shift", [(30, 0.02), (120, 0.05), (180, 0.3)])
-def test_addh_fast_path_matches_plain_linear_sum_assignment_at_500_points(deg, shift, monkeypatch):
-    calls = []
-    warm = metrics._warm_potentials
-    monkeypatch.setattr(metrics, "_warm_potentials", lambda *a: calls.append(1) or warm(*a))
-    pts = box_points(n=500, seed=1)
-    R_e = Rotation.from_rotvec(np.radians(deg) * np.array([0.6, 0.0, 0.8])).as_matrix()
-    t_e = np.array([shift, -shift / 2, 0.0])
-    a, b = pts, pts @ R_e.T + t_e
+def dense_lsa(a: np.ndarray, b: np.ndarray) -> tuple[float, np.ndarray]:
+    """The HOPE paper's computation: scipy's solver on the full distance matrix."""
     C = cdist(a, b)
     r, c = linear_sum_assignment(C)
-    assert metrics.addh(R_e, t_e, I3, Z3, pts) == pytest.approx(C[r, c].mean(), abs=1e-12)
-    assert calls, "the warm-started path was not exercised"
+    return float(C[r, c].mean()), c
+
+
+def lattice(spacing=0.01) -> np.ndarray:
+    """256 points on an 8 x 8 x 4 grid, centred."""
+    g = np.arange(8) * spacing
+    pts = np.stack(np.meshgrid(g, g, g[:4], indexing="ij"), -1).reshape(-1, 3)
+    return pts - pts.mean(axis=0)
+
+
+@pytest.fixture
+def stages(monkeypatch):
+    """Records which solver stages assignment_distance ran: 'sub' (subsample duals), 'lsa'."""
+    calls: list[str] = []
+    sub, lsa = metrics._subsample_potentials, metrics.linear_sum_assignment
+    monkeypatch.setattr(metrics, "_subsample_potentials", lambda *a: calls.append("sub") or sub(*a))
+    monkeypatch.setattr(metrics, "linear_sum_assignment", lambda *a: calls.append("lsa") or lsa(*a))
+    return calls
+
+
+@pytest.mark.parametrize("deg,shift,expected_stages", [
+    (0, 0.02, []),                      # pure translation: the identity meets the centroid bound
+    (2, 0.01, ["lsa"]),                 # near: the solver on the linear-potential reduction
+    (30, 0.02, ["sub", "lsa", "lsa"]),  # hard: subsample duals as the warm start
+    (180, 0.3, ["sub", "lsa", "lsa"]),
+])
+def test_addh_is_bitwise_the_dense_solvers_value_at_500_points(deg, shift, expected_stages, stages):
+    pts = box_points(n=500, seed=1)
+    R_e = Rotation.from_rotvec(np.radians(deg) * np.array([0.6, 0.0, 0.8])).as_matrix()
+    b = pts @ R_e.T + np.array([shift, -shift / 2, 0.0])
+    value, perm = metrics.assignment_distance(pts, b, return_assignment=True)
+    assert stages == expected_stages
+    expected, c = dense_lsa(pts, b)
+    # a unique optimum: the same permutation, so the same float, not just a close one
+    assert value == expected
+    assert np.array_equal(perm, c)
+
+
+@pytest.mark.parametrize("shift", [(0.0, 0.0, 0.0), (0.013, 0.007, 0.004)])
+def test_addh_certified_by_a_dual_potential_skips_the_solver(shift, stages):
+    # points moved by less than their spacing: the row-wise minimisers of C - v (v = 0 when
+    # the centroids coincide, else the linear potential) form a permutation: optimal
+    a = lattice()
+    noise = np.random.default_rng(0).normal(scale=2e-4, size=a.shape)
+    b = a + np.array(shift) + (noise - noise.mean(axis=0))
+    value, perm = metrics.assignment_distance(a, b, return_assignment=True)
+    assert stages == []
+    expected, c = dense_lsa(a, b)
+    assert value == expected
+    assert np.array_equal(perm, c)
+
+
+def _tie_case(name: str) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(3)
+    if name == "duplicated points":
+        a = np.repeat(box_points(n=250, seed=2), 2, axis=0)
+        return a, a @ rot("y", 40).T + np.array([0.01, 0.0, 0.02])
+    if name == "lattice onto itself":  # 90 deg about z maps the grid onto itself
+        a = lattice()
+        return a, a @ rot("z", 90).T
+    if name == "lattice, axis shift":  # collinear points: many optimal assignments
+        a = lattice()
+        return a, a @ rot("x", 180).T + np.array([0.01, 0.0, 0.0])
+    if name == "symmetric cylinder":
+        a = ring_cylinder()
+        return a, a @ rot("y", 45).T + np.array([0.0, 0.003, 0.0])
+    if name == "all points coincide":  # every permutation costs the same
+        return np.zeros((200, 3)), rng.normal(scale=0.05, size=(200, 3))
+    raise ValueError(name)
+
+
+@pytest.mark.parametrize("name", ["duplicated points", "lattice onto itself", "lattice, axis shift",
+                                  "symmetric cylinder", "all points coincide"])
+def test_addh_with_ties_has_the_dense_solvers_value(name):
+    # several optimal permutations: another one than scipy's may come back; the values are
+    # proved equal up to the rounding of the reduced matrix, far below 1e-12 m
+    a, b = _tie_case(name)
+    value, perm = metrics.assignment_distance(a, b, return_assignment=True)
+    assert sorted(perm) == list(range(len(a)))
+    assert cdist(a, b)[np.arange(len(a)), perm].mean() == value
+    assert value == pytest.approx(dense_lsa(a, b)[0], abs=1e-12)
+
+
+@settings(max_examples=30, deadline=None)
+@given(n=st.integers(1, 220), seed=st.integers(0, 10_000),
+       shift=st.sampled_from([0.0, 0.003, 0.03, 0.3]), rigid=st.booleans())
+def test_addh_equals_the_dense_solver_on_random_problems(n, seed, shift, rigid):
+    rng = np.random.default_rng(seed)
+    a = rng.normal(scale=0.05, size=(n, 3))
+    if rigid:  # the same points in another pose, as in ADD-H
+        b = a @ Rotation.random(random_state=seed).as_matrix().T
+    else:
+        b = rng.normal(scale=0.05, size=(n, 3))
+    b = b + shift * rng.normal(size=3)
+    value, perm = metrics.assignment_distance(a, b, return_assignment=True)
+    assert sorted(perm) == list(range(n))
+    assert value == pytest.approx(dense_lsa(a, b)[0], abs=1e-12)
 
 
 def test_assignment_is_a_permutation_and_reaches_the_reported_value():
@@ -133,6 +221,17 @@ def test_addh_upper_cutoff_returns_a_bound_at_or_above_the_cutoff():
     R_s = rot("x", 5)
     assert metrics.addh(R_s, Z3, I3, Z3, pts, upper=0.1) == pytest.approx(
         metrics.addh(R_s, Z3, I3, Z3, pts))
+
+
+def test_addh_upper_cutoff_uses_the_dual_bound_when_the_centroids_are_close():
+    pts = box_points(n=500, seed=1)
+    R_e, t_e = rot("x", 150), np.array([0.01, 0.0, 0.0])
+    exact = metrics.addh(R_e, t_e, I3, Z3, pts)
+    upper = 0.9 * exact  # far above the 1 cm centroid distance
+    value, perm = metrics.assignment_distance(pts, pts @ R_e.T + t_e, upper=upper,
+                                              return_assignment=True)
+    assert perm is None
+    assert upper <= value <= exact + 1e-12
 
 
 def test_addh_rejects_mismatched_point_sets():

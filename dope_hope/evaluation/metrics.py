@@ -139,35 +139,35 @@ def addh(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray,
 
 
 class _Buffers(threading.local):
-    """Per-thread (n, n) float64 work matrices, reused across calls of the same size."""
+    """Per-thread (n, n) float64 work matrices (``slot`` 0, 1, ...), reused across calls."""
 
     def __init__(self) -> None:
-        self.cost: dict[int, np.ndarray] = {}
+        self.cost: dict[tuple[int, int], np.ndarray] = {}
 
-    def get(self, n: int) -> np.ndarray:
-        buf = self.cost.get(n)
+    def get(self, n: int, slot: int = 0) -> np.ndarray:
+        buf = self.cost.get((n, slot))
         if buf is None:
             if len(self.cost) > 4:
                 self.cost.clear()
-            buf = self.cost[n] = np.empty((n, n))
+            buf = self.cost[(n, slot)] = np.empty((n, n))
         return buf
 
 
 _BUFFERS = _Buffers()
 
 
-#: Below this size scipy's solver alone is already fast; the warm start does not pay off.
+#: Below this size scipy's solver alone is already fast; the subsample warm start does not pay.
 _WARM_START_MIN_N = 160
 
 
-#: Size of the sub-problem that provides the warm-start dual potentials.
+#: Size of the sub-problem that provides the subsample warm-start dual potentials.
 _WARM_START_SUBSET = 125
 
 
-#: Warm-start only "hard" problems: those where fewer than this fraction of the points have
-#: distinct nearest neighbours (measured crossover, bench/addh_speed.py); near-identity
-#: problems are solved faster by scipy alone.
-_WARM_START_MAX_UNIQUE_NN = 0.72
+#: The subsample potentials are tried only when fewer than this fraction of the rows have
+#: distinct minimisers under the linear potential (measured crossover, bench/addh_speed.py);
+#: above it the linear potential alone leaves scipy's solver little to do.
+_WARM_START_MAX_UNIQUE = 0.45
 
 
 def _column_potentials(C: np.ndarray, match: np.ndarray, max_iter: int) -> np.ndarray:
@@ -175,9 +175,10 @@ def _column_potentials(C: np.ndarray, match: np.ndarray, max_iter: int) -> np.nd
 
     With ``u_i = C[i, match[i]] - v[match[i]]`` these satisfy ``u_i + v_j <= C_ij`` (up to
     rounding) and equality on the assignment: shortest-path distances in the residual
-    graph, by a dense Bellman-Ford (hand-written: scipy's ``bellman_ford`` is an order of
-    magnitude slower on a complete graph). Stops early; the result only seeds a warm
-    start, so an inexact one costs time, never correctness.
+    graph, by a dense Bellman-Ford (hand-written: scipy's ``bellman_ford`` has no early
+    exit and is an order of magnitude slower here). Of the many optimal duals this gives
+    the largest ``v <= 0``. Stops early; the result only seeds a warm start, so an inexact
+    one costs time, never correctness.
     """
     n = len(C)
     matched = C[np.arange(n), match]
@@ -191,51 +192,105 @@ def _column_potentials(C: np.ndarray, match: np.ndarray, max_iter: int) -> np.nd
     return d
 
 
-def _warm_potentials(a: np.ndarray, b: np.ndarray, C: np.ndarray) -> np.ndarray:
-    """Approximate column duals for the full problem from an exact solve of a subsample.
+def _linear_potential(a: np.ndarray, b: np.ndarray, shift: np.ndarray, add: float) -> np.ndarray:
+    """(n,) column potential ``v_j = k b_j . e``, ``e`` the unit centroid displacement ``shift``.
 
-    The sub-problem's exact duals are extended to all columns by the c-transform
+    With slope ``k = 1`` (and row potentials ``u_i = -a_i . e``) it is dual-feasible and
+    reaches the centroid-distance bound; for a pure translation it is an optimal dual. When
+    the motion is small against the object (identity cost ``add`` (mean) << the points' RMS
+    radius) the optimal assignment is nearly the identity, whose displacements are only
+    partly aligned with ``e``: the slope then falls towards their mean alignment
+    ``|shift| / add``: ``k = (|shift| / add) ** max(0, 1 - add / rms)`` (a speed heuristic;
+    results do not depend on it).
+    """
+    length = float(np.linalg.norm(shift))
+    if length == 0 or add == 0:
+        return np.zeros(len(b))
+    rms = float(np.sqrt(((a - a.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    slope = min(1.0, length / add) ** max(0.0, 1.0 - add / rms) if rms > 0 else 1.0
+    return b @ (shift * (slope / length))
+
+
+def _subsample_potentials(C: np.ndarray, prior: np.ndarray) -> np.ndarray:
+    """(n,) approximate column duals of ``C`` from an exact solve of a subsample.
+
+    Of the sub-problem's optimal duals the largest ``v <= prior`` (n,) is taken (the
+    Bellman-Ford runs on the sub-matrix minus ``prior``: unconstrained columns keep the
+    prior's shape); its row duals ``u`` are extended to all columns by the c-transform
     ``v_j = min_i (C_ij - u_i)`` over the subsample rows (for a Euclidean cost the optimal
     duals are a 1-Lipschitz potential, so nearby points get nearby values).
     """
-    n = len(a)
+    n = len(C)
     idx = np.arange(0, n, max(1, n // _WARM_START_SUBSET))[:_WARM_START_SUBSET]
     Cs = C[np.ix_(idx, idx)]
-    _, sub_match = linear_sum_assignment(Cs)
+    Cs -= prior[idx][None, :]  # a column constant: the sub-problem's solutions are unchanged
+    _, sub_match = linear_sum_assignment(Cs - Cs.min(axis=1, keepdims=True))
     v_sub = _column_potentials(Cs, sub_match, max_iter=len(idx) + 2)
     u_sub = Cs[np.arange(len(idx)), sub_match] - v_sub[sub_match]
     return (C[idx, :] - u_sub[:, None]).min(axis=0)
+
+
+def _distinct(idx: np.ndarray) -> int:
+    """Number of distinct values in ``idx`` (n,) int, all in ``[0, n)``."""
+    return int(np.count_nonzero(np.bincount(idx, minlength=len(idx))))
+
+
+def _reduce(C: np.ndarray, v: np.ndarray, out: np.ndarray) -> tuple[bool, np.ndarray, float]:
+    """Reduce ``C`` (n, n) by the column potential ``v`` (n,) into ``out``.
+
+    ``out = C - v``, minus each row's minimum, minus each column's minimum: >= 0, and every
+    permutation's total changes by the same constant, the dual bound ``D = sum(row minima)
+    + sum(column minima) + sum(v)`` (a lower bound on every assignment's total cost).
+
+    Returns:
+        (whether the row-wise minimisers of ``C - v`` form a permutation — then it is an
+        optimal assignment, ``out`` is left as ``C - v`` and ``D`` is ``inf`` —, those (n,)
+        minimisers, ``D``).
+    """
+    np.subtract(C, v[None, :], out=out)
+    arg = out.argmin(axis=1)
+    if _distinct(arg) == len(arg):
+        return True, arg, math.inf
+    mins = out[np.arange(len(out)), arg]
+    out -= mins[:, None]
+    col = out.min(axis=0)
+    out -= col[None, :]
+    return False, arg, float(mins.sum() + col.sum() + v.sum())
 
 
 def assignment_distance(a: np.ndarray, b: np.ndarray, upper: float | None = None,
                         return_assignment: bool = False):
     """Mean Euclidean distance under the optimal one-to-one assignment of ``a`` to ``b``.
 
-    ``min over permutations s of mean_i |a_i - b_s(i)|`` — the exact optimum of the summed
-    (not squared) distances, found in this order:
+    ``min over permutations s of mean_i C[i, s(i)]``, ``C = cdist(a, b)``: the exact optimum
+    of the summed (not squared) distances, the value ``linear_sum_assignment(C)`` gives.
+    Found in this order:
 
-    1. Exact short-cuts from bounds. Any permutation gives an upper bound (the identity:
-       ADD when ``a``, ``b`` are the same model points in two poses); the optimum is at
-       least the centroid distance (triangle inequality: ``sum |a_i - b_s(i)| >=
-       |sum a_i - sum b_i|``) and at least the mean nearest-neighbour distance in either
-       direction (ADD-S). When the bounds meet (e.g. a pure translation) the upper bound is
-       the answer; when the points of ``a`` all have different nearest neighbours in ``b``,
-       that nearest-neighbour map is a permutation reaching the lower bound: optimal.
-    2. Otherwise scipy's ``linear_sum_assignment`` on the full distance matrix (in a reused
-       buffer). For hard problems (n >= 160, fewer than 72% distinct nearest neighbours)
-       the matrix is first reduced by dual potentials warm-started from an exact solve of
-       a 125-point subsample: subtracting per-row and per-column constants changes every
-       permutation's cost by the same amount, so the optimal permutation is unchanged, but
-       the solver's augmenting paths get short (about 2x faster on hard cases;
-       ``bench/addh_speed.py``).
+    1. The identity (ADD when ``a``, ``b`` are the same model points in two poses) when it
+       meets the centroid-distance lower bound ``|mean b - mean a|`` (a pure translation).
+    2. A dual certificate: for a column potential ``v`` the row-wise minimisers of ``C_ij -
+       v_j``, when they form a permutation, are an optimal assignment (every permutation's
+       total differs from its reduced total by the same ``sum v``). ``v`` is the linear
+       Kantorovich potential ``v_j = b_j . e``, ``e`` the unit centroid displacement
+       (1-Lipschitz, so dual-feasible; optimal for translation-like motions; ``v = 0``,
+       i.e. nearest neighbours, when the centroids coincide).
+    3. Otherwise scipy's ``linear_sum_assignment`` on ``C`` reduced by ``v`` (see
+       :func:`_reduce`): the optimal permutation is unchanged, but the closer ``v`` is to
+       an optimal dual, the shorter the solver's augmenting paths. On hard problems (n >=
+       160, < 45% distinct minimisers) duals from an exact solve of a 125-point subsample
+       are tried too, and whichever potential gives the higher dual bound is used.
 
-    "Exact" means up to floating-point rounding (the short-cuts accept bounds that meet to
-    1e-12 relative), as for the plain solver.
+    Exactness: the reduced entries carry rounding errors of ~1e-16 of the largest
+    distance, so a certified or reduced-matrix optimum is within that (per point) of the
+    plain solver's; with a unique optimum the permutation and the value are bitwise
+    scipy's, with ties (symmetric objects, duplicated points) another optimal permutation
+    may be returned, of the same value to that rounding.
 
     Args:
         a, b: (n, 3) point sets, metres.
-        upper: optional cut-off: if a lower bound is already >= ``upper``, that bound is
-            returned instead of the exact value.
+        upper: optional cut-off: if a lower bound (centroid distance, then the dual
+            bound of step 3) is already >= ``upper``, that bound is returned instead of
+            the exact value.
         return_assignment: also return ``s`` (n,) with ``a[i]`` assigned to ``b[s[i]]``
             (None when the ``upper`` cut-off was taken).
 
@@ -247,36 +302,41 @@ def assignment_distance(a: np.ndarray, b: np.ndarray, upper: float | None = None
     if a.shape != b.shape:
         raise ValueError(f"point sets differ in size: {a.shape} vs {b.shape}")
     n = len(a)
+    rows = np.arange(n)
 
-    def result(value: float, perm: np.ndarray | None):
-        return (float(value), perm) if return_assignment else float(value)
+    def result(perm: np.ndarray) -> float | tuple[float, np.ndarray]:
+        value = float(C[rows, perm].mean())
+        return (value, perm) if return_assignment else value
 
-    identity = np.arange(n)
-    ub = float(np.linalg.norm(a - b, axis=1).mean())
-    # Nearest-neighbour bounds from the full distance matrix, which the solver needs anyway
-    # (at n = 500 this is cheaper than two KD-trees).
-    C = _BUFFERS.get(n)
+    def cut(bound: float) -> float | tuple[float, None]:
+        return (bound, None) if return_assignment else bound
+
+    C = _BUFFERS.get(n, 0)
     cdist(a, b, out=C)
-    nn_ab = C.argmin(axis=1)
-    d_ab = C[identity, nn_ab]
-    d_ba = C.min(axis=0)  # (a column-wise argmin would cost as much as the rest together)
-    lb = max(float(np.linalg.norm(a.mean(0) - b.mean(0))), float(d_ab.mean()), float(d_ba.mean()))
-    tol = 1e-12 * max(ub, 1e-12)
-    if ub <= lb + tol:
-        return result(ub, identity)
-    unique_nn = len(np.unique(nn_ab))
-    if unique_nn == n:
-        return result(float(d_ab.mean()), nn_ab)
-    if upper is not None and lb >= upper:
-        return result(lb, None)
+    shift = b.mean(axis=0) - a.mean(axis=0)
+    centroid = float(np.linalg.norm(shift))
+    ub = float(C[rows, rows].mean())
+    if ub <= centroid + 1e-12 * max(ub, 1e-12):
+        return result(rows)
+    if upper is not None and centroid >= upper:
+        return cut(centroid)
 
-    if n >= _WARM_START_MIN_N and unique_nn < _WARM_START_MAX_UNIQUE_NN * n:
-        v = _warm_potentials(a, b, C)
-        C -= v[None, :]
-        C -= C.min(axis=1, keepdims=True)
-    _, perm = linear_sum_assignment(C)
-    value = float(np.linalg.norm(a - b[perm], axis=1).mean())
-    return result(value, perm)
+    v = _linear_potential(a, b, shift, ub)
+    R = _BUFFERS.get(n, 1)
+    optimal, arg, bound = _reduce(C, v, R)
+    if optimal:
+        return result(arg)
+    if n >= _WARM_START_MIN_N and _distinct(arg) < _WARM_START_MAX_UNIQUE * n:
+        optimal, arg, bound_sub = _reduce(C, _subsample_potentials(C, v), R)
+        if optimal:
+            return result(arg)
+        if bound_sub < bound:
+            _reduce(C, v, R)  # the linear potential was the better start after all
+        bound = max(bound, bound_sub)
+    if upper is not None and bound >= upper * n:
+        return cut(bound / n)
+    _, perm = linear_sum_assignment(R)
+    return result(perm)
 
 
 # --------------------------------------------------------------------------- symmetry-aware
