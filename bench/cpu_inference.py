@@ -299,8 +299,11 @@ def main() -> None:
     from dope_hope.export.int8 import quantize_int8
     from dope_hope.export.pipeline import export_checkpoint
 
+    from dope_hope.export.int8 import cpu_int8_support
+
     print(f"torch {torch.__version__}, onnxruntime {onnxruntime.__version__}, {args.threads} threads, "
-          f"{os.cpu_count()} CPUs; load average at start {os.getloadavg()[0]:.2f}", flush=True)
+          f"{os.cpu_count()} CPUs ({cpu_int8_support()[1]}); load average at start "
+          f"{os.getloadavg()[0]:.2f}", flush=True)
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-cpu-inference-") as tmpdir:
         tmp = Path(tmpdir)

@@ -403,3 +403,15 @@ def test_checkpoint_round_trip_through_export(tmp_path):
     save_checkpoint(tmp_path / "c.pt", model, cfg, {"class_name": "Mustard"})
     res = export_checkpoint(tmp_path / "c.pt", tmp_path / "c.onnx", dynamic=True)
     assert res.info.class_name == "Mustard" and res.info.source == "c.pt" and res.verify_max_abs < TOL
+
+
+def test_cpu_int8_support_reads_the_instruction_set():
+    from dope_hope.export.int8 import cpu_int8_support
+
+    assert cpu_int8_support("flags\t: fpu sse2 avx avx2 fma", "x86_64") == (False, "x86-64 AVX2, no VNNI")
+    assert cpu_int8_support("flags\t: avx2 avx512f avx512_vnni", "x86_64") == (
+        True, "x86-64 AVX-512 with AVX512_VNNI")
+    assert cpu_int8_support("flags\t: avx2 avx_vnni", "x86_64")[0] is True
+    assert cpu_int8_support("Features\t: fp asimd asimddp", "aarch64") == (True, "ARM64 with the dot-product extension")
+    assert cpu_int8_support("Features\t: fp asimd", "aarch64")[0] is False
+    assert cpu_int8_support("", "riscv64")[0] is None

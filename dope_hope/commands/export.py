@@ -86,6 +86,13 @@ def run(args: argparse.Namespace) -> int:
     print(f"  fp32 graph vs PyTorch on a random input: max |d| = {res.verify_max_abs:.2e}")
     if res.int8 is not None:
         print(f"  INT8 vs fp32: {res.int8.summary()}")
+        from dope_hope.export.int8 import cpu_int8_support
+
+        gains, isa = cpu_int8_support()
+        if gains is False:
+            print(f"  note: this machine's CPU ({isa}) runs onnxruntime INT8 convolutions at about "
+                  "fp32 speed; the INT8 file pays off on CPUs with VNNI (x86) or dot-product (ARM) "
+                  "instructions, else use the fp32 export")
     if isaac is not None:
         resampled = info.extra.get("isaac_ros.resampled_from_stride")
         print(f"  Isaac ROS {isaac['version']}: {isaac['launch_file']} arguments (all of them; "

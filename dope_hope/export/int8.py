@@ -76,6 +76,42 @@ class ImageFolderReader:
         self._iter = None
 
 
+def cpu_int8_support(cpuinfo: str | None = None, machine: str | None = None) -> tuple[bool | None, str]:
+    """Whether onnxruntime's INT8 convolutions can beat fp32 on this CPU, and its instruction set.
+
+    onnxruntime's integer kernels gain on x86 with VNNI (AVX-512 VNNI, AVX-VNNI, AMX) and on
+    64-bit ARM with the dot-product extension; on AVX2-only x86 they run at about fp32 speed
+    (bench/RESULTS.md "CPU inference"). Returns (True | False | None when unknown, a one-line
+    description such as "x86-64 AVX2, no VNNI"). ``cpuinfo``/``machine``: for tests
+    (default: ``/proc/cpuinfo`` and ``platform.machine()``).
+    """
+    import platform
+
+    machine = (machine or platform.machine()).lower()
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text(errors="replace")
+        except OSError:
+            return None, f"{machine or 'unknown CPU'} (instruction set unknown)"
+    flags: set[str] = set()
+    for line in cpuinfo.splitlines():
+        key = line.split(":", 1)[0].strip().lower()
+        if key in ("flags", "features"):
+            flags.update(line.split(":", 1)[1].split())
+            break
+    if machine in ("x86_64", "amd64", "i686", "x86"):
+        vnni = [f for f in ("amx_int8", "avx512_vnni", "avx_vnni") if f in flags]
+        simd = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "SSE"
+        if vnni:
+            return True, f"x86-64 {simd} with {'/'.join(v.upper() for v in vnni)}"
+        return False, f"x86-64 {simd}, no VNNI"
+    if machine in ("aarch64", "arm64"):
+        if "asimddp" in flags:
+            return True, "ARM64 with the dot-product extension"
+        return False, "ARM64 without the dot-product extension"
+    return None, f"{machine or 'unknown CPU'} (instruction set unknown)"
+
+
 def float_output_nodes(model_proto) -> list[str]:
     """Names of the last Conv nodes and of the data-movement nodes between them and the outputs.
 
