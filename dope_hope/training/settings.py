@@ -109,7 +109,7 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None) -> tuple[d
         from dope_hope.io.meshes import load_mesh, mesh_cuboid
         size, _ = mesh_cuboid(load_mesh(mesh))
         return make_object_info(name, size, "mesh"), f"mesh {Path(mesh).name}"
-    from dope_hope.training.dataset import recorded_cuboid_size
+    from dope_hope.io.dope_json import recorded_cuboid_size
 
     for r in [r for r in records if len(r.keypoints)][:5]:
         size = recorded_cuboid_size(r.json_path, name)
