@@ -21,7 +21,6 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from dope_hope.catalog import category_symmetries
 from dope_hope.commands.demo import (
     DEMO_CONFIG,
     IMAGE_SIZE,
@@ -32,7 +31,6 @@ from dope_hope.commands.demo import (
 )
 from dope_hope.commands.infer import DEMO_WEIGHTS
 from dope_hope.demo_object import (
-    DEMO_CATEGORY,
     DEMO_CLASS_NAME,
     demo_object_mesh,
     write_demo_object,
@@ -40,6 +38,7 @@ from dope_hope.demo_object import (
 from dope_hope.inference.backends import open_backend
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.io.meshes import sample_surface_points
+from dope_hope.io.symmetries import declared_symmetries
 from dope_hope.synth import FrameGenerator
 
 SEARCHES = ("hypotheses", "groups")
@@ -68,7 +67,7 @@ def main() -> int:
     backend = open_backend(args.weights, "torch", threads=args.threads)
     predictors = {s: DopePredictor(backend, mesh=mesh, pose_search=s) for s in SEARCHES}
     points = sample_surface_points(mesh, MODEL_POINTS, seed=0)
-    symmetries = category_symmetries(DEMO_CATEGORY)
+    symmetries = declared_symmetries(mesh_path=mesh_path).transforms()
     found = {s: 0 for s in SEARCHES}
     false_pos = {s: 0 for s in SEARCHES}
     seconds = {s: 0.0 for s in SEARCHES}

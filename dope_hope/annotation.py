@@ -20,6 +20,8 @@ class ObjectAnnotation:
         projected_cuboid: (9, 2) pixel coordinates of the cuboid keypoints (documented order),
             or None when the file has none.
         visibility: visible fraction in [0, 1], or None.
+        visible_pixels: visible pixel count when the file records one instead of a fraction
+            (the official BlenderProc generator's ``visibility``), or None.
         bbox_xyxy: (4,) 2D box (x_min, y_min, x_max, y_max), pixels, or None.
         instance_id: id in the segmentation image, or None.
         keypoint_order: "dope-current" or "dope-legacy" (order of ``projected_cuboid``).
@@ -33,6 +35,7 @@ class ObjectAnnotation:
     t: np.ndarray
     projected_cuboid: np.ndarray | None = None
     visibility: float | None = None
+    visible_pixels: int | None = None
     bbox_xyxy: np.ndarray | None = None
     instance_id: int | None = None
     keypoint_order: str = "dope-current"

@@ -4,22 +4,35 @@ It stands in for a HOPE cuboid (sized like HOPE's Cookies box: 12.27 x 16.72 x 4
 mesh frame, y vertical) and is built entirely by this module — no third-party mesh or texture
 ships with dope-hope. Every face carries its own colour and pattern (a banner on the front,
 stripes on the back, numbered side panels, marked top and bottom), so the label fixes the
-box's rotation; only the geometric symmetries of the cuboid category remain for the metrics.
+box's rotation; only the geometric symmetries of the cuboid remain for the metrics. They are
+declared like any custom object's (:mod:`dope_hope.io.symmetries`): ``model_info.json`` beside
+the written mesh, so the demo, training labels and the evaluation read the same declaration.
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 import trimesh
 
-from dope_hope.io.atomic import atomic_path
+from dope_hope.io.atomic import atomic_path, atomic_write_text
+from dope_hope.io.symmetries import DECLARATION_NAMES, SymmetryDeclaration
 
 DEMO_CLASS_NAME = "DemoBox"
-DEMO_CATEGORY = "cuboid"
 #: (3,) extents in the mesh frame (x width, y vertical, z depth), metres.
 DEMO_SIZE_M = np.array([0.1227, 0.1672, 0.0402])
+#: The box's symmetry declaration (BOP fields): the 180-degree turns about x, y and z.
+DEMO_SYMMETRIES = {"symmetries_discrete": [
+    [1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1],
+    [-1, 0, 0, 0, 0, 1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1],
+    [-1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]]}
+
+
+def demo_symmetries() -> SymmetryDeclaration:
+    """:data:`DEMO_SYMMETRIES` as a declaration (lengths in metres; all translations are 0)."""
+    return SymmetryDeclaration(DEMO_SYMMETRIES, "m", "dope_hope.demo_object")
 
 _TILE = 256  # texture pixels per atlas tile
 # Faces as (outward normal axis, sign, atlas tile (col, row), base colour RGB).
@@ -118,7 +131,8 @@ def _to_pil(rgb: np.ndarray):
 
 def write_demo_object(out_dir: str | Path) -> Path:
     """Write the demo box as ``DemoBox.obj`` (+ .mtl and texture PNG) in centimetres, the
-    HOPE convention, so that every mesh-taking command accepts it. Returns the OBJ path."""
+    HOPE convention, so that every mesh-taking command accepts it, and its symmetry
+    declaration as ``model_info.json`` beside it. Returns the OBJ path."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     obj_path = out_dir / f"{DEMO_CLASS_NAME}.obj"
@@ -133,4 +147,5 @@ def write_demo_object(out_dir: str | Path) -> Path:
             tmp.write_bytes(data)
     with atomic_path(obj_path) as tmp:
         tmp.write_text("# dope-hope demo box, centimetres\n" + text)
+    atomic_write_text(out_dir / DECLARATION_NAMES[0], json.dumps(DEMO_SYMMETRIES) + "\n")
     return obj_path

@@ -31,7 +31,6 @@ from dope_hope.training.dataset import (
     EpochSampler,
     collate,
     convert_keypoint_order,
-    recorded_cuboid_size,
     scan_frames,
     split_records,
 )
@@ -263,16 +262,6 @@ def test_corrupt_image_is_reported_once_and_replaced(tmp_path, caplog):
     # in a DataLoader worker the item carries the bad file up to the main process
     loader = torch.utils.data.DataLoader(ds, batch_size=4, num_workers=1, collate_fn=collate)
     assert next(iter(loader))["bad_files"] == [str(tmp_path / "000002.png")]
-
-
-def test_recorded_cuboid_size_is_read_from_the_frame(tmp_path):
-    write_frames(tmp_path, 1)
-    frame = FrameAnnotation(tmp_path / "000001.json", np.eye(3), 96, 72, [])
-    write_dope_json(tmp_path / "000001.json", frame,
-                    extra={"cuboid": {"class": "Ketchup", "size_m": [0.0645, 0.1486, 0.0434]}})
-    np.testing.assert_allclose(recorded_cuboid_size(tmp_path / "000001.json", "ketchup"), [0.0645, 0.1486, 0.0434])
-    assert recorded_cuboid_size(tmp_path / "000001.json", "Mustard") is None
-    assert recorded_cuboid_size(tmp_path / "000000.json", "Ketchup") is None
 
 
 def test_missing_or_empty_folder_is_a_clear_error(tmp_path):

@@ -4,12 +4,13 @@ import trimesh
 
 from dope_hope.catalog import category_symmetries
 from dope_hope.demo_object import (
-    DEMO_CATEGORY,
     DEMO_SIZE_M,
     demo_object_mesh,
+    demo_symmetries,
     demo_texture,
     write_demo_object,
 )
+from dope_hope.io.symmetries import declared_symmetries
 
 
 def test_mesh_is_a_centred_box_of_the_stated_size():
@@ -30,9 +31,12 @@ def test_every_face_looks_different_so_the_label_fixes_the_rotation():
         assert np.abs(tiles[i] - np.rot90(tiles[i], 2)).mean() > 5, i
 
 
-def test_geometry_is_invariant_under_the_cuboid_symmetries():
+def test_geometry_is_invariant_under_the_declared_symmetries():
+    """The declaration is the cuboid category's group (identity and the three flips)."""
+    declared = demo_symmetries().transforms()
+    np.testing.assert_allclose(declared, category_symmetries("cuboid"), atol=1e-12)
     verts = demo_object_mesh().vertices
-    for T in category_symmetries(DEMO_CATEGORY):
+    for T in declared:
         moved = verts @ T[:3, :3].T + T[:3, 3]
         d = np.min(np.linalg.norm(moved[:, None] - verts[None], axis=2), axis=1)
         assert d.max() < 1e-9
@@ -44,3 +48,7 @@ def test_written_obj_is_in_centimetres_with_its_texture(tmp_path):
     np.testing.assert_allclose(loaded.extents, DEMO_SIZE_M * 100.0, atol=1e-4)
     assert isinstance(loaded.visual, trimesh.visual.TextureVisuals)
     assert loaded.visual.uv.shape == (24, 2)
+    # the declaration beside it is what every command reads for the box
+    found = declared_symmetries(mesh_path=path)
+    assert found.source == str(tmp_path / "model_info.json")
+    np.testing.assert_allclose(found.transforms(), demo_symmetries().transforms())

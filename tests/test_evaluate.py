@@ -22,7 +22,7 @@ from dope_hope.evaluation.bop19 import (
     bop_recalls,
 )
 from dope_hope.evaluation.datasets import load_dataset
-from dope_hope.evaluation.evaluate import EvalConfig, run_evaluation
+from dope_hope.evaluation.evaluate import EvalConfig, cuboid_centres_to_origins, run_evaluation
 from dope_hope.evaluation.matching import greedy_match
 from dope_hope.evaluation.models import ObjectModel, load_models
 from dope_hope.io.dope_json import write_dope_json
@@ -433,3 +433,79 @@ def test_bop_models_use_every_vertex_of_the_file_in_millimetres(tmp_path):
     np.testing.assert_array_equal(m.bop.symmetries, np.eye(4)[None])
     # the tables keep their metres (the 4 points are all the cloud has)
     assert m.diameter == pytest.approx(0.1) and m.points.shape == (4, 3)
+
+
+def test_official_dope_output_folder_is_scored_in_the_mesh_frame(tmp_path):
+    """NVIDIA's inference output (legacy-frame poses of the cuboid, cm) scores like the same
+    poses given in the mesh frame; the folder's JSON paths name the images."""
+    from dope_hope.geometry import LEGACY_TO_MESH
+
+    data = write_dataset(tmp_path / "data")
+    folder = tmp_path / "output" / "net_all_0060"
+    for k, objs in GT.items():
+        out = [{"class": c, "location": (100.0 * np.asarray(t)).tolist(),
+                "quaternion_xyzw": Rotation.from_matrix(R @ LEGACY_TO_MESH).as_quat().tolist(),
+                "projected_cuboid": [[0.0, 0.0]] * 9} for c, R, t, _ in objs]
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / f"{k:06d}.json").write_text(json.dumps({"camera_data": {}, "objects": out}))
+    out = tmp_path / "out"
+    assert main(["evaluate", "-p", str(folder), "-d", str(data), "--out", str(out), "--no-progress"]) == 0
+    rows = read_rows(out / "per_object_net_all_0060.csv")
+    assert all(float(r["recall_2cm"]) == 1.0 and float(r["precision_2cm"]) == 1.0 for r in rows)
+    # taken as cuboid-frame poses instead, the rotations are off
+    assert main(["evaluate", "-p", str(folder), "-d", str(data), "--out", str(out), "--no-progress",
+                 "--official-frame", "cuboid"]) == 0
+    rows = {r["object"]: r for r in read_rows(out / "per_object_net_all_0060.csv")}
+    assert float(rows["Milk"]["recall_2cm"]) == 0.0
+
+
+def test_cuboid_centre_poses_move_to_the_mesh_origin(tmp_path):
+    """The official pose places the box centre; a mesh whose box is off its origin gets
+    t - R c, so a perfect official estimate has zero error."""
+    import trimesh
+
+    from dope_hope.io.predictions import Prediction
+
+    mesh_path = tmp_path / "Widget.ply"
+    trimesh.creation.box(extents=[0.04, 0.1, 0.02]).apply_translation([0.01, 0.02, -0.005]).export(mesh_path)
+    models = load_models(["Widget"], [f"Widget={mesh_path}"], mesh_units="m")
+    R, t_origin = rot("x", 40), np.array([0.05, 0.0, 0.7])
+    centre = R @ np.array([0.01, 0.02, -0.005]) + t_origin
+    pred = Prediction("000000", "Widget", 1.0, R, centre.copy(), origin="cuboid")
+    cuboid_centres_to_origins([pred], models)
+    np.testing.assert_allclose(pred.t, t_origin, atol=1e-8)  # PLY stores float32
+    assert pred.origin == "mesh"
+    cuboid_centres_to_origins([pred], models)  # done once only
+    np.testing.assert_allclose(pred.t, t_origin, atol=1e-8)  # PLY stores float32
+
+
+def test_declared_symmetries_of_a_custom_object_are_used(tmp_path):
+    """model_info.json beside a custom mesh (or --symmetries NAME=FILE) gives the evaluation's
+    symmetries, discretized as the BOP toolkit does; without one a custom object has none."""
+    import trimesh
+
+    from dope_hope.io.symmetries import read_declaration
+
+    folder = tmp_path / "widget"
+    folder.mkdir()
+    mesh_path = folder / "widget.ply"
+    trimesh.creation.cylinder(radius=20.0, height=80.0, sections=64).export(mesh_path)  # mm, axis z
+    flip = np.diag([1.0, -1.0, -1.0, 1.0]).ravel().tolist()
+    plain = load_models(["Widget"], [f"Widget={mesh_path}"])["Widget"]
+    assert len(plain.symmetries) == 1
+    (folder / "model_info.json").write_text(json.dumps(
+        {"symmetries_discrete": [flip], "symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]}))
+    model = load_models(["Widget"], [f"Widget={mesh_path}"])["Widget"]
+    assert model.source.endswith(f"+ symmetries {folder / 'model_info.json'}")
+    assert len(model.symmetries) == 2 * math.ceil(math.pi / 0.01)
+    decl = read_declaration(folder / "model_info.json")
+    np.testing.assert_array_equal(model.symmetries, metrics.symmetries_from_models_info(decl.entry, unit=0.001))
+    np.testing.assert_array_equal(model.bop.symmetries, metrics.symmetries_from_models_info(decl.entry, unit=1.0))
+    # a turn about the declared axis costs nothing under MSSD
+    R_e = rot("z", 73.0)
+    err = metrics.mssd(R_e, np.zeros(3), np.eye(3), np.zeros(3), model.points, model.symmetries)
+    assert err < 0.02 * math.pi / 315 + 1e-9
+    other = tmp_path / "only_flip.json"
+    other.write_text(json.dumps({"symmetries_discrete": [flip]}))
+    flipped = load_models(["Widget"], [f"Widget={mesh_path}"], symmetry_args=[f"Widget={other}"])["Widget"]
+    assert len(flipped.symmetries) == 2

@@ -87,8 +87,59 @@ def test_errors_are_one_line(tmp_path):
     rc, _, err = _run(["import-official", tmp_path / "Ketchup.pth"])
     assert rc == 2 and "weights file not found" in err
     rc, _, err = _run(["import-official", pth, "--object", "Banana"])
-    assert rc == 2 and "unknown HOPE object" in err
+    assert rc == 2 and "'Banana' is not a HOPE object" in err and "--dimensions" in err
+    rc, _, err = _run(["import-official", _official(tmp_path / "net_epoch_0060.pth")])
+    assert rc == 2 and "cannot tell the object" in err and "--object" in err
+    rc, _, err = _run(["import-official", pth, "--object", "Banana", "--dimensions", "3", "0", "19"])
+    assert rc == 2 and "--dimensions: expected 3 positive sizes" in err
+    with pytest.raises(SystemExit) as exc:
+        _run(["import-official", pth, "--object", "Banana", "--dimensions", "3", "4", "19",
+              "--mesh", tmp_path / "banana.obj"])
+    assert exc.value.code == 2
     lite_ckpt = tmp_path / "Mayo.pth"
     torch.save({"module.nonsense": torch.zeros(3)}, lite_ckpt)
     rc, _, err = _run(["import-official", lite_ckpt])
     assert rc == 2 and "Mayo.pth" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("stem, name", [
+    ("Ketchup", "Ketchup"), ("net_Ketchup_0060", "Ketchup"), ("final_net_Ketchup_0060", "Ketchup"),
+    ("net_cracker_60", "cracker"), ("cracker_60", "cracker"), ("net_my_box_0012", "my_box"),
+    ("net_epoch_0060", None)])
+def test_object_names_of_official_files(stem, name):
+    from dope_hope.model.checkpoint import official_object_name
+
+    assert official_object_name(stem) == name
+
+
+def test_training_script_names_and_dimensions(tmp_path):
+    """net_<name>_<epoch>.pth of the official train.py: a HOPE name keeps the legacy frame
+    (--dimensions in that frame, as in the official HOPE config); any other object gets the
+    official cuboid frame, so its poses are those of NVIDIA's inference."""
+    pth = _official(tmp_path / "net_Ketchup_0060.pth")
+    rc, out, err = _run(["import-official", pth, "--dimensions", "14.8608", "4.3368", "6.4514"])
+    assert rc == 0, err
+    ckpt = load_checkpoint(tmp_path / "net_Ketchup_0060.pt")
+    assert ckpt["object"]["class_name"] == "Ketchup" and ckpt["object"]["frame"] == "legacy"
+    assert ckpt["object"]["size_m"] == pytest.approx([0.064514, 0.148608, 0.043368])  # mesh frame
+
+    pth = _official(tmp_path / "net_cracker_0060.pth")
+    rc, out, err = _run(["import-official", pth, "--dimensions", "16.4036", "21.3437", "7.18",
+                         "--out", tmp_path / "cracker.pt"])
+    assert rc == 0, err
+    ckpt = load_checkpoint(tmp_path / "cracker.pt")
+    assert ckpt["object"] == {"class_name": "cracker", "size_m": pytest.approx([0.164036, 0.213437, 0.0718]),
+                              "frame": "mesh"}
+    assert ckpt["keypoint_order"] == "dope-current"
+    assert "poses of the official DOPE cuboid" in out
+    from dope_hope.inference.predictor import DopePredictor
+
+    pred = DopePredictor(tmp_path / "cracker.pt")
+    assert not pred.legacy and pred.class_name == "cracker"
+    # PnP runs on the official Cuboid3d (inference/cuboid.py: x right, y down, z forward;
+    # front top right, front top left, ..., rear bottom right, centre), so the pose is its
+    w, h, d = 0.164036, 0.213437, 0.0718
+    right, left, top, bottom, front, rear = w / 2, -w / 2, -h / 2, h / 2, d / 2, -d / 2
+    official = [[right, top, front], [left, top, front], [left, bottom, front], [right, bottom, front],
+                [right, top, rear], [left, top, rear], [left, bottom, rear], [right, bottom, rear], [0, 0, 0]]
+    np.testing.assert_allclose(pred.cuboid_pnp, official, atol=1e-12)

@@ -31,6 +31,8 @@ from dope_hope.io.dope_json import (
     list_dope_frames,
     read_dope_json,
     read_frame_depth_m,
+    read_ndds_object_settings,
+    recorded_cuboid_size,
     write_dope_json,
 )
 from dope_hope.io.images import read_depth_m, read_image_raw
@@ -129,6 +131,140 @@ def test_right_handed_quaternion_without_format_key_is_kept(tmp_path):
                      "projected_cuboid": kp.tolist()}]}))
     o = read_dope_json(path).objects[0]
     assert rotation_error_deg(o.R, R) < 1e-6
+
+
+def test_fat_eight_corners_and_centroid_are_joined(tmp_path, ndds_dir):
+    """Raw NDDS/FAT exports list 8 corners plus ``projected_cuboid_centroid``."""
+    data = json.loads((ndds_dir / "000000.json").read_text())
+    o = data["objects"][0]
+    o["projected_cuboid_centroid"] = o["projected_cuboid"][8]
+    o["projected_cuboid"] = o["projected_cuboid"][:8]
+    path = tmp_path / "000000.json"
+    path.write_text(json.dumps(data))
+    got = read_dope_json(path).objects[0].projected_cuboid
+    np.testing.assert_array_equal(got, read_dope_json(ndds_dir / "000000.json").objects[0].projected_cuboid)
+
+
+def _copy_ndds_frame(ndds_dir: Path, folder: Path, stem: str = "000000") -> Path:
+    for suffix in (".json", ".png"):
+        (folder / f"{stem}{suffix}").write_bytes((ndds_dir / f"{stem}{suffix}").read_bytes())
+    return folder / f"{stem}.json"
+
+
+def test_ndds_object_settings_give_the_cuboid_size(tmp_path, ndds_dir):
+    """``_object_settings.json`` (cm, the annotations' object frame) is what a folder records."""
+    path = _copy_ndds_frame(ndds_dir, tmp_path)
+    assert recorded_cuboid_size(path, "cracker") is None
+    (tmp_path / "_object_settings.json").write_text(json.dumps({
+        "exported_object_classes": ["Cracker"],
+        "exported_objects": [{"class": "Cracker", "segmentation_class_id": 255,
+                              "fixed_model_transform": np.eye(4).tolist(),
+                              "cuboid_dimensions": (CRACKER_SIZE_M * 100).tolist()}]}))
+    assert list(read_ndds_object_settings(tmp_path / "_object_settings.json")) == ["Cracker"]
+    np.testing.assert_allclose(recorded_cuboid_size(path, "cracker"), CRACKER_SIZE_M)
+    assert recorded_cuboid_size(path, "mustard") is None
+    # the size is the box the frame's keypoints show under its pose (FAT camera)
+    o = read_dope_json(path).objects[0]
+    assert np.abs(project_points(cuboid_keypoints(recorded_cuboid_size(path, "cracker")), FAT_K,
+                                 o.R, o.t) - o.projected_cuboid).max() < 0.01
+    assert list_dope_frames(tmp_path) == [path]  # the settings file is no frame
+    (tmp_path / "_object_settings.json").write_text(json.dumps({"exported_objects": [
+        {"class": "Cracker", "cuboid_dimensions": [16.4, -1, 7.2]}]}))
+    with pytest.raises(InputFileError, match=r"_object_settings.json: exported_objects\[0\]\.cuboid_dimensions"):
+        recorded_cuboid_size(path, "cracker")
+
+
+def test_recorded_cuboid_size_is_read_from_the_frame(tmp_path):
+    frame = FrameAnnotation(tmp_path / "000001.json", np.eye(3), 96, 72, [])
+    write_dope_json(tmp_path / "000001.json", frame,
+                    extra={"cuboid": {"class": "Ketchup", "size_m": [0.0645, 0.1486, 0.0434]}})
+    np.testing.assert_allclose(recorded_cuboid_size(tmp_path / "000001.json", "ketchup"), [0.0645, 0.1486, 0.0434])
+    assert recorded_cuboid_size(tmp_path / "000001.json", "Mustard") is None
+    assert recorded_cuboid_size(tmp_path / "000000.json", "Ketchup") is None
+
+
+@pytest.mark.parametrize("value, fraction, pixels", [
+    (1.0, 1.0, None), (1, 1.0, None), (0.25, 0.25, None), (5234, None, 5234), (5234.0, None, 5234)])
+def test_visibility_fraction_or_pixel_count(tmp_path, ndds_dir, value, fraction, pixels):
+    """A fraction stays a fraction; a whole number above 1 is a visible pixel count."""
+    data = json.loads((ndds_dir / "000000.json").read_text())
+    data["objects"][0]["visibility"] = value
+    path = tmp_path / "000000.json"
+    path.write_text(json.dumps(data))
+    o = read_dope_json(path).objects[0]
+    assert (o.visibility, o.visible_pixels) == (fraction, pixels)
+    # the project format keeps a count when no fraction is known
+    write_dope_json(tmp_path / "copy.json", read_dope_json(path))
+    back = read_dope_json(tmp_path / "copy.json").objects[0]
+    assert (back.visibility, back.visible_pixels) == (fraction, pixels)
+
+
+# --------------------------------------------------------------------------- BlenderProc
+# Blender's bounding-box corner signs (bpy ``Object.bound_box`` order) and the official
+# generator's ``dope_order`` (data_generation/blenderproc_data_gen/generate_training_data.py).
+_BLENDER_BBOX_SIGNS = np.array([[-1, -1, -1], [-1, -1, 1], [-1, 1, 1], [-1, 1, -1],
+                                [1, -1, -1], [1, -1, 1], [1, 1, 1], [1, 1, -1]], dtype=float)
+_DOPE_ORDER = [6, 2, 1, 5, 7, 3, 0, 4]
+_GL_TO_CV = np.diag([1.0, -1.0, -1.0])
+
+
+def _blenderproc_doc(R_cv: np.ndarray, t_cv_m: np.ndarray, size_m: np.ndarray, K: np.ndarray,
+                     pixels: int = 5234, old_intrinsics: bool = False) -> dict:
+    """One object as the official BlenderProc generator writes it (scene in cm; pose in
+    Blender's camera frame; corners projected in its ``dope_order``)."""
+    R_gl, t_gl = _GL_TO_CV @ R_cv, _GL_TO_CV @ t_cv_m * 100.0
+    corners = _BLENDER_BBOX_SIGNS * size_m * 50.0  # cm, mesh frame
+    cuboid = [None] * 9
+    for ii in range(8):
+        cuboid[_DOPE_ORDER[ii]] = project_points(corners[ii][None] * 0.01, K, R_cv, t_cv_m)[0]
+    cuboid[8] = project_points(np.zeros((1, 3)), K, R_cv, t_cv_m)[0]
+    cx, cy = (K[2, 0], K[2, 1]) if old_intrinsics else (K[0, 2], K[1, 2])
+    return {"camera_data": {"width": 500, "height": 500,
+                            "camera_look_at": {"at": [0, 1, 0], "eye": [0, 25, 0], "up": [1, 0, 0]},
+                            "intrinsics": {"fx": K[0, 0], "fy": K[1, 1], "cx": cx, "cy": cy}},
+            "objects": [{"class": "Ketchup", "name": "Ketchup_000", "visibility": pixels,
+                         "projected_cuboid": np.asarray(cuboid).tolist(),
+                         "location": t_gl.tolist(),
+                         "quaternion_xyzw": Rotation.from_matrix(R_gl).as_quat().tolist()}]}
+
+
+def test_blenderproc_frame_is_read_in_the_current_order(tmp_path, ketchup_size):
+    size, _ = ketchup_size
+    K = intrinsics_matrix(603.55, 603.55, 249.5, 249.5)
+    R = Rotation.from_euler("xyz", [30, -50, 120], degrees=True).as_matrix()
+    t = np.array([0.04, -0.03, 0.62])
+    path = tmp_path / "000000.json"
+    path.write_text(json.dumps(_blenderproc_doc(R, t, size, K)))
+    fr = read_dope_json(path)
+    np.testing.assert_allclose(fr.K, K)
+    o = fr.objects[0]
+    assert (o.visibility, o.visible_pixels, o.keypoint_order) == (None, 5234, "dope-current")
+    assert rotation_error_deg(o.R, R) < 1e-6
+    np.testing.assert_allclose(o.t, t, atol=1e-9)
+    # renumbered: the mesh box in the documented order reprojects onto the keypoints
+    np.testing.assert_allclose(o.projected_cuboid, project_points(cuboid_keypoints(size), K, R, t), atol=1e-6)
+    # the generator's own numbering is the mirror image: no box fits it under the pose
+    raw = np.asarray(json.loads(path.read_text())["objects"][0]["projected_cuboid"])
+    assert fit_cuboid_up_to_scale(raw, K, R, CUBOID_CORNER_SIGNS)[0] == np.inf
+    # older generator versions wrote zeros for cx, cy: K unknown, same numbering
+    path.write_text(json.dumps(_blenderproc_doc(R, t, size, K, old_intrinsics=True)))
+    fr = read_dope_json(path)
+    assert fr.K is None
+    np.testing.assert_allclose(fr.objects[0].projected_cuboid, o.projected_cuboid)
+
+
+def test_blenderproc_visibility_must_be_a_pixel_count(tmp_path, ketchup_size):
+    K = intrinsics_matrix(600.0, 600.0, 250.0, 250.0)
+    path = tmp_path / "000000.json"
+    doc = _blenderproc_doc(np.eye(3), np.array([0.0, 0.0, 0.5]), ketchup_size[0], K)
+    path.write_text(json.dumps(with_field(doc, "objects.0.visibility", 0.5)))
+    with pytest.raises(InputFileError, match=r"objects\[0\]\.visibility: expected a visible pixel count"):
+        read_dope_json(path)
+    # keypoints that fit the pose in no known numbering are refused, not guessed
+    doc["objects"][0]["projected_cuboid"][0] = [10.0, 10.0]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InputFileError, match=r"projected_cuboid: fits the pose in no known corner order"):
+        read_dope_json(path)
 
 
 # --------------------------------------------------------------------------- NViSII
@@ -364,7 +500,8 @@ def _good_doc() -> dict:
     ("objects.0.location", [1, 2], "objects[0].location: expected shape (3,), got (2,)"),
     ("objects.0.quaternion_xyzw", [0, 0, 0, 0], "objects[0].quaternion_xyzw: zero quaternion"),
     ("objects.0.class", KeyError, "objects[0].class: missing field"),
-    ("objects.0.visibility", 1.5, "objects[0].visibility: expected a fraction"),
+    ("objects.0.visibility", 1.5, "objects[0].visibility: expected a fraction in [0, 1] or a visible pixel count"),
+    ("objects.0.visibility", -2, "objects[0].visibility: expected a fraction"),
     ("camera_data.intrinsics.fx", KeyError, "camera_data.intrinsics.fx: missing field"),
     ("camera_data.intrinsics.fy", "big", "camera_data.intrinsics.fy: expected a finite number"),
     ("camera_data.width", -3, "camera_data.width: expected a positive integer"),

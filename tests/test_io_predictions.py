@@ -83,3 +83,41 @@ def test_bop_csv_is_read_with_class_names_and_method(tmp_path):
     assert preds[0].class_name == "Milk" and preds[0].image is None
     assert (preds[0].scene_id, preds[0].im_id) == (3, 7)
     np.testing.assert_allclose(preds[0].t, [0.0, 0.1, 0.9])
+
+
+def _official_output(folder, objects_by_image: dict) -> None:
+    """Files as NVlabs inference/inference.py writes them: OUTF/<weights>/<sub>/<stem>.json."""
+    for rel, objs in objects_by_image.items():
+        path = folder / f"{rel}.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps({"camera_data": {}, "objects": objs}, indent=2))
+
+
+def test_official_dope_inference_output_folder(tmp_path):
+    R_leg = Rotation.from_euler("xyz", [10, -70, 35], degrees=True).as_matrix()
+    q = Rotation.from_matrix(R_leg).as_quat().tolist()
+    folder = tmp_path / "output" / "net_Ketchup_0060"
+    _official_output(folder, {
+        "scene_a/000001": [{"class": "ketchup", "location": [1.0, -2.0, 60.0], "quaternion_xyzw": q,
+                            "projected_cuboid": [[0.0, 0.0]] * 9}],
+        "scene_a/000002": [],
+        "000003": [{"class": "Widget", "location": [0.0, 0.0, 50.0], "quaternion_xyzw": [0, 0, 0, 1],
+                    "confidence": 0.4}]})
+    preds, meta = read_predictions(folder)
+    assert meta == {"method": "net_Ketchup_0060"}
+    assert [(p.image, p.class_name, p.score, p.origin) for p in preds] == [
+        ("000003", "Widget", 0.4, "cuboid"), ("scene_a/000001", "Ketchup", 1.0, "cuboid")]
+    np.testing.assert_allclose(preds[1].t, [0.01, -0.02, 0.6])
+    # legacy frame -> mesh frame: what NVlabs evaluate/evaluate.py does to every prediction,
+    # quat * angleAxis(90 deg, x) * angleAxis(90 deg, z)
+    official = R_leg @ Rotation.from_euler("x", 90, degrees=True).as_matrix() \
+        @ Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    np.testing.assert_allclose(preds[1].R, official, atol=1e-12)
+    as_is, _ = read_predictions(folder, official_frame="cuboid")
+    np.testing.assert_allclose(as_is[1].R, R_leg, atol=1e-12)
+    _official_output(folder, {"bad": [{"class": "Ketchup", "location": [0, 0, 1], "quaternion_xyzw": [0, 0, 0, 0]}]})
+    with pytest.raises(InputFileError, match=r"bad.json: objects\[0\]\.quaternion_xyzw: zero quaternion"):
+        read_predictions(folder)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputFileError, match="no .json files"):
+        read_predictions(tmp_path / "empty")

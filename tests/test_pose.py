@@ -281,7 +281,7 @@ def test_uint16_depth_scale_and_calibration_factor():
     d_u16 = np.round(depth / 0.0001).astype(np.uint16)
     res = depth_line_search(R, 1.1 * t, POINTS, DepthImage.from_raw(d_u16, K320, depth_scale_m=0.0001))
     assert res.applied and np.linalg.norm(res.t - t) < 0.002
-    # A sensor whose raw depth must be multiplied by the calibration factor (HOPE RealSense).
+    # A raw capture whose depth must be multiplied by a known factor (the HOPE authors' D415).
     raw_mm = np.round(depth / HOPE_REALSENSE_DEPTH_CALIBRATION * 1000).astype(np.uint16)
     uncal = depth_line_search(R, 1.1 * t, POINTS, DepthImage.from_raw(raw_mm, K320))
     cal = depth_line_search(R, 1.1 * t, POINTS, DepthImage.from_raw(raw_mm, K320, calibration=HOPE_REALSENSE_DEPTH_CALIBRATION))

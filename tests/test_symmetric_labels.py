@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 from dope_hope.catalog import category_symmetries, get_object
 from dope_hope.errors import ConfigError
 from dope_hope.geometry import cuboid_keypoints, intrinsics_matrix, project_points
-from dope_hope.training.settings import symmetry_category
+from dope_hope.training.settings import label_symmetries
 from dope_hope.training.symmetric_labels import (
     camera_direction,
     canonical_keypoints,
@@ -61,12 +61,16 @@ def test_views_without_a_pose_keep_their_order():
 
 
 def test_symmetry_setting():
-    assert symmetry_category("none", "Ketchup") is None
-    assert symmetry_category(None, "Ketchup") is None
-    assert symmetry_category("auto", "ketchup") == "bottle"
-    assert symmetry_category("auto", "DemoBox") == "cuboid"
-    assert symmetry_category("cylinder", "MyCan") == "cylinder"
+    assert label_symmetries("none", "Ketchup") is None
+    assert label_symmetries(None, "Ketchup") is None
+    T, source = label_symmetries("auto", "ketchup")
+    assert source == "bottle category"
+    np.testing.assert_allclose(T, category_symmetries("bottle"))
+    T, source = label_symmetries("auto", "DemoBox")
+    assert source == "declared in dope_hope.demo_object"
+    np.testing.assert_allclose(T, category_symmetries("cuboid"), atol=1e-12)
+    assert label_symmetries("cylinder", "MyCan")[1] == "cylinder category"
     with pytest.raises(ConfigError, match="not a HOPE object"):
-        symmetry_category("auto", "MyCan")
+        label_symmetries("auto", "MyCan")
     with pytest.raises(ConfigError, match="targets.symmetry"):
-        symmetry_category("sphere", "Ketchup")
+        label_symmetries("sphere", "Ketchup")

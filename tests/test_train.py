@@ -294,3 +294,54 @@ def test_foreground_weight_makes_a_missed_peak_cost_more_than_a_false_one():
     wrong_a = [(target_b.clone(), torch.zeros_like(target_a))]
     assert float(stage_loss(wrong_a, target_b, target_a, foreground_weight=4.0)) == pytest.approx(
         5 * float(stage_loss(wrong_a, target_b, target_a)))
+
+
+def test_label_symmetries_use_the_declaration_beside_the_mesh(tmp_path):
+    """targets.symmetry auto for a custom object: its BOP-style declaration (model_info.json
+    beside --mesh, or --symmetries) is what relabels; a cylinder declared by a continuous
+    axis plus the flip gives the cylinder category's corner-permuting turns."""
+    import trimesh
+
+    from dope_hope.catalog import category_symmetries
+    from dope_hope.errors import ConfigError
+    from dope_hope.training.settings import label_symmetries
+
+    folder = tmp_path / "widget"
+    folder.mkdir()
+    trimesh.creation.cylinder(radius=3.0, height=10.0).export(folder / "widget.obj")
+    flip_x = np.diag([1.0, -1.0, -1.0, 1.0]).ravel().tolist()
+    (folder / "model_info.json").write_text(json.dumps({
+        "symmetries_discrete": [flip_x], "symmetries_continuous": [{"axis": [0, 1, 0], "offset": [0, 0, 0]}]}))
+    T, source = label_symmetries("auto", "Widget", mesh=folder / "widget.obj")
+    assert source == f"declared in {folder / 'model_info.json'}"
+    np.testing.assert_allclose(T, category_symmetries("cylinder", step_deg=90.0), atol=1e-12)
+    other = tmp_path / "bottle.json"
+    other.write_text(json.dumps({"symmetries_discrete": [np.diag([-1.0, 1.0, -1.0, 1.0]).ravel().tolist()]}))
+    T, _ = label_symmetries("auto", "Widget", declaration_file=other, mesh=folder / "widget.obj")
+    np.testing.assert_allclose(T, category_symmetries("bottle"), atol=1e-12)
+    assert label_symmetries("auto", "Ketchup")[1] == "bottle category"
+    assert label_symmetries("none", "Widget", mesh=folder / "widget.obj") is None
+    with pytest.raises(ConfigError, match="targets.symmetry is none"):
+        label_symmetries("none", "Widget", declaration_file=other)
+    with pytest.raises(ConfigError, match="declares no symmetries"):
+        label_symmetries("auto", "Widget")
+
+
+def test_object_info_takes_the_ndds_cuboid_size_without_a_mesh(tmp_path, shared_data):
+    """NDDS/FAT folders record their cuboids in _object_settings.json: no --mesh needed."""
+    from dope_hope.training.dataset import scan_frames
+    from dope_hope.errors import ConfigError
+    from dope_hope.training.settings import object_info
+
+    src = shared_data / "dope_format_samples" / "ndds"
+    for name in ("000000.json", "000000.png"):
+        (tmp_path / name).write_bytes((src / name).read_bytes())
+    records, _ = scan_frames([tmp_path], "cracker")
+    with pytest.raises(ConfigError, match="pass --mesh"):
+        object_info("cracker", records, None)
+    (tmp_path / "_object_settings.json").write_text(json.dumps({"exported_objects": [
+        {"class": "cracker", "cuboid_dimensions": [16.4036, 21.3437, 7.18]}]}))
+    info, source = object_info("cracker", records, None)
+    assert info == {"class_name": "cracker", "size_m": pytest.approx([0.164036, 0.213437, 0.0718]),
+                    "frame": "mesh"}
+    assert source == "dataset 000000.json"

@@ -5,7 +5,7 @@ one box at 0.45-0.9 m among a few distractors, RealSense-like depth noise; confi
 runs the model through PyTorch and through onnxruntime (exported once to OUT/<weights>.onnx
 and reused while the weights are unchanged), refines the distance with the depth line search
 (-LS), and prints each detection next to the ground truth: translation and rotation error,
-ADD-H and MeanSSD (500 model points, the cuboid category's symmetries) without -LS, with -LS
+ADD-H and MeanSSD (500 model points, the box's declared symmetries) without -LS, with -LS
 and with -LS + ICP (dope_hope/refine/icp.py: the whole pose refined against the depth), and how
 closely the ONNX keypoints agree with PyTorch's. Ends with
 "found N/10 scenes with ADD-H < 2 cm (with -LS; ...)".
@@ -183,9 +183,7 @@ def missing_weights_problem(mesh_path: Path) -> str:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from dope_hope.catalog import category_symmetries
     from dope_hope.demo_object import (
-        DEMO_CATEGORY,
         DEMO_CLASS_NAME,
         DEMO_SIZE_M,
         demo_object_mesh,
@@ -234,7 +232,9 @@ def run(args: argparse.Namespace) -> int:
                                               if exported else "cached") + ")")
     seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % (2 ** 31))
     points = sample_surface_points(mesh, MODEL_POINTS, seed=0)
-    symmetries = category_symmetries(DEMO_CATEGORY)
+    from dope_hope.io.symmetries import declared_symmetries
+
+    symmetries = declared_symmetries(mesh_path=mesh_path).transforms()  # model_info.json beside it
     frames_dir = out / "frames"
     _clear_old_outputs(out)
     print(f"dope-hope demo: {args.scenes} scene(s) of {DEMO_CLASS_NAME}, seed {seed} (repeat with "

@@ -3,8 +3,14 @@ detection rate vs threshold (PNG + CSV) and, for BOP data or with --bop-ar, the 
 average recall (AR_VSD, AR_MSSD, AR_MSPD).
 
 Predictions: JSON lines as printed by `dope-hope infer` (one detection per line: image,
-class, score, R or quaternion_xyzw, t in metres; see dope_hope/evaluation/), or a BOP19
-submission CSV. Several files (methods) can be compared in one run.
+class, score, R or quaternion_xyzw, t in metres; see dope_hope/evaluation/), a BOP19
+submission CSV, or a folder of NVIDIA's DOPE inference output (inference/inference.py: one
+JSON per image, location in cm, quaternion_xyzw; no scores, so equal ranks in file order) to
+score the official pipeline. Several files (methods) can be compared in one run.
+
+Symmetries: BOP models_info.json in --models-dir, else the object's declaration
+(--symmetries NAME=FILE, or model_info.json beside its mesh: BOP fields symmetries_discrete /
+symmetries_continuous in the mesh's unit), else the HOPE catalog's category.
 """
 from __future__ import annotations
 
@@ -14,7 +20,12 @@ from pathlib import Path
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--predictions", "-p", nargs="+", required=True, type=Path, metavar="FILE",
-                        help="predictions file(s): .jsonl from `dope-hope infer` or BOP19 .csv")
+                        help="predictions: .jsonl from `dope-hope infer`, BOP19 .csv, or a folder of "
+                             "official DOPE inference output (OUTF/<weights name>)")
+    parser.add_argument("--official-frame", choices=("legacy", "cuboid"), default="legacy",
+                        help="official DOPE output: legacy (default; HOPE weights and networks trained on "
+                             "NViSII data: rotated into the mesh frame as NVlabs evaluate.py does) or "
+                             "cuboid (its cuboid frame is the mesh frame, e.g. YCB weights on FAT data)")
     parser.add_argument("--dataset", "-d", required=True, type=Path, metavar="DIR",
                         help="test set folder (searched recursively for dope/hope frames)")
     parser.add_argument("--format", choices=("dope", "hope", "bop"), default="dope",
@@ -24,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "the first one fills the table, all get curves")
     parser.add_argument("--mesh", action="append", default=[], metavar="[NAME=]PATH",
                         help="object mesh (HOPE .obj in cm / BOP .ply in mm); repeat for several objects")
+    parser.add_argument("--symmetries", action="append", default=[], metavar="[NAME=]FILE",
+                        help="an object's symmetry declaration, BOP models_info style (default: "
+                             "model_info.json beside its mesh); repeat for several objects")
     parser.add_argument("--models-dir", type=Path, metavar="DIR",
                         help="folder of meshes: BOP models (obj_000001.ply + models_info.json) or "
                              "HOPE (<Name>/textured.obj)")
@@ -48,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
                      metrics=[m.strip().lower() for m in args.metric.split(",") if m.strip()],
                      mesh=list(args.mesh), models_dir=args.models_dir, mesh_units=args.mesh_units,
                      out=args.out, methods=args.method, bop_ar=args.bop_ar,
-                     progress=not args.no_progress)
+                     progress=not args.no_progress, symmetries=list(args.symmetries),
+                     official_frame=args.official_frame)
     run_evaluation(cfg)
     return 0

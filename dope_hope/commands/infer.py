@@ -73,7 +73,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     dep.add_argument("--depth-scale", type=float, metavar="MM_PER_UNIT",
                      help="millimetres per depth unit (default: the annotation's, else 1.0)")
     dep.add_argument("--depth-calibration", type=float, default=1.0, metavar="F",
-                     help="multiply depth by F (HOPE RealSense frames: 0.98042517; default 1)")
+                     help="multiply depth by F, for raw captures of a camera with a known depth "
+                          "scale error (default 1; HOPE's depth images are already corrected)")
     dep.add_argument("--icp", action="store_true",
                      help="after the line search, refine rotation and translation by ICP against the "
                           "depth (needs --depth, and --mesh unless the object is a catalog box)")

@@ -48,7 +48,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backbone-weights", type=Path, metavar="PATH",
                         help="local torchvision VGG19 state dict to initialize the trunk (arch dope)")
     parser.add_argument("--mesh", type=Path, metavar="PATH",
-                        help="object mesh: its bounding box gives the cuboid size stored in the checkpoint")
+                        help="object mesh: its bounding box gives the cuboid size stored in the checkpoint "
+                             "(default: the size the dataset records, e.g. NDDS _object_settings.json, "
+                             "else the HOPE catalog's)")
+    parser.add_argument("--symmetries", type=Path, metavar="FILE",
+                        help="the object's symmetries, BOP models_info style (default: model_info.json "
+                             "beside --mesh); used by --set targets.symmetry=auto")
     parser.add_argument("--set", nargs="+", default=[], dest="overrides", metavar="KEY=VALUE",
                         help="config overrides, e.g. --set train.lr=1e-3 augment.rotation_deg=30")
     parser.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda")
@@ -102,7 +107,8 @@ def run(args: argparse.Namespace) -> int:
     elif args.init_weights is not None:
         init_weights = Path(args.init_weights)
     job = TrainJob(data=list(args.data or []), object_name=args.object_name or "", out=args.out, val=list(args.val),
-                   resume=resume, mesh=args.mesh, backbone_weights=args.backbone_weights,
+                   resume=resume, mesh=args.mesh, symmetries=args.symmetries,
+                   backbone_weights=args.backbone_weights,
                    init_weights=init_weights, device=args.device,
                    progress=not args.no_progress, overrides=overrides)
     summary = train(job, config)

@@ -13,7 +13,9 @@ stem that is unique in the dataset); ``class`` the HOPE object name (or ``obj_id
 (metres, OpenCV camera, ``x_c = R x + t``); optional ``ls_applied`` (depth line search
 used), ``time`` (s per image), ``scene_id``/``im_id`` (BOP). An optional first line
 ``{"format": "dope-hope-predictions", "method": "NAME"}`` names the method. A BOP19
-submission CSV (``METHOD_hope-test.csv``) is accepted too.
+submission CSV (``METHOD_hope-test.csv``) is accepted too, and so is a folder of official DOPE
+inference output (per-image JSON; :func:`dope_hope.io.predictions.read_official_dope_output`),
+whose poses of the cuboid centre are moved to the mesh origin (:func:`cuboid_centres_to_origins`).
 
 Errors are ADD-H by default (500 model points); ``add``, ``adds``, ``meanssd``, ``mssd`` on
 request (:mod:`~dope_hope.evaluation.matching`); tables and curves in
@@ -26,7 +28,9 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.evaluation.bop19 import bop19_average_recall
@@ -37,7 +41,7 @@ from dope_hope.evaluation.matching import (
     METRICS,
     compute_errors,
 )
-from dope_hope.evaluation.models import NUM_MODEL_POINTS, load_models
+from dope_hope.evaluation.models import NUM_MODEL_POINTS, ObjectModel, load_models
 from dope_hope.evaluation.reports import (
     _f,
     _th_label,
@@ -49,6 +53,9 @@ from dope_hope.evaluation.reports import (
     write_curves,
 )
 from dope_hope.io.atomic import atomic_write_text
+
+if TYPE_CHECKING:
+    from dope_hope.io.predictions import Prediction
 
 
 # =========================================================================== orchestration
@@ -67,6 +74,25 @@ class EvalConfig:
     methods: list[str] | None = None
     bop_ar: bool | None = None
     progress: bool = False
+    symmetries: list[str] = field(default_factory=list)
+    official_frame: str = "legacy"
+
+
+def cuboid_centres_to_origins(preds: list[Prediction], models: dict[str, ObjectModel]) -> None:
+    """Give predictions that place the bounding box's centre (``origin == "cuboid"``: official
+    DOPE output) the mesh origin's translation, in place: ``t - R c`` with c the centre of
+    the model's box in the mesh frame (0 for the centred HOPE meshes)."""
+    from dope_hope.io.meshes import mesh_cuboid
+
+    centres: dict[str, np.ndarray] = {}
+    for p in preds:
+        if p.origin != "cuboid":
+            continue
+        if p.class_name not in centres:
+            mesh = models[p.class_name].mesh
+            centres[p.class_name] = np.zeros(3) if mesh is None else mesh_cuboid(mesh)[1]
+        p.t = p.t - p.R @ centres[p.class_name]
+        p.origin = "mesh"
 
 
 def _safe_name(name: str) -> str:
@@ -90,7 +116,7 @@ def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[
     dataset = load_dataset(cfg.dataset, cfg.fmt)
     loaded = []
     for k, path in enumerate(cfg.predictions):
-        preds, meta = read_predictions(path)
+        preds, meta = read_predictions(path, cfg.official_frame)
         name = (cfg.methods[k] if cfg.methods else None) or meta.get("method") or Path(path).stem
         if any(p.image is None for p in preds) and dataset.fmt != "bop":
             raise InputFileError(path, "BOP CSV predictions need a BOP dataset (--format bop)")
@@ -106,7 +132,9 @@ def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[
     classes = sorted({o.class_name for f in dataset.frames for o in f.objects} |
                      {p.class_name for _, _, preds, _ in loaded for p in preds})
     bop_ar = cfg.bop_ar if cfg.bop_ar is not None else dataset.fmt == "bop"
-    models = load_models(classes, cfg.mesh, cfg.models_dir, cfg.mesh_units)
+    models = load_models(classes, cfg.mesh, cfg.models_dir, cfg.mesh_units, symmetry_args=cfg.symmetries)
+    for _, _, preds, _ in loaded:
+        cuboid_centres_to_origins(preds, models)
     out_dir = Path(cfg.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     primary = cfg.metrics[0]

@@ -24,6 +24,7 @@ Euclidean distances, not of squared distances.
 from __future__ import annotations
 
 import math
+import os
 import threading
 from collections.abc import Sequence
 from typing import Any
@@ -406,40 +407,35 @@ def mspd(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray, K: 
 
 # --------------------------------------------------------------------------- symmetries
 def symmetries_from_models_info(info: dict[str, Any], max_sym_disc_step: float = 0.01,
-                                unit: float = 0.001) -> np.ndarray:
-    """Symmetry transforms of one BOP ``models_info.json`` entry, as the BOP toolkit builds them
+                                unit: float = 0.001, source: str | os.PathLike = "models_info.json",
+                                where: str = "") -> np.ndarray:
+    """Symmetry transforms of one BOP ``models_info.json`` entry (or a symmetry declaration,
+    :mod:`dope_hope.io.symmetries`), as the BOP toolkit builds them
     (``misc.get_symmetry_transformations``, same operations).
 
     ``symmetries_discrete``: 4x4 row-major lists (R used as stored), translation in the file's
-    millimetres. ``symmetries_continuous``: ``{"axis": [x, y, z], "offset": [x, y, z] mm}``,
+    unit. ``symmetries_continuous``: ``{"axis": [x, y, z], "offset": [x, y, z]}``,
     discretized into ``ceil(pi / max_sym_disc_step)`` rotations about the axis through
     ``offset`` (so the point farthest from the axis moves at most ``max_sym_disc_step`` x
     diameter per step); each discrete symmetry (identity included) is combined with each of
-    these rotations (:func:`dope_hope.io.bop.compose_symmetries`).
+    these rotations (:func:`dope_hope.io.bop.compose_symmetries`). The fields are read by
+    :func:`dope_hope.io.bop.parse_symmetries`.
 
     Args:
-        unit: output units per file unit: 0.001 -> metres (default), 1.0 -> the file's
-            millimetres exactly (BOP19 scoring).
+        unit: output units per file unit: 0.001 -> metres from millimetres (default), 1.0 ->
+            the file's numbers exactly (BOP19 scoring).
+        source, where: the file and entry, for error messages.
 
     Returns:
         (S, 4, 4) float, identity first.
-    """
-    from dope_hope.io.bop import compose_symmetries
 
-    discrete = []
-    for k, sym in enumerate(info.get("symmetries_discrete") or []):
-        M = np.asarray(sym, dtype=np.float64)
-        if M.size != 16:
-            raise ValueError(f"symmetries_discrete[{k}]: expected 16 numbers, got {M.size}")
-        M = M.reshape(4, 4).copy()
-        M[3] = (0.0, 0.0, 0.0, 1.0)
-        discrete.append(M)
-    continuous = []
-    for k, sym in enumerate(info.get("symmetries_continuous") or []):
-        axis = np.asarray(sym["axis"], dtype=np.float64).reshape(3)
-        if not np.any(axis):
-            raise ValueError(f"symmetries_continuous[{k}]: zero axis")
-        continuous.append((axis, np.asarray(sym.get("offset", (0, 0, 0)), dtype=np.float64).reshape(3)))
+    Raises:
+        InputFileError: a malformed symmetry field (named with ``source`` and ``where``).
+    """
+    from dope_hope.io.bop import compose_symmetries, parse_symmetries
+    from dope_hope.io.jsonfields import JsonFields
+
+    discrete, continuous = parse_symmetries(JsonFields(source), info, where)
     steps = int(np.ceil(np.pi / max_sym_disc_step)) if continuous else 0
     out = compose_symmetries(discrete, continuous, steps)
     if unit != 1.0:

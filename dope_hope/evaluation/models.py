@@ -2,7 +2,8 @@
 
 :func:`load_models` builds one :class:`ObjectModel` per class from a mesh (``--mesh``, a BOP
 models folder) or, without one, from the catalog's cuboid; symmetries come from
-``models_info.json`` (BOP) or the catalog category. Each also carries a :class:`BopModel`:
+``models_info.json`` (BOP), the object's declaration (:mod:`dope_hope.io.symmetries`) or the
+catalog category. Each also carries a :class:`BopModel`:
 the model as BOP19 scoring uses it (every vertex of the file, millimetres).
 """
 from __future__ import annotations
@@ -113,16 +114,31 @@ def parse_mesh_args(mesh_args: Sequence[str]) -> dict[str | None, Path]:
     return out
 
 
+def _named_paths(args: Sequence[str], class_names: Sequence[str], flag: str) -> dict[str, Path]:
+    """``[NAME=]PATH`` values of ``flag`` by class (a bare path: the only class)."""
+    named = parse_mesh_args(args)
+    if None in named:
+        if len(class_names) == 1 and len(named) == 1:
+            return {class_names[0]: named[None]}
+        raise ConfigError(f"{flag} {named[None]}: cannot tell which object it is; "
+                          f"write {flag} NAME=PATH (classes: {', '.join(class_names)})")
+    return named  # type: ignore[return-value]
+
+
 def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
                 models_dir: str | os.PathLike | None = None, mesh_units: str | None = None,
-                n_points: int = NUM_MODEL_POINTS, cyl_step_deg: float = 1.0) -> dict[str, ObjectModel]:
+                n_points: int = NUM_MODEL_POINTS, cyl_step_deg: float = 1.0,
+                symmetry_args: Sequence[str] = ()) -> dict[str, ObjectModel]:
     """Model points, diameter and symmetries of every class.
 
     Sources, in order: ``--mesh`` files; ``--models-dir`` (BOP ``models_info.json`` +
     ``obj_XXXXXX.ply`` in mm, or HOPE ``<Name>/textured.obj`` / ``<Name>.obj`` in cm); else a
     **procedural** stand-in: points on the surface of the catalog cuboid (reported as such).
-    Symmetries: BOP ``models_info`` when used (discretized as the toolkit does), else the
-    catalog category's (cylinders in ``cyl_step_deg`` steps) about the mesh's box centre.
+    Symmetries: BOP ``models_info`` when used, else the object's declaration
+    (``--symmetries [NAME=]FILE`` or ``model_info.json`` beside its mesh;
+    :mod:`dope_hope.io.symmetries`), both discretized as the toolkit does from the numbers as
+    written (:func:`metrics.symmetries_from_models_info`); else the catalog category's
+    (cylinders in ``cyl_step_deg`` steps) about the mesh's box centre.
     The tables use ``n_points`` surface samples; BOP19 scoring (``ObjectModel.bop``) every
     vertex of the file, as the toolkit (a PLY is read as stored: :func:`io.meshes.read_ply`).
 
@@ -135,14 +151,10 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
     from dope_hope.catalog import category_symmetries
     from dope_hope.io.meshes import (UNIT_SCALE, load_mesh, mesh_cuboid, mesh_diameter, read_ply,
                                      sample_surface_points)
+    from dope_hope.io.symmetries import declared_symmetries
 
-    meshes = parse_mesh_args(mesh_args)
-    if None in meshes:
-        if len(class_names) == 1 and len(meshes) == 1:
-            meshes = {class_names[0]: meshes[None]}
-        else:
-            raise ConfigError(f"--mesh {meshes[None]}: cannot tell which object it is; "
-                              f"write --mesh NAME=PATH (classes: {', '.join(class_names)})")
+    meshes = _named_paths(mesh_args, class_names, "--mesh")
+    declared = _named_paths(symmetry_args, class_names, "--symmetries")
     models_info: dict[int, dict] = {}
     mdir = Path(models_dir) if models_dir is not None else None
     if mdir is not None:
@@ -191,9 +203,16 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
             mesh = trimesh.creation.box(extents=obj.size_array)
             source = "procedural cuboid (catalog size; no mesh given)"
         points = sample_surface_points(mesh, n_points)
+        decl = None if info is not None else declared_symmetries(declared.get(name), path, mesh_units, obj_id)
         if info is not None:
-            syms = metrics.symmetries_from_models_info(info, BOP19_MAX_SYM_DISC_STEP)
+            syms = metrics.symmetries_from_models_info(info, BOP19_MAX_SYM_DISC_STEP,
+                                                       source=mdir / "models_info.json", where=str(obj_id))
             diameter = 0.001 * float(info["diameter"]) if "diameter" in info else mesh_diameter(mesh)
+        elif decl is not None:
+            syms = metrics.symmetries_from_models_info(decl.entry, BOP19_MAX_SYM_DISC_STEP,
+                                                       unit=decl.unit_m, source=decl.source)
+            diameter = decl.diameter_m or mesh_diameter(mesh)
+            source += f" + symmetries {decl.source}"
         else:
             syms = (category_symmetries(category, step_deg=cyl_step_deg) if obj else np.eye(4)[None])
             syms = _centred_symmetries(syms, mesh_cuboid(mesh)[1])
@@ -206,8 +225,14 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
         exact = info is not None and "diameter" in info and (mesh_units or "mm") == "mm"
         if exact:
             bop = BopModel(verts, faces, info["diameter"],
-                           metrics.symmetries_from_models_info(info, BOP19_MAX_SYM_DISC_STEP, unit=1.0),
+                           metrics.symmetries_from_models_info(info, BOP19_MAX_SYM_DISC_STEP, unit=1.0,
+                                                               source=mdir / "models_info.json",
+                                                               where=str(obj_id)),
                            exact=True)
+        elif decl is not None:  # the declaration's numbers, in mm (as stored for a BOP one)
+            bop = BopModel(verts, faces, 1000.0 * diameter,
+                           metrics.symmetries_from_models_info(decl.entry, BOP19_MAX_SYM_DISC_STEP,
+                                                               unit=1000.0 * decl.unit_m, source=decl.source))
         else:
             syms_mm = syms.copy()
             syms_mm[:, :3, 3] *= 1000.0

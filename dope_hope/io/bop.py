@@ -157,12 +157,44 @@ def read_scene_gt_info(path: str | os.PathLike) -> dict[int, list[GtInfo]]:
 
 
 # --------------------------------------------------------------------------- models
-def parse_model_info(f: JsonFields, info: Any, where: str, units: str = "mm") -> dict:
-    """One model's info entry -> {diameter_m (float | None), symmetries_discrete (S, 4, 4)
-    metres, symmetries_continuous [(axis (3,) unit, offset (3,) m)], size_m / min_m (3,) when
-    given, align_axes as stored}."""
+def parse_symmetries(f: JsonFields, info: Any, where: str = "") -> tuple[
+        list[np.ndarray], list[tuple[np.ndarray, np.ndarray]]]:
+    """The BOP symmetry fields of one model's info entry, numbers as stored (the file's unit):
+    the one reader of ``symmetries_discrete`` / ``symmetries_continuous``.
+
+    Returns:
+        (discrete: (4, 4) transforms as stored, each checked (bottom row [0, 0, 0, 1], 3x3
+        block within ``_ROTATION_TOLERANCE`` of a rotation); continuous: (axis (3,) as stored,
+        non-zero; offset (3,), default 0) pairs).
+    """
     if not isinstance(info, dict):
         raise f.fail(where or "top level", f"expected an object, got {type(info).__name__}")
+    pre = f"{where}." if where else ""
+    discrete = []
+    for k, m in enumerate(_list(f, info.get("symmetries_discrete", []), f"{pre}symmetries_discrete")):
+        field = f"{pre}symmetries_discrete[{k}]"
+        T = f.array(m, field, (16,)).reshape(4, 4)
+        if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+            raise f.fail(field, "bottom row must be [0, 0, 0, 1] (row-major 4x4)")
+        if np.linalg.norm(nearest_rotation(T[:3, :3]) - T[:3, :3]) > _ROTATION_TOLERANCE:
+            raise f.fail(field, "the 3x3 block is not a rotation")
+        discrete.append(T)
+    continuous = []
+    for k, c in enumerate(_list(f, info.get("symmetries_continuous", []),
+                                f"{pre}symmetries_continuous")):
+        field = f"{pre}symmetries_continuous[{k}]"
+        axis = f.array(f.get(c, "axis", field), f"{field}.axis", (3,))
+        if np.linalg.norm(axis) < 1e-9:
+            raise f.fail(f"{field}.axis", "zero axis")
+        continuous.append((axis, f.array(c.get("offset", [0, 0, 0]), f"{field}.offset", (3,))))
+    return discrete, continuous
+
+
+def parse_model_info(f: JsonFields, info: Any, where: str, units: str = "mm") -> dict:
+    """One model's info entry -> {diameter_m (float | None), symmetries_discrete (S, 4, 4)
+    metres (R the nearest rotation), symmetries_continuous [(axis (3,) unit, offset (3,) m)],
+    size_m / min_m (3,) when given, align_axes as stored}."""
+    discrete, continuous = parse_symmetries(f, info, where)
     scale = _UNIT_SCALE[units]
     pre = f"{where}." if where else ""
     out: dict[str, Any] = {"diameter_m": None}
@@ -172,30 +204,14 @@ def parse_model_info(f: JsonFields, info: Any, where: str, units: str = "mm") ->
         out["size_m"] = np.array([f.number(info[f"size_{a}"], f"{pre}size_{a}") for a in "xyz"]) * scale
     if all(info.get(f"min_{a}") is not None for a in "xyz"):
         out["min_m"] = np.array([f.number(info[f"min_{a}"], f"{pre}min_{a}") for a in "xyz"]) * scale
-    discrete = []
-    for k, m in enumerate(_list(f, info.get("symmetries_discrete", []), f"{pre}symmetries_discrete")):
-        field = f"{pre}symmetries_discrete[{k}]"
-        T = f.array(m, field, (16,)).reshape(4, 4)
-        if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
-            raise f.fail(field, "bottom row must be [0, 0, 0, 1] (row-major 4x4)")
-        R = nearest_rotation(T[:3, :3])
-        if np.linalg.norm(R - T[:3, :3]) > _ROTATION_TOLERANCE:
-            raise f.fail(field, "the 3x3 block is not a rotation")
+    symmetries = []
+    for T in discrete:
         S = np.eye(4)
-        S[:3, :3] = R
+        S[:3, :3] = nearest_rotation(T[:3, :3])
         S[:3, 3] = T[:3, 3] * scale
-        discrete.append(S)
-    out["symmetries_discrete"] = np.array(discrete).reshape(-1, 4, 4)
-    continuous = []
-    for k, c in enumerate(_list(f, info.get("symmetries_continuous", []),
-                                f"{pre}symmetries_continuous")):
-        field = f"{pre}symmetries_continuous[{k}]"
-        axis = f.array(f.get(c, "axis", field), f"{field}.axis", (3,))
-        if np.linalg.norm(axis) < 1e-9:
-            raise f.fail(f"{field}.axis", "zero axis")
-        offset = f.array(c.get("offset", [0, 0, 0]), f"{field}.offset", (3,)) * scale
-        continuous.append((axis / np.linalg.norm(axis), offset))
-    out["symmetries_continuous"] = continuous
+        symmetries.append(S)
+    out["symmetries_discrete"] = np.array(symmetries).reshape(-1, 4, 4)
+    out["symmetries_continuous"] = [(axis / np.linalg.norm(axis), offset * scale) for axis, offset in continuous]
     if info.get("align_axes") is not None:
         out["align_axes"] = info["align_axes"]
     return out

@@ -1,6 +1,6 @@
 """DOPE-format annotation files (``NNNNNN.json`` beside ``NNNNNN.png``), read into metres.
 
-Three variants are read; :func:`write_dope_json` writes only the first.
+Four variants are read; :func:`write_dope_json` writes only the first.
 
 **project** (``"format": "dope-hope"``)::
 
@@ -9,6 +9,7 @@ Three variants are read; :func:`write_dope_json` writes only the first.
      "camera_data": {"intrinsics": {"fx", "fy", "cx", "cy"}, "width", "height"},
      "objects": [{"class", "location" (3, cm), "quaternion_xyzw" (4,),
                   "projected_cuboid" (9 x [u, v] px), "visibility" (fraction),
+                  "visible_pixels" (count; only when no fraction is known),
                   "bounding_box": {"top_left": [u, v], "bottom_right": [u, v]},  (pixels, x first)
                   "instance_id" (id in the .seg.png), "keypoint_order" (only if != file's)}]}
 
@@ -24,7 +25,22 @@ projected cuboid is the axis-aligned box of :data:`~dope_hope.geometry.CUBOID_CO
 ``projected_cuboid`` with the FAT camera (fx = fy = 768.16, cx = cy = 256) and the cracker
 box gives this R to 1e-6 and t equal to ``location``. When K is known the reader checks
 both this R and the quaternion taken as is against the projected cuboid and keeps the one
-that fits (files of other generators in this layout use a right-handed quaternion).
+that fits (files of other generators in this layout use a right-handed quaternion). Raw
+NDDS/FAT exports list 8 corners in ``projected_cuboid`` and the centre in
+``projected_cuboid_centroid``; the two are joined, as the official DOPE loader does. The
+cuboid sizes of a folder's classes are in its ``_object_settings.json``
+(:func:`read_ndds_object_settings`).
+
+**BlenderProc** (the official generator ``data_generation/blenderproc_data_gen``: a
+``camera_data.camera_look_at`` without NViSII's ``camera_view_matrix``): ``visibility`` is the
+object's visible pixel count (``ObjectAnnotation.visible_pixels``; its fraction is unknown),
+``location`` (cm) and ``quaternion_xyzw`` are the mesh-frame pose in Blender's camera frame
+(x right, y up, z backwards), turned here into the OpenCV frame with ``diag(1, -1, -1)``. Its
+``projected_cuboid`` lists Blender's bounding-box corners with the y signs of the current
+order flipped (the generator's ``dope_order``); the reader renumbers them into the current
+order (corners 0..7 <- 3, 2, 1, 0, 7, 6, 5, 4) after checking against the pose, when K is
+known, which numbering the points fit. Generator versions before mid-2024 wrote ``K[2][0]``,
+``K[2][1]`` (zeros) as ``cx``, ``cy``: such intrinsics are not used (K None).
 
 **NViSII** (``local_to_world_matrix`` per object, ``camera_view_matrix``): metres. Its
 ``quaternion_xyzw`` is wrong for scaled objects, so R is rebuilt from the two matrices (both
@@ -36,6 +52,10 @@ the rebuilt R and K, up to scale) and records it in ``keypoint_order``.
 
 Its ``bounding_box_minx_maxx_miny_maxy`` has y one pixel too low (checked against the
 segmentation masks); the reader corrects it.
+
+**Visibility.** A fraction in [0, 1]; a larger whole number is read as a pixel count (the
+BlenderProc convention, also when a file of another layout copies it), anything else is an
+error. A BlenderProc file's ``visibility`` is always a count.
 
 Sibling files: ``NNNNNN.png``/``.jpg``, ``NNNNNN.depth.png`` (uint16 mm, z-depth) or
 ``.depth.exr`` (NViSII: metres along the ray, see :func:`read_frame_depth_m`),
@@ -84,6 +104,14 @@ ORDER_CORNER_SIGNS: dict[str, np.ndarray] = {
 _NDDS_QUAT_INDEX = [2, 1, 0, 3]
 _NDDS_QUAT_SIGN = np.array([-1.0, 1.0, -1.0, 1.0])
 _NDDS_FRAME = np.diag([-1.0, -1.0, 1.0])
+#: Blender's camera frame (x right, y up, z backwards) -> OpenCV's.
+_GL_TO_CV = np.diag([1.0, -1.0, -1.0])
+#: The BlenderProc generator's corner k is the current order's corner _BLENDERPROC_CORNERS[k]
+#: (its labels have the current order's y signs flipped; an involution).
+_BLENDERPROC_CORNERS = np.array([3, 2, 1, 0, 7, 6, 5, 4, 8])
+#: Largest reprojection error (px) of a corner numbering that is taken to fit a pose.
+_ORDER_FIT_PX = 1.0
+NDDS_OBJECT_SETTINGS = "_object_settings.json"
 _RESERVED_KEYS = {"format", "units", "keypoint_order", "camera_data", "objects", "depth_scale_m"}
 
 
@@ -156,20 +184,51 @@ def _read_camera_settings(folder: Path) -> tuple[np.ndarray | None, int | None, 
 
 
 # --------------------------------------------------------------------------- objects
-def _common_fields(f: _Fields, o: dict, where: str) -> dict:
-    """class, projected_cuboid, visibility, bbox shared by all variants."""
+def _projected_cuboid(f: _Fields, o: dict, where: str) -> np.ndarray | None:
+    """(9, 2) pixels; NDDS's 8 corners + ``projected_cuboid_centroid`` are joined."""
+    value = o.get("projected_cuboid")
+    if value is None:
+        return None
+    if (isinstance(value, list) and len(value) == NUM_KEYPOINTS - 1
+            and o.get("projected_cuboid_centroid") is not None):
+        corners = f.array(value, f"{where}.projected_cuboid", (NUM_KEYPOINTS - 1, 2))
+        centre = f.array(o["projected_cuboid_centroid"], f"{where}.projected_cuboid_centroid", (2,))
+        return np.vstack([corners, centre[None]])
+    return f.array(value, f"{where}.projected_cuboid", (NUM_KEYPOINTS, 2))
+
+
+def _pixel_count(f: _Fields, value: float, field: str) -> int:
+    if value < 0 or value != int(value):
+        raise f.fail(field, f"expected a visible pixel count (a whole number >= 0), got {value}")
+    return int(value)
+
+
+def _visibility(f: _Fields, o: dict, where: str, counts: bool) -> tuple[float | None, int | None]:
+    """(fraction, pixel count) of ``visibility``; ``counts``: the variant writes pixel counts."""
+    field = f"{where}.visibility"
+    if o.get("visibility") is None:
+        return None, None
+    vis = f.number(o["visibility"], field)
+    if counts:
+        return None, _pixel_count(f, vis, field)
+    if 0.0 <= vis <= 1.0:
+        return vis, None
+    if vis > 1.0 and vis == int(vis):
+        return None, int(vis)
+    raise f.fail(field, f"expected a fraction in [0, 1] or a visible pixel count, got {vis}")
+
+
+def _common_fields(f: _Fields, o: dict, where: str, pixel_counts: bool = False) -> dict:
+    """class, projected_cuboid, visibility shared by all variants."""
     cls = f.get(o, "class", where)
     if not isinstance(cls, str) or not cls:
         raise f.fail(f"{where}.class", f"expected a non-empty string, got {cls!r}")
-    cuboid = None
-    if o.get("projected_cuboid") is not None:
-        cuboid = f.array(o["projected_cuboid"], f"{where}.projected_cuboid", (NUM_KEYPOINTS, 2))
-    vis = None
-    if o.get("visibility") is not None:
-        vis = f.number(o["visibility"], f"{where}.visibility")
-        if not 0.0 <= vis <= 1.0:
-            raise f.fail(f"{where}.visibility", f"expected a fraction in [0, 1], got {vis}")
-    return {"class_name": cls, "projected_cuboid": cuboid, "visibility": vis}
+    vis, pixels = _visibility(f, o, where, pixel_counts)
+    if pixels is None and o.get("visible_pixels") is not None:
+        pixels = _pixel_count(f, f.number(o["visible_pixels"], f"{where}.visible_pixels"),
+                              f"{where}.visible_pixels")
+    return {"class_name": cls, "projected_cuboid": _projected_cuboid(f, o, where),
+            "visibility": vis, "visible_pixels": pixels}
 
 
 def _bbox_top_left(f: _Fields, o: dict, where: str) -> np.ndarray | None:
@@ -242,6 +301,33 @@ def _read_ndds_objects(f: _Fields, data: dict, K: np.ndarray | None) -> list[Obj
     return out
 
 
+def _read_blenderproc_objects(f: _Fields, data: dict, K: np.ndarray | None) -> list[ObjectAnnotation]:
+    out = []
+    for i, o in enumerate(_objects_list(f, data)):
+        where = f"objects[{i}]"
+        common = _common_fields(f, o, where, pixel_counts=True)
+        R_gl, t_gl = _pose_from_location_quaternion(f, o, where, 0.01)
+        R, t = _GL_TO_CV @ R_gl, _GL_TO_CV @ t_gl
+        uv = common["projected_cuboid"]
+        order = KEYPOINT_ORDER
+        if uv is not None:
+            renumbered = uv[_BLENDERPROC_CORNERS]
+            if K is not None:
+                # which numbering the points fit under the pose (the generator's, or a tool
+                # writing one of the known orders in this layout)
+                fits = [(fit_cuboid_up_to_scale(renumbered, K, R, CUBOID_CORNER_SIGNS)[0],
+                         KEYPOINT_ORDER, renumbered)]
+                fits += [(fit_cuboid_up_to_scale(uv, K, R, signs)[0], name, uv)
+                         for name, signs in ORDER_CORNER_SIGNS.items()]
+                err, order, renumbered = min(fits, key=lambda x: x[0])
+                if err > _ORDER_FIT_PX:
+                    raise f.fail(f"{where}.projected_cuboid",
+                                 f"fits the pose in no known corner order (best {err:.1f} px off)")
+            common["projected_cuboid"] = renumbered
+        out.append(ObjectAnnotation(R=R, t=t, keypoint_order=order, **common))
+    return out
+
+
 def _objects_list(f: _Fields, data: dict) -> list:
     objs = data.get("objects", [])
     if objs is None:
@@ -271,13 +357,15 @@ def fit_cuboid_up_to_scale(uv: np.ndarray, K: np.ndarray, R: np.ndarray,
     Unknowns: the box centre in the camera frame p (3,) and half-extents h (3,); keypoint k is
     ``p + R (signs_k * h)`` (k = 8: p). The projection constraints are linear and homogeneous
     in (p, h), so the fit is the SVD null vector; the scale is irrelevant to the reprojection.
+    A fit that needs a negative half-extent is the mirror image of the numbering (its corners
+    with one axis's signs flipped) and does not count.
 
     Args:
         uv: (9, 2) pixels; K: (3, 3); R: (3, 3) object -> camera; signs: (8, 3) corner signs.
 
     Returns:
-        (max reprojection error in pixels (inf if the fit puts points behind the camera),
-        (9, 3) fitted camera-frame points at an arbitrary scale).
+        (max reprojection error in pixels (inf if the fit puts points behind the camera or
+        needs a negative extent), (9, 3) fitted camera-frame points at an arbitrary scale).
     """
     rows = []
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
@@ -291,7 +379,7 @@ def fit_cuboid_up_to_scale(uv: np.ndarray, K: np.ndarray, R: np.ndarray,
     if p[2] < 0:
         p, h = -p, -h
     pts = np.vstack([p + (R @ (signs * h).T).T, p[None]])
-    if np.any(pts[:, 2] <= 0):
+    if np.any(pts[:, 2] <= 0) or np.any(h < -1e-6 * np.abs(h).max()):
         return math.inf, pts
     return float(np.abs(project_points(pts, K) - uv).max()), pts
 
@@ -359,7 +447,7 @@ def _read_nvisii_objects(f: _Fields, data: dict, K: np.ndarray | None) -> list[O
 
 
 def detect_variant(data: dict) -> str:
-    """"project", "nvisii" or "ndds" for a parsed DOPE JSON document."""
+    """"project", "nvisii", "blenderproc" or "ndds" for a parsed DOPE JSON document."""
     if data.get("format") == FORMAT_NAME:
         return "project"
     camera = data.get("camera_data")
@@ -368,12 +456,14 @@ def detect_variant(data: dict) -> str:
             isinstance(o, dict) and ("local_to_world_matrix" in o or o.get("provenance") == "nvisii")
             for o in objs):
         return "nvisii"
+    if isinstance(camera, dict) and "camera_look_at" in camera:
+        return "blenderproc"
     return "ndds"
 
 
 # --------------------------------------------------------------------------- public API
 def read_dope_json(path: str | os.PathLike) -> FrameAnnotation:
-    """Read one DOPE-format annotation (project, NDDS/FAT or NViSII variant).
+    """Read one DOPE-format annotation (project, NDDS/FAT, NViSII or BlenderProc variant).
 
     Returns:
         FrameAnnotation in metres; R, t the mesh-frame (NViSII: object-frame) pose;
@@ -391,10 +481,14 @@ def read_dope_json(path: str | os.PathLike) -> FrameAnnotation:
     K, width, height = _read_intrinsics(f, data.get("camera_data"))
     if K is None and variant == "ndds":
         K, width, height = _read_camera_settings(path.parent)
+    if variant == "blenderproc" and K is not None and K[0, 2] == 0.0 and K[1, 2] == 0.0:
+        K = None  # an older generator wrote K[2][0], K[2][1] as cx, cy
     if variant == "project":
         objects = _read_project_objects(f, data)
     elif variant == "nvisii":
         objects = _read_nvisii_objects(f, data, K)
+    elif variant == "blenderproc":
+        objects = _read_blenderproc_objects(f, data, K)
     else:
         objects = _read_ndds_objects(f, data, K)
     image, depth, seg = _siblings(path)
@@ -456,6 +550,8 @@ def frame_to_dict(frame: FrameAnnotation, extra: dict | None = None) -> dict:
                 NUM_KEYPOINTS, 2).tolist()
         if o.visibility is not None:
             d["visibility"] = float(o.visibility)
+        elif o.visible_pixels is not None:
+            d["visible_pixels"] = int(o.visible_pixels)
         if o.bbox_xyxy is not None:
             b = [float(v) for v in np.asarray(o.bbox_xyxy).reshape(4)]
             d["bounding_box"] = {"top_left": b[:2], "bottom_right": b[2:]}
@@ -486,6 +582,62 @@ def write_dope_json(path: str | os.PathLike, frame: FrameAnnotation,
             not reuse the annotation's own keys.
     """
     atomic_write_text(path, json.dumps(frame_to_dict(frame, extra), indent=1) + "\n")
+
+
+def read_ndds_object_settings(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """NDDS/FAT ``_object_settings.json``: {class: (3,) cuboid size, metres}.
+
+    Each ``exported_objects`` entry's ``cuboid_dimensions`` (cm) are the extents along x, y, z
+    of the object frame the folder's annotations are read in (checked on the official cracker
+    samples: the box fitted to their projected cuboids is 16.4036 x 21.3437 x 7.18 cm, the
+    official ``cuboid_dimensions`` and DOPE config size).
+    """
+    f = _Fields(path)
+    objs = f.get(_load_json(path, "NDDS object settings file"), "exported_objects", "")
+    if not isinstance(objs, list):
+        raise f.fail("exported_objects", f"expected a list, got {type(objs).__name__}")
+    out: dict[str, np.ndarray] = {}
+    for i, o in enumerate(objs):
+        where = f"exported_objects[{i}]"
+        cls = f.get(o, "class", where)
+        if not isinstance(cls, str) or not cls:
+            raise f.fail(f"{where}.class", f"expected a non-empty string, got {cls!r}")
+        size = f.array(f.get(o, "cuboid_dimensions", where), f"{where}.cuboid_dimensions", (3,))
+        if np.any(size <= 0):
+            raise f.fail(f"{where}.cuboid_dimensions", f"expected 3 positive extents (cm), got {size.tolist()}")
+        out[cls] = size * 0.01
+    return out
+
+
+def recorded_cuboid_size(json_path: str | os.PathLike, class_name: str) -> np.ndarray | None:
+    """(3,) cuboid size in metres (the annotations' object frame) that a dataset records for a
+    class (case-insensitive), or None.
+
+    Sources: the frame's own ``"cuboid": {"class", "size_m", ...}`` (``dope-hope synth``), else
+    the folder's NDDS ``_object_settings.json``.
+
+    Raises:
+        InputFileError: a malformed ``_object_settings.json``.
+    """
+    json_path = Path(json_path)
+    want = class_name.lower()
+    try:
+        doc = json.loads(json_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        doc = None
+    cub = doc.get("cuboid") if isinstance(doc, dict) else None
+    if isinstance(cub, dict) and str(cub.get("class", "")).lower() == want:
+        try:
+            size = np.asarray(cub.get("size_m"), dtype=np.float64).reshape(3)
+        except (TypeError, ValueError):
+            size = None
+        if size is not None and np.all(np.isfinite(size)) and np.all(size > 0):
+            return size
+    settings = json_path.parent / NDDS_OBJECT_SETTINGS
+    if settings.is_file():
+        sizes = {k.lower(): v for k, v in read_ndds_object_settings(settings).items()}
+        return sizes.get(want)
+    return None
 
 
 def list_dope_frames(folder: str | os.PathLike) -> list[Path]:

@@ -23,6 +23,19 @@ One detection per line (UTF-8, one JSON object per line; blank lines and lines s
 
 An optional first line ``{"format": "dope-hope-predictions", "method": "NAME", ...}`` carries
 metadata. A BOP19 submission CSV (:mod:`dope_hope.io.bop_csv`) is read as well.
+
+**Official DOPE inference output** (NVlabs/Deep_Object_Pose ``inference/inference.py``): a
+folder (``OUTF/<weights name>``) with one ``<image stem>.json`` per image, in the images'
+sub-folders: ``{"camera_data": {}, "objects": [{"class", "location" (3, cm),
+"quaternion_xyzw" (4,), "projected_cuboid"}]}``. ``location`` / ``quaternion_xyzw`` are the
+official DOPE cuboid's pose (its frame, its centre; ``x_c = R p + t``). Each object becomes a
+prediction of the image with that relative path (suffix dropped), its pose of the cuboid
+*centre* (``origin == "cuboid"``: the evaluation moves ``t`` to the mesh origin) with
+``R`` converted to the mesh frame by ``official_frame``: "legacy" (the official HOPE weights
+and networks trained on NViSII data: ``R L^T``, the rotation NVlabs ``evaluate/evaluate.py``
+applies to every prediction) or "cuboid" (the cuboid frame is the mesh frame, e.g. YCB
+weights scored on NDDS/FAT ground truth). The files carry no score: 1.0 unless an object has
+``score`` or ``confidence``; equal scores are ranked in file order.
 """
 from __future__ import annotations
 
@@ -41,6 +54,8 @@ from dope_hope.io.atomic import atomic_write_text
 from dope_hope.io.jsonfields import read_text_file
 
 FORMAT_NAME = "dope-hope-predictions"
+#: How the official DOPE inference's cuboid frame relates to the mesh frame.
+OFFICIAL_FRAMES = ("legacy", "cuboid")
 #: Largest accepted deviation of a given R from a rotation matrix (Frobenius norm).
 ROTATION_TOLERANCE = 1e-3
 
@@ -60,6 +75,8 @@ class Prediction:
         line: line number in the file (for messages).
         stored_pose: (R (3, 3), t (3,) millimetres) exactly as a BOP CSV row writes them, or
             None (JSON lines); BOP19 scoring uses it (see ``ObjectAnnotation.stored_pose``).
+        origin: "mesh" (t places the mesh origin) or "cuboid" (t places the centre of the
+            object's bounding box: official DOPE output).
     """
 
     image: str | None
@@ -74,6 +91,7 @@ class Prediction:
     line: int = 0
     extra: dict[str, Any] = field(default_factory=dict)
     stored_pose: tuple[np.ndarray, np.ndarray] | None = None
+    origin: str = "mesh"
 
 
 def prediction_record(image: str, class_name: str, score: float, R: np.ndarray, t: np.ndarray,
@@ -207,18 +225,22 @@ def _parse_line(path: Path, lineno: int, obj: Any) -> Prediction:
                       line=lineno, extra={k: v for k, v in obj.items() if k not in known})
 
 
-def read_predictions(path: str | os.PathLike) -> tuple[list[Prediction], dict[str, Any]]:
-    """Read a predictions file: JSON lines (above) or a BOP19 CSV (``.csv``).
+def read_predictions(path: str | os.PathLike,
+                     official_frame: str = "legacy") -> tuple[list[Prediction], dict[str, Any]]:
+    """Read predictions: JSON lines (above), a BOP19 CSV (``.csv``) or a folder of official
+    DOPE inference output (``official_frame``: see the module docstring).
 
     Returns:
         (predictions, metadata); metadata holds the optional first-line keys (``method``),
-        and for a BOP CSV the method name parsed from the file name (when it follows the
-        BOP naming).
+        for a BOP CSV the method name parsed from the file name (when it follows the BOP
+        naming), for an official folder its name.
 
     Raises:
         InputFileError: missing file or a malformed line (its number is in the message).
     """
     path = Path(path)
+    if path.is_dir():
+        return read_official_dope_output(path, official_frame)
     if path.suffix.lower() == ".csv":
         return _read_bop(path)
     text = read_text_file(path, "predictions file")
@@ -260,3 +282,56 @@ def _read_bop(path: Path) -> tuple[list[Prediction], dict[str, Any]]:
                                 time=None if e.time < 0 else e.time, scene_id=e.scene_id,
                                 im_id=e.im_id, line=e.line, stored_pose=(e.R, e.t_mm)))
     return preds, meta
+
+
+def read_official_dope_output(folder: str | os.PathLike,
+                              official_frame: str = "legacy") -> tuple[list[Prediction], dict[str, Any]]:
+    """The per-image JSON files of NVIDIA's DOPE inference (module docstring), as predictions.
+
+    Raises:
+        InputFileError: a folder without JSON files, or a malformed file (named, with field).
+        ConfigError: an unknown ``official_frame``.
+    """
+    from dope_hope.catalog import get_object
+    from dope_hope.errors import ConfigError, UnknownObjectError
+    from dope_hope.geometry import legacy_rotation_to_mesh
+    from dope_hope.io.jsonfields import JsonFields, load_json_object
+
+    if official_frame not in OFFICIAL_FRAMES:
+        raise ConfigError(f"official DOPE frame must be one of {', '.join(OFFICIAL_FRAMES)}, "
+                          f"got {official_frame!r}")
+    folder = Path(folder)
+    files = sorted(p for p in folder.rglob("*.json") if p.is_file())
+    if not files:
+        raise InputFileError(folder, "no .json files (official DOPE inference output) in this folder")
+    preds: list[Prediction] = []
+    for path in files:
+        f = JsonFields(path)
+        objs = f.get(load_json_object(path, "DOPE inference output"), "objects", "")
+        if not isinstance(objs, list):
+            raise f.fail("objects", f"expected a list, got {type(objs).__name__}")
+        image = path.relative_to(folder).with_suffix("").as_posix()
+        for i, o in enumerate(objs):
+            where = f"objects[{i}]"
+            name = f.get(o, "class", where)
+            if not isinstance(name, str) or not name:
+                raise f.fail(f"{where}.class", f"expected a non-empty string, got {name!r}")
+            try:
+                name = get_object(name).name
+            except UnknownObjectError:
+                pass
+            t = 0.01 * f.array(f.get(o, "location", where), f"{where}.location", (3,))
+            q = f.array(f.get(o, "quaternion_xyzw", where), f"{where}.quaternion_xyzw", (4,))
+            if np.linalg.norm(q) < 1e-8:
+                raise f.fail(f"{where}.quaternion_xyzw", "zero quaternion")
+            R = quaternion_xyzw_to_matrix(q)
+            if official_frame == "legacy":
+                R = legacy_rotation_to_mesh(R)
+            score = 1.0
+            for key in ("score", "confidence"):
+                if o.get(key) is not None:
+                    score = f.number(o[key], f"{where}.{key}")
+                    break
+            preds.append(Prediction(image=image, class_name=name, score=score, R=R, t=t, line=i + 1,
+                                    origin="cuboid"))
+    return preds, {"method": folder.name}

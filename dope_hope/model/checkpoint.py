@@ -21,6 +21,7 @@ from __future__ import annotations
 import os
 import pickle
 import random
+import re
 from pathlib import Path
 from typing import Any
 
@@ -299,19 +300,35 @@ def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> t
 
 
 # ----------------------------------------------------------------------------- official weights
+def official_object_name(stem: str) -> str | None:
+    """The object an official weights file's name gives: ``Ketchup`` (the HOPE weights),
+    ``net_Ketchup_0060`` / ``final_net_Ketchup_0060`` (the training script's
+    ``net_{namefile}_{epoch}``), ``cracker_60`` (the original YCB weights); None for the
+    training script's default ``net_epoch_0060`` or an empty name."""
+    name = re.sub(r"^(final_)?net_", "", stem)
+    name = re.sub(r"_\d+$", "", name)
+    return None if not name or name.lower() == "epoch" else name
+
+
 def import_official(
     pth_path: str | os.PathLike,
     class_name: str,
     out_path: str | os.PathLike | None = None,
     size_m: Any = None,
+    frame: str = "legacy",
 ) -> dict[str, Any]:
     """Wrap an official DOPE ``.pth`` (bare state dict, maybe ``module.``-prefixed) as a checkpoint.
 
-    The weights must fit the DOPE-DR-50 layout exactly. Records object frame "legacy" and
-    keypoint order "dope-legacy" (the official HOPE weights' frame; ARCHITECTURE.md),
-    ImageNet normalization (what the official inference code uses), and the cuboid size in
-    the mesh frame (the catalog's unless ``size_m`` is given). Writes it if ``out_path``.
+    The weights must fit the DOPE-DR-50 layout exactly. Records ImageNet normalization (what
+    the official inference code uses), the cuboid size in the mesh frame (the catalog's
+    unless ``size_m`` is given) and the object frame: "legacy" with keypoint order
+    "dope-legacy" (the official HOPE weights' frame and that of weights trained on NViSII
+    data; ARCHITECTURE.md), or "mesh" with "dope-current" when the object frame is the
+    official cuboid frame itself (``size_m`` = the official config's ``dimensions``).
+    Writes it if ``out_path``.
     """
+    if frame not in OBJECT_FRAMES:
+        raise ConfigError(f"object frame must be one of {', '.join(OBJECT_FRAMES)}, got {frame!r}")
     pth_path = Path(pth_path)
     state = _torch_load(pth_path)
     if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
@@ -324,7 +341,7 @@ def import_official(
     config = load_config("dope_dr_50")
     expected = expected_state(config)
     check_state_dict(expected, state, pth_path)
-    info = make_object_info(class_name, size_m, frame="legacy")
+    info = make_object_info(class_name, size_m, frame=frame)
     source = f"official DOPE weights {pth_path.name}"
     ckpt = {
         "format": CHECKPOINT_FORMAT,
@@ -333,7 +350,7 @@ def import_official(
         "model": {k: state[k].detach().to("cpu", torch.float32) for k in expected},
         "config": config,
         "object": info,
-        "keypoint_order": LEGACY_KEYPOINT_ORDER,
+        "keypoint_order": LEGACY_KEYPOINT_ORDER if frame == "legacy" else KEYPOINT_ORDER,
         "normalization": dict(OFFICIAL_NORMALIZATION),
         "optimizer": None,
         "scheduler": None,

@@ -90,27 +90,6 @@ class FrameRecord:
     view_dirs: np.ndarray | None = None
 
 
-def recorded_cuboid_size(json_path: str | Path, class_name: str) -> np.ndarray | None:
-    """(3,) cuboid size in metres (mesh frame) that a frame's JSON records for the class, or None.
-
-    ``dope-hope synth`` writes ``"cuboid": {"class", "size_m", "center_m", "frame"}``.
-    """
-    import json
-
-    try:
-        doc = json.loads(Path(json_path).read_text())
-    except (OSError, ValueError):
-        return None
-    cub = doc.get("cuboid") if isinstance(doc, dict) else None
-    if not isinstance(cub, dict) or str(cub.get("class", "")).lower() != class_name.lower():
-        return None
-    try:
-        size = np.asarray(cub.get("size_m"), dtype=np.float64).reshape(3)
-    except (TypeError, ValueError):
-        return None
-    return size if np.all(np.isfinite(size)) and np.all(size > 0) else None
-
-
 def scan_frames(
     folders: Sequence[str | Path], class_name: str, keypoint_order: str = KEYPOINT_ORDER,
     min_visibility: float = 0.0, include_empty: bool = True, progress: bool = False,
@@ -118,7 +97,9 @@ def scan_frames(
     """Parse every DOPE JSON of the folders once.
 
     Objects are kept when their class equals ``class_name`` (case-insensitive), they carry a
-    projected cuboid and their visibility (when recorded) is positive and >= min_visibility.
+    projected cuboid and their visibility (when recorded) is positive and >= min_visibility;
+    a recorded pixel count instead of a fraction (BlenderProc) must be positive, as in the
+    official DOPE loader, and ``min_visibility`` cannot apply to it.
     Keypoints are converted to ``keypoint_order``.
 
     Returns:
@@ -160,6 +141,8 @@ def scan_frames(
             if obj.class_name.lower() != want or obj.projected_cuboid is None:
                 continue
             if obj.visibility is not None and (obj.visibility <= 0 or obj.visibility < min_visibility):
+                continue
+            if obj.visible_pixels is not None and obj.visible_pixels <= 0:
                 continue
             kp = np.asarray(obj.projected_cuboid, dtype=np.float64).reshape(NUM_KEYPOINTS, 2)
             kps.append(convert_keypoint_order(kp, obj.keypoint_order, keypoint_order))

@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from dope_hope.errors import ConfigError, UnknownObjectError
 
 if TYPE_CHECKING:
@@ -40,6 +42,8 @@ class TrainJob:
         val: validation folders, or empty for a seeded split of ``data``.
         resume: checkpoint to continue from, or None.
         mesh: optional mesh whose AABB gives the cuboid size recorded in the checkpoint.
+        symmetries: optional symmetry declaration file (else ``model_info.json`` beside the
+            mesh is used when present; :mod:`dope_hope.io.symmetries`).
         backbone_weights: optional local VGG19 state dict (arch dope).
         init_weights: optional dope-hope checkpoint whose network weights start this run
             (fine-tuning: fresh optimizer, schedule and step count; same architecture).
@@ -57,6 +61,7 @@ class TrainJob:
     val: list[Path] = field(default_factory=list)
     resume: Path | None = None
     mesh: Path | None = None
+    symmetries: Path | None = None
     backbone_weights: Path | None = None
     init_weights: Path | None = None
     device: str = "auto"
@@ -109,7 +114,7 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None) -> tuple[d
         from dope_hope.io.meshes import load_mesh, mesh_cuboid
         size, _ = mesh_cuboid(load_mesh(mesh))
         return make_object_info(name, size, "mesh"), f"mesh {Path(mesh).name}"
-    from dope_hope.training.dataset import recorded_cuboid_size
+    from dope_hope.io.dope_json import recorded_cuboid_size
 
     for r in [r for r in records if len(r.keypoints)][:5]:
         size = recorded_cuboid_size(r.json_path, name)
@@ -121,27 +126,44 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None) -> tuple[d
     return make_object_info(name, hope.size_array, "mesh"), "catalog"
 
 
-def symmetry_category(setting: Any, object_name: str) -> str | None:
-    """Category whose symmetries relabel the keypoints (config ``targets.symmetry``), or None.
+def label_symmetries(setting: Any, object_name: str, declaration_file: Path | None = None,
+                     mesh: Path | None = None) -> tuple[np.ndarray, str] | None:
+    """Symmetries whose corner permutations relabel the keypoints (config ``targets.symmetry``):
+    ``((S, 4, 4) model-frame transforms, where they come from)``, or None.
 
-    "none" (default, the official DOPE labels), "auto" (the HOPE catalog's category of the
-    object, or the demo box's), or a category name: "cuboid", "bottle", "cylinder".
+    "none" (default, the official DOPE labels); "auto": the object's declaration
+    (:mod:`dope_hope.io.symmetries`: ``declaration_file``, else ``model_info.json`` beside
+    ``mesh``), else the demo box's, else the HOPE catalog's category of the object; or a
+    category name: "cuboid", "bottle", "cylinder". Continuous symmetries are sampled every 90
+    degrees (the only turns that can permute box corners).
+
+    Raises:
+        ConfigError: an unknown setting; a declaration file with a setting other than auto.
     """
-    from dope_hope.catalog import CATEGORIES, get_object
+    from dope_hope.catalog import CATEGORIES, category_symmetries, get_object
 
     value = "none" if setting in (None, False) else str(setting).lower()
+    if declaration_file is not None and value != "auto":
+        raise ConfigError(f"--symmetries {declaration_file}: targets.symmetry is {value}; add "
+                          "--set targets.symmetry=auto to relabel with the declared symmetries")
     if value == "none":
         return None
     if value == "auto":
-        from dope_hope.demo_object import DEMO_CATEGORY, DEMO_CLASS_NAME
+        from dope_hope.demo_object import DEMO_CLASS_NAME, demo_symmetries
+        from dope_hope.io.symmetries import declared_symmetries
 
-        if object_name.lower() == DEMO_CLASS_NAME.lower():
-            return DEMO_CATEGORY
+        declaration = declared_symmetries(declaration_file, mesh)
+        if declaration is None and object_name.lower() == DEMO_CLASS_NAME.lower():
+            declaration = demo_symmetries()
+        if declaration is not None:
+            return declaration.transforms(step_deg=90.0), f"declared in {declaration.source}"
         try:
-            return get_object(object_name).category
+            category = get_object(object_name).category
         except UnknownObjectError:
-            raise ConfigError(f"targets.symmetry auto: {object_name!r} is not a HOPE object; set "
+            raise ConfigError(f"targets.symmetry auto: {object_name!r} is not a HOPE object and declares "
+                              "no symmetries (--symmetries FILE, or model_info.json beside --mesh); set "
                               f"targets.symmetry to one of {', '.join(CATEGORIES)} or none") from None
+        return category_symmetries(category, step_deg=90.0), f"{category} category"
     if value not in CATEGORIES:
         raise ConfigError(f"targets.symmetry must be none, auto or one of {', '.join(CATEGORIES)}; got {setting!r}")
-    return value
+    return category_symmetries(value, step_deg=90.0), f"{value} category"

@@ -46,8 +46,8 @@ from dope_hope.training.schedule import LrLambda
 from dope_hope.training.settings import (
     TrainJob,
     input_hw,
+    label_symmetries,
     object_info,
-    symmetry_category,
     train_settings,
 )
 from dope_hope.training.validation import validation_hits
@@ -89,6 +89,8 @@ class Trainer:
                 job.object_name = str(saved_job.get("object", ""))
             if job.mesh is None and saved_job.get("mesh"):
                 job.mesh = Path(saved_job["mesh"])
+            if job.symmetries is None and saved_job.get("symmetries"):
+                job.symmetries = Path(saved_job["symmetries"])
             if not job.data or not job.object_name:
                 raise ConfigError(f"{job.resume} does not record its data folders / object; pass --data and --object")
         config = merge(config, job.overrides)
@@ -126,19 +128,17 @@ class Trainer:
         else:
             records, val_records = split_records(records, float(ts["val_fraction"]), self.seed)
         self.object, self.size_source = object_info(job.object_name, records, job.mesh)
-        symmetry = symmetry_category(tcfg.get("symmetry", "none"), job.object_name)
+        symmetry = label_symmetries(tcfg.get("symmetry", "none"), job.object_name, job.symmetries, job.mesh)
         self.symmetry_permutations = 1
         if symmetry is not None:
-            from dope_hope.catalog import category_symmetries
             from dope_hope.training.dataset import relabel_symmetric
             from dope_hope.training.symmetric_labels import corner_permutations
 
-            rots, perms = corner_permutations(np.asarray(self.object["size_m"]),
-                                              category_symmetries(symmetry, step_deg=90.0))
+            rots, perms = corner_permutations(np.asarray(self.object["size_m"]), symmetry[0])
             self.symmetry_permutations = len(perms)
             records = relabel_symmetric(records, rots, perms)
             val_records = relabel_symmetric(val_records, rots, perms)
-            log.info("symmetry-aware labels: %s category, %d corner-permuting symmetries", symmetry, len(perms))
+            log.info("symmetry-aware labels: %s, %d corner-permuting symmetries", symmetry[1], len(perms))
         common = dict(input_hw=hw, stride=stride, sigma=float(tcfg.get("sigma", 2.0)),
                       radius=float(tcfg.get("radius", 1.0)), seed=self.seed, max_instances=int(ts["max_instances"]))
         self.train_set = DopeDataset(records, augment=AugmentParams.from_config(config.get("augment")), **common)
@@ -222,6 +222,7 @@ class Trainer:
             "world_size": self.dist.world_size,
             "job": {"data": [str(p) for p in self.job.data], "val": [str(p) for p in self.job.val],
                     "object": self.job.object_name, "mesh": str(self.job.mesh) if self.job.mesh else None,
+                    "symmetries": str(self.job.symmetries) if self.job.symmetries else None,
                     "init": str(self.job.init_weights) if self.job.init_weights else None},
         }
         save_checkpoint(path, self.model, self.config, self.object, optimizer=self.optimizer,
