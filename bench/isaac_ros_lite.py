@@ -32,7 +32,6 @@ import numpy as np
 import torch
 from scipy.optimize import linear_sum_assignment
 
-from dope_hope.catalog import category_symmetries
 from dope_hope.commands.demo import (
     DEMO_CONFIG,
     IMAGE_SIZE,
@@ -43,9 +42,9 @@ from dope_hope.commands.demo import (
 )
 from dope_hope.commands.infer import DEMO_WEIGHTS
 from dope_hope.demo_object import (
-    DEMO_CATEGORY,
     DEMO_CLASS_NAME,
     demo_object_mesh,
+    demo_symmetries,
     write_demo_object,
 )
 from dope_hope.export.isaac_ros import ISAAC_ROS_CURRENT, isaac_ros_release
@@ -133,7 +132,7 @@ def main() -> int:
           f"export {onnx_path.name}; {args.scenes} demo scenes, seed {args.seed}")
 
     points = sample_surface_points(mesh, MODEL_POINTS, seed=0)
-    symmetries = category_symmetries(DEMO_CATEGORY)
+    symmetries = demo_symmetries().transforms()
     isaac_pred = DopePredictor(isaac_backend, mesh=mesh)
     pools = ("avg", "max")
     drift: dict[str, list[float]] = {f"{p} {w}": [] for p in pools for w in ("peaks", "object")}
