@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
 from dope_hope.catalog import get_object
 from dope_hope.cli import main
-from dope_hope.errors import InputFileError
+from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.evaluation import metrics
 from dope_hope.evaluation.bop19 import (
     BOP19_MSSD_THRESHOLDS,
@@ -22,7 +22,11 @@ from dope_hope.evaluation.bop19 import (
     bop_recalls,
 )
 from dope_hope.evaluation.datasets import load_dataset
-from dope_hope.evaluation.evaluate import EvalConfig, cuboid_centres_to_origins, run_evaluation
+from dope_hope.evaluation.evaluate import (
+    EvalConfig,
+    cuboid_centres_to_origins,
+    run_evaluation,
+)
 from dope_hope.evaluation.matching import greedy_match
 from dope_hope.evaluation.models import ObjectModel, load_models
 from dope_hope.io.dope_json import write_dope_json
@@ -433,6 +437,11 @@ def test_bop_models_use_every_vertex_of_the_file_in_millimetres(tmp_path):
     np.testing.assert_array_equal(m.bop.symmetries, np.eye(4)[None])
     # the tables keep their metres (the 4 points are all the cloud has)
     assert m.diameter == pytest.approx(0.1) and m.points.shape == (4, 3)
+    # a --symmetries declaration beside models_info's entry would be ignored: refused instead
+    decl = tmp_path / "sym.json"
+    decl.write_text(json.dumps({"symmetries_discrete": [np.diag([1.0, -1.0, -1.0, 1.0]).ravel().tolist()]}))
+    with pytest.raises(ConfigError, match="--symmetries for Ketchup would be ignored"):
+        load_models(["Ketchup"], models_dir=root / "models_eval", symmetry_args=[f"Ketchup={decl}"])
 
 
 def test_official_dope_output_folder_is_scored_in_the_mesh_frame(tmp_path):

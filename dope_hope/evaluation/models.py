@@ -203,6 +203,9 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
             mesh = trimesh.creation.box(extents=obj.size_array)
             source = "procedural cuboid (catalog size; no mesh given)"
         points = sample_surface_points(mesh, n_points)
+        if info is not None and declared.get(name) is not None:
+            raise ConfigError(f"--symmetries for {name} would be ignored: its models_info.json entry "
+                              f"(--models-dir) declares the symmetries BOP scoring uses; drop one of the two")
         decl = None if info is not None else declared_symmetries(declared.get(name), path, mesh_units, obj_id)
         if info is not None:
             syms = metrics.symmetries_from_models_info(info, BOP19_MAX_SYM_DISC_STEP,
