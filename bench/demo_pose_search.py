@@ -5,8 +5,9 @@ noise; the same frames as `dope-hope demo --seed S --scenes N`), runs one demo m
 both pose searches of ``DopePredictor`` on the same network maps - the default
 ``pose_search="hypotheses"`` (decode.corner_candidates + pose.solve_pnp_candidates) and
 ``"groups"`` (decode.decode_maps + pose.solve_pnp) - with -LS, and scores each scene as the
-demo does: the highest-scoring detection nearest the box is matched to it, a scene is found
-when that detection's ADD-H is below 2 cm; the other detections are false positives.
+demo and `dope-hope evaluate` do (dope_hope/evaluation/matching.match_frame): detections in
+descending score take the box when their ADD-H is below 2 cm, a scene is found when its box is;
+detections paired with no box are false positives.
 
     python bench/demo_pose_search.py [--weights dope_hope/assets/demo_lite.pt] [--seeds 100:40 200:40 0:10 1:10 2:10 3:10]
 
@@ -21,24 +22,14 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from dope_hope.commands.demo import (
-    DEMO_CONFIG,
-    IMAGE_SIZE,
-    MODEL_POINTS,
-    THRESHOLD_CM,
-    match_detections,
-    pose_errors,
-)
+from dope_hope.commands.demo import DEMO_CONFIG, IMAGE_SIZE
 from dope_hope.commands.infer import DEMO_WEIGHTS
-from dope_hope.demo_object import (
-    DEMO_CLASS_NAME,
-    demo_object_mesh,
-    write_demo_object,
-)
+from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
+from dope_hope.evaluation.matching import TABLE_THRESHOLDS_M, match_frame
+from dope_hope.evaluation.models import load_models
 from dope_hope.inference.backends import open_backend
 from dope_hope.inference.predictor import DopePredictor
-from dope_hope.io.meshes import sample_surface_points
-from dope_hope.io.symmetries import declared_symmetries
+from dope_hope.refine.depth import DepthImage
 from dope_hope.synth import FrameGenerator
 
 SEARCHES = ("hypotheses", "groups")
@@ -66,8 +57,7 @@ def main() -> int:
     mesh_path = write_demo_object(args.mesh_dir)
     backend = open_backend(args.weights, "torch", threads=args.threads)
     predictors = {s: DopePredictor(backend, mesh=mesh, pose_search=s) for s in SEARCHES}
-    points = sample_surface_points(mesh, MODEL_POINTS, seed=0)
-    symmetries = declared_symmetries(mesh_path=mesh_path).transforms()
+    model = load_models([DEMO_CLASS_NAME], [str(mesh_path)])[DEMO_CLASS_NAME]
     found = {s: 0 for s in SEARCHES}
     false_pos = {s: 0 for s in SEARCHES}
     seconds = {s: 0.0 for s in SEARCHES}
@@ -83,24 +73,21 @@ def main() -> int:
                     frame = gen.render_frame(i)
                     K, gts = frame.annotation.K, frame.annotation.objects
                     belief, affinity, net_in = predictors["groups"].infer_maps(frame.rgb)
+                    depth = DepthImage.from_raw(frame.depth, K, image_hw=frame.rgb.shape[:2])
                     for s, pred in predictors.items():
                         t0 = time.perf_counter()
-                        dets = pred.detections_from_maps(belief, affinity, net_in, K, depth=frame.depth)
+                        dets = pred.detections_from_maps(belief, affinity, net_in, K, depth=depth)
                         seconds[s] += time.perf_counter() - t0
-                        pairs = match_detections(dets, gts)
-                        matched = [(g, d) for g, d in pairs if d is not None]
-                        ok = len(matched) == len(gts) and all(
-                            pose_errors(d.R, d.t, g.R, g.t, points, symmetries).addh_cm < THRESHOLD_CM
-                            for g, d in matched)
-                        counts[s] += ok
-                        false_pos[s] += len(dets) - len(matched)
+                        match = match_frame(dets, gts, model)
+                        counts[s] += match.found
+                        false_pos[s] += match.unpaired
                     scenes += 1
                     bar.update()
             for s in SEARCHES:
                 found[s] += counts[s]
                 per_seed[s].append(f"{seed}: {counts[s]}/{n}")
 
-    print(f"{args.weights}: {scenes} demo scenes, ADD-H < {THRESHOLD_CM:g} cm with -LS")
+    print(f"{args.weights}: {scenes} demo scenes, ADD-H < {100 * TABLE_THRESHOLDS_M[0]:g} cm with -LS")
     for s in SEARCHES:
         print(f"  {s:10s}: found {found[s]:3d}/{scenes} ({100 * found[s] / scenes:.1f} %)  false positives "
               f"{false_pos[s]:3d}  decode + PnP + -LS {1000 * seconds[s] / scenes:6.1f} ms/scene   "

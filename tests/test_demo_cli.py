@@ -8,9 +8,11 @@ detection to score and to compare between the two backends.
 from __future__ import annotations
 
 import contextlib
+import csv
 import io
 import json
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +46,8 @@ def demo_run(ckpt, tmp_path_factory) -> tuple[Path, str]:
     rc, stdout, stderr = _run(["demo", "--scenes", "2", "--seed", str(SEED), "--weights", str(ckpt),
                                "--out", str(out), "--threads", "1"])
     assert rc == 0, stderr
+    # what evaluate reads, kept apart from the later run into the same folder
+    shutil.copytree(out, out.parent / "first_run", ignore=shutil.ignore_patterns("*.overlay.png", "overview.png", "*.onnx"))
     return out, stdout
 
 
@@ -90,6 +94,35 @@ def test_demo_writes_overlays_frames_onnx_and_predictions(demo_run, ckpt):
     assert onnx_path.is_file() and stamp["input_hw"] == list(DEMO_INPUT_HW)
     preds, _ = read_predictions(out / "predictions.jsonl")
     assert preds and all(p.class_name == "DemoBox" for p in preds)
+
+
+def test_evaluate_on_the_demo_predictions_reports_what_the_demo_found(demo_run, tmp_path):
+    """`dope-hope evaluate` on the demo's own output (the command the demo prints) counts the
+    same true positives at 2 cm ADD-H as the demo's "found", and with the box's symmetries
+    (model_info.json beside the mesh) the same MeanSSD errors."""
+    out, stdout = demo_run
+    first = out.parent / "first_run"
+    rc, _, stderr = _run(["evaluate", "-p", str(first / "predictions.jsonl"), "-d", str(first / "frames"),
+                               "--mesh", str(first / "mesh" / "DemoBox.obj"), "--metric", "addh,meanssd",
+                               "--out", str(tmp_path / "eval"), "--no-progress"])
+    assert rc == 0, stderr
+    found = int(re.search(r"^found (\d)/2 scenes with ADD-H < 2 cm", stdout, re.M).group(1))
+    hint = re.search(r"reports recall ([\d.]+) at 2 cm ADD-H: the (\d) of (\d) instances", stdout)
+    assert hint and int(hint.group(2)) == found and int(hint.group(3)) == 2, stdout
+    with open(tmp_path / "eval" / "detection_rate.csv", newline="") as f:
+        at_2cm = {r["metric"]: r for r in csv.DictReader(f) if r["group"] == "overall" and r["threshold_cm"] == "2"}
+    assert int(at_2cm["addh"]["true_positives"]) == found and int(at_2cm["addh"]["gt_instances"]) == 2
+    assert f"{float(at_2cm['addh']['detection_rate']):.3f}" == hint.group(1)
+    # the errors themselves agree: MeanSSD (symmetry-aware) of the -LS poses the demo printed
+    meanssd = [float(v) for v in re.findall(r"PnP\+LS .* MeanSSD +([\d.]+) cm", stdout)]
+    assert int(at_2cm["meanssd"]["true_positives"]) == sum(v < 2.0 for v in meanssd)
+    summary = json.loads((tmp_path / "eval" / "summary.json").read_text())
+    assert summary["models"]["DemoBox"].endswith("model_info.json")
+    addh = [float(v) for v in re.findall(r"PnP\+LS .* ADD-H +([\d.]+) cm", stdout)]
+    within = sorted(v for v in addh if v < 10.0)
+    if within:
+        assert summary["methods"]["predictions"]["overall"]["median_tp_error_cm"] == pytest.approx(
+            float(np.median(within)), abs=0.006)
 
 
 def test_infer_on_a_demo_frame_uses_sibling_camera_and_default_weights(demo_run, ckpt, tmp_path, monkeypatch):

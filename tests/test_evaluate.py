@@ -328,6 +328,34 @@ def test_mesh_models_use_the_mesh_and_centre_the_catalog_symmetries(tmp_path):
                                tuna.symmetries) == pytest.approx(0.0, abs=1e-9)
 
 
+def test_demo_box_model_and_frame_matching(tmp_path):
+    """The demo box as evaluate (and the demo) load it: its model_info.json gives the cuboid's
+    flips, so a pose turned 180 degrees is right under MeanSSD. ``match_frame`` (what
+    ``dope-hope demo`` counts) matches as ``evaluate`` does: a wrong top-scoring pose does not
+    hide a right one, and the rest stays paired for display."""
+    from types import SimpleNamespace
+
+    from dope_hope.demo_object import write_demo_object
+    from dope_hope.evaluation.matching import match_frame, pose_error
+
+    mesh = write_demo_object(tmp_path / "mesh")
+    model = load_models(["DemoBox"], [str(mesh)])["DemoBox"]
+    assert model.source == f"mesh {mesh} + symmetries {mesh.parent / 'model_info.json'}"
+    assert model.symmetries.shape == (4, 4, 4)
+    gt = ObjectAnnotation(class_name="DemoBox", R=np.eye(3), t=np.array([0.0, 0.0, 0.6]))
+    assert pose_error("meanssd", rot("y", 180), gt.t, gt, model) == pytest.approx(0.0, abs=1e-9)
+    assert pose_error("add", rot("y", 180), gt.t, gt, model) > 0.02
+
+    def est(dz: float, score: float):
+        return SimpleNamespace(R=np.eye(3), t=gt.t + [0.0, 0.0, dz], score=score)
+
+    m = match_frame([est(0.05, 0.9), est(0.001, 0.5), est(0.2, 0.1)], [gt], model)
+    assert m.found and m.estimate_of_gt.tolist() == [1] and m.unpaired == 2
+    m = match_frame([est(0.05, 0.9)], [gt, ObjectAnnotation("DemoBox", np.eye(3), np.array([0.3, 0.0, 0.6]))],
+                    model)
+    assert not m.found and m.estimate_of_gt.tolist() == [0, -1] and m.correct.tolist() == [False, False]
+
+
 def test_dataset_without_frames_is_an_input_error(tmp_path):
     with pytest.raises(InputFileError, match="no dope-format frames"):
         load_dataset(tmp_path, "dope")

@@ -18,7 +18,6 @@ from dope_hope.io.meshes import load_mesh, mesh_cuboid
 from dope_hope.synth.assets import (
     guess_class_name,
     list_distractor_meshes,
-    resolve_object_mesh,
 )
 from dope_hope.synth.background import BackgroundSource
 from dope_hope.synth.camera import reference_intrinsics
@@ -355,18 +354,10 @@ def test_settings_parsing_and_validation(tmp_path: Path):
     assert cfg["target"]["count"] == [1, 1] and cfg["lights"]["count"] == [1, 4]
 
 
-def test_object_lookup_in_models_folders(tmp_path: Path):
-    hope = tmp_path / "hope"
-    (hope / "Ketchup").mkdir(parents=True)
-    (hope / "Ketchup" / "textured.obj").write_text("")
-    assert resolve_object_mesh(hope, "ketchup") == hope / "Ketchup" / "textured.obj"
-    bop = tmp_path / "bop"
-    bop.mkdir()
-    (bop / "obj_000011.ply").write_text("")
-    assert resolve_object_mesh(bop, "Ketchup") == bop / "obj_000011.ply"
-    assert guess_class_name(bop / "obj_000011.ply") == "Ketchup"
-    with pytest.raises(InputFileError, match="Mustard"):
-        resolve_object_mesh(bop, "Mustard")
+def test_class_name_of_a_target_mesh_falls_back_on_the_stem(tmp_path: Path):
+    assert guess_class_name(tmp_path / "bop" / "obj_000011.ply") == "Ketchup"
+    assert guess_class_name(tmp_path / "meshes" / "hope_ketchup.obj") == "Ketchup"
+    assert guess_class_name(tmp_path / "my_widget.obj") == "my_widget"
 
 
 # --------------------------------------------------------------------------- CLI

@@ -10,16 +10,16 @@ Reads BOP_ROOT/DATASET/SPLIT/<scene_id>/{rgb,depth}/ and scene_camera.json (BOP 
 BOP_ROOT/DATASET/test_targets_bop19.json: only the targeted images are processed, each with the
 models of its targeted objects (a model's object: the HOPE catalog's obj_id of its class, or a
 class named obj_NNNNNN). Poses are refined with the depth line search (-LS) on the split's
-depth images unless --no-depth; the line search uses BOP_ROOT/DATASET/models/obj_NNNNNN.ply
-(or --models-dir) when found; --icp adds the depth ICP after it (all six DoF, dope_hope/refine/icp.py).
-Every estimate is written with its score and the image's total
+depth images unless --no-depth; the line search uses the object's mesh from
+BOP_ROOT/DATASET/models (or --models-dir: obj_NNNNNN.ply, or the other names of
+dope_hope/io/models_dir.py) when found; --icp adds the depth ICP after it (all six DoF,
+dope_hope/refine/icp.py). Every estimate is written with its score and the image's total
 time (reading + all models, seconds), t in millimetres (io/bop_csv.py). Evaluate it with
   dope-hope evaluate -p dopehope-lite_hope-test.csv -d bop/hope --format bop --models-dir bop/hope/models
 """
 from __future__ import annotations
 
 import argparse
-import re
 from pathlib import Path
 
 
@@ -53,18 +53,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def obj_id_of(class_name: str) -> int:
-    """BOP obj_id of a model's class: the HOPE catalog's, or NNNNNN of ``obj_NNNNNN``."""
-    from dope_hope.catalog import get_object
+    """BOP obj_id of a model's class (:func:`dope_hope.io.models_dir.bop_obj_id`); an error when
+    it has none."""
     from dope_hope.errors import UnknownObjectError
+    from dope_hope.io.models_dir import bop_obj_id
 
-    m = re.fullmatch(r"obj_?(\d+)", class_name)
-    if m:
-        return int(m.group(1))
-    try:
-        return get_object(class_name).obj_id
-    except UnknownObjectError:
+    obj_id = bop_obj_id(class_name)
+    if obj_id is None:
         raise UnknownObjectError(f"model class {class_name!r} has no BOP obj_id (not a HOPE object, "
-                                 "not named obj_NNNNNN)") from None
+                                 "not named obj_NNNNNN)")
+    return obj_id
 
 
 def split_folder(bop_root: Path, dataset: str, split: str) -> Path:
@@ -93,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
         write_bop_csv,
     )
     from dope_hope.io.images import read_depth_m, read_rgb
+    from dope_hope.io.models_dir import find_object_mesh
 
     parse_bop_result_filename(args.out)  # fail before any work
     if args.icp and args.no_depth:
@@ -107,6 +106,8 @@ def run(args: argparse.Namespace) -> int:
     models_dir = args.models_dir if args.models_dir is not None else dataset_dir / "models"
     if args.models_dir is not None and not models_dir.is_dir():
         raise InputFileError(models_dir, "models folder not found")
+    if not models_dir.is_dir():
+        models_dir = None  # no DATASET/models: the line search uses each model's cuboid
 
     predictors: dict[int, object] = {}
     for w in args.weights:
@@ -114,9 +115,9 @@ def run(args: argparse.Namespace) -> int:
         obj_id = obj_id_of(backend.class_name)
         if obj_id in predictors:
             raise ConfigError(f"{w}: a second model for obj_id {obj_id} ({backend.class_name})")
-        mesh = models_dir / f"obj_{obj_id:06d}.ply"
+        mesh = find_object_mesh(backend.class_name, models_dir, required=False)
         predictors[obj_id] = DopePredictor(backend, height=args.height, min_score=args.min_score,
-                                           mesh=mesh if mesh.is_file() else None, icp=args.icp)
+                                           mesh=mesh, icp=args.icp)
 
     wanted: dict[tuple[int, int], list[int]] | None = None
     if targets_path is not None:

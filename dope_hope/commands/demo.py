@@ -5,13 +5,18 @@ one box at 0.45-0.9 m among a few distractors, RealSense-like depth noise; confi
 runs the model through PyTorch and through onnxruntime (exported once to OUT/<weights>.onnx
 and reused while the weights are unchanged), refines the distance with the depth line search
 (-LS), and prints each detection next to the ground truth: translation and rotation error,
-ADD-H and MeanSSD (500 model points, the box's declared symmetries) without -LS, with -LS
-and with -LS + ICP (dope_hope/refine/icp.py: the whole pose refined against the depth), and how
-closely the ONNX keypoints agree with PyTorch's. Ends with
-"found N/10 scenes with ADD-H < 2 cm (with -LS; ...)".
+ADD-H and MeanSSD without -LS, with -LS and with -LS + ICP (dope_hope/refine/icp.py: the whole
+pose refined against the depth), and how closely the ONNX keypoints agree with PyTorch's. Ends
+with "found N/10 scenes with ADD-H < 2 cm (with -LS; ...)".
+
+The errors and the matching are `dope-hope evaluate`'s (dope_hope/evaluation/matching.py), on
+the model evaluate loads from OUT/mesh (500 points of DemoBox.obj, the box's symmetries from
+the model_info.json written beside it), so "found N" with -LS is the true-positive count that
+`dope-hope evaluate` reports for OUT/predictions.jsonl at 2 cm ADD-H (recall N/10).
 
 Writes OUT/NNNNNN.overlay.png (detection in colour, ground truth in white), OUT/overview.png,
 OUT/predictions.jsonl (PyTorch + -LS, the `dope-hope infer` format), OUT/mesh/DemoBox.obj and
+OUT/mesh/model_info.json (its symmetries, BOP models_info fields) and
 OUT/frames/NNNNNN.{png,depth.png,seg.png,json} (DOPE format), so that
   dope-hope infer OUT/frames/000000.png --depth auto
   dope-hope evaluate -p OUT/predictions.jsonl -d OUT/frames --mesh OUT/mesh/DemoBox.obj
@@ -27,7 +32,10 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from dope_hope.evaluation.matching import PoseErrors
 
 from dope_hope.commands.infer import DEMO_WEIGHTS
 
@@ -35,10 +43,6 @@ from dope_hope.commands.infer import DEMO_WEIGHTS
 DEMO_CONFIG = "demo"
 #: (W, H) of the rendered scenes (the RealSense D415 colour camera's default mode).
 IMAGE_SIZE = (640, 480)
-#: A scene counts as found when its object's ADD-H is below this, centimetres.
-THRESHOLD_CM = 2.0
-#: Model points of ADD-H / MeanSSD (the HOPE paper's 500).
-MODEL_POINTS = 500
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -85,29 +89,6 @@ def ensure_onnx(weights: Path, out_dir: Path, input_hw: tuple[int, int]) -> tupl
     return onnx_path, True
 
 
-@dataclass
-class PoseErrors:
-    """Errors of one pose against its ground truth: te (cm), symmetry-aware re (deg), ADD-H
-    and MeanSSD (cm)."""
-
-    te_cm: float
-    re_deg: float
-    addh_cm: float
-    meanssd_cm: float
-
-
-def pose_errors(R, t, R_gt, t_gt, points, symmetries) -> PoseErrors:
-    """``points`` (N, 3) model points (m); ``symmetries`` (S, 4, 4) model-frame transforms."""
-    import numpy as np
-
-    from dope_hope.evaluation.metrics import addh, mean_ssd, re, te
-
-    rot = min(re(R, R_gt @ S[:3, :3]) for S in np.asarray(symmetries))
-    return PoseErrors(te_cm=100.0 * te(t, t_gt), re_deg=rot,
-                      addh_cm=100.0 * addh(R, t, R_gt, t_gt, points),
-                      meanssd_cm=100.0 * mean_ssd(R, t, R_gt, t_gt, points, symmetries))
-
-
 def keypoint_difference(a, b) -> float:
     """Largest distance (px) between the keypoints two backends found (finite in both);
     inf when one found a keypoint the other did not."""
@@ -144,6 +125,8 @@ class SceneResult:
     errors_icp: PoseErrors | None = None
     onnx_diff_px: float | None = None
     extra_detections: int = 0
+    n_gt: int = 0
+    true_positives: int = 0
     lines: list[str] = field(default_factory=list)
 
 
@@ -154,22 +137,6 @@ def _fmt_t(t) -> str:
 def _err_text(e: PoseErrors) -> str:
     return (f"dt {e.te_cm:5.2f} cm  dR {e.re_deg:5.1f} deg  ADD-H {e.addh_cm:5.2f} cm  "
             f"MeanSSD {e.meanssd_cm:5.2f} cm")
-
-
-def match_detections(dets: list, gts: list) -> list[tuple[Any, Any]]:
-    """Greedy matching in descending score: each detection takes the nearest free GT instance
-    (centre distance). Returns (gt, det or None) for every GT, in GT order."""
-    import numpy as np
-
-    free = list(range(len(gts)))
-    pairs: dict[int, Any] = {}
-    for d in sorted(dets, key=lambda d: -d.score):
-        if not free:
-            break
-        j = min(free, key=lambda k: float(np.linalg.norm(np.asarray(d.t) - gts[k].t)))
-        pairs[j] = d
-        free.remove(j)
-    return [(g, pairs.get(k)) for k, g in enumerate(gts)]
 
 
 def missing_weights_problem(mesh_path: Path) -> str:
@@ -204,11 +171,11 @@ def run(args: argparse.Namespace) -> int:
             raise ModelFileError(DEMO_WEIGHTS, missing_weights_problem(mesh_path))
         raise ModelFileError(weights, "weights file not found")
 
+    from dope_hope.evaluation.models import load_models
     from dope_hope.geometry import cuboid_keypoints, project_points
     from dope_hope.inference.backends import open_backend
     from dope_hope.inference.predictor import DopePredictor
     from dope_hope.io.images import write_rgb
-    from dope_hope.io.meshes import sample_surface_points
     from dope_hope.io.predictions import write_predictions_jsonl
     from dope_hope.refine.depth import DepthImage
     from dope_hope.synth import FrameGenerator
@@ -231,10 +198,7 @@ def run(args: argparse.Namespace) -> int:
         onnx_note = (f"ONNX {onnx_path} (" + (f"exported in {time.perf_counter() - t0:.1f} s"
                                               if exported else "cached") + ")")
     seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % (2 ** 31))
-    points = sample_surface_points(mesh, MODEL_POINTS, seed=0)
-    from dope_hope.io.symmetries import declared_symmetries
-
-    symmetries = declared_symmetries(mesh_path=mesh_path).transforms()  # model_info.json beside it
+    model = load_models([DEMO_CLASS_NAME], [str(mesh_path)])[DEMO_CLASS_NAME]  # as evaluate loads it
     frames_dir = out / "frames"
     _clear_old_outputs(out)
     print(f"dope-hope demo: {args.scenes} scene(s) of {DEMO_CLASS_NAME}, seed {seed} (repeat with "
@@ -269,7 +233,7 @@ def run(args: argparse.Namespace) -> int:
                 dets_onnx = onnx_pred.predict(frame.rgb, K)
                 timing["onnx"] += time.perf_counter() - t0
                 res.onnx_diff_px = backend_agreement(dets_plain, dets_onnx)
-            _score_scene(res, gts, dets_plain, dets_ls, dets_icp, points, symmetries)
+            _score_scene(res, gts, dets_plain, dets_ls, dets_icp, model)
             results.append(res)
             records += [d.to_json(res.name) for d in dets_ls]
             header = (f"[{i + 1:>{len(str(args.scenes))}}/{args.scenes}] {res.name}: "
@@ -292,7 +256,7 @@ def run(args: argparse.Namespace) -> int:
     write_rgb(out / "overview.png", montage(tiles, cols=min(5, len(tiles)),
                                             tile_hw=(IMAGE_SIZE[1] // 2, IMAGE_SIZE[0] // 2)))
     write_predictions_jsonl(out / "predictions.jsonl", records)
-    _print_summary(results, timing, out, time.perf_counter() - t_start, onnx_pred is not None)
+    _print_summary(results, timing, out, mesh_path, time.perf_counter() - t_start, onnx_pred is not None)
     return 0
 
 
@@ -311,69 +275,69 @@ def _clear_old_outputs(out: Path) -> None:
 
 
 def _score_scene(res: SceneResult, gts: list, dets_plain: list, dets_ls: list, dets_icp: list,
-                 points, symmetries) -> None:
-    """Fill ``res`` (errors, found flags, printed lines) from one scene's detections."""
-    matched_ls = match_detections(dets_ls, gts)
-    matched_plain = dict((id(g), d) for g, d in match_detections(dets_plain, gts))
-    matched_icp = dict((id(g), d) for g, d in match_detections(dets_icp, gts))
-    all_ls = all_icp = True
-    used = 0
-    for g, d in matched_ls:
+                 model) -> None:
+    """Fill ``res`` (errors, found flags, printed lines) from one scene's detections, matched
+    to the ground truth as ``dope-hope evaluate`` matches (:func:`match_frame`: ADD-H below
+    2 cm); a scene is found when every instance is."""
+    from dope_hope.evaluation.matching import match_frame, pose_errors
+
+    plain, ls, icp = (match_frame(d, gts, model) for d in (dets_plain, dets_ls, dets_icp))
+    res.found_no_ls, res.found, res.found_icp = plain.found, ls.found, icp.found
+    res.n_gt, res.true_positives = len(gts), int(ls.correct.sum())
+    for j, g in enumerate(gts):
         vis = "" if g.visibility is None else f", {100 * g.visibility:.0f} % visible"
         res.lines.append(f"    truth   t {_fmt_t(g.t)}{vis}")
-        d0 = matched_plain.get(id(g))
-        if d is None or d0 is None:
+        if ls.estimate_of_gt[j] < 0:
             res.lines.append("    not detected")
             continue
-        used += 1
-        e0 = pose_errors(d0.R, d0.t, g.R, g.t, points, symmetries)
-        e1 = pose_errors(d.R, d.t, g.R, g.t, points, symmetries)
-        res.errors, res.errors_no_ls = e1, e0
-        res.found_no_ls = e0.addh_cm < THRESHOLD_CM
-        res.found = e1.addh_cm < THRESHOLD_CM
-        all_ls &= res.found
-        res.lines.append(f"    PnP     t {_fmt_t(d0.t)}  {_err_text(e0)}  score {d0.score:.2f}")
+        if plain.estimate_of_gt[j] >= 0:
+            d0 = dets_plain[plain.estimate_of_gt[j]]
+            res.errors_no_ls = pose_errors(d0.R, d0.t, g, model)
+            res.lines.append(f"    PnP     t {_fmt_t(d0.t)}  {_err_text(res.errors_no_ls)}  score {d0.score:.2f}")
+        d = dets_ls[ls.estimate_of_gt[j]]
+        res.errors = pose_errors(d.R, d.t, g, model)
         ls_note = f"scale {d.ls_scale:.4f}" if d.ls_applied else f"not applied: {d.ls_reason}"
-        res.lines.append(f"    PnP+LS  t {_fmt_t(d.t)}  {_err_text(e1)}  "
-                         + ("OK" if res.found else "MISS") + f"  (-LS {ls_note})")
-        d2 = matched_icp.get(id(g))
-        if d2 is None:
-            all_icp = False
+        res.lines.append(f"    PnP+LS  t {_fmt_t(d.t)}  {_err_text(res.errors)}  "
+                         + ("OK" if ls.correct[j] else "MISS") + f"  (-LS {ls_note})")
+        if icp.estimate_of_gt[j] < 0:
             continue
-        e2 = pose_errors(d2.R, d2.t, g.R, g.t, points, symmetries)
-        res.errors_icp = e2
-        res.found_icp = e2.addh_cm < THRESHOLD_CM
-        all_icp &= res.found_icp
+        d2 = dets_icp[icp.estimate_of_gt[j]]
+        res.errors_icp = pose_errors(d2.R, d2.t, g, model)
         icp_note = "applied" if d2.icp_applied else f"not applied: {d2.icp_reason}"
-        res.lines.append(f"    +ICP    t {_fmt_t(d2.t)}  {_err_text(e2)}  "
-                         + ("OK" if res.found_icp else "MISS") + f"  (ICP {icp_note})")
-    res.extra_detections = len(dets_ls) - used
+        res.lines.append(f"    +ICP    t {_fmt_t(d2.t)}  {_err_text(res.errors_icp)}  "
+                         + ("OK" if icp.correct[j] else "MISS") + f"  (ICP {icp_note})")
+    res.extra_detections = ls.unpaired
     if res.extra_detections:
         res.lines.append(f"    + {res.extra_detections} detection(s) without ground truth (false positives)")
-    if len(gts) > 1:  # found = every instance within the threshold
-        res.found = all_ls and used == len(gts)
-        res.found_icp = all_icp and used == len(gts)
 
 
-def _print_summary(results: list[SceneResult], timing: dict[str, float], out: Path, seconds: float,
-                   with_onnx: bool) -> None:
+def _print_summary(results: list[SceneResult], timing: dict[str, float], out: Path, mesh_path: Path,
+                   seconds: float, with_onnx: bool) -> None:
     import numpy as np
+
+    from dope_hope.evaluation.matching import (
+        DEFAULT_METRIC,
+        METRIC_LABELS,
+        TABLE_THRESHOLDS_M,
+    )
 
     n = len(results)
     found = sum(r.found for r in results)
     found0 = sum(r.found_no_ls for r in results)
     found2 = sum(r.found_icp for r in results)
     detected = [r for r in results if r.errors is not None]
-    lines = [f"found {found}/{n} scenes with ADD-H < {THRESHOLD_CM:g} cm (with -LS; without -LS: {found0}/{n}; "
+    criterion = f"{METRIC_LABELS[DEFAULT_METRIC]} < {100 * TABLE_THRESHOLDS_M[0]:g} cm"
+    lines = [f"found {found}/{n} scenes with {criterion} (with -LS; without -LS: {found0}/{n}; "
              f"with -LS + ICP: {found2}/{n})"]
     if detected:
         med = np.median([r.errors.addh_cm for r in detected])
-        med0 = np.median([r.errors_no_ls.addh_cm for r in detected])
+        plain = [r.errors_no_ls.addh_cm for r in detected if r.errors_no_ls is not None]
+        med0 = f", {np.median(plain):.2f} cm without" if plain else ""
         medm = np.median([r.errors.meanssd_cm for r in detected])
         with_icp = [r.errors_icp.addh_cm for r in detected if r.errors_icp is not None]
         med2 = f", {np.median(with_icp):.2f} cm with -LS + ICP" if with_icp else ""
-        lines.append(f"  median over {len(detected)} detected: ADD-H {med:.2f} cm with -LS, {med0:.2f} cm "
-                     f"without{med2}; MeanSSD {medm:.2f} cm with -LS; "
+        lines.append(f"  median over {len(detected)} detected: ADD-H {med:.2f} cm with -LS{med0}{med2}; "
+                     f"MeanSSD {medm:.2f} cm with -LS; "
                      f"{sum(r.extra_detections for r in results)} false positive(s)")
     if with_onnx:
         diffs = [r.onnx_diff_px for r in results]
@@ -385,5 +349,11 @@ def _print_summary(results: list[SceneResult], timing: dict[str, float], out: Pa
                  + (f", ONNX {timing['onnx']:.1f} s" if with_onnx else "") + ")")
     lines.append(f"  overlays: {out}/NNNNNN.overlay.png, {out / 'overview.png'}; frames: {out / 'frames'}")
     lines.append(f"  next: dope-hope infer {out / 'frames' / '000000.png'} --depth auto --out {out / 'infer'}")
+    tp, n_gt = sum(r.true_positives for r in results), sum(r.n_gt for r in results)
+    recall = f"{tp / n_gt:.3f}" if n_gt else "n/a"
+    lines.append(f"  next: dope-hope evaluate -p {out / 'predictions.jsonl'} -d {out / 'frames'} --mesh "
+                 f"{mesh_path} --out {out / 'eval'}\n"
+                 f"        (reports recall {recall} at {100 * TABLE_THRESHOLDS_M[0]:g} cm "
+                 f"{METRIC_LABELS[DEFAULT_METRIC]}: the {tp} of {n_gt} instances found with -LS)")
     print("\n".join(lines), flush=True)
     sys.stdout.flush()

@@ -79,9 +79,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="after the line search, refine rotation and translation by ICP against the "
                           "depth (needs --depth, and --mesh unless the object is a catalog box)")
     parser.add_argument("--mesh", action="append", type=Path, metavar="PATH",
-                        help="object mesh per --weights (same order), or one folder holding "
-                             "CLASS.obj / CLASS/textured.obj / obj_NNNNNN.ply: its box and surface "
-                             "replace the cuboid (default: the checkpoint's cuboid)")
+                        help="object mesh per --weights (same order), or one models folder holding "
+                             "obj_NNNNNN.ply / CLASS/textured.obj / CLASS.obj / CLASS.ply: its box and "
+                             "surface replace the cuboid (default: the checkpoint's cuboid)")
     parser.add_argument("--mesh-units", choices=("m", "cm", "mm"),
                         help="mesh units (default: OBJ cm, PLY mm)")
     parser.add_argument("--out", type=Path, default=Path("infer_out"), metavar="DIR",
@@ -191,29 +191,11 @@ def _global_camera(args: argparse.Namespace):
     return None
 
 
-def _find_mesh(folder: Path, class_name: str) -> Path:
-    from dope_hope.errors import ConfigError
-
-    candidates = [folder / f"{class_name}.obj", folder / class_name / "textured.obj",
-                  folder / f"{class_name}.ply"]
-    try:
-        from dope_hope.catalog import get_object
-
-        obj_id = get_object(class_name).obj_id
-        candidates.append(folder / f"obj_{obj_id:06d}.ply")
-    except Exception:  # not a HOPE object: only the name-based files apply
-        pass
-    for c in candidates:
-        if c.is_file():
-            return c
-    raise ConfigError(f"{folder}: no mesh for {class_name} (looked for "
-                      + ", ".join(c.name if c.parent == folder else str(c.relative_to(folder)) for c in candidates) + ")")
-
-
 def build_predictors(args: argparse.Namespace, weights: list[Path]):
     from dope_hope.errors import ConfigError
     from dope_hope.inference.backends import open_backend
     from dope_hope.inference.predictor import DopePredictor
+    from dope_hope.io.models_dir import find_object_mesh
 
     meshes = list(args.mesh or [])
     mesh_dir = None
@@ -227,7 +209,7 @@ def build_predictors(args: argparse.Namespace, weights: list[Path]):
         backend = open_backend(w, args.backend, args.device, args.threads)
         mesh = None
         if mesh_dir is not None:
-            mesh = _find_mesh(mesh_dir, backend.class_name)
+            mesh = find_object_mesh(backend.class_name, mesh_dir)
         elif meshes:
             mesh = meshes[i]
         predictors.append(DopePredictor(backend, height=args.height, mesh=mesh, mesh_units=args.mesh_units,

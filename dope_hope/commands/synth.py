@@ -57,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from dope_hope.config import apply_overrides
     from dope_hope.errors import ConfigError
-    from dope_hope.synth.assets import resolve_object_mesh
+    from dope_hope.io.models_dir import find_object_mesh
     from dope_hope.synth.generate import generate_dataset
     from dope_hope.synth.settings import load_synth_config
 
@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     if args.mesh is not None:
         mesh = args.mesh
     elif args.models_dir is not None and args.object_name is not None:
-        mesh = resolve_object_mesh(args.models_dir, args.object_name)
+        mesh = find_object_mesh(args.object_name, args.models_dir)
     else:
         raise ConfigError("no target: give --mesh PATH or --models-dir DIR --object NAME")
     class_name = args.class_name

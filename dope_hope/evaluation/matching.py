@@ -1,14 +1,18 @@
-"""Per-pair pose errors and the one-to-one matching of predictions to ground truth.
+"""Per-pair pose errors and the one-to-one matching of estimates to ground truth.
 
-Predictions are matched to GT one-to-one per image and class, greedily in descending score,
+Estimates are matched to GT one-to-one per image and class, greedily in descending score,
 each taking the not-yet-matched GT instance of least error if that error is strictly below the
 threshold (:func:`greedy_match`). :func:`pose_error` is the one place that turns a metric name
-into an error value.
+into an error value. ``dope-hope evaluate`` (:func:`compute_errors`) and ``dope-hope demo``
+(:func:`match_frame`, :func:`pose_errors`) both count through here, so the demo's scenes
+found equal evaluate's true positives on the same predictions.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -27,12 +31,21 @@ TABLE_THRESHOLDS_M = (0.02, 0.10)
 #: Detection-rate curve thresholds, 0.5 .. 10 cm, metres.
 CURVE_THRESHOLDS_M = tuple(round(0.005 * k, 4) for k in range(1, 21))
 
-
+#: Metric names -> labels in reports.
 METRIC_LABELS = {"addh": "ADD-H", "add": "ADD", "adds": "ADD-S", "meanssd": "MeanSSD",
                  "mssd": "MSSD"}
 
-
+#: The metric of the HOPE paper's tables (and of ``dope-hope demo``'s "found").
 DEFAULT_METRIC = "addh"
+
+
+class PoseEstimate(Protocol):
+    """What matching needs of an estimate (a :class:`~dope_hope.io.predictions.Prediction` or
+    an inference ``Detection``): ``R`` (3, 3), ``t`` (3,) metres, ``score``."""
+
+    R: np.ndarray
+    t: np.ndarray
+    score: float
 
 
 # =========================================================================== errors + matching
@@ -51,6 +64,16 @@ def pose_error(metric: str, pred_R: np.ndarray, pred_t: np.ndarray, gt: ObjectAn
     if metric == "mssd":
         return metrics.mssd(*args, model.points, model.symmetries)
     raise ConfigError(f"unknown metric {metric!r}; use one of {', '.join(METRICS)}")
+
+
+def error_matrix(metric: str, estimates: Sequence[PoseEstimate], gts: Sequence[ObjectAnnotation],
+                 model: ObjectModel, upper: float | None = None) -> np.ndarray:
+    """(P, G) errors (metres) of every estimate against every GT instance of one class."""
+    E = np.empty((len(estimates), len(gts)))
+    for i, p in enumerate(estimates):
+        for j, g in enumerate(gts):
+            E[i, j] = pose_error(metric, p.R, p.t, g, model, upper=upper)
+    return E
 
 
 def greedy_match(errors: np.ndarray, scores: np.ndarray, threshold: float,
@@ -113,13 +136,80 @@ def compute_errors(dataset: Dataset, preds_by_frame: list[list[Prediction]],
         for c in classes:
             gts = [o for o in frame.objects if o.class_name == c]
             ps = [p for p in preds_by_frame[fi] if p.class_name == c]
-            errs = {}
-            for m in metric_names:
-                E = np.empty((len(ps), len(gts)))
-                for i, p in enumerate(ps):
-                    for j, g in enumerate(gts):
-                        E[i, j] = pose_error(m, p.R, p.t, g, models[c], upper=upper)
-                errs[m] = E
+            errs = {m: error_matrix(m, ps, gts, models[c], upper=upper) for m in metric_names}
             groups.append(GroupErrors(fi, c, np.array([p.score for p in ps], dtype=np.float64),
                                       gts, errs))
     return groups
+
+
+# =========================================================================== one frame (demo)
+@dataclass
+class FrameMatch:
+    """How one frame's estimates of one class pair with its GT instances.
+
+    Attributes:
+        errors: (P, G) errors, metres.
+        estimate_of_gt: (G,) index of the estimate paired with each GT instance, -1 for none:
+            first the matches at the threshold (:func:`greedy_match`, what ``evaluate``
+            counts), then the remaining estimates paired with the remaining GT the same way
+            without a threshold (to show how far off they are).
+        correct: (G,) bool, GT instances matched at the threshold (true positives).
+    """
+
+    errors: np.ndarray
+    estimate_of_gt: np.ndarray
+    correct: np.ndarray
+
+    @property
+    def found(self) -> bool:
+        """Every GT instance (at least one) matched at the threshold."""
+        return bool(len(self.correct)) and bool(self.correct.all())
+
+    @property
+    def unpaired(self) -> int:
+        """Estimates paired with no GT instance (false positives)."""
+        return len(self.errors) - int(np.count_nonzero(self.estimate_of_gt >= 0))
+
+
+def match_frame(estimates: Sequence[PoseEstimate], gts: Sequence[ObjectAnnotation], model: ObjectModel,
+                metric: str = DEFAULT_METRIC, threshold: float = TABLE_THRESHOLDS_M[0]) -> FrameMatch:
+    """Match one frame's estimates of one class to its GT instances as ``evaluate`` does.
+
+    Args:
+        estimates: P estimates (``R``, ``t`` metres, ``score``); gts: G GT instances;
+        model: the class's model; metric: one of ``METRICS``; threshold: metres.
+    """
+    E = error_matrix(metric, estimates, gts, model)
+    scores = np.array([float(p.score) for p in estimates], dtype=np.float64)
+    at_threshold = greedy_match(E, scores, threshold)
+    of_gt = np.full(len(gts), -1, dtype=np.int64)
+    for p, g in enumerate(at_threshold):
+        if g >= 0:
+            of_gt[g] = p
+    correct = of_gt >= 0
+    rest = np.flatnonzero(at_threshold < 0)
+    if len(rest):
+        for k, g in enumerate(greedy_match(E[rest], scores[rest], math.inf, valid=~correct)):
+            if g >= 0:
+                of_gt[g] = rest[k]
+    return FrameMatch(E, of_gt, correct)
+
+
+@dataclass
+class PoseErrors:
+    """Errors of one pose against one GT instance: te (cm), symmetry-aware re (deg), ADD-H
+    and MeanSSD (cm)."""
+
+    te_cm: float
+    re_deg: float
+    addh_cm: float
+    meanssd_cm: float
+
+
+def pose_errors(R: np.ndarray, t: np.ndarray, gt: ObjectAnnotation, model: ObjectModel) -> PoseErrors:
+    """te, re (the least over ``model.symmetries``), ADD-H and MeanSSD of one estimate
+    (``R`` (3, 3), ``t`` (3,) metres) against ``gt``, by :func:`pose_error`."""
+    rot = min(metrics.re(R, gt.R @ S[:3, :3]) for S in np.asarray(model.symmetries))
+    return PoseErrors(te_cm=100.0 * metrics.te(t, gt.t), re_deg=rot,
+                      addh_cm=100.0 * pose_error("addh", R, t, gt, model),
+                      meanssd_cm=100.0 * pose_error("meanssd", R, t, gt, model))

@@ -2,7 +2,8 @@
 
 Meshes come from :func:`dope_hope.io.meshes.load_mesh` (metres, textures kept). This module
 adds what the generator needs on top: the cuboid (mesh AABB), the bounding sphere used for
-placement, the texture as an array, and the lookup of an object's mesh in a models folder.
+placement, the texture as an array, and the distractor mesh library (an object's mesh in a
+models folder is found by :mod:`dope_hope.io.models_dir`).
 """
 from __future__ import annotations
 
@@ -15,12 +16,12 @@ import cv2
 import numpy as np
 import trimesh
 
-from dope_hope.catalog import HOPE_OBJECTS, get_object
-from dope_hope.errors import InputFileError, UnknownObjectError
+from dope_hope.errors import InputFileError
 from dope_hope.io.meshes import load_mesh, mesh_cuboid
+from dope_hope.io.models_dir import class_of_mesh
 from dope_hope.synth.scene import ShapeInfo
 
-#: Mesh file suffixes looked for in --models-dir / --distractors.
+#: Mesh file suffixes of the distractor library (--distractors).
 MESH_SUFFIXES = (".obj", ".ply")
 
 
@@ -97,51 +98,9 @@ class MeshAsset:
                    cuboid_size=size, cuboid_center=center, shape=shape)
 
 
-def resolve_object_mesh(models_dir: str | os.PathLike, name: str) -> Path:
-    """Find the mesh of catalog object ``name`` in a models folder.
-
-    Looks for, in order: ``<dir>/<Name>/textured.obj`` (HOPE release layout),
-    ``<dir>/<Name>.obj``, ``<dir>/<Name>/*.obj``, and ``<dir>/obj_<id:06d>.ply`` (BOP).
-    Names match case-insensitively.
-    """
-    models_dir = Path(models_dir)
-    if not models_dir.is_dir():
-        raise InputFileError(models_dir, "models folder not found")
-    obj = get_object(name)
-    lower = obj.name.lower()
-    entries = {p.name.lower(): p for p in models_dir.iterdir()}
-    sub = entries.get(lower)
-    candidates: list[Path] = []
-    if sub is not None and sub.is_dir():
-        candidates += [sub / "textured.obj"] + sorted(sub.glob("*.obj")) + sorted(sub.glob("*.ply"))
-    for suffix in MESH_SUFFIXES:
-        if f"{lower}{suffix}" in entries:
-            candidates.append(entries[f"{lower}{suffix}"])
-    candidates.append(models_dir / f"obj_{obj.obj_id:06d}.ply")
-    for c in candidates:
-        if c.is_file():
-            return c
-    raise InputFileError(models_dir, f"no mesh for {obj.name} (looked for {obj.name}/textured.obj, "
-                                     f"{obj.name}.obj, obj_{obj.obj_id:06d}.ply)")
-
-
 def guess_class_name(mesh_path: str | os.PathLike) -> str:
-    """Catalog name matching the mesh file or its folder (case-insensitive), else the stem."""
-    p = Path(mesh_path)
-    names = {o.name.lower(): o.name for o in HOPE_OBJECTS}
-    for candidate in (p.stem, p.parent.name):
-        if candidate.lower() in names:
-            return names[candidate.lower()]
-    for candidate in (p.stem, p.parent.name):  # e.g. "hope_ketchup"
-        for token in candidate.replace("-", "_").split("_"):
-            if token.lower() in names:
-                return names[token.lower()]
-    if p.stem.startswith("obj_") and p.stem[4:].isdigit():
-        try:
-            return get_object(int(p.stem[4:])).name
-        except UnknownObjectError:
-            pass
-    return p.stem
+    """The class a mesh file is of (:func:`dope_hope.io.models_dir.class_of_mesh`), else its stem."""
+    return class_of_mesh(mesh_path) or Path(mesh_path).stem
 
 
 def list_distractor_meshes(folder: str | os.PathLike, target_path: str | os.PathLike | None = None,

@@ -1,0 +1,160 @@
+"""Where an object's mesh file is: the one lookup every command uses.
+
+An object's mesh is, in this order:
+
+1. an explicit file: ``--mesh NAME=PATH``, or ``--mesh PATH`` whose file or folder name
+   names the object (:func:`class_of_mesh`), or the only object of the run;
+2. the first of these files in a models folder (names match case-insensitively):
+
+   - ``obj_<obj_id:06d>.ply`` (BOP models, millimetres; ``obj_id`` from the HOPE catalog or
+     a class named ``obj_NNNNNN``),
+   - ``<Name>/textured.obj`` (HOPE release layout, centimetres),
+   - ``<Name>.obj``, ``<Name>.ply``,
+   - ``<Name>/*.obj``, then ``<Name>/*.ply`` (sorted).
+
+Symmetry declarations beside the mesh are read by
+:func:`dope_hope.io.symmetries.declared_symmetries`.
+"""
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
+
+_BOP_NAME = re.compile(r"obj_?(\d+)")
+
+
+def bop_obj_id(class_name: str) -> int | None:
+    """BOP obj_id of a class: the HOPE catalog's, or NNNNNN of ``obj_NNNNNN``; else None."""
+    from dope_hope.catalog import get_object
+
+    m = _BOP_NAME.fullmatch(class_name)
+    if m:
+        return int(m.group(1))
+    try:
+        return get_object(class_name).obj_id
+    except UnknownObjectError:
+        return None
+
+
+def _catalog_name(name: str) -> str | None:
+    from dope_hope.catalog import get_object
+
+    try:
+        return get_object(name).name
+    except UnknownObjectError:
+        return None
+
+
+def class_of_mesh(path: str | os.PathLike) -> str | None:
+    """The class a mesh file is of, from its name: the catalog object named by the file stem
+    or its folder (case-insensitive; also a ``_``/``-`` separated token, e.g.
+    ``hope_ketchup.obj``), or for a BOP ``obj_NNNNNN`` file the catalog object of that id
+    (else ``obj_NNNNNN``, the BOP readers' class name); None when the name says nothing."""
+    p = Path(path)
+    words = [p.stem, p.parent.name]
+    words += [t for w in words for t in w.replace("-", "_").split("_")]
+    for word in words:
+        name = None if not word or word.isdigit() or _BOP_NAME.fullmatch(word) else _catalog_name(word)
+        if name is not None:
+            return name
+    m = re.fullmatch(r"obj_(\d+)", p.stem)
+    if m:
+        return _catalog_name(m.group(1)) or p.stem
+    return None
+
+
+def parse_mesh_args(mesh_args: Sequence[str | os.PathLike], class_names: Sequence[str],
+                    flag: str = "--mesh") -> dict[str, Path]:
+    """``[NAME=]PATH`` values of ``flag`` -> {class name: path}.
+
+    ``NAME`` is a class (catalog names match case-insensitively); a bare ``PATH`` is the class
+    :func:`class_of_mesh` reads from its name, else the only one of ``class_names``.
+
+    Raises:
+        ConfigError: a bare path of an unknown class among several classes.
+    """
+    out: dict[str, Path] = {}
+    for arg in mesh_args:
+        text = os.fspath(arg)
+        if "=" in text and not Path(text).exists():
+            name, path = text.split("=", 1)
+            out[_catalog_name(name) or name] = Path(path)
+            continue
+        name = class_of_mesh(text)
+        if name is None:
+            if len(class_names) != 1 or len(mesh_args) != 1:
+                raise ConfigError(f"{flag} {text}: cannot tell which object it is; write {flag} "
+                                  f"NAME=PATH (classes: {', '.join(class_names)})")
+            name = class_names[0]
+        out[name] = Path(text)
+    return out
+
+
+def _folder_candidates(folder: Path, class_name: str) -> tuple[list[Path], list[str]]:
+    """Existing files of the search order for ``class_name`` in ``folder`` (in order), and
+    the patterns looked for (for the error message)."""
+    entries = {p.name.lower(): p for p in folder.iterdir()}
+    name = _catalog_name(class_name) or class_name
+    lower = name.lower()
+    obj_id = bop_obj_id(name)
+    patterns: list[str] = []
+    found: list[Path] = []
+
+    def add(key: str, shown: str) -> None:
+        patterns.append(shown)
+        p = entries.get(key)
+        if p is not None and p.is_file():
+            found.append(p)
+
+    if obj_id is not None:
+        add(f"obj_{obj_id:06d}.ply", f"obj_{obj_id:06d}.ply")
+    sub = entries.get(lower)
+    patterns.append(f"{name}/textured.obj")
+    if sub is not None and sub.is_dir() and (sub / "textured.obj").is_file():
+        found.append(sub / "textured.obj")
+    add(f"{lower}.obj", f"{name}.obj")
+    add(f"{lower}.ply", f"{name}.ply")
+    patterns.append(f"{name}/*.obj|ply")
+    if sub is not None and sub.is_dir():
+        for suffix in (".obj", ".ply"):
+            found += sorted(p for p in sub.iterdir() if p.is_file() and p.suffix.lower() == suffix)
+    return found, patterns
+
+
+def find_object_mesh(class_name: str, models_dir: str | os.PathLike | None = None,
+                     explicit: Mapping[str, Path] | None = None,
+                     required: bool = True) -> Path | None:
+    """The mesh file of ``class_name`` (module docstring: explicit file, then models folder).
+
+    Args:
+        class_name: the object (catalog name, any case; ``obj_NNNNNN``; or a custom name).
+        models_dir: models folder to search, or None.
+        explicit: {class name: path} from :func:`parse_mesh_args`.
+        required: raise when nothing is found (else return None).
+
+    Raises:
+        InputFileError: ``models_dir`` is not a folder; no mesh found while ``required``.
+    """
+    if explicit:
+        name = _catalog_name(class_name) or class_name
+        for key in (class_name, name):
+            if key in explicit:
+                return Path(explicit[key])
+    if models_dir is not None:
+        folder = Path(models_dir)
+        if not folder.is_dir():
+            raise InputFileError(folder, "models folder not found")
+        found, patterns = _folder_candidates(folder, class_name)
+        if found:
+            return found[0]
+        if required:
+            raise InputFileError(folder, f"no mesh for {class_name} (looked for "
+                                         + ", ".join(patterns) + ")")
+        return None
+    if required:
+        raise ConfigError(f"no mesh for {class_name}: give --mesh or a models folder")
+    return None
