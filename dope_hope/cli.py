@@ -2,14 +2,20 @@
 
 Each subcommand lives in ``dope_hope/commands/<name>.py`` with ``add_arguments(parser)`` and
 ``run(args) -> int``; heavy imports (torch, pyrender) happen inside ``run`` so that
-``dope-hope --help`` stays fast. A :class:`DopeHopeError` is printed on one line and the
-process exits with status 2.
+``dope-hope --help`` stays fast. A :class:`DopeHopeError`, a bad option value and an
+unwritable output (disk full...) are printed on one line and the process exits with status 2;
+warnings print one line each; Ctrl-C exits 130, SIGTERM 143, after the command's cleanup.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
+import errno
 import importlib
+import signal
 import sys
+import warnings
+from collections.abc import Iterator
 
 from dope_hope import __version__
 from dope_hope.errors import DopeHopeError
@@ -28,8 +34,26 @@ COMMANDS: tuple[tuple[str, str, str], ...] = (
 )
 
 
+#: OSError numbers that mean the machine cannot do what was asked (not a bug): one line, exit 2.
+ENVIRONMENT_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG,
+                      errno.ENAMETOOLONG, errno.EISDIR, errno.ENOTDIR, errno.EEXIST, errno.EIO,
+                      errno.ENOENT, errno.ENXIO}
+
+
+class Terminated(BaseException):
+    """SIGTERM arrived (raised by the handler :func:`main` installs, like KeyboardInterrupt)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (no usage block): ``dope-hope infer: error: argument
+    --threads: must be >= 1, got -1``."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="dope-hope",
         description="DOPE-style 6-DoF pose estimation for the HOPE objects.")
     parser.add_argument("--version", action="version", version=f"dope-hope {__version__}")
@@ -48,17 +72,61 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "command", None):
         parser.print_help()
         return 0
+    prefix = f"dope-hope {args.command}"
     try:
-        return int(args._run(args) or 0)
+        with _one_line_warnings(prefix), _sigterm_raises():
+            return int(args._run(args) or 0)
     except DopeHopeError as exc:
-        print(f"dope-hope {args.command}: error: {exc}", file=sys.stderr)
+        print(f"{prefix}: error: {exc}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # e.g. `dope-hope objects | head`
         sys.stderr.close()
         return 0
+    except OSError as exc:
+        if exc.errno not in ENVIRONMENT_ERRNOS:
+            raise
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"{prefix}: error: {where}{(exc.strerror or str(exc)).lower()}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
-        print(f"dope-hope {args.command}: interrupted", file=sys.stderr)
+        print(f"{prefix}: interrupted", file=sys.stderr)
         return 130
+    except Terminated:
+        print(f"{prefix}: terminated", file=sys.stderr)
+        return 143
+
+
+@contextlib.contextmanager
+def _one_line_warnings(prefix: str) -> Iterator[None]:
+    """Print each warning as ``PREFIX: warning: MESSAGE`` (no source line)."""
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = " ".join(str(message).split())
+        print(f"{prefix}: warning: {text}", file=file or sys.stderr)
+
+    previous = warnings.showwarning
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = previous
+
+
+@contextlib.contextmanager
+def _sigterm_raises() -> Iterator[None]:
+    """SIGTERM raises :class:`Terminated` in the main thread, so that ``finally`` blocks and
+    context managers clean up (worker pools, temporary files) as on Ctrl-C."""
+    def handler(signum, frame):
+        raise Terminated()
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

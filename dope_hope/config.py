@@ -7,6 +7,7 @@ argument is a path to a YAML file.
 from __future__ import annotations
 
 import copy
+import math
 from pathlib import Path
 from typing import Any
 
@@ -66,18 +67,105 @@ def merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def apply_overrides(config: dict[str, Any], assignments: list[str]) -> dict[str, Any]:
-    """Apply ``section.key=value`` strings (values parsed as YAML) to a copy of ``config``."""
+def unknown_keys(config: dict[str, Any], defaults: dict[str, Any], prefix: str = "") -> list[str]:
+    """Dotted keys of ``config`` that ``defaults`` does not have (sections compared recursively)."""
+    out = []
+    for key, value in config.items():
+        name = f"{prefix}{key}"
+        if key not in defaults:
+            out.append(name)
+        elif isinstance(value, dict) and isinstance(defaults[key], dict):
+            out += unknown_keys(value, defaults[key], name + ".")
+    return out
+
+
+def check_known_keys(config: dict[str, Any], defaults: dict[str, Any], what: str) -> None:
+    """ConfigError naming the keys of ``config`` that ``defaults`` lacks (typos: ``target.cuont``)."""
+    unknown = unknown_keys(config, defaults)
+    if unknown:
+        first = unknown[0]
+        section = first.rsplit(".", 1)[0] if "." in first else None
+        node = defaults
+        for part in (section.split(".") if section else []):
+            node = node.get(part, {}) if isinstance(node, dict) else {}
+        known = ", ".join(sorted(node)) if isinstance(node, dict) else ""
+        raise ConfigError(f"{what}: unknown key(s) {', '.join(unknown)}"
+                          + (f" (known{' in ' + section if section else ''}: {known})" if known else ""))
+
+
+def apply_overrides(config: dict[str, Any], assignments: list[str],
+                    defaults: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Apply ``section.key=value`` strings (values parsed as YAML) to a copy of ``config``.
+
+    With ``defaults`` (the packaged config), a key it does not have is refused (ConfigError).
+    """
     out = copy.deepcopy(config)
     for item in assignments:
         if "=" not in item:
             raise ConfigError(f"override {item!r} must look like section.key=value")
         dotted, raw = item.split("=", 1)
-        node = out
         keys = dotted.split(".")
+        if not all(keys):
+            raise ConfigError(f"override {item!r}: empty key")
+        if defaults is not None:
+            node: Any = defaults
+            for depth, key in enumerate(keys):
+                if not isinstance(node, dict) or key not in node:
+                    where = ".".join(keys[:depth]) or "the config"
+                    known = ", ".join(sorted(node)) if isinstance(node, dict) else ""
+                    raise ConfigError(f"--set {item}: unknown key {'.'.join(keys[:depth + 1])!r}"
+                                      + (f" (known in {where}: {known})" if known else ""))
+                node = node[key]
+        node = out
         for key in keys[:-1]:
             node = node.setdefault(key, {})
             if not isinstance(node, dict):
                 raise ConfigError(f"override {item!r}: {key!r} is not a section")
-        node[keys[-1]] = yaml.safe_load(raw)
+        try:
+            node[keys[-1]] = yaml.safe_load(raw)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"--set {item}: malformed value ({str(exc).splitlines()[0]})") from None
     return out
+
+
+# ----------------------------------------------------------------------------- values
+# One rule each, shared by the command-line types (dope_hope.commands.argtypes) and the
+# config sections that hold the same quantities (train.lr, ...). ``name`` is the option or
+# key named in the message.
+def _number(value: Any, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{name} must be a number, got {value!r}")
+    if not math.isfinite(value):
+        raise ConfigError(f"{name} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def finite_float(value: Any, name: str) -> float:
+    """A finite number."""
+    return _number(value, name)
+
+
+def positive_float(value: Any, name: str) -> float:
+    """A finite number > 0."""
+    v = _number(value, name)
+    if v <= 0:
+        raise ConfigError(f"{name} must be > 0, got {value!r}")
+    return v
+
+
+def nonnegative_float(value: Any, name: str) -> float:
+    """A finite number >= 0."""
+    v = _number(value, name)
+    if v < 0:
+        raise ConfigError(f"{name} must be >= 0, got {value!r}")
+    return v
+
+
+def whole_number(value: Any, name: str, minimum: int = 0) -> int:
+    """An integer >= ``minimum`` (1.0 counts as 1; 1.5, True and "1" do not)."""
+    v = _number(value, name)
+    if v != int(v):
+        raise ConfigError(f"{name} must be a whole number, got {value!r}")
+    if v < minimum:
+        raise ConfigError(f"{name} must be >= {minimum}, got {value!r}")
+    return int(v)

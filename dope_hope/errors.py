@@ -25,6 +25,9 @@ class InputFileError(DopeHopeError):
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
 
+    def __reduce__(self):  # picklable across processes (synth workers, DataLoader workers)
+        return type(self), (self.path, self.problem)
+
 
 class UnknownObjectError(DopeHopeError):
     """An object class that is not in the catalog (or not the one a model was trained for)."""
@@ -40,3 +43,23 @@ class ModelFileError(InputFileError):
 
 class CameraError(DopeHopeError):
     """No usable camera intrinsics were given or found."""
+
+
+class OutputPathError(DopeHopeError):
+    """An output file or folder cannot be written (exists as the wrong kind, read-only file
+    system, name too long, disk full...).
+
+    Args:
+        path: the file or folder.
+        problem: what is wrong, e.g. "exists and is not a folder".
+        flag: the command-line option that named it ("--out"), or None.
+    """
+
+    def __init__(self, path: str | os.PathLike, problem: str, flag: str | None = None):
+        self.path = str(path)
+        self.problem = problem
+        self.flag = flag
+        super().__init__(f"{flag + ' ' if flag else ''}{self.path}: {problem}")
+
+    def __reduce__(self):
+        return type(self), (self.path, self.problem, self.flag)

@@ -24,7 +24,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from dope_hope.errors import CameraError
+from dope_hope.errors import CameraError, ConfigError
 from dope_hope.geometry import (
     scale_intrinsics,
 )
@@ -41,6 +41,9 @@ DEFAULT_HEIGHT = 400
 
 #: The network input must have H and W divisible by this (the trunk's stride).
 INPUT_MULTIPLE = 8
+#: Largest network working height and width, pixels (an image is resized to this; beyond it
+#: the resize alone needs gigabytes and no model was trained at such a scale).
+MAX_WORKING_SIDE = 4096
 
 
 # ----------------------------------------------------------------------------- images
@@ -127,7 +130,23 @@ def working_size(image_hw: Sequence[int], *, height: int | None = None,
     else:
         s = contain_scale((H, W), input_hw)
     hw = (max(1, round(H * s)), max(1, round(W * s)))
+    if max(hw) > MAX_WORKING_SIDE:
+        raise ConfigError(f"a {W}x{H} image would be resized to {hw[1]}x{hw[0]} for the network, "
+                          f"beyond {MAX_WORKING_SIDE} pixels; give a smaller height")
     return hw, (_round_up(hw[0], INPUT_MULTIPLE), _round_up(hw[1], INPUT_MULTIPLE))
+
+
+def check_working_side(value: Any, name: str = "height") -> int:
+    """``value`` as an int if it is a usable network input height or width (a whole number of
+    pixels in INPUT_MULTIPLE..MAX_WORKING_SIDE), else ConfigError naming ``name``."""
+    try:
+        ok = not isinstance(value, bool) and int(value) == value
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok or not INPUT_MULTIPLE <= int(value) <= MAX_WORKING_SIDE:
+        raise ConfigError(f"{name} must be a whole number of pixels in {INPUT_MULTIPLE}..{MAX_WORKING_SIDE}, "
+                          f"got {value!r}")
+    return int(value)
 
 
 @dataclass
@@ -199,8 +218,10 @@ def check_intrinsics(K: Any) -> np.ndarray:
         K = np.asarray(K, dtype=np.float64)
     except (TypeError, ValueError):
         raise CameraError("camera intrinsics K must be a 3x3 matrix of numbers") from None
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-        raise CameraError(f"camera intrinsics K must be a finite 3x3 matrix, got shape {K.shape}")
+    if K.shape != (3, 3):
+        raise CameraError(f"camera intrinsics K must be a 3x3 matrix, got shape {K.shape}")
+    if not np.all(np.isfinite(K)):
+        raise CameraError(f"camera intrinsics K holds NaN or infinity: {K.tolist()}")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]):
         raise CameraError(f"camera intrinsics K is not a pinhole matrix (fx, fy > 0, last row "
                           f"0 0 1): {K.tolist()}")

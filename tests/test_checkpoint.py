@@ -1,13 +1,15 @@
 """Checkpoints: round trip, atomic writes, weights_only safety, bad files, official import."""
 from __future__ import annotations
 
+import errno
+
 import numpy as np
 import pytest
 import torch
 
 from dope_hope.catalog import get_object
 from dope_hope.config import load_config
-from dope_hope.errors import ModelFileError, UnknownObjectError
+from dope_hope.errors import ModelFileError, OutputPathError, UnknownObjectError
 from dope_hope.geometry import KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER
 from dope_hope.model import IMAGENET_MEAN, IMAGENET_STD, build_model
 from dope_hope.model.checkpoint import (
@@ -93,17 +95,16 @@ def test_failed_write_leaves_old_file_and_no_partial(tmp_path, monkeypatch):
     save_checkpoint(path, model, LITE, make_object_info("Ketchup"), step=1)
     before = path.read_bytes()
 
-    def crashing_save(obj, f, *args, **kwargs):
-        with open(f, "wb") as fh:
-            fh.write(b"PK\x03\x04 half a file")
-        raise OSError("disk full")
+    def crashing_save(obj, f, *args, **kwargs):  # half a file, then the disk is full
+        f.write(b"PK\x03\x04 half a file")
+        raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(torch, "save", crashing_save)
-    with pytest.raises(OSError, match="disk full"):
+    with pytest.raises(OutputPathError, match="ckpt.pth: cannot write .no space left on device"):
         save_checkpoint(path, model, LITE, make_object_info("Ketchup"), step=2)
     assert path.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.pth"]
-    with pytest.raises(OSError):
+    with pytest.raises(OutputPathError):
         save_checkpoint(tmp_path / "new.pth", model, LITE, make_object_info("Ketchup"))
     assert not (tmp_path / "new.pth").exists()
 

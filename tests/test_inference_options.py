@@ -24,7 +24,7 @@ def test_overrides_and_stage_keywords_are_accepted():
     ({"hieght": 240}, "unknown inference option 'hieght'"),
     ({"line_search": {"serach": [0.7, 1.4]}}, "unknown line_search option(s) serach"),
     ({"pnp": {"K": 1}}, "unknown pnp option(s) K"),
-    ({"height": 5}, "height must be an integer >= 8"),
+    ({"height": 5}, "height must be a whole number of pixels in 8..4096"),
     ({"min_score": float("nan")}, "min_score must be a finite number"),
     ({"pose_search": "brute"}, "pose_search must be one of hypotheses, groups"),
     ({"icp": "yes"}, "icp must be true or false"),

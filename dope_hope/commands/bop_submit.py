@@ -22,6 +22,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dope_hope.commands.argtypes import finite_float, fixed_device, positive_float, positive_int, working_side
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
@@ -42,13 +44,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-depth", action="store_true", help="no depth line search (-LS)")
     parser.add_argument("--icp", action="store_true",
                         help="after the line search, refine the whole pose by ICP against the depth")
-    parser.add_argument("--depth-calibration", type=float, default=1.0, metavar="F",
+    parser.add_argument("--depth-calibration", type=positive_float, default=1.0, metavar="F",
                         help="multiply depth by F (default 1)")
-    parser.add_argument("--height", type=int, metavar="H", help="network working height (default: the model's)")
-    parser.add_argument("--min-score", type=float, default=0.0, help="drop estimates scoring lower")
+    parser.add_argument("--height", type=working_side, metavar="H", help="network working height (default: the model's)")
+    parser.add_argument("--min-score", type=finite_float, default=0.0, help="drop estimates scoring lower")
     parser.add_argument("--backend", choices=("auto", "torch", "onnx"), default="auto")
-    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
-    parser.add_argument("--threads", type=int, help="CPU threads for the network")
+    parser.add_argument("--device", type=fixed_device, default="cpu", help="torch device (cpu, cuda)")
+    parser.add_argument("--threads", type=positive_int, help="CPU threads for the network")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -92,10 +94,12 @@ def run(args: argparse.Namespace) -> int:
     )
     from dope_hope.io.images import read_depth_m, read_rgb
     from dope_hope.io.models_dir import find_object_mesh
+    from dope_hope.io.paths import output_file
 
     parse_bop_result_filename(args.out)  # fail before any work
     if args.icp and args.no_depth:
         raise ConfigError("--icp refines against the depth: it cannot go with --no-depth")
+    output_file(args.out)
     if args.out.exists() and not args.overwrite:
         raise InputFileError(args.out, "file exists; pass --overwrite to replace it")
     split_dir = split_folder(args.bop_root, args.dataset, args.split)

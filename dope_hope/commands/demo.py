@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from dope_hope.evaluation.matching import PoseErrors
 
+from dope_hope.commands.argtypes import positive_int
 from dope_hope.commands.infer import DEMO_WEIGHTS
 
 #: Synth config of the demo scenes (configs/demo.yaml, merged over configs/synth.yaml).
@@ -47,7 +48,7 @@ IMAGE_SIZE = (640, 480)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("--scenes", type=int, default=10, metavar="N", help="scenes to render (default 10)")
+    parser.add_argument("--scenes", type=positive_int, default=10, metavar="N", help="scenes to render (default 10)")
     parser.add_argument("--seed", type=int, metavar="S",
                         help="scene seed (default: a fresh random seed, printed so the run can be repeated)")
     parser.add_argument("--out", type=Path, default=Path("demo_out"), metavar="DIR",
@@ -55,7 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--weights", type=Path, metavar="PATH",
                         help="demo checkpoint (default: the shipped dope_hope/assets/demo_lite.pt)")
     parser.add_argument("--no-onnx", action="store_true", help="PyTorch only (no ONNX export and run)")
-    parser.add_argument("--threads", type=int, metavar="T", help="CPU threads of each backend")
+    parser.add_argument("--threads", type=positive_int, metavar="T", help="CPU threads of each backend")
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -156,20 +157,16 @@ def run(args: argparse.Namespace) -> int:
         demo_object_mesh,
         write_demo_object,
     )
-    from dope_hope.errors import ConfigError, ModelFileError
+    from dope_hope.errors import ModelFileError
+    from dope_hope.io.paths import output_dir
 
     t_start = time.perf_counter()
-    if args.scenes < 1:
-        raise ConfigError(f"--scenes must be at least 1, got {args.scenes}")
-    if args.threads is not None and args.threads < 1:
-        raise ConfigError(f"--threads must be at least 1, got {args.threads}")
-    out: Path = args.out
-    mesh_path = write_demo_object(out / "mesh")
+    out: Path = output_dir(args.out)
     weights = args.weights if args.weights is not None else DEMO_WEIGHTS
-    if not weights.is_file():
-        if args.weights is None:
-            raise ModelFileError(DEMO_WEIGHTS, missing_weights_problem(mesh_path))
-        raise ModelFileError(weights, "weights file not found")
+    if args.weights is None and not weights.is_file():
+        # the mesh is written on purpose: the message tells how to train a demo model on it
+        mesh_path = write_demo_object(out / "mesh")
+        raise ModelFileError(DEMO_WEIGHTS, missing_weights_problem(mesh_path))
 
     from dope_hope.evaluation.models import load_models
     from dope_hope.geometry import cuboid_keypoints, project_points
@@ -182,11 +179,12 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.synth.writer import write_frame
     from dope_hope.viz import draw_cuboid, draw_label, montage, overlay_detections
 
-    mesh = demo_object_mesh()
-    torch_backend = open_backend(weights, "torch", threads=args.threads)
+    torch_backend = open_backend(weights, "torch", threads=args.threads)  # a bad file stops here
     if torch_backend.class_name != DEMO_CLASS_NAME:
         raise ModelFileError(weights, f"a model of {torch_backend.class_name!r}; the demo renders "
                                       f"{DEMO_CLASS_NAME!r} (pass a demo model with --weights)")
+    mesh_path = write_demo_object(out / "mesh")
+    mesh = demo_object_mesh()
     torch_pred = DopePredictor(torch_backend, mesh=mesh)
     _, input_hw = torch_pred.working_size((IMAGE_SIZE[1], IMAGE_SIZE[0]))
     onnx_pred = None

@@ -58,7 +58,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from dope_hope.evaluation.evaluate import EvalConfig, run_evaluation
+    from dope_hope.io.paths import output_dir
 
+    output_dir(args.out)
     cfg = EvalConfig(predictions=list(args.predictions), dataset=args.dataset, fmt=args.format,
                      metrics=[m.strip().lower() for m in args.metric.split(",") if m.strip()],
                      mesh=list(args.mesh), models_dir=args.models_dir, mesh_units=args.mesh_units,

@@ -25,17 +25,17 @@ import argparse
 import json
 from pathlib import Path
 
+from dope_hope.commands.argtypes import positive_int, working_side
 from dope_hope.export.isaac_ros import ISAAC_ROS_CURRENT
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--weights", type=Path, required=True, metavar="CKPT", help="dope-hope checkpoint")
     parser.add_argument("--out", type=Path, required=True, metavar="FILE.onnx", help="ONNX file to write")
-    parser.add_argument("--height", type=int, help="input height, px, multiple of 8 (default: training "
-                                                   "size; isaac-ros: 480)")
-    parser.add_argument("--width", type=int, help="input width, px, multiple of 8 (default: training "
-                                                  "size; isaac-ros: 640)")
+    parser.add_argument("--height", type=working_side, help="input height, px, multiple of 8 (default: "
+                                                            "training size; isaac-ros: 480)")
+    parser.add_argument("--width", type=working_side, help="input width, px, multiple of 8 (default: "
+                                                           "training size; isaac-ros: 640)")
     parser.add_argument("--dynamic", action="store_true", help="dynamic input height and width (native only)")
     parser.add_argument("--layout", choices=("native", "isaac-ros"), default="native",
                         help="graph layout (default native)")
@@ -47,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default: the release's launch default: half up to 3.1, imagenet since 3.2)")
     parser.add_argument("--int8", action="store_true", help="static INT8 quantization (needs --calibration)")
     parser.add_argument("--calibration", type=Path, metavar="DIR", help="folder of calibration images")
-    parser.add_argument("--calibration-images", type=int, default=32, metavar="N",
+    parser.add_argument("--calibration-images", type=positive_int, default=32, metavar="N",
                         help="calibration images used (default 32)")
     parser.add_argument("--calibration-method", choices=("minmax", "entropy", "percentile"),
                         default="minmax", help="activation range calibration (default minmax; entropy "
@@ -59,7 +59,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from dope_hope.export.pipeline import export_checkpoint
+    from dope_hope.io.paths import output_file
 
+    output_file(args.out)
     res = export_checkpoint(args.weights, args.out, height=args.height, width=args.width,
                             dynamic=args.dynamic, layout=args.layout, int8=args.int8,
                             calibration=args.calibration, opset=args.opset,

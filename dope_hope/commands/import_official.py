@@ -53,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.catalog import get_object
     from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
     from dope_hope.geometry import legacy_size_to_mesh
+    from dope_hope.io.paths import output_file, require_file
     from dope_hope.model.checkpoint import import_official, official_object_name
 
     several = len(args.pth) > 1
@@ -73,8 +74,7 @@ def run(args: argparse.Namespace) -> int:
         size_source = "--dimensions"
     jobs = []
     for pth in args.pth:  # check every input before writing anything
-        if not pth.is_file():
-            raise InputFileError(pth, "weights file not found")
+        require_file(pth, "weights file")
         name = args.object_name or official_object_name(pth.stem)
         if name is None:
             raise InputFileError(pth, f"cannot tell the object from the file name {pth.stem!r}; "
@@ -101,9 +101,9 @@ def run(args: argparse.Namespace) -> int:
         out = _output_path(pth, args.out, several)
         if out.resolve() == pth.resolve():
             raise ConfigError(f"{pth}: the output would overwrite the input; give --out")
+        output_file(out, "--out" if args.out is not None else None)
         jobs.append((pth, name, frame, size_m, out))
     for pth, name, frame, size_m, out in jobs:
-        out.parent.mkdir(parents=True, exist_ok=True)
         ckpt = import_official(pth, name, out_path=out, size_m=size_m, frame=frame)
         size_cm = " x ".join(f"{100 * v:.2f}" for v in ckpt["object"]["size_m"])
         poses = ("legacy keypoint frame, mesh-frame poses out" if frame == "legacy"

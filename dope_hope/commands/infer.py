@@ -13,7 +13,10 @@ axes, class and score) and with --belief IMAGE.belief.CLASS.png (belief maps of 
 
 Inputs: image files, a folder (its images, not recursive; *.depth.png, *_depth.png, *.seg.png
 and similar are skipped) or a quoted glob ('**' recurses). The "image" of each record is its
-path relative to the folder / the glob's fixed prefix / the files' common folder.
+path relative to the folder / the glob's fixed prefix / the files' common folder (with inputs
+from different folders: relative to their common folder, so names never repeat). With several
+images, one that cannot be read is skipped with a warning and the run exits 2 at the end;
+predictions.jsonl always lists what the overlays show.
 
 Camera (never guessed): --camera K.json, or --fx --fy --cx --cy, else each image's sibling
 annotation: DOPE NNNNNN.json, HOPE NNNN.json for NNNN_rgb.jpg, or BOP scene_camera.json two
@@ -38,6 +41,8 @@ import sys
 import time
 import warnings
 from pathlib import Path
+
+from dope_hope.commands.argtypes import fixed_device, finite_float, positive_float, positive_int, working_side
 
 #: Where the shipped demo model lives; used when --weights is not given.
 DEMO_WEIGHTS = Path(__file__).resolve().parent.parent / "assets" / "demo_lite.pt"
@@ -65,14 +70,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     cam = parser.add_argument_group("camera (default: the image's sibling annotation)")
     cam.add_argument("--camera", type=Path, metavar="K.json", help="camera intrinsics file (formats above)")
     for name in ("fx", "fy", "cx", "cy"):
-        cam.add_argument(f"--{name}", type=float, metavar="PX", help=f"{name}, pixels (give all four)")
+        cam.add_argument(f"--{name}", type=positive_float if name in ("fx", "fy") else finite_float,
+                         metavar="PX", help=f"{name}, pixels (give all four)")
     dep = parser.add_argument_group("depth refinement: line search (-LS), ICP")
     dep.add_argument("--depth", metavar="PATH|auto",
                      help="depth image registered to the (single) input image, or 'auto' for each "
                           "image's annotated depth")
-    dep.add_argument("--depth-scale", type=float, metavar="MM_PER_UNIT",
+    dep.add_argument("--depth-scale", type=positive_float, metavar="MM_PER_UNIT",
                      help="millimetres per depth unit (default: the annotation's, else 1.0)")
-    dep.add_argument("--depth-calibration", type=float, default=1.0, metavar="F",
+    dep.add_argument("--depth-calibration", type=positive_float, default=1.0, metavar="F",
                      help="multiply depth by F, for raw captures of a camera with a known depth "
                           "scale error (default 1; HOPE's depth images are already corrected)")
     dep.add_argument("--icp", action="store_true",
@@ -90,15 +96,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--belief", action="store_true", help="also write a montage of each model's belief maps")
     parser.add_argument("--backend", choices=("auto", "torch", "onnx"), default="auto",
                         help="auto: onnxruntime for .onnx files, PyTorch otherwise")
-    parser.add_argument("--height", type=int, metavar="H",
+    parser.add_argument("--height", type=working_side, metavar="H",
                         help="network working height, pixels (default: the model's training scale; "
                              "400 for official DOPE weights)")
-    parser.add_argument("--min-score", type=float, default=0.0, help="drop detections scoring lower")
+    parser.add_argument("--min-score", type=finite_float, default=0.0, help="drop detections scoring lower")
     parser.add_argument("--pose-search", choices=("hypotheses", "groups"), default="hypotheses",
                         help="hypotheses (default): candidate corner peaks + multi-hypothesis PnP; "
                              "groups: DOPE's one corner per type (faster, finds fewer)")
-    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:1)")
-    parser.add_argument("--threads", type=int, help="CPU threads for the network")
+    parser.add_argument("--device", type=fixed_device, default="cpu", help="torch device (cpu, cuda, cuda:1)")
+    parser.add_argument("--threads", type=positive_int, help="CPU threads for the network")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -120,8 +126,15 @@ def _glob_base(pattern: str) -> Path:
 
 
 def collect_images(inputs: list[str]) -> list[tuple[Path, str]]:
-    """(image path, record name) for each input image, in order, without duplicates."""
+    """(image path, record name) for each input image, in order, without duplicates.
+
+    A record name is the image's path relative to its input's base (the folder, the glob's
+    fixed prefix, the loose files' common folder); when the inputs have different bases,
+    relative to the bases' common folder instead, so that names never repeat
+    (``a/000000.png``, ``b/000000.png``).
+    """
     from dope_hope.errors import InputFileError
+    from dope_hope.io.paths import path_kind, require_file
 
     found: list[tuple[Path, Path]] = []  # (path, base folder for the name)
     loose: list[Path] = []
@@ -134,6 +147,8 @@ def collect_images(inputs: list[str]) -> list[tuple[Path, str]]:
             found += [(f, p) for f in files]
         elif p.is_file():
             loose.append(p)
+        elif path_kind(p) is not None:
+            require_file(p, "image file")  # a named pipe, a socket...: says so
         elif _GLOB_CHARS & set(item):
             files = sorted(Path(f) for f in glob.glob(item, recursive=True)
                            if Path(f).is_file() and _is_image(Path(f)))
@@ -145,6 +160,10 @@ def collect_images(inputs: list[str]) -> list[tuple[Path, str]]:
     if loose:
         base = Path(os.path.commonpath([str(f.resolve().parent) for f in loose]))
         found += [(f, base) for f in loose]
+    bases = {str(b.resolve()) for _, b in found}
+    if len(bases) > 1:
+        common = Path(os.path.commonpath(sorted(bases)))
+        found = [(f, common) for f, _ in found]
     out, seen = [], set()
     for f, base in found:
         key = f.resolve()
@@ -185,8 +204,6 @@ def _global_camera(args: argparse.Namespace):
     if any(v is not None for v in given):
         if any(v is None for v in given):
             raise ConfigError("--fx, --fy, --cx and --cy must be given together")
-        if given[0] <= 0 or given[1] <= 0:
-            raise ConfigError(f"--fx and --fy must be positive, got {given[0]} and {given[1]}")
         return ImageCamera(K=intrinsics_matrix(*given), width=None, height=None, source=Path("--fx/--fy/--cx/--cy"))
     return None
 
@@ -218,10 +235,8 @@ def build_predictors(args: argparse.Namespace, weights: list[Path]):
     return predictors
 
 
-def _depth_for(args: argparse.Namespace, camera, n_images: int):
+def _depth_for(args: argparse.Namespace, camera):
     """(depth path or None, metres per unit) for one image."""
-    from dope_hope.errors import ConfigError
-
     scale_m = None if args.depth_scale is None else args.depth_scale * 0.001
     if args.depth is None:
         return None, 0.001
@@ -229,8 +244,6 @@ def _depth_for(args: argparse.Namespace, camera, n_images: int):
         path = None if camera is None else camera.depth_path
         recorded = None if camera is None else camera.depth_scale_m
         return path, scale_m if scale_m is not None else (recorded if recorded is not None else 0.001)
-    if n_images != 1:
-        raise ConfigError("--depth PATH applies to a single image; use --depth auto for several")
     return Path(args.depth), scale_m if scale_m is not None else 0.001
 
 
@@ -240,84 +253,129 @@ def _output_name(name: str) -> str:
     return stem.replace("/", "__").replace("\\", "__")
 
 
+def _check_output_names(images: list[tuple[Path, str]]) -> None:
+    """ConfigError when two images would write the same overlay (x.png and x.jpg)."""
+    from dope_hope.errors import ConfigError
+
+    seen: dict[str, str] = {}
+    for _, name in images:
+        stem = _output_name(name)
+        if stem in seen:
+            raise ConfigError(f"{seen[stem]} and {name} would write the same {stem}.overlay.png; "
+                              "process them in separate runs (or pass --no-overlay)")
+        seen[stem] = name
+
+
 # ----------------------------------------------------------------------------- run
 def run(args: argparse.Namespace) -> int:
     import json
 
     from tqdm import tqdm
 
-    from dope_hope.errors import CameraError, ConfigError, InputFileError
-    from dope_hope.inference.predictor import predict_many
-    from dope_hope.io.camera import camera_search_description, find_image_camera
-    from dope_hope.io.images import read_depth_m, read_image_raw, write_rgb
+    from dope_hope.errors import ConfigError, DopeHopeError, OutputPathError
+    from dope_hope.io.paths import output_dir
     from dope_hope.io.predictions import write_predictions_jsonl
-    from dope_hope.preprocess import to_rgb8
-    from dope_hope.viz import belief_montage, overlay_detections
 
-    if args.height is not None and args.height < 8:
-        raise ConfigError(f"--height must be at least 8 pixels, got {args.height}")
-    if args.depth_scale is not None and args.depth_scale <= 0:
-        raise ConfigError(f"--depth-scale must be positive, got {args.depth_scale}")
     if args.icp and args.depth is None:
         raise ConfigError("--icp refines against a depth image: give --depth PATH or --depth auto")
     images = collect_images(args.inputs)
+    if args.depth not in (None, "auto") and len(images) != 1:
+        raise ConfigError("--depth PATH applies to a single image; use --depth auto for several")
+    if not args.no_overlay or args.belief:
+        _check_output_names(images)
     global_cam = _global_camera(args)
+    out = output_dir(args.out)
     predictors = build_predictors(args, _resolve_weights(args))
     records: list[dict] = []
-    n_written = 0
+    skipped: list[tuple[Path, DopeHopeError]] = []
+    n_done = n_written = 0
     bar = tqdm(images, desc="infer", unit="img", disable=args.no_progress or len(images) < 2,
                file=sys.stderr)
-    for path, name in bar:
-        raw = read_image_raw(path)
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
+    try:
+        for path, name in bar:
             try:
-                rgb = to_rgb8(raw)
-            except ValueError as exc:
-                raise InputFileError(path, str(exc)) from None
-        for w in caught:
-            print(f"dope-hope infer: warning: {path}: {w.message}", file=sys.stderr)
-        H, W = rgb.shape[:2]
-        found = find_image_camera(path) if (global_cam is None or args.depth == "auto") else None
-        camera = global_cam or found
-        if camera is None:
-            raise CameraError(f"{path}: no camera intrinsics (looked for {camera_search_description(path)}); "
-                              "give --camera K.json or --fx --fy --cx --cy")
-        camera.check_size(path, W, H)
-        depth_path, depth_scale_m = _depth_for(args, found if args.depth == "auto" else camera, len(images))
-        depth = None
-        if depth_path is not None:
-            depth = read_depth_m(depth_path, depth_scale_m)
-            if depth.shape != (H, W):
-                raise InputFileError(depth_path, f"depth is {depth.shape[1]}x{depth.shape[0]}, "
-                                                 f"the image {path.name} is {W}x{H}")
-        maps = []
-
-        def keep_maps(p, belief, affinity, net_in):
-            if args.belief:
-                maps.append((p.class_name, net_in.maps_on_image(belief, p.stride), net_in))
-
-        t0 = time.perf_counter()
-        dets = predict_many(predictors, rgb, camera.K, depth=depth, calibration=args.depth_calibration,
-                            on_maps=keep_maps)
-        elapsed = time.perf_counter() - t0
-        for d in dets:
-            rec = d.to_json(name, time=round(elapsed, 4))
-            records.append(rec)
-            print(json.dumps(rec), flush=True)
-        out_stem = _output_name(name)
-        if not args.no_overlay:
-            write_rgb(args.out / f"{out_stem}.overlay.png", overlay_detections(rgb, dets, camera.K))
-            n_written += 1
-        for class_name, m, net_in in maps:
-            write_rgb(args.out / f"{out_stem}.belief.{class_name}.png",
-                      belief_montage(m, _resize(rgb, net_in.resized_hw)))
-    write_predictions_jsonl(args.out / "predictions.jsonl", records)
-    summary = f"{len(images)} image(s), {len(records)} detection(s); predictions in {args.out / 'predictions.jsonl'}"
-    if n_written:
-        summary += f", overlays in {args.out}"
+                recs, wrote = _infer_image(args, predictors, path, name, global_cam, out)
+            except OutputPathError:
+                raise
+            except DopeHopeError as exc:  # this image's problem: the others still run
+                if len(images) == 1:
+                    raise
+                skipped.append((path, exc))
+                bar.clear()
+                print(f"dope-hope infer: warning: {exc}; image skipped", file=sys.stderr)
+                continue
+            for rec in recs:
+                print(json.dumps(rec), flush=True)
+            records += recs
+            n_done += 1
+            n_written += wrote
+    finally:
+        bar.close()
+        # predictions.jsonl always lists what the overlays show (interrupted runs included)
+        if n_done:
+            write_predictions_jsonl(out / "predictions.jsonl", records)
+    summary = (f"{len(images)} image(s), {len(records)} detection(s); predictions in "
+               f"{out / 'predictions.jsonl'}" + (f", overlays in {out}" if n_written else ""))
+    if skipped:
+        path, exc = skipped[0]
+        raise DopeHopeError(f"{len(skipped)} of {len(images)} image(s) skipped (first: {exc}); "
+                            + (summary if n_done else "nothing written"))
     print(f"dope-hope infer: {summary}", file=sys.stderr)
     return 0
+
+
+def _infer_image(args: argparse.Namespace, predictors: list, path: Path, name: str, global_cam,
+                 out: Path) -> tuple[list[dict], bool]:
+    """Detections of one image (records) and whether an overlay was written; DopeHopeError
+    for a problem of this image (unreadable, no camera, depth of another size...)."""
+    from dope_hope.errors import CameraError, InputFileError
+    from dope_hope.io.camera import camera_search_description, find_image_camera
+    from dope_hope.inference.predictor import predict_many
+    from dope_hope.io.images import read_depth_m, read_image_raw, write_rgb
+    from dope_hope.preprocess import to_rgb8
+    from dope_hope.viz import belief_montage, overlay_detections
+
+    raw = read_image_raw(path)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            rgb = to_rgb8(raw)
+        except ValueError as exc:
+            raise InputFileError(path, str(exc)) from None
+    for w in caught:
+        print(f"dope-hope infer: warning: {path}: {w.message}", file=sys.stderr)
+    H, W = rgb.shape[:2]
+    found = find_image_camera(path) if (global_cam is None or args.depth == "auto") else None
+    camera = global_cam or found
+    if camera is None:
+        raise CameraError(f"{path}: no camera intrinsics (looked for {camera_search_description(path)}); "
+                          "give --camera K.json or --fx --fy --cx --cy")
+    camera.check_size(path, W, H)
+    depth_path, depth_scale_m = _depth_for(args, found if args.depth == "auto" else camera)
+    depth = None
+    if depth_path is not None:
+        depth = read_depth_m(depth_path, depth_scale_m)
+        if depth.shape != (H, W):
+            raise InputFileError(depth_path, f"depth is {depth.shape[1]}x{depth.shape[0]}, "
+                                             f"the image {path.name} is {W}x{H}")
+    maps = []
+
+    def keep_maps(p, belief, affinity, net_in):
+        if args.belief:
+            maps.append((p.class_name, net_in.maps_on_image(belief, p.stride), net_in))
+
+    t0 = time.perf_counter()
+    dets = predict_many(predictors, rgb, camera.K, depth=depth, calibration=args.depth_calibration,
+                        on_maps=keep_maps)
+    elapsed = time.perf_counter() - t0
+    records = [d.to_json(name, time=round(elapsed, 4)) for d in dets]
+    out_stem = _output_name(name)
+    if not args.no_overlay:
+        write_rgb(out / f"{out_stem}.overlay.png", overlay_detections(rgb, dets, camera.K))
+    for class_name, m, net_in in maps:
+        write_rgb(out / f"{out_stem}.belief.{class_name}.png",
+                  belief_montage(m, _resize(rgb, net_in.resized_hw)))
+    return records, not args.no_overlay
 
 
 def _resize(rgb, hw: tuple[int, int]):

@@ -18,6 +18,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dope_hope.commands.argtypes import nonnegative_int, positive_int
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
@@ -32,8 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--class-name", metavar="NAME",
                         help="class written in the JSON (default: the HOPE name, else the mesh file stem)")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
-    parser.add_argument("--count", type=int, required=True, metavar="N", help="frames 0..N-1")
-    parser.add_argument("--workers", type=int, default=1, metavar="W",
+    parser.add_argument("--count", type=nonnegative_int, required=True, metavar="N", help="frames 0..N-1")
+    parser.add_argument("--workers", type=positive_int, default=1, metavar="W",
                         help="render processes on this machine (default 1)")
     parser.add_argument("--shard", metavar="i/n", help="only frames with index %% n == i (several machines)")
     parser.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
@@ -58,8 +60,9 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.config import apply_overrides
     from dope_hope.errors import ConfigError
     from dope_hope.io.models_dir import find_object_mesh
+    from dope_hope.io.paths import output_dir
     from dope_hope.synth.generate import generate_dataset
-    from dope_hope.synth.settings import load_synth_config
+    from dope_hope.synth.settings import load_synth_config, packaged_synth_config
 
     if args.mesh is not None and (args.models_dir is not None or args.object_name is not None):
         raise ConfigError("give either --mesh or --models-dir with --object, not both")
@@ -76,7 +79,9 @@ def run(args: argparse.Namespace) -> int:
         class_name = get_object(args.object_name).name
     config = args.config
     if args.overrides:
-        config = apply_overrides(load_synth_config(args.config), args.overrides)
+        config = apply_overrides(load_synth_config(args.config), args.overrides,
+                                 defaults=packaged_synth_config())
+    output_dir(args.out)
     summary = generate_dataset(
         args.out, mesh, args.count, seed=args.seed, size=args.size, config=config,
         workers=args.workers, shard=args.shard, backgrounds=args.backgrounds,

@@ -17,6 +17,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from dope_hope.commands.argtypes import device, nonnegative_float, nonnegative_int, positive_float, positive_int
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
@@ -31,14 +33,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     parser.add_argument("--val", nargs="+", type=Path, default=[], metavar="DIR",
                         help="validation folder(s) (default: a seeded train.val_fraction split of --data)")
-    parser.add_argument("--epochs", type=int, help="epochs (train.epochs)")
-    parser.add_argument("--steps", type=int, help="total optimizer steps; overrides --epochs (train.steps)")
-    parser.add_argument("--batch-size", type=int, help="batch size per process (train.batch_size)")
-    parser.add_argument("--workers", type=int, help="DataLoader workers per process (train.workers)")
-    parser.add_argument("--lr", type=float, help="peak learning rate (train.lr)")
-    parser.add_argument("--time-budget", type=float, metavar="MIN",
-                        help="stop cleanly after MIN minutes with validation and a checkpoint (train.time_limit_min)")
-    parser.add_argument("--seed", type=int, help="seed of init, data order and augmentation (train.seed)")
+    parser.add_argument("--epochs", type=positive_int, help="epochs (train.epochs)")
+    parser.add_argument("--steps", type=positive_int, help="total optimizer steps; overrides --epochs (train.steps)")
+    parser.add_argument("--batch-size", type=positive_int, help="batch size per process (train.batch_size)")
+    parser.add_argument("--workers", type=nonnegative_int, help="DataLoader workers per process (train.workers)")
+    parser.add_argument("--lr", type=nonnegative_float, help="peak learning rate (train.lr)")
+    parser.add_argument("--time-budget", type=positive_float, metavar="MIN",
+                        help="the run's time budget: stop cleanly after MIN minutes with validation and a "
+                             "checkpoint (train.time_limit_min). The budget is turned into a step count "
+                             "after the first steps; --resume ends at that step (time used before counts)")
+    parser.add_argument("--seed", type=nonnegative_int, help="seed of init, data order and augmentation (train.seed)")
     parser.add_argument("--resume", nargs="?", const="auto", metavar="PATH",
                         help="continue from a checkpoint (no PATH: OUT/last.pt, if it exists)")
     parser.add_argument("--init", metavar="PATH", dest="init_weights",
@@ -56,7 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "beside --mesh); used by --set targets.symmetry=auto")
     parser.add_argument("--set", nargs="+", default=[], dest="overrides", metavar="KEY=VALUE",
                         help="config overrides, e.g. --set train.lr=1e-3 augment.rotation_deg=30")
-    parser.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda")
+    parser.add_argument("--device", type=device, default="auto", help="auto (CUDA if available), cpu, cuda")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -64,7 +68,12 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.config import apply_overrides, load_config
     from dope_hope.errors import ConfigError, InputFileError
     from dope_hope.io.dope_json import list_dope_frames
+    from dope_hope.io.paths import output_dir, require_file
 
+    if args.resume not in (None, "auto") and args.init_weights is not None:
+        raise ConfigError("--resume PATH continues a run with its own weights; --init starts a new run "
+                          "from other weights: give one of them")
+    output_dir(args.out)
     for folder in [*(args.data or []), *args.val]:  # fail fast, before importing torch
         if not folder.is_dir():
             raise InputFileError(folder, "data folder not found")
@@ -79,12 +88,14 @@ def run(args: argparse.Namespace) -> int:
         candidate = args.out / "last.pt"
         if candidate.is_file():
             resume = candidate
+            if args.init_weights is not None:
+                logging.getLogger("dope_hope.training").warning(
+                    "--init %s ignored: --resume continues %s with its own weights", args.init_weights, candidate)
+                args.init_weights = None
         else:
             logging.getLogger("dope_hope.training").info("--resume: %s does not exist yet, starting fresh", candidate)
     elif args.resume is not None:
-        resume = Path(args.resume)
-        if not resume.is_file():
-            raise InputFileError(resume, "checkpoint to resume from not found")
+        resume = require_file(args.resume, "checkpoint to resume from")
 
     overrides = apply_overrides({}, list(args.overrides))
     cli = {"epochs": args.epochs, "steps": args.steps, "batch_size": args.batch_size, "workers": args.workers,

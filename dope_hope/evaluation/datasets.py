@@ -11,6 +11,8 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 
 from dope_hope.annotation import FrameAnnotation
 from dope_hope.errors import ConfigError, InputFileError
@@ -44,6 +46,8 @@ class Dataset:
     frames: list[EvalFrame]
     targets: dict[tuple[int, int, int], int] | None = None
     name: str | None = None
+    #: class -> ((3,) m cuboid the annotations record, the file recording it) (dope-hope synth data)
+    cuboid_sizes: dict[str, tuple[np.ndarray, Path]] = field(default_factory=dict)
 
 
 def _aliases(root: Path, *paths: Path | None) -> set[str]:
@@ -91,11 +95,17 @@ def load_dataset(root: str | os.PathLike, fmt: str = "dope") -> Dataset:
     if not root.is_dir():
         raise InputFileError(root, "dataset folder not found")
     if fmt == "dope":
-        from dope_hope.io.dope_json import list_dope_frames, read_dope_json
+        from dope_hope.io.dope_json import list_dope_frames, read_dope_json, recorded_cuboid_size
 
-        frames = [_frame_from_annotation(root, read_dope_json(p), p)
-                  for d in _subfolders(root) for p in list_dope_frames(d)]
-        ds = Dataset(root, fmt, frames)
+        frames, sizes = [], {}
+        for p in (p for d in _subfolders(root) for p in list_dope_frames(d)):
+            frame = _frame_from_annotation(root, read_dope_json(p), p)
+            frames.append(frame)
+            for name in {o.class_name for o in frame.objects} - set(sizes):
+                size = recorded_cuboid_size(p, name)
+                if size is not None:
+                    sizes[name] = (size, p)
+        ds = Dataset(root, fmt, frames, cuboid_sizes=sizes)
     elif fmt == "hope":
         from dope_hope.io.hope_json import list_hope_frames, read_hope_json
 

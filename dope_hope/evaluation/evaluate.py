@@ -49,10 +49,10 @@ from dope_hope.evaluation.reports import (
     object_table,
     summary_rows,
     table_csv,
+    render_curves,
     table_markdown,
-    write_curves,
 )
-from dope_hope.io.atomic import atomic_write_text
+from dope_hope.io.atomic import atomic_write_files
 
 if TYPE_CHECKING:
     from dope_hope.io.predictions import Prediction
@@ -132,7 +132,8 @@ def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[
     classes = sorted({o.class_name for f in dataset.frames for o in f.objects} |
                      {p.class_name for _, _, preds, _ in loaded for p in preds})
     bop_ar = cfg.bop_ar if cfg.bop_ar is not None else dataset.fmt == "bop"
-    models = load_models(classes, cfg.mesh, cfg.models_dir, cfg.mesh_units, symmetry_args=cfg.symmetries)
+    models = load_models(classes, cfg.mesh, cfg.models_dir, cfg.mesh_units, symmetry_args=cfg.symmetries,
+                         recorded_sizes=dataset.cuboid_sizes)
     for _, _, preds, _ in loaded:
         cuboid_centres_to_origins(preds, models)
     out_dir = Path(cfg.out)
@@ -145,6 +146,7 @@ def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[
                                "metric": primary, "metrics": list(cfg.metrics),
                                "models": {n: m.source for n, m in models.items()}, "methods": {}}
     curves = {}
+    files: dict[Path, bytes] = {}  # written all or none at the end
     for name, path, preds, by_frame in loaded:
         log(f"{name}: {len(preds)} detections in {sum(1 for b in by_frame if b)} of "
             f"{len(dataset.frames)} images; {n_gt} GT instances")
@@ -167,8 +169,8 @@ def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[
                  "models: " + "; ".join(model_notes)]
         stem = _safe_name(name)
         md_path, csv_path = out_dir / f"per_object_{stem}.md", out_dir / f"per_object_{stem}.csv"
-        atomic_write_text(md_path, table_markdown(rows, f"dope-hope evaluation: {name}", notes, bop))
-        atomic_write_text(csv_path, table_csv(rows))
+        files[md_path] = table_markdown(rows, f"dope-hope evaluation: {name}", notes, bop).encode("utf-8")
+        files[csv_path] = table_csv(rows).encode("utf-8")
         overall = dict(summary_rows(rows)).get("overall")
         summary["methods"][name] = {
             "predictions": str(path), "detections": len(preds), "table_md": str(md_path),
@@ -189,13 +191,15 @@ def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[
             for n in bop["notes"]:
                 log(f"  {n}")
         log(f"  table: {md_path}")
-    curve_csv, curve_png = write_curves(out_dir, curves, models)
+    curve_csv, curve_png = out_dir / "detection_rate.csv", out_dir / "detection_rate.png"
+    files[curve_csv], files[curve_png] = render_curves(curves, models)
     summary["detection_rate_csv"] = str(curve_csv)
     summary["detection_rate_png"] = str(curve_png)
     procedural = sorted(n for n, m in models.items() if m.procedural)
     if procedural:
         log("note: no mesh for " + ", ".join(procedural) + ": model points sampled on the catalog "
             "cuboid (procedural stand-in); pass --mesh or --models-dir for exact errors")
-    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=1, default=float) + "\n")
+    files[out_dir / "summary.json"] = (json.dumps(summary, indent=1, default=float) + "\n").encode("utf-8")
+    atomic_write_files(files)  # all or nothing: a full disk leaves no half set of tables
     log(f"curves: {curve_png}, {curve_csv}; summary: {out_dir / 'summary.json'}")
     return summary

@@ -91,7 +91,8 @@ def _centred_symmetries(syms: np.ndarray, center: np.ndarray) -> np.ndarray:
 def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
                 models_dir: str | os.PathLike | None = None, mesh_units: str | None = None,
                 n_points: int = NUM_MODEL_POINTS, cyl_step_deg: float = 1.0,
-                symmetry_args: Sequence[str] = ()) -> dict[str, ObjectModel]:
+                symmetry_args: Sequence[str] = (),
+                recorded_sizes: dict[str, tuple[np.ndarray, Path]] | None = None) -> dict[str, ObjectModel]:
     """Model points, diameter and symmetries of every class.
 
     Mesh: ``--mesh [NAME=]PATH``, then ``--models-dir`` (the search order of
@@ -107,17 +108,23 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
     PLY is read as stored: :func:`io.meshes.read_ply`); a BOP PLY in mm with its
     ``models_info.json`` entry (diameter included) is the toolkit's exact input.
 
+    A mesh without a BOP entry must match the box recorded for its object
+    (io.meshes.check_mesh_box, extents in any axis order): the dataset's (``recorded_sizes``:
+    class -> (size (3,) m, file)), else the catalog's, so that a wrong --mesh-units or another
+    object's mesh is refused instead of scored.
+
     Raises:
         InputFileError / ConfigError / UnknownObjectError: unreadable mesh or declaration; a
         bare ``--mesh PATH`` of an unknown class among several; ``--symmetries`` for an object
         whose ``models_info.json`` entry declares them; a class neither in the catalog nor
-        given a mesh.
+        given a mesh. ConfigError: a mesh whose box does not match.
     """
     import trimesh
 
     from dope_hope.catalog import category_symmetries, get_object
     from dope_hope.io.meshes import (
         UNIT_SCALE,
+        check_mesh_box,
         load_mesh,
         mesh_cuboid,
         mesh_diameter,
@@ -158,6 +165,15 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
                 raise ConfigError(f"--symmetries for {name} would be ignored: its models_info.json entry "
                                   f"({decl.source}) declares the symmetries BOP scoring uses; drop one of "
                                   f"the two")
+            if bop_entry:
+                pass  # the dataset's own model, described by its models_info.json entry
+            elif recorded_sizes and name in recorded_sizes:
+                size, where = recorded_sizes[name]
+                check_mesh_box(mesh_cuboid(mesh)[0], size, str(path), name,
+                               f"the cuboid {Path(where).name} records", any_axis_order=True)
+            elif obj is not None:
+                check_mesh_box(mesh_cuboid(mesh)[0], obj.size_array, str(path), name,
+                               "the HOPE catalog's cuboid", any_axis_order=True)
         elif obj is None:
             raise UnknownObjectError(f"class {name!r} is not a HOPE object and no mesh was "
                                      f"given for it (--mesh {name}=PATH)")

@@ -14,7 +14,6 @@ import io
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -29,7 +28,6 @@ from dope_hope.evaluation.matching import (
     greedy_match,
 )
 from dope_hope.evaluation.models import ObjectModel
-from dope_hope.io.atomic import atomic_path, atomic_write_text
 
 CATEGORY_ORDER = ("cylinder", "cuboid", "bottle")
 
@@ -238,10 +236,11 @@ def detection_rates(groups: list[GroupErrors], models: dict[str, ObjectModel], m
     return out
 
 
-def write_curves(out_dir: Path, curves: dict[tuple[str, str], dict[str, dict[str, Any]]],
-                 models: dict[str, ObjectModel],
-                 thresholds: Sequence[float] = CURVE_THRESHOLDS_M) -> tuple[Path, Path]:
-    """``detection_rate.csv`` (every group) and ``detection_rate.png`` (overall + categories).
+def render_curves(curves: dict[tuple[str, str], dict[str, dict[str, Any]]],
+                  models: dict[str, ObjectModel],
+                  thresholds: Sequence[float] = CURVE_THRESHOLDS_M) -> tuple[bytes, bytes]:
+    """The bytes of ``detection_rate.csv`` (every group) and ``detection_rate.png`` (overall +
+    categories).
 
     Args:
         curves: {(method, metric): detection_rates(...)}.
@@ -261,8 +260,7 @@ def write_curves(out_dir: Path, curves: dict[tuple[str, str], dict[str, dict[str
                 rate = b["rate"][k]
                 w.writerow([method, metric, gname, f"{100 * th:g}", "" if math.isnan(rate) else repr(rate),
                             b["tp"][k], b["gt"]])
-    csv_path = out_dir / "detection_rate.csv"
-    atomic_write_text(csv_path, buf.getvalue())
+    csv_bytes = buf.getvalue().encode("utf-8")
 
     panels = ["overall"] + [c for c in CATEGORY_ORDER
                             if any(c in g and g[c]["gt"] > 0 for g in curves.values())]
@@ -285,12 +283,12 @@ def write_curves(out_dir: Path, curves: dict[tuple[str, str], dict[str, dict[str
         ax.set_ylim(0, 1.02)
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("detection rate")
-    axes[0][0].legend(loc="lower right", fontsize="small")
+    if axes[0][0].get_legend_handles_labels()[0]:  # no curve without ground truth
+        axes[0][0].legend(loc="lower right", fontsize="small")
     if len(metrics_used) == 1:
         fig.suptitle(f"detection rate vs {METRIC_LABELS[next(iter(metrics_used))]} threshold")
     fig.tight_layout()
-    png_path = out_dir / "detection_rate.png"
-    with atomic_path(png_path) as tmp:
-        fig.savefig(tmp, dpi=110)
+    png = io.BytesIO()
+    fig.savefig(png, format="png", dpi=110)
     plt.close(fig)
-    return csv_path, png_path
+    return csv_bytes, png.getvalue()

@@ -12,7 +12,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from dope_hope.errors import ConfigError, ModelFileError
+from dope_hope.errors import ConfigError, DopeHopeError, ModelFileError
 from dope_hope.model.info import ModelInfo
 
 BACKENDS = ("auto", "torch", "onnx")
@@ -95,16 +95,29 @@ class TorchBackend:
         return belief.float().cpu().numpy(), affinity.float().cpu().numpy()
 
 
+def require_model_file(path: Path, what: str = "weights file") -> str:
+    """ModelFileError unless ``path`` is a regular file; returns its io.paths.weights_format."""
+    from dope_hope.io.paths import require_file, weights_format
+
+    try:
+        require_file(path, what)
+    except DopeHopeError as exc:
+        raise ModelFileError(path, exc.problem) from None
+    return weights_format(path)
+
+
 def open_backend(weights: str | os.PathLike, backend: str = "auto", device: str = "cpu",
                  threads: int | None = None) -> MapBackend:
     """Open weights with the named backend; "auto" = ONNX for ``.onnx`` files, else torch."""
     if backend not in BACKENDS:
         raise ConfigError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     path = Path(weights)
-    if not path.is_file():
-        raise ModelFileError(path, "weights file not found")
+    fmt = require_model_file(path)
     is_onnx = path.suffix.lower() == ".onnx"
     kind = ("onnx" if is_onnx else "torch") if backend == "auto" else backend
+    if kind == "onnx" and fmt.startswith("torch"):
+        raise ModelFileError(path, "a PyTorch checkpoint, not an ONNX model: use backend 'torch' or "
+                                   "'auto' (or export it with dope-hope export)")
     if kind == "onnx":
         try:
             from dope_hope.inference.onnx_backend import OnnxBackend

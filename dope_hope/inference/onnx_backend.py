@@ -235,8 +235,9 @@ class OnnxBackend:
 
         self.path = Path(path)
         self.source = str(path)
-        if not self.path.is_file():
-            raise ModelFileError(self.path, "ONNX file not found")
+        from dope_hope.inference.backends import require_model_file
+
+        require_model_file(self.path, "ONNX file")
         if optimization not in OPTIMIZATION_LEVELS:
             raise ConfigError(f"optimization must be one of {', '.join(OPTIMIZATION_LEVELS)}, "
                               f"got {optimization!r}")
@@ -273,6 +274,12 @@ class OnnxBackend:
             raise ModelFileError(self.path, f"metadata says layout {self.info.layout!r} but the graph "
                                             f"has the {self.layout!r} inputs/outputs")
         i = self.info
+        graph_hw = tuple(self.session.get_inputs()[0].shape[2:])
+        if all(isinstance(v, int) for v in graph_hw) and graph_hw != tuple(i.fixed_input_hw or ()):
+            said = "any size" if i.fixed_input_hw is None else f"{i.fixed_input_hw[0]}x{i.fixed_input_hw[1]}"
+            raise ModelFileError(self.path, f"metadata says the input is {said} but the graph takes "
+                                            f"{graph_hw[0]}x{graph_hw[1]} only (fixed_input_hw disagrees "
+                                            "with the graph)")
         self.stride: int = i.stride
         self.class_name: str = i.class_name
         self.size_m: np.ndarray = np.asarray(i.size_m, dtype=np.float64)

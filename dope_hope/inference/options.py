@@ -66,12 +66,11 @@ class InferenceOptions:
     icp_refine: Mapping[str, Any]
 
     def __post_init__(self) -> None:
-        from dope_hope.preprocess import INPUT_MULTIPLE
+        from dope_hope.preprocess import check_working_side
 
         h = self.height
-        if h is not None and (isinstance(h, bool) or not isinstance(h, (int, float)) or int(h) != h
-                              or h < INPUT_MULTIPLE):
-            raise ConfigError(f"height must be an integer >= {INPUT_MULTIPLE}, got {h!r}")
+        if h is not None:
+            check_working_side(h)
         if self.pose_search not in POSE_SEARCHES:
             raise ConfigError(f"pose_search must be one of {', '.join(POSE_SEARCHES)}, got {self.pose_search!r}")
         if isinstance(self.min_score, bool) or not isinstance(self.min_score, (int, float)) \

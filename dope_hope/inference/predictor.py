@@ -77,10 +77,6 @@ from dope_hope.refine.line_search import depth_line_search
 ICP_LS_SEARCH = (0.5, 2.0)
 
 
-#: A mesh's box may differ from the checkpoint's cuboid by at most this factor per extent.
-MESH_SIZE_TOLERANCE = 1.25
-
-
 # ----------------------------------------------------------------------------- predictor
 class DopePredictor:
     """A network for one object and everything to turn images into :class:`Detection` s.
@@ -161,19 +157,14 @@ class DopePredictor:
 
     # ------------------------------------------------------------------ setup helpers
     def _load_mesh(self, mesh: Any, units: str | None, ckpt_size: np.ndarray):
-        from dope_hope.io.meshes import load_mesh, mesh_cuboid
+        from dope_hope.io.meshes import check_mesh_box, load_mesh, mesh_cuboid
 
         source = "<mesh>"
         if isinstance(mesh, (str, os.PathLike)):
             source = str(mesh)
             mesh = load_mesh(mesh, units=units)
         size, center = mesh_cuboid(mesh)
-        ratio = size / ckpt_size
-        if np.any(ratio > MESH_SIZE_TOLERANCE) or np.any(ratio < 1.0 / MESH_SIZE_TOLERANCE):
-            raise ConfigError(
-                f"{source}: mesh box {np.round(size * 100, 2).tolist()} cm does not match the "
-                f"model's cuboid {np.round(ckpt_size * 100, 2).tolist()} cm for {self.class_name} "
-                "(wrong object or wrong mesh units?)")
+        check_mesh_box(size, ckpt_size, source, self.class_name, "the model's cuboid")
         return mesh, size, center
 
     def _surface(self):

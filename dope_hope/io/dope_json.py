@@ -498,7 +498,7 @@ def read_dope_json(path: str | os.PathLike) -> FrameAnnotation:
     if depth is not None and depth.suffix.lower() == ".exr":
         depth_scale = 1.0
     if data.get("depth_scale_m") is not None:
-        depth_scale = f.number(data["depth_scale_m"], "depth_scale_m")
+        depth_scale = f.positive_number(data["depth_scale_m"], "depth_scale_m")
     return FrameAnnotation(source=path, K=K, width=width, height=height, objects=objects,
                            image_path=image, depth_path=depth, seg_path=seg,
                            depth_scale_m=depth_scale)

@@ -37,14 +37,9 @@ def _sibling(path: Path, suffixes: tuple[str, ...]) -> Path | None:
 def _depth_scale_m(f: _Fields, data: dict, camera: dict) -> float:
     for where, node in (("", data), ("camera.", camera)):
         if node.get("depth_scale_m") is not None:
-            value = f.number(node["depth_scale_m"], f"{where}depth_scale_m")
-        elif node.get("depth_scale") is not None:
-            value = f.number(node["depth_scale"], f"{where}depth_scale") * 0.001
-        else:
-            continue
-        if value <= 0:
-            raise f.fail(f"{where}depth_scale", f"must be positive, got {value}")
-        return value
+            return f.positive_number(node["depth_scale_m"], f"{where}depth_scale_m")
+        if node.get("depth_scale") is not None:
+            return f.positive_number(node["depth_scale"], f"{where}depth_scale") * 0.001
     return 0.001
 
 

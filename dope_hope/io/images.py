@@ -1,14 +1,25 @@
-"""Image files: RGB in memory (OpenCV's BGR converted once, here), depth as uint16 or metres."""
+"""Image files: RGB in memory (OpenCV's BGR converted once, here), depth as uint16 or metres.
+
+OpenCV's codecs print their complaints (``libpng error: ...``, libjpeg's ``Premature end of
+JPEG file``) straight to the process's stderr; reads catch those lines and turn them into the
+one-line error of the file, or drop them when the image decoded whole.
+"""
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
+import tempfile
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from dope_hope.errors import InputFileError
-from dope_hope.io.atomic import atomic_path
+from dope_hope.io.atomic import atomic_write_bytes
+from dope_hope.io.paths import require_file
 
 #: Suffixes taken as photographs when a folder of images is scanned (backgrounds, calibration).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
@@ -21,16 +32,51 @@ def image_files(folder: str | os.PathLike, recursive: bool = False) -> list[Path
     return sorted(p for p in entries if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
 
 
+#: libjpeg warnings that mean pixels are missing or invented (the decoder fills them in).
+_DAMAGED_JPEG = ("Premature end of JPEG file", "Corrupt JPEG data: premature end",
+                 "Corrupt JPEG data: bad Huffman", "Corrupt JPEG data: found marker")
+_STDERR_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def native_stderr_lines() -> Iterator[list[str]]:
+    """Capture what C libraries write to file descriptor 2 inside the block (the list is
+    filled when the block ends). Python's own sys.stderr is flushed first and not captured
+    differently; one block at a time per process."""
+    lines: list[str] = []
+    with _STDERR_LOCK, tempfile.TemporaryFile() as sink:
+        try:
+            sys.stderr.flush()
+        except (OSError, ValueError):
+            pass
+        saved = os.dup(2)
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield lines
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            lines += [ln.strip() for ln in sink.read().decode("utf-8", "replace").splitlines() if ln.strip()]
+
+
 def read_image_raw(path: str | os.PathLike) -> np.ndarray:
-    """Read any image unchanged (bit depth and channels kept); BGR(A) turned into RGB(A)."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputFileError(path, "image file not found")
+    """Read any image unchanged (bit depth and channels kept); BGR(A) turned into RGB(A).
+
+    Raises InputFileError for a missing, unreadable, truncated or corrupt file (a JPEG that
+    libjpeg had to complete with invented pixels included).
+    """
+    path = require_file(path, "image file")
     if path.suffix.lower() == ".exr":
         return _read_exr(path)
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    with native_stderr_lines() as messages:
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise InputFileError(path, "not a readable image (unknown format or corrupt)")
+        why = messages[-1] if messages else "unknown format or corrupt"
+        raise InputFileError(path, f"not a readable image ({why})")
+    damaged = next((m for m in messages if m.startswith(_DAMAGED_JPEG)), None)
+    if damaged is not None:
+        raise InputFileError(path, f"truncated or corrupt image ({damaged})")
     if img.ndim == 3 and img.shape[2] == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     elif img.ndim == 3 and img.shape[2] == 4:
@@ -60,9 +106,7 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
     """(width, height) of an image file from its header only (no decoding), pixels."""
     from PIL import Image, UnidentifiedImageError
 
-    path = Path(path)
-    if not path.is_file():
-        raise InputFileError(path, "image file not found")
+    path = require_file(path, "image file")
     try:
         with Image.open(path) as im:
             return int(im.size[0]), int(im.size[1])
@@ -85,14 +129,23 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
 
 
 def write_rgb(path: str | os.PathLike, rgb: np.ndarray) -> None:
-    """Write (H, W, 3) uint8 RGB (or (H, W) gray / uint16) atomically; format from the suffix."""
+    """Write (H, W, 3) uint8 RGB (or (H, W) gray / uint16) atomically; format from the suffix.
+
+    Encoded in memory and written by Python, so that a failed write (disk full...) raises
+    OutputPathError with the reason (cv2.imwrite only returns False).
+    """
     path = Path(path)
     img = np.asarray(rgb)
     if img.ndim == 3 and img.shape[2] == 3:
         img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), img):
-            raise InputFileError(path, "could not write image")
+    try:
+        ok, data = cv2.imencode(path.suffix or ".png", img)
+    except cv2.error:
+        ok = False
+    if not ok:
+        raise InputFileError(path, f"cannot encode a {img.dtype} image of shape {img.shape} as "
+                                   f"{path.suffix or 'PNG'}")
+    atomic_write_bytes(path, data.tobytes())
 
 
 def read_depth_m(path: str | os.PathLike, depth_scale_m: float = 0.001) -> np.ndarray:
@@ -102,10 +155,18 @@ def read_depth_m(path: str | os.PathLike, depth_scale_m: float = 0.001) -> np.nd
     float images (EXR, float TIFF) are taken as metres; non-finite values and renderer
     sentinels (|d| >= 1e30, e.g. NViSII's -FLT_MAX for "no surface") become 0.
     """
+    if not (np.isfinite(depth_scale_m) and depth_scale_m > 0):
+        raise InputFileError(path, f"depth scale must be a positive number of metres per unit, got {depth_scale_m}")
     img = read_image_raw(path)
+    if img.dtype == np.uint8:
+        raise InputFileError(path, "an 8-bit image, not a depth map (expected uint16 depth units, "
+                                   "or float metres)")
+    if img.ndim == 3 and np.issubdtype(img.dtype, np.integer):
+        raise InputFileError(path, f"a {img.shape[2]}-channel image, not a depth map (expected one "
+                                   "uint16 channel of depth units)")
     if img.ndim == 3:
         img = img[:, :, 0]
-    if img.dtype in (np.uint16, np.uint8, np.int32):
+    if img.dtype in (np.uint16, np.int32):
         return img.astype(np.float32) * np.float32(depth_scale_m)
     if img.dtype in (np.float32, np.float64):
         d = img.astype(np.float32)

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from dope_hope.errors import InputFileError
+from dope_hope.io.paths import require_file
 
 
 class JsonFields:
@@ -54,6 +55,12 @@ class JsonFields:
             raise self.fail(field, f"expected a finite number, got {value!r}")
         return float(value)
 
+    def positive_number(self, value: Any, field: str) -> float:
+        v = self.number(value, field)
+        if v <= 0:
+            raise self.fail(field, f"must be positive, got {value!r}")
+        return v
+
     def positive_int(self, value: Any, field: str) -> int:
         if (isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value)
                 or value <= 0 or value != int(value)):
@@ -63,9 +70,7 @@ class JsonFields:
 
 def read_text_file(path: str | os.PathLike, what: str = "file") -> str:
     """The text of a UTF-8 file; missing or not UTF-8 -> InputFileError naming the file."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputFileError(path, f"{what} not found")
+    path = require_file(path, what)
     try:
         return path.read_text(encoding="utf-8")
     except UnicodeDecodeError:

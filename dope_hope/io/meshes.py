@@ -18,6 +18,7 @@ from scipy.spatial import ConvexHull, QhullError
 from scipy.spatial.distance import pdist
 
 from dope_hope.errors import InputFileError
+from dope_hope.io.paths import require_file
 
 #: Metres per file unit.
 UNIT_SCALE: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
@@ -47,8 +48,7 @@ def load_mesh(path: str | os.PathLike, units: str | None = None) -> trimesh.Trim
                                        f"pass units= one of {sorted(UNIT_SCALE)}")
     if units not in UNIT_SCALE:
         raise InputFileError(path, f"unknown mesh unit {units!r}; use one of {sorted(UNIT_SCALE)}")
-    if not path.is_file():
-        raise InputFileError(path, "mesh file not found")
+    require_file(path, "mesh file")
     try:
         loaded = trimesh.load(str(path), force="mesh")
     except Exception as exc:  # trimesh raises many types for a corrupt file
@@ -254,6 +254,33 @@ def mesh_cuboid(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
     """
     lo, hi = np.asarray(mesh.bounds, dtype=np.float64)
     return hi - lo, (hi + lo) / 2.0
+
+
+#: A mesh's box may differ from the object's known cuboid by at most this factor per extent.
+MESH_SIZE_TOLERANCE = 1.25
+
+
+def check_mesh_box(mesh_size: np.ndarray, expected_size: np.ndarray, source: str, class_name: str,
+                   reference: str, any_axis_order: bool = False) -> None:
+    """ConfigError unless a mesh's box (3,) m matches the object's known cuboid (3,) m within
+    MESH_SIZE_TOLERANCE per extent: a wrong mesh or wrong --mesh-units would silently change
+    every pose or error computed with it.
+
+    Args:
+        source: the mesh, for the message; reference: where ``expected_size`` comes from
+            ("the model's cuboid", "the cuboid the dataset records", ...).
+        any_axis_order: compare the sorted extents (a reference whose axes may be another
+            frame's, e.g. the catalog's against a BOP model).
+    """
+    from dope_hope.errors import ConfigError
+
+    size = np.asarray(mesh_size, dtype=np.float64)
+    expected = np.asarray(expected_size, dtype=np.float64)
+    ratio = np.sort(size) / np.sort(expected) if any_axis_order else size / expected
+    if np.any(ratio > MESH_SIZE_TOLERANCE) or np.any(ratio < 1.0 / MESH_SIZE_TOLERANCE):
+        raise ConfigError(
+            f"{source}: mesh box {np.round(size * 100, 2).tolist()} cm does not match {reference} "
+            f"{np.round(expected * 100, 2).tolist()} cm for {class_name} (wrong object or wrong mesh units?)")
 
 
 def mesh_diameter(mesh: trimesh.Trimesh | np.ndarray) -> float:

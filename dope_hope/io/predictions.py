@@ -143,6 +143,15 @@ def _fail(path: Path, lineno: int, problem: str) -> InputFileError:
 
 
 def _rotation(path: Path, lineno: int, obj: dict) -> np.ndarray:
+    """R, or the quaternion's rotation; a record giving both must give the same rotation."""
+    if obj.get("R") is not None and obj.get("quaternion_xyzw") is not None:
+        R = _rotation(path, lineno, {"R": obj["R"]})
+        Rq = _rotation(path, lineno, {"quaternion_xyzw": obj["quaternion_xyzw"]})
+        if np.linalg.norm(R - Rq) > ROTATION_TOLERANCE:
+            angle = np.degrees(np.arccos(np.clip((np.trace(R.T @ Rq) - 1) / 2, -1.0, 1.0)))
+            raise _fail(path, lineno, f"R and quaternion_xyzw disagree (by {angle:.3g} deg); give one "
+                                      "rotation, or the same one twice")
+        return R
     if obj.get("R") is not None:
         try:
             M = np.asarray(obj["R"], dtype=np.float64)

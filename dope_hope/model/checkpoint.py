@@ -22,6 +22,7 @@ import os
 import pickle
 import random
 import re
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -31,9 +32,10 @@ from torch import nn
 
 from dope_hope import __version__
 from dope_hope.config import load_config
-from dope_hope.errors import ConfigError, ModelFileError
+from dope_hope.errors import ConfigError, InputFileError, ModelFileError
 from dope_hope.geometry import KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER
-from dope_hope.io.atomic import atomic_path
+from dope_hope.io.atomic import atomic_write_stream
+from dope_hope.io.paths import require_file, weights_format
 from dope_hope.model.info import OBJECT_FRAMES, ModelInfo
 from dope_hope.model.network import (
     IMAGENET_MEAN,
@@ -126,8 +128,16 @@ def expected_state(config: dict[str, Any]) -> dict[str, torch.Tensor]:
 
 def _torch_load(path: Path) -> Any:
     """torch.load with weights_only=True; every failure becomes a one-line ModelFileError."""
-    if not path.is_file():
-        raise ModelFileError(path, "file not found")
+    try:
+        require_file(path)
+    except InputFileError as exc:
+        raise ModelFileError(path, exc.problem) from None
+    kind = weights_format(path)
+    if kind == "empty":
+        raise ModelFileError(path, "empty file, not a torch weights file")
+    if kind == "other":
+        raise ModelFileError(path, "not a torch weights file (neither the zip archive nor the pickle "
+                                   "stream torch.save writes)")
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
@@ -239,8 +249,7 @@ def save_checkpoint(
         "source": source,
         "extra": _plain(extra) if extra is not None else None,
     }
-    with atomic_path(path) as tmp:
-        torch.save(ckpt, tmp)
+    atomic_write_stream(path, lambda f: torch.save(ckpt, f))
     return path
 
 
@@ -277,6 +286,11 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     except ConfigError as exc:
         raise ModelFileError(path, f"its config is invalid ({exc})") from None
     check_state_dict(expected, ckpt["model"], path)
+    bad = [k for k, v in ckpt["model"].items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        warnings.warn(f"{path}: {len(bad)} of {len(ckpt['model'])} weight tensors hold NaN or infinity "
+                      f"({_summarize(bad)}): its outputs are meaningless (a diverged training run?)",
+                      RuntimeWarning, stacklevel=2)
     return ckpt
 
 
@@ -286,8 +300,7 @@ def save_inference_checkpoint(src: str | os.PathLike, dst: str | os.PathLike) ->
     ``--resume`` needs the full file. Written atomically; returns ``dst``."""
     ckpt = load_checkpoint(src)
     ckpt.update(optimizer=None, scheduler=None, rng=None)
-    with atomic_path(dst) as tmp:
-        torch.save(ckpt, tmp)
+    atomic_write_stream(dst, lambda f: torch.save(ckpt, f))
     return Path(dst)
 
 
@@ -361,6 +374,5 @@ def import_official(
         "extra": None,
     }
     if out_path is not None:
-        with atomic_path(out_path) as tmp:
-            torch.save(ckpt, tmp)
+        atomic_write_stream(out_path, lambda f: torch.save(ckpt, f))
     return ckpt

@@ -36,7 +36,7 @@ from torch import nn
 from torchvision.models.vgg import cfgs as _vgg_cfgs
 from torchvision.models.vgg import make_layers as _vgg_make_layers
 
-from dope_hope.errors import ConfigError, ModelFileError
+from dope_hope.errors import ConfigError, DopeHopeError, ModelFileError
 from dope_hope.preprocess import IMAGENET_MEAN, IMAGENET_STD, normalize_rgb
 
 NUM_BELIEF = 9
@@ -270,10 +270,14 @@ def load_backbone_weights(model: DopeNetwork, path: str | os.PathLike) -> list[s
     """
     if getattr(model, "arch", None) != "dope":
         raise ConfigError("backbone_weights applies to arch dope only (the VGG19 trunk)")
+    from dope_hope.io.paths import require_file
+
+    try:
+        require_file(path, "backbone weights file")
+    except DopeHopeError as exc:
+        raise ModelFileError(path, exc.problem) from None
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
-    except FileNotFoundError:
-        raise ModelFileError(path, "file not found") from None
     except Exception as exc:  # noqa: BLE001 - any unpickling failure is a bad file
         raise ModelFileError(path, f"not a readable torch weights file ({type(exc).__name__})") from None
     if not isinstance(state, dict):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import signal
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -213,11 +214,21 @@ def render_frame(mesh_path: str | os.PathLike, index: int = 0, seed: int = 0,
 
 # --------------------------------------------------------------------------- datasets
 _WORKER: FrameGenerator | None = None
+
+
+def _main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
 _WORKER_OUT: Path | None = None
 
 
 def _init_worker(gen_kwargs: dict[str, Any], out_dir: str, threads: int) -> None:
     global _WORKER, _WORKER_OUT
+    # The parent alone handles Ctrl-C and SIGTERM (it terminates the pool): a worker ignores
+    # SIGINT (already ignored since it started, see generate_dataset) and dies quietly on SIGTERM.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     # Share the cores between the workers' software rasterizers (Mesa llvmpipe) instead of
     # each one starting a thread per core (unless the user set these).
     os.environ.setdefault("LP_NUM_THREADS", str(threads))
@@ -319,8 +330,15 @@ def generate_dataset(out_dir: str | os.PathLike, mesh_path: str | os.PathLike, c
             ctx = mp.get_context("spawn")
             n_proc = min(workers, len(todo))
             threads = max(1, (os.cpu_count() or 1) // n_proc)
-            with ctx.Pool(n_proc, initializer=_init_worker,
-                          initargs=(gen_kwargs, str(out), threads)) as pool:
+            # Workers start with SIGINT ignored (Python keeps an inherited SIG_IGN), so that a
+            # Ctrl-C reaches the parent alone, which terminates them with the pool.
+            previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if _main_thread() else None
+            try:
+                pool = ctx.Pool(n_proc, initializer=_init_worker, initargs=(gen_kwargs, str(out), threads))
+            finally:
+                if previous is not None:
+                    signal.signal(signal.SIGINT, previous)
+            with pool:
                 for i in pool.imap_unordered(_work, todo, chunksize=1):
                     bar.update(1)
                     if on_frame is not None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 import os
 from typing import Any
 
-from dope_hope.config import config_path, load_yaml, merge
+from dope_hope.config import check_known_keys, config_path, load_yaml, merge
 from dope_hope.errors import ConfigError
 
 #: Name of the default config (configs/synth.yaml).
@@ -37,15 +37,24 @@ def load_synth_config(config: str | os.PathLike | dict[str, Any] | None = None) 
     Raises:
         ConfigError / InputFileError: unknown name, unreadable file or an invalid range.
     """
-    base = load_yaml(config_path(DEFAULT_CONFIG))
+    base = packaged_synth_config()
     if config is None or (isinstance(config, str) and config == DEFAULT_CONFIG):
         cfg = base
     elif isinstance(config, dict):
+        check_known_keys(config, base, "synth config")
         cfg = merge(base, config)
     else:
-        cfg = merge(base, load_yaml(config_path(config)))
+        path = config_path(config)
+        override = load_yaml(path)
+        check_known_keys(override, base, f"synth config {path}")
+        cfg = merge(base, override)
     validate_synth_config(cfg)
     return cfg
+
+
+def packaged_synth_config() -> dict[str, Any]:
+    """``configs/synth.yaml``: every key a synth config may set."""
+    return load_yaml(config_path(DEFAULT_CONFIG))
 
 
 def validate_synth_config(cfg: dict[str, Any]) -> None:

@@ -15,6 +15,7 @@ import numpy as np
 
 from dope_hope.annotation import FrameAnnotation
 from dope_hope.errors import ConfigError
+from dope_hope.io import atomic
 from dope_hope.io.atomic import atomic_write_text
 from dope_hope.io.dope_json import write_dope_json
 from dope_hope.io.images import write_depth_mm, write_rgb
@@ -46,16 +47,11 @@ def remove_stale_temporaries(out_dir: str | os.PathLike, indices: set[int]) -> i
 
     Only call this when no other process writes the same frames.
     """
-    d = Path(out_dir)
-    removed = 0
-    if not d.is_dir():
-        return 0
-    for p in d.glob(".*.tmp*"):
-        stem = p.name[1:].split(".", 1)[0]
-        if stem.isdigit() and int(stem) in indices:
-            p.unlink(missing_ok=True)
-            removed += 1
-    return removed
+    def of_frames(stem: str) -> bool:
+        head = stem.split(".", 1)[0]
+        return head.isdigit() and int(head) in indices
+
+    return atomic.remove_stale_temporaries(out_dir, of_frames)
 
 
 def write_frame(out_dir: str | os.PathLike, index: int, rgb: np.ndarray, depth_m: np.ndarray,

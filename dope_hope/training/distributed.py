@@ -11,7 +11,6 @@ from dataclasses import dataclass
 import torch
 import torch.distributed as dist
 
-from dope_hope.errors import ConfigError
 
 
 # =============================================================================== distributed
@@ -34,12 +33,13 @@ def init_distributed(device: str) -> tuple[DistInfo, torch.device]:
     """Join a torchrun job (env RANK, WORLD_SIZE, LOCAL_RANK) or run single-process."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     info = DistInfo(int(os.environ.get("RANK", "0")), world, int(os.environ.get("LOCAL_RANK", "0")))
+    from dope_hope.devices import check_device
+
+    device = check_device(device)
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     dev = torch.device(device)
     if dev.type == "cuda":
-        if not torch.cuda.is_available():
-            raise ConfigError("--device cuda: no CUDA device available")
         dev = torch.device("cuda", info.local_rank if info.active else (dev.index or 0))
         torch.cuda.set_device(dev)
     if info.active and not dist.is_initialized():

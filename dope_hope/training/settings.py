@@ -70,13 +70,66 @@ class TrainJob:
     on_step: Callable[["Trainer", int], None] | None = None
 
 
+#: The ``train`` keys that hold numbers: key -> (rule, may be null). Rules: "int>=N" a whole
+#: number >= N, "float>0" / "float>=0" a finite number, "fraction" in [0, 1).
+_TRAIN_NUMBERS: dict[str, tuple[str, bool]] = {
+    "batch_size": ("int>=1", False), "epochs": ("int>=1", False), "steps": ("int>=1", True),
+    "time_limit_min": ("float>0", True), "lr": ("float>=0", False), "weight_decay": ("float>=0", False),
+    "warmup_steps": ("int>=0", False), "min_lr_factor": ("float>=0", False), "step_epochs": ("int>=1", False),
+    "step_gamma": ("float>0", False), "grad_clip": ("float>0", True), "belief_weight": ("float>=0", False),
+    "affinity_weight": ("float>=0", False), "foreground_weight": ("float>=0", False),
+    "workers": ("int>=0", False), "threads": ("int>=1", True), "checkpoint_every": ("int>=0", False),
+    "checkpoint_every_steps": ("int>=0", True), "seed": ("int>=0", False), "val_fraction": ("fraction", False),
+    "val_every": ("int>=0", False), "val_radius_px": ("float>0", False), "val_peak_threshold": ("float>=0", False),
+    "val_batch_size": ("int>=1", True), "max_instances": ("int>=1", False), "min_visibility": ("float>=0", False),
+    "log_every": ("int>=1", False), "horizon_estimate_after": ("int>=2", False),
+}
+#: Top-level config sections, and the keys of those that no other reader checks.
+CONFIG_SECTIONS = ("model", "input", "targets", "train", "augment")
+_SECTION_KEYS = {"input": ("size", "normalization"), "targets": ("sigma", "radius", "symmetry")}
+
+
+def check_config_keys(config: dict[str, Any]) -> None:
+    """ConfigError for an unknown top-level section or an unknown ``input`` / ``targets`` key
+    (``model``, ``train`` and ``augment`` keys are checked by their readers)."""
+    unknown = sorted(set(config) - set(CONFIG_SECTIONS))
+    if unknown:
+        raise ConfigError(f"unknown config section(s) {', '.join(unknown)}; known: {', '.join(CONFIG_SECTIONS)}")
+    for section, keys in _SECTION_KEYS.items():
+        bad = sorted(set(config.get(section) or {}) - set(keys))
+        if bad:
+            raise ConfigError(f"{section}: unknown key(s) {', '.join(bad)}; known: {', '.join(keys)}")
+
+
 def train_settings(config: dict[str, Any]) -> dict[str, Any]:
-    """The ``train`` section over :data:`TRAIN_DEFAULTS`; unknown keys raise ConfigError."""
+    """The ``train`` section over :data:`TRAIN_DEFAULTS`; unknown keys and values of the wrong
+    kind (``lr: abc``, ``steps: 0``, ``workers: -1``) raise ConfigError naming the key."""
+    from dope_hope.config import nonnegative_float, positive_float, whole_number
+
     section = dict(config.get("train") or {})
     unknown = sorted(set(section) - set(TRAIN_DEFAULTS))
     if unknown:
         raise ConfigError(f"train: unknown key(s) {', '.join(unknown)}")
     out = {**TRAIN_DEFAULTS, **section}
+    for key, (rule, nullable) in _TRAIN_NUMBERS.items():
+        value, name = out[key], f"train.{key}"
+        if value is None and nullable:
+            continue
+        if rule.startswith("int>="):
+            out[key] = whole_number(value, name, int(rule[5:]))
+        elif rule == "float>0":
+            out[key] = positive_float(value, name)
+        elif rule == "float>=0":
+            out[key] = nonnegative_float(value, name)
+        elif nonnegative_float(value, name) >= 1:
+            raise ConfigError(f"{name} must be a fraction in [0, 1), got {value!r}")
+    for key in ("amp", "channels_last", "include_empty_frames"):
+        if not isinstance(out[key], bool):
+            raise ConfigError(f"train.{key} must be true or false, got {out[key]!r}")
+    betas = out["betas"]
+    if (not isinstance(betas, (list, tuple)) or len(betas) != 2
+            or not all(0 <= nonnegative_float(b, "train.betas") < 1 for b in betas)):
+        raise ConfigError(f"train.betas must be two numbers in [0, 1), got {betas!r}")
     if out["schedule"] not in ("constant", "cosine", "step"):
         raise ConfigError(f"train.schedule must be constant, cosine or step, got {out['schedule']!r}")
     if out["optimizer"] not in ("adam", "adamw"):

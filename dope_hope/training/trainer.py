@@ -12,6 +12,11 @@ full config (sections ``model``, ``input``, ``targets``, ``train``, ``augment``;
   item of (seed, epoch, index); a checkpoint records model, optimizer, scheduler, step, epoch,
   the batch position inside the epoch and the python/numpy/torch RNG states, so an interrupted
   CPU run resumed from its checkpoint ends with the same weights as an uninterrupted one.
+* Time limit: the budget belongs to the run. After ``horizon_estimate_after`` steps (or the
+  first epoch, if shorter) the measured speed turns the budget left into the step the run ends
+  at (``planned_steps``; the cosine spans it unless steps were given). The plan and the time
+  used are saved in every checkpoint, so a resumed run ends at the same step with the same
+  weights; before the plan the run stops when the time (of every process so far) runs out.
 * Ctrl-C / SIGTERM: finish the current step, write ``last.pt``, return ``interrupted``.
 """
 from __future__ import annotations
@@ -48,6 +53,7 @@ from dope_hope.training.settings import (
     input_hw,
     label_symmetries,
     object_info,
+    check_config_keys,
     train_settings,
 )
 from dope_hope.training.validation import validation_hits
@@ -94,6 +100,7 @@ class Trainer:
             if not job.data or not job.object_name:
                 raise ConfigError(f"{job.resume} does not record its data folders / object; pass --data and --object")
         config = merge(config, job.overrides)
+        check_config_keys(config)
         self.config = config
         self.ts = train_settings(config)
         ts = self.ts
@@ -166,7 +173,12 @@ class Trainer:
         if ts["steps"]:
             self.epochs = math.ceil(self.total_steps / self.steps_per_epoch)
         self.time_limit_s = float(ts["time_limit_min"]) * 60.0 if ts["time_limit_min"] else None
-        # Under a time limit the schedule spans the time (estimated), unless steps were given.
+        self._nominal_total = self.total_steps
+        #: Under a time limit: the step the run ends at, fixed once from the measured speed
+        #: (see _maybe_plan) and kept in the checkpoint, so that a resumed run ends where an
+        #: uninterrupted one does. None until planned.
+        self.planned_steps: int | None = None
+        # Under a time limit the schedule spans the planned steps, unless steps were given.
         self.estimate_horizon = self.time_limit_s is not None and not ts["steps"]
         self.lr_lambda = LrLambda(ts["schedule"], self.total_steps, int(ts["warmup_steps"]), float(ts["min_lr_factor"]),
                                   int(ts["step_epochs"]) * self.steps_per_epoch, float(ts["step_gamma"]))
@@ -179,6 +191,8 @@ class Trainer:
         self.last_val: dict[str, Any] = {}
         self.val_done_epoch = -1
         self._time_used_before = 0.0
+        self._metrics_rows = 0
+        self.metrics: MetricsLog | None = None
         if ck is not None:
             self._restore(ck)
         self.ddp_model: nn.Module = self.model
@@ -202,6 +216,14 @@ class Trainer:
         if self.batch_in_epoch < self.steps_per_epoch and self.val_done_epoch == self.epoch:
             self.val_done_epoch = -1  # stopped mid-epoch: validate again when the epoch ends
         self._time_used_before = float(extra.get("time_used_s", 0.0))
+        self._metrics_rows = int(extra.get("metrics_rows", 0))
+        self.last_val = dict(extra.get("val") or {})
+        plan = extra.get("planned_steps")
+        if plan is not None and self.time_limit_s is not None and extra.get("plan_budget_min") == self.ts["time_limit_min"]:
+            self.planned_steps = int(plan)  # the same budget: the same end
+            self.total_steps = min(self.total_steps, self.planned_steps)
+        elif self.estimate_horizon:
+            self.lr_lambda.horizon = max(1, self.total_steps)  # planned again (budget changed)
         if ck.get("rng"):
             restore_rng_state(ck["rng"])
         # the scheduler's state restored lr_lambda's attributes; steps / epochs given now win
@@ -217,7 +239,9 @@ class Trainer:
             return path
         extra = {
             "batch_in_epoch": self.batch_in_epoch, "best_acc": self.best_acc, "val_done_epoch": self.val_done_epoch,
-"time_used_s": self._time_used_before + self.elapsed(), "size_source": self.size_source,
+            "time_used_s": self.budget_used(), "size_source": self.size_source,
+            "planned_steps": self.planned_steps, "plan_budget_min": self.ts["time_limit_min"],
+            "metrics_rows": self.metrics.rows if self.metrics is not None else self._metrics_rows,
             "val": {k: v for k, v in self.last_val.items() if isinstance(v, (int, float))},
             "world_size": self.dist.world_size,
             "job": {"data": [str(p) for p in self.job.data], "val": [str(p) for p in self.job.val],
@@ -231,7 +255,13 @@ class Trainer:
 
     # ------------------------------------------------------------------ control
     def elapsed(self) -> float:
+        """Seconds this process has run the loop."""
         return time.monotonic() - self._t0
+
+    def budget_used(self) -> float:
+        """Seconds of the time budget used: earlier processes' (up to their last checkpoint)
+        plus this one's."""
+        return self._time_used_before + self.elapsed()
 
     def request_stop(self, reason: str = "interrupted") -> None:
         """Stop after the current step (what Ctrl-C / SIGTERM do)."""
@@ -245,9 +275,10 @@ class Trainer:
 
     def _agree_stop(self) -> bool:
         """True on every rank when any rank wants to stop (time limit, signal)."""
-        # the final validation must fit in the budget too: stop when the last one would not
-        if (self.time_limit_s is not None and self.stop_reason is None
-                and self.elapsed() + self._val_seconds >= self.time_limit_s):
+        # Before the plan (the first steps of a run): the final validation must fit in the
+        # budget too, stop when it would not. After it, the planned step count ends the run.
+        if (self.time_limit_s is not None and self.planned_steps is None and self.stop_reason is None
+                and self.budget_used() + self._val_seconds >= self.time_limit_s):
             self.stop_reason = "time_limit"
         if not self.dist.active:
             return self.stop_reason is not None
@@ -257,18 +288,45 @@ class Trainer:
         self.stop_reason = reasons[int(t.item())]
         return self.stop_reason is not None
 
-    def _update_horizon(self) -> None:
-        """Time-limited run: make the schedule end when the time runs out (speed measured so far)."""
-        if not self.estimate_horizon or self._steps_this_run == 0:
+    def _maybe_plan(self, epoch_end: bool = False) -> None:
+        """Time-limited run: once the speed is known (``horizon_estimate_after`` steps of this
+        process, or the end of an epoch), turn the budget left into the step the run ends at.
+
+        The plan is made once, broadcast to every rank and saved in the checkpoint: from then
+        on the run is one of a fixed number of steps (the cosine spans them), so an
+        interrupted and resumed run ends at the same step with the same weights.
+        """
+        if self.time_limit_s is None or self.planned_steps is not None:
             return
-        per_step = self.elapsed() / self._steps_this_run
-        remaining = max(0.0, self.time_limit_s - self.elapsed())
-        horizon = self.step + int(remaining / max(per_step, 1e-9))
+        n = self._steps_this_run
+        if n == 1 and not epoch_end:
+            self._plan_t1, self._plan_val1 = time.monotonic(), self._val_time_run  # after start-up
+            return
+        if self._plan_t1 is None or n < 2 or (n < int(self.ts["horizon_estimate_after"]) and not epoch_end):
+            return
+        per_step = max(1e-9, (time.monotonic() - self._plan_t1 - (self._val_time_run - self._plan_val1)) / (n - 1))
+        val_batches = math.ceil(len(self.val_set) / max(1, int(self.ts["val_batch_size"] or self.batch_size)))
+        # No validation measured yet: a batch costs about a training step per unit of image area
+        # (forward + decoding of whole frames vs forward + backward of the training crops).
+        h, w = input_hw(self.config)
+        crop = self.train_set.augment.crop or (h, w)
+        val_cost = self._val_seconds or per_step * val_batches * max(1.0, h * w / (crop[0] * crop[1]))
+        every = int(self.ts["val_every"]) * self.steps_per_epoch  # steps between validations
+        remaining = self.time_limit_s - self.budget_used() - val_cost  # the final validation fits
+        steps = max(0.0, remaining / (per_step + (val_cost / every if every > 0 else 0.0)))
+        planned = min(self._nominal_total, max(self.step, self.step + int(steps)))
         if self.dist.active:
-            t = torch.tensor([horizon], dtype=torch.int64, device=self.device if self.cuda else "cpu")
+            t = torch.tensor([planned], dtype=torch.int64, device=self.device if self.cuda else "cpu")
             dist.broadcast(t, 0)
-            horizon = int(t.item())
-        self.lr_lambda.horizon = max(self.step + 1, min(horizon, self.total_steps))
+            planned = int(t.item())
+        self.planned_steps = planned
+        self.total_steps = planned
+        if self.estimate_horizon:
+            self.lr_lambda.horizon = max(self.step + 1, planned)
+        if self.dist.main:
+            log.info("time budget %.3g min: the run ends at step %d (%.3f s per step, %.1f s of the "
+                     "budget used by step %d)", self.time_limit_s / 60.0, planned, per_step,
+                     self.budget_used(), self.step)
 
     def _loader(self, dataset: Any, sampler: Any, batch_size: int, drop_last: bool) -> torch.utils.data.DataLoader:
         from dope_hope.training.dataset import collate
@@ -351,6 +409,7 @@ class Trainer:
             t0 = time.monotonic()
             self.last_val = self.validate()
             self._val_seconds = time.monotonic() - t0
+            self._val_time_run += self._val_seconds
             self.val_done_epoch = self.epoch
             if self.dist.main:
                 self.metrics.write("val", step=self.step, epoch=self.epoch, time_s=round(self._time_used_before + self.elapsed(), 2),
@@ -371,11 +430,21 @@ class Trainer:
 
     # ------------------------------------------------------------------ loop
     def run(self) -> dict[str, Any]:
+        from dope_hope.io.atomic import remove_stale_temporaries
+        from dope_hope.io.paths import output_dir
+
         self._t0 = time.monotonic()
         self._steps_this_run = 0
         self._val_seconds = 0.0
-        self.out.mkdir(parents=True, exist_ok=True)
-        self.metrics = MetricsLog(self.out, self.dist.main)
+        self._val_time_run = 0.0
+        self._plan_t1: float | None = None
+        self._plan_val1 = 0.0
+        output_dir(self.out)
+        if self.dist.main:  # a process killed while writing leaves .last.<random>.tmp.pt
+            remove_stale_temporaries(self.out, {"last", "best", "summary", "metrics"})
+        resumed = self.job.resume is not None
+        self.metrics = MetricsLog(self.out, self.dist.main, keep_rows=self._metrics_rows if resumed else 0,
+                                  purge_step=self.step + 1 if resumed else None)
         handlers = {}
         try:
             for sig in (signal.SIGINT, signal.SIGTERM):
@@ -389,8 +458,11 @@ class Trainer:
                 signal.signal(sig, h)
             self.metrics.close()
         status = self.stop_reason or "completed"
+        if status == "completed" and self.planned_steps is not None and self.planned_steps < self._nominal_total:
+            status = "time_limit"  # ended at the step the budget allowed
         summary = {
             "status": status, "step": self.step, "epoch": self.epoch, "total_steps": self.total_steps,
+            "planned_steps": self.planned_steps, "budget_used_s": round(self.budget_used(), 2),
             "elapsed_s": round(self.elapsed(), 2), "train_frames": len(self.train_set), "val_frames": len(self.val_set),
             "best_val_kp_acc": self.best_acc if self.best_acc >= 0 else None, **self.last_val,
             "object": self.object, "last": str(self.out / "last.pt"), "rank": self.dist.rank,
@@ -435,8 +507,7 @@ class Trainer:
                         run_loss += loss
                         run_n += 1
                         bar.update(1)
-                        if self._steps_this_run == int(ts["horizon_estimate_after"]):
-                            self._update_horizon()
+                        self._maybe_plan()
                         if self.step % log_every == 0 and self.dist.main:
                             dt = time.monotonic() - t_log
                             ips = run_n * self.batch_size * self.dist.world_size / max(dt, 1e-9)
@@ -459,11 +530,11 @@ class Trainer:
                 if self.val_done_epoch != self.epoch:
                     self._end_of_epoch()
                     t_log += self._val_seconds  # images/s counts training time only
+                self._maybe_plan(epoch_end=True)
                 if self.step >= self.total_steps or self.stop_reason is not None:
                     break
                 self.epoch += 1
                 self.batch_in_epoch = 0
-                self._update_horizon()
                 if ck_epochs and self.epoch % ck_epochs == 0:
                     self.save("last.pt")
                 self._agree_stop()
