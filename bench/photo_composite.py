@@ -35,7 +35,7 @@ import numpy as np
 from dope_hope.commands.demo import DEMO_CONFIG
 from dope_hope.commands.infer import DEMO_WEIGHTS
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
-from dope_hope.evaluation.matching import TABLE_THRESHOLDS_M, greedy_match, pose_error
+from dope_hope.evaluation.matching import TABLE_THRESHOLDS_M, error_matrix, greedy_match
 from dope_hope.evaluation.models import load_models
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.refine.depth import DepthImage
@@ -70,15 +70,13 @@ class Tally:
     frames: int = 0
     found: int = 0          # box matched at 2 cm ADD-H
     found_far: int = 0      # box matched at 10 cm
-    detections: int = 0
     false_2cm: int = 0      # detections unmatched at 2 cm
     false_10cm: int = 0     # detections unmatched at 10 cm
-    addh_cm: list[float] = field(default_factory=list)  # best ADD-H of the box per frame
+    addh_cm: list[float] = field(default_factory=list)  # least ADD-H per frame with a detection
 
     def add(self, errors: np.ndarray, scores: np.ndarray) -> None:
         """errors: (P, 1) ADD-H metres of the frame's detections against the box."""
         self.frames += 1
-        self.detections += len(scores)
         near = greedy_match(errors, scores, RECALL_THRESHOLD_M)
         far = greedy_match(errors, scores, FAR_THRESHOLD_M)
         self.found += int(np.any(near >= 0))
@@ -116,8 +114,8 @@ def run_size(size: tuple[int, int], args: argparse.Namespace, predictor: DopePre
                                                          DepthImage.from_raw(depth, K, image_hw=frame.rgb.shape[:2]))}
             t2 = time.perf_counter()
             for name, ds in dets.items():
-                errors = np.array([[pose_error("addh", d.R, d.t, gt, model, upper=FAR_THRESHOLD_M)] for d in ds])
-                tallies[name].add(errors.reshape(len(ds), 1), np.array([d.score for d in ds]))
+                errors = error_matrix("addh", ds, [gt], model, upper=FAR_THRESHOLD_M)
+                tallies[name].add(errors, np.array([d.score for d in ds]))
             t_render += t1 - t0
             t_model += t2 - t1
             if len(preview) < 8:
@@ -183,7 +181,7 @@ def main() -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         mesh_path = write_demo_object(tmp)
-        model = load_models([DEMO_CLASS_NAME], [f"{DEMO_CLASS_NAME}={mesh_path}"])[DEMO_CLASS_NAME]
+        model = load_models([DEMO_CLASS_NAME], [str(mesh_path)])[DEMO_CLASS_NAME]  # as evaluate loads it
         for s in args.sizes:
             size = parse_size(s)
             t0 = time.perf_counter()
