@@ -154,10 +154,12 @@ def _rows(path: Path, event: str) -> list[dict]:
     return [r for r in (json.loads(line) for line in path.read_text().splitlines()) if r["event"] == event]
 
 
+@pytest.mark.usefixtures("default_sigint")
 def test_a_short_run_writes_results_png_snapshot_train_rows_and_tensorboard(frames, tmp_path, monkeypatch):
     """7 steps (2 epochs of 5) with log_every 20: a train-loss row before each validation (the
     mean loss since the previous row), results.png and val_snapshot.png after each validation,
-    TensorBoard scalars + the snapshot image when tensorboard is importable."""
+    TensorBoard scalars + the snapshot image when tensorboard is importable; a run stopped by
+    Ctrl-C at step 3 and resumed logs the rows of the uninterrupted one."""
     import types
 
     import cv2
@@ -197,6 +199,19 @@ def test_a_short_run_writes_results_png_snapshot_train_rows_and_tensorboard(fram
     assert [(tag, step, fmt) for tag, _, step, fmt in writer.images] == [("val/snapshot", 5, "HWC"),
                                                                           ("val/snapshot", 7, "HWC")]
     np.testing.assert_array_equal(writer.images[-1][1], cv2.cvtColor(snapshot, cv2.COLOR_BGR2RGB))
+
+    def ctrl_c(trainer, step):
+        if step == 3:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    c = tmp_path / "c"
+    ov = _overrides(steps=7, log_every=20, plots=True)
+    assert train(TrainJob([frames], "Ketchup", c, progress=False, overrides=ov, on_step=ctrl_c), config)["step"] == 3
+    assert not _rows(c / "metrics.jsonl", "train") and not (c / "results.png").exists()
+    train(TrainJob([], "", c, resume=c / "last.pt", progress=False), {})
+    steps = [(r["event"], r["step"]) for r in map(json.loads, (c / "metrics.jsonl").read_text().splitlines())]
+    assert steps == [(r["event"], r["step"]) for r in map(json.loads, (out / "metrics.jsonl").read_text().splitlines())]
+    assert (c / "results.png").is_file() and (c / "val_snapshot.png").is_file()
 
 
 def test_read_metrics_keeps_the_later_row_of_a_repeated_step(tmp_path):
