@@ -101,6 +101,17 @@ def normalize_rgb(rgb: np.ndarray, mean: Sequence[float] = IMAGENET_MEAN,
     return np.ascontiguousarray(x.transpose(2, 0, 1))
 
 
+def denormalize_rgb(x: np.ndarray, mean: Sequence[float] = IMAGENET_MEAN,
+                    std: Sequence[float] = IMAGENET_STD) -> np.ndarray:
+    """(3, H, W) float network input -> (H, W, 3) uint8 RGB (the inverse of :func:`normalize_rgb`,
+    rounded; for display)."""
+    x = np.asarray(x, dtype=np.float32)
+    if x.ndim != 3 or x.shape[0] != 3:
+        raise ValueError(f"expected a (3, H, W) network input, got shape {x.shape}")
+    rgb = x.transpose(1, 2, 0) * np.asarray(std, np.float32) + np.asarray(mean, np.float32)
+    return np.ascontiguousarray(np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8))
+
+
 def contain_scale(src_hw: Sequence[int], box_hw: Sequence[int]) -> float:
     """Largest scale that fits an (H, W) image inside an (Hb, Wb) box, aspect ratio kept."""
     return min(box_hw[0] / src_hw[0], box_hw[1] / src_hw[1])

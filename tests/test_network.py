@@ -151,6 +151,8 @@ def test_normalize_image_and_batch_agree():
     batch = torch.from_numpy(rgb).permute(2, 0, 1)[None]
     torch.testing.assert_close(normalize_batch(batch)[0], x)
     torch.testing.assert_close(normalize_batch(batch.float() / 255)[0], x)
+    from dope_hope.preprocess import denormalize_rgb  # the snapshots' way back to pixels
+    np.testing.assert_array_equal(denormalize_rgb(x.numpy()), rgb)
 
 
 def test_load_backbone_weights_maps_torchvision_keys(tmp_path, dr50):

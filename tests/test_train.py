@@ -29,9 +29,11 @@ from dope_hope.training.validation import keypoint_hits, validation_hits
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parent.parent
-#: lite at 64x64, tiny batches, no time limit (a time-estimated schedule is not reproducible)
+#: lite at 64x64, tiny batches, no time limit (a time-estimated schedule is not reproducible), no
+#: plots after its many tiny validations (test_a_short_run_writes_results_png... turns them on)
 TINY = {"input": {"size": [64, 64]},
-        "train": {"batch_size": 2, "workers": 0, "time_limit_min": None, "log_every": 1, "threads": 1}}
+        "train": {"batch_size": 2, "workers": 0, "time_limit_min": None, "log_every": 1, "threads": 1,
+                  "plots": False}}
 
 
 def write_frames(folder: Path, n: int, wh=(80, 64), seed=0) -> None:
@@ -126,6 +128,105 @@ def test_training_skips_a_corrupt_frame_and_lowers_the_loss(tmp_path, caplog):
               if json.loads(line)["event"] == "train"]
     assert len(losses) == 30 and np.all(np.isfinite(losses))
     assert np.mean(losses[-10:]) < 0.95 * np.mean(losses[:3])  # it learns (noisy: 2-image batches)
+
+
+# ----------------------------------------------------------------------------- watching a run
+class FakeSummaryWriter:
+    """Stands in for torch.utils.tensorboard.SummaryWriter (tensorboard is an optional extra)."""
+
+    instances: list["FakeSummaryWriter"] = []
+
+    def __init__(self, log_dir: str, purge_step: int | None = None):
+        self.log_dir, self.scalars, self.images, self.closed = log_dir, [], [], False
+        FakeSummaryWriter.instances.append(self)
+
+    def add_scalar(self, tag, value, step):
+        self.scalars.append((tag, float(value), int(step)))
+
+    def add_image(self, tag, img, step, dataformats="CHW"):
+        self.images.append((tag, np.asarray(img), int(step), dataformats))
+
+    def close(self):
+        self.closed = True
+
+
+def _rows(path: Path, event: str) -> list[dict]:
+    return [r for r in (json.loads(line) for line in path.read_text().splitlines()) if r["event"] == event]
+
+
+@pytest.mark.usefixtures("default_sigint")
+def test_a_short_run_writes_results_png_snapshot_train_rows_and_tensorboard(frames, tmp_path, monkeypatch):
+    """7 steps (2 epochs of 5) with log_every 20: a train-loss row before each validation (the
+    mean loss since the previous row), results.png and val_snapshot.png after each validation,
+    TensorBoard scalars + the snapshot image when tensorboard is importable; a run stopped by
+    Ctrl-C at step 3 and resumed logs the rows of the uninterrupted one."""
+    import types
+
+    import cv2
+
+    FakeSummaryWriter.instances = []
+    fake = types.ModuleType("torch.utils.tensorboard")
+    fake.SummaryWriter = FakeSummaryWriter
+    monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", fake)
+    config = load_config("lite")
+    per_step = train(TrainJob([frames], "Ketchup", tmp_path / "a", progress=False,
+                              overrides=_overrides(steps=7, log_every=1)), config)  # plots: false
+    sparse = train(TrainJob([frames], "Ketchup", tmp_path / "b", progress=False,
+                            overrides=_overrides(steps=7, log_every=20, plots=True)), config)
+    assert per_step["status"] == sparse["status"] == "completed"
+    assert not (tmp_path / "a" / "results.png").exists() and not (tmp_path / "a" / "val_snapshot.png").exists()
+
+    losses = {r["step"]: r["loss"] for r in _rows(tmp_path / "a" / "metrics.jsonl", "train")}
+    assert sorted(losses) == list(range(1, 8))
+    rows = _rows(tmp_path / "b" / "metrics.jsonl", "train")
+    assert [r["step"] for r in rows] == [5, 7] == [r["step"] for r in _rows(tmp_path / "b" / "metrics.jsonl", "val")]
+    assert rows[0]["loss"] == pytest.approx(np.mean([losses[s] for s in range(1, 6)]), rel=1e-5)
+    assert rows[1]["loss"] == pytest.approx(np.mean([losses[6], losses[7]]), rel=1e-5)
+    csv_rows = (tmp_path / "b" / "metrics.csv").read_text().splitlines()
+    assert [r.split(",")[1] for r in csv_rows if r.startswith("train,")] == ["5", "7"]
+
+    out = tmp_path / "b"
+    results = cv2.imread(str(out / "results.png"))
+    snapshot = cv2.imread(str(out / "val_snapshot.png"))
+    assert results is not None and results.shape[0] > 100 and results.shape[1] > 500
+    assert snapshot is not None and snapshot.shape[1] > snapshot.shape[0]  # image + 9 maps per row
+    assert not [p for p in out.iterdir() if ".tmp" in p.name]
+
+    writer = FakeSummaryWriter.instances[-1]
+    assert writer.log_dir == str(out / "tensorboard") and writer.closed
+    tags = {(tag, step) for tag, _, step in writer.scalars}
+    assert {("train/loss", 5), ("train/loss", 7), ("val/val_kp_acc", 7), ("val/val_loss", 5)} <= tags
+    assert [(tag, step, fmt) for tag, _, step, fmt in writer.images] == [("val/snapshot", 5, "HWC"),
+                                                                          ("val/snapshot", 7, "HWC")]
+    np.testing.assert_array_equal(writer.images[-1][1], cv2.cvtColor(snapshot, cv2.COLOR_BGR2RGB))
+
+    def ctrl_c(trainer, step):
+        if step == 3:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    c = tmp_path / "c"
+    ov = _overrides(steps=7, log_every=20, plots=True)
+    assert train(TrainJob([frames], "Ketchup", c, progress=False, overrides=ov, on_step=ctrl_c), config)["step"] == 3
+    assert not _rows(c / "metrics.jsonl", "train") and not (c / "results.png").exists()
+    train(TrainJob([], "", c, resume=c / "last.pt", progress=False), {})
+    steps = [(r["event"], r["step"]) for r in map(json.loads, (c / "metrics.jsonl").read_text().splitlines())]
+    assert steps == [(r["event"], r["step"]) for r in map(json.loads, (out / "metrics.jsonl").read_text().splitlines())]
+    assert (c / "results.png").is_file() and (c / "val_snapshot.png").is_file()
+
+
+def test_read_metrics_keeps_the_later_row_of_a_repeated_step(tmp_path):
+    from dope_hope.training.plots import plot_results, read_metrics
+
+    csv_path = tmp_path / "metrics.csv"
+    csv_path.write_text("event,step,epoch,time_s,lr,loss,images_per_s,val_loss,val_kp_acc,val_kp_acc_decoded\n"
+                        "train,20,0,1,0.001,0.5,10,,,\ntrain,40,0,2,0.001,0.4,10,,,\nval,40,0,3,,,,0.3,nan,0.2\n"
+                        "train,40,0,2,0.001,0.45,10,,,\ntrain,60,0,4,0.001,0.35,10,,,\n")
+    data = read_metrics(csv_path)
+    steps, loss = data[("train", "loss")]
+    assert steps.tolist() == [20, 40, 60] and loss.tolist() == [0.5, 0.45, 0.35]
+    assert ("val", "val_kp_acc") not in data and data[("val", "val_kp_acc_decoded")][1].tolist() == [0.2]
+    import cv2
+    assert cv2.imread(str(plot_results(csv_path, tmp_path / "results.png"))) is not None
 
 
 # ----------------------------------------------------------------------------- metric
@@ -263,6 +364,7 @@ def test_torchrun_two_cpu_processes_write_one_checkpoint(frames, tmp_path):
     assert proc.returncode == 0, stderr[-2000:]
     assert sorted(p.name for p in out.iterdir() if p.suffix == ".pt") == ["best.pt", "last.pt"]
     assert not [p for p in out.iterdir() if ".tmp" in p.name]
+    assert (out / "results.png").is_file() and (out / "val_snapshot.png").is_file()
     ck = load_checkpoint(out / "last.pt")
     assert ck["step"] == 2 and ck["extra"]["world_size"] == 2
     assert not any(k.startswith("module.") for k in ck["model"])

@@ -8,8 +8,10 @@ Examples:
   torchrun --nproc_per_node 4 train.py --config dope_dr_50 --data D --object Ketchup --out R
 
 Writes OUT/last.pt (and every checkpoint_every epochs / checkpoint_every_steps steps),
-OUT/best.pt (best validation keypoint accuracy), OUT/metrics.csv + metrics.jsonl and
-OUT/summary.json. Ctrl-C writes last.pt before exiting; --resume continues exactly.
+OUT/best.pt (best validation keypoint accuracy), OUT/metrics.csv + metrics.jsonl,
+OUT/summary.json, and after each validation OUT/results.png (the curves) and
+OUT/val_snapshot.png (validation frames, predicted belief maps, decoded cuboids). Ctrl-C
+writes last.pt before exiting; --resume continues exactly.
 """
 from __future__ import annotations
 

@@ -1,4 +1,8 @@
-"""Per-step and per-epoch training metrics: ``metrics.csv`` and ``metrics.jsonl`` in the run folder."""
+"""Per-step and per-epoch training metrics: ``metrics.csv`` and ``metrics.jsonl`` in the run folder.
+
+With the optional ``tensorboard`` package (``pip install dope-hope[tensorboard]``) the same
+scalars, and the validation snapshots, also go to ``RUN/tensorboard`` (``tensorboard --logdir RUN``).
+"""
 from __future__ import annotations
 
 import csv
@@ -74,6 +78,11 @@ class MetricsLog:
             for k, v in values.items():
                 if k not in ("step", "epoch") and isinstance(v, (int, float)) and v is not None:
                     self.tb.add_scalar(f"{event}/{k}", v, values.get("step", 0))
+
+    def image(self, tag: str, rgb: Any, step: int) -> None:
+        """Log an (H, W, 3) uint8 RGB image to TensorBoard (when installed; rank 0)."""
+        if self.tb is not None:
+            self.tb.add_image(tag, rgb, step, dataformats="HWC")
 
     def close(self) -> None:
         if self.tb is not None:

@@ -27,6 +27,7 @@ TRAIN_DEFAULTS: dict[str, Any] = {
     "val_fraction": 0.1, "val_every": 1, "val_radius_px": 5.0, "val_peak_threshold": 0.1,
     "val_batch_size": None, "max_instances": 8, "min_visibility": 0.0,
     "include_empty_frames": True, "log_every": 20, "horizon_estimate_after": 20,
+    "plots": True,  # results.png + val_snapshot.png (and TensorBoard images) after each validation
 }
 
 
@@ -123,7 +124,7 @@ def train_settings(config: dict[str, Any]) -> dict[str, Any]:
             out[key] = nonnegative_float(value, name)
         elif nonnegative_float(value, name) >= 1:
             raise ConfigError(f"{name} must be a fraction in [0, 1), got {value!r}")
-    for key in ("amp", "channels_last", "include_empty_frames"):
+    for key in ("amp", "channels_last", "include_empty_frames", "plots"):
         if not isinstance(out[key], bool):
             raise ConfigError(f"train.{key} must be true or false, got {out[key]!r}")
     betas = out["betas"]

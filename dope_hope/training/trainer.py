@@ -421,6 +421,37 @@ class Trainer:
                 if acc is not None and acc > self.best_acc:
                     self.best_acc = acc
                     self.save("best.pt")
+                if self.ts["plots"]:
+                    t1 = time.monotonic()
+                    self._write_progress_images()
+                    spent = time.monotonic() - t1  # budgeted as part of the validation
+                    self._val_seconds += spent
+                    self._val_time_run += spent
+
+    @torch.no_grad()
+    def _write_progress_images(self) -> None:
+        """Rank 0, after a validation: ``results.png`` (the metrics.csv curves) and
+        ``val_snapshot.png`` (a few validation images, their belief maps and decoded cuboids;
+        also to TensorBoard when it is installed)."""
+        from dope_hope.io.images import write_rgb
+        from dope_hope.preprocess import denormalize_rgb
+        from dope_hope.training.plots import SNAPSHOT_IMAGES, SnapshotItem, plot_results, snapshot_panel
+
+        plot_results(self.metrics.csv_path, self.out / "results.png")
+        n = min(SNAPSHOT_IMAGES, len(self.val_set))
+        if n == 0:
+            return
+        self.model.eval()
+        items = [self.val_set[(0, i)] for i in range(n)]  # the same frames after every validation
+        images = self._to_device(torch.stack([it["image"] for it in items]), image=True)
+        belief, affinity = (o.float().cpu().numpy() for o in self._forward(self.model, images)[-1])
+        panel = snapshot_panel(
+            [SnapshotItem(denormalize_rgb(it["image"].numpy()), belief[i], affinity[i], it["keypoints"].numpy(),
+                          f"step {self.step}  {self.val_set.records[i].image_path.name}")
+             for i, it in enumerate(items)],
+            int(self.model.stride), float(self.ts["val_peak_threshold"]))
+        write_rgb(self.out / "val_snapshot.png", panel)
+        self.metrics.image("val/snapshot", panel, self.step)
 
     def _primary_acc(self) -> float | None:
         a = self.last_val.get("val_kp_acc_decoded")
@@ -484,6 +515,23 @@ class Trainer:
         bar = tqdm(total=self.total_steps, initial=self.step, disable=not (self.job.progress and self.dist.main),
                    unit="step", dynamic_ncols=True, desc="train")
         run_loss, run_n, t_log = 0.0, 0, time.monotonic()
+
+        def log_train() -> None:
+            """One train row: the mean loss of the steps since the last row (every log_every
+            steps, before each validation and at the end, so that short runs have rows)."""
+            nonlocal run_loss, run_n, t_log
+            if run_n == 0:
+                return
+            if self.dist.main:
+                dt = time.monotonic() - t_log
+                ips = run_n * self.batch_size * self.dist.world_size / max(dt, 1e-9)
+                lr = self.optimizer.param_groups[0]["lr"]
+                self.metrics.write("train", step=self.step, epoch=self.epoch, lr=lr,
+                                   loss=run_loss / run_n, images_per_s=round(ips, 2),
+                                   time_s=round(self._time_used_before + self.elapsed(), 2))
+                bar.set_postfix(loss=f"{run_loss / run_n:.4f}", lr=f"{lr:.2e}", img_s=f"{ips:.1f}")
+            run_loss, run_n, t_log = 0.0, 0, time.monotonic()
+
         try:
             while self.epoch < self.epochs and self.step < self.total_steps and self.stop_reason is None:
                 if self.batch_in_epoch < self.steps_per_epoch:
@@ -508,15 +556,8 @@ class Trainer:
                         run_n += 1
                         bar.update(1)
                         self._maybe_plan()
-                        if self.step % log_every == 0 and self.dist.main:
-                            dt = time.monotonic() - t_log
-                            ips = run_n * self.batch_size * self.dist.world_size / max(dt, 1e-9)
-                            lr = self.optimizer.param_groups[0]["lr"]
-                            self.metrics.write("train", step=self.step, epoch=self.epoch, lr=lr,
-                                               loss=run_loss / run_n, images_per_s=round(ips, 2),
-                                               time_s=round(self._time_used_before + self.elapsed(), 2))
-                            bar.set_postfix(loss=f"{run_loss / run_n:.4f}", lr=f"{lr:.2e}", img_s=f"{ips:.1f}")
-                            run_loss, run_n, t_log = 0.0, 0, time.monotonic()
+                        if self.step % log_every == 0:
+                            log_train()
                         if self.job.on_step is not None:
                             self.job.on_step(self, self.step)
                         if ck_steps and self.step % ck_steps == 0:
@@ -528,8 +569,9 @@ class Trainer:
                     break
                 # the epoch's batches are done (or the step / time budget ran out inside it)
                 if self.val_done_epoch != self.epoch:
+                    log_train()  # the curves in results.png reach the validated step
                     self._end_of_epoch()
-                    t_log += self._val_seconds  # images/s counts training time only
+                    t_log = time.monotonic()  # images/s counts training time only
                 self._maybe_plan(epoch_end=True)
                 if self.step >= self.total_steps or self.stop_reason is not None:
                     break
@@ -538,6 +580,8 @@ class Trainer:
                 if ck_epochs and self.epoch % ck_epochs == 0:
                     self.save("last.pt")
                 self._agree_stop()
+            if self.stop_reason not in ("interrupted", "terminated"):
+                log_train()  # (a stopped run leaves its partial window out: resumed, it logs as uninterrupted)
         finally:
             bar.close()
         self.save("last.pt")
