@@ -317,6 +317,14 @@ def test_int8_export_stays_close_to_fp32(fitted, tmp_path):
     assert res.size_bytes < 0.5 * fp32.size_bytes  # int8 weights
     q = json.loads({p.key: p.value for p in proto.metadata_props}["dope_hope.quantization"])
     assert q["per_channel"] and q["format"] == "QDQ" and q["calibration_images"] == 4
+    # The measured drift travels in the file; loading it says what INT8 costs.
+    assert q["drift"]["median_px"] == pytest.approx(dev.median_px)
+    from dope_hope.inference.onnx_backend import OnnxBackend
+
+    said = OnnxBackend(tmp_path / "int8.onnx").describe()
+    assert said.startswith("int8.onnx: ONNX INT8, keypoints vs fp32 at export: median ")
+    assert f"over {dev.keypoints_compared} keypoints of 4 images" in said
+    assert OnnxBackend(tmp_path / "fp32.onnx").describe() == "fp32.onnx: ONNX fp32"
     # The maps come out of a float conv (no 1/255-of-range output quantization step).
     assert _ops_to_last_conv(proto, "belief") == ["Slice", "Conv"]
     # isaac-ros too: concat + channel gather stay float.

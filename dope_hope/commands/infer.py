@@ -224,6 +224,8 @@ def build_predictors(args: argparse.Namespace, weights: list[Path]):
     predictors = []
     for i, w in enumerate(weights):
         backend = open_backend(w, args.backend, args.device, args.threads)
+        if hasattr(backend, "describe"):  # ONNX: fp32 or INT8, and what INT8 costs
+            print(f"dope-hope infer: model {backend.describe()}", file=sys.stderr)
         mesh = None
         if mesh_dir is not None:
             mesh = find_object_mesh(backend.class_name, mesh_dir)

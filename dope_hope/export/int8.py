@@ -9,6 +9,7 @@ quantization fp32 and INT8 run on up to ``eval_images`` of the calibration image
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from collections.abc import Sequence
@@ -203,4 +204,12 @@ def quantize_int8(fp32_path: str | os.PathLike, out: str | os.PathLike, calibrat
             test.append(tuple(m[0] for m in int8.run(batch)))
         deviation = compare_maps(ref, test, info.stride)
         del int8
+        # Record the measured drift in the file, so that whoever loads it sees what INT8 costs.
+        settings["drift"] = {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                             for k, v in vars(deviation).items()}
+        info = replace(info, extra=dict(info.extra, quantization=json.dumps(settings)))
+        proto = onnx.load(str(tmp))
+        _set_metadata(proto, info, _doc(info))
+        onnx.save(proto, str(tmp))
+        del proto
     return info, deviation

@@ -299,6 +299,21 @@ class OnnxBackend:
         order = output_order(parse_channel_order(i.extra.get(CHANNEL_ORDER_KEY)))
         self._order = None if np.array_equal(order, np.arange(order.size)) else order
 
+    def describe(self) -> str:
+        """One line: the file's precision and, for INT8, its keypoint drift from the fp32 model
+        as measured at export (``dope-hope export --int8`` records it in the metadata)."""
+        if self.info.precision != "int8":
+            return f"{self.path.name}: ONNX {self.info.precision}"
+        try:
+            drift = json.loads(self.info.extra.get("quantization", "{}")).get("drift") or {}
+        except (json.JSONDecodeError, AttributeError):
+            drift = {}
+        if not drift.get("keypoints_compared"):
+            return f"{self.path.name}: ONNX INT8 (no keypoint drift recorded at export)"
+        return (f"{self.path.name}: ONNX INT8, keypoints vs fp32 at export: median "
+                f"{drift['median_px']:.2f} px, p95 {drift['p95_px']:.2f} px over "
+                f"{drift['keypoints_compared']} keypoints of {drift['images']} images")
+
     def _check_io(self) -> None:
         ins = tuple(x.name for x in self.session.get_inputs())
         outs = tuple(x.name for x in self.session.get_outputs())
