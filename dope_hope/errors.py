@@ -63,3 +63,7 @@ class OutputPathError(DopeHopeError):
 
     def __reduce__(self):
         return type(self), (self.path, self.problem, self.flag)
+
+
+class DeviceError(DopeHopeError):
+    """A camera cannot be opened, or stopped delivering frames."""

@@ -86,6 +86,29 @@ def project_points(
         return uvw[:, :2] / uvw[:, 2:3]
 
 
+def projected_bbox(points: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
+                   image_hw: tuple[int, int] | None) -> np.ndarray | None:
+    """2D box [u_min, v_min, u_max, v_max] of model points projected under (R, t), pixels
+    (pixel centres at integers), clipped to the image as the BOP toolkit's ``calc_2d_bbox``
+    with ``clip=True`` ([0, W-1] x [0, H-1]); None when a point lies behind the camera or the
+    box misses the image.
+
+    points: (N, 3) model points, metres. K: (3, 3). R: (3, 3), t: (3,) metres.
+    image_hw: (H, W) pixels, or None for no clipping.
+    """
+    cam = transform_points(np.asarray(points, dtype=np.float64), R, t)
+    if len(cam) == 0 or np.any(cam[:, 2] <= 0):
+        return None
+    uv = project_points(cam, K)
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    if image_hw is not None:
+        lo = np.maximum(lo, 0.0)
+        hi = np.minimum(hi, [image_hw[1] - 1.0, image_hw[0] - 1.0])
+    if np.any(lo > hi):
+        return None
+    return np.concatenate([lo, hi])
+
+
 def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     """(3, 3) K from focal lengths and principal point, pixels."""
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])

@@ -161,3 +161,19 @@ def test_legacy_keypoints_to_current_batches():
     out = legacy_keypoints_to_current(kp)
     np.testing.assert_array_equal(out[:, LEGACY_TO_CURRENT_INDEX], kp)
     np.testing.assert_array_equal(out[:, 8], kp[:, 8])
+
+
+def test_projected_bbox_clips_like_bop_calc_2d_bbox():
+    from dope_hope.geometry import intrinsics_matrix, projected_bbox
+
+    K = intrinsics_matrix(100.0, 100.0, 50.0, 40.0)
+    pts = np.array([[-0.1, -0.05, 0.0], [0.1, 0.05, 0.0], [0.0, 0.0, 0.1]])
+    box = projected_bbox(pts, K, np.eye(3), np.array([0.0, 0.0, 1.0]), (80, 100))
+    np.testing.assert_allclose(box, [40.0, 35.0, 60.0, 45.0])  # z = 1 m for the extremes
+    # half outside on the left: clipped to pixel 0 as the BOP toolkit does ([0, W-1] x [0, H-1])
+    box = projected_bbox(pts, K, np.eye(3), np.array([-0.5, 0.0, 1.0]), (80, 100))
+    np.testing.assert_allclose(box, [0.0, 35.0, 10.0, 45.0])
+    assert projected_bbox(pts, K, np.eye(3), np.array([-2.0, 0.0, 1.0]), (80, 100)) is None  # misses
+    assert projected_bbox(pts, K, np.eye(3), np.array([0.0, 0.0, -0.05]), (80, 100)) is None  # behind
+    np.testing.assert_allclose(projected_bbox(pts, K, np.eye(3), np.array([-0.5, 0.0, 1.0]), None),
+                               [-10.0, 35.0, 10.0, 45.0])

@@ -7,6 +7,7 @@ lite checkpoint. Errors must exit with status 2 and print one line.
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -16,6 +17,7 @@ import numpy as np
 import pytest
 import torch
 from _targets_backend import TargetsBackend
+from video_files import read_video, write_video
 
 from dope_hope import cli
 from dope_hope.geometry import rotation_error_deg
@@ -256,3 +258,126 @@ def test_top_level_infer_py_forwards_and_fails_cleanly(lite_weights, tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0, proc.stderr
     assert "x.png" in proc.stderr and "not a readable image" in proc.stderr
+
+
+# ----------------------------------------------------------------------------- video and cameras
+def ros_camera_yaml(path: Path, K: np.ndarray, width: int, height: int) -> Path:
+    """A camera_calibration ost.yaml without distortion."""
+    path.write_text(f"image_width: {width}\nimage_height: {height}\ncamera_name: cam\n"
+                    f"camera_matrix:\n  rows: 3\n  cols: 3\n  data: {K.ravel().tolist()}\n"
+                    "distortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n  cols: 5\n"
+                    "  data: [0, 0, 0, 0, 0]\n")
+    return path
+
+
+def test_video_file_records_frames_timestamps_boxes_and_overlay_video(frames, tmp_path, monkeypatch, capsys):
+    from dope_hope.io.images import read_rgb
+
+    gt_backends(monkeypatch, frames / "000000.json")
+    ann = read_dope_json(frames / "000000.json")
+    video = write_video(tmp_path / "clip", [read_rgb(frames / "000000.png")] * 5, fps=10.0)
+    cam = ros_camera_yaml(tmp_path / "ost.yaml", ann.K, SIZE[0], SIZE[1])
+    out = tmp_path / "out"
+    code, records, err = run_cli([video, "--weights", "w.pt", "--camera", cam, "--out", out, "--no-progress"], capsys)
+    assert code == 0, err
+    (gt,) = ann.objects
+    assert [r["frame"] for r in records] == [0, 1, 2, 3, 4]
+    np.testing.assert_allclose([r["timestamp_s"] for r in records], [0, 0.1, 0.2, 0.3, 0.4], atol=1e-4)
+    assert [r["image"] for r in records] == [f"{video.name}#{i:06d}" for i in range(5)]
+    corners = gt.projected_cuboid[:8]
+    box = np.concatenate([np.maximum(corners.min(0), 0), np.minimum(corners.max(0), [SIZE[0] - 1, SIZE[1] - 1])])
+    for rec in records:
+        assert rotation_error_deg(np.array(rec["R"]), gt.R) < 0.5
+        assert np.linalg.norm(np.array(rec["t"]) - gt.t) < 3e-3
+        np.testing.assert_allclose(rec["bbox_2d"], box, atol=0.5)  # the projected cuboid's box
+    preds, _ = read_predictions(out / "predictions.jsonl")
+    assert len(preds) == 5 and preds[2].extra["frame"] == 2
+    overlay = read_video(out / f"clip.overlay{video.suffix}")
+    assert len(overlay) == 5 and overlay[0].shape == (SIZE[1], SIZE[0], 3)
+    assert not list(out.glob(".*tmp*"))  # the temporary video was renamed
+    summary = err.strip().splitlines()[-1]
+    assert re.search(rf"{video.name}: 5 frame\(s\) read, 5 processed, 0 dropped; [\d.]+ frames/s end to end", summary)
+
+
+def test_camera_index_keeps_the_newest_frame(frames, tmp_path, monkeypatch, capsys):
+    from dope_hope.io.images import read_rgb
+
+    gt_backends(monkeypatch, frames / "000000.json")
+    ann = read_dope_json(frames / "000000.json")
+    video = write_video(tmp_path / "camera", [read_rgb(frames / "000000.png")] * 12, fps=30.0)
+    opened = []
+
+    def fake_camera(target):  # camera 2 "captures" the frames of the video, as fast as it can
+        opened.append(target)
+        return cv2.VideoCapture(str(video))
+
+    monkeypatch.setattr("dope_hope.io.sources.open_capture", fake_camera)
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    (tmp_path / "K.json").write_text(json.dumps({"K": ann.K.tolist(), "width": SIZE[0], "height": SIZE[1]}))
+    out = tmp_path / "out"
+    code, records, err = run_cli(["2", "--weights", "w.pt", "--camera", tmp_path / "K.json", "--max-frames", "8",
+                                  "--show", "--out", out], capsys)
+    assert code == 0, err
+    assert opened == [2]
+    assert "warning: --show ignored: no display" in err
+    m = re.search(r"camera2: 8 frame\(s\) read, (\d+) processed, (\d+) dropped", err)
+    assert m and int(m.group(1)) + int(m.group(2)) == 8 and int(m.group(1)) == len(records)
+    idx = [r["frame"] for r in records]
+    assert idx == sorted(set(idx)) and all(r["image"] == f"camera2#{i:06d}" for r, i in zip(records, idx))
+    # one overlay frame per camera frame from the first processed on: dropped ones repeat the last
+    assert len(read_video(out / f"camera2.overlay{video.suffix}")) == idx[-1] - idx[0] + 1
+
+
+def test_realsense_stream_refines_with_its_aligned_depth(frames, tmp_path, monkeypatch, capsys):
+    import fake_realsense
+    from dope_hope.io.images import read_depth_m, read_rgb
+
+    gt_backends(monkeypatch, frames / "000000.json", distance_factor=1.06)
+    ann = read_dope_json(frames / "000000.json")
+    rgb, depth = read_rgb(frames / "000000.png"), read_depth_m(frames / "000000.depth.png")
+    rs = fake_realsense.install(monkeypatch, [(rgb, depth)] * 4, ann.K, depth_scale=0.0001)
+    code, records, err = run_cli(["realsense:817612070", "--weights", "w.pt", "--icp", "--max-frames", "4",
+                                  "--mesh", frames.parent / "mesh" / "DemoBox.obj", "--out", tmp_path / "o",
+                                  "--capture-size", "160x120", "--capture-fps", "15"], capsys)
+    assert code == 0, err
+    (gt,) = ann.objects
+    assert records and all(r["image"].startswith("realsense-817612070#") for r in records)
+    for rec in records:
+        assert rec["ls_applied"] is True and "icp_applied" in rec
+        assert np.linalg.norm(np.array(rec["t"]) - gt.t) < 0.006  # 6 % too far before -LS
+    start = next(c for c in rs.calls if c[0] == "start")
+    assert start[1] == "817612070" and (rs.stream.depth, 160, 120, rs.format.z16, 15) in start[2]
+    assert ("stop",) in rs.calls
+    assert "realsense-817612070: 4 frame(s) read" in err
+
+
+def test_stream_errors_exit_2_with_one_line(frames, lite_weights, tmp_path, monkeypatch, capsys):
+    from dope_hope.io.images import read_rgb
+
+    video = write_video(tmp_path / "clip", [read_rgb(frames / "000000.png")] * 2)
+    line = one_line_error(*run_cli([video, "--weights", lite_weights], capsys)[::2])
+    assert video.name in line and "no camera intrinsics" in line and "camera_info.yaml" in line
+    line = one_line_error(*run_cli([tmp_path / "missing.mp4", "--weights", lite_weights, "--fx", 100, "--fy", 100,
+                                    "--cx", 50, "--cy", 50], capsys)[::2])
+    assert "missing.mp4: video file not found" in line
+    line = one_line_error(*run_cli([frames / "000000.png", "--weights", lite_weights, "--realtime"], capsys)[::2])
+    assert "--realtime" in line
+    line = one_line_error(*run_cli([video, "--weights", lite_weights, "--fx", 100, "--fy", 100, "--cx", 50,
+                                    "--cy", 50, "--depth", "auto"], capsys)[::2])
+    assert "--depth applies to image inputs" in line
+    monkeypatch.setattr("dope_hope.io.sources.open_capture", lambda target: cv2.VideoCapture(str(tmp_path / "no.mp4")))
+    line = one_line_error(*run_cli(["0", "--weights", lite_weights, "--fx", 100, "--fy", 100, "--cx", 50,
+                                    "--cy", 50], capsys)[::2])
+    assert "camera 0: cannot be opened" in line
+
+
+def test_help_states_the_default_min_score(capsys):
+    from dope_hope.inference.options import InferenceOptions
+
+    default = InferenceOptions.from_mapping().min_score
+    assert default == 0.5  # chosen by bench/min_score.py (bench/RESULTS.md "Default --min-score")
+    with pytest.raises(SystemExit):
+        cli.main(["infer", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert f"(default {default:g}, dope_hope/configs/infer.yaml:" in text and "held-out synthetic" in text

@@ -9,7 +9,7 @@ from dope_hope.inference.options import InferenceOptions
 
 def test_packaged_defaults():
     o = InferenceOptions.from_mapping()
-    assert o.height is None and o.pose_search == "hypotheses" and o.min_score == 0.0
+    assert o.height is None and o.pose_search == "hypotheses" and o.min_score == 0.5
     assert o.icp is False and o.ls_points == 1000 and dict(o.line_search) == {}
 
 

@@ -6,8 +6,9 @@ runs the model through PyTorch and through onnxruntime (exported once to OUT/<we
 and reused while the weights are unchanged), refines the distance with the depth line search
 (-LS), and prints each detection next to the ground truth: translation and rotation error,
 ADD-H and MeanSSD without -LS, with -LS and with -LS + ICP (dope_hope/refine/icp.py: the whole
-pose refined against the depth), and how closely the ONNX keypoints agree with PyTorch's. Ends
-with "found N/10 scenes with ADD-H < 2 cm (with -LS; ...)".
+pose refined against the depth), and how closely the ONNX keypoints agree with PyTorch's.
+Detections scoring under the inference options' min_score (dope_hope/configs/infer.yaml, as
+`dope-hope infer`) are dropped. Ends with "found N/10 scenes with ADD-H < 2 cm (with -LS; ...)".
 
 The errors and the matching are `dope-hope evaluate`'s (dope_hope/evaluation/matching.py), on
 the model evaluate loads from OUT/mesh (500 points of DemoBox.obj, the box's symmetries from

@@ -1,15 +1,19 @@
-"""Detect objects and estimate their 6-DoF poses in images (one model per object).
+"""Detect objects and estimate their 6-DoF poses in images, videos and camera streams.
 
 Examples:
   dope-hope infer frame.png --weights ketchup.pt --camera K.json
   dope-hope infer scene/ --weights ketchup.pt --weights mustard.onnx --depth auto --out res/
   dope-hope infer 'hope/val/**/*_rgb.jpg' --weights ketchup.pt --depth auto --mesh meshes/
+  dope-hope infer clip.mp4 --camera camera_info.yaml --out res/clip
+  dope-hope infer 0 --camera camera_info.yaml --show            (camera 0; Ctrl-C or q stops)
+  dope-hope infer realsense --icp --mesh meshes/                (pip install "dope-hope[realsense]")
 
 Output: one JSON line per detection on stdout, in the predictions format that
 `dope-hope evaluate` reads (image, class, score, R, t in metres, ls_applied, plus
-quaternion_xyzw, keypoints_2d, ...); in --out: OUT/predictions.jsonl (all detections,
-written atomically at the end), an overlay IMAGE.overlay.png per image (projected cuboids,
-axes, class and score) and with --belief IMAGE.belief.CLASS.png (belief maps of each model).
+quaternion_xyzw, keypoints_2d, bbox_2d = [u_min, v_min, u_max, v_max] pixels of the projected
+object, time, ...); in --out: OUT/predictions.jsonl (all detections, written atomically at
+the end), an overlay IMAGE.overlay.png per image (projected cuboids, axes, class and score)
+and with --belief IMAGE.belief.CLASS.png (belief maps of each model).
 
 Inputs: image files, a folder (its images, not recursive; *.depth.png, *_depth.png, *.seg.png
 and similar are skipped) or a quoted glob ('**' recurses). The "image" of each record is its
@@ -18,17 +22,32 @@ from different folders: relative to their common folder, so names never repeat).
 images, one that cannot be read is skipped with a warning and the run exits 2 at the end;
 predictions.jsonl always lists what the overlays show.
 
-Camera (never guessed): --camera K.json, or --fx --fy --cx --cy, else each image's sibling
-annotation: DOPE NNNNNN.json, HOPE NNNN.json for NNNN_rgb.jpg, or BOP scene_camera.json two
-levels up. K.json may hold {"fx", "fy", "cx", "cy"}, {"K": 3x3}, {"cam_K": 9 numbers}, a DOPE
-camera_data block or a HOPE camera block (optional width/height are checked against the image).
+Streams (one input): a video file (.mp4, .avi, .mov, .mkv, ...), a camera index (0, 1, ...;
+a file named 0 is ./0) or realsense[:SERIAL] (an Intel RealSense: colour, depth aligned to
+colour, intrinsics and depth scale from the device, -LS on every frame, --icp too). Records
+add "frame" (index in the stream) and "timestamp_s" (seconds since the first frame: the
+video's own timestamps, the camera's capture times); "image" is NAME#FRAME (clip.mp4#000012).
+OUT/NAME.overlay.mp4 (mp4v; .avi MJPG where mp4v is missing) holds the overlays, one video
+frame per source frame. A camera is read in a thread that keeps only the newest frame: frames
+the loop cannot process in time are dropped and counted, never queued; a video file is
+processed frame by frame unless --realtime plays it at its frame rate like a camera. The
+end prints frames read / processed / dropped and the end-to-end frames/s. --show opens a live
+window where a display exists. Ctrl-C (or q in the window) ends a stream; what was processed
+is written.
+
+Camera (never guessed): --camera K.json or a ROS camera_info YAML (camera_calibration's
+ost.yaml or a CameraInfo message; non-zero distortion is removed from every frame, as
+image_proc does), or --fx --fy --cx --cy, else each image's sibling annotation: DOPE
+NNNNNN.json, HOPE NNNN.json for NNNN_rgb.jpg, or BOP scene_camera.json two levels up. K.json
+may hold {"fx", "fy", "cx", "cy"}, {"K": 3x3}, {"cam_K": 9 numbers}, a DOPE camera_data block
+or a HOPE camera block (optional width/height are checked against the image).
 
 Depth (optional, enables the depth line search "-LS"): --depth PATH (one image only) or
 --depth auto: each image's registered depth from its annotation's folder (DOPE
 NNNNNN.depth.png, HOPE NNNN_depth.png, BOP ../depth/NNNNNN.png); images without one are
 processed without -LS. --depth-scale gives millimetres per depth unit (BOP convention; default:
 the annotation's, else 1 = uint16 millimetres); float depth images (EXR) are metres. --icp
-(needs --depth) then refines the whole pose, rotation included, by ICP against the depth
+(needs depth) then refines the whole pose, rotation included, by ICP against the depth
 ("-LS + ICP", dope_hope/refine/icp.py); each record says whether it was applied (icp_applied,
 icp_reason).
 """
@@ -51,6 +70,10 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 AUX_SUFFIXES = (".depth.png", ".depth.exr", ".seg.png", ".seg.exr", "_depth.png", "_seg.png",
                 "_mask.png", ".mask.png", ".cs.png")
 _GLOB_CHARS = set("*?[")
+#: Frame rate of an overlay video when the source reports none.
+FALLBACK_FPS = 30.0
+#: Options of video and camera inputs only.
+STREAM_OPTIONS = ("realtime", "max_frames", "show", "capture_size", "capture_fps")
 
 
 def default_weights() -> Path | None:
@@ -58,24 +81,41 @@ def default_weights() -> Path | None:
     return DEMO_WEIGHTS if DEMO_WEIGHTS.is_file() else None
 
 
+def _default_min_score() -> float:
+    """The inference options' min_score (dope_hope/configs/infer.yaml), read without the
+    heavy imports of InferenceOptions."""
+    from dope_hope.config import load_config
+
+    return float(load_config("infer")["min_score"])
+
+
+def _size(text: str) -> tuple[int, int]:
+    w, sep, h = text.lower().partition("x")
+    if not sep or not w.isdigit() or not h.isdigit() or int(w) < 1 or int(h) < 1:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 640x480, got {text!r}")
+    return int(w), int(h)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     demo = "present" if default_weights() is not None else "absent"
-    parser.add_argument("inputs", nargs="+", metavar="IMAGE|DIR|GLOB",
-                        help="image file(s), a folder of images, or a quoted glob")
+    parser.add_argument("inputs", nargs="+", metavar="SOURCE",
+                        help="image file(s), a folder of images, a quoted glob, a video file, a camera "
+                             "index (0) or realsense[:SERIAL]")
     parser.add_argument("--weights", action="append", type=Path, metavar="W",
                         help="checkpoint (.pt/.pth) or exported .onnx of one object; repeat for several "
                              f"objects (default: the demo model dope_hope/assets/demo_lite.pt when it "
                              f"exists; {demo} in this installation)")
     cam = parser.add_argument_group("camera (default: the image's sibling annotation)")
-    cam.add_argument("--camera", type=Path, metavar="K.json", help="camera intrinsics file (formats above)")
+    cam.add_argument("--camera", type=Path, metavar="K.json|YAML",
+                     help="camera intrinsics file, or a ROS camera_info YAML (formats above)")
     for name in ("fx", "fy", "cx", "cy"):
         cam.add_argument(f"--{name}", type=positive_float if name in ("fx", "fy") else finite_float,
                          metavar="PX", help=f"{name}, pixels (give all four)")
     dep = parser.add_argument_group("depth refinement: line search (-LS), ICP")
     dep.add_argument("--depth", metavar="PATH|auto",
                      help="depth image registered to the (single) input image, or 'auto' for each "
-                          "image's annotated depth")
+                          "image's annotated depth (a RealSense brings its own)")
     dep.add_argument("--depth-scale", type=positive_float, metavar="MM_PER_UNIT",
                      help="millimetres per depth unit (default: the annotation's, else 1.0)")
     dep.add_argument("--depth-calibration", type=positive_float, default=1.0, metavar="F",
@@ -83,7 +123,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           "scale error (default 1; HOPE's depth images are already corrected)")
     dep.add_argument("--icp", action="store_true",
                      help="after the line search, refine rotation and translation by ICP against the "
-                          "depth (needs --depth, and --mesh unless the object is a catalog box)")
+                          "depth (needs depth, and --mesh unless the object is a catalog box)")
+    stream = parser.add_argument_group("video and cameras")
+    stream.add_argument("--realtime", action="store_true",
+                        help="play a video file at its frame rate, dropping the frames the loop cannot "
+                             "keep up with (as a live camera); default: every frame")
+    stream.add_argument("--max-frames", type=positive_int, metavar="N", help="stop after N frames of the stream")
+    stream.add_argument("--show", action="store_true",
+                        help="show the overlays in a window (where a display exists; q quits)")
+    stream.add_argument("--capture-size", type=_size, metavar="WxH",
+                        help="resolution asked of a camera (default: the camera file's, else the "
+                             "device's; RealSense 640x480)")
+    stream.add_argument("--capture-fps", type=positive_float, metavar="FPS",
+                        help="frame rate asked of a camera (RealSense default 30)")
     parser.add_argument("--mesh", action="append", type=Path, metavar="PATH",
                         help="object mesh per --weights (same order), or one models folder holding "
                              "obj_NNNNNN.ply / CLASS/textured.obj / CLASS.obj / CLASS.ply: its box and "
@@ -92,14 +144,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="mesh units (default: OBJ cm, PLY mm)")
     parser.add_argument("--out", type=Path, default=Path("infer_out"), metavar="DIR",
                         help="folder for overlays and predictions.jsonl (default ./infer_out)")
-    parser.add_argument("--no-overlay", action="store_true", help="do not write overlay images")
-    parser.add_argument("--belief", action="store_true", help="also write a montage of each model's belief maps")
+    parser.add_argument("--no-overlay", action="store_true", help="do not write overlay images / video")
+    parser.add_argument("--belief", action="store_true",
+                        help="also write a montage of each model's belief maps (images only)")
     parser.add_argument("--backend", choices=("auto", "torch", "onnx"), default="auto",
                         help="auto: onnxruntime for .onnx files, PyTorch otherwise")
     parser.add_argument("--height", type=working_side, metavar="H",
                         help="network working height, pixels (default: the model's training scale; "
                              "400 for official DOPE weights)")
-    parser.add_argument("--min-score", type=finite_float, default=0.0, help="drop detections scoring lower")
+    parser.add_argument("--min-score", type=finite_float, metavar="S",
+                        help=f"drop detections whose pose score is lower (default {_default_min_score():g}, "
+                             "dope_hope/configs/infer.yaml: on held-out synthetic demo frames it keeps every "
+                             "true detection and drops the low-score false ones; bench/RESULTS.md); 0 keeps all")
     parser.add_argument("--pose-search", choices=("hypotheses", "groups"), default="hypotheses",
                         help="hypotheses (default): candidate corner peaks + multi-hypothesis PnP; "
                              "groups: DOPE's one corner per type (faster, finds fewer)")
@@ -231,9 +287,9 @@ def build_predictors(args: argparse.Namespace, weights: list[Path]):
             mesh = find_object_mesh(backend.class_name, mesh_dir)
         elif meshes:
             mesh = meshes[i]
+        given = {} if args.min_score is None else {"min_score": args.min_score}
         predictors.append(DopePredictor(backend, height=args.height, mesh=mesh, mesh_units=args.mesh_units,
-                                        min_score=args.min_score, pose_search=args.pose_search,
-                                        icp=args.icp))
+                                        pose_search=args.pose_search, icp=args.icp, **given))
     return predictors
 
 
@@ -277,7 +333,13 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.errors import ConfigError, DopeHopeError, OutputPathError
     from dope_hope.io.paths import output_dir
     from dope_hope.io.predictions import write_predictions_jsonl
+    from dope_hope.io.sources import stream_kind
 
+    if any(stream_kind(item) for item in args.inputs):
+        return _run_stream(args)
+    given = [f"--{o.replace('_', '-')}" for o in STREAM_OPTIONS if getattr(args, o) not in (None, False)]
+    if given:
+        raise ConfigError(f"{', '.join(given)}: for a video or camera input, not images")
     if args.icp and args.depth is None:
         raise ConfigError("--icp refines against a depth image: give --depth PATH or --depth auto")
     images = collect_images(args.inputs)
@@ -378,6 +440,102 @@ def _infer_image(args: argparse.Namespace, predictors: list, path: Path, name: s
         write_rgb(out / f"{out_stem}.belief.{class_name}.png",
                   belief_montage(m, _resize(rgb, net_in.resized_hw)))
     return records, not args.no_overlay
+
+
+def _run_stream(args: argparse.Namespace) -> int:
+    """`run` for a video file, a camera or a RealSense (module docstring, "Streams")."""
+    import json
+
+    from tqdm import tqdm
+
+    from dope_hope.errors import ConfigError
+    from dope_hope.inference.stream import passive_openmp, run_stream
+    from dope_hope.io.paths import output_dir
+    from dope_hope.io.predictions import write_predictions_jsonl
+    from dope_hope.io.sources import open_stream, stream_kind
+    from dope_hope.io.video import LiveWindow, OverlayVideo, display_problem
+    from dope_hope.viz import overlay_detections
+
+    kind = stream_kind(args.inputs[0]) if len(args.inputs) == 1 else None
+    if args.icp and kind != "realsense":
+        raise ConfigError("--icp refines against a depth image: a video or an OpenCV camera has none "
+                          "(a RealSense has)")
+    if args.realtime and kind != "video":
+        raise ConfigError("--realtime plays a video file at its frame rate (cameras are live already)")
+    if args.belief:
+        raise ConfigError("--belief writes one montage per image; not for video or camera inputs")
+
+    def warn(message: str) -> None:
+        print(f"dope-hope infer: warning: {message}", file=sys.stderr, flush=True)
+
+    out = output_dir(args.out)
+    source = open_stream(args.inputs, _global_camera(args), args.depth, args.capture_size, args.capture_fps, warn)
+    video = window = None
+    try:
+        passive_openmp()  # before torch is imported: its idle threads must not spin
+        from dope_hope.inference.predictor import predict_many
+
+        predictors = build_predictors(args, _resolve_weights(args))
+        if not args.no_overlay:
+            video = OverlayVideo(out / f"{_output_name(source.name)}.overlay", source.fps or FALLBACK_FPS)
+        if args.show:
+            problem = display_problem()
+            if problem is None:
+                window = LiveWindow(f"dope-hope infer: {source.name}")
+            else:
+                warn(f"--show ignored: {problem}")
+        records: list[dict] = []
+        last_index = None
+        bar = tqdm(total=source.length, desc="infer", unit="frame",
+                   disable=args.no_progress or source.live or (source.length or 0) < 2, file=sys.stderr)
+
+        def process(frame) -> bool:
+            nonlocal last_index
+            t0 = time.perf_counter()
+            dets = predict_many(predictors, frame.rgb, frame.K, depth=frame.depth,
+                                calibration=args.depth_calibration)
+            extra = {"time": round(time.perf_counter() - t0, 4), "frame": frame.index,
+                     "timestamp_s": round(frame.timestamp_s, 4)}
+            for d in dets:
+                rec = d.to_json(frame.name, **extra)
+                records.append(rec)
+                print(json.dumps(rec), flush=True)
+            bar.update(frame.index + 1 - bar.n)  # the position in the source (dropped frames too)
+            keep_going = True
+            if video is not None or window is not None:
+                overlay = overlay_detections(frame.rgb, dets, frame.K)
+                if video is not None:  # dropped frames: the last overlay stands in for them
+                    video.repeat_last(0 if last_index is None else frame.index - last_index - 1)
+                    video.write(overlay)
+                if window is not None:
+                    keep_going = window.show(overlay)
+            last_index = frame.index
+            return keep_going
+
+        def source_failed(exc: BaseException) -> bool:
+            """A camera that stops after delivering frames ends the stream (outputs kept)."""
+            if source.live and last_index is not None:
+                warn(f"stream ended: {exc}")
+                return True
+            return False
+
+        stats = run_stream(source, process, pace=args.realtime, max_frames=args.max_frames,
+                           on_source_error=source_failed)
+        bar.close()
+        write_predictions_jsonl(out / "predictions.jsonl", records)
+        video_path = None if video is None else video.close()
+    except BaseException:
+        if video is not None:
+            video.discard()
+        raise
+    finally:
+        source.close()
+        if window is not None:
+            window.close()
+    summary = (f"{source.name}: {stats.summary()}; {len(records)} detection(s); predictions in "
+               f"{out / 'predictions.jsonl'}" + (f", overlay video {video_path}" if video_path else ""))
+    print(f"dope-hope infer: {summary}", file=sys.stderr)
+    return 0
 
 
 def _resize(rgb, hw: tuple[int, int]):

@@ -30,6 +30,10 @@ class Detection:
     projected_2d: (9, 2) the cuboid keypoints projected under (R, t), original-image px.
     reprojection_error_px: mean inlier reprojection error, original-image px.
     cuboid_size_m, cuboid_center_m: the mesh-frame box used, metres.
+    bbox_2d: (4,) [u_min, v_min, u_max, v_max] 2D box of the object under (R, t), original
+        px: the projected mesh (its convex hull's vertices) or, without a mesh, the projected
+        cuboid, clipped to the image like the BOP toolkit's ``calc_2d_bbox``; None when it
+        misses the image (:func:`dope_hope.geometry.projected_bbox`).
     ls_applied / ls_reason / ls_scale: outcome of the depth line search ("no depth image"
         when none was given).
     icp_applied / icp_reason / icp_fit: outcome of the depth ICP ("not requested" without
@@ -49,6 +53,7 @@ class Detection:
     reprojection_error_px: float
     cuboid_size_m: np.ndarray
     cuboid_center_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    bbox_2d: np.ndarray | None = None
     ls_applied: bool = False
     ls_reason: str = "no depth image"
     ls_scale: float = 1.0
@@ -66,7 +71,8 @@ class Detection:
         read by :mod:`dope_hope.evaluation`): ``image``, ``class``, ``score``, ``R`` (3x3 rows),
         ``t`` (m), ``ls_applied``, plus ``quaternion_xyzw``, ``ls_reason``, ``ls_scale``,
         ``keypoints_2d`` (9 x [u, v] original px, null where missing), ``keypoint_scores``,
-        ``reprojection_error_px``, ``cuboid_size_m`` and, with ICP requested, ``icp_applied``,
+        ``reprojection_error_px``, ``cuboid_size_m``, ``bbox_2d`` ([u_min, v_min, u_max, v_max]
+        original px, null when the box misses the image) and, with ICP requested, ``icp_applied``,
         ``icp_reason`` and ``icp_fit``, which the evaluation ignores.
 
         ``image`` names the frame (omitted when None: then pass ``scene_id``/``im_id``);
@@ -83,7 +89,8 @@ class Detection:
             ls_reason=self.ls_reason, ls_scale=float(self.ls_scale), keypoints_2d=kp,
             keypoint_scores=[round(float(v), 4) for v in self.keypoint_scores],
             reprojection_error_px=round(float(self.reprojection_error_px), 4),
-            cuboid_size_m=[float(v) for v in self.cuboid_size_m], **extra)
+            cuboid_size_m=[float(v) for v in self.cuboid_size_m],
+            bbox_2d=None if self.bbox_2d is None else [round(float(v), 2) for v in self.bbox_2d], **extra)
         if self.icp_reason != "not requested":
             rec.update(icp_applied=self.icp_applied, icp_reason=self.icp_reason,
                        icp_fit=None if not math.isfinite(self.icp_fit) else round(float(self.icp_fit), 4))

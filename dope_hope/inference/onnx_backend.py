@@ -222,6 +222,9 @@ class OnnxBackend:
         providers: execution providers in order of preference (None: CUDA when this
             onnxruntime has it, then CPU). Unavailable ones are dropped with a warning.
         optimization: graph optimization level, one of "disable", "basic", "extended", "all".
+        spinning: let idle intra-op threads spin between runs (onnxruntime's default). Off by
+            default: between two images the single-threaded decode / PnP / -LS runs, and
+            spinning threads would take its core (bench/RESULTS.md "Video stream").
 
     Attributes: the MapBackend metadata (stride, class_name, size_m (3,) m, keypoint_order,
     frame, mean, std, input_hw) plus ``fixed_input_hw`` ((H, W) for a static graph, else
@@ -230,7 +233,7 @@ class OnnxBackend:
     """
 
     def __init__(self, path: str | os.PathLike, threads: int | None = None,
-                 providers: Sequence[str] | None = None, optimization: str = "all"):
+                 providers: Sequence[str] | None = None, optimization: str = "all", spinning: bool = False):
         import onnxruntime as ort
 
         self.path = Path(path)
@@ -252,6 +255,7 @@ class OnnxBackend:
         }[optimization]
         if threads:
             opts.intra_op_num_threads = int(threads)
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
         opts.log_severity_level = 3  # errors only: a bad file becomes our one-line error
         available = set(ort.get_available_providers())
         wanted = list(providers) if providers else default_providers()

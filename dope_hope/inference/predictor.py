@@ -55,6 +55,7 @@ from dope_hope.geometry import (
     legacy_keypoints_to_current,
     legacy_rotation_to_mesh,
     project_points,
+    projected_bbox,
 )
 from dope_hope.inference.backends import MapBackend, open_backend
 from dope_hope.inference.options import InferenceOptions
@@ -153,6 +154,7 @@ class DopePredictor:
         else:
             self.cuboid_pnp = self.cuboid_mesh
         self._model_points: np.ndarray | None = None
+        self._bbox_points: np.ndarray | None = None
         self._icp_model: tuple[np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ setup helpers
@@ -197,6 +199,17 @@ class DopePredictor:
 
             self._model_points = sample_surface_points(self._surface(), self.ls_points, seed=0)
         return self._model_points
+
+    @property
+    def bbox_points(self) -> np.ndarray:
+        """(N, 3) mesh-frame points whose projection bounds the object, metres: the mesh's
+        convex hull vertices, else the cuboid's 8 corners (cached)."""
+        if self._bbox_points is None:
+            if self.mesh is not None:
+                self._bbox_points = np.asarray(self.mesh.convex_hull.vertices, dtype=np.float64)
+            else:
+                self._bbox_points = self.cuboid_mesh[:NUM_KEYPOINTS - 1].copy()
+        return self._bbox_points
 
     @property
     def icp_model(self) -> tuple[np.ndarray, np.ndarray]:
@@ -292,6 +305,7 @@ class DopePredictor:
             elif self.icp:
                 det.icp_reason = "no depth image"
             det.projected_2d = project_points(self.cuboid_mesh, K, det.R, det.t)
+            det.bbox_2d = projected_bbox(self.bbox_points, K, det.R, det.t, net_in.original_hw)
             out.append(det)
         out.sort(key=lambda d: -d.score)
         return out
@@ -304,6 +318,7 @@ class DopePredictor:
         out = replace(det)
         self._refine_icp(out, depth)
         out.projected_2d = project_points(self.cuboid_mesh, depth.K, out.R, out.t)
+        out.bbox_2d = projected_bbox(self.bbox_points, depth.K, out.R, out.t, depth.hw)
         return out
 
     def _refine_icp(self, det: Detection, depth: DepthImage) -> None:
