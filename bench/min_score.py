@@ -19,14 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
-from dope_hope.commands.demo import DEMO_CONFIG, IMAGE_SIZE, MODEL_POINTS, THRESHOLD_CM, match_detections, pose_errors
+from dope_hope.commands.demo import DEMO_CONFIG, IMAGE_SIZE
 from dope_hope.commands.infer import DEMO_WEIGHTS
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
 from dope_hope.inference.backends import open_backend
 from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.predictor import DopePredictor
-from dope_hope.io.meshes import sample_surface_points
-from dope_hope.io.symmetries import declared_symmetries
+from dope_hope.evaluation.matching import TABLE_THRESHOLDS_M, match_frame
+from dope_hope.evaluation.models import load_models
 
 #: ADD-H (cm) under which a detection matched to the box counts as a true detection.
 TRUE_CM = 10.0
@@ -49,8 +49,9 @@ def main() -> int:
     pred = DopePredictor(open_backend(args.weights, "torch", threads=args.threads), mesh=mesh, min_score=0.0)
     from dope_hope.synth import FrameGenerator
 
-    points = sample_surface_points(mesh, MODEL_POINTS, seed=0)
-    symmetries = declared_symmetries(mesh_path=mesh_path).transforms()
+    # The demo box's model as `dope-hope evaluate` loads it (points, declared symmetries).
+    model = load_models([DEMO_CLASS_NAME], [f"{DEMO_CLASS_NAME}={mesh_path}"])[DEMO_CLASS_NAME]
+    threshold_cm = 100 * TABLE_THRESHOLDS_M[0]
     true, false, scenes, boxes, within_2cm = [], [], 0, 0, 0
     for item in args.seeds:
         seed, _, n = item.partition(":")
@@ -60,11 +61,12 @@ def main() -> int:
                 frame = gen.render_frame(i)
                 gts = frame.annotation.objects
                 dets = pred.predict(frame.rgb, frame.annotation.K, depth=frame.depth)
-                addh = {id(d): pose_errors(d.R, d.t, g.R, g.t, points, symmetries).addh_cm
-                        for g, d in match_detections(dets, gts) if d is not None}
+                match = match_frame(dets, gts, model)  # ADD-H, evaluate's one-to-one matching
+                addh = {id(dets[p]): 100 * match.errors[p, g]
+                        for g, p in enumerate(match.estimate_of_gt) if p >= 0}
                 for d in dets:
                     (true if addh.get(id(d), np.inf) < TRUE_CM else false).append(d.score)
-                    within_2cm += addh.get(id(d), np.inf) < THRESHOLD_CM
+                    within_2cm += addh.get(id(d), np.inf) < threshold_cm
                 scenes += 1
                 boxes += len(gts)
                 print(f"seed {seed} scene {i:3d}: " + (", ".join(
@@ -74,7 +76,7 @@ def main() -> int:
     true, false = np.sort(true), np.sort(false)
     print(f"\n{args.weights}, {scenes} scenes ({', '.join(args.seeds)}), {boxes} boxes: "
           f"{len(true)} true detections (within {TRUE_CM:g} cm ADD-H with -LS; {within_2cm} within "
-          f"{THRESHOLD_CM:g} cm), {len(false)} false")
+          f"{threshold_cm:g} cm), {len(false)} false")
     print(f"true scores:  min {true.min() if len(true) else float('nan'):.3f}, "
           f"lowest five {np.round(true[:5], 3).tolist()}")
     print(f"false scores: max {false.max() if len(false) else float('nan'):.3f}, all {np.round(false, 3).tolist()}")
