@@ -184,22 +184,22 @@ def test_the_search_solves_no_more_hypotheses_than_the_candidates_need(monkeypat
     assert p is not None and rotation_error_deg(p.R, R) < 0.01
     assert not p.inliers[5] and p.inliers.sum() == 8
     assert calls[0] == cv2.SOLVEPNP_SQPNP and calls.count(cv2.SOLVEPNP_AP3P) <= 4
-    # Clutter (three random peaks per corner type): no minimal set fits its own centroid,
-    # given up after _GIVE_UP_UNFIT.
+    # Clutter (three random peaks per corner type): no minimal set fits its own centroid, given
+    # up after _STALL_AFTER sets without a better hypothesis.
     rng = np.random.default_rng(2)
     clutter_ids = np.r_[8, np.repeat(np.arange(8), 3)]
     clutter = np.vstack([[320.0, 240.0], rng.uniform(220, 420, (24, 2))])
     calls.clear()
     assert solve_pnp_candidates(clutter_ids, clutter, np.ones(25), CUBOID, K640) is None
-    assert len(calls) == 1 + pose_mod._GIVE_UP_UNFIT
-    # Three corners and the centroid of one pose among clutter: their minimal set fits, none
-    # explains more than its own four peaks; given up after _GIVE_UP_AFTER.
+    assert len(calls) == 1 + pose_mod._STALL_AFTER < pose_mod.DEFAULT_MAX_HYPOTHESES
+    # Three corners and the centroid of one pose among the clutter: the first set fits, nothing
+    # explains more than its own four; given up _STALL_AFTER sets after the last better one.
     R, t, kp = _exact_keypoints(7)
     partial = clutter.copy()
     partial[0], partial[[1, 4, 7]] = kp[8], kp[[0, 1, 2]]
     calls.clear()
     assert solve_pnp_candidates(clutter_ids, partial, np.ones(25), CUBOID, K640) is None
-    assert len(calls) == 1 + pose_mod._GIVE_UP_AFTER < pose_mod.DEFAULT_MAX_HYPOTHESES
+    assert 1 + pose_mod._STALL_AFTER < len(calls) <= 1 + pose_mod._STALL_AFTER + 2 * pose_mod._HYPOTHESIS_CHUNK
     calls.clear()
     assert solve_pnp_candidates(clutter_ids, partial, np.ones(25), CUBOID, K640, max_hypotheses=10) is None
     assert len(calls) == 1 + 10

@@ -45,15 +45,13 @@ from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
 DEFAULT_MIN_POINTS = 5
 DEFAULT_REPROJECTION_PX = 8.0
 #: :func:`solve_pnp_candidates`' budget, in AP3P minimal sets: the most it solves by default;
-#: it gives up after ``_GIVE_UP_UNFIT`` when none projected the centroid onto its peak (by then
-#: the covering order has avoided any two wrong first choices) and after ``_GIVE_UP_AFTER``
-#: when none explained more than its own four keypoints; a hypothesis explaining all keypoint
-#: types present but one, and at least ``_ENOUGH_TYPES``, ends the search. Demo scenes
-#: (bench/demo_pose_search.py, 120): giving up unfit ones after 4 sets lost 3 scenes, after 8
-#: or 16 none; giving up after 16 instead of 32 lost 1.
+#: it stops when ``_STALL_AFTER`` sets in a row found no better hypothesis (clutter: none ever
+#: fits; a noisy box's last improvement came by the 51st set, its first fit by the 33rd, on
+#: the README video test's 320x240 frames, where stopping after 8 unfit or 32 unexplaining sets
+#: lost two boxes); a hypothesis explaining all keypoint types present but one, and at least
+#: ``_ENOUGH_TYPES``, ends the search.
 DEFAULT_MAX_HYPOTHESES = 400
-_GIVE_UP_UNFIT = 8
-_GIVE_UP_AFTER = 32
+_STALL_AFTER = 64
 _ENOUGH_TYPES = 6
 #: Minimal sets solved between two later checks of its stopping rules.
 _HYPOTHESIS_CHUNK = 16
@@ -61,9 +59,9 @@ _HYPOTHESIS_CHUNK = 16
 
 def _chunk_ends(n: int) -> list[int]:
     """How many of n minimal sets :func:`solve_pnp_candidates` has solved at each check of its
-    stopping rules: 4 (any single wrong first choice is avoided by the second set), 8, then
-    every ``_HYPOTHESIS_CHUNK``, then n."""
-    return sorted({min(4, n), min(_GIVE_UP_UNFIT, n), *range(_HYPOTHESIS_CHUNK, n, _HYPOTHESIS_CHUNK), n})
+    stopping rules: 4 (any single wrong first choice is avoided by the second set), then every
+    ``_HYPOTHESIS_CHUNK``, then n."""
+    return sorted({min(4, n), *range(_HYPOTHESIS_CHUNK, n, _HYPOTHESIS_CHUNK), n})
 
 
 #: :func:`solve_pnp`'s Levenberg-Marquardt stops when a step changes the pose by less than
@@ -301,7 +299,7 @@ def solve_pnp_candidates(
        distinct types (minimal sets), best-ranked first (candidates are listed best first per
        type), type triples of equal rank in a covering order (:func:`_covering_order`: any
        one, two, three wrong first choices are avoided by the 2nd, 4th, 10th set), checked
-       after 4, 8 and then every ``_HYPOTHESIS_CHUNK`` sets (:func:`_chunk_ends`), at most
+       after 4 and then every ``_HYPOTHESIS_CHUNK`` sets (:func:`_chunk_ends`), at most
        ``max_hypotheses``. Whenever a hypothesis beats the best so far and explains more
        than four types (not all), the least-squares pose through the candidates it explains
        is scored too (the local optimization of LO-RANSAC: noisy peaks put a minimal set's
@@ -309,18 +307,17 @@ def solve_pnp_candidates(
 
     The search ends as soon as a hypothesis explains every keypoint type present, or all but
     one and at least ``_ENOUGH_TYPES`` (a type whose candidates are all another object's
-    peaks cannot be explained by any pose). It gives up after ``_GIVE_UP_UNFIT`` minimal sets
-    when none projected the centroid onto its peak, after ``_GIVE_UP_AFTER`` when none
-    explained more than its own four keypoints (clutter, not a cuboid). Nothing is random, so
-    the result is reproducible. The best hypothesis picks, per type, the candidate nearest
-    its projection (or the type's strongest candidate where none is within the threshold: it
-    counts as an outlier unless within the final threshold), and that assignment goes
-    through :func:`solve_pnp` with the hypothesis as its consensus (``initial_pose``: the
-    search is the RANSAC) and every one of its checks (refinement, inlier ratio, mean
-    error); it is skipped when fewer than its ``min_points`` types lie within its
-    ``reprojection_threshold_px`` of the best hypothesis. OpenCV's RANSAC does not fit the
-    search itself: it counts every inlying correspondence, so several candidates of one type
-    near a wrong pose outvote the right one.
+    peaks cannot be explained by any pose), or when ``_STALL_AFTER`` minimal sets in a row
+    brought no better hypothesis (clutter: none ever fits its centroid). The search draws
+    nothing at random (only the RANSAC fallback below does). The best hypothesis picks, per
+    type, the candidate nearest its projection (or the type's strongest candidate where none
+    is within the threshold: it counts as an outlier unless within the final threshold), and
+    that assignment goes through :func:`solve_pnp` with the hypothesis as its consensus
+    (``initial_pose``: the search is the RANSAC) and every one of its checks (refinement,
+    inlier ratio, mean error), then, where that consensus fails them, with RANSAC; it is
+    skipped when fewer than its ``min_points`` types lie within its
+    ``reprojection_threshold_px`` of the best hypothesis. OpenCV's RANSAC does not fit the search itself: it counts every inlying
+    correspondence, so several candidates of one type near a wrong pose outvote the right one.
 
     Args:
         keypoint_ids: (n,) int keypoint index of each candidate (0..7 corners, 8 the centroid),
@@ -400,16 +397,15 @@ def solve_pnp_candidates(
         sets = _minimal_sets(groups[:-1], int(max_hypotheses))
         quads = np.concatenate([sets, np.full((len(sets), 1), anchor)], axis=1)  # 3 corners + centroid
         objs, imgs = cuboid[ids[quads]], np.ascontiguousarray(pts[quads])       # (S, 4, 3), (S, 4, 2)
-        start = 0
+        start = last_better = 0
         for end in _chunk_ends(len(quads)):
+            best_before = scorer.best_total
             add(*_ap3p_poses(objs[start:end], imgs[start:end], K))
-            start = end
+            start, last_better = end, end if scorer.best_total > best_before else last_better
             if scorer.most_explained >= enough:
                 break  # every type present explained, or all but a foreign one
-            if end >= _GIVE_UP_AFTER and scorer.most_explained <= quads.shape[1]:
-                break  # nothing beyond its own minimal set: peaks of no rigid cuboid (clutter)
-            if end >= _GIVE_UP_UNFIT and scorer.most_explained < quads.shape[1]:
-                break  # no minimal set even fits its own centroid: clutter
+            if end - last_better >= _STALL_AFTER:
+                break  # no better hypothesis for a while: clutter, or the best there is
     if scorer.best_err is None:
         return None
     best_err, best_nearest = scorer.best_err, scorer.best_nearest
@@ -423,7 +419,10 @@ def solve_pnp_candidates(
         if best_err[j] > hypothesis_threshold_px:
             j = g[np.argmax(sc[g])]
         kp[k], kp_scores[k] = pts[j], sc[j]
-    return solve_pnp(kp, kp_scores, cuboid, K, initial_pose=scorer.best_pose, **pnp_options)
+    est = solve_pnp(kp, kp_scores, cuboid, K, initial_pose=scorer.best_pose, **pnp_options)
+    # A minimal set's pose is a few pixels off on noisy peaks: where its consensus does not
+    # hold up, RANSAC on the assignment may still find one that does.
+    return est if est is not None else solve_pnp(kp, kp_scores, cuboid, K, **pnp_options)
 
 
 class _HypothesisScorer:
