@@ -3,11 +3,11 @@
 Renders the scenes of `dope-hope demo` (configs/demo.yaml, 640x480, RealSense-like depth
 noise; the same frames as `dope-hope demo --seed S --scenes N`), runs one demo model through
 both pose searches of ``DopePredictor`` on the same network maps - the default
-``pose_search="hypotheses"`` (decode.corner_candidates + pose.solve_pnp_candidates) and
-``"groups"`` (decode.decode_maps + pose.solve_pnp) - with -LS, and scores each scene as the
-demo and `dope-hope evaluate` do (dope_hope/evaluation/matching.match_frame): detections in
-descending score take the box when their ADD-H is below 2 cm, a scene is found when its box is;
-detections paired with no box are false positives.
+``pose_search="hypotheses"`` (maps.decode.corner_candidates + inference.pnp.solve_pnp_candidates)
+and ``"groups"`` (maps.decode.decode_maps + inference.pnp.solve_pnp) - with -LS, and scores each
+scene as the demo and `dope-hope evaluate` do (dope_hope/evaluation/matching.match_frame):
+detections in descending score take the box when their ADD-H is below 2 cm, a scene is found
+when its box is; detections paired with no box are false positives.
 
     python bench/demo_pose_search.py [--weights dope_hope/assets/demo_lite.pt] [--seeds 100:40 200:40 0:10 1:10 2:10 3:10]
 

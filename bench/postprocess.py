@@ -1,30 +1,42 @@
-"""Post-processing speed: decode + PnP per image, and the depth line search (-LS) per object.
+"""Post-processing speed: maps -> poses per image, and the depth line search (-LS) per object.
 
-Candidate: ``dope_hope.maps.decode.decode_maps`` (vectorized peaks, log-parabola refinement,
-one-to-one assignment) + ``dope_hope.inference.pnp.solve_pnp`` (PnP-RANSAC + LM).
-Baseline: an official-DOPE-style decoder written here for comparison (a Python loop per
-peak over an 11x11 weighted-average window, Python loops over corner candidates x
-centroids for the affinity test, only complete 9-point objects) + ``cv2.solvePnP``
-(SOLVEPNP_ITERATIVE) on the nine points, as DOPE does.
-Both see the same maps: targets of 10 random poses, 50x50 maps (stride 8) of a 400x400 input.
+Maps -> poses (``--only-maps``): three decoders on the same belief/affinity maps of 10 boxes,
+interleaved in one process (the order rotates each round), median CPU time per image
+(``time.process_time`` with OpenCV and torch on one thread, so other jobs on a shared machine
+do not count):
 
-Pose search: the predictor's default, ``decode.corner_candidates`` (every feasible peak, up to
-3 per corner type) + ``pose.solve_pnp_candidates`` (multi-hypothesis PnP), against the
-candidate above (one corner per type), on the same maps and on "confused" maps where corner
-maps 0-2 of every object also carry a stronger peak on corners 2, 3, 0 (a trained lite net's
-commonest error): the search's price in time and what it buys in objects found.
+* **official**: the official DOPE decoder, ``bench/official_dope.py`` (a transcription of
+  NVlabs/Deep_Object_Pose ``ObjectDetector.find_object_poses`` with ``config_pose.yaml``:
+  sigma 3, 11x11 weighted means, greedy grouping, complete 9-point objects only,
+  ``cv2.solvePnP`` ITERATIVE), fed torch tensors as the network returns them;
+* **default**: ``DopePredictor.detections_from_maps`` with ``pose_search="hypotheses"``
+  (``maps.decode.corner_candidates`` + ``inference.pnp.solve_pnp_candidates``);
+* **groups**: the same with ``pose_search="groups"`` (``maps.decode.decode_maps`` +
+  ``inference.pnp.solve_pnp``).
+
+Map sets (``maps.targets.make_targets`` of seeded random Popcorn-box poses at 0.6-1.0 m, every
+keypoint at least 32 px inside the image; 640x480 input at stride 8 = 80x60 maps unless
+noted; K of a 615-px camera): ideal; Gaussian noise of std 0.01 added to the belief and 0.05
+to the affinity; 0.03 / 0.1; one corner peak (belief and field) missing per box; noise
+0.01 / 0.05 + a missing corner + five overlapping pairs of boxes; ideal maps of a 400x400
+input (50x50); "confused" maps where corner maps 0-2 of every box also peak, stronger (1.0,
+the true peak lowered to 0.7), on its corners 2, 3, 0 with fields pointing at its centroid
+(a trained lite net's commonest error). A box is found when a pose's cuboid keypoints lie on
+average within 10 % of the cuboid diagonal of the truth (ADD on the nine keypoints), one
+pose per box.
 
 -LS: ``depth_line_search`` (coarse 41-step grid + bounded Brent) against a dense grid search
 over the same range in 0.1 % steps (the simple way to do it), same cost function, 640x480
 depth of a ray-cast box, ~4200 surface points.
 
--LS + ICP: ``dope_hope.refine.icp.icp_refine`` with its ten starts (the default: a coarse phase on a
-thinned scene, four finish) against the same ten starts all on every point (the baseline) and
-against one start, after the line search, per object: the box's depth as above, the input pose turned 20 deg
-(random axis) or 80 deg (about the box's long axis: a lite net's commonest rotation error)
-and 10 % too far; time, and how often each ends within 1 deg and 2 mm.
+-LS + ICP (``--only-icp``): ``dope_hope.refine.icp.icp_refine`` with its ten starts (the default: a
+coarse phase on a thinned scene, four finish) against the same ten starts all on every point
+(the baseline) and against one start, after the line search, per object: the box's depth as
+above, the input pose turned 20 deg (random axis) or 80 deg (about the box's long axis: a
+lite net's commonest rotation error) and 10 % too far; time, and how often each ends within
+1 deg and 2 mm.
 
-    python bench/postprocess.py [--images 20] [--repeats 3] [--only-icp]
+    python bench/postprocess.py [--scenes 5] [--rounds 5] [--repeats 3] [--only-maps | --only-icp]
 """
 from __future__ import annotations
 
@@ -35,22 +47,22 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy.ndimage import gaussian_filter
+import torch
 from scipy.spatial.transform import Rotation
 
 from dope_hope.catalog import get_object
 from dope_hope.geometry import (
+    KEYPOINT_ORDER,
     cuboid_keypoints,
     intrinsics_matrix,
     project_points,
     rotation_error_deg,
     scale_intrinsics,
 )
-from dope_hope.inference.pnp import solve_pnp, solve_pnp_candidates
+from dope_hope.inference.predictor import DopePredictor
 from dope_hope.io.meshes import sample_surface_points
-from dope_hope.maps.decode import corner_candidates, decode_maps
-from dope_hope.maps.grid import map_to_image
 from dope_hope.maps.targets import make_targets
+from dope_hope.preprocess import IMAGENET_MEAN, IMAGENET_STD
 from dope_hope.refine.depth import DepthImage
 from dope_hope.refine.icp import icp_refine
 from dope_hope.refine.line_search import (
@@ -60,120 +72,77 @@ from dope_hope.refine.line_search import (
     visible_points,
 )
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the tests' box helpers (one definition)
 from box_depth import box_surface_points, render_box_depth  # noqa: E402
+from official_dope import find_object_poses  # noqa: E402
 
 STRIDE = 8
-HW = (400, 400)
-K400 = scale_intrinsics(intrinsics_matrix(615.0, 615.0, 319.5, 239.5), 400 / 640, 400 / 480)
-CUBOID = cuboid_keypoints(get_object("Popcorn").size_array)
+OBJECT = "Popcorn"
+SIZE = get_object(OBJECT).size_array
+CUBOID = cuboid_keypoints(SIZE)
+K640 = intrinsics_matrix(615.0, 615.0, 319.5, 239.5)
+K400 = scale_intrinsics(K640, 400 / 640, 400 / 480)
+#: Keypoints stay this far inside the image, px (4 map cells: DOPE's sigma-3 smoothing
+#: reflects at the border and pulls nearer peaks onto it).
+MARGIN_PX = 32
+#: name -> (image (H, W), belief noise std, affinity noise std, corner missing, overlapping pairs,
+#: confused corners)
+MAP_SETS = {
+    "ideal, 80x60": ((480, 640), 0.0, 0.0, False, False, False),
+    "noise 0.01 / 0.05": ((480, 640), 0.01, 0.05, False, False, False),
+    "noise 0.03 / 0.1": ((480, 640), 0.03, 0.1, False, False, False),
+    "one corner missing per box": ((480, 640), 0.0, 0.0, True, False, False),
+    "noise + missing corner + overlap": ((480, 640), 0.01, 0.05, True, True, False),
+    "ideal, 400x400 input (50x50)": ((400, 400), 0.0, 0.0, False, False, False),
+    "confused corners 0-2": ((480, 640), 0.0, 0.0, False, False, True),
+}
 
 
-def random_scene(rng: np.random.Generator, n: int = 10):
-    """n random poses on a jittered 4x3 grid at 0.6-1.0 m, all inside the 400x400 view."""
-    slots = rng.permutation(12)[:n]
-    Rs, ts = [], []
-    for s in slots:
-        gx, gy = s % 4, s // 4
-        z = rng.uniform(0.6, 1.0)
-        u = 50 + gx * 100 + rng.uniform(-10, 10)
-        v = 70 + gy * 130 + rng.uniform(-10, 10)
-        ray = np.linalg.inv(K400) @ np.array([u, v, 1.0])
-        Rs.append(Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix())
-        ts.append(ray * z)
-    kp = np.stack([project_points(CUBOID, K400, R, t) for R, t in zip(Rs, ts)])
-    return Rs, ts, kp
+def random_scene(rng: np.random.Generator, hw: tuple[int, int], K: np.ndarray, n: int = 10,
+                 overlap: bool = False):
+    """n random poses at 0.6-1.0 m whose keypoints lie at least :data:`MARGIN_PX` inside the
+    image (rotation and depth redrawn until they do): centres on a jittered 4x3 grid, or
+    (``overlap``) n/2 pairs on a 3x2 grid whose second box sits 7.5-12.5 % of the image width
+    beside the first, 0.1 m nearer or farther (their cuboids overlap). Returns Rs, ts and the
+    (n, 9, 2) keypoints, image px."""
+    H, W = hw
+    inner_w, inner_h = W - 2 * MARGIN_PX, H - 2 * MARGIN_PX
+    centres = []
+    if overlap:
+        for s in rng.permutation(6)[: (n + 1) // 2]:
+            u, v = MARGIN_PX + inner_w * (s % 3 + 0.5) / 3, MARGIN_PX + inner_h * (s // 3 + 0.5) / 2
+            du = rng.choice([-1, 1]) * rng.uniform(0.075, 0.125) * W
+            dv = rng.uniform(-0.025, 0.025) * H
+            centres += [(u - du / 2, v - dv / 2, 0.0), (u + du / 2, v + dv / 2, rng.choice([-0.1, 0.1]))]
+        centres = centres[:n]
+    else:
+        for s in rng.permutation(12)[:n]:
+            u = MARGIN_PX + inner_w * (s % 4 + 0.5) / 4 + rng.uniform(-0.02, 0.02) * W
+            v = MARGIN_PX + inner_h * (s // 4 + 0.5) / 3 + rng.uniform(-0.02, 0.02) * H
+            centres.append((u, v, 0.0))
+    Rs, ts, kps = [], [], []
+    z_pair = 0.8
+    for i, (u, v, dz) in enumerate(centres):
+        while True:
+            z = (z_pair + dz) if overlap and i % 2 else rng.uniform(0.6, 1.0)
+            R = Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix()
+            t = np.linalg.inv(K) @ np.array([u, v, 1.0]) * z
+            kp = project_points(CUBOID, K, R, t)
+            if np.all((kp >= MARGIN_PX) & (kp <= np.array([W, H]) - 1 - MARGIN_PX)):
+                break
+        z_pair = z
+        Rs.append(R); ts.append(t); kps.append(kp)
+    return Rs, ts, np.stack(kps)
 
 
-# ------------------------------------------------------------------ DOPE-style baseline
-def dope_style_decode(belief, affinity, stride, smooth_sigma=1.0, thresh_map=0.01,
-                      thresh_points=0.1, thresh_angle=0.5, win=11):
-    """Official-DOPE-style decoding with per-peak Python loops (baseline only)."""
-    all_peaks = []
-    for j in range(belief.shape[0]):
-        raw = belief[j]
-        m = gaussian_filter(raw, sigma=smooth_sigma)
-        left = np.zeros_like(m); left[1:, :] = m[:-1, :]
-        right = np.zeros_like(m); right[:-1, :] = m[1:, :]
-        up = np.zeros_like(m); up[:, 1:] = m[:, :-1]
-        down = np.zeros_like(m); down[:, :-1] = m[:, 1:]
-        binary = (m >= left) & (m >= right) & (m >= up) & (m >= down) & (m > thresh_map)
-        ys, xs = np.nonzero(binary)
-        peaks = []
-        r = win // 2
-        for x, y in zip(xs, ys):
-            wsum = sx = sy = 0.0
-            for dy in range(-r, r + 1):
-                for dx in range(-r, r + 1):
-                    yy, xx = y + dy, x + dx
-                    if 0 <= yy < raw.shape[0] and 0 <= xx < raw.shape[1]:
-                        w = float(raw[yy, xx])
-                        wsum += w; sx += w * xx; sy += w * yy
-            px, py = (sx / wsum, sy / wsum) if wsum > 0 else (float(x), float(y))
-            peaks.append((px, py, float(raw[y, x])))
-        all_peaks.append(peaks)
-    objects = [[(p[0], p[1]), [None] * 8, [None] * 8] for p in all_peaks[-1] if p[2] > thresh_points]
-    for k in range(8):
-        for cx, cy, score in all_peaks[k]:
-            if score < thresh_points:
-                continue
-            best, best_dist = -1, 1e9
-            for i, obj in enumerate(objects):
-                ox, oy = obj[0]
-                ix, iy = int(round(cx)), int(round(cy))  # DOPE truncates; rounding is fairer here
-                v = np.array([affinity[2 * k, iy, ix], affinity[2 * k + 1, iy, ix]]) * 10
-                v = v / (np.linalg.norm(v) + 1e-12)
-                c = np.array([ox - cx, oy - cy])
-                dist = float(np.linalg.norm(c))
-                c = c / (dist + 1e-12)
-                if np.linalg.norm(c - v) < thresh_angle and dist < best_dist:
-                    best, best_dist = i, dist
-            if best >= 0 and (objects[best][2][k] is None or best_dist < objects[best][2][k]):
-                objects[best][1][k] = (cx, cy)
-                objects[best][2][k] = best_dist
-    out = []
-    for obj in objects:
-        if any(p is None for p in obj[1]):
-            continue  # DOPE drops incomplete cuboids
-        pts = np.array(obj[1] + [obj[0]], dtype=np.float64)
-        out.append(map_to_image(pts, stride))
-    return out
-
-
-def baseline_image(belief, affinity, K):
-    poses = []
-    for kp in dope_style_decode(belief, affinity, STRIDE):
-        ok, rvec, tvec = cv2.solvePnP(CUBOID, kp, K, np.zeros(5), flags=cv2.SOLVEPNP_ITERATIVE)
-        if ok:
-            poses.append((cv2.Rodrigues(rvec)[0], tvec.ravel()))
-    return poses
-
-
-def candidate_image(belief, affinity, K):
-    poses = []
-    for inst in decode_maps(belief, affinity, STRIDE):
-        p = solve_pnp(inst.keypoints, inst.scores, CUBOID, K)
-        if p is not None:
-            poses.append((p.R, p.t))
-    return poses
-
-
-def search_image(belief, affinity, K):
-    poses = []
-    for c in corner_candidates(belief, affinity, STRIDE):
-        p = solve_pnp_candidates(c.keypoint_ids, c.xy, c.scores, CUBOID, K)
-        if p is not None:
-            poses.append((p.R, p.t))
-    return poses
-
-
-def confuse(belief: np.ndarray, affinity: np.ndarray, kp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def confuse(belief: np.ndarray, affinity: np.ndarray, kp: np.ndarray, hw: tuple[int, int]):
     """Maps where corner maps 0, 1, 2 of every object also peak (1.0, the true peak lowered to
     0.7) on its corners 2, 3, 0, with fields there pointing at the object's centroid."""
     wrong = np.full_like(kp, np.nan)
     wrong[:, [0, 1, 2]] = kp[:, [2, 3, 0]]
     wrong[:, 8] = kp[:, 8]
-    bw, aw = make_targets(wrong, HW, STRIDE)
+    bw, aw = make_targets(wrong, hw, STRIDE)
     b, a = belief.copy(), affinity.copy()
     b[:3] = np.maximum(0.7 * belief[:3], bw[:3])
     ring = np.repeat(np.linalg.norm(aw[:6].reshape(3, 2, *aw.shape[1:]), axis=1) > 0, 2, axis=0)
@@ -181,16 +150,97 @@ def confuse(belief: np.ndarray, affinity: np.ndarray, kp: np.ndarray) -> tuple[n
     return b, a
 
 
-def accuracy(poses, Rs, ts):
-    """(found, median rotation error deg, median translation error mm) vs ground truth."""
-    rot, tra, found = [], [], set()
+def map_set(name: str, seed: int, n: int = 10):
+    """One seeded scene of a map set: (belief, affinity, K, (H, W), Rs, ts)."""
+    hw, sb, sa, missing, overlap, confused = MAP_SETS[name]
+    rng = np.random.default_rng(seed)
+    K = K640 if hw == (480, 640) else K400
+    Rs, ts, kp = random_scene(rng, hw, K, n, overlap)
+    drawn = kp.copy()
+    if missing:
+        drawn[np.arange(len(kp)), rng.integers(0, 8, len(kp))] = np.nan
+    b, a = make_targets(drawn, hw, STRIDE)
+    if confused:
+        b, a = confuse(b, a, kp, hw)
+    b = (b + rng.normal(0.0, sb, b.shape)).astype(np.float32) if sb else b
+    a = (a + rng.normal(0.0, sa, a.shape)).astype(np.float32) if sa else a
+    return b, a, K, hw, Rs, ts
+
+
+class MapsOnly:
+    """The model metadata a :class:`DopePredictor` needs; the bench hands it maps, so ``run``
+    is never called."""
+
+    stride = STRIDE
+    class_name = OBJECT
+    size_m = SIZE
+    keypoint_order = KEYPOINT_ORDER
+    frame = "mesh"
+    mean, std = tuple(IMAGENET_MEAN), tuple(IMAGENET_STD)
+    input_hw = None
+
+    def run(self, batch):
+        raise RuntimeError("the bench decodes given maps")
+
+
+def found_boxes(poses, Rs, ts) -> int:
+    """Boxes with a pose whose nine cuboid keypoints lie within 10 % of the cuboid diagonal of
+    the truth on average (ADD on the keypoints); each pose counts for one box."""
+    limit = 0.1 * float(np.linalg.norm(SIZE))
+    truth = [CUBOID @ R.T + t for R, t in zip(Rs, ts)]
+    free = set(range(len(truth)))
     for R, t in poses:
-        j = int(np.argmin([np.linalg.norm(t - tt) for tt in ts]))
-        if np.linalg.norm(t - ts[j]) < 0.05:
-            found.add(j)
-            rot.append(rotation_error_deg(R, Rs[j]))
-            tra.append(1000 * np.linalg.norm(t - ts[j]))
-    return len(found), float(np.median(rot)) if rot else np.nan, float(np.median(tra)) if tra else np.nan
+        pts = CUBOID @ np.asarray(R).T + np.asarray(t)
+        add = {j: float(np.linalg.norm(pts - truth[j], axis=1).mean()) for j in free}
+        j = min(add, key=add.get, default=None)
+        if j is not None and add[j] < limit:
+            free.discard(j)
+    return len(truth) - len(free)
+
+
+def maps_section(scenes: int, rounds: int, objects: int) -> None:
+    """Official vs default vs groups on every map set (see the module docstring)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        _maps_table(scenes, rounds, objects)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _maps_table(scenes: int, rounds: int, objects: int) -> None:
+    predictors = {}
+    for hw in {v[0] for v in MAP_SETS.values()}:
+        for search in ("hypotheses", "groups"):
+            p = DopePredictor(MapsOnly(), height=hw[0], pose_search=search)
+            predictors[hw, search] = (p, p.prepare(np.zeros(hw + (3,), np.uint8)))
+    print(f"maps -> poses, {objects} boxes per image, {scenes} scenes x {rounds} rounds per map set "
+          f"(interleaved; median CPU ms per image; found: mean boxes per image)")
+    print(f"  {'map set':34s} {'official':>16s} {'default':>16s} {'groups':>16s}   official/default  official/groups")
+    for name in MAP_SETS:
+        times = {m: [] for m in ("official", "default", "groups")}
+        found = {m: [] for m in times}
+        for s in range(scenes):
+            b, a, K, hw, Rs, ts = map_set(name, 1000 + s, objects)
+            bt, at = torch.from_numpy(b), torch.from_numpy(a)
+            runs = {
+                "official": lambda: find_object_poses(bt, at, CUBOID, K),
+                "default": lambda: [(d.R, d.t) for d in predictors[hw, "hypotheses"][0].detections_from_maps(
+                    b, a, predictors[hw, "hypotheses"][1], K)],
+                "groups": lambda: [(d.R, d.t) for d in predictors[hw, "groups"][0].detections_from_maps(
+                    b, a, predictors[hw, "groups"][1], K)],
+            }
+            order = list(runs)
+            for r in range(rounds):
+                for m in order[r % 3:] + order[: r % 3]:
+                    t0 = time.process_time()
+                    poses = runs[m]()
+                    times[m].append(time.process_time() - t0)
+                    if r == 0:
+                        found[m].append(found_boxes(poses, Rs, ts))
+        med = {m: 1000 * float(np.median(v)) for m, v in times.items()}
+        cells = "".join(f" {med[m]:8.1f} / {np.mean(found[m]):4.1f}" for m in times)
+        print(f"  {name:34s}{cells}   {med['official'] / med['default']:13.1f}x {med['official'] / med['groups']:15.1f}x")
 
 
 def timed(fn, *args, repeats=3, **kwargs):
@@ -204,57 +254,27 @@ def timed(fn, *args, repeats=3, **kwargs):
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--images", type=int, default=20)
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--objects", type=int, default=10)
-    ap.add_argument("--only-icp", action="store_true", help="only the -LS + ICP section")
+    ap.add_argument("--scenes", type=int, default=5, help="seeded scenes per map set")
+    ap.add_argument("--rounds", type=int, default=5, help="timed rounds per scene and decoder")
+    ap.add_argument("--objects", type=int, default=10, help="boxes per scene")
+    ap.add_argument("--repeats", type=int, default=3, help="-LS and ICP: best of this many runs")
+    only = ap.add_mutually_exclusive_group()
+    only.add_argument("--only-maps", action="store_true", help="only the maps -> poses section")
+    only.add_argument("--only-icp", action="store_true", help="only the -LS + ICP section")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     if args.only_icp:
         return icp_section(args.repeats)
+    maps_section(args.scenes, args.rounds, args.objects)
+    if args.only_maps:
+        return 0
+    ls_section(args.repeats)
+    return icp_section(args.repeats)
+
+
+def ls_section(repeats: int) -> None:
+    """-LS per object against a dense grid search (see the module docstring)."""
     rng = np.random.default_rng(0)
-
-    t_cand, t_base, acc_c, acc_b = [], [], [], []
-    for _ in range(args.images):
-        Rs, ts, kp = random_scene(rng, args.objects)
-        b, a = make_targets(kp, HW, STRIDE)
-        tc, pc = timed(candidate_image, b, a, K400, repeats=args.repeats)
-        tb, pb = timed(baseline_image, b, a, K400, repeats=args.repeats)
-        t_cand.append(tc); t_base.append(tb)
-        acc_c.append(accuracy(pc, Rs, ts)); acc_b.append(accuracy(pb, Rs, ts))
-    ac, ab = np.array(acc_c), np.array(acc_b)
-    mc, mb = 1000 * np.median(t_cand), 1000 * np.median(t_base)
-    print(f"decode + PnP, {args.objects} objects, 50x50 maps (400x400 input), "
-          f"{args.images} images, median of best-of-{args.repeats}:")
-    print(f"  candidate (vectorized + RANSAC/LM): {mc:7.2f} ms/image   found {ac[:, 0].mean():.2f}/"
-          f"{args.objects}   rot {np.nanmedian(ac[:, 1]):.4f} deg   t {np.nanmedian(ac[:, 2]):.3f} mm")
-    print(f"  baseline  (DOPE-style loops + PnP): {mb:7.2f} ms/image   found {ab[:, 0].mean():.2f}/"
-          f"{args.objects}   rot {np.nanmedian(ab[:, 1]):.4f} deg   t {np.nanmedian(ab[:, 2]):.3f} mm")
-    print(f"  speed-up baseline/candidate: {mb / mc:.1f}x")
-
-    # Pose search vs one corner per type, on clean and on confused maps.
-    rng_s = np.random.default_rng(1)
-    for kind in ("clean", "confused"):
-        t_grp, t_srch, f_grp, f_srch = [], [], [], []
-        for _ in range(args.images):
-            Rs, ts, kp = random_scene(rng_s, args.objects)
-            b, a = make_targets(kp, HW, STRIDE)
-            if kind == "confused":
-                b, a = confuse(b, a, kp)
-            tg, pg = timed(candidate_image, b, a, K400, repeats=args.repeats)
-            tsr, ps = timed(search_image, b, a, K400, repeats=args.repeats)
-            t_grp.append(tg); t_srch.append(tsr)
-            f_grp.append(accuracy(pg, Rs, ts)[0]); f_srch.append(accuracy(ps, Rs, ts)[0])
-        mg, ms_ = 1000 * np.median(t_grp), 1000 * np.median(t_srch)
-        print(f"pose search, {kind} maps ({args.objects} objects, {args.images} images):")
-        print(f"  one corner per type (decode_maps + solve_pnp):               {mg:7.2f} ms/image   "
-              f"found {np.mean(f_grp):.2f}/{args.objects}")
-        print(f"  search (corner_candidates + solve_pnp_candidates, default):  {ms_:7.2f} ms/image   "
-              f"found {np.mean(f_srch):.2f}/{args.objects}")
-        print(f"  time ratio search/one-per-type: {ms_ / mg:.1f}x")
-
-    # -LS per object
-    K640 = intrinsics_matrix(615.0, 615.0, 319.5, 239.5)
     size = get_object("Cookies").size_array
     pts = box_surface_points(size)
     lo, hi = 0.8, 1.25
@@ -265,7 +285,7 @@ def main() -> int:
         t = np.array([rng.uniform(-0.1, 0.1), rng.uniform(-0.06, 0.06), rng.uniform(0.5, 1.0)])
         depth = render_box_depth(size, R, t, K640, (480, 640))
         t0 = 1.1 * t
-        dt, res = timed(depth_line_search, R, t0, pts, DepthImage.from_raw(depth, K640), repeats=args.repeats)
+        dt, res = timed(depth_line_search, R, t0, pts, DepthImage.from_raw(depth, K640), repeats=repeats)
         tl.append(dt); el.append(1000 * np.linalg.norm(res.t - t))
 
         def dense_cost_only():
@@ -293,14 +313,12 @@ def main() -> int:
     print(f"  baseline  (dense 0.1 % grid, {len(dense)} steps): {md:7.2f} ms   "
           f"median {np.median(edn):.3f} mm, max {np.max(edn):.3f} mm")
     print(f"  speed-up baseline/candidate: {md / ml:.1f}x")
-    return icp_section(args.repeats)
 
 
 def icp_section(repeats: int) -> int:
     """-LS + ICP per object: ten starts (default) vs one; see the module docstring."""
     import trimesh
 
-    K640 = intrinsics_matrix(615.0, 615.0, 319.5, 239.5)
     size = get_object("Ketchup").size_array  # bottle-sized box, three distinct extents
     pts = box_surface_points(size)
     icp_pts, icp_nrm = sample_surface_points(trimesh.creation.box(extents=size), 2000, oversample=10,
@@ -319,7 +337,8 @@ def icp_section(repeats: int) -> int:
             for name, kw in (("one start", {"start_rotations": ()}),
                              ("ten starts, all points", {"coarse_points": None}),
                              ("ten starts (default)", {})):
-                dt, res = timed(icp_refine, R0, ls.t, icp_pts, icp_nrm, DepthImage.from_raw(depth, K640), repeats=repeats, **kw)
+                dt, res = timed(icp_refine, R0, ls.t, icp_pts, icp_nrm, DepthImage.from_raw(depth, K640),
+                                repeats=repeats, **kw)
                 ok = res.applied and rotation_error_deg(res.R, R) < 1.0 and np.linalg.norm(res.t - t) < 0.002
                 rows[name].append((dt, ok))
         print(f"-LS + ICP per object (640x480 depth, 2000 model points; input {kind}, 10 % too far):")

@@ -240,3 +240,38 @@ def test_every_instance_keeps_its_own_corners_among_its_candidates(stride):
         for k in range(9):
             own = c.xy[c.keypoint_ids == k]
             assert np.min(np.linalg.norm(own - kp[j, k], axis=1)) < 0.05
+
+
+def _unit(v) -> np.ndarray:
+    v = np.asarray(v, dtype=np.float64)
+    return v / np.linalg.norm(v)
+
+
+def test_another_objects_corner_that_passes_the_angle_test_is_no_candidate():
+    """Object A (centroid at x=10) has corners 0-2 five cells away; object B (centroid at
+    x=30) has a type-3 corner on the far side (x=34) and a type-4 corner below right of it. Both
+    B corners pass A's angle test (their fields point at B, A lies within 29 deg of that), yet
+    neither is A's candidate: the type-3 corner lies 24 cells from A (more than twice A's
+    size, 5 cells), the type-4 field points at B 0.39 (unit-vector distance) better than at A.
+    Without the bounds, both are."""
+    A, B = np.array([10.0, 10.0]), np.array([30.0, 10.0])
+    belief = np.zeros((9, 24, 48), np.float32)
+    affinity = np.zeros((16, 24, 48), np.float32)
+    corners = {0: (10, 5), 1: (15, 10), 2: (10, 15), 3: (34, 10), 4: (42, 20)}
+    for k, (x, y) in corners.items():
+        belief[k, y, x] = 1.0
+        affinity[2 * k: 2 * k + 2, y, x] = _unit((A if k < 3 else B) - [x, y])
+    for x, y in (A, B):
+        belief[8, int(y), int(x)] = 1.0
+    assert np.linalg.norm(affinity[8:10, 20, 42] - _unit(A - corners[4])) < 0.5   # feasible for A
+
+    def candidates_of_a(**kw) -> list[int]:
+        cands = corner_candidates(belief, affinity, 1, smooth_sigma=0, **kw)
+        return sorted(next(c for c in cands if np.allclose(c.xy[0], A)).keypoint_ids.tolist())
+
+    assert candidates_of_a() == [0, 1, 2, 8]
+    assert candidates_of_a(angle_margin=np.inf, size_factor=np.inf) == [0, 1, 2, 3, 4, 8]
+    assert candidates_of_a(angle_margin=np.inf) == [0, 1, 2, 8]          # the size bound alone
+    assert candidates_of_a(size_factor=np.inf) == [0, 1, 2, 3, 8]        # the angle margin alone
+    with pytest.raises(ValueError, match="angle_margin"):
+        corner_candidates(belief, affinity, 1, angle_margin=-1.0)

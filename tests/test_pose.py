@@ -149,36 +149,60 @@ def test_candidates_find_the_pose_that_the_strongest_peaks_hide():
     assert q is not None and rotation_error_deg(q.R, R) < 0.01
 
 
-def test_the_search_stops_at_the_first_hypothesis_that_explains_every_type(monkeypatch):
+def test_the_search_solves_no_more_hypotheses_than_the_candidates_need(monkeypatch):
     import cv2
 
     import dope_hope.inference.pnp as pose_mod
 
-    calls = []
+    calls = []  # AP3P minimal-set hypotheses
     real = cv2.solvePnP
 
     def counting(*a, **kw):
-        calls.append(1)
+        calls.append(kw.get("flags"))
         return real(*a, **kw)
 
     monkeypatch.setattr(pose_mod.cv2, "solvePnP", counting)
+    # Consistent first candidates: the least-squares pose through them is the only hypothesis.
     R, t, kp = _exact_keypoints(4)
     assert solve_pnp_candidates(np.arange(9), kp, np.ones(9), CUBOID, K640) is not None
-    assert len(calls) <= pose_mod._HYPOTHESIS_CHUNK  # the first chunk holds the answer
-    # Confused candidates listed wrong-first: more hypotheses, bounded by max_hypotheses.
+    assert calls == [cv2.SOLVEPNP_SQPNP]
+    # Three types listed wrong-first: the minimal sets' covering order reaches three right
+    # corners within the first check (4 sets).
     R, t, ids, pts, scores = _confused_candidates(3)
     order = np.r_[8, 9, 10, 11, np.arange(8)]  # centroid, then each type's wrong peak first
     calls.clear()
-    p = solve_pnp_candidates(ids[order], pts[order], scores[order], CUBOID, K640, max_hypotheses=60)
+    p = solve_pnp_candidates(ids[order], pts[order], scores[order], CUBOID, K640)
+    assert p is not None and rotation_error_deg(p.R, R) < 0.01 and p.inliers.all()
+    np.testing.assert_allclose(p.keypoints, pts[:9])
+    assert calls == [cv2.SOLVEPNP_SQPNP] + [cv2.SOLVEPNP_AP3P] * 4
+    # A type whose only candidate is another object's peak: all types but that one explained
+    # is enough, the search ends at the first minimal set that avoids it.
+    R, t, kp = _exact_keypoints(6)
+    kp[5] += [90.0, 70.0]
+    calls.clear()
+    p = solve_pnp_candidates(np.r_[8, np.arange(8)], kp[np.r_[8, np.arange(8)]], np.ones(9), CUBOID, K640)
     assert p is not None and rotation_error_deg(p.R, R) < 0.01
-    assert pose_mod._HYPOTHESIS_CHUNK < len(calls) <= 60
-    # Clutter (three random peaks per corner type): given up long before max_hypotheses.
+    assert not p.inliers[5] and p.inliers.sum() == 8
+    assert calls[0] == cv2.SOLVEPNP_SQPNP and calls.count(cv2.SOLVEPNP_AP3P) <= 4
+    # Clutter (three random peaks per corner type): no minimal set fits its own centroid, given
+    # up after _STALL_AFTER sets without a better hypothesis.
     rng = np.random.default_rng(2)
     clutter_ids = np.r_[8, np.repeat(np.arange(8), 3)]
     clutter = np.vstack([[320.0, 240.0], rng.uniform(220, 420, (24, 2))])
     calls.clear()
     assert solve_pnp_candidates(clutter_ids, clutter, np.ones(25), CUBOID, K640) is None
-    assert len(calls) <= pose_mod._GIVE_UP_AFTER + pose_mod._HYPOTHESIS_CHUNK < 400
+    assert len(calls) == 1 + pose_mod._STALL_AFTER < pose_mod.DEFAULT_MAX_HYPOTHESES
+    # Three corners and the centroid of one pose among the clutter: the first set fits, nothing
+    # explains more than its own four; given up _STALL_AFTER sets after the last better one.
+    R, t, kp = _exact_keypoints(7)
+    partial = clutter.copy()
+    partial[0], partial[[1, 4, 7]] = kp[8], kp[[0, 1, 2]]
+    calls.clear()
+    assert solve_pnp_candidates(clutter_ids, partial, np.ones(25), CUBOID, K640) is None
+    assert 1 + pose_mod._STALL_AFTER < len(calls) <= 1 + pose_mod._STALL_AFTER + 2 * pose_mod._HYPOTHESIS_CHUNK
+    calls.clear()
+    assert solve_pnp_candidates(clutter_ids, partial, np.ones(25), CUBOID, K640, max_hypotheses=10) is None
+    assert len(calls) == 1 + 10
     with pytest.raises(ValueError, match="max_hypotheses"):
         solve_pnp_candidates(ids, pts, scores, CUBOID, K640, max_hypotheses=0)
 
@@ -212,7 +236,7 @@ def test_a_pose_behind_the_camera_is_rejected(monkeypatch):
     rvec = cv2.Rodrigues(R)[0]
     monkeypatch.setattr(pose_mod.cv2, "solvePnPRansac",
                         lambda *a, **k: (True, rvec, t.reshape(3, 1), np.arange(9).reshape(-1, 1)))
-    monkeypatch.setattr(pose_mod.cv2, "solvePnPRefineLM", lambda o, i, K, d, r, tv: (r, tv))
+    monkeypatch.setattr(pose_mod.cv2, "solvePnPRefineLM", lambda o, i, K, d, r, tv, **kw: (r, tv))
     assert solve_pnp(kp, np.ones(9), CUBOID, K640) is None
     t_front = np.array([0.02, 0.01, 0.7])  # the same stubbed solver in front: accepted
     kp = project_points(CUBOID, K640, R, t_front)

@@ -28,10 +28,11 @@ def _stage_functions() -> dict[str, list[Callable[..., Any]]]:
             "icp_refine": [icp_refine]}
 
 
-#: Arguments the predictor passes itself (maps, points, camera, depth): not options.
+#: Arguments the predictor passes itself (maps, points, camera, depth, the pose search's
+#: consensus pose): not options.
 _PASSED_BY_PREDICTOR = {"belief", "affinity", "stride", "keypoints", "scores", "keypoint_ids", "xy",
                         "cuboid", "cuboid_3d", "K", "R", "t", "model_points", "model_normals", "depth",
-                        "dist_coeffs"}
+                        "dist_coeffs", "initial_pose"}
 
 
 def _stage_keywords(functions: list[Callable[..., Any]]) -> set[str]:

@@ -7,9 +7,11 @@ keypoints is missing; we use whatever keypoints were found, down to ``min_points
    samples, or P3P + a 4th point to pick among P3P's up to four solutions when only 4 points
    exist; the consensus set is then solved with SQPnP, which also handles a planar set such as
    one face of the box). Plain P3P/AP3P on 3 points is never used: with 3 points the pose is
-   ambiguous (up to four exact solutions) and nothing can choose between them.
-2. ``cv2.solvePnPRefineLM`` (Levenberg-Marquardt on the reprojection error) on the inliers;
-   inliers are recomputed under the refined pose.
+   ambiguous (up to four exact solutions) and nothing can choose between them. Given a
+   consensus pose (``initial_pose``, from :func:`solve_pnp_candidates`' search), the
+   keypoints within the threshold of it are the inliers instead.
+2. ``cv2.solvePnPRefineLM`` (Levenberg-Marquardt on the reprojection error, until a step no
+   longer changes the pose) on the inliers; inliers are recomputed under the refined pose.
 3. Rejections (return ``None``, never a made-up pose): fewer than ``min_points`` present
    keypoints or inliers; inliers fewer than ``min_inlier_ratio`` (0.75) of the present
    keypoints; the model origin or the cuboid centre at ``z <= 0`` (behind the camera); mean
@@ -22,11 +24,13 @@ Score: ``score = sum(clip(scores[inliers], 0, 1)) / 9`` - the mean keypoint conf
 inliers times the inlier fraction of *all nine* keypoints, so missing and outlying keypoints
 both lower it. All thresholds are in pixels of the image the keypoints and ``K`` refer to.
 
-The multi-hypothesis search (:func:`solve_pnp_candidates`) tries minimal sets of candidate
-corner peaks per centroid and keeps the pose that explains most candidates.
+The multi-hypothesis search (:func:`solve_pnp_candidates`) tries the least-squares pose through
+each type's first candidate, then minimal sets of candidate corner peaks per centroid, and
+keeps the pose that explains most candidates.
 """
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass
 
@@ -39,19 +43,32 @@ from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
 #: :func:`solve_pnp` defaults, also what :func:`solve_pnp_candidates` checks its best
 #: hypothesis against before calling it.
 DEFAULT_MIN_POINTS = 5
-
-
 DEFAULT_REPROJECTION_PX = 8.0
-
-
-#: Pose hypotheses solved between two checks of :func:`solve_pnp_candidates`' early stop.
+#: :func:`solve_pnp_candidates`' budget, in AP3P minimal sets: the most it solves by default;
+#: it stops when ``_STALL_AFTER`` sets in a row found no better hypothesis (clutter: none ever
+#: fits; a noisy box's last improvement came by the 51st set, its first fit by the 33rd, on
+#: the README video test's 320x240 frames, where stopping after 8 unfit or 32 unexplaining sets
+#: lost two boxes); a hypothesis explaining all keypoint types present but one, and at least
+#: ``_ENOUGH_TYPES``, ends the search.
+DEFAULT_MAX_HYPOTHESES = 400
+_STALL_AFTER = 64
+_ENOUGH_TYPES = 6
+#: Minimal sets solved between two later checks of its stopping rules.
 _HYPOTHESIS_CHUNK = 16
 
 
-#: :func:`solve_pnp_candidates` gives up after this many hypotheses when none explained more
-#: than its own four keypoints.
-_GIVE_UP_AFTER = 128
+def _chunk_ends(n: int) -> list[int]:
+    """How many of n minimal sets :func:`solve_pnp_candidates` has solved at each check of its
+    stopping rules: 4 (any single wrong first choice is avoided by the second set), then every
+    ``_HYPOTHESIS_CHUNK``, then n."""
+    return sorted({min(4, n), *range(_HYPOTHESIS_CHUNK, n, _HYPOTHESIS_CHUNK), n})
 
+
+#: :func:`solve_pnp`'s Levenberg-Marquardt stops when a step changes the pose by less than
+#: FLT_EPSILON (relative). OpenCV's default adds a 20-iteration count, and OpenCV 5 then runs
+#: ~10 iterations where one or two reach the same pose (same result in 300 random cases, from
+#: noisy keypoints and bad starts; ~4x faster).
+_LM_CRITERIA = (cv2.TERM_CRITERIA_EPS, 0, float(np.finfo(np.float32).eps))
 
 @dataclass
 class PoseEstimate:
@@ -94,6 +111,7 @@ def solve_pnp(
     min_inlier_ratio: float = 0.75,
     ransac_iterations: int = 200,
     ransac_confidence: float = 0.999,
+    initial_pose: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> PoseEstimate | None:
     """Pose of one cuboid from its (possibly partial) projected keypoints.
 
@@ -110,6 +128,9 @@ def solve_pnp(
         min_inlier_ratio: reject when fewer than this fraction of the present keypoints
             are inliers (5 of 9 random points can fit some pose; see the module docstring).
         min_score, ransac_iterations, ransac_confidence: as named.
+        initial_pose: (R (3, 3), t (3,)) a consensus pose found elsewhere (the search of
+            :func:`solve_pnp_candidates`): it replaces RANSAC; the present keypoints within
+            ``reprojection_threshold_px`` of it are the inliers refined, every check follows.
 
     Returns:
         :class:`PoseEstimate`, or None when the keypoints do not support a pose.
@@ -126,24 +147,32 @@ def solve_pnp(
     if idx.size < min_points:
         return None
     obj, img = obj_all[idx], kp[idx]
+    if initial_pose is None:
+        try:
+            ok, rvec, tvec, inl = cv2.solvePnPRansac(
+                obj, img, K, dist,
+                iterationsCount=ransac_iterations,
+                reprojectionError=float(reprojection_threshold_px),
+                confidence=ransac_confidence,
+                flags=cv2.SOLVEPNP_SQPNP,
+            )
+        except cv2.error:
+            return None
+        if not ok or inl is None:
+            return None
+        inl = inl.ravel()
+    else:
+        rvec = cv2.Rodrigues(np.asarray(initial_pose[0], dtype=np.float64))[0]
+        tvec = np.asarray(initial_pose[1], dtype=np.float64).reshape(3, 1)
+        inl = np.flatnonzero(_reprojection_errors(obj, img, rvec, tvec, K, dist) <= reprojection_threshold_px)
+    if len(inl) < min_points:
+        return None
     try:
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            obj, img, K, dist,
-            iterationsCount=ransac_iterations,
-            reprojectionError=float(reprojection_threshold_px),
-            confidence=ransac_confidence,
-            flags=cv2.SOLVEPNP_SQPNP,
-        )
+        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, dist, rvec, tvec, criteria=_LM_CRITERIA)
     except cv2.error:
         return None
-    if not ok or inl is None or len(inl) < min_points:
-        return None
-    inl = inl.ravel()
-    try:
-        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, dist, rvec, tvec)
-    except cv2.error:
-        return None
-    err = _reprojection_errors(obj, img, rvec, tvec, K, dist)
+    projected = cv2.projectPoints(obj_all, rvec, tvec, K, dist)[0].reshape(-1, 2)
+    err = np.linalg.norm(projected[idx] - img, axis=1)
     inlier_local = err <= reprojection_threshold_px
     if inlier_local.sum() < min_points or inlier_local.sum() < min_inlier_ratio * idx.size:
         return None
@@ -158,26 +187,89 @@ def solve_pnp(
     inliers = np.zeros(NUM_KEYPOINTS, dtype=bool)
     inliers[idx[inlier_local]] = True
     score = float(np.clip(sc[inliers], 0.0, 1.0).sum() / NUM_KEYPOINTS)
-    proj, _ = cv2.projectPoints(obj_all, rvec, tvec, K, dist)
     return PoseEstimate(
         R=R, t=t.copy(), score=score, inliers=inliers, reprojection_error_px=mean_err,
-        keypoints=kp.copy(), projected=proj.reshape(-1, 2), keypoint_scores=sc.copy(),
+        keypoints=kp.copy(), projected=projected, keypoint_scores=sc.copy(),
     )
+
+
+def _covering_order(n_types: int) -> np.ndarray:
+    """(C(n, 3), 3) int: every three of ``n_types`` corner types, in a covering order: each
+    next triple avoids as many as possible of the sets of up to three types (wrong first
+    choices) that no earlier triple avoids (greedy; ties: lexicographic). With 8 types, any
+    one wrong type is avoided by the 2nd triple at the latest, any two by the 4th, any three
+    by the 10th (lexicographic order: 22nd, 37th, 47th)."""
+    combos = np.array(list(itertools.combinations(range(n_types), 3)), dtype=np.int64).reshape(-1, 3)
+    bits = (1 << combos).sum(axis=1)
+    wrong = [sum(1 << k for k in w) for r in range(4) for w in itertools.combinations(range(n_types), r)]
+    avoids = (bits[:, None] & np.array(wrong)[None]) == 0                    # (C, W)
+    open_ = np.ones(len(wrong), dtype=bool)
+    left = np.ones(len(combos), dtype=bool)
+    order = []
+    for _ in range(len(combos)):
+        gain = np.where(left, (avoids & open_).sum(axis=1), -1)
+        i = int(np.argmax(gain))
+        order.append(i)
+        left[i] = False
+        open_ &= ~avoids[i]
+    return combos[order]
+
+
+@functools.lru_cache(maxsize=32)
+def _minimal_set_table(n_types: int, n_ranks: int) -> np.ndarray:
+    """(S, 6) int, read-only: (slot a, b, c, rank a, b, c) for every three of ``n_types``
+    corner types and every rank below ``n_ranks`` within each, ordered by the rank sum (ties:
+    type triples in :func:`_covering_order`, then ranks lexicographically)."""
+    combos = _covering_order(n_types)
+    ranks = np.indices((n_ranks,) * 3).reshape(3, -1).T
+    table = np.concatenate([np.repeat(combos, len(ranks), axis=0), np.tile(ranks, (len(combos), 1))], axis=1)
+    table = table[np.argsort(table[:, 3:].sum(axis=1), kind="stable")]
+    table.flags.writeable = False
+    return table
 
 
 def _minimal_sets(by_type: list[np.ndarray], max_sets: int) -> np.ndarray:
     """(S, 3) int: candidate indices of three corners of distinct types, the most promising
     first: ordered by the sum of the candidates' ranks within their type (each ``by_type``
     list is best first), so the first set is made of every type's first choice. At most
-    ``max_sets`` sets."""
-    sets, rank_sums = [], []
-    for g in itertools.combinations(range(len(by_type)), 3):
-        members = [by_type[i] for i in g]
-        ranks = np.indices([len(m) for m in members]).reshape(3, -1).T        # (n, 3)
-        sets.append(np.stack([members[i][ranks[:, i]] for i in range(3)], axis=1))
-        rank_sums.append(ranks.sum(axis=1))
-    order = np.argsort(np.concatenate(rank_sums), kind="stable")[:max_sets]
-    return np.concatenate(sets)[order]
+    ``max_sets`` sets (read from a table built once per type and rank count)."""
+    counts = np.array([len(m) for m in by_type])
+    table = _minimal_set_table(len(by_type), int(counts.max()))
+    rows = table[np.flatnonzero(np.all(table[:, 3:] < counts[table[:, :3]], axis=1))[:max_sets]]
+    padded = np.zeros((len(by_type), counts.max()), dtype=np.int64)
+    for i, members in enumerate(by_type):
+        padded[i, : len(members)] = members
+    return padded[rows[:, :3], rows[:, 3:]]
+
+
+def _least_squares_pose(obj: np.ndarray, img: np.ndarray, K: np.ndarray,
+                        ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``cv2.SOLVEPNP_SQPNP`` through (n, 3) model / (n, 2) image points (no distortion) as
+    (R (3, 3), t (3,)), or (None, None) when it fails."""
+    try:
+        ok, rvec, tvec = cv2.solvePnP(obj, np.ascontiguousarray(img), K, None, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        return None, None
+    if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+        return None, None
+    return cv2.Rodrigues(rvec)[0], tvec.ravel()
+
+
+def _ap3p_poses(objs: np.ndarray, imgs: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.SOLVEPNP_AP3P`` on each of (H, 4, 3) model / (H, 4, 2) image point quadruples (no
+    distortion): ((h, 3, 3) R, (h, 3) t) of the h that succeed."""
+    rvecs, tvecs = [], []
+    for obj, img in zip(objs, imgs):
+        try:
+            ok, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_AP3P)
+        except cv2.error:
+            continue
+        if ok:
+            rvecs.append(rvec.ravel())
+            tvecs.append(tvec.ravel())
+    rvecs, tvecs = np.array(rvecs).reshape(-1, 3), np.array(tvecs).reshape(-1, 3)
+    ok = np.isfinite(rvecs).all(axis=1) & np.isfinite(tvecs).all(axis=1)
+    return Rotation.from_rotvec(rvecs[ok]).as_matrix().reshape(-1, 3, 3), tvecs[ok]
 
 
 def solve_pnp_candidates(
@@ -187,32 +279,45 @@ def solve_pnp_candidates(
     cuboid_points: np.ndarray,
     K: np.ndarray,
     hypothesis_threshold_px: float = 5.0,
-    max_hypotheses: int = 400,
+    max_hypotheses: int = DEFAULT_MAX_HYPOTHESES,
     **pnp_options,
 ) -> PoseEstimate | None:
     """Pose of one cuboid from several candidate peaks per keypoint (multi-hypothesis PnP).
 
     A trained network often puts a second, sometimes stronger, peak of corner map k on
     another corner of the same box; taking one peak per type then leaves too few consistent
-    keypoints for :func:`solve_pnp`. Here every candidate may be used: each pose hypothesis
-    is solved (``cv2.SOLVEPNP_AP3P``) from the centroid plus three corner candidates of
-    distinct types, kept only when it projects the centroid within
-    ``hypothesis_threshold_px`` of its peak (the candidates were gathered for that centroid),
-    and scored by the summed confidence (clipped to [0, 1]) of the keypoint types whose
-    nearest candidate lies within ``hypothesis_threshold_px`` of the projection - one
-    candidate per type, so duplicates cannot inflate a score. Sets are tried best-ranked
-    first (candidates are listed best first per type: the first set is every type's first
-    choice), at most ``max_hypotheses`` of them, and the search stops as soon as a hypothesis
-    explains every keypoint type present, so a clean instance costs one chunk of solves; it
-    gives up after ``_GIVE_UP_AFTER`` when no hypothesis explains more than its own four
-    points (clutter, not a cuboid), and skips the final :func:`solve_pnp` when fewer than its
-    ``min_points`` types lie within its ``reprojection_threshold_px`` of the best hypothesis.
-    The order is fixed, so the result is reproducible. The best hypothesis picks, per type,
-    the candidate nearest its projection (or the type's strongest candidate where none is
-    within the threshold: it counts as an outlier unless within the final RANSAC threshold),
-    and that assignment goes through :func:`solve_pnp` with every one of its checks (RANSAC, refinement, inlier ratio, mean
-    error). OpenCV's RANSAC does not fit: it counts every inlying correspondence, so several
-    candidates of one type near a wrong pose outvote the right one.
+    keypoints for :func:`solve_pnp`. Here every candidate may be used. Pose hypotheses are
+    scored by the summed confidence (clipped to [0, 1]) of the keypoint types whose nearest
+    candidate lies within ``hypothesis_threshold_px`` of the projection - one candidate per
+    type, so duplicates cannot inflate a score - and kept only when they project the centroid
+    within that distance of its peak (the candidates were gathered for that centroid):
+
+    1. the least-squares pose (``cv2.SOLVEPNP_SQPNP``) through every type's first candidate.
+       On clean maps it is the answer: when each first candidate lies within the threshold
+       and is the nearest of its type, they go to :func:`solve_pnp` without further search;
+    2. otherwise ``cv2.SOLVEPNP_AP3P`` poses from the centroid plus three corner candidates of
+       distinct types (minimal sets), best-ranked first (candidates are listed best first per
+       type), type triples of equal rank in a covering order (:func:`_covering_order`: any
+       one, two, three wrong first choices are avoided by the 2nd, 4th, 10th set), checked
+       after 4 and then every ``_HYPOTHESIS_CHUNK`` sets (:func:`_chunk_ends`), at most
+       ``max_hypotheses``. Whenever a hypothesis beats the best so far and explains more
+       than four types (not all), the least-squares pose through the candidates it explains
+       is scored too (the local optimization of LO-RANSAC: noisy peaks put a minimal set's
+       pose a few pixels off the far corners).
+
+    The search ends as soon as a hypothesis explains every keypoint type present, or all but
+    one and at least ``_ENOUGH_TYPES`` (a type whose candidates are all another object's
+    peaks cannot be explained by any pose), or when ``_STALL_AFTER`` minimal sets in a row
+    brought no better hypothesis (clutter: none ever fits its centroid). The search draws
+    nothing at random (only the RANSAC fallback below does). The best hypothesis picks, per
+    type, the candidate nearest its projection (or the type's strongest candidate where none
+    is within the threshold: it counts as an outlier unless within the final threshold), and
+    that assignment goes through :func:`solve_pnp` with the hypothesis as its consensus
+    (``initial_pose``: the search is the RANSAC) and every one of its checks (refinement,
+    inlier ratio, mean error), then, where that consensus fails them, with RANSAC; it is
+    skipped when fewer than its ``min_points`` types lie within its
+    ``reprojection_threshold_px`` of the best hypothesis. OpenCV's RANSAC does not fit the search itself: it counts every inlying
+    correspondence, so several candidates of one type near a wrong pose outvote the right one.
 
     Args:
         keypoint_ids: (n,) int keypoint index of each candidate (0..7 corners, 8 the centroid),
@@ -222,7 +327,7 @@ def solve_pnp_candidates(
         cuboid_points: (9, 3) model-frame cuboid keypoints, metres.
         K: (3, 3) intrinsics of the image the points are in (no distortion).
         hypothesis_threshold_px: a candidate supports a hypothesis within this distance, px.
-        max_hypotheses: most minimal sets solved.
+        max_hypotheses: most AP3P minimal sets solved.
         **pnp_options: keyword arguments of :func:`solve_pnp` for the final pose.
 
     Returns:
@@ -235,74 +340,143 @@ def solve_pnp_candidates(
     sc = np.asarray(scores, dtype=np.float64).ravel()
     if not (len(ids) == len(pts) == len(sc)):
         raise ValueError(f"keypoint_ids, points and scores differ in length: {len(ids)}, {len(pts)}, {len(sc)}")
-    if np.any((ids < 0) | (ids >= NUM_KEYPOINTS)):
+    if len(ids) and (ids.min() < 0 or ids.max() >= NUM_KEYPOINTS):
         raise ValueError(f"keypoint ids must be in 0..{NUM_KEYPOINTS - 1}, got {sorted(set(ids.tolist()))}")
     if max_hypotheses < 1:
         raise ValueError(f"max_hypotheses must be >= 1, got {max_hypotheses}")
     cuboid = np.asarray(cuboid_points, dtype=np.float64).reshape(NUM_KEYPOINTS, 3)
     K = np.asarray(K, dtype=np.float64)
-    usable = np.all(np.isfinite(pts), axis=1) & np.isfinite(sc)
-    by_type = {k: np.flatnonzero(usable & (ids == k)) for k in range(NUM_KEYPOINTS)}
-    by_type = {k: v for k, v in by_type.items() if v.size}
-    corner_types = [k for k in by_type if k != CENTROID_INDEX]
-    if CENTROID_INDEX not in by_type or len(corner_types) < 3:
+    usable = np.flatnonzero(np.isfinite(pts).all(axis=1) & np.isfinite(sc))
+    counts = np.bincount(ids[usable], minlength=NUM_KEYPOINTS)
+    if counts[CENTROID_INDEX] == 0 or np.count_nonzero(counts[:CENTROID_INDEX]) < 3:
         return None
-    anchor = by_type[CENTROID_INDEX][0]
-    sets = _minimal_sets([by_type[k] for k in corner_types], int(max_hypotheses))
-    weight = np.clip(sc, 0.0, 1.0)
-    quads = np.concatenate([sets, np.full((len(sets), 1), anchor)], axis=1)   # (S, 4): 3 corners + centroid
-    objs, imgs = cuboid[ids[quads]], np.ascontiguousarray(pts[quads])
+    # Candidate indices per type present, each best first (the input order).
+    order = usable[np.argsort(ids[usable], kind="stable")]
+    types = np.flatnonzero(counts)
+    starts = np.cumsum(counts[types]) - counts[types]
+    first = order[starts]
+    anchor = first[-1]                                       # the centroid (type 8, last)
+    R, t = _least_squares_pose(cuboid[types], pts[first], K)                   # step 1
+    if R is not None:
+        # Every type's first candidate within the threshold of this pose and the nearest of its
+        # type: nothing to search (the scoring below would find just that).
+        uvw = (cuboid[ids[usable]] @ R.T + t) @ K.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d = uvw[:, :2] / uvw[:, 2:] - pts[usable]
+        err = np.full(len(ids), np.inf)
+        err[usable] = np.where(uvw[:, 2] > 0, d[:, 0] ** 2 + d[:, 1] ** 2, np.inf)       # squared, px^2
+        first_of = np.repeat(first, counts[types])           # per candidate in order: its type's first
+        if np.all(err[first] <= hypothesis_threshold_px ** 2) and np.all(err[order] >= err[first_of]):
+            kp = np.full((NUM_KEYPOINTS, 2), np.nan)
+            kp[types] = pts[first]
+            kp_scores = np.zeros(NUM_KEYPOINTS)
+            kp_scores[types] = sc[first]
+            return solve_pnp(kp, kp_scores, cuboid, K, initial_pose=(R, t), **pnp_options)
+    groups = np.split(order, starts[1:])
+    scorer = _HypothesisScorer(ids, pts, np.clip(sc, 0.0, 1.0), groups, anchor, cuboid, K,
+                               float(hypothesis_threshold_px))
 
-    min_points = int(pnp_options.get("min_points", DEFAULT_MIN_POINTS))
-    best_score, best_nearest, best_err, most_explained = -1.0, None, None, 0
-    for start in range(0, len(sets), _HYPOTHESIS_CHUNK):
-        rvecs, tvecs = [], []
-        for q in range(start, min(start + _HYPOTHESIS_CHUNK, len(sets))):
-            try:
-                ok, rvec, tvec = cv2.solvePnP(objs[q], imgs[q], K, None, flags=cv2.SOLVEPNP_AP3P)
-            except cv2.error:
-                continue
-            if ok and np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec)):
-                rvecs.append(rvec.ravel())
-                tvecs.append(tvec.ravel())
-        if not rvecs:
-            continue
-        # Score the chunk at once: (H, 9, 3) camera-frame cuboids -> (H, 9, 2) projections.
-        cam = np.einsum("hij,kj->hki", Rotation.from_rotvec(np.asarray(rvecs)).as_matrix(), cuboid)
-        cam += np.asarray(tvecs)[:, None, :]
-        z = cam[..., 2]
-        proj = (cam @ K.T)[..., :2] / np.where(z > 0, z, np.nan)[..., None]
-        err = np.linalg.norm(proj[:, ids] - pts[None], axis=2)               # (H, n)
-        err = np.where(usable[None] & np.isfinite(err), err, np.inf)
-        centre_err = np.linalg.norm(proj[:, CENTROID_INDEX] - pts[anchor], axis=1)
-        err[~(centre_err <= hypothesis_threshold_px) | (z[:, CENTROID_INDEX] <= 0)] = np.inf
-        total = np.zeros(len(err))
-        explained = np.zeros(len(err), dtype=int)
-        nearest = {}
-        for k, cols in by_type.items():
-            j = cols[np.argmin(err[:, cols], axis=1)]                         # (H,) nearest candidate
-            inside = err[np.arange(len(err)), j] <= hypothesis_threshold_px
-            nearest[k] = j
-            total += np.where(inside, weight[j], 0.0)
-            explained += inside
-        h = int(np.argmax(total))
-        if np.isfinite(err[h]).any() and total[h] > best_score:
-            best_score, best_err = total[h], err[h]
-            best_nearest = {k: int(j[h]) for k, j in nearest.items()}
-        most_explained = max(most_explained, int(explained.max()))
-        if most_explained == len(by_type):
-            break  # a hypothesis explains every type present: none can explain more
-        if start + _HYPOTHESIS_CHUNK >= _GIVE_UP_AFTER and most_explained <= quads.shape[1]:
-            break  # nothing beyond its own minimal set: peaks of no rigid cuboid (clutter)
-    if best_nearest is None:
+    def add(Rs, ts) -> None:
+        """Score hypotheses; while the best improves, also the least-squares pose through the
+        candidates it explains (when more than its own four): noisy peaks put a minimal
+        set's pose a few pixels off the far corners, the fit through all of them is not."""
+        scorer.add(Rs, ts)
+        for _ in range(3):
+            if not scorer.improved or not 4 < scorer.best_explained.size < len(groups):
+                break
+            scorer.improved = False
+            fit = _least_squares_pose(cuboid[ids[scorer.best_explained]], pts[scorer.best_explained], K)
+            if fit[0] is not None:
+                scorer.add([fit[0]], [fit[1]])
+
+    if R is not None:
+        add([R], [t])
+    n_types = len(types)
+    enough = n_types if n_types - 1 < _ENOUGH_TYPES else n_types - 1
+    if scorer.most_explained < enough:                                         # step 2
+        sets = _minimal_sets(groups[:-1], int(max_hypotheses))
+        quads = np.concatenate([sets, np.full((len(sets), 1), anchor)], axis=1)  # 3 corners + centroid
+        objs, imgs = cuboid[ids[quads]], np.ascontiguousarray(pts[quads])       # (S, 4, 3), (S, 4, 2)
+        start = last_better = 0
+        for end in _chunk_ends(len(quads)):
+            best_before = scorer.best_total
+            add(*_ap3p_poses(objs[start:end], imgs[start:end], K))
+            start, last_better = end, end if scorer.best_total > best_before else last_better
+            if scorer.most_explained >= enough:
+                break  # every type present explained, or all but a foreign one
+            if end - last_better >= _STALL_AFTER:
+                break  # no better hypothesis for a while: clutter, or the best there is
+    if scorer.best_err is None:
         return None
+    best_err, best_nearest = scorer.best_err, scorer.best_nearest
     final_px = float(pnp_options.get("reprojection_threshold_px", DEFAULT_REPROJECTION_PX))
-    if sum(best_err[j] <= final_px for j in best_nearest.values()) < min_points:
-        return None  # fewer than min_points keypoints near the best pose: spare solve_pnp's RANSAC
+    min_points = int(pnp_options.get("min_points", DEFAULT_MIN_POINTS))
+    if np.count_nonzero(best_err[best_nearest] <= final_px) < min_points:
+        return None  # fewer than min_points keypoints near the best pose
     kp = np.full((NUM_KEYPOINTS, 2), np.nan)
     kp_scores = np.zeros(NUM_KEYPOINTS)
-    for k, j in best_nearest.items():
+    for k, g, j in zip(types, groups, best_nearest):
         if best_err[j] > hypothesis_threshold_px:
-            j = int(by_type[k][np.argmax(sc[by_type[k]])])
+            j = g[np.argmax(sc[g])]
         kp[k], kp_scores[k] = pts[j], sc[j]
-    return solve_pnp(kp, kp_scores, cuboid, K, **pnp_options)
+    est = solve_pnp(kp, kp_scores, cuboid, K, initial_pose=scorer.best_pose, **pnp_options)
+    # A minimal set's pose is a few pixels off on noisy peaks: where its consensus does not
+    # hold up, RANSAC on the assignment may still find one that does.
+    return est if est is not None else solve_pnp(kp, kp_scores, cuboid, K, **pnp_options)
+
+
+class _HypothesisScorer:
+    """Scores pose hypotheses against candidate peaks and keeps the best (see
+    :func:`solve_pnp_candidates`).
+
+    ids (n,), pts (n, 2) image px, weight (n,) in [0, 1]: the candidates; groups: per keypoint
+    type present, its candidate indices (best first); anchor: the centroid candidate;
+    cuboid (9, 3) metres; K (3, 3); threshold_px: a candidate supports a hypothesis within it.
+    """
+
+    def __init__(self, ids: np.ndarray, pts: np.ndarray, weight: np.ndarray, groups: list[np.ndarray],
+                 anchor: int, cuboid: np.ndarray, K: np.ndarray, threshold_px: float):
+        n = len(ids)
+        self.ids, self.pts, self.anchor, self.cuboid_t, self.K, self.threshold = ids, pts, anchor, cuboid.T, K, threshold_px
+        width = max(len(g) for g in groups)
+        self.slots = np.full((len(groups), width), n)          # (T, w) candidate index, n = none
+        for i, g in enumerate(groups):
+            self.slots[i, : len(g)] = g
+        self.type_index = np.arange(len(groups))
+        self.weight = np.append(weight, 0.0)
+        self.most_explained = 0
+        self.best_total = -1.0
+        self.improved = False                        # set when a hypothesis beats the best
+        self.best_explained = np.zeros(0, dtype=int)  # candidates the best explains, one per type
+        self.best_pose: tuple[np.ndarray, np.ndarray] | None = None   # (R, t) of the best hypothesis
+        self.best_err: np.ndarray | None = None      # (n + 1,) errors under the best hypothesis
+        self.best_nearest: np.ndarray | None = None  # (T,) its nearest candidate per type
+
+    def add(self, Rs, ts) -> None:
+        """Score hypotheses, Rs (H, 3, 3) and ts (H, 3) (arrays or lists), at once: (H, 3, 9)
+        camera-frame cuboids -> per type the nearest candidate to the projection, explained
+        within the threshold."""
+        if len(Rs) == 0:
+            return
+        cam = np.asarray(Rs) @ self.cuboid_t + np.asarray(ts)[:, :, None]   # (H, 3, 9)
+        img = self.K @ cam
+        with np.errstate(divide="ignore", invalid="ignore"):
+            proj = img[:, :2] / np.where(cam[:, 2] > 0, img[:, 2], np.nan)[:, None]   # (H, 2, 9)
+        d = proj[:, :, self.ids] - self.pts.T[None]                           # (H, 2, n)
+        err = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)                            # (H, n)
+        centre_ok = err[:, self.anchor] <= self.threshold
+        err[~np.isfinite(err) | ~centre_ok[:, None]] = np.inf
+        err = np.concatenate([err, np.full((len(err), 1), np.inf)], axis=1)  # column n: no candidate
+        per_slot = err[:, self.slots]                                         # (H, T, w)
+        pick = np.argmin(per_slot, axis=2)                                    # (H, T)
+        nearest = self.slots[self.type_index, pick]
+        inside = per_slot.min(axis=2) <= self.threshold
+        total = (inside * self.weight[nearest]).sum(axis=1)
+        valid = centre_ok
+        h = int(np.argmax(np.where(valid, total, -np.inf)))
+        if valid[h] and total[h] > self.best_total:
+            self.best_total, self.best_err, self.best_nearest = float(total[h]), err[h], nearest[h]
+            self.best_pose = (Rs[h], np.asarray(ts[h]))
+            self.best_explained = nearest[h][inside[h]]
+            self.improved = True
+        self.most_explained = max(self.most_explained, int(inside.sum(axis=1).max()))

@@ -346,9 +346,13 @@ class DopePredictor:
         found = [solve_pnp_candidates(c.keypoint_ids, c.xy, c.scores, self.cuboid_pnp, K_net,
                                       **self.hypothesis_options, **self.pnp_options)
                  for c in corner_candidates(belief, affinity, self.stride, **self.decode_options)]
+        found = sorted((e for e in found if e is not None), key=lambda e: -e.score)
         kept: list[PoseEstimate] = []
-        for est in sorted((e for e in found if e is not None), key=lambda e: -e.score):
-            if not any(_same_peaks(est, other) for other in kept):
+        inliers = np.zeros((len(found), NUM_KEYPOINTS), dtype=bool)
+        keypoints = np.zeros((len(found), NUM_KEYPOINTS, 2))
+        for est in found:
+            if not _same_peaks(est, inliers[: len(kept)], keypoints[: len(kept)]):
+                inliers[len(kept)], keypoints[len(kept)] = est.inliers, est.keypoints
                 kept.append(est)
         return kept
 
@@ -366,12 +370,12 @@ def as_depth_image(depth: np.ndarray | DepthImage | None, K: np.ndarray, depth_s
     return DepthImage.from_raw(depth, K, depth_scale_m, calibration, image_hw)
 
 
-def _same_peaks(a: PoseEstimate, b: PoseEstimate) -> bool:
-    """True when at least half of ``a``'s inlier keypoints are the very peaks (same type, same
-    position) among ``b``'s inliers: two centroids that explain one object."""
-    both = a.inliers & b.inliers
-    same = both & np.all(np.abs(a.keypoints - b.keypoints) < 1e-6, axis=1)
-    return 2 * int(same.sum()) >= int(a.inliers.sum())
+def _same_peaks(a: PoseEstimate, inliers: np.ndarray, keypoints: np.ndarray) -> bool:
+    """True when, for one of the kept estimates ((k, 9) inliers, (k, 9, 2) keypoints), at least
+    half of ``a``'s inlier keypoints are the very peaks (same type, same position) among its
+    inliers: two centroids that explain one object."""
+    same = a.inliers & inliers & np.all(np.abs(a.keypoints - keypoints) < 1e-6, axis=2)
+    return bool(np.any(2 * same.sum(axis=1) >= int(a.inliers.sum())))
 
 
 def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.ndarray,

@@ -4,9 +4,9 @@ Pipeline (all channels at once, no Python loops over pixels):
 
 1. **Peaks.** Each belief map is smoothed with a Gaussian (``smooth_sigma`` map px,
    ``scipy.ndimage.gaussian_filter``); a cell is a peak when it is the maximum of its
-   ``(2*nms_radius+1)^2`` neighbourhood (``maximum_filter``) and its belief (the largest raw
-   value in its 3x3 neighbourhood) exceeds ``threshold``. Plateaus of equal maxima yield one
-   peak (connected components, ``scipy.ndimage.label``).
+   ``(2*nms_radius+1)^2`` neighbourhood and its belief (the largest raw value in its 3x3
+   neighbourhood) exceeds ``threshold``. Plateaus of equal maxima yield one peak (connected
+   components, ``scipy.ndimage.label``, only where peak cells touch).
 2. **Sub-pixel position.** The peak cell first climbs to the raw map's local maximum next to
    it (smoothing moves a skewed peak's cell towards its shoulder; fitting there put a trained
    model's keypoints ~1 cell off). Then a separable *log-parabola* (Gaussian) fit on the three
@@ -30,12 +30,16 @@ Pipeline (all channels at once, no Python loops over pixels):
    do not steal each other's corners, and a weak secondary peak next to the centroid does not
    displace the strong true corner. The field gives only a direction (no length), so the
    centroid distance is the only distance cue.
-4. **Candidates** (:func:`corner_candidates`, what :class:`dope_hope.inference.predictor.DopePredictor`
-   uses by default): instead of committing to one peak per corner type, each centroid keeps
-   up to ``max_per_type`` feasible peaks of every type (the one-to-one grouping's choice
-   first, then strongest, nearest among equals), shared with other centroids;
-   :func:`dope_hope.inference.pnp.solve_pnp_candidates` then picks the combination that a rigid cuboid
-   explains. A trained net often puts a second peak of map k on another corner
+4. **Candidates** (:func:`corner_candidates`, what
+   :class:`dope_hope.inference.predictor.DopePredictor` uses by default): instead of
+   committing to one peak per corner type, each centroid keeps up to ``max_per_type``
+   feasible peaks of every type (the one-to-one grouping's choice first, then strongest,
+   nearest among equals), shared with other centroids, but not the peaks of other objects
+   that merely pass the angle test: a peak whose affinity points at another centroid clearly
+   better (``angle_margin``), or that lies farther than ``size_factor`` times the object's
+   projected size (the median distance of its one-to-one corners), is no candidate.
+   :func:`dope_hope.inference.pnp.solve_pnp_candidates` then picks the combination that a
+   rigid cuboid explains. A trained net often puts a second peak of map k on another corner
    of the same box (corner identity is the hard part); the grouping above must guess, the
    pose search need not.
 
@@ -50,7 +54,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import gaussian_filter, label, maximum_filter
+from scipy.ndimage import gaussian_filter, label
 from scipy.optimize import linear_sum_assignment
 
 from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
@@ -63,6 +67,11 @@ DEFAULT_ANGLE_THRESHOLD = 0.5
 #: DOPE smooths with sigma 3 map px; with 0.5-px targets that merges peaks of neighbouring
 #: instances closer than ~3 cells (24 image px at stride 8), so we smooth less by default.
 DEFAULT_SMOOTH_SIGMA = 1.0
+#: :func:`corner_candidates`: a peak joins a centroid other than its one-to-one one only when
+#: its affinity points at it at most this much worse than at its best-aimed centroid, and it
+#: lies within this many times the centroid's object size.
+DEFAULT_ANGLE_MARGIN = 0.2
+DEFAULT_SIZE_FACTOR = 2.0
 #: Grouping cost per unit of missing peak height, map px: a peak's height outranks any
 #: centroid distance (see :func:`assign_corners`).
 SCORE_PRIORITY = 1e4
@@ -150,27 +159,50 @@ def _log_parabola(maps: np.ndarray, c: np.ndarray, y: np.ndarray, x: np.ndarray,
     return np.where(valid, vertex, pos.astype(np.float64)), valid, log_height
 
 
+def _window_max(a: np.ndarray, radius: int) -> np.ndarray:
+    """(C, h, w) maximum of each cell's (2r+1)^2 neighbourhood within its channel, cells
+    outside the map not counted (separable: rows, then columns)."""
+    if radius <= 0:
+        return a
+    h, w = a.shape[1:]
+    padded = np.pad(a, ((0, 0), (radius, radius), (radius, radius)), constant_values=-np.inf)
+    rows = padded[:, :, : w]
+    for d in range(1, 2 * radius + 1):
+        rows = np.maximum(rows, padded[:, :, d: d + w])
+    out = rows[:, : h]
+    for d in range(1, 2 * radius + 1):
+        out = np.maximum(out, rows[:, d: d + h])
+    return out
+
+
+_DY = np.repeat([-1, 0, 1], 3)   # the 3x3 neighbourhood, row by row
+_DX = np.tile([-1, 0, 1], 3)
+
+
+def _neighbourhood(raw: np.ndarray, c: np.ndarray, y: np.ndarray, x: np.ndarray):
+    """Values (P, 9) of each cell's 3x3 neighbourhood in raw (C, h, w), clamped at the map
+    border, row by row, with their (P, 9) rows and columns."""
+    h, w = raw.shape[1:]
+    yy = np.clip(y[:, None] + _DY, 0, h - 1)
+    xx = np.clip(x[:, None] + _DX, 0, w - 1)
+    return raw[c[:, None], yy, xx], yy, xx
+
+
 def _snap_to_raw_max(raw: np.ndarray, c: np.ndarray, y: np.ndarray, x: np.ndarray,
                      max_steps: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """Climb from each peak cell to the raw map's local maximum (3x3 steps, at most
-    ``max_steps``; ties keep the current cell).
+    """Climb from each peak cell to the raw map's local maximum (3x3 steps to the first
+    strictly larger neighbourhood maximum, row by row; at most ``max_steps``; ties keep the
+    current cell).
 
     raw (C, h, w); c, y, x (P,) int cells. Returns the new (y, x), each (P,) int."""
-    h, w = raw.shape[1:]
-    y, x = y.copy(), x.copy()
+    rows = np.arange(len(c))
     for _ in range(max_steps):
-        best_y, best_x = y.copy(), x.copy()
-        best = raw[c, y, x]
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                yy, xx = np.clip(y + dy, 0, h - 1), np.clip(x + dx, 0, w - 1)
-                v = raw[c, yy, xx]
-                better = v > best
-                best = np.where(better, v, best)
-                best_y, best_x = np.where(better, yy, best_y), np.where(better, xx, best_x)
-        if np.array_equal(best_y, y) and np.array_equal(best_x, x):
+        vals, yy, xx = _neighbourhood(raw, c, y, x)
+        j = np.argmax(vals, axis=1)
+        move = vals[rows, j] > raw[c, y, x]
+        if not move.any():
             break
-        y, x = best_y, best_x
+        y, x = np.where(move, yy[rows, j], y), np.where(move, xx[rows, j], x)
     return y, x
 
 
@@ -198,37 +230,38 @@ def find_peaks(
     raw = _to_numpy(belief)
     if raw.ndim != 3:
         raise ValueError(f"belief must be (C, h, w), got {raw.shape}")
-    raw = np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0)
+    if not np.isfinite(raw).all():
+        raw = np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0)
     C, h, w = raw.shape
     smooth = gaussian_filter(raw, sigma=(0, smooth_sigma, smooth_sigma)) if smooth_sigma > 0 else raw
-    size = (1, 2 * nms_radius + 1, 2 * nms_radius + 1)
-    local_max = smooth >= maximum_filter(smooth, size=size, mode="constant", cval=-np.inf)
-    local_max &= smooth > 0  # flat empty regions are not peaks
-    # Raw belief near each candidate: the 3x3 maximum, gathered at the candidates only.
+    local_max = (smooth >= _window_max(smooth, nms_radius)) & (smooth > 0)  # flat empty regions are not peaks
+    # Raw belief near each candidate: the 3x3 maximum (edge-clamped), gathered at the candidates only.
     cand = np.flatnonzero(local_max)
     cc, cy, cx = np.unravel_index(cand, raw.shape)
-    padded = np.pad(raw, ((0, 0), (1, 1), (1, 1)), mode="edge")
-    near = np.max([padded[cc, cy + dy, cx + dx] for dy in range(3) for dx in range(3)], axis=0)
-    mask = np.zeros(raw.shape, dtype=bool)
-    mask.ravel()[cand[near > threshold]] = True
+    near = _neighbourhood(raw, cc, cy, cx)[0].max(axis=1)
+    idx = cand[near > threshold]
     value = np.zeros(raw.shape, dtype=raw.dtype)
     value.ravel()[cand] = near
-    # One peak per plateau: label connected peak cells within each channel.
-    structure = np.zeros((3, 3, 3), dtype=bool)
-    structure[1] = True
-    labels, n = label(mask, structure=structure)
-    if n == 0:
+    if idx.size == 0:
         empty = np.zeros((0, 2))
         return Peaks(np.zeros(0, int), empty.astype(int), empty, np.zeros(0))
-    idx = np.flatnonzero(mask)  # few cells: keep the first cell of each plateau
-    _, first = np.unique(labels.ravel()[idx], return_index=True)
-    c, y, x = np.unravel_index(idx[first], labels.shape)
+    c, y, x = np.unravel_index(idx, raw.shape)
+    padded = np.zeros((C, h + 2, w + 2), dtype=bool)  # peak cells, one empty cell around
+    padded[c, y + 1, x + 1] = True
+    if any(padded[c, y + 1 + dy, x + 1 + dx].any() for dy, dx in ((0, 1), (1, -1), (1, 0), (1, 1))):
+        # Touching peak cells (a plateau): label connected peak cells within each channel,
+        # keep the first cell of each.
+        structure = np.zeros((3, 3, 3), dtype=bool)
+        structure[1] = True
+        labels, _ = label(padded[:, 1:-1, 1:-1], structure=structure)
+        _, first = np.unique(labels.ravel()[idx], return_index=True)
+        c, y, x = np.unravel_index(idx[first], labels.shape)
 
     if refine_on == "raw" and smooth is not raw:
         # Smoothing finds the peaks (and keeps close instances apart) but shifts a skewed
         # peak's cell; fit the raw map around its own maximum next to the detected cell.
         y, x = _snap_to_raw_max(raw, c, y, x)
-        _, keep = np.unique(np.stack([c, y, x], 1), axis=0, return_index=True)  # climbed together
+        _, keep = np.unique(np.ravel_multi_index((c, y, x), raw.shape), return_index=True)  # climbed together
         keep.sort()
         c, y, x = c[keep], y[keep], x[keep]
     primary, secondary = (raw, smooth) if refine_on == "raw" else (smooth, raw)
@@ -300,8 +333,9 @@ def assign_corners(
     n, m = len(corner_xy), len(centroids_xy)
     if n == 0 or m == 0:
         return np.full(n, -1, dtype=int)
-    return _one_to_one(*corner_centroid_costs(corner_cells, corner_xy, vectors, centroids_xy,
-                                              angle_threshold, min_affinity, corner_scores))
+    feasible, cost, _, _ = corner_centroid_costs(corner_cells, corner_xy, vectors, centroids_xy, angle_threshold,
+                                                 min_affinity, corner_scores)
+    return _one_to_one(feasible, cost)
 
 
 def _one_to_one(feasible: np.ndarray, cost: np.ndarray) -> np.ndarray:
@@ -320,9 +354,10 @@ def _one_to_one(feasible: np.ndarray, cost: np.ndarray) -> np.ndarray:
 def corner_centroid_costs(corner_cells: np.ndarray, corner_xy: np.ndarray, vectors: np.ndarray,
                           centroids_xy: np.ndarray, angle_threshold: float = DEFAULT_ANGLE_THRESHOLD,
                           min_affinity: float = 0.0, corner_scores: np.ndarray | None = None,
-                          ) -> tuple[np.ndarray, np.ndarray]:
-    """(n, m) bool feasibility (affinity direction test) and (n, m) float grouping cost of
-    corner peaks vs centroids; arguments as in :func:`assign_corners`."""
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(n, m) bool feasibility (affinity direction test), (n, m) float grouping cost, (n, m)
+    float direction disagreement ``|v/|v| - u|`` and (n, m) corner-centroid distance (map px)
+    of corner peaks vs centroids; arguments as in :func:`assign_corners`."""
     vnorm = np.linalg.norm(vectors, axis=1)
     v_hat = vectors / np.where(vnorm > 0, vnorm, 1.0)[:, None]
     to_c = centroids_xy[None, :, :] - corner_cells[:, None, :].astype(np.float64)  # (n, m, 2)
@@ -331,11 +366,12 @@ def corner_centroid_costs(corner_cells: np.ndarray, corner_xy: np.ndarray, vecto
     angle_dist = np.linalg.norm(u_hat - v_hat[:, None, :], axis=2)
     feasible = (angle_dist < angle_threshold) & (vnorm[:, None] > max(min_affinity, 0.0))
     feasible &= dist_c > 0
-    cost = np.linalg.norm(centroids_xy[None] - corner_xy[:, None], axis=2)
+    dist = np.linalg.norm(centroids_xy[None] - corner_xy[:, None], axis=2)
+    cost = dist
     if corner_scores is not None:
         weak = 1.0 - np.clip(np.asarray(corner_scores, dtype=np.float64), 0.0, 1.0)
-        cost = cost + SCORE_PRIORITY * weak[:, None]
-    return feasible, cost
+        cost = dist + SCORE_PRIORITY * weak[:, None]
+    return feasible, cost, angle_dist, dist
 
 
 def decode_maps(
@@ -376,10 +412,10 @@ def decode_maps(
     scores = np.zeros((m, NUM_KEYPOINTS))
     kp_map[:, CENTROID_INDEX] = centroids_xy
     scores[:, CENTROID_INDEX] = peaks.score[is_c]
-    for k, sel, _, _, owner in _corner_groups(peaks, aff, centroids_xy, angle_threshold, min_affinity):
-        got = owner >= 0
-        kp_map[owner[got], k] = peaks.xy[sel][got]
-        scores[owner[got], k] = peaks.score[sel][got]
+    corner, *_, owner = _corner_groups(peaks, aff, centroids_xy, angle_threshold, min_affinity)
+    got = owner >= 0
+    kp_map[owner[got], peaks.channel[corner[got]]] = peaks.xy[corner[got]]
+    scores[owner[got], peaks.channel[corner[got]]] = peaks.score[corner[got]]
 
     kp_img = map_to_image(kp_map, stride)
     instances = [
@@ -393,32 +429,34 @@ def decode_maps(
 
 def _peaks_and_field(belief, affinity, threshold: float, smooth_sigma: float, nms_radius: int,
                      refine_on: str) -> tuple[Peaks, np.ndarray]:
-    """Checked maps -> (peaks of all nine channels, (16, h, w) affinity without NaN/inf)."""
+    """Checked maps -> (peaks of all nine channels, (16, h, w) affinity)."""
     bel = _to_numpy(belief)
     aff = _to_numpy(affinity)
     if bel.ndim != 3 or bel.shape[0] != NUM_KEYPOINTS:
         raise ValueError(f"belief must be ({NUM_KEYPOINTS}, h, w), got {bel.shape}")
     if aff.shape != (2 * CENTROID_INDEX,) + bel.shape[1:]:
         raise ValueError(f"affinity must be ({2 * CENTROID_INDEX}, h, w) like belief, got {aff.shape}")
-    aff = np.nan_to_num(aff, nan=0.0, posinf=0.0, neginf=0.0)
     return find_peaks(bel, threshold, smooth_sigma, nms_radius, refine_on), aff
 
 
 def _corner_groups(peaks: Peaks, aff: np.ndarray, centroids_xy: np.ndarray, angle_threshold: float,
-                   min_affinity: float):
-    """For each corner type k with peaks (8 types; the work inside is vectorized), yield
-    (k, (n,) peak indices, (n, m) feasible, (n, m) cost, (n,) one-to-one centroid or -1)
-    against the (m, 2) centroids: the grouping step both :func:`decode_maps` and
-    :func:`corner_candidates` build on."""
-    for k in range(CENTROID_INDEX):
-        sel = np.flatnonzero(peaks.channel == k)
-        if sel.size == 0:
-            continue
-        cells = peaks.cell[sel]
-        vectors = np.stack([aff[2 * k, cells[:, 1], cells[:, 0]], aff[2 * k + 1, cells[:, 1], cells[:, 0]]], 1)
-        feasible, cost = corner_centroid_costs(cells, peaks.xy[sel], vectors, centroids_xy, angle_threshold,
-                                               min_affinity, peaks.score[sel])
-        yield k, sel, feasible, cost, _one_to_one(feasible, cost)
+                   min_affinity: float) -> tuple[np.ndarray, ...]:
+    """The grouping step both :func:`decode_maps` and :func:`corner_candidates` build on, for
+    every corner peak against the (m, 2) centroids at once: ((N,) peak indices of the corner
+    peaks, (N, m) feasible, (N, m) cost, (N, m) direction disagreement, (N, m) distance, (N,)
+    one-to-one centroid or -1, assigned per corner type). The affinity is read at each peak's cell
+    (NaN/inf read as 0)."""
+    corner = np.flatnonzero(peaks.channel != CENTROID_INDEX)
+    ch, cells = peaks.channel[corner], peaks.cell[corner]
+    vectors = np.stack([aff[2 * ch, cells[:, 1], cells[:, 0]], aff[2 * ch + 1, cells[:, 1], cells[:, 0]]], 1)
+    vectors = np.nan_to_num(vectors.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    feasible, cost, angle, dist = corner_centroid_costs(cells, peaks.xy[corner], vectors, centroids_xy,
+                                                        angle_threshold, min_affinity, peaks.score[corner])
+    owner = np.full(len(corner), -1, dtype=int)
+    for k in np.unique(ch):
+        rows = np.flatnonzero(ch == k)
+        owner[rows] = _one_to_one(feasible[rows], cost[rows])
+    return corner, feasible, cost, angle, dist, owner
 
 
 @dataclass
@@ -451,15 +489,23 @@ def corner_candidates(
     min_affinity: float = 0.0,
     refine_on: str = "raw",
     max_per_type: int = 3,
+    angle_margin: float = DEFAULT_ANGLE_MARGIN,
+    size_factor: float = DEFAULT_SIZE_FACTOR,
 ) -> list[CornerCandidates]:
     """Per centroid peak, the corner peaks whose affinity points at it (module docstring, 4).
 
     Args:
         belief, affinity, stride, threshold, angle_threshold, smooth_sigma, nms_radius,
             min_affinity, refine_on: as in :func:`decode_maps`.
-        max_per_type: keep at most this many feasible peaks of each corner type per centroid:
-            the one :func:`decode_maps` would give it, then the others by its grouping cost
-            (strongest first, nearest among equals).
+        max_per_type: keep at most this many peaks of each corner type per centroid: the one
+            :func:`decode_maps` would give it, then the others by its grouping cost (strongest
+            first, nearest among equals).
+        angle_margin: a peak other than the one-to-one choice is a candidate of a centroid
+            only when its affinity points at it at most this much worse (unit-vector distance,
+            as ``angle_threshold``) than at the centroid it points at best (inf: no bound).
+        size_factor: no peak, the one-to-one choice included, lies farther from a centroid
+            than this many times its object's size: the median distance of its one-to-one
+            corners (inf: no bound).
 
     Returns:
         One :class:`CornerCandidates` per centroid peak, strongest centroid first. A corner
@@ -467,26 +513,46 @@ def corner_candidates(
     """
     if max_per_type < 1:
         raise ValueError(f"max_per_type must be >= 1, got {max_per_type}")
+    if not (angle_margin >= 0.0 and size_factor > 0.0):
+        raise ValueError(f"angle_margin must be >= 0 and size_factor > 0, got {angle_margin}, {size_factor}")
     peaks, aff = _peaks_and_field(belief, affinity, threshold, smooth_sigma, nms_radius, refine_on)
     is_c = peaks.channel == CENTROID_INDEX
     centroids_xy = peaks.xy[is_c]
     m = len(centroids_xy)
     if m == 0:
         return []
-    ids: list[list[int]] = [[CENTROID_INDEX] for _ in range(m)]
-    xy: list[list[np.ndarray]] = [[c] for c in centroids_xy]
-    sc: list[list[float]] = [[s] for s in peaks.score[is_c]]
-    for k, sel, feasible, cost, owner in _corner_groups(peaks, aff, centroids_xy, angle_threshold, min_affinity):
-        for c in range(m):
-            # The one-to-one grouping's choice first, then by the grouping cost (strong, then near).
-            rank = np.where(owner == c, -np.inf, np.where(feasible[:, c], cost[:, c], np.inf))
-            order = np.argsort(rank, kind="stable")
-            for j in sel[order[rank[order] < np.inf][:max_per_type]]:
-                ids[c].append(k)
-                xy[c].append(peaks.xy[j])
-                sc[c].append(float(peaks.score[j]))
-    out = [CornerCandidates(keypoint_ids=np.asarray(ids[c], dtype=int),
-                            xy=map_to_image(np.asarray(xy[c], dtype=np.float64), stride),
-                            scores=np.asarray(sc[c], dtype=np.float64)) for c in range(m)]
+    corner, feasible, cost, angle, dist, owner = _corner_groups(peaks, aff, centroids_xy, angle_threshold,
+                                                                min_affinity)
+    ch = peaks.channel[corner]
+    # Size of each centroid's object: the median distance of its one-to-one corners.
+    own = np.flatnonzero(owner >= 0)
+    own_dist = np.full((m, CENTROID_INDEX), np.inf)
+    own_dist[owner[own], ch[own]] = dist[own, owner[own]]
+    own_dist.sort(axis=1)
+    n_own = np.isfinite(own_dist).sum(axis=1)
+    rows = np.arange(m)
+    lo, hi = own_dist[rows, np.maximum(n_own - 1, 0) // 2], own_dist[rows, np.maximum(n_own, 1) // 2]
+    size = np.where(n_own > 0, 0.5 * (lo + hi), np.inf)
+    # Who may be a candidate of whom, ranked: the one-to-one choice, then by the grouping cost.
+    best_angle = np.min(np.where(feasible, angle, np.inf), axis=1, keepdims=True)      # (N, 1)
+    near = dist <= size_factor * size[None]
+    keep = feasible & (angle <= best_angle + angle_margin) & near
+    is_owner = (owner[:, None] == rows[None]) & near
+    rank = np.where(is_owner, -np.inf, np.where(keep, cost, np.inf))
+    # Rows (centroid, type, rank, peak): each centroid itself (type -1: first), then its entries.
+    table = [np.stack([rows, np.full(m, -1), np.zeros(m, dtype=int), np.flatnonzero(is_c)], axis=1)]
+    for k in np.unique(ch):
+        sel = np.flatnonzero(ch == k)
+        order = np.argsort(rank[sel], axis=0, kind="stable")[:max_per_type]             # (r, m)
+        r, c = np.nonzero(rank[sel[order], rows] < np.inf)
+        table.append(np.stack([c, np.full(len(c), k), r, corner[sel[order[r, c]]]], axis=1))
+    table = np.concatenate(table)
+    table = table[np.lexsort((table[:, 2], table[:, 1], table[:, 0]))]
+    bounds = np.searchsorted(table[:, 0], np.arange(m + 1))
+    ids = np.where(table[:, 1] < 0, CENTROID_INDEX, table[:, 1])
+    xy = map_to_image(peaks.xy[table[:, 3]], stride)
+    sc = peaks.score[table[:, 3]].astype(np.float64)
+    out = [CornerCandidates(keypoint_ids=ids[a:b], xy=xy[a:b], scores=sc[a:b])
+           for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist())]
     out.sort(key=lambda cand: -cand.score)
     return out
