@@ -176,7 +176,7 @@ def main() -> int:
     photos = BackgroundSource(composite_config()["background"], args.photos).files
     print(f"model {args.weights}; photos {args.photos}: {len(photos)} ({', '.join(p.name for p in photos)}); "
           f"{args.frames} composites + {args.empty} empty crops per size, seed {args.seed}; "
-          f"min score {predictor.min_score:g}", flush=True)
+          f"min score {predictor.options.min_score:g}", flush=True)
     preview: list = []
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

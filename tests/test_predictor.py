@@ -8,6 +8,7 @@ checkpoint, a fake official DOPE-DR-50 import) check the torch backend and the m
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -115,7 +116,7 @@ def test_fake_official_checkpoint_metadata_and_frame_conversion(tmp_path):
     np.testing.assert_allclose(real.size_m, OBJ.size_array)
     # official weights run at DOPE's height 400, whatever the recorded 400x400 input size
     assert p.working_size((480, 640)) == ((400, 533), (400, 536))
-    p.height = 64  # the real network's last stage, on a small input (CPU time)
+    p.options = replace(p.options, height=64)  # the real network's last stage, on a small input (CPU time)
     belief, affinity, net_in = p.infer_maps(white((64, 80)) // 2)
     assert belief.shape == (9, 8, 10) and affinity.shape == (16, 8, 10)
     assert net_in.batch.shape == (1, 3, 64, 80)

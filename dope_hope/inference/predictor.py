@@ -117,18 +117,6 @@ class DopePredictor:
             self.backend = weights
         else:
             raise ConfigError(f"weights must be a file path or a MapBackend, got {type(weights).__name__}")
-        o = self.options
-        self.height = o.height
-        self.pose_search = o.pose_search
-        self.decode_options = dict(o.decode)
-        self.pnp_options = dict(o.pnp)
-        self.hypothesis_options = dict(o.hypotheses)
-        self.line_search_options = dict(o.line_search)
-        self.icp = o.icp
-        self.icp_options = dict(o.icp_refine)
-        self.icp_points = o.icp_points
-        self.min_score = o.min_score
-        self.ls_points = o.ls_points
         b = self.backend
         self.class_name = str(b.class_name)
         self.legacy = b.frame == "legacy" or b.keypoint_order == LEGACY_KEYPOINT_ORDER
@@ -142,7 +130,7 @@ class DopePredictor:
             self.mesh, size, center = self._load_mesh(mesh, mesh_units, size)
         self.cuboid_size_m = size
         self.cuboid_center_m = center
-        if self.icp and self.mesh is None:
+        if self.options.icp and self.mesh is None:
             self._check_icp_surface()
         #: (9, 3) mesh-frame cuboid keypoints, current order.
         self.cuboid_mesh = cuboid_keypoints(size, center)
@@ -197,7 +185,7 @@ class DopePredictor:
         if self._model_points is None:
             from dope_hope.io.meshes import sample_surface_points
 
-            self._model_points = sample_surface_points(self._surface(), self.ls_points, seed=0)
+            self._model_points = sample_surface_points(self._surface(), self.options.ls_points, seed=0)
         return self._model_points
 
     @property
@@ -220,14 +208,14 @@ class DopePredictor:
 
             if self.mesh is None:
                 self._check_icp_surface()
-            self._icp_model = sample_surface_points(self._surface(), self.icp_points, seed=0,
+            self._icp_model = sample_surface_points(self._surface(), self.options.icp_points, seed=0,
                                                     oversample=10, return_normals=True)
         return self._icp_model
 
     def working_size(self, image_hw: tuple[int, int]) -> tuple[tuple[int, int], tuple[int, int]]:
         """((H', W') resized content, (Hp, Wp) padded network input) for an image of (H, W)
         (:func:`dope_hope.preprocess.working_size` with this model's sizes)."""
-        return working_size(image_hw, height=self.height, input_hw=getattr(self.backend, "input_hw", None),
+        return working_size(image_hw, height=self.options.height, input_hw=getattr(self.backend, "input_hw", None),
                             fixed_input_hw=getattr(self.backend, "fixed_input_hw", None), legacy=self.legacy)
 
     # ------------------------------------------------------------------ inference
@@ -281,7 +269,7 @@ class DopePredictor:
         mean_scale = math.sqrt(net_in.scale[0] * net_in.scale[1])
         out: list[Detection] = []
         for est in self._poses(belief, affinity, K_net):
-            if est.score < self.min_score:
+            if est.score < self.options.min_score:
                 continue
             R, t = est.R, est.t
             kp, scores, inliers = est.keypoints, est.keypoint_scores, est.inliers
@@ -298,11 +286,11 @@ class DopePredictor:
                 cuboid_size_m=self.cuboid_size_m.copy(), cuboid_center_m=self.cuboid_center_m.copy(),
             )
             if depth is not None:
-                ls = depth_line_search(R, t, self.model_points, depth, **self.line_search_options)
+                ls = depth_line_search(R, t, self.model_points, depth, **self.options.line_search)
                 det.t, det.ls_applied, det.ls_reason, det.ls_scale = ls.t, ls.applied, ls.reason, ls.scale
-                if self.icp:
+                if self.options.icp:
                     self._refine_icp(det, depth)
-            elif self.icp:
+            elif self.options.icp:
                 det.icp_reason = "no depth image"
             det.projected_2d = project_points(self.cuboid_mesh, K, det.R, det.t)
             det.bbox_2d = projected_bbox(self.bbox_points, K, det.R, det.t, net_in.original_hw)
@@ -324,13 +312,13 @@ class DopePredictor:
     def _refine_icp(self, det: Detection, depth: DepthImage) -> None:
         """The ICP step of the module docstring, in place on ``det`` (after the line search)."""
         if not det.ls_applied:  # ICP needs the depth within a few cm: a wider line search first
-            options = {**self.line_search_options, "search": ICP_LS_SEARCH}
+            options = {**self.options.line_search, "search": ICP_LS_SEARCH}
             wide = depth_line_search(det.R, det.t, self.model_points, depth, **options)
             if wide.applied:
                 det.t, det.ls_applied, det.ls_scale = wide.t, True, wide.scale
                 det.ls_reason = f"ok (search {ICP_LS_SEARCH[0]:g}-{ICP_LS_SEARCH[1]:g}, for ICP)"
         points, normals = self.icp_model
-        res = icp_refine(det.R, det.t, points, normals, depth, **self.icp_options)
+        res = icp_refine(det.R, det.t, points, normals, depth, **self.options.icp_refine)
         det.icp_applied, det.icp_reason = res.applied, res.reason
         det.icp_fit = res.fit_after if res.applied else res.fit_before
         if res.applied:
@@ -339,13 +327,13 @@ class DopePredictor:
     def _poses(self, belief: np.ndarray, affinity: np.ndarray, K_net: np.ndarray) -> list[PoseEstimate]:
         """Network-image poses of the instances in one image's maps (step 4 of the module
         docstring), best first; keypoints in the network's own order."""
-        if self.pose_search == "groups":
-            found = [solve_pnp(inst.keypoints, inst.scores, self.cuboid_pnp, K_net, **self.pnp_options)
-                     for inst in decode_maps(belief, affinity, self.stride, **self.decode_options)]
+        if self.options.pose_search == "groups":
+            found = [solve_pnp(inst.keypoints, inst.scores, self.cuboid_pnp, K_net, **self.options.pnp)
+                     for inst in decode_maps(belief, affinity, self.stride, **self.options.decode)]
             return [e for e in found if e is not None]
         found = [solve_pnp_candidates(c.keypoint_ids, c.xy, c.scores, self.cuboid_pnp, K_net,
-                                      **self.hypothesis_options, **self.pnp_options)
-                 for c in corner_candidates(belief, affinity, self.stride, **self.decode_options)]
+                                      **self.options.hypotheses, **self.options.pnp)
+                 for c in corner_candidates(belief, affinity, self.stride, **self.options.decode)]
         found = sorted((e for e in found if e is not None), key=lambda e: -e.score)
         kept: list[PoseEstimate] = []
         inliers = np.zeros((len(found), NUM_KEYPOINTS), dtype=bool)
@@ -358,7 +346,7 @@ class DopePredictor:
 
     def __repr__(self) -> str:
         return (f"DopePredictor(class_name={self.class_name!r}, stride={self.stride}, "
-                f"frame={'legacy' if self.legacy else 'mesh'}, height={self.height})")
+                f"frame={'legacy' if self.legacy else 'mesh'}, height={self.options.height})")
 
 
 def as_depth_image(depth: np.ndarray | DepthImage | None, K: np.ndarray, depth_scale_m: float,
