@@ -5,11 +5,14 @@ Examples:
   dope-hope synth --models-dir hope/meshes/full --object Ketchup --out synth/ketchup --count 20000 \\
       --workers 2 --backgrounds coco/val2017 --distractors hope/meshes/full --preview
   dope-hope synth --models-dir bop/hope/models --object Ketchup --out D --count 100000 --shard 3/8
+  dope-hope synth --procedural --out pretrain/frames --count 24000 --size 256x192 --workers 2
 
 Writes OUT/NNNNNN.png (RGB), NNNNNN.depth.png (uint16 mm, 0 = no depth), NNNNNN.seg.png
 (uint8: 0 background, 1..k target instances = the JSON's instance_id, 101.. distractors),
 NNNNNN.json (project DOPE format: intrinsics, class, pose, projected cuboid, visibility,
 bounding box; extra keys "cuboid" and "synth") and OUT/_synth_info.json (settings).
+--procedural renders a new box, can or bottle of HOPE size with a packaging-like texture in
+every frame (class "Object", each frame's JSON records its cuboid; README "Pretraining").
 Frame i depends only on (--seed, i): reruns, --workers and --shard give identical frames.
 Resumable: frames whose JSON exists are skipped (the JSON is written last).
 """
@@ -29,6 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--models-dir", type=Path, metavar="DIR",
                      help="models folder (HOPE <Name>/textured.obj or BOP obj_NNNNNN.ply); with --object")
     src.add_argument("--object", dest="object_name", metavar="NAME", help="HOPE object name, e.g. Ketchup")
+    src.add_argument("--procedural", action="store_true",
+                     help="a new procedural box / can / bottle per frame (pretraining data; config "
+                          "section 'procedural')")
     parser.add_argument("--units", choices=("m", "cm", "mm"),
                         help="mesh file units (default: .obj cm, .ply mm)")
     parser.add_argument("--class-name", metavar="NAME",
@@ -66,12 +72,16 @@ def run(args: argparse.Namespace) -> int:
 
     if args.mesh is not None and (args.models_dir is not None or args.object_name is not None):
         raise ConfigError("give either --mesh or --models-dir with --object, not both")
-    if args.mesh is not None:
+    if args.procedural and (args.mesh is not None or args.models_dir is not None or args.object_name is not None):
+        raise ConfigError("--procedural makes its own objects: drop --mesh / --models-dir / --object")
+    if args.procedural:
+        mesh = None
+    elif args.mesh is not None:
         mesh = args.mesh
     elif args.models_dir is not None and args.object_name is not None:
         mesh = find_object_mesh(args.object_name, args.models_dir)
     else:
-        raise ConfigError("no target: give --mesh PATH or --models-dir DIR --object NAME")
+        raise ConfigError("no target: give --mesh PATH, --models-dir DIR --object NAME or --procedural")
     class_name = args.class_name
     if class_name is None and args.object_name is not None:
         from dope_hope.catalog import get_object
@@ -86,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
         args.out, mesh, args.count, seed=args.seed, size=args.size, config=config,
         workers=args.workers, shard=args.shard, backgrounds=args.backgrounds,
         distractors=args.distractors, depth_noise=args.depth_noise, preview=args.preview,
-        class_name=class_name, units=args.units, progress=not args.no_progress)
+        class_name=class_name, units=args.units, progress=not args.no_progress, procedural=args.procedural)
     print(f"{summary.written} frames written, {summary.skipped} already there, "
           f"{summary.frames_per_s:.2f} frames/s -> {summary.out_dir}")
     if summary.preview is not None:

@@ -47,10 +47,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=nonnegative_int, help="seed of init, data order and augmentation (train.seed)")
     parser.add_argument("--resume", nargs="?", const="auto", metavar="PATH",
                         help="continue from a checkpoint (no PATH: OUT/last.pt, if it exists)")
-    parser.add_argument("--init", metavar="PATH", dest="init_weights",
-                        help="start from this dope-hope checkpoint's network weights (fine-tuning: "
-                             "fresh optimizer and schedule; its architecture must match --config); "
-                             "'demo': the shipped demo model, a pretrained start for --config lite")
+    parser.add_argument("--init", metavar="pretrained|none|demo|PATH", dest="init_weights",
+                        help="the weights a new run starts from (fresh optimizer and schedule): "
+                             "'pretrained' the shipped pretrained lite start (default for --config lite: "
+                             "any new run whose architecture is the shipped one's), 'none' a random "
+                             "start, 'demo' the shipped demo model, or a dope-hope checkpoint PATH of "
+                             "the same architecture")
     parser.add_argument("--backbone-weights", type=Path, metavar="PATH",
                         help="local torchvision VGG19 state dict to initialize the trunk (arch dope)")
     parser.add_argument("--mesh", type=Path, metavar="PATH",
@@ -112,13 +114,12 @@ def run(args: argparse.Namespace) -> int:
     if resume is None and not args.object_name:
         raise ConfigError("--object NAME is required (the class to train)")
     init_weights = None
-    if args.init_weights == "demo":
-        from dope_hope.commands.infer import DEMO_WEIGHTS
-        if not DEMO_WEIGHTS.is_file():
-            raise InputFileError(DEMO_WEIGHTS, "--init demo: this installation has no shipped demo model")
-        init_weights = DEMO_WEIGHTS
-    elif args.init_weights is not None:
-        init_weights = Path(args.init_weights)
+    if resume is None:
+        from dope_hope.config import merge
+        from dope_hope.training.settings import resolve_init
+
+        init_weights, why = resolve_init(args.init_weights, merge(config, overrides))
+        logging.getLogger("dope_hope.training").info("start: %s", why)
     job = TrainJob(data=list(args.data or []), object_name=args.object_name or "", out=args.out, val=list(args.val),
                    resume=resume, mesh=args.mesh, symmetries=args.symmetries,
                    backbone_weights=args.backbone_weights,

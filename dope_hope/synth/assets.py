@@ -74,6 +74,8 @@ class MeshAsset:
         texture: (h, w, 3|4) uint8 base-colour texture or None; colors: (V, 4) uint8 or None.
         cuboid_size, cuboid_center: (3,) AABB in the mesh frame, metres.
         shape: bounding sphere about the cuboid centre.
+        cacheable: the renderer may keep its GPU mesh and texture by ``path`` (False for
+            procedural objects, made anew each frame).
     """
 
     path: Path
@@ -84,6 +86,7 @@ class MeshAsset:
     cuboid_size: np.ndarray
     cuboid_center: np.ndarray
     shape: ShapeInfo
+    cacheable: bool = True
 
     @classmethod
     def load(cls, path: str | os.PathLike, name: str | None = None, units: str | None = None,

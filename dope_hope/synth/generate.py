@@ -20,7 +20,7 @@ import numpy as np
 from dope_hope import __version__
 from dope_hope.annotation import FrameAnnotation
 from dope_hope.errors import ConfigError
-from dope_hope.synth.annotate import InstanceStats, annotate_frame
+from dope_hope.synth.annotate import InstanceStats, annotate_frame, canonical_pose_labels
 from dope_hope.synth.assets import (
     DistractorLibrary,
     MeshAsset,
@@ -53,7 +53,8 @@ class SynthFrame:
             float32 metres, exact; seg: (H, W) uint8 ids (0 background, 1..k targets,
             seg_distractor_base + j distractors); annotation: targets' FrameAnnotation;
             stats: per-target pixel counts; scene: the sampled scene; alone_depth: seg id ->
-            (H, W) depth of that target rendered alone (only when requested).
+            (H, W) depth of that target rendered alone (only when requested); target: the
+            frame's target asset; category: its HOPE category (procedural objects only).
     """
 
     index: int
@@ -65,6 +66,8 @@ class SynthFrame:
     stats: list[InstanceStats]
     scene: SceneSpec
     alone_depth: dict[int, np.ndarray] = field(default_factory=dict)
+    target: MeshAsset | None = None
+    category: str | None = None
 
     def json_extra(self, seed: int, class_name: str, mesh_name: str, cuboid_size: np.ndarray,
                    cuboid_center: np.ndarray, seg_base: int, depth_noise: bool) -> dict[str, Any]:
@@ -84,15 +87,20 @@ class SynthFrame:
                               "(occlusion and truncation)",
                 "distractor_count": sum(o.role == "distractor" for o in self.scene.objects),
                 "instances": [asdict(s) for s in self.stats],
+                **({"procedural": {"category": self.category,
+                                   "labels": "canonical pose of the category's symmetries"}}
+                   if self.category is not None else {}),
             },
         }
 
 
 class FrameGenerator:
-    """Renders frames of one target object (one OpenGL context; one per process).
+    """Renders frames of one target object, or of a new procedural object per frame (one
+    OpenGL context; one per process).
 
     Args:
-        mesh_path: target mesh (HOPE OBJ in cm, BOP PLY in mm; see io.meshes.load_mesh).
+        mesh_path: target mesh (HOPE OBJ in cm, BOP PLY in mm; see io.meshes.load_mesh); None
+            with ``procedural``.
         size: (W, H) or "WxH".
         config: synth config name/path/overrides (see settings.load_synth_config).
         class_name: annotation class (default: catalog name guessed from the path, else stem).
@@ -101,18 +109,28 @@ class FrameGenerator:
         distractors: folder of distractor meshes (default: procedural primitives only).
         depth_noise: apply RealSense-like noise to the depth that is returned as ``depth``.
         seed: dataset seed (frame i uses SeedSequence([seed, i])).
+        procedural: a new object per frame (:mod:`dope_hope.synth.objects`, the config's
+            ``procedural`` section) instead of ``mesh_path``: pretraining data.
     """
 
-    def __init__(self, mesh_path: str | os.PathLike, size: tuple[int, int] | str = (640, 480),
+    def __init__(self, mesh_path: str | os.PathLike | None, size: tuple[int, int] | str = (640, 480),
                  config: str | os.PathLike | dict | None = None, class_name: str | None = None,
                  units: str | None = None, backgrounds: str | os.PathLike | None = None,
                  distractors: str | os.PathLike | None = None, depth_noise: bool = False,
-                 seed: int = 0):
+                 seed: int = 0, procedural: bool = False):
         self.size = parse_size(size)
         self.cfg = load_synth_config(config)
         self.seed = int(seed)
-        self.class_name = class_name or guess_class_name(mesh_path)
-        self.target = MeshAsset.load(mesh_path, name=self.class_name, units=units)
+        self.procedural = bool(procedural)
+        if self.procedural == (mesh_path is not None):
+            raise ConfigError("give a target mesh or procedural objects, not both" if self.procedural
+                              else "no target: give a mesh or procedural objects")
+        if self.procedural:
+            self.class_name = class_name or str(self.cfg["procedural"]["class_name"])
+            self.target = None
+        else:
+            self.class_name = class_name or guess_class_name(mesh_path)
+            self.target = MeshAsset.load(mesh_path, name=self.class_name, units=units)
         self.library = None
         if distractors is not None:
             files = list_distractor_meshes(distractors, mesh_path, self.class_name)
@@ -145,22 +163,31 @@ class FrameGenerator:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _mesh_for(self, obj: ObjectSpec):
+    def _mesh_for(self, obj: ObjectSpec, target: MeshAsset):
         if obj.source == "target":
-            return self._meshes.target(self.target, obj.material)
+            return self._meshes.target(target, obj.material)
         if obj.source == "mesh":
             return self._meshes.library_mesh(self.library.get(obj.mesh_index), obj.material)
         return self._meshes.primitive_mesh(obj.geometry, obj.material)
 
-    def sample_scene(self, index: int, seed: int | None = None,
-                     force_occluder: int | None = None) -> tuple[SceneSpec, dict[str, np.random.Generator]]:
-        """The random scene of frame ``index`` (no rendering) and its remaining random streams."""
+    def sample_scene(self, index: int, seed: int | None = None, force_occluder: int | None = None
+                     ) -> tuple[SceneSpec, dict[str, np.random.Generator], MeshAsset, str | None]:
+        """The random scene of frame ``index`` (no rendering), its remaining random streams, its
+        target asset and (procedural objects) the target's category."""
         streams = frame_streams(self.seed if seed is None else seed, index)
+        target, category = self.target, None
+        if self.procedural:
+            from dope_hope.synth.objects import sample_object
+
+            p = self.cfg["procedural"]
+            obj = sample_object(streams["object"], p["categories"], float(p["size_jitter"]),
+                                int(p["texture_px"]), name=self.class_name)
+            target, category = obj.asset, obj.category
         n_lib = len(self.library) if self.library is not None else 0
-        spec = sample_scene(streams, self.size, self.cfg, self.target.shape, n_lib,
+        spec = sample_scene(streams, self.size, self.cfg, target.shape, n_lib,
                             self.library.shape if self.library is not None else None,
                             force_occluder=force_occluder)
-        return spec, streams
+        return spec, streams, target, category
 
     def render_frame(self, index: int, seed: int | None = None, force_occluder: int | None = None,
                      with_alone_depth: bool = False) -> SynthFrame:
@@ -174,10 +201,10 @@ class FrameGenerator:
             with_alone_depth: also return each target's depth rendered alone.
         """
         self._ensure_renderer()
-        spec, streams = self.sample_scene(index, seed, force_occluder)
+        spec, streams, target, category = self.sample_scene(index, seed, force_occluder)
         W, H = self.size
-        out = self._renderer.render(spec, self._mesh_for,
-                                    (self.target.cuboid_size, self.target.cuboid_center),
+        out = self._renderer.render(spec, lambda obj: self._mesh_for(obj, target),
+                                    (target.cuboid_size, target.cuboid_center),
                                     with_alone_depth=with_alone_depth)
         background = self.backgrounds.sample(streams["background"], W, H)
         rgb = composite(background, out.color, out.alpha)
@@ -186,14 +213,20 @@ class FrameGenerator:
         if self.depth_noise:
             depth = add_realsense_noise(out.depth, rgb, spec.K, streams["depth_noise"],
                                         **noise_kwargs(self.cfg["depth_noise"]))
-        annotation, stats = annotate_frame(spec, out, self.class_name, self.target.cuboid_size,
-                                           self.target.cuboid_center)
+        labelled = spec
+        if category is not None and self.cfg["procedural"]["canonical_labels"]:
+            labelled = canonical_pose_labels(spec, category, target.cuboid_size)
+        annotation, stats = annotate_frame(labelled, out, self.class_name, target.cuboid_size,
+                                           target.cuboid_center)
         return SynthFrame(index=int(index), rgb=rgb, depth=depth, depth_clean=out.depth, seg=out.seg,
-                          annotation=annotation, stats=stats, scene=spec, alone_depth=out.alone_depth)
+                          annotation=annotation, stats=stats, scene=spec, alone_depth=out.alone_depth,
+                          target=target, category=category)
 
     def json_extra(self, frame: SynthFrame, seed: int | None = None) -> dict[str, Any]:
-        return frame.json_extra(self.seed if seed is None else seed, self.class_name, self.target.path.name,
-                                self.target.cuboid_size, self.target.cuboid_center,
+        target = frame.target if frame.target is not None else self.target
+        mesh_name = "procedural" if frame.category is not None else target.path.name
+        return frame.json_extra(self.seed if seed is None else seed, self.class_name, mesh_name,
+                                target.cuboid_size, target.cuboid_center,
                                 int(self.cfg["output"]["seg_distractor_base"]), self.depth_noise)
 
     def write_frame(self, out_dir: str | os.PathLike, index: int) -> Path:
@@ -259,22 +292,25 @@ class GenerateSummary:
 
 
 def dataset_info(gen_kwargs: dict[str, Any], cfg: dict[str, Any], class_name: str,
-                 cuboid_size: np.ndarray, cuboid_center: np.ndarray) -> dict[str, Any]:
-    """Settings that define a dataset's frames (must match when resuming or adding shards)."""
+                 cuboid_size: np.ndarray | None, cuboid_center: np.ndarray | None) -> dict[str, Any]:
+    """Settings that define a dataset's frames (must match when resuming or adding shards);
+    procedural objects have no dataset-wide cuboid (None: each frame's JSON records its own)."""
     def name(p):
         return None if p is None else Path(p).name
 
     return {"generator": GENERATOR_NAME, "version": __version__, "class": class_name,
-            "mesh": name(gen_kwargs["mesh_path"]), "units": gen_kwargs.get("units"),
+            "mesh": "procedural" if gen_kwargs.get("procedural") else name(gen_kwargs["mesh_path"]),
+            "units": gen_kwargs.get("units"),
             "seed": int(gen_kwargs["seed"]), "size": list(parse_size(gen_kwargs["size"])),
             "backgrounds": name(gen_kwargs.get("backgrounds")),
             "distractors": name(gen_kwargs.get("distractors")),
             "depth_noise": bool(gen_kwargs.get("depth_noise")),
-            "cuboid_size_m": [float(v) for v in cuboid_size],
-            "cuboid_center_m": [float(v) for v in cuboid_center], "config": cfg}
+            "cuboid_size_m": None if cuboid_size is None else [float(v) for v in cuboid_size],
+            "cuboid_center_m": None if cuboid_center is None else [float(v) for v in cuboid_center],
+            "config": cfg}
 
 
-def generate_dataset(out_dir: str | os.PathLike, mesh_path: str | os.PathLike, count: int,
+def generate_dataset(out_dir: str | os.PathLike, mesh_path: str | os.PathLike | None, count: int,
                      seed: int = 0, size: tuple[int, int] | str = (640, 480),
                      config: str | os.PathLike | dict | None = None, workers: int = 1,
                      shard: tuple[int, int] | str | None = None,
@@ -282,7 +318,8 @@ def generate_dataset(out_dir: str | os.PathLike, mesh_path: str | os.PathLike, c
                      distractors: str | os.PathLike | None = None, depth_noise: bool = False,
                      preview: bool = False, class_name: str | None = None, units: str | None = None,
                      progress: bool = True, indices: list[int] | None = None,
-                     on_frame: Callable[[int], None] | None = None) -> GenerateSummary:
+                     on_frame: Callable[[int], None] | None = None,
+                     procedural: bool = False) -> GenerateSummary:
     """Generate frames 0..count-1 (those of this shard) into ``out_dir``.
 
     Frames whose JSON exists are skipped (resume). With ``workers`` > 1, frames are rendered
@@ -292,6 +329,7 @@ def generate_dataset(out_dir: str | os.PathLike, mesh_path: str | os.PathLike, c
     Args:
         indices: explicit frame indices instead of range(count) (still filtered by shard).
         on_frame: called with each frame index once it is written (in this process).
+        procedural: a new procedural object per frame instead of ``mesh_path`` (None).
 
     Returns:
         A GenerateSummary (frames written / skipped, seconds, preview path).
@@ -305,15 +343,17 @@ def generate_dataset(out_dir: str | os.PathLike, mesh_path: str | os.PathLike, c
     i_shard, n_shard = parse_shard(shard)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    gen_kwargs = dict(mesh_path=str(mesh_path), size=parse_size(size), config=config,
+    gen_kwargs = dict(mesh_path=None if mesh_path is None else str(mesh_path), size=parse_size(size), config=config,
                       class_name=class_name, units=units,
                       backgrounds=None if backgrounds is None else str(backgrounds),
                       distractors=None if distractors is None else str(distractors),
-                      depth_noise=depth_noise, seed=int(seed))
+                      depth_noise=depth_noise, seed=int(seed), procedural=bool(procedural))
     # Validate inputs in this process (clear errors before any worker starts).
     local = FrameGenerator(**gen_kwargs)
+    target = local.target
     check_or_write_info(out, dataset_info(gen_kwargs, local.cfg, local.class_name,
-                                          local.target.cuboid_size, local.target.cuboid_center))
+                                          None if target is None else target.cuboid_size,
+                                          None if target is None else target.cuboid_center))
     wanted = [i for i in (range(count) if indices is None else indices) if i % n_shard == i_shard]
     todo = [i for i in wanted if not is_complete(out, i)]
     remove_stale_temporaries(out, set(todo))

@@ -70,7 +70,13 @@ class MeshBuilder:
         return self._textures[key]
 
     def target(self, asset: MeshAsset, spec: MaterialSpec) -> pyrender.Mesh:
-        """The shared target mesh with this frame's material."""
+        """The shared target mesh with this frame's material (a new one for an asset that is
+        not cacheable: a procedural object)."""
+        if not asset.cacheable:
+            texture = make_texture(asset.texture) if asset.texture is not None else None
+            material = make_material(spec, texture)
+            return pyrender.Mesh(primitives=[make_primitive(asset.mesh, material, use_uv=texture is not None,
+                                                            colors=asset.colors)])
         key = str(asset.path)
         material = make_material(spec, self._texture_for(asset))
         if key not in self._target_meshes:

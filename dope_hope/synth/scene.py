@@ -19,9 +19,10 @@ from dope_hope.synth.camera import sample_intrinsics
 from dope_hope.synth.primitives import dims_for_radius, make_primitive, sample_dims
 from dope_hope.synth.textures import procedural_image, random_color
 
-#: Names of the per-frame random streams, in spawn order (never reorder: it changes datasets).
+#: Names of the per-frame random streams, in spawn order (never reorder: it changes datasets;
+#: a new stream goes at the end). "object": the frame's procedural target (synth/objects.py).
 STREAM_NAMES = ("camera", "targets", "distractors", "lights", "background", "post",
-                "occluders", "depth_noise")
+                "occluders", "depth_noise", "object")
 
 
 def frame_streams(seed: int, index: int) -> dict[str, np.random.Generator]:

@@ -77,10 +77,24 @@ def validate_synth_config(cfg: dict[str, Any]) -> None:
         raise ConfigError("synth config: seg ids must fit in uint8: target.count[1] < "
                           "output.seg_distractor_base and base + distractors + occluders <= 255")
     for section, key in (("distractors", "primitives"), ("lights", "types"),
-                         ("background", "procedural_weights")):
+                         ("background", "procedural_weights"), ("procedural", "categories")):
         weights = cfg[section][key]
         if not isinstance(weights, dict) or not any(float(v) > 0 for v in weights.values()):
             raise ConfigError(f"synth config: {section}.{key} needs at least one positive weight")
+    from dope_hope.catalog import CATEGORIES
+
+    unknown = sorted(set(cfg["procedural"]["categories"]) - set(CATEGORIES))
+    if unknown:
+        raise ConfigError(f"synth config: procedural.categories: unknown {', '.join(unknown)}; "
+                          f"known: {', '.join(CATEGORIES)}")
+    jitter = cfg["procedural"]["size_jitter"]
+    if not isinstance(jitter, (int, float)) or not 0 <= jitter < 1:
+        raise ConfigError(f"synth config: procedural.size_jitter must be a number in [0, 1), got {jitter!r}")
+    px = cfg["procedural"]["texture_px"]
+    if isinstance(px, bool) or not isinstance(px, int) or not 16 <= px <= 4096:
+        raise ConfigError(f"synth config: procedural.texture_px must be a whole number in 16..4096, got {px!r}")
+    if not isinstance(cfg["procedural"]["canonical_labels"], bool):
+        raise ConfigError("synth config: procedural.canonical_labels must be true or false")
 
 
 def parse_size(text: str | tuple[int, int]) -> tuple[int, int]:

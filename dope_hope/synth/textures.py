@@ -149,3 +149,75 @@ def procedural_image(rng: np.random.Generator, height: int, width: int,
     p = np.array([weights[k] for k in kinds], dtype=np.float64)
     kind = kinds[int(rng.choice(len(kinds), p=p / p.sum()))]
     return _MAKERS[kind](rng, height, width)
+
+
+#: OpenCV's Hershey fonts (the only ones it draws without a font file).
+_FONTS = (cv2.FONT_HERSHEY_SIMPLEX, cv2.FONT_HERSHEY_DUPLEX, cv2.FONT_HERSHEY_COMPLEX,
+          cv2.FONT_HERSHEY_TRIPLEX, cv2.FONT_HERSHEY_PLAIN, cv2.FONT_HERSHEY_COMPLEX_SMALL,
+          cv2.FONT_HERSHEY_SCRIPT_SIMPLEX)
+_LETTERS = np.array(list("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789"))
+
+
+def _random_word(rng: np.random.Generator, n: tuple[int, int] = (3, 10)) -> str:
+    return "".join(rng.choice(_LETTERS, size=int(rng.integers(n[0], n[1] + 1))))
+
+
+def _put_text_fitted(img: np.ndarray, text: str, center: tuple[float, float], width_px: float,
+                     font: int, color: tuple[int, ...], thickness: int) -> None:
+    """Draw ``text`` centred on ``center`` at the font scale that makes it ``width_px`` wide."""
+    (tw, th), _ = cv2.getTextSize(text, font, 1.0, thickness)
+    scale = max(0.2, width_px / max(tw, 1))
+    (tw, th), _ = cv2.getTextSize(text, font, scale, thickness)
+    org = (int(center[0] - tw / 2), int(center[1] + th / 2))
+    cv2.putText(img, text, org, font, scale, color, thickness, cv2.LINE_AA)
+
+
+def label_image(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
+    """A packaging-like texture: coloured bands, a brand word, a logo, lines of small print and
+    sometimes a barcode or a picture-like noise patch over a plain or gradient ground.
+
+    Grocery packaging is what the HOPE objects wear; OpenCV draws it (Hershey fonts), so no
+    font or image file is needed. Returns (H, W, 3) uint8 RGB.
+    """
+    img = np.ascontiguousarray(gradient_image(rng, height, width) if rng.random() < 0.5 else
+                               np.broadcast_to((random_color(rng) * 255).astype(np.uint8),
+                                               (height, width, 3)).copy())
+    scale = min(height, width)
+
+    def color() -> tuple[int, int, int]:
+        return tuple(int(c) for c in random_color(rng) * 255.0)
+
+    for _ in range(int(rng.integers(0, 4))):                          # horizontal bands
+        y0 = rng.uniform(0, height)
+        h = rng.uniform(0.03, 0.25) * height
+        cv2.rectangle(img, (0, int(y0)), (width, int(y0 + h)), color(), -1)
+    if rng.random() < 0.4:                                           # a picture-like patch
+        ph, pw = int(rng.uniform(0.2, 0.5) * height), int(rng.uniform(0.2, 0.6) * width)
+        y, x = int(rng.uniform(0, height - ph)), int(rng.uniform(0, width - pw))
+        img[y:y + ph, x:x + pw] = noise_image(rng, ph, pw)
+    for _ in range(int(rng.integers(0, 3))):                          # logos
+        p = (int(rng.uniform(0, width)), int(rng.uniform(0, height)))
+        r = int(rng.uniform(0.05, 0.2) * scale)
+        if rng.random() < 0.5:
+            cv2.circle(img, p, r, color(), -1, cv2.LINE_AA)
+        else:
+            cv2.ellipse(img, p, (r, int(r * rng.uniform(0.3, 1.0))), rng.uniform(0, 180), 0, 360,
+                        color(), -1, cv2.LINE_AA)
+    for _ in range(int(rng.integers(1, 3))):                          # brand words
+        font = _FONTS[int(rng.integers(0, len(_FONTS)))]
+        _put_text_fitted(img, _random_word(rng), (rng.uniform(0.3, 0.7) * width, rng.uniform(0.15, 0.85) * height),
+                         rng.uniform(0.4, 0.9) * width, font, color(), int(rng.integers(1, 4)))
+    ink = color()
+    y = rng.uniform(0.5, 0.8) * height                               # small print
+    for _ in range(int(rng.integers(0, 8))):
+        x0 = rng.uniform(0.02, 0.3) * width
+        _put_text_fitted(img, " ".join(_random_word(rng, (2, 7)) for _ in range(3)),
+                         (x0 + 0.3 * width, y), rng.uniform(0.3, 0.6) * width, cv2.FONT_HERSHEY_PLAIN, ink, 1)
+        y += rng.uniform(0.03, 0.06) * height
+    if rng.random() < 0.3:                                           # barcode
+        bw, bh = int(rng.uniform(0.15, 0.3) * width), int(rng.uniform(0.08, 0.15) * height)
+        x, y = int(rng.uniform(0, width - bw)), int(rng.uniform(0, height - bh))
+        img[y:y + bh, x:x + bw] = 255
+        bars = rng.random(bw) < 0.45
+        img[y + 1:y + bh - 1, x:x + bw][:, bars] = 0
+    return img

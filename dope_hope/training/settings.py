@@ -14,6 +14,12 @@ if TYPE_CHECKING:
     from dope_hope.training.trainer import Trainer
 
 
+#: The shipped pretrained lite start (README "Pretraining"): ``--init pretrained``, and the
+#: start of every new run whose architecture is the shipped one's.
+PRETRAINED_WEIGHTS = Path(__file__).resolve().parent.parent / "assets" / "pretrained_lite.pt"
+#: ``--init`` choices besides a checkpoint path.
+INIT_CHOICES = ("auto", "pretrained", "demo", "none")
+
 #: Defaults of the ``train`` section (a config's values override them).
 TRAIN_DEFAULTS: dict[str, Any] = {
     "batch_size": 16, "epochs": 30, "steps": None, "time_limit_min": None,
@@ -221,3 +227,52 @@ def label_symmetries(setting: Any, object_name: str, declaration_file: Path | No
     if value not in CATEGORIES:
         raise ConfigError(f"targets.symmetry must be none, auto or one of {', '.join(CATEGORIES)}; got {setting!r}")
     return category_symmetries(value, step_deg=90.0), f"{value} category"
+
+
+def resolve_init(choice: str | None, config: dict[str, Any]) -> tuple[Path | None, str]:
+    """The checkpoint whose weights start a new run (``--init``) and a line saying why.
+
+    Args:
+        choice: None or "auto" (the shipped pretrained start when the run's ``model`` section
+            and input normalization are the ones it was trained with, else a random start),
+            "pretrained", "demo" (the shipped demo model), "none" (random start) or a path.
+        config: the run's config.
+
+    Raises:
+        InputFileError: "pretrained" / "demo" where this installation does not ship the file.
+        ModelFileError: "pretrained" for another architecture (its shapes differ).
+    """
+    from dope_hope.errors import InputFileError
+
+    value = "auto" if choice is None else str(choice)
+    if value == "none":
+        return None, "random start (--init none)"
+    if value == "demo":
+        from dope_hope.commands.infer import DEMO_WEIGHTS
+        if not DEMO_WEIGHTS.is_file():
+            raise InputFileError(DEMO_WEIGHTS, "--init demo: this installation has no shipped demo model")
+        return DEMO_WEIGHTS, "the shipped demo model (--init demo)"
+    if value in ("auto", "pretrained"):
+        if not PRETRAINED_WEIGHTS.is_file():
+            if value == "pretrained":
+                raise InputFileError(PRETRAINED_WEIGHTS, "--init pretrained: this installation ships no "
+                                                         "pretrained start")
+            return None, "random start (this installation ships no pretrained start)"
+        if value == "pretrained" or same_architecture(config, PRETRAINED_WEIGHTS):
+            return PRETRAINED_WEIGHTS, f"the shipped pretrained start {PRETRAINED_WEIGHTS.name}"
+        return None, ("random start: the config's model differs from the shipped pretrained lite "
+                      "start's (--init none to say so, --init PATH for another checkpoint)")
+    return Path(value), f"the weights of {value} (--init)"
+
+
+def same_architecture(config: dict[str, Any], checkpoint: Path) -> bool:
+    """True when ``config`` builds the network ``checkpoint`` holds (same ``model`` section and
+    input normalization)."""
+    from dope_hope.model.checkpoint import load_checkpoint
+
+    saved = load_checkpoint(checkpoint)["config"]
+
+    def norm(c: dict[str, Any]) -> Any:
+        return (c.get("input") or {}).get("normalization", "imagenet")
+
+    return saved.get("model") == config.get("model") and norm(saved) == norm(config)

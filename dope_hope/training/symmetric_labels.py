@@ -68,20 +68,37 @@ def camera_direction(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return v / n if np.isfinite(n) and n > 0 else np.full(3, np.nan)
 
 
-def canonical_permutation(view_dir: np.ndarray, rotations: np.ndarray, permutations: np.ndarray,
-                          reference: np.ndarray = REFERENCE_VIEW) -> np.ndarray:
-    """(9,) int: the keypoint permutation of the symmetric pose whose camera direction lies
-    nearest to ``reference``.
+def canonical_index(view_dir: np.ndarray, rotations: np.ndarray,
+                    reference: np.ndarray = REFERENCE_VIEW) -> int | None:
+    """Index of the symmetry ``S`` (among (P, 3, 3) ``rotations``) whose pose ``R S`` puts the
+    camera nearest to ``reference``; None for a NaN ``view_dir``.
 
-    With pose ``R S`` the camera direction in the object frame is ``S^T v`` and corner k
-    projects where corner ``perm[k]`` of pose ``R`` does, so the relabelled keypoints are
-    ``keypoints[perm]``. A NaN ``view_dir`` keeps the identity.
+    With pose ``R S`` the camera direction in the object frame is ``S^T v``.
     """
     v = np.asarray(view_dir, dtype=np.float64)
     if not np.all(np.isfinite(v)):
-        return np.arange(NUM_KEYPOINTS)
+        return None
     score = np.einsum("pij,i,j->p", rotations, v, reference)  # (S^T v) . ref = v . (S ref)
-    return permutations[int(np.argmax(score))]
+    return int(np.argmax(score))
+
+
+def canonical_permutation(view_dir: np.ndarray, rotations: np.ndarray, permutations: np.ndarray,
+                          reference: np.ndarray = REFERENCE_VIEW) -> np.ndarray:
+    """(9,) int: the keypoint permutation of the symmetric pose whose camera direction lies
+    nearest to ``reference`` (:func:`canonical_index`).
+
+    Corner k of pose ``R S`` projects where corner ``perm[k]`` of pose ``R`` does, so the
+    relabelled keypoints are ``keypoints[perm]``. A NaN ``view_dir`` keeps the identity.
+    """
+    k = canonical_index(view_dir, rotations, reference)
+    return np.arange(NUM_KEYPOINTS) if k is None else permutations[k]
+
+
+def canonical_rotation(R: np.ndarray, t: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+    """(3, 3) ``R S``: the symmetric-equivalent rotation of pose (R, t) whose projected cuboid
+    is the canonically relabelled one (``R`` itself for a NaN view)."""
+    k = canonical_index(camera_direction(R, t), rotations)
+    return np.asarray(R, dtype=np.float64) if k is None else np.asarray(R, dtype=np.float64) @ rotations[k]
 
 
 def canonical_keypoints(keypoints: np.ndarray, view_dirs: np.ndarray, rotations: np.ndarray,
