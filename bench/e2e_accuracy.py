@@ -8,7 +8,7 @@ commands are printed and logged to OUT/logs/):
 2. ``train``: `dope-hope train --config lite` for a fixed wall-clock budget (default 20
    minutes on the 2 CPU cores; `--train-minutes`), validation on a seeded 10 % split, with
    symmetry-aware labels (`--train-set`, default ``targets.symmetry=auto``); from scratch, or
-   from a checkpoint's weights with `--init` (the shipped demo model: a pretrained start).
+   with `--init` from the shipped pretrained start, the demo model or a checkpoint's weights.
 3. ``synth-test``: a held-out test set at 640x480 (the RealSense colour size) with other seeds
    (1001), photo backgrounds (`--backgrounds`) and RealSense-like depth noise (`--depth-noise`).
 
@@ -30,8 +30,8 @@ refuses a rerun with other settings in the same folder.
     python bench/e2e_accuracy.py                                   # 2 CPU cores, ~37 min
     python bench/e2e_accuracy.py --quick --out /tmp/e2e_quick      # tiny, < 1 min: checks the plumbing
     python bench/e2e_accuracy.py --train-set targets.symmetry=none --out runs/e2e_plain  # official labels
-    python bench/e2e_accuracy.py --train-minutes 30 --init dope_hope/assets/demo_lite.pt \\
-        --out runs/e2e_init                                        # from the shipped demo model
+    python bench/e2e_accuracy.py --train-minutes 30 --init demo --out runs/e2e_init      # from the demo model
+    python bench/e2e_accuracy.py --train-minutes 30 --init pretrained --out runs/e2e_pre  # the pretrained start
     python bench/e2e_accuracy.py --config dope_dr_50 --train-minutes 240 --train-count 20000 \\
         --workers 8 --device cuda --out bench/out/e2e_dr50         # on a GPU machine
 
@@ -89,9 +89,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--train-set", nargs="+", default=list(TRAIN_SET), metavar="KEY=VALUE",
                    help="training config overrides (`dope-hope train --set`; default "
                         f"{' '.join(TRAIN_SET)}; targets.symmetry=none gives the official labels)")
-    p.add_argument("--init", type=Path, metavar="PATH",
-                   help="start training from this checkpoint's weights (`dope-hope train --init`), "
-                        "e.g. dope_hope/assets/demo_lite.pt: the shipped demo model")
+    p.add_argument("--init", metavar="pretrained|demo|none|PATH",
+                   help="the weights training starts from (`dope-hope train --init`): 'pretrained' the "
+                        "shipped pretrained lite start, 'demo' the shipped demo model, a checkpoint PATH; "
+                        "default none (a random start, as the figures of bench/RESULTS.md before "
+                        "session 8)")
     p.add_argument("--quick", action="store_true",
                    help="tiny sizes and budget: checks that every stage runs (numbers meaningless)")
     args = p.parse_args(argv)
@@ -219,8 +221,8 @@ def main(argv: list[str] | None = None) -> int:
                 "test_count": args.test_count, "size": args.size, "device": args.device,
                 "backgrounds": None if args.backgrounds is None else str(args.backgrounds.resolve()),
                 "quick": args.quick, "train_seed": TRAIN_SEED, "test_seed": TEST_SEED}
-    if args.init is not None:  # only when given: earlier runs' settings stay valid
-        settings["init"] = str(args.init.resolve())
+    if args.init is not None and args.init != "none":  # only when given: earlier runs' settings stay valid
+        settings["init"] = args.init if args.init in ("pretrained", "demo") else str(Path(args.init).resolve())
     check_settings(out, settings)
     print(f"e2e accuracy: {args.object} ({args.mesh}), {args.train_count} training frames, "
           f"{args.config} for {args.train_minutes:g} min, {args.test_count} test frames at {args.size}, "
@@ -236,8 +238,7 @@ def main(argv: list[str] | None = None) -> int:
              "--mesh", mesh, "--out", run_dir, "--time-budget", args.train_minutes, "--resume", "--no-progress"]
     if args.device:
         train += ["--device", args.device]
-    if args.init is not None:
-        train += ["--init", args.init.resolve()]
+    train += ["--init", settings.get("init", "none")]
     sets = list(args.train_set)
     if args.quick:  # a few steps of a tiny-input run: checks the plumbing only
         train += ["--steps", "2", "--batch-size", "2", "--workers", "0"]
