@@ -281,6 +281,11 @@ def bop19_average_recall(dataset: Dataset, preds_by_frame: list[list[Prediction]
     if inexact:
         notes.append("not the toolkit's inputs (a BOP obj_XXXXXX.ply + models_info.json in mm) "
                      "for: " + ", ".join(inexact))
+    elsewhere = sorted(c for c in classes_used if models[c].bop.exact
+                       and models[c].bop.path.parent.name != "models_eval")
+    if dataset.fmt == "bop" and elsewhere:
+        notes.append("the toolkit scores BOP19 with DATASET/models_eval/; not from a models_eval "
+                     "folder: " + ", ".join(f"{c} ({models[c].bop.path})" for c in elsewhere))
     procedural = sorted(n for n, m in models.items() if m.procedural)
     if procedural:
         notes.append("procedural cuboid models (no mesh) for: " + ", ".join(procedural))
