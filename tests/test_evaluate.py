@@ -20,6 +20,7 @@ from dope_hope.evaluation.bop19 import (
     bop_mspd_error,
     bop_mssd_error,
     bop_recalls,
+    target_matches,
 )
 from dope_hope.evaluation.datasets import load_dataset
 from dope_hope.evaluation.evaluate import (
@@ -90,6 +91,32 @@ def test_bop_rule_only_the_inst_count_most_visible_gt_are_valid():
     # the estimate matches the less visible GT; only the most visible one is a target
     t = target([[0.0, 1.0]], [0.9], vis=[0.2, 0.9], inst_count=1)
     assert bop_recalls([t], "mssd", [0.2]).tolist() == [0.0]
+
+
+def test_bop_rule_equal_errors_go_to_the_lower_gt_id_and_matching_is_redone_per_threshold():
+    """pose_matching.match_poses: estimates by score, each takes the valid unmatched GT whose
+    error is strictly below the best so far (initially the threshold), so equal errors keep
+    the lower gt_id. A (0.9) is 20 px from both GT, B (0.8) 0 px from gt 0 and 40 px from
+    gt 1 (the bench's scene 1 image 5). th <= 20: A unmatched, B -> gt 0; 25..40: A -> gt 0
+    (not gt 1), so B finds nothing below th; 45, 50: A -> gt 0, B -> gt 1."""
+    t = target([[20.0, 20.0], [0.0, 40.0]], [0.9, 0.8], inst_count=2, kind="mspd")
+    th = [float(x) for x in np.arange(5, 51, 5)]
+    m = target_matches(t, "mspd", th)[0]
+    assert m.tolist() == [[-1, 0]] * 4 + [[0, -1]] * 4 + [[0, 1]] * 2
+    assert bop_recalls([t], "mspd", th).tolist() == [0.5] * 8 + [1.0] * 2
+
+
+def test_bop_rule_ties_in_scores_and_visibility_keep_file_order():
+    """eval_calc_errors keeps ``sorted(enumerate(ests), key=score, reverse=True)[:inst_count]``
+    and eval_calc_scores validates the GT of ``sorted(range(G), key=visib_fract,
+    reverse=True)``: both stable, so among equals the earlier row / gt_id wins."""
+    # three equal scores, inst_count 2: the third (a perfect estimate) is never evaluated
+    t = target([[np.inf, 0.3], [np.inf, np.inf], [0.0, np.inf]], [0.5, 0.5, 0.5], inst_count=2)
+    assert target_matches(t, "mssd", [0.5])[0, 0].tolist() == [1, -1, -1]
+    assert bop_recalls([t], "mssd", [0.5]).tolist() == [0.5]
+    # equally visible GT, inst_count 1: only gt 0 is valid, so a perfect gt 1 estimate misses
+    t = target([[1.0, 0.0]], [0.9], vis=[0.7, 0.7], inst_count=1)
+    assert target_matches(t, "mssd", [0.5])[0, 0].tolist() == [-1]
 
 
 def test_bop_recall_pools_targets_and_vsd_has_one_row_per_tau():
@@ -454,6 +481,37 @@ def test_bop19_ties_and_inputs_as_the_toolkit(tmp_path, R_gt_stored, ar_mssd):
     assert any("1 estimates of images that are not in" in m for m in logs)
     assert any("1 of 2 estimates are not of a target" in n for n in bop["notes"])
     assert any("MSPD image width: 1920 px" in n for n in bop["notes"])
+
+
+def test_bop19_details_are_the_toolkits_errors_and_matches(tmp_path):
+    """details=True gives what the toolkit writes: errors_000001.json {"est_id": 0, "errors":
+    {"0": [15.0]}} for MSSD (mm) and MSPD (px: 15 mm at 1000 mm, f = 1000), and the
+    matches_th=*.json of the valid GT: est 0 from 0.15000000000000002 x diameter (MSSD) and
+    from 10 px (MSPD: 640 / 1920 x 15 = 5.0 is not < 5) on."""
+    from dope_hope.evaluation.bop19 import bop19_average_recall
+    from dope_hope.evaluation.datasets import assign_predictions
+    from dope_hope.io.predictions import read_predictions
+
+    root = tmp_path / "hope"
+    write_hope_bop(root, (1, 0, 0, 0, 1, 0, 0, 0, 1))
+    csv_path = tmp_path / "mine_hope-test.csv"
+    csv_path.write_text("scene_id,im_id,obj_id,score,R,t,time\n"
+                        "1,0,11,0.9,1 0 0 0 1 0 0 0 1,15 0 1000,-1\n")
+    dataset = load_dataset(root, "bop")
+    by_frame, _ = assign_predictions(dataset, read_predictions(csv_path)[0], csv_path)
+    models = load_models(["Ketchup"], models_dir=root / "models_eval")
+    d = bop19_average_recall(dataset, by_frame, models, details=True)["details"]
+    assert d["pairs"] == [{"scene_id": 1, "im_id": 0, "obj_id": 11, "est_id": 0, "gt_id": 0,
+                           "mssd": 15.0, "mspd": 15.0, "vsd": None}]
+    assert [r["est_id"] for r in d["matches"]["mssd"]] == [-1, -1] + [0] * 8
+    assert [r["est_id"] for r in d["matches"]["mspd"]] == [-1] + [0] * 9
+    assert {(r["scene_id"], r["im_id"], r["gt_id"]) for r in d["matches"]["mssd"]} == {(1, 0, 0)}
+    # the same files in a folder that is not models_eval/ (the full models, for the toolkit
+    # another input): said so
+    (root / "models_eval").rename(root / "models")
+    models = load_models(["Ketchup"], models_dir=root / "models")
+    notes = bop19_average_recall(dataset, by_frame, models)["notes"]
+    assert any("with DATASET/models_eval/; not from a models_eval folder: Ketchup" in n for n in notes)
 
 
 def test_bop_models_use_every_vertex_of_the_file_in_millimetres(tmp_path):

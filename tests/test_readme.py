@@ -12,8 +12,8 @@ dropped) and its commands run in README order in a sandbox folder, shrunk for sp
 * every other command exactly as written. ``dope-hope`` commands run in-process (cli.main).
 
 The sandbox holds what a user downloads: ``hope/meshes/full/Ketchup/`` (links to the shared
-HOPE Ketchup files), a BOP folder ``bop/hope`` (the mesh as ``obj_000011.ply`` in mm and a
-two-image test split rendered here), ``photos/`` (the shared backgrounds), ``realsense/``
+HOPE Ketchup files), a BOP folder ``bop/hope`` (the mesh as ``obj_000011.ply`` in mm, in
+``models/`` and ``models_eval/``, and a two-image test split rendered here), ``photos/`` (the shared backgrounds), ``realsense/``
 (colour, aligned depth and K.json of a rendered frame) and ``weights/Ketchup.pth`` (a stand-in
 for NVIDIA's weights: the importer's DR-50 architecture is swapped for a tiny lite network,
 as in tests/test_import_official.py). The demo runs the shipped model when the installation
@@ -196,6 +196,7 @@ def sandbox(shared_data, tmp_path, monkeypatch) -> Path:
     mesh_mm = load_mesh(ketchup / "textured.obj")
     mesh_mm.apply_scale(1000.0)
     mesh_mm.export(models / "obj_000011.ply")
+    (box / "bop" / "hope" / "models_eval").symlink_to(models)  # the BOP19 scoring models
     one = {"target": {"count": [1, 1], "truncation_prob": 0.0}, "distractors": {"occluder_prob": 0.0}}
     with FrameGenerator(ketchup / "textured.obj", size=(160, 120), config=one, seed=77) as gen:
         frames = [gen.render_frame(i) for i in range(3)]

@@ -15,7 +15,7 @@ BOP_ROOT/DATASET/models (or --models-dir: obj_NNNNNN.ply, or the other names of
 dope_hope/io/models_dir.py) when found; --icp adds the depth ICP after it (all six DoF,
 dope_hope/refine/icp.py). Every estimate is written with its score and the image's total
 time (reading + all models, seconds), t in millimetres (io/bop_csv.py). Evaluate it with
-  dope-hope evaluate -p dopehope-lite_hope-test.csv -d bop/hope --format bop --models-dir bop/hope/models
+  dope-hope evaluate -p dopehope-lite_hope-test.csv -d bop/hope --format bop --models-dir bop/hope/models_eval
 """
 from __future__ import annotations
 

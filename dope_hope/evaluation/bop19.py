@@ -51,12 +51,20 @@ class BopTarget:
         visibility: (G,) GT visible fractions (all GT instances of the object in the image).
         errors: error type -> (E, G) ("mssd" normalized by the diameter, "mspd" in px at
             width 640) or (E, G, T) for "vsd" (one slice per tau).
+        key: (scene_id, im_id, obj_id) when known.
+        est_ids: (E,) the toolkit's ``est_id`` of each estimate (its index among the
+            (scene, image, object) rows in file order), when known.
+        gt_ids: (G,) the toolkit's ``gt_id`` of each GT instance (its index in the image's
+            ``scene_gt.json`` list), when known.
     """
 
     inst_count: int
     scores: np.ndarray
     visibility: np.ndarray
     errors: dict[str, np.ndarray]
+    key: tuple[int, int, int] | None = None
+    est_ids: np.ndarray | None = None
+    gt_ids: np.ndarray | None = None
 
 
 def _top_estimates(scores: np.ndarray, inst_count: int) -> np.ndarray:
@@ -71,40 +79,51 @@ def _valid_gt(visibility: np.ndarray, inst_count: int) -> np.ndarray:
     return valid
 
 
+def target_matches(tg: BopTarget, error_type: str, thresholds: Sequence[float]) -> np.ndarray:
+    """The toolkit's matching of one target, redone per threshold (and per tau for "vsd").
+
+    Only the ``inst_count`` top-scoring estimates are evaluated, only the ``inst_count`` most
+    visible GT instances can be matched; matching is :func:`greedy_match` (strict ``error <
+    threshold``).
+
+    Returns:
+        (T, len(thresholds), E) int: the GT index (into ``tg.visibility``) each estimate is
+        matched to, -1 for none (estimates outside the top ``inst_count``: -1); T = 1 unless
+        "vsd".
+    """
+    E = np.asarray(tg.errors[error_type], dtype=np.float64)
+    if E.ndim == 2:
+        E = E[:, :, None]
+    out = np.full((E.shape[2], len(thresholds), E.shape[0]), -1, dtype=np.int64)
+    top = _top_estimates(tg.scores, tg.inst_count)
+    if len(top) == 0 or E.shape[1] == 0:
+        return out
+    valid = _valid_gt(tg.visibility, tg.inst_count)
+    for k in range(E.shape[2]):
+        for j, th in enumerate(thresholds):
+            out[k, j, top] = greedy_match(E[top, :, k], tg.scores[top], th, valid)
+    return out
+
+
 def bop_recalls(targets: list[BopTarget], error_type: str,
                 thresholds: Sequence[float]) -> np.ndarray:
-    """BOP19 recall per threshold (per tau x threshold for "vsd").
-
-    Only the ``inst_count`` top-scoring estimates of each target are evaluated, only the
-    ``inst_count`` most visible GT instances can be matched and are counted; matching is
-    :func:`greedy_match` (strict ``error < threshold``). Recall = true positives / valid GT.
+    """BOP19 recall per threshold (per tau x threshold for "vsd"): true positives
+    (:func:`target_matches`) / valid GT instances (the ``inst_count`` most visible of each
+    target), over all targets.
 
     Returns:
         (len(thresholds),), or (T, len(thresholds)) for "vsd".
     """
-    n_taus = None
     tp = None
     total = 0
     for tg in targets:
-        top = _top_estimates(tg.scores, tg.inst_count)
-        valid = _valid_gt(tg.visibility, tg.inst_count)
-        total += int(valid.sum())
-        E = np.asarray(tg.errors[error_type], dtype=np.float64)
-        if E.ndim == 2:
-            E = E[:, :, None]
-        if tp is None:
-            n_taus = E.shape[2]
-            tp = np.zeros((n_taus, len(thresholds)))
-        if len(top) == 0 or E.shape[1] == 0:
-            continue
-        for k in range(n_taus):
-            for j, th in enumerate(thresholds):
-                m = greedy_match(E[top, :, k], tg.scores[top], th, valid)
-                tp[k, j] += np.count_nonzero(m >= 0)
+        total += int(_valid_gt(tg.visibility, tg.inst_count).sum())
+        counts = (target_matches(tg, error_type, thresholds) >= 0).sum(axis=2)
+        tp = counts if tp is None else tp + counts
     if tp is None:
         shape = (len(thresholds),) if error_type != "vsd" else (len(metrics.BOP19_VSD_TAUS), len(thresholds))
         return np.zeros(shape)
-    rec = tp / float(total) if total else np.zeros_like(tp)
+    rec = tp / float(total) if total else np.zeros(tp.shape)
     return rec if error_type == "vsd" else rec[0]
 
 
@@ -117,21 +136,29 @@ def bop_pose_mm(x: ObjectAnnotation | Prediction) -> tuple[np.ndarray, np.ndarra
     return np.asarray(x.R, dtype=np.float64), 1000.0 * np.asarray(x.t, dtype=np.float64)
 
 
-def bop_mssd_error(R_e, t_e, R_g, t_g, model: BopModel) -> float:
-    """MSSD / diameter as the toolkit scores it (poses in mm): infinite unless
-    ``|t_e - t_g| < diameter`` (its short-cut), else ``mssd / float(diameter)``."""
+def bop_mssd_mm(R_e, t_e, R_g, t_g, model: BopModel) -> float:
+    """MSSD in mm as the toolkit's eval_calc_errors computes it (poses in mm): infinite
+    unless ``|t_e - t_g| < diameter`` (its short-cut)."""
     center_dist = np.linalg.norm(np.asarray(t_e, np.float64).reshape(3)
                                  - np.asarray(t_g, np.float64).reshape(3))
     if not center_dist < model.diameter:
         return math.inf
-    return metrics.mssd(R_e, t_e, R_g, t_g, model.points, model.symmetries) / float(model.diameter)
+    return metrics.mssd(R_e, t_e, R_g, t_g, model.points, model.symmetries)
+
+
+def bop_mssd_error(R_e, t_e, R_g, t_g, model: BopModel) -> float:
+    """MSSD / diameter as the toolkit scores it: ``bop_mssd_mm(...) / float(diameter)``."""
+    return bop_mssd_mm(R_e, t_e, R_g, t_g, model) / float(model.diameter)
 
 
 def bop_mspd_error(R_e, t_e, R_g, t_g, K, width: int, model: BopModel) -> float:
     """MSPD in pixels scaled to an image width of 640 as the toolkit scores it:
     ``(640.0 / width) * mspd`` (poses in mm; no short-cut)."""
-    factor = 640.0 / width
-    return factor * metrics.mspd(R_e, t_e, R_g, t_g, K, model.points, model.symmetries)
+    return _mspd_factor(width) * metrics.mspd(R_e, t_e, R_g, t_g, K, model.points, model.symmetries)
+
+
+def _mspd_factor(width: int) -> float:
+    return 640.0 / width
 
 
 def bop_vsd_errors(R_e, t_e, R_g, t_g, depth_mm, K, model: BopModel,
@@ -186,7 +213,8 @@ def bop_targets_from_gt(dataset: Dataset) -> tuple[dict[tuple[int, str], int], b
 
 def bop19_average_recall(dataset: Dataset, preds_by_frame: list[list[Prediction]],
                          models: dict[str, ObjectModel], use_vsd: bool | None = None,
-                         progress: bool = False, renderer: Any = None) -> dict[str, Any]:
+                         progress: bool = False, renderer: Any = None,
+                         details: bool = False) -> dict[str, Any]:
     """BOP19 AR_VSD, AR_MSSD, AR_MSPD and AR, as the BOP toolkit computes them.
 
     Errors are computed in the toolkit's units and operations (mm, every model vertex, the
@@ -196,6 +224,10 @@ def bop19_average_recall(dataset: Dataset, preds_by_frame: list[list[Prediction]
         use_vsd: compute AR_VSD (None: when every frame with targets has depth and K and
             every model has triangles).
         renderer: for VSD (default: the shared :class:`dope_hope.render.depth.DepthRenderer`).
+        details: also return ``"details"``: ``"pairs"`` (one record per evaluated (estimate,
+            GT) pair with the toolkit's ``est_id`` / ``gt_id`` and its raw errors: MSSD mm,
+            MSPD px, VSD per tau) and ``"matches"`` (:func:`_match_details`), for comparing
+            with the toolkit's ``errors_*.json`` / ``matches_*.json``.
 
     Returns:
         {"ar", "ar_vsd" (None when skipped), "ar_mssd", "ar_mspd", "recalls": {...},
@@ -249,6 +281,11 @@ def bop19_average_recall(dataset: Dataset, preds_by_frame: list[list[Prediction]
     if inexact:
         notes.append("not the toolkit's inputs (a BOP obj_XXXXXX.ply + models_info.json in mm) "
                      "for: " + ", ".join(inexact))
+    elsewhere = sorted(c for c in classes_used if models[c].bop.exact
+                       and models[c].bop.path.parent.name != "models_eval")
+    if dataset.fmt == "bop" and elsewhere:
+        notes.append("the toolkit scores BOP19 with DATASET/models_eval/; not from a models_eval "
+                     "folder: " + ", ".join(f"{c} ({models[c].bop.path})" for c in elsewhere))
     procedural = sorted(n for n, m in models.items() if m.procedural)
     if procedural:
         notes.append("procedural cuboid models (no mesh) for: " + ", ".join(procedural))
@@ -257,31 +294,41 @@ def bop19_average_recall(dataset: Dataset, preds_by_frame: list[list[Prediction]
     for (fi, cls), count in sorted(targets.items()):
         per_frame.setdefault(fi, []).append((cls, count))
     bop_targets: list[BopTarget] = []
+    pairs: list[dict[str, Any]] = []
     for fi in tqdm(frames_used, desc="BOP errors", unit="img", disable=not progress):
         f = dataset.frames[fi]
         width = image_size[0] if image_size is not None else f.width
         depth = _bop_depth_mm(f) if use_vsd else None
         for cls, count in per_frame[fi]:
             model = models[cls].bop
-            gts = [bop_pose_mm(o) for o in f.objects if o.class_name == cls]
-            ests = [p for p in preds_by_frame[fi] if p.class_name == cls]
+            gt_objs = [o for o in f.objects if o.class_name == cls]
+            gts = [bop_pose_mm(o) for o in gt_objs]
+            ests = [p for p in preds_by_frame[fi] if p.class_name == cls]  # file order
             scores = np.array([p.score for p in ests], dtype=np.float64)
             top = _top_estimates(scores, count)
-            ests = [bop_pose_mm(ests[i]) for i in top]
-            E, G = len(ests), len(gts)
+            est_poses = [bop_pose_mm(ests[i]) for i in top]
+            E, G = len(est_poses), len(gts)
             errs = {"mssd": np.empty((E, G)), "mspd": np.empty((E, G))}
             if use_vsd:
                 errs["vsd"] = np.empty((E, G, len(metrics.BOP19_VSD_TAUS)))
-            for i, (R_e, t_e) in enumerate(ests):
+            key = (f.scene_id, f.im_id, models[cls].obj_id)
+            gt_ids = np.array([o.instance_id for o in gt_objs])
+            for i, (R_e, t_e) in enumerate(est_poses):
                 for j, (R_g, t_g) in enumerate(gts):
-                    errs["mssd"][i, j] = bop_mssd_error(R_e, t_e, R_g, t_g, model)
-                    errs["mspd"][i, j] = bop_mspd_error(R_e, t_e, R_g, t_g, f.K, width, model)
+                    mssd_mm = bop_mssd_mm(R_e, t_e, R_g, t_g, model)
+                    mspd_px = metrics.mspd(R_e, t_e, R_g, t_g, f.K, model.points, model.symmetries)
+                    errs["mssd"][i, j] = mssd_mm / float(model.diameter)
+                    errs["mspd"][i, j] = _mspd_factor(width) * mspd_px
                     if use_vsd:
                         errs["vsd"][i, j] = bop_vsd_errors(R_e, t_e, R_g, t_g, depth, f.K, model,
                                                            renderer)
-            vis = np.array([1.0 if o.visibility is None else o.visibility
-                            for o in f.objects if o.class_name == cls])
-            bop_targets.append(BopTarget(count, scores[top], vis, errs))
+                    if details:
+                        pairs.append({"scene_id": key[0], "im_id": key[1], "obj_id": key[2],
+                                      "est_id": int(top[i]), "gt_id": int(gt_ids[j]),
+                                      "mssd": mssd_mm, "mspd": mspd_px,
+                                      "vsd": errs["vsd"][i, j].tolist() if use_vsd else None})
+            vis = np.array([1.0 if o.visibility is None else o.visibility for o in gt_objs])
+            bop_targets.append(BopTarget(count, scores[top], vis, errs, key, top, gt_ids))
     rec_mssd = bop_recalls(bop_targets, "mssd", BOP19_MSSD_THRESHOLDS)
     rec_mspd = bop_recalls(bop_targets, "mspd", BOP19_MSPD_THRESHOLDS)
     # AR = np.mean over the list of recalls, as eval_bop19_pose.py averages them
@@ -300,4 +347,29 @@ def bop19_average_recall(dataset: Dataset, preds_by_frame: list[list[Prediction]
         out["ar_vsd"] = None
         out["ar"] = float(np.mean([out["ar_mssd"], out["ar_mspd"]]))
     out["notes"] = notes
+    if details:
+        out["details"] = {"pairs": pairs, "matches": _match_details(bop_targets, use_vsd)}
+    return out
+
+
+def _match_details(targets: list[BopTarget], use_vsd: bool) -> dict[str, list[dict[str, Any]]]:
+    """Per error type, one record per (tau,) threshold and valid GT instance: the toolkit's
+    ``matches_*.json`` content for the valid GT (scene_id, im_id, gt_id, est_id (-1: none))."""
+    kinds = [("mssd", BOP19_MSSD_THRESHOLDS), ("mspd", BOP19_MSPD_THRESHOLDS)]
+    if use_vsd:
+        kinds.append(("vsd", BOP19_VSD_THRESHOLDS))
+    out: dict[str, list[dict[str, Any]]] = {}
+    for kind, ths in kinds:
+        rows = out.setdefault(kind, [])
+        for tg in targets:
+            m = target_matches(tg, kind, ths)
+            valid = _valid_gt(tg.visibility, tg.inst_count)
+            for k in range(m.shape[0]):
+                for j in range(m.shape[1]):
+                    for g in np.flatnonzero(valid):
+                        hit = np.flatnonzero(m[k, j] == g)
+                        rows.append({"tau": k if kind == "vsd" else None, "threshold": j,
+                                     "scene_id": tg.key[0], "im_id": tg.key[1],
+                                     "gt_id": int(tg.gt_ids[g]),
+                                     "est_id": int(tg.est_ids[hit[0]]) if len(hit) else -1})
     return out

@@ -41,6 +41,7 @@ class BopModel:
         symmetries: (S, 4, 4) model-frame transforms, mm, identity first.
         exact: True when points, diameter and symmetries are the toolkit's own inputs (a BOP
             PLY with its ``models_info.json`` entry).
+        path: the model file (None for a procedural stand-in).
     """
 
     points: np.ndarray
@@ -48,6 +49,7 @@ class BopModel:
     diameter: float
     symmetries: np.ndarray
     exact: bool = False
+    path: Path | None = None
 
 
 @dataclass
@@ -202,11 +204,11 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
             bop = BopModel(verts, faces, decl.entry["diameter"] if exact else 1000.0 * diameter,
                            metrics.symmetries_from_models_info(decl.entry, BOP19_MAX_SYM_DISC_STEP,
                                                                unit=1000.0 * decl.unit_m, source=decl.source),
-                           exact=exact)
+                           exact=exact, path=path)
         else:
             syms_mm = syms.copy()
             syms_mm[:, :3, 3] *= 1000.0
-            bop = BopModel(verts, faces, 1000.0 * diameter, syms_mm)
+            bop = BopModel(verts, faces, 1000.0 * diameter, syms_mm, path=path)
         out[name] = ObjectModel(name=name, obj_id=obj_id, category=category, points=points,
                                 diameter=diameter, symmetries=syms, mesh=mesh, source=source,
                                 procedural=path is None, bop=bop)
