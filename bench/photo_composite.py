@@ -148,16 +148,17 @@ def run_size(size: tuple[int, int], args: argparse.Namespace, predictor: DopePre
 
 def composite_config(size: tuple[int, int] = (640, 480), sensor: bool = False) -> dict:
     """configs/synth.yaml < configs/demo.yaml < :data:`COMPOSITE_CONFIG`, with the D415 colour
-    camera at ``size`` (W, H); the sensor artefacts of dope_hope/synth/sensor.py off unless
-    ``sensor``."""
+    camera at ``size`` (W, H); the sensor artefacts of dope_hope/synth/sensor.py off, or with
+    ``sensor`` at synth.yaml's probabilities."""
     from dope_hope.config import merge
     from dope_hope.synth.sensor import EFFECT_PROBS
-    from dope_hope.synth.settings import load_synth_config
+    from dope_hope.synth.settings import load_synth_config, packaged_synth_config
 
     f = D415_FY_AT_480 * size[1] / 480.0
     camera = {"camera": {"reference_size": list(size), "fx": f, "fy": f}}
     cfg = merge(merge(load_synth_config(DEMO_CONFIG), COMPOSITE_CONFIG), camera)
-    return cfg if sensor else merge(cfg, {"post": {k: 0.0 for k in EFFECT_PROBS}})
+    post = packaged_synth_config()["post"]
+    return merge(cfg, {"post": {k: post[k] if sensor else 0.0 for k in EFFECT_PROBS}})
 
 
 def write_preview(path: Path, preview: list) -> None:
