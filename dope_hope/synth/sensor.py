@@ -17,6 +17,7 @@ probability does not shift the others' draws.
 """
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any
 
 import cv2
@@ -36,11 +37,17 @@ def to_linear(img: np.ndarray) -> np.ndarray:
     return _TO_LINEAR[img]
 
 
+_LUT_STEPS = 1 << 16
+_L = np.arange(_LUT_STEPS, dtype=np.float64) / (_LUT_STEPS - 1)
+#: The sRGB transfer function sampled at 2^16 linear levels -> uint8 code (a table: 5x faster).
+_TO_SRGB = np.round(255.0 * np.where(_L <= 0.0031308, 12.92 * _L,
+                                     1.055 * np.power(_L, 1.0 / 2.4) - 0.055)).astype(np.uint8)
+
+
 def to_srgb(x: np.ndarray) -> np.ndarray:
-    """float linear (H, W, 3) -> uint8 sRGB (clipped; the sRGB transfer function)."""
-    x = np.clip(x, 0.0, 1.0)
-    y = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
-    return (y * 255.0 + 0.5).astype(np.uint8)
+    """float linear (H, W, 3) -> uint8 sRGB (clipped; the sRGB transfer function, by table)."""
+    idx = np.clip(x, 0.0, 1.0) * np.float32(_LUT_STEPS - 1) + np.float32(0.5)
+    return _TO_SRGB[idx.astype(np.int32)]
 
 
 def disc_kernel(radius_px: float) -> np.ndarray:
@@ -81,13 +88,21 @@ def chromatic_aberration(x: np.ndarray, shift_px: float) -> np.ndarray:
     return out
 
 
-def vignetting_gain(height: int, width: int, strength: float) -> np.ndarray:
-    """(H, W, 1) float32 gain: 1 at the centre, ``1 - strength`` at the corners (cos^4 shape)."""
+@lru_cache(maxsize=8)
+def _radius_squared(height: int, width: int) -> np.ndarray:
+    """(H, W) float32 squared distance from the image centre, 1 at the corners."""
     yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
-    r = np.hypot(xx - (width - 1) / 2.0, yy - (height - 1) / 2.0)
-    r /= max(float(r.max()), 1.0)
-    tan_max = np.sqrt(np.sqrt(1.0 / max(1.0 - strength, 1e-3)) - 1.0)  # cos^4(atan(tan_max)) = 1 - s
-    g = np.cos(np.arctan(r * tan_max)) ** 4
+    r2 = (xx - (width - 1) / 2.0) ** 2 + (yy - (height - 1) / 2.0) ** 2
+    r2 /= max(float(r2.max()), 1.0)
+    r2.setflags(write=False)
+    return r2
+
+
+def vignetting_gain(height: int, width: int, strength: float) -> np.ndarray:
+    """(H, W, 1) float32 gain: 1 at the centre, ``1 - strength`` at the corners (cos^4 shape:
+    cos^4(atan(r tan_max)) = (1 + r^2 tan_max^2)^-2)."""
+    tan2 = np.sqrt(1.0 / max(1.0 - strength, 1e-3)) - 1.0  # tan_max^2: corner gain 1 - strength
+    g = 1.0 / (1.0 + _radius_squared(height, width) * np.float32(tan2)) ** 2
     return g[..., None].astype(np.float32)
 
 
@@ -134,10 +149,14 @@ def sensor_artifacts(rng: np.random.Generator, img: np.ndarray, cfg: dict[str, A
             x = x * vignetting_gain(x.shape[0], x.shape[1], vignette)
         if do_exposure:
             gain = np.array([wb[0], 1.0, wb[1]], np.float32) * np.float32(2.0 ** ev)
-            x = np.minimum(x * gain, 1.0)
+            x = np.minimum(x * gain, np.float32(1.0))
         if do_noise:
-            sigma = np.sqrt(shot * np.maximum(x, 0.0) + read * read).astype(np.float32)
-            x = x + sigma * noise_rng.standard_normal(x.shape, dtype=np.float32)
+            sigma = np.maximum(x, np.float32(0.0))
+            sigma *= np.float32(shot)
+            sigma += np.float32(read * read)
+            np.sqrt(sigma, out=sigma)
+            sigma *= noise_rng.standard_normal(x.shape, dtype=np.float32)
+            x = x + sigma
         out = to_srgb(x)
     if do_jpeg:
         out = jpeg(np.ascontiguousarray(out), quality)
