@@ -99,18 +99,19 @@ class BackgroundSource:
     def sample(self, rng: np.random.Generator, width: int, height: int) -> np.ndarray:
         """One background, (height, width, 3) uint8 RGB.
 
-        The clutter draws from a child generator of ``rng`` (``clutter_prob`` 0 leaves the
-        other draws, and so the backgrounds without clutter, as they were).
+        The clutter draws from a child generator of ``rng``, spawned only when
+        ``clutter_prob`` > 0: switching clutter off leaves every draw of ``rng`` (and of its
+        later children) as it was.
         """
         cfg = self.cfg
-        clutter_rng = rng.spawn(1)[0]
+        clutter_rng = rng.spawn(1)[0] if float(cfg["clutter_prob"]) > 0 else None
         use_photo = bool(self.files) and rng.random() >= cfg["procedural_prob_with_images"]
         if use_photo:
             img = self._load(int(rng.integers(0, len(self.files))))
             img = random_crop(rng, img, width, height, tuple(cfg["crop_scale"]))
         else:
             img = procedural_image(rng, height, width, cfg["procedural_weights"])
-        if clutter_rng.random() < cfg["clutter_prob"]:
+        if clutter_rng is not None and clutter_rng.random() < cfg["clutter_prob"]:
             img = clutter_image(clutter_rng, img, cfg["clutter"], self.photo_patch if self.files else None)
         if rng.random() < cfg["flip_prob"]:
             img = img[:, ::-1]
