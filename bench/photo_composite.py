@@ -52,9 +52,8 @@ from dope_hope.synth.settings import parse_size
 #: Synth config over configs/demo.yaml: the box alone over the photographs, colours untouched.
 COMPOSITE_CONFIG = {
     "distractors": {"count": [0, 0], "occluder_prob": 0.0},
-    "hard_negatives": {"count": [0, 0]},
     "background": {"procedural_prob_with_images": 0.0, "crop_scale": [0.6, 1.0], "flip_prob": 0.5,
-                   "vflip_prob": 0.0, "clutter_prob": 0.0,
+                   "vflip_prob": 0.0,
                    "color_shift": {"brightness": [1.0, 1.0], "contrast": [1.0, 1.0],
                                    "channel_gain": [1.0, 1.0], "channel_offset": 0.0}},
 }
@@ -147,18 +146,20 @@ def run_size(size: tuple[int, int], args: argparse.Namespace, predictor: DopePre
 
 
 def composite_config(size: tuple[int, int] = (640, 480), sensor: bool = False) -> dict:
-    """configs/synth.yaml < configs/demo.yaml < :data:`COMPOSITE_CONFIG`, with the D415 colour
-    camera at ``size`` (W, H); the sensor artefacts of dope_hope/synth/sensor.py off, or with
-    ``sensor`` at synth.yaml's probabilities."""
+    """configs/synth.yaml < configs/demo.yaml < no clutter, hard negatives or sensor artefacts
+    (PLAIN_OVERRIDES) < :data:`COMPOSITE_CONFIG`, with the D415 colour camera at ``size``
+    (W, H); with ``sensor`` the sensor artefacts at synth.yaml's probabilities."""
     from dope_hope.config import merge
     from dope_hope.synth.sensor import EFFECT_PROBS
-    from dope_hope.synth.settings import load_synth_config, packaged_synth_config
+    from dope_hope.synth.settings import PLAIN_OVERRIDES, load_synth_config, packaged_synth_config
 
     f = D415_FY_AT_480 * size[1] / 480.0
     camera = {"camera": {"reference_size": list(size), "fx": f, "fy": f}}
-    cfg = merge(merge(load_synth_config(DEMO_CONFIG), COMPOSITE_CONFIG), camera)
-    post = packaged_synth_config()["post"]
-    return merge(cfg, {"post": {k: post[k] if sensor else 0.0 for k in EFFECT_PROBS}})
+    cfg = merge(merge(merge(load_synth_config(DEMO_CONFIG), PLAIN_OVERRIDES), COMPOSITE_CONFIG), camera)
+    if sensor:
+        post = packaged_synth_config()["post"]
+        cfg = merge(cfg, {"post": {k: post[k] for k in EFFECT_PROBS}})
+    return cfg
 
 
 def write_preview(path: Path, preview: list) -> None:

@@ -10,8 +10,8 @@ first frame), plus the ratio 2 workers / 1 worker.
 
 With --randomization it measures instead, with 1 worker, the default config (clutter
 backgrounds, hard negatives, sensor artefacts) against the same config with those three off
-(:data:`PLAIN`: the generator's earlier frames), alternating, and prints the ratio of the
-steady-state ms per frame.
+(dope_hope.synth.settings.PLAIN_OVERRIDES: the generator's earlier frames), alternating, and
+prints the ratio of the steady-state ms per frame.
 """
 from __future__ import annotations
 
@@ -26,11 +26,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from dope_hope.synth.generate import generate_dataset  # noqa: E402
-from dope_hope.synth.sensor import EFFECT_PROBS  # noqa: E402
-
-#: The default config with clutter backgrounds, hard negatives and sensor artefacts off.
-PLAIN = {"background": {"clutter_prob": 0.0}, "hard_negatives": {"count": [0, 0]},
-         "post": {k: 0.0 for k in EFFECT_PROBS}}
+from dope_hope.synth.settings import PLAIN_OVERRIDES as PLAIN  # noqa: E402
 
 
 def measure(mesh: Path, size: str, workers: int, frames: int, seed: int, config: dict | None = None,
@@ -78,7 +74,7 @@ def main() -> None:
 
 
 def compare_randomization(args: argparse.Namespace) -> None:
-    """Default config vs :data:`PLAIN`, 1 worker, alternating runs; best steady ms per frame."""
+    """Default config vs PLAIN_OVERRIDES, 1 worker, alternating runs; best steady ms per frame."""
     print(f"mesh {args.mesh.name}, {args.frames} frames per run, {args.repeats} runs each, backgrounds "
           f"{args.backgrounds}, {os.cpu_count()} CPUs, load average before: {os.getloadavg()[0]:.2f}")
     for size in args.sizes:

@@ -6,9 +6,17 @@ from typing import Any
 
 from dope_hope.config import check_known_keys, config_path, load_yaml, merge
 from dope_hope.errors import ConfigError
+from dope_hope.synth.sensor import EFFECT_PROBS
 
 #: Name of the default config (configs/synth.yaml).
 DEFAULT_CONFIG = "synth"
+#: Overrides that switch off the clutter backgrounds, the hard negatives and the sensor
+#: artefacts (the generator's frames before they existed, e.g. for models trained on those).
+PLAIN_OVERRIDES: dict[str, Any] = {
+    "background": {"clutter_prob": 0.0},
+    "hard_negatives": {"count": [0, 0]},
+    "post": {k: 0.0 for k in EFFECT_PROBS},
+}
 
 # (section, key) pairs that must be [min, max] ranges with min <= max.
 _RANGES = [
