@@ -134,3 +134,14 @@ def test_frames_are_deterministic(frames, shared_data: Path):
 def test_config_errors_name_the_key(override, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         load_synth_config(override)
+
+
+def test_demo_scenes_keep_the_new_randomization_off():
+    """configs/demo.yaml: the shipped demo model's scenes, which it was trained without clutter,
+    hard negatives and sensor artefacts; synth.yaml's defaults have all three on."""
+    from dope_hope.config import merge
+    from dope_hope.synth.settings import PLAIN_OVERRIDES
+
+    demo, default = load_synth_config("demo"), load_synth_config()
+    assert merge(demo, PLAIN_OVERRIDES) == demo
+    assert merge(default, PLAIN_OVERRIDES) != default
