@@ -5,20 +5,23 @@ Renders the demo box (dope_hope/demo_object.py) alone, as `dope-hope demo` rende
 no distractors; the RealSense D415 colour camera's field of view at every size), over random crops of the photographs in --photos (crop side 60-100 % of the
 largest crop of the frame's aspect ratio, rescaled to each --sizes, horizontal flip; the
 photo's colours kept). Its depth image: the box's depth in front of a wall at 1.2-3 m (the
-photo has none), with the RealSense-like depth noise of the synth config. Then runs a model
-(default the shipped dope_hope/assets/demo_lite.pt) with its default options (min score
-0.0, as `dope-hope infer`) without and with the depth line search (-LS), and matches its
-detections to the box one-to-one by ADD-H (dope_hope.evaluation.matching: greedy in
+photo has none), with the RealSense-like depth noise of the synth config. The synth config's
+clutter and hard negatives are off (the photo is the background), and so are its sensor
+artefacts (optics, shot noise, JPEG: dope_hope/synth/sensor.py) unless --sensor is given.
+Then runs a model (--weights, default the shipped dope_hope/assets/demo_lite.pt) with its
+default options but min score 0, without and with the depth line search (-LS), and matches
+its detections to the box one-to-one by ADD-H (dope_hope.evaluation.matching: greedy in
 descending score, error strictly below the threshold).
 
-Per size it prints: the recall at 2 cm ADD-H (frames whose box is matched), false
-detections per frame (detections left unmatched at 2 cm, and at 10 cm: those nowhere near
-the box), and, on --empty crops of the same photographs WITHOUT the box, the detections per
-frame and how many frames hold one (per 50 frames). -LS moves detections, it never adds or
-drops one, so the empty-photo figures hold for both.
+Per size and min score (0, and the default of configs/infer.yaml, 0.5) it prints: the recall
+at 2 cm ADD-H (frames whose box is matched), false detections per frame (detections left
+unmatched at 2 cm, and at 10 cm: those nowhere near the box), and, on --empty crops of the
+same photographs WITHOUT the box, how many frames hold a detection and the detections, both
+per 50 frames. -LS moves detections, it never adds or drops one, so the empty-photo figures
+hold for both.
 
-    python bench/photo_composite.py --photos /path/to/photos [--frames 30] [--empty 50]
-        [--sizes 640x480 1920x1080] [--seed 0] [--preview composites.png]
+    python bench/photo_composite.py --photos /path/to/photos [--weights W.pt] [--frames 30]
+        [--empty 50] [--sizes 640x480 1920x1080] [--seed 0] [--sensor] [--preview composites.png]
 
 The photo folder is read in place (photos under a licence stay out of the repository).
 """
@@ -37,6 +40,7 @@ from dope_hope.commands.infer import DEMO_WEIGHTS
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
 from dope_hope.evaluation.matching import TABLE_THRESHOLDS_M, error_matrix, greedy_match
 from dope_hope.evaluation.models import load_models
+from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.refine.depth import DepthImage
 from dope_hope.synth import FrameGenerator
@@ -95,11 +99,15 @@ def wall_depth(depth_box: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 def run_size(size: tuple[int, int], args: argparse.Namespace, predictor: DopePredictor, model,
              mesh_path: Path, preview: list) -> dict:
-    """Composites and empty photos at one (W, H); returns the tallies and timings."""
-    tallies = {"no LS": Tally(), "LS": Tally()}
+    """Composites and empty photos at one (W, H); returns the tallies (per min score and depth
+    step) and timings. The predictor keeps every detection (min score 0); each min score in
+    ``args.min_scores`` keeps those scoring at least that."""
+    tallies = {(m, name): Tally() for m in args.min_scores for name in ("no LS", "LS")}
+    empty = {m: {"dets": 0, "frames": 0} for m in args.min_scores}
     t_render = t_model = 0.0
-    with FrameGenerator(mesh_path, size=size, config=composite_config(size), class_name=DEMO_CLASS_NAME,
-                        backgrounds=args.photos, depth_noise=False, seed=args.seed) as gen:
+    with FrameGenerator(mesh_path, size=size, config=composite_config(size, args.sensor),
+                        class_name=DEMO_CLASS_NAME, backgrounds=args.photos, depth_noise=False,
+                        seed=args.seed) as gen:
         dn = noise_kwargs(gen.cfg["depth_noise"])
         for i in range(args.frames):
             t0 = time.perf_counter()
@@ -114,36 +122,44 @@ def run_size(size: tuple[int, int], args: argparse.Namespace, predictor: DopePre
                                                          DepthImage.from_raw(depth, K, image_hw=frame.rgb.shape[:2]))}
             t2 = time.perf_counter()
             for name, ds in dets.items():
-                errors = error_matrix("addh", ds, [gt], model, upper=FAR_THRESHOLD_M)
-                tallies[name].add(errors, np.array([d.score for d in ds]))
+                for m in args.min_scores:
+                    kept = [d for d in ds if d.score >= m]
+                    errors = error_matrix("addh", kept, [gt], model, upper=FAR_THRESHOLD_M)
+                    tallies[(m, name)].add(errors, np.array([d.score for d in kept]))
             t_render += t1 - t0
             t_model += t2 - t1
             if len(preview) < 8:
                 preview.append((frame, dets["LS"]))
         background = BackgroundSource(gen.cfg["background"], args.photos)
-        empty_dets, empty_frames = 0, 0
         for i in range(args.empty):
             rng = np.random.default_rng((args.seed, 2, i))
             rgb = post_process(rng, background.sample(rng, *size), gen.cfg["post"])
             K = gen.sample_scene(i)[0].K  # the camera of a composite (jittered as synth.yaml)
             t0 = time.perf_counter()
-            n = len(predictor.predict(rgb, K))
+            scores = [d.score for d in predictor.predict(rgb, K)]
             t_model += time.perf_counter() - t0
-            empty_dets += n
-            empty_frames += int(n > 0)
-    return {"tallies": tallies, "empty_dets": empty_dets, "empty_frames": empty_frames,
-            "render_s": t_render, "model_s": t_model}
+            for m in args.min_scores:
+                n = sum(sc >= m for sc in scores)
+                empty[m]["dets"] += n
+                empty[m]["frames"] += int(n > 0)
+    return {"tallies": tallies, "empty": empty, "render_s": t_render, "model_s": t_model}
 
 
-def composite_config(size: tuple[int, int] = (640, 480)) -> dict:
-    """configs/synth.yaml < configs/demo.yaml < :data:`COMPOSITE_CONFIG`, with the D415 colour
-    camera at ``size`` (W, H)."""
+def composite_config(size: tuple[int, int] = (640, 480), sensor: bool = False) -> dict:
+    """configs/synth.yaml < configs/demo.yaml < no clutter, hard negatives or sensor artefacts
+    (PLAIN_OVERRIDES) < :data:`COMPOSITE_CONFIG`, with the D415 colour camera at ``size``
+    (W, H); with ``sensor`` the sensor artefacts at synth.yaml's probabilities."""
     from dope_hope.config import merge
-    from dope_hope.synth.settings import load_synth_config
+    from dope_hope.synth.sensor import EFFECT_PROBS
+    from dope_hope.synth.settings import PLAIN_OVERRIDES, load_synth_config, packaged_synth_config
 
     f = D415_FY_AT_480 * size[1] / 480.0
     camera = {"camera": {"reference_size": list(size), "fx": f, "fy": f}}
-    return merge(merge(load_synth_config(DEMO_CONFIG), COMPOSITE_CONFIG), camera)
+    cfg = merge(merge(merge(load_synth_config(DEMO_CONFIG), PLAIN_OVERRIDES), COMPOSITE_CONFIG), camera)
+    if sensor:
+        post = packaged_synth_config()["post"]
+        cfg = merge(cfg, {"post": {k: post[k] for k in EFFECT_PROBS}})
+    return cfg
 
 
 def write_preview(path: Path, preview: list) -> None:
@@ -162,21 +178,27 @@ def write_preview(path: Path, preview: list) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--photos", type=Path, required=True, help="folder of photographs (read in place)")
-    ap.add_argument("--weights", type=Path, default=DEMO_WEIGHTS)
+    ap.add_argument("--weights", type=Path, default=DEMO_WEIGHTS, help="demo-box model (default: the shipped one)")
     ap.add_argument("--frames", type=int, default=30, help="composites per size (default 30)")
     ap.add_argument("--empty", type=int, default=50, help="photos without the box per size (default 50)")
     ap.add_argument("--sizes", nargs="+", default=["640x480", "1920x1080"])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--sensor", action="store_true",
+                    help="apply the synth config's sensor artefacts (optics, shot noise, JPEG) to the "
+                         "composites and empty photos too")
     ap.add_argument("--preview", type=Path, help="write a montage of the first composites here")
     args = ap.parse_args()
 
     mesh = demo_object_mesh()
-    predictor = DopePredictor(args.weights, threads=args.threads, mesh=mesh)
+    default_min = InferenceOptions.from_mapping({}).min_score
+    args.min_scores = sorted({0.0, float(default_min)})
+    predictor = DopePredictor(args.weights, threads=args.threads, mesh=mesh, min_score=0.0)
     photos = BackgroundSource(composite_config()["background"], args.photos).files
     print(f"model {args.weights}; photos {args.photos}: {len(photos)} ({', '.join(p.name for p in photos)}); "
           f"{args.frames} composites + {args.empty} empty crops per size, seed {args.seed}; "
-          f"min score {predictor.options.min_score:g}", flush=True)
+          f"min scores {', '.join(f'{m:g}' for m in args.min_scores)} (default {default_min:g}); "
+          f"sensor artefacts {'on' if args.sensor else 'off'}", flush=True)
     preview: list = []
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -189,21 +211,23 @@ def main() -> int:
             rows.append((s, r))
             print(f"{s}: done in {time.perf_counter() - t0:.0f} s (render {r['render_s']:.0f} s, "
                   f"model {r['model_s']:.0f} s)", flush=True)
-    print("\n| size | depth step | recall @ 2 cm ADD-H | @ 10 cm | median ADD-H of the best detection (cm) "
-          "| false detections / frame (unmatched @ 2 cm) | (unmatched @ 10 cm) |")
-    print("|---|---|---|---|---|---|---|")
+    print("\n| size | min score | depth step | recall @ 2 cm ADD-H | @ 10 cm | median ADD-H of the best "
+          "detection (cm) | false detections / frame (unmatched @ 2 cm) | (unmatched @ 10 cm) |")
+    print("|---|---|---|---|---|---|---|---|")
     for s, r in rows:
-        for name, t in r["tallies"].items():
+        for (m, name), t in r["tallies"].items():
             med = f"{np.median(t.addh_cm):.2f}" if t.addh_cm else "-"
-            print(f"| {s} | {'-LS' if name == 'LS' else 'none'} | {t.found}/{t.frames} = {t.found / max(t.frames, 1):.2f} "
-                  f"| {t.found_far / max(t.frames, 1):.2f} | {med} | {t.false_2cm / max(t.frames, 1):.2f} "
-                  f"| {t.false_10cm / max(t.frames, 1):.2f} |")
-    print("\n| size | photos without the box | with a false detection | per 50 frames | detections / frame |")
-    print("|---|---|---|---|---|")
+            print(f"| {s} | {m:g} | {'-LS' if name == 'LS' else 'none'} | {t.found}/{t.frames} = "
+                  f"{t.found / max(t.frames, 1):.2f} | {t.found_far / max(t.frames, 1):.2f} | {med} "
+                  f"| {t.false_2cm / max(t.frames, 1):.2f} | {t.false_10cm / max(t.frames, 1):.2f} |")
+    print("\n| size | min score | photos without the box | with a false detection | per 50 frames "
+          "| false detections per 50 frames |")
+    print("|---|---|---|---|---|---|")
     for s, r in rows:
         n = max(args.empty, 1)
-        print(f"| {s} | {args.empty} | {r['empty_frames']} | {50.0 * r['empty_frames'] / n:.1f} "
-              f"| {r['empty_dets'] / n:.2f} |")
+        for m, e in r["empty"].items():
+            print(f"| {s} | {m:g} | {args.empty} | {e['frames']} | {50.0 * e['frames'] / n:.1f} "
+                  f"| {50.0 * e['dets'] / n:.1f} |")
     if args.preview is not None and preview:
         write_preview(args.preview, preview)
         print(f"\npreview: {args.preview}")

@@ -1,4 +1,5 @@
-"""Backgrounds: random crops of photographs (flip, colour shift) or procedural images."""
+"""Backgrounds: random crops of photographs or procedural images, with table-top clutter
+drawn over them (:mod:`dope_hope.synth.clutter`), flipped and colour-shifted."""
 from __future__ import annotations
 
 import os
@@ -11,6 +12,7 @@ import numpy as np
 
 from dope_hope.errors import InputFileError
 from dope_hope.io.images import IMAGE_SUFFIXES, image_files, read_rgb
+from dope_hope.synth.clutter import clutter_image
 from dope_hope.synth.textures import procedural_image
 
 
@@ -86,15 +88,31 @@ class BackgroundSource:
             self._cache.popitem(last=False)
         return img
 
+    def photo_patch(self, rng: np.random.Generator, px: int) -> np.ndarray:
+        """A square crop of a random photograph (side 5-30 % of its shorter side), (px, px, 3) uint8."""
+        img = self._load(int(rng.integers(0, len(self.files))))
+        side = max(2, int(min(img.shape[:2]) * rng.uniform(0.05, 0.3)))
+        y0 = int(rng.integers(0, img.shape[0] - side + 1))
+        x0 = int(rng.integers(0, img.shape[1] - side + 1))
+        return cv2.resize(img[y0:y0 + side, x0:x0 + side], (px, px), interpolation=cv2.INTER_AREA)
+
     def sample(self, rng: np.random.Generator, width: int, height: int) -> np.ndarray:
-        """One background, (height, width, 3) uint8 RGB."""
+        """One background, (height, width, 3) uint8 RGB.
+
+        The clutter draws from a child generator of ``rng``, spawned only when
+        ``clutter_prob`` > 0: switching clutter off leaves every draw of ``rng`` (and of its
+        later children) as it was.
+        """
         cfg = self.cfg
+        clutter_rng = rng.spawn(1)[0] if float(cfg["clutter_prob"]) > 0 else None
         use_photo = bool(self.files) and rng.random() >= cfg["procedural_prob_with_images"]
         if use_photo:
             img = self._load(int(rng.integers(0, len(self.files))))
             img = random_crop(rng, img, width, height, tuple(cfg["crop_scale"]))
         else:
             img = procedural_image(rng, height, width, cfg["procedural_weights"])
+        if clutter_rng is not None and clutter_rng.random() < cfg["clutter_prob"]:
+            img = clutter_image(clutter_rng, img, cfg["clutter"], self.photo_patch if self.files else None)
         if rng.random() < cfg["flip_prob"]:
             img = img[:, ::-1]
         if rng.random() < cfg["vflip_prob"]:

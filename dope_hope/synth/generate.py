@@ -29,6 +29,7 @@ from dope_hope.synth.assets import (
 )
 from dope_hope.synth.background import BackgroundSource
 from dope_hope.synth.depth_noise import add_realsense_noise, noise_kwargs
+from dope_hope.synth.hard_negatives import TargetLook
 from dope_hope.synth.postprocess import composite, post_process
 from dope_hope.synth.scene import ObjectSpec, SceneSpec, frame_streams, sample_scene
 from dope_hope.synth.settings import load_synth_config, parse_shard, parse_size
@@ -85,7 +86,7 @@ class SynthFrame:
                 "bbox": "visible pixels; inclusive pixel-centre coordinates (x_min, y_min) / (x_max, y_max)",
                 "visibility": "visible pixels / pixels of the instance rendered alone, whole object "
                               "(occlusion and truncation)",
-                "distractor_count": sum(o.role == "distractor" for o in self.scene.objects),
+                "distractor_count": sum(o.role != "target" for o in self.scene.objects),
                 "instances": [asdict(s) for s in self.stats],
                 **({"procedural": {"category": self.category,
                                    "labels": "canonical pose of the category's symmetries"}}
@@ -170,6 +171,15 @@ class FrameGenerator:
             return self._meshes.library_mesh(self.library.get(obj.mesh_index), obj.material)
         return self._meshes.primitive_mesh(obj.geometry, obj.material)
 
+    def _target_look(self, target: MeshAsset) -> TargetLook:
+        """The target's size, shape class and colours (for the hard negatives); the fixed
+        target's made once, a procedural target's per frame."""
+        if target is not self.target:
+            return TargetLook.of(target.mesh, target.texture, target.colors, target.cuboid_size)
+        if getattr(self, "_look", None) is None:
+            self._look = TargetLook.of(target.mesh, target.texture, target.colors, target.cuboid_size)
+        return self._look
+
     def sample_scene(self, index: int, seed: int | None = None, force_occluder: int | None = None
                      ) -> tuple[SceneSpec, dict[str, np.random.Generator], MeshAsset, str | None]:
         """The random scene of frame ``index`` (no rendering), its remaining random streams, its
@@ -186,7 +196,7 @@ class FrameGenerator:
         n_lib = len(self.library) if self.library is not None else 0
         spec = sample_scene(streams, self.size, self.cfg, target.shape, n_lib,
                             self.library.shape if self.library is not None else None,
-                            force_occluder=force_occluder)
+                            force_occluder=force_occluder, target_look=self._target_look(target))
         return spec, streams, target, category
 
     def render_frame(self, index: int, seed: int | None = None, force_occluder: int | None = None,

@@ -18,8 +18,15 @@ pyrender = import_pyrender()
 
 
 def make_texture(image: np.ndarray) -> pyrender.Texture:
-    """(h, w, 3|4) uint8 -> pyrender texture (mipmapped, repeating)."""
+    """(h, w, 3|4) uint8 -> pyrender texture (mipmapped, repeating).
+
+    An RGB image whose rows are not a multiple of 4 bytes is uploaded as RGBA (opaque):
+    pyrender leaves OpenGL's unpack alignment at 4, which would skew such an image and read
+    past its end (frames that depended on whatever memory followed).
+    """
     img = np.ascontiguousarray(image, dtype=np.uint8)
+    if img.ndim == 3 and img.shape[2] == 3 and (3 * img.shape[1]) % 4:
+        img = np.concatenate([img, np.full(img.shape[:2] + (1,), 255, np.uint8)], axis=2)
     channels = "RGBA" if img.ndim == 3 and img.shape[2] == 4 else "RGB"
     return pyrender.Texture(source=img, source_channels=channels, sampler=pyrender.Sampler())
 

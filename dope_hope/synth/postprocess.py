@@ -1,10 +1,13 @@
-"""Compositing over the background and post-render image corruption (jitter, blur, noise)."""
+"""Compositing over the background and post-render image corruption (jitter, blur, noise,
+then the camera's own artefacts: :mod:`dope_hope.synth.sensor`)."""
 from __future__ import annotations
 
 from typing import Any
 
 import cv2
 import numpy as np
+
+from dope_hope.synth.sensor import sensor_artifacts
 
 
 def composite(background: np.ndarray, color: np.ndarray, alpha: np.ndarray) -> np.ndarray:
@@ -37,10 +40,13 @@ def color_jitter(rng: np.random.Generator, img: np.ndarray, cfg: dict[str, Any])
 
 
 def post_process(rng: np.random.Generator, img: np.ndarray, cfg: dict[str, Any]) -> np.ndarray:
-    """Colour jitter, Gaussian blur and Gaussian pixel noise, each with its probability.
+    """Colour jitter, Gaussian blur and Gaussian pixel noise, each with its probability, then
+    the sensor artefacts (:func:`dope_hope.synth.sensor.sensor_artifacts`: optics, exposure,
+    shot/read noise, JPEG).
 
     Every random number is drawn whether or not the effect applies, so that one effect's
-    probability does not shift the others' draws.
+    probability does not shift the others' draws; the sensor artefacts draw from a third child
+    generator, so switching them off gives the images of the first three steps unchanged.
     """
     do_jitter, do_blur, do_noise = rng.random(3) < (cfg["jitter_prob"], cfg["blur_prob"], cfg["noise_prob"])
     jitter_rng, blur_sigma, noise_sigma = rng.spawn(1)[0], rng.uniform(*cfg["blur_sigma_px"]), \
@@ -54,4 +60,5 @@ def post_process(rng: np.random.Generator, img: np.ndarray, cfg: dict[str, Any])
     if do_noise:
         noisy = out.astype(np.float32) + noise_rng.normal(0.0, noise_sigma, out.shape).astype(np.float32)
         out = np.clip(noisy + 0.5, 0, 255).astype(np.uint8)
+    out = sensor_artifacts(rng.spawn(1)[0], np.ascontiguousarray(out), cfg)
     return np.ascontiguousarray(out)

@@ -1,4 +1,5 @@
-"""Procedural distractor shapes: boxes, cylinders, spheres and capsules with texture coordinates.
+"""Procedural distractor shapes: boxes, cylinders, spheres, capsules and bottles with texture
+coordinates.
 
 trimesh builds the shapes; it gives them no uv, so each triangle gets a box (tri-planar)
 projection: the two coordinates across the dominant axis of its normal, in tiles of
@@ -11,14 +12,19 @@ import numpy as np
 import trimesh
 
 #: Primitive kinds understood by :func:`make_primitive`.
-PRIMITIVE_KINDS = ("box", "cylinder", "sphere", "capsule")
+PRIMITIVE_KINDS = ("box", "cylinder", "sphere", "capsule", "bottle")
+
+#: Bottle profile: (radius, z) as fractions of (body radius, height), bottom to top: a body,
+#: a shoulder and a neck of 0.4 radii; revolved about z and centred on its bounding box.
+BOTTLE_PROFILE = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 0.62], [0.75, 0.74], [0.4, 0.8],
+                           [0.4, 1.0], [0.0, 1.0]])
 
 
 def primitive_shape(kind: str, dims: np.ndarray) -> trimesh.Trimesh:
     """The untextured shape, centred at the origin, metres.
 
-    dims: box (3,) extents; cylinder (radius, height); sphere (radius,); capsule (radius, height
-    of the straight part).
+    dims: box (3,) extents; cylinder and bottle (radius, height); sphere (radius,); capsule
+    (radius, height of the straight part).
     """
     if kind == "box":
         return trimesh.creation.box(extents=dims)
@@ -28,6 +34,9 @@ def primitive_shape(kind: str, dims: np.ndarray) -> trimesh.Trimesh:
         return trimesh.creation.icosphere(subdivisions=2, radius=float(dims[0]))
     if kind == "capsule":
         return trimesh.creation.capsule(height=float(dims[1]), radius=float(dims[0]), count=[16, 12])
+    if kind == "bottle":
+        profile = BOTTLE_PROFILE * np.array([float(dims[0]), float(dims[1])]) - [0.0, float(dims[1]) / 2.0]
+        return trimesh.creation.revolve(profile, sections=24)
     raise ValueError(f"unknown primitive kind {kind!r}; expected one of {PRIMITIVE_KINDS}")
 
 
@@ -36,7 +45,7 @@ def sample_dims(rng: np.random.Generator, kind: str, size_m: tuple[float, float]
     lo, hi = size_m
     if kind == "box":
         return rng.uniform(lo, hi, size=3)
-    if kind in ("cylinder", "capsule"):
+    if kind in ("cylinder", "capsule", "bottle"):
         return np.array([rng.uniform(lo, hi) / 2.0, rng.uniform(lo, hi)])
     return np.array([rng.uniform(lo, hi) / 2.0])
 
@@ -46,7 +55,7 @@ def dims_for_radius(kind: str, radius: float, rng: np.random.Generator) -> np.nd
     if kind == "box":
         d = rng.uniform(0.5, 1.0, size=3)
         return d / np.linalg.norm(d) * 2.0 * radius
-    if kind == "cylinder":
+    if kind in ("cylinder", "bottle"):
         a = rng.uniform(0.2, 1.2)  # height / diameter
         r = radius / np.hypot(1.0, a)
         return np.array([r, 2.0 * r * a])
@@ -90,7 +99,7 @@ def make_primitive(kind: str, dims: np.ndarray, tile_m: float = 0.1) -> trimesh.
         normals = np.repeat(shape.face_normals, 3, axis=0)
     else:
         normals = np.asarray(shape.vertex_normals)[src]
-        if kind == "cylinder":  # flat caps: faces whose normal is along the axis
+        if kind in ("cylinder", "bottle"):  # flat caps: faces whose normal is along the axis
             fn = np.repeat(shape.face_normals, 3, axis=0)
             cap = np.abs(fn[:, 2]) > 0.99
             normals[cap] = fn[cap]

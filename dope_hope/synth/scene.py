@@ -16,13 +16,14 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dope_hope.synth.camera import sample_intrinsics
+from dope_hope.synth.hard_negatives import TargetLook, hard_negative_geometry, hard_negative_material
 from dope_hope.synth.primitives import dims_for_radius, make_primitive, sample_dims
 from dope_hope.synth.textures import procedural_image, random_color
 
 #: Names of the per-frame random streams, in spawn order (never reorder: it changes datasets;
 #: a new stream goes at the end). "object": the frame's procedural target (synth/objects.py).
 STREAM_NAMES = ("camera", "targets", "distractors", "lights", "background", "post",
-                "occluders", "depth_noise", "object")
+                "occluders", "depth_noise", "object", "hard_negatives")
 
 
 def frame_streams(seed: int, index: int) -> dict[str, np.random.Generator]:
@@ -58,8 +59,10 @@ class ObjectSpec:
     """One object in the scene.
 
     Attributes:
-        role: "target" or "distractor".
-        seg_id: its id in the segmentation image (targets 1..k, distractors base + j).
+        role: "target", "distractor" or "hard_negative" (a distractor that looks like the
+            target: :mod:`dope_hope.synth.hard_negatives`). Only targets are annotated.
+        seg_id: its id in the segmentation image (targets 1..k, distractors and hard
+            negatives base + j).
         R: (3, 3), t: (3,) pose of the model frame in the camera frame (metres).
         radius: bounding-sphere radius about the box centre, metres.
         center: (3,) bounding-sphere centre in the camera frame, metres.
@@ -285,6 +288,34 @@ def sample_occluders(rng: np.random.Generator, K: np.ndarray, targets: list[Obje
     return out
 
 
+def sample_hard_negatives(rng: np.random.Generator, K: np.ndarray, W: int, H: int,
+                          placed: list[ObjectSpec], look: TargetLook, cfg: dict[str, Any],
+                          target_cfg: dict[str, Any], first_seg_id: int) -> list[ObjectSpec]:
+    """Look-alikes of the target (:mod:`dope_hope.synth.hard_negatives`), placed as the targets
+    are (``target_cfg``: depth band, margins, truncation, separation) clear of ``placed``.
+
+    Role "hard_negative", seg ids ``first_seg_id``, ``first_seg_id + 1``, ...; never annotated.
+    """
+    n = int(rng.integers(cfg["count"][0], cfg["count"][1] + 1))
+    out: list[ObjectSpec] = []
+    for _ in range(n):
+        geometry = hard_negative_geometry(rng, look, cfg)
+        color, texture = hard_negative_material(rng, look, cfg)
+        material = MaterialSpec(color, 0.0, float(rng.uniform(*target_cfg["roughness"])), texture)
+        radius = float(np.linalg.norm(geometry.vertices, axis=1).max())
+        R = Rotation.random(random_state=rng).as_matrix()
+        for _try in range(int(target_cfg["max_tries"])):
+            z = rng.uniform(*target_cfg["distance_m"])
+            u, v = _target_center_pixel(rng, W, H, K[0, 0] * radius / z, target_cfg)
+            c = _backproject(K, u, v, z)
+            if _free(c, radius, placed + out, target_cfg["separation_factor"]):
+                out.append(ObjectSpec(role="hard_negative", seg_id=first_seg_id + len(out), R=R, t=c,
+                                      radius=radius, center=c, source="primitive", material=material,
+                                      geometry=geometry))
+                break
+    return out
+
+
 def _unit(v: np.ndarray) -> np.ndarray:
     return v / max(float(np.linalg.norm(v)), 1e-12)
 
@@ -329,7 +360,7 @@ def sample_lights(rng: np.random.Generator, targets: list[ObjectSpec],
 def sample_scene(streams: dict[str, np.random.Generator], size: tuple[int, int],
                  cfg: dict[str, Any], target_shape: ShapeInfo, n_distractor_meshes: int = 0,
                  distractor_info: Callable[[int], ShapeInfo] | None = None,
-                 force_occluder: int | None = None) -> SceneSpec:
+                 force_occluder: int | None = None, target_look: TargetLook | None = None) -> SceneSpec:
     """The complete random scene of one frame (see module docstring for the streams).
 
     Args:
@@ -339,6 +370,8 @@ def sample_scene(streams: dict[str, np.random.Generator], size: tuple[int, int],
         target_shape: bounding sphere of the target mesh (model frame).
         n_distractor_meshes, distractor_info: the distractor mesh library (size, bounds of i).
         force_occluder: index of a target instance that must get an occluder in front.
+        target_look: the target's size, shape class and colours, for the hard negatives
+            (none without it).
     """
     W, H = size
     K = sample_intrinsics(streams["camera"], size, cfg["camera"])
@@ -353,7 +386,11 @@ def sample_scene(streams: dict[str, np.random.Generator], size: tuple[int, int],
                                      cfg["distractors"], base, n_distractor_meshes, distractor_info)
     occluders = sample_occluders(streams["occluders"], K, targets, distractors, cfg["distractors"],
                                  cfg["camera"]["znear"], base + len(distractors) + 1, force_occluder)
+    lookalikes = [] if target_look is None else sample_hard_negatives(
+        streams["hard_negatives"], K, W, H, targets + distractors + occluders, target_look,
+        cfg["hard_negatives"], cfg["target"], base + len(distractors) + len(occluders) + 1)
     lights, ambient = sample_lights(streams["lights"], targets, cfg["lights"])
     return SceneSpec(width=W, height=H, K=K, znear=float(cfg["camera"]["znear"]),
-                     zfar=float(cfg["camera"]["zfar"]), objects=targets + distractors + occluders,
+                     zfar=float(cfg["camera"]["zfar"]),
+                     objects=targets + distractors + occluders + lookalikes,
                      lights=lights, ambient=ambient, target_material=target_material)

@@ -6,9 +6,17 @@ from typing import Any
 
 from dope_hope.config import check_known_keys, config_path, load_yaml, merge
 from dope_hope.errors import ConfigError
+from dope_hope.synth.sensor import EFFECT_PROBS
 
 #: Name of the default config (configs/synth.yaml).
 DEFAULT_CONFIG = "synth"
+#: Overrides that switch off the clutter backgrounds, the hard negatives and the sensor
+#: artefacts (the generator's frames before they existed, e.g. for models trained on those).
+PLAIN_OVERRIDES: dict[str, Any] = {
+    "background": {"clutter_prob": 0.0},
+    "hard_negatives": {"count": [0, 0]},
+    "post": {k: 0.0 for k in EFFECT_PROBS},
+}
 
 # (section, key) pairs that must be [min, max] ranges with min <= max.
 _RANGES = [
@@ -23,8 +31,43 @@ _RANGES = [
     ("background", "crop_scale"),
     ("post", "brightness"), ("post", "contrast"), ("post", "saturation"), ("post", "hue_deg"),
     ("post", "blur_sigma_px"), ("post", "noise_sigma"),
+    ("post", "defocus_radius_px"), ("post", "motion_blur_px"), ("post", "chromatic_px"),
+    ("post", "vignetting"), ("post", "exposure_ev"), ("post", "white_balance"),
+    ("post", "shot_noise"), ("post", "read_noise"), ("post", "jpeg_quality"),
+    ("background", "clutter", "count"), ("background", "clutter", "size"),
+    ("background", "clutter", "ambient"), ("background", "clutter", "blur_sigma_px"),
+    ("hard_negatives", "count"), ("hard_negatives", "size_jitter"), ("hard_negatives", "shuffle_grid"),
     ("depth_noise", "edge_width_px"),
 ]
+# Keys that must be probabilities in [0, 1].
+_PROBABILITIES = [
+    ("target", "truncation_prob"), ("distractors", "mesh_prob"), ("distractors", "keep_texture_prob"),
+    ("distractors", "texture_prob"), ("distractors", "occluder_prob"),
+    ("background", "procedural_prob_with_images"), ("background", "flip_prob"), ("background", "vflip_prob"),
+    ("background", "clutter_prob"), ("background", "clutter", "photo_texture_prob"),
+    ("background", "clutter", "shadow_prob"), ("hard_negatives", "same_shape_prob"),
+    ("post", "jitter_prob"), ("post", "blur_prob"), ("post", "noise_prob"),
+    ("post", "defocus_prob"), ("post", "motion_blur_prob"), ("post", "chromatic_prob"),
+    ("post", "vignetting_prob"), ("post", "exposure_prob"), ("post", "shot_noise_prob"), ("post", "jpeg_prob"),
+]
+# Ranges that must lie within [lo, hi] (None: unbounded on that side).
+_BOUNDS = [
+    (("post", "jpeg_quality"), 1, 100), (("post", "defocus_radius_px"), 0, None),
+    (("post", "motion_blur_px"), 0, None), (("post", "chromatic_px"), 0, None),
+    (("post", "vignetting"), 0, 0.95), (("post", "white_balance"), 0, None),
+    (("post", "shot_noise"), 0, None), (("post", "read_noise"), 0, None),
+    (("background", "clutter", "count"), 0, None), (("background", "clutter", "size"), 0, None),
+    (("background", "clutter", "ambient"), 0, 1), (("background", "clutter", "blur_sigma_px"), 0, None),
+    (("hard_negatives", "count"), 0, None), (("hard_negatives", "size_jitter"), 0.01, None),
+    (("hard_negatives", "shuffle_grid"), 1, None),
+]
+
+
+def _lookup(cfg: dict[str, Any], path: tuple[str, ...]) -> Any:
+    node: Any = cfg
+    for part in path:
+        node = node[part]
+    return node
 
 
 def load_synth_config(config: str | os.PathLike | dict[str, Any] | None = None) -> dict[str, Any]:
@@ -59,28 +102,52 @@ def packaged_synth_config() -> dict[str, Any]:
 
 def validate_synth_config(cfg: dict[str, Any]) -> None:
     """Raise ConfigError naming the first invalid key."""
-    for section, key in _RANGES:
+    for path in _RANGES:
+        name = ".".join(path)
         try:
-            lo, hi = cfg[section][key]
+            lo, hi = _lookup(cfg, path)
             bad = not (float(lo) <= float(hi))
         except (KeyError, TypeError, ValueError):
-            raise ConfigError(f"synth config: {section}.{key} must be a [min, max] pair") from None
+            raise ConfigError(f"synth config: {name} must be a [min, max] pair") from None
         if bad:
-            raise ConfigError(f"synth config: {section}.{key} has min > max ({lo} > {hi})")
+            raise ConfigError(f"synth config: {name} has min > max ({lo} > {hi})")
+    for path, lo, hi in _BOUNDS:
+        a, b = (float(v) for v in _lookup(cfg, path))
+        if (lo is not None and a < lo) or (hi is not None and b > hi):
+            raise ConfigError(f"synth config: {'.'.join(path)} must lie in "
+                              f"[{lo}, {'inf' if hi is None else hi}], got [{a:g}, {b:g}]")
+    for path in _PROBABILITIES:
+        try:
+            p = float(_lookup(cfg, path))
+            bad = not 0.0 <= p <= 1.0
+        except (KeyError, TypeError, ValueError):
+            bad = True
+        if bad:
+            raise ConfigError(f"synth config: {'.'.join(path)} must be a probability in [0, 1]")
+    clutter = cfg["background"]["clutter"]
+    if not 0.05 <= float(clutter["resolution"]) <= 1.0:
+        raise ConfigError("synth config: background.clutter.resolution must lie in [0.05, 1]")
+    for path in (("background", "clutter", "texture_px"), ("background", "clutter", "texture_pool"),
+                 ("hard_negatives", "texture_px")):
+        v = _lookup(cfg, path)
+        if isinstance(v, bool) or not isinstance(v, int) or v < (4 if path[-1] == "texture_px" else 1):
+            raise ConfigError(f"synth config: {'.'.join(path)} must be a whole number "
+                              f"(>= {4 if path[-1] == 'texture_px' else 1}), got {v!r}")
     if cfg["target"]["count"][0] < 1:
         raise ConfigError("synth config: target.count must start at 1 or more")
     if cfg["target"]["distance_m"][0] <= cfg["camera"]["znear"]:
         raise ConfigError("synth config: target.distance_m must lie beyond camera.znear")
     base = int(cfg["output"]["seg_distractor_base"])
     if not cfg["target"]["count"][1] < base or base + cfg["distractors"]["count"][1] + \
-            cfg["target"]["count"][1] > 255:
+            cfg["target"]["count"][1] + cfg["hard_negatives"]["count"][1] > 255:
         raise ConfigError("synth config: seg ids must fit in uint8: target.count[1] < "
-                          "output.seg_distractor_base and base + distractors + occluders <= 255")
-    for section, key in (("distractors", "primitives"), ("lights", "types"),
-                         ("background", "procedural_weights"), ("procedural", "categories")):
-        weights = cfg[section][key]
+                          "output.seg_distractor_base and base + distractors + occluders "
+                          "(target.count[1]) + hard_negatives.count[1] <= 255")
+    for path in (("distractors", "primitives"), ("lights", "types"), ("background", "procedural_weights"),
+                 ("background", "clutter", "kinds"), ("hard_negatives", "textures"), ("procedural", "categories")):
+        weights = _lookup(cfg, path)
         if not isinstance(weights, dict) or not any(float(v) > 0 for v in weights.values()):
-            raise ConfigError(f"synth config: {section}.{key} needs at least one positive weight")
+            raise ConfigError(f"synth config: {'.'.join(path)} needs at least one positive weight")
     from dope_hope.catalog import CATEGORIES
 
     unknown = sorted(set(cfg["procedural"]["categories"]) - set(CATEGORIES))
