@@ -113,17 +113,16 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--data DIR is required (the training folders)")
     if resume is None and not args.object_name:
         raise ConfigError("--object NAME is required (the class to train)")
-    init_weights = None
+    init_weights, why = None, ""
     if resume is None:
         from dope_hope.config import merge
         from dope_hope.training.settings import resolve_init
 
         init_weights, why = resolve_init(args.init_weights, merge(config, overrides))
-        logging.getLogger("dope_hope.training").info("start: %s", why)
     job = TrainJob(data=list(args.data or []), object_name=args.object_name or "", out=args.out, val=list(args.val),
                    resume=resume, mesh=args.mesh, symmetries=args.symmetries,
                    backbone_weights=args.backbone_weights,
-                   init_weights=init_weights, device=args.device,
+                   init_weights=init_weights, init_reason=why, device=args.device,
                    progress=not args.no_progress, overrides=overrides)
     summary = train(job, config)
     status = summary["status"]

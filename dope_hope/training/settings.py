@@ -54,6 +54,7 @@ class TrainJob:
         backbone_weights: optional local VGG19 state dict (arch dope).
         init_weights: optional dope-hope checkpoint whose network weights start this run
             (fine-tuning: fresh optimizer, schedule and step count; same architecture).
+        init_reason: what the run starts from, in words (logged; from :func:`resolve_init`).
         device: "auto" (CUDA when available), "cpu" or "cuda[:i]".
         progress: show tqdm bars (rank 0).
         overrides: nested config values set on the command line (``--epochs``, ``--set``...);
@@ -71,6 +72,7 @@ class TrainJob:
     symmetries: Path | None = None
     backbone_weights: Path | None = None
     init_weights: Path | None = None
+    init_reason: str = ""
     device: str = "auto"
     progress: bool = True
     overrides: dict[str, Any] = field(default_factory=dict)

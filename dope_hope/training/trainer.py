@@ -119,8 +119,6 @@ class Trainer:
         if job.backbone_weights is not None:
             from dope_hope.model.network import load_backbone_weights
             load_backbone_weights(self.model, job.backbone_weights)
-        if job.init_weights is not None and ck is None:
-            load_init_weights(self.model, job.init_weights)
         stride = int(self.model.stride)
         scan = dict(min_visibility=float(ts["min_visibility"]), include_empty=bool(ts["include_empty_frames"]),
                     progress=job.progress and self.dist.main)
@@ -134,6 +132,11 @@ class Trainer:
                 raise InputFileError(", ".join(str(p) for p in job.val), "no readable validation frames")
         else:
             records, val_records = split_records(records, float(ts["val_fraction"]), self.seed)
+        if ck is None:  # after the data checks: a bad folder or class is the only line printed
+            if job.init_weights is not None:
+                load_init_weights(self.model, job.init_weights)
+            if job.init_reason:
+                log.info("start: %s", job.init_reason)
         self.object, self.size_source = object_info(job.object_name, records, job.mesh)
         symmetry = label_symmetries(tcfg.get("symmetry", "none"), job.object_name, job.symmetries, job.mesh)
         self.symmetry_permutations = 1
