@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -335,43 +336,187 @@ def solve_pnp_candidates(
         centroid, fewer than three corner types, or the chosen assignment fails
         :func:`solve_pnp`.
     """
-    ids = np.asarray(keypoint_ids, dtype=int).ravel()
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    sc = np.asarray(scores, dtype=np.float64).ravel()
-    if not (len(ids) == len(pts) == len(sc)):
-        raise ValueError(f"keypoint_ids, points and scores differ in length: {len(ids)}, {len(pts)}, {len(sc)}")
-    if len(ids) and (ids.min() < 0 or ids.max() >= NUM_KEYPOINTS):
-        raise ValueError(f"keypoint ids must be in 0..{NUM_KEYPOINTS - 1}, got {sorted(set(ids.tolist()))}")
-    if max_hypotheses < 1:
-        raise ValueError(f"max_hypotheses must be >= 1, got {max_hypotheses}")
-    cuboid = np.asarray(cuboid_points, dtype=np.float64).reshape(NUM_KEYPOINTS, 3)
-    K = np.asarray(K, dtype=np.float64)
-    usable = np.flatnonzero(np.isfinite(pts).all(axis=1) & np.isfinite(sc))
-    counts = np.bincount(ids[usable], minlength=NUM_KEYPOINTS)
-    if counts[CENTROID_INDEX] == 0 or np.count_nonzero(counts[:CENTROID_INDEX]) < 3:
+    prep = _Candidates.of(keypoint_ids, points, scores, cuboid_points, K, max_hypotheses, pnp_options)
+    if prep is None:
         return None
-    # Candidate indices per type present, each best first (the input order).
-    order = usable[np.argsort(ids[usable], kind="stable")]
-    types = np.flatnonzero(counts)
-    starts = np.cumsum(counts[types]) - counts[types]
-    first = order[starts]
-    anchor = first[-1]                                       # the centroid (type 8, last)
-    R, t = _least_squares_pose(cuboid[types], pts[first], K)                   # step 1
-    if R is not None:
-        # Every type's first candidate within the threshold of this pose and the nearest of its
-        # type: nothing to search (the scoring below would find just that).
-        uvw = (cuboid[ids[usable]] @ R.T + t) @ K.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            d = uvw[:, :2] / uvw[:, 2:] - pts[usable]
-        err = np.full(len(ids), np.inf)
-        err[usable] = np.where(uvw[:, 2] > 0, d[:, 0] ** 2 + d[:, 1] ** 2, np.inf)       # squared, px^2
-        first_of = np.repeat(first, counts[types])           # per candidate in order: its type's first
-        if np.all(err[first] <= hypothesis_threshold_px ** 2) and np.all(err[order] >= err[first_of]):
-            kp = np.full((NUM_KEYPOINTS, 2), np.nan)
-            kp[types] = pts[first]
-            kp_scores = np.zeros(NUM_KEYPOINTS)
-            kp_scores[types] = sc[first]
-            return solve_pnp(kp, kp_scores, cuboid, K, initial_pose=(R, t), **pnp_options)
+    done, est, first_pose = _first_choice_poses([prep], hypothesis_threshold_px, pnp_options)[0]
+    if done:
+        return est
+    return _search(prep, first_pose, hypothesis_threshold_px, max_hypotheses, pnp_options)
+
+
+
+def solve_pnp_instances(
+    candidates: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    cuboid_points: np.ndarray,
+    K: np.ndarray,
+    **options,
+) -> list[PoseEstimate]:
+    """Poses of the objects of one image: :func:`solve_pnp_candidates` per centroid, a peak
+    belonging to one object only.
+
+    1. Every centroid's step 1 (the least-squares pose through each type's first candidate):
+       a centroid whose first candidates it explains is decided there (clean maps: all).
+    2. The other centroids in the given order (strongest first), each searched without the
+       peaks (same type, same position) that an accepted pose holds as inliers: a noise
+       blob next to boxes passes the angle test with their corners; without those it lacks
+       the ``min_points`` types any pose needs and is dropped before any minimal set.
+    3. Two estimates explaining one object (at least half of one's inliers are the other's
+       inlier peaks): the higher-scoring is kept.
+
+    Args:
+        candidates: per centroid (keypoint_ids (n,), points (n, 2) px, scores (n,)) as
+            :func:`solve_pnp_candidates` takes them.
+        cuboid_points, K: as in :func:`solve_pnp_candidates`.
+        **options: its keyword arguments (``hypothesis_threshold_px``, ``max_hypotheses``) and
+            :func:`solve_pnp`'s.
+
+    Returns:
+        The estimates kept, highest score first.
+    """
+    threshold = float(options.pop("hypothesis_threshold_px", 5.0))
+    max_hypotheses = int(options.pop("max_hypotheses", DEFAULT_MAX_HYPOTHESES))
+    found: list[PoseEstimate | None] = [None] * len(candidates)
+    preps = [(i, _Candidates.of(ids, pts, sc, cuboid_points, K, max_hypotheses, options))
+             for i, (ids, pts, sc) in enumerate(candidates)]
+    preps = [(i, c) for i, c in preps if c is not None]
+    pending = []
+    for (i, prep), (done, est, first_pose) in zip(preps, _first_choice_poses([c for _, c in preps], threshold,
+                                                                            options)):   # 1
+        found[i] = est
+        if not done:
+            pending.append((i, prep, first_pose))
+    taken = [_inlier_peaks(e) for e in found if e is not None]                # (k, 3) type, u, v
+    for i, prep, first_pose in pending:                                               # 2
+        peaks = np.concatenate(taken) if taken else np.zeros((0, 3))
+        mine = np.concatenate([prep.ids[:, None], prep.pts], axis=1)
+        free = ~np.any(np.all(mine[:, None] == peaks[None], axis=2), axis=1)
+        if not free.all():
+            prep = _Candidates.of(prep.ids[free], prep.pts[free], prep.sc[free], prep.cuboid, prep.K,
+                                  max_hypotheses, options)
+            if prep is None:
+                continue
+            first_pose = _least_squares_pose(prep.cuboid[prep.types], prep.pts[prep.first], prep.K)
+            first_pose = None if first_pose[0] is None else first_pose
+        found[i] = _search(prep, first_pose, threshold, max_hypotheses, options)
+        if found[i] is not None:
+            taken.append(_inlier_peaks(found[i]))
+    kept: list[PoseEstimate] = []                                                     # 3
+    found = sorted((e for e in found if e is not None), key=lambda e: -e.score)
+    inliers = np.zeros((len(found), NUM_KEYPOINTS), dtype=bool)
+    keypoints = np.zeros((len(found), NUM_KEYPOINTS, 2))
+    for est in found:
+        n = len(kept)
+        same = est.inliers & inliers[:n] & np.all(np.abs(est.keypoints - keypoints[:n]) < 1e-6, axis=2)
+        if not np.any(2 * same.sum(axis=1) >= int(est.inliers.sum())):
+            inliers[n], keypoints[n] = est.inliers, est.keypoints
+            kept.append(est)
+    return kept
+
+def _inlier_peaks(e: PoseEstimate) -> np.ndarray:
+    """(k, 3) keypoint type, u, v (px) of each inlier of ``e``."""
+    k = np.flatnonzero(e.inliers)
+    return np.concatenate([k[:, None], e.keypoints[k]], axis=1)
+
+
+
+@dataclass
+class _Candidates:
+    """One centroid's checked candidates, grouped by type (see :func:`solve_pnp_candidates`).
+
+    ids (n,) int, pts (n, 2) px, sc (n,): the input; cuboid (9, 3) metres; K (3, 3);
+    usable: (u,) indices of the finite candidates; counts (9,) usable candidates per type;
+    types: (T,) keypoint types present (the centroid, 8, last); order: usable candidates
+    grouped by type, each group best first; starts (T,) where each group begins in order;
+    first (T,) each type's first candidate.
+    """
+
+    ids: np.ndarray
+    pts: np.ndarray
+    sc: np.ndarray
+    cuboid: np.ndarray
+    K: np.ndarray
+    usable: np.ndarray
+    counts: np.ndarray
+    types: np.ndarray
+    order: np.ndarray
+    starts: np.ndarray
+    first: np.ndarray
+
+    @classmethod
+    def of(cls, keypoint_ids, points, scores, cuboid_points, K, max_hypotheses: int,
+           pnp_options: dict) -> "_Candidates | None":
+        """Checked inputs, or None when no pose can pass :func:`solve_pnp`: no centroid, or
+        fewer types present than its ``min_points`` (one keypoint per type reaches it)."""
+        ids = np.asarray(keypoint_ids, dtype=int).ravel()
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        sc = np.asarray(scores, dtype=np.float64).ravel()
+        if not (len(ids) == len(pts) == len(sc)):
+            raise ValueError(f"keypoint_ids, points and scores differ in length: {len(ids)}, {len(pts)}, {len(sc)}")
+        if len(ids) and (ids.min() < 0 or ids.max() >= NUM_KEYPOINTS):
+            raise ValueError(f"keypoint ids must be in 0..{NUM_KEYPOINTS - 1}, got {sorted(set(ids.tolist()))}")
+        if max_hypotheses < 1:
+            raise ValueError(f"max_hypotheses must be >= 1, got {max_hypotheses}")
+        usable = np.flatnonzero(np.isfinite(pts).all(axis=1) & np.isfinite(sc))
+        counts = np.bincount(ids[usable], minlength=NUM_KEYPOINTS)
+        types = np.flatnonzero(counts)
+        min_points = max(4, int(pnp_options.get("min_points", DEFAULT_MIN_POINTS)))
+        if counts[CENTROID_INDEX] == 0 or len(types) < min_points:
+            return None
+        # Candidate indices per type present, each best first (the input order).
+        order = usable[np.argsort(ids[usable], kind="stable")]
+        starts = np.cumsum(counts[types]) - counts[types]
+        return cls(ids, pts, sc, np.asarray(cuboid_points, dtype=np.float64).reshape(NUM_KEYPOINTS, 3),
+                   np.asarray(K, dtype=np.float64), usable, counts, types, order, starts, order[starts])
+
+
+def _first_choice_poses(cands: list[_Candidates], threshold_px: float, pnp_options: dict,
+                        ) -> list[tuple[bool, PoseEstimate | None, tuple[np.ndarray, np.ndarray] | None]]:
+    """Step 1 of :func:`solve_pnp_candidates` for several centroids of one image (one K): the
+    least-squares pose through every type's first candidate. Per centroid (decided, estimate,
+    pose): decided when each first candidate lies within ``threshold_px`` of that pose and is
+    the nearest of its type (the estimate is then :func:`solve_pnp`'s answer, maybe None);
+    pose: (R, t) or None where the solver failed. The candidates of all centroids are
+    projected at once."""
+    out: list = [(False, None, None)] * len(cands)
+    poses = [_least_squares_pose(c.cuboid[c.types], c.pts[c.first], c.K) for c in cands]
+    solved = [j for j, (R, _) in enumerate(poses) if R is not None]
+    if not solved:
+        return out
+    sizes = np.array([len(cands[j].order) for j in solved])
+    owner = np.repeat(np.arange(len(solved)), sizes)
+    offsets = np.cumsum(sizes) - sizes
+    obj = np.concatenate([cands[j].cuboid[cands[j].ids[cands[j].order]] for j in solved])   # (N, 3)
+    img = np.concatenate([cands[j].pts[cands[j].order] for j in solved])                    # (N, 2)
+    first_of = np.concatenate([np.repeat(cands[j].starts, cands[j].counts[cands[j].types]) for j in solved])
+    first_of += offsets[owner]                        # per candidate: its type's first, in the same rows
+    Rs = np.stack([poses[j][0] for j in solved])
+    ts = np.stack([poses[j][1] for j in solved])
+    uvw = (np.einsum("nij,nj->ni", Rs[owner], obj) + ts[owner]) @ cands[solved[0]].K.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = uvw[:, :2] / uvw[:, 2:] - img
+    err = np.where(uvw[:, 2] > 0, d[:, 0] ** 2 + d[:, 1] ** 2, np.inf)                      # squared, px^2
+    bad = ~(err[first_of] <= threshold_px ** 2) | (err < err[first_of])
+    decided = np.bincount(owner[bad], minlength=len(solved)) == 0
+    for jj, j in enumerate(solved):
+        c, (R, t) = cands[j], poses[j]
+        if not decided[jj]:
+            out[j] = (False, None, (R, t))
+            continue
+        kp = np.full((NUM_KEYPOINTS, 2), np.nan)
+        kp[c.types] = c.pts[c.first]
+        kp_scores = np.zeros(NUM_KEYPOINTS)
+        kp_scores[c.types] = c.sc[c.first]
+        out[j] = (True, solve_pnp(kp, kp_scores, c.cuboid, c.K, initial_pose=(R, t), **pnp_options), (R, t))
+    return out
+
+
+def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, hypothesis_threshold_px: float,
+            max_hypotheses: int, pnp_options: dict) -> PoseEstimate | None:
+    """Step 2 of :func:`solve_pnp_candidates` (and its final :func:`solve_pnp`), after step 1's
+    ``first_pose`` (scored first; None: the solver failed)."""
+    ids, pts, sc, cuboid, K, types, order, starts = c.ids, c.pts, c.sc, c.cuboid, c.K, c.types, c.order, c.starts
+    anchor = c.first[-1]                                       # the centroid (type 8, last)
     groups = np.split(order, starts[1:])
     scorer = _HypothesisScorer(ids, pts, np.clip(sc, 0.0, 1.0), groups, anchor, cuboid, K,
                                float(hypothesis_threshold_px))
@@ -389,8 +534,8 @@ def solve_pnp_candidates(
             if fit[0] is not None:
                 scorer.add([fit[0]], [fit[1]])
 
-    if R is not None:
-        add([R], [t])
+    if first_pose is not None:
+        add([first_pose[0]], [first_pose[1]])
     n_types = len(types)
     enough = n_types if n_types - 1 < _ENOUGH_TYPES else n_types - 1
     if scorer.most_explained < enough:                                         # step 2

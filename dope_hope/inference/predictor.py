@@ -60,7 +60,7 @@ from dope_hope.geometry import (
 from dope_hope.inference.backends import MapBackend, open_backend
 from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.detection import Detection
-from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_candidates
+from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_instances
 from dope_hope.maps.decode import corner_candidates, decode_maps
 from dope_hope.preprocess import (
     NetworkInput,
@@ -331,18 +331,9 @@ class DopePredictor:
             found = [solve_pnp(inst.keypoints, inst.scores, self.cuboid_pnp, K_net, **self.options.pnp)
                      for inst in decode_maps(belief, affinity, self.stride, **self.options.decode)]
             return [e for e in found if e is not None]
-        found = [solve_pnp_candidates(c.keypoint_ids, c.xy, c.scores, self.cuboid_pnp, K_net,
-                                      **self.options.hypotheses, **self.options.pnp)
-                 for c in corner_candidates(belief, affinity, self.stride, **self.options.decode)]
-        found = sorted((e for e in found if e is not None), key=lambda e: -e.score)
-        kept: list[PoseEstimate] = []
-        inliers = np.zeros((len(found), NUM_KEYPOINTS), dtype=bool)
-        keypoints = np.zeros((len(found), NUM_KEYPOINTS, 2))
-        for est in found:
-            if not _same_peaks(est, inliers[: len(kept)], keypoints[: len(kept)]):
-                inliers[len(kept)], keypoints[len(kept)] = est.inliers, est.keypoints
-                kept.append(est)
-        return kept
+        candidates = corner_candidates(belief, affinity, self.stride, **self.options.decode)
+        return solve_pnp_instances([(c.keypoint_ids, c.xy, c.scores) for c in candidates], self.cuboid_pnp,
+                                   K_net, **self.options.hypotheses, **self.options.pnp)
 
     def __repr__(self) -> str:
         return (f"DopePredictor(class_name={self.class_name!r}, stride={self.stride}, "
@@ -356,14 +347,6 @@ def as_depth_image(depth: np.ndarray | DepthImage | None, K: np.ndarray, depth_s
     if depth is None or isinstance(depth, DepthImage):
         return depth
     return DepthImage.from_raw(depth, K, depth_scale_m, calibration, image_hw)
-
-
-def _same_peaks(a: PoseEstimate, inliers: np.ndarray, keypoints: np.ndarray) -> bool:
-    """True when, for one of the kept estimates ((k, 9) inliers, (k, 9, 2) keypoints), at least
-    half of ``a``'s inlier keypoints are the very peaks (same type, same position) among its
-    inliers: two centroids that explain one object."""
-    same = a.inliers & inliers & np.all(np.abs(a.keypoints - keypoints) < 1e-6, axis=2)
-    return bool(np.any(2 * same.sum(axis=1) >= int(a.inliers.sum())))
 
 
 def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.ndarray,
