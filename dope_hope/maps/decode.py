@@ -53,6 +53,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter, label
 from scipy.optimize import linear_sum_assignment
@@ -161,18 +162,39 @@ def _log_parabola(maps: np.ndarray, c: np.ndarray, y: np.ndarray, x: np.ndarray,
 
 def _window_max(a: np.ndarray, radius: int) -> np.ndarray:
     """(C, h, w) maximum of each cell's (2r+1)^2 neighbourhood within its channel, cells
-    outside the map not counted (separable: rows, then columns)."""
+    outside the map not counted (separable: ``cv2.dilate`` along rows with the channels
+    stacked, then along columns with them side by side; the replicated border is a cell of
+    the map, so it adds nothing)."""
     if radius <= 0:
         return a
-    h, w = a.shape[1:]
-    padded = np.pad(a, ((0, 0), (radius, radius), (radius, radius)), constant_values=-np.inf)
-    rows = padded[:, :, : w]
-    for d in range(1, 2 * radius + 1):
-        rows = np.maximum(rows, padded[:, :, d: d + w])
-    out = rows[:, : h]
-    for d in range(1, 2 * radius + 1):
-        out = np.maximum(out, rows[:, d: d + h])
-    return out
+    C, h, w = a.shape
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    size = 2 * radius + 1
+    rows = cv2.dilate(a.reshape(C * h, w), np.ones((1, size), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    wide = np.ascontiguousarray(rows.reshape(C, h, w).transpose(1, 0, 2)).reshape(h, C * w)
+    out = cv2.dilate(wide, np.ones((size, 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    return out.reshape(h, C, w).transpose(1, 0, 2)
+
+
+def _smooth(a: np.ndarray, sigma: float) -> np.ndarray:
+    """(C, h, w) float32: ``scipy.ndimage.gaussian_filter(a, (0, sigma, sigma))`` (truncated at
+    4 sigma, reflected border, float64 sums, float32 after each axis), computed as two
+    ``cv2.sepFilter2D`` passes over all channels at once: columns with the channels side by
+    side, rows with them stacked (neither pass mixes channels). scipy where the kernel is
+    wider than the map (its reflection repeats, OpenCV's does not)."""
+    C, h, w = a.shape
+    radius = int(4.0 * float(sigma) + 0.5)
+    if radius >= min(h, w):
+        return gaussian_filter(a, sigma=(0, sigma, sigma))
+    x = np.arange(-radius, radius + 1)
+    kernel = np.exp(-0.5 / (float(sigma) * float(sigma)) * x ** 2)
+    kernel = kernel / kernel.sum()
+    one = np.ones(1)
+    wide = a.transpose(1, 0, 2).reshape(h, C * w).astype(np.float64)
+    cols = cv2.sepFilter2D(wide, cv2.CV_64F, one, kernel, borderType=cv2.BORDER_REFLECT).astype(np.float32)
+    tall = cols.reshape(h, C, w).transpose(1, 0, 2).reshape(C * h, w).astype(np.float64)
+    out = cv2.sepFilter2D(tall, cv2.CV_64F, kernel, one, borderType=cv2.BORDER_REFLECT)
+    return out.astype(np.float32).reshape(C, h, w)
 
 
 _DY = np.repeat([-1, 0, 1], 3)   # the 3x3 neighbourhood, row by row
@@ -233,12 +255,11 @@ def find_peaks(
     if not np.isfinite(raw).all():
         raw = np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0)
     C, h, w = raw.shape
-    smooth = gaussian_filter(raw, sigma=(0, smooth_sigma, smooth_sigma)) if smooth_sigma > 0 else raw
+    smooth = _smooth(raw, smooth_sigma) if smooth_sigma > 0 else raw
     local_max = (smooth >= _window_max(smooth, nms_radius)) & (smooth > 0)  # flat empty regions are not peaks
-    # Raw belief near each candidate: the 3x3 maximum (edge-clamped), gathered at the candidates only.
+    # Raw belief near each candidate: the 3x3 maximum (cells inside the map).
     cand = np.flatnonzero(local_max)
-    cc, cy, cx = np.unravel_index(cand, raw.shape)
-    near = _neighbourhood(raw, cc, cy, cx)[0].max(axis=1)
+    near = _window_max(raw, 1).ravel()[cand]
     idx = cand[near > threshold]
     value = np.zeros(raw.shape, dtype=raw.dtype)
     value.ravel()[cand] = near
@@ -269,7 +290,10 @@ def find_peaks(
     inside = np.ones(len(c), dtype=bool)
     for axis in (2, 1):  # x then y
         v1, ok1, h1 = _log_parabola(primary, c, y, x, axis)
-        v2, ok2, _ = _log_parabola(secondary, c, y, x, axis)
+        v2, ok2 = v1.copy(), np.zeros(len(c), dtype=bool)  # the other map, where the first fit fails
+        redo = np.flatnonzero(~ok1)
+        if redo.size:
+            v2[redo], ok2[redo], _ = _log_parabola(secondary, c[redo], y[redo], x[redo], axis)
         if primary is raw:
             hr, okr = h1, ok1
         else:
