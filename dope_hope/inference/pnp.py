@@ -94,11 +94,6 @@ class PoseEstimate:
     keypoint_scores: np.ndarray | None = None
 
 
-def _reprojection_errors(obj: np.ndarray, img: np.ndarray, rvec, tvec, K, dist) -> np.ndarray:
-    proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
-    return np.linalg.norm(proj.reshape(-1, 2) - img, axis=1)
-
-
 def solve_pnp(
     keypoints: np.ndarray,
     scores: np.ndarray | None,
@@ -136,62 +131,106 @@ def solve_pnp(
     Returns:
         :class:`PoseEstimate`, or None when the keypoints do not support a pose.
     """
+    poses = None if initial_pose is None else ([initial_pose[0]], [initial_pose[1]])
+    return _solve_pnp_many(
+        np.asarray(keypoints, dtype=np.float64).reshape(1, NUM_KEYPOINTS, 2),
+        None if scores is None else np.asarray(scores, dtype=np.float64).reshape(1, NUM_KEYPOINTS),
+        cuboid_points, K, poses, min_points, reprojection_threshold_px, max_mean_error_px, dist_coeffs,
+        min_score, min_inlier_ratio, ransac_iterations, ransac_confidence)[0]
+
+
+def _project(obj: np.ndarray, Rs: np.ndarray, ts: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(B, n, 2) image px of (n, 3) model points under B poses (Rs (B, 3, 3), ts (B, 3));
+    ``cv2.projectPoints`` per pose where ``dist`` has a non-zero coefficient."""
+    if not dist.any():
+        uvw = (obj @ Rs.transpose(0, 2, 1) + ts[:, None]) @ K.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return uvw[..., :2] / uvw[..., 2:]
+    return np.stack([cv2.projectPoints(obj, cv2.Rodrigues(R)[0], t, K, dist)[0].reshape(-1, 2)
+                     for R, t in zip(Rs, ts)]).reshape(len(Rs), len(obj), 2)
+
+
+def _solve_pnp_many(keypoints: np.ndarray, scores: np.ndarray | None, cuboid_points: np.ndarray, K: np.ndarray,
+                    initial_poses: tuple | None, min_points: int = DEFAULT_MIN_POINTS,
+                    reprojection_threshold_px: float = DEFAULT_REPROJECTION_PX, max_mean_error_px: float = 4.0,
+                    dist_coeffs: np.ndarray | None = None, min_score: float = 0.0, min_inlier_ratio: float = 0.75,
+                    ransac_iterations: int = 200, ransac_confidence: float = 0.999,
+                    ) -> list[PoseEstimate | None]:
+    """:func:`solve_pnp` of B keypoint sets at once (its steps and checks; the projections
+    and checks of all sets in one pass, the solvers per set): keypoints (B, 9, 2) px, scores
+    (B, 9) or None, initial_poses None or (B rotations (3, 3), B translations (3,))."""
     if min_points < 4:
         raise ValueError("min_points must be >= 4: three points leave up to four poses")
-    kp = np.asarray(keypoints, dtype=np.float64).reshape(NUM_KEYPOINTS, 2)
-    sc = np.ones(NUM_KEYPOINTS) if scores is None else np.asarray(scores, dtype=np.float64)
+    kp = np.asarray(keypoints, dtype=np.float64).reshape(-1, NUM_KEYPOINTS, 2)
+    B = len(kp)
+    sc = np.ones((B, NUM_KEYPOINTS)) if scores is None else np.asarray(scores, dtype=np.float64).reshape(B, -1)
     obj_all = np.asarray(cuboid_points, dtype=np.float64).reshape(NUM_KEYPOINTS, 3)
     K = np.asarray(K, dtype=np.float64)
     dist = np.zeros(5) if dist_coeffs is None else np.asarray(dist_coeffs, dtype=np.float64)
-    present = np.all(np.isfinite(kp), axis=1) & np.isfinite(sc) & (sc > min_score)
-    idx = np.flatnonzero(present)
-    if idx.size < min_points:
-        return None
-    obj, img = obj_all[idx], kp[idx]
-    if initial_pose is None:
-        try:
-            ok, rvec, tvec, inl = cv2.solvePnPRansac(
-                obj, img, K, dist,
-                iterationsCount=ransac_iterations,
-                reprojectionError=float(reprojection_threshold_px),
-                confidence=ransac_confidence,
-                flags=cv2.SOLVEPNP_SQPNP,
-            )
-        except cv2.error:
-            return None
-        if not ok or inl is None:
-            return None
-        inl = inl.ravel()
+    thr = float(reprojection_threshold_px)
+    present = np.all(np.isfinite(kp), axis=2) & np.isfinite(sc) & (sc > min_score)      # (B, 9)
+    n_present = present.sum(axis=1)
+    out: list[PoseEstimate | None] = [None] * B
+    starts = []                              # (set, rvec, tvec, (9,) bool consensus)
+    if initial_poses is None:
+        for b in np.flatnonzero(n_present >= min_points):
+            idx = np.flatnonzero(present[b])
+            try:
+                ok, rvec, tvec, inl = cv2.solvePnPRansac(
+                    obj_all[idx], kp[b, idx], K, dist,
+                    iterationsCount=ransac_iterations,
+                    reprojectionError=thr,
+                    confidence=ransac_confidence,
+                    flags=cv2.SOLVEPNP_SQPNP,
+                )
+            except cv2.error:
+                continue
+            if ok and inl is not None:
+                consensus = np.zeros(NUM_KEYPOINTS, dtype=bool)
+                consensus[idx[inl.ravel()]] = True
+                starts.append((b, rvec, tvec, consensus))
     else:
-        rvec = cv2.Rodrigues(np.asarray(initial_pose[0], dtype=np.float64))[0]
-        tvec = np.asarray(initial_pose[1], dtype=np.float64).reshape(3, 1)
-        inl = np.flatnonzero(_reprojection_errors(obj, img, rvec, tvec, K, dist) <= reprojection_threshold_px)
-    if len(inl) < min_points:
-        return None
-    try:
-        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, dist, rvec, tvec, criteria=_LM_CRITERIA)
-    except cv2.error:
-        return None
-    projected = cv2.projectPoints(obj_all, rvec, tvec, K, dist)[0].reshape(-1, 2)
-    err = np.linalg.norm(projected[idx] - img, axis=1)
-    inlier_local = err <= reprojection_threshold_px
-    if inlier_local.sum() < min_points or inlier_local.sum() < min_inlier_ratio * idx.size:
-        return None
-    R, _ = cv2.Rodrigues(rvec)
-    t = tvec.reshape(3)
-    centre_z = (R @ obj_all[CENTROID_INDEX] + t)[2]
-    if t[2] <= 0 or centre_z <= 0:
-        return None
-    mean_err = float(err[inlier_local].mean())
-    if mean_err > max_mean_error_px:
-        return None
-    inliers = np.zeros(NUM_KEYPOINTS, dtype=bool)
-    inliers[idx[inlier_local]] = True
-    score = float(np.clip(sc[inliers], 0.0, 1.0).sum() / NUM_KEYPOINTS)
-    return PoseEstimate(
-        R=R, t=t.copy(), score=score, inliers=inliers, reprojection_error_px=mean_err,
-        keypoints=kp.copy(), projected=projected, keypoint_scores=sc.copy(),
-    )
+        Rs = np.asarray(initial_poses[0], dtype=np.float64).reshape(B, 3, 3)
+        ts = np.asarray(initial_poses[1], dtype=np.float64).reshape(B, 3)
+        d = _project(obj_all, Rs, ts, K, dist) - kp
+        with np.errstate(invalid="ignore"):
+            consensus = present & (np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2) <= thr)
+        for b in np.flatnonzero(n_present >= min_points):
+            starts.append((b, cv2.Rodrigues(Rs[b])[0], ts[b].reshape(3, 1), consensus[b]))
+    refined = []
+    for b, rvec, tvec, consensus in starts:
+        if consensus.sum() < min_points:
+            continue
+        try:
+            rvec, tvec = cv2.solvePnPRefineLM(obj_all[consensus], np.ascontiguousarray(kp[b, consensus]), K, dist,
+                                              rvec, tvec, criteria=_LM_CRITERIA)
+        except cv2.error:
+            continue
+        refined.append((b, cv2.Rodrigues(rvec)[0], tvec.reshape(3)))
+    if not refined:
+        return out
+    sets = np.array([b for b, _, _ in refined])
+    Rs = np.stack([R for _, R, _ in refined])
+    ts = np.stack([t for _, _, t in refined])
+    projected = _project(obj_all, Rs, ts, K, dist)                                     # (B', 9, 2)
+    d = projected - kp[sets]
+    with np.errstate(invalid="ignore"):
+        err = np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
+        inliers = present[sets] & (err <= thr)
+    n_in = inliers.sum(axis=1)
+    centre_z = (Rs @ obj_all[CENTROID_INDEX] + ts)[:, 2]
+    mean_err = np.where(inliers, err, 0.0).sum(axis=1) / np.maximum(n_in, 1)
+    ok = ((n_in >= min_points) & (n_in >= min_inlier_ratio * n_present[sets]) & (ts[:, 2] > 0) & (centre_z > 0)
+          & (mean_err <= max_mean_error_px))
+    scores_out = np.where(inliers, np.clip(sc[sets], 0.0, 1.0), 0.0).sum(axis=1) / NUM_KEYPOINTS
+    for j in np.flatnonzero(ok):
+        b = sets[j]
+        out[b] = PoseEstimate(
+            R=Rs[j], t=ts[j].copy(), score=float(scores_out[j]), inliers=inliers[j],
+            reprojection_error_px=float(mean_err[j]), keypoints=kp[b].copy(), projected=projected[j],
+            keypoint_scores=sc[b].copy(),
+        )
+    return out
 
 
 def _covering_order(n_types: int) -> np.ndarray:
@@ -498,16 +537,20 @@ def _first_choice_poses(cands: list[_Candidates], threshold_px: float, pnp_optio
     err = np.where(uvw[:, 2] > 0, d[:, 0] ** 2 + d[:, 1] ** 2, np.inf)                      # squared, px^2
     bad = ~(err[first_of] <= threshold_px ** 2) | (err < err[first_of])
     decided = np.bincount(owner[bad], minlength=len(solved)) == 0
+    chosen = [j for jj, j in enumerate(solved) if decided[jj]]
     for jj, j in enumerate(solved):
-        c, (R, t) = cands[j], poses[j]
-        if not decided[jj]:
-            out[j] = (False, None, (R, t))
-            continue
-        kp = np.full((NUM_KEYPOINTS, 2), np.nan)
-        kp[c.types] = c.pts[c.first]
-        kp_scores = np.zeros(NUM_KEYPOINTS)
-        kp_scores[c.types] = c.sc[c.first]
-        out[j] = (True, solve_pnp(kp, kp_scores, c.cuboid, c.K, initial_pose=(R, t), **pnp_options), (R, t))
+        out[j] = (False, None, poses[j])
+    if chosen:
+        kp = np.full((len(chosen), NUM_KEYPOINTS, 2), np.nan)
+        kp_scores = np.zeros((len(chosen), NUM_KEYPOINTS))
+        for n, j in enumerate(chosen):
+            c = cands[j]
+            kp[n, c.types] = c.pts[c.first]
+            kp_scores[n, c.types] = c.sc[c.first]
+        ests = _solve_pnp_many(kp, kp_scores, cands[chosen[0]].cuboid, cands[chosen[0]].K,
+                               ([poses[j][0] for j in chosen], [poses[j][1] for j in chosen]), **pnp_options)
+        for j, est in zip(chosen, ests):
+            out[j] = (True, est, poses[j])
     return out
 
 
