@@ -37,7 +37,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
 
@@ -298,18 +297,16 @@ def _least_squares_pose(obj: np.ndarray, img: np.ndarray, K: np.ndarray,
 def _ap3p_poses(objs: np.ndarray, imgs: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``cv2.SOLVEPNP_AP3P`` on each of (H, 4, 3) model / (H, 4, 2) image point quadruples (no
     distortion): ((h, 3, 3) R, (h, 3) t) of the h that succeed."""
-    rvecs, tvecs = [], []
+    Rs, ts = [], []
     for obj, img in zip(objs, imgs):
         try:
             ok, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_AP3P)
         except cv2.error:
             continue
-        if ok:
-            rvecs.append(rvec.ravel())
-            tvecs.append(tvec.ravel())
-    rvecs, tvecs = np.array(rvecs).reshape(-1, 3), np.array(tvecs).reshape(-1, 3)
-    ok = np.isfinite(rvecs).all(axis=1) & np.isfinite(tvecs).all(axis=1)
-    return Rotation.from_rotvec(rvecs[ok]).as_matrix().reshape(-1, 3, 3), tvecs[ok]
+        if ok and np.isfinite(rvec).all() and np.isfinite(tvec).all():
+            Rs.append(cv2.Rodrigues(rvec)[0])
+            ts.append(tvec.ravel())
+    return np.array(Rs).reshape(-1, 3, 3), np.array(ts).reshape(-1, 3)
 
 
 def solve_pnp_candidates(

@@ -259,10 +259,9 @@ def find_peaks(
     local_max = (smooth >= _window_max(smooth, nms_radius)) & (smooth > 0)  # flat empty regions are not peaks
     # Raw belief near each candidate: the 3x3 maximum (cells inside the map).
     cand = np.flatnonzero(local_max)
-    near = _window_max(raw, 1).ravel()[cand]
+    raw_near = _window_max(raw, 1)
+    near = raw_near.ravel()[cand]
     idx = cand[near > threshold]
-    value = np.zeros(raw.shape, dtype=raw.dtype)
-    value.ravel()[cand] = near
     if idx.size == 0:
         empty = np.zeros((0, 2))
         return Peaks(np.zeros(0, int), empty.astype(int), empty, np.zeros(0))
@@ -310,7 +309,7 @@ def find_peaks(
     xy = np.stack(coords, axis=1)
     # Score: the fitted Gaussian height on the raw map (independent of the sub-pixel phase;
     # for a separable Gaussian ln peak = h_x + h_y - ln f(cell)), else the raw 3x3 maximum.
-    value = value[c, y, x].astype(np.float64)
+    value = raw_near[c, y, x].astype(np.float64)  # at the cell fitted (after the climb)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         fitted = np.exp(heights[0] + heights[1] - np.log(np.maximum(raw[c, y, x], 1e-30)))
     score = np.where(raw_ok[0] & raw_ok[1] & np.isfinite(fitted), np.maximum(fitted, value), value)
