@@ -422,7 +422,7 @@ def solve_pnp_instances(
         found[i] = est
         if not done:
             pending.append((i, prep, first_pose))
-    taken = [_inlier_peaks(e) for e in found if e is not None]                # (k, 3) type, u, v
+    taken = [_inlier_peaks(e) for e in found if e is not None] if pending else []   # (k, 3) type, u, v
     for i, prep, first_pose in pending:                                               # 2
         peaks = np.concatenate(taken) if taken else np.zeros((0, 3))
         mine = np.concatenate([prep.ids[:, None], prep.pts], axis=1)
@@ -437,17 +437,19 @@ def solve_pnp_instances(
         found[i] = _search(prep, first_pose, threshold, max_hypotheses, options)
         if found[i] is not None:
             taken.append(_inlier_peaks(found[i]))
-    kept: list[PoseEstimate] = []                                                     # 3
-    found = sorted((e for e in found if e is not None), key=lambda e: -e.score)
-    inliers = np.zeros((len(found), NUM_KEYPOINTS), dtype=bool)
-    keypoints = np.zeros((len(found), NUM_KEYPOINTS, 2))
-    for est in found:
-        n = len(kept)
-        same = est.inliers & inliers[:n] & np.all(np.abs(est.keypoints - keypoints[:n]) < 1e-6, axis=2)
-        if not np.any(2 * same.sum(axis=1) >= int(est.inliers.sum())):
-            inliers[n], keypoints[n] = est.inliers, est.keypoints
-            kept.append(est)
-    return kept
+    found = sorted((e for e in found if e is not None), key=lambda e: -e.score)       # 3
+    if len(found) < 2:
+        return found
+    inliers = np.stack([e.inliers for e in found])                                   # (E, 9)
+    keypoints = np.stack([e.keypoints for e in found])                               # (E, 9, 2)
+    same = inliers[:, None] & inliers[None] & np.all(np.abs(keypoints[:, None] - keypoints[None]) < 1e-6, axis=3)
+    covers = (2 * same.sum(axis=2) >= inliers.sum(axis=1)[:, None]).tolist()         # [i][j]: j holds half of i
+    kept: list[int] = []
+    for i in range(len(found)):
+        if not any(covers[i][j] for j in kept):
+            kept.append(i)
+    return [found[i] for i in kept]
+
 
 def _inlier_peaks(e: PoseEstimate) -> np.ndarray:
     """(k, 3) keypoint type, u, v (px) of each inlier of ``e``."""

@@ -55,7 +55,9 @@ from dope_hope.geometry import (
     legacy_keypoints_to_current,
     legacy_rotation_to_mesh,
     project_points,
+    project_points_poses,
     projected_bbox,
+    projected_bboxes,
 )
 from dope_hope.inference.backends import MapBackend, open_backend
 from dope_hope.inference.options import InferenceOptions
@@ -292,9 +294,13 @@ class DopePredictor:
                     self._refine_icp(det, depth)
             elif self.options.icp:
                 det.icp_reason = "no depth image"
-            det.projected_2d = project_points(self.cuboid_mesh, K, det.R, det.t)
-            det.bbox_2d = projected_bbox(self.bbox_points, K, det.R, det.t, net_in.original_hw)
             out.append(det)
+        if out:  # the final poses' projections, all at once
+            Rs, ts = np.stack([d.R for d in out]), np.stack([d.t for d in out])
+            projected = project_points_poses(self.cuboid_mesh, K, Rs, ts)
+            boxes = projected_bboxes(self.bbox_points, K, Rs, ts, net_in.original_hw)
+            for det, uv, box in zip(out, projected, boxes):
+                det.projected_2d, det.bbox_2d = uv, box
         out.sort(key=lambda d: -d.score)
         return out
 
