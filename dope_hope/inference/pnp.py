@@ -372,13 +372,12 @@ def solve_pnp_candidates(
         centroid, fewer than three corner types, or the chosen assignment fails
         :func:`solve_pnp`.
     """
-    prep = _Candidates.of(keypoint_ids, points, scores, cuboid_points, K, max_hypotheses, pnp_options)
-    if prep is None:
-        return None
-    done, est, first_pose = _first_choice_poses([prep], hypothesis_threshold_px, pnp_options)[0]
-    if done:
-        return est
-    return _search(prep, first_pose, hypothesis_threshold_px, max_hypotheses, pnp_options)
+    step1 = _first_choices([(keypoint_ids, points, scores)], cuboid_points, K, hypothesis_threshold_px,
+                           max_hypotheses, pnp_options)[0]
+    if step1 is None or step1[0]:
+        return None if step1 is None else step1[1]
+    prep = _Candidates.of(keypoint_ids, points, scores, cuboid_points, K, pnp_options)
+    return _search(prep, step1[2], hypothesis_threshold_px, max_hypotheses, pnp_options)
 
 
 
@@ -413,23 +412,19 @@ def solve_pnp_instances(
     threshold = float(options.pop("hypothesis_threshold_px", 5.0))
     max_hypotheses = int(options.pop("max_hypotheses", DEFAULT_MAX_HYPOTHESES))
     found: list[PoseEstimate | None] = [None] * len(candidates)
-    preps = [(i, _Candidates.of(ids, pts, sc, cuboid_points, K, max_hypotheses, options))
-             for i, (ids, pts, sc) in enumerate(candidates)]
-    preps = [(i, c) for i, c in preps if c is not None]
     pending = []
-    for (i, prep), (done, est, first_pose) in zip(preps, _first_choice_poses([c for _, c in preps], threshold,
-                                                                            options)):   # 1
-        found[i] = est
-        if not done:
-            pending.append((i, prep, first_pose))
+    for i, step1 in enumerate(_first_choices(candidates, cuboid_points, K, threshold, max_hypotheses, options)):
+        if step1 is not None:                                                         # 1
+            decided, found[i], first_pose = step1
+            if not decided:
+                pending.append((i, _Candidates.of(*candidates[i], cuboid_points, K, options), first_pose))
     taken = [_inlier_peaks(e) for e in found if e is not None] if pending else []   # (k, 3) type, u, v
     for i, prep, first_pose in pending:                                               # 2
         peaks = np.concatenate(taken) if taken else np.zeros((0, 3))
         mine = np.concatenate([prep.ids[:, None], prep.pts], axis=1)
         free = ~np.any(np.all(mine[:, None] == peaks[None], axis=2), axis=1)
         if not free.all():
-            prep = _Candidates.of(prep.ids[free], prep.pts[free], prep.sc[free], prep.cuboid, prep.K,
-                                  max_hypotheses, options)
+            prep = _Candidates.of(prep.ids[free], prep.pts[free], prep.sc[free], prep.cuboid, prep.K, options)
             if prep is None:
                 continue
             first_pose = _least_squares_pose(prep.cuboid[prep.types], prep.pts[prep.first], prep.K)
@@ -482,25 +477,15 @@ class _Candidates:
     first: np.ndarray
 
     @classmethod
-    def of(cls, keypoint_ids, points, scores, cuboid_points, K, max_hypotheses: int,
-           pnp_options: dict) -> "_Candidates | None":
-        """Checked inputs, or None when no pose can pass :func:`solve_pnp`: no centroid, or
-        fewer types present than its ``min_points`` (one keypoint per type reaches it)."""
-        ids = np.asarray(keypoint_ids, dtype=int).ravel()
-        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-        sc = np.asarray(scores, dtype=np.float64).ravel()
-        if not (len(ids) == len(pts) == len(sc)):
-            raise ValueError(f"keypoint_ids, points and scores differ in length: {len(ids)}, {len(pts)}, {len(sc)}")
-        if len(ids) and (ids.min() < 0 or ids.max() >= NUM_KEYPOINTS):
-            raise ValueError(f"keypoint ids must be in 0..{NUM_KEYPOINTS - 1}, got {sorted(set(ids.tolist()))}")
-        if max_hypotheses < 1:
-            raise ValueError(f"max_hypotheses must be >= 1, got {max_hypotheses}")
+    def of(cls, keypoint_ids, points, scores, cuboid_points, K, pnp_options: dict) -> "_Candidates | None":
+        """Checked inputs, or None when no pose can pass :func:`solve_pnp`
+        (:func:`_pose_possible`)."""
+        ids, pts, sc = _checked(keypoint_ids, points, scores)
         usable = np.flatnonzero(np.isfinite(pts).all(axis=1) & np.isfinite(sc))
         counts = np.bincount(ids[usable], minlength=NUM_KEYPOINTS)
-        types = np.flatnonzero(counts)
-        min_points = max(4, int(pnp_options.get("min_points", DEFAULT_MIN_POINTS)))
-        if counts[CENTROID_INDEX] == 0 or len(types) < min_points:
+        if not _pose_possible(counts, pnp_options):
             return None
+        types = np.flatnonzero(counts)
         # Candidate indices per type present, each best first (the input order).
         order = usable[np.argsort(ids[usable], kind="stable")]
         starts = np.cumsum(counts[types]) - counts[types]
@@ -508,48 +493,88 @@ class _Candidates:
                    np.asarray(K, dtype=np.float64), usable, counts, types, order, starts, order[starts])
 
 
-def _first_choice_poses(cands: list[_Candidates], threshold_px: float, pnp_options: dict,
-                        ) -> list[tuple[bool, PoseEstimate | None, tuple[np.ndarray, np.ndarray] | None]]:
-    """Step 1 of :func:`solve_pnp_candidates` for several centroids of one image (one K): the
-    least-squares pose through every type's first candidate. Per centroid (decided, estimate,
-    pose): decided when each first candidate lies within ``threshold_px`` of that pose and is
-    the nearest of its type (the estimate is then :func:`solve_pnp`'s answer, maybe None);
-    pose: (R, t) or None where the solver failed. The candidates of all centroids are
-    projected at once."""
-    out: list = [(False, None, None)] * len(cands)
-    poses = [_least_squares_pose(c.cuboid[c.types], c.pts[c.first], c.K) for c in cands]
-    solved = [j for j, (R, _) in enumerate(poses) if R is not None]
-    if not solved:
+def _checked(keypoint_ids, points, scores) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One centroid's candidates as (n,) int ids, (n, 2) float px, (n,) float scores;
+    ValueError when their lengths differ or an id is not a keypoint index."""
+    ids = np.asarray(keypoint_ids, dtype=int).ravel()
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    sc = np.asarray(scores, dtype=np.float64).ravel()
+    if not (len(ids) == len(pts) == len(sc)):
+        raise ValueError(f"keypoint_ids, points and scores differ in length: {len(ids)}, {len(pts)}, {len(sc)}")
+    if len(ids) and (ids.min() < 0 or ids.max() >= NUM_KEYPOINTS):
+        raise ValueError(f"keypoint ids must be in 0..{NUM_KEYPOINTS - 1}, got {sorted(set(ids.tolist()))}")
+    return ids, pts, sc
+
+
+def _pose_possible(counts: np.ndarray, pnp_options: dict) -> np.ndarray:
+    """(...,) bool from (..., 9) usable candidates per keypoint type: a centroid is present and
+    at least :func:`solve_pnp`'s ``min_points`` types (one keypoint per type reaches it)."""
+    min_points = max(4, int(pnp_options.get("min_points", DEFAULT_MIN_POINTS)))
+    return (counts[..., CENTROID_INDEX] > 0) & (np.count_nonzero(counts, axis=-1) >= min_points)
+
+
+def _first_choices(candidates: Sequence[tuple], cuboid_points: np.ndarray, K: np.ndarray, threshold_px: float,
+                   max_hypotheses: int, pnp_options: dict) -> list[tuple | None]:
+    """Step 1 of :func:`solve_pnp_candidates` for every centroid of one image at once: the
+    least-squares pose through each type's first candidate (one solve per centroid, the
+    candidates of all projected and checked together). Per centroid None (no pose possible:
+    :func:`_pose_possible`), else (decided, estimate, pose): decided when each first
+    candidate lies within ``threshold_px`` of that pose and is the nearest of its type (the
+    estimate is then :func:`solve_pnp`'s answer, maybe None, for all decided at once); pose:
+    (R, t), or None where the solver failed."""
+    if max_hypotheses < 1:
+        raise ValueError(f"max_hypotheses must be >= 1, got {max_hypotheses}")
+    m = len(candidates)
+    out: list[tuple | None] = [None] * m
+    if m == 0:
         return out
-    sizes = np.array([len(cands[j].order) for j in solved])
-    owner = np.repeat(np.arange(len(solved)), sizes)
-    offsets = np.cumsum(sizes) - sizes
-    obj = np.concatenate([cands[j].cuboid[cands[j].ids[cands[j].order]] for j in solved])   # (N, 3)
-    img = np.concatenate([cands[j].pts[cands[j].order] for j in solved])                    # (N, 2)
-    first_of = np.concatenate([np.repeat(cands[j].starts, cands[j].counts[cands[j].types]) for j in solved])
-    first_of += offsets[owner]                        # per candidate: its type's first, in the same rows
-    Rs = np.stack([poses[j][0] for j in solved])
-    ts = np.stack([poses[j][1] for j in solved])
-    uvw = (np.einsum("nij,nj->ni", Rs[owner], obj) + ts[owner]) @ cands[solved[0]].K.T
+    checked = [_checked(*c) for c in candidates]
+    owner = np.repeat(np.arange(m), [len(c[0]) for c in checked])
+    ids = np.concatenate([c[0] for c in checked])
+    pts = np.concatenate([c[1] for c in checked])
+    sc = np.concatenate([c[2] for c in checked])
+    cuboid = np.asarray(cuboid_points, dtype=np.float64).reshape(NUM_KEYPOINTS, 3)
+    K = np.asarray(K, dtype=np.float64)
+    usable = np.flatnonzero(np.isfinite(pts).all(axis=1) & np.isfinite(sc))
+    order = usable[np.lexsort((usable, ids[usable], owner[usable]))]   # by centroid, type, input order
+    key = owner[order] * NUM_KEYPOINTS + ids[order]
+    possible = _pose_possible(np.bincount(key, minlength=m * NUM_KEYPOINTS).reshape(m, NUM_KEYPOINTS), pnp_options)
+    if not possible.any():
+        return out
+    new_type = np.r_[True, key[1:] != key[:-1]]
+    group_start = np.flatnonzero(new_type)
+    first = order[group_start]                             # each centroid's first candidate per type
+    first_at = group_start[np.cumsum(new_type) - 1]        # per position in order: its type's first
+    bounds = np.searchsorted(owner[first], np.arange(m + 1))
+    Rs, ts = np.zeros((m, 3, 3)), np.zeros((m, 3))
+    solved = np.zeros(m, dtype=bool)
+    for c in np.flatnonzero(possible):
+        f = first[bounds[c]: bounds[c + 1]]
+        R, t = _least_squares_pose(cuboid[ids[f]], pts[f], K)
+        out[c] = (False, None, None if R is None else (R, t))
+        if R is not None:
+            Rs[c], ts[c], solved[c] = R, t, True
+    pos = np.flatnonzero(solved[owner[order]])
+    rows = order[pos]
+    uvw = (np.einsum("nij,nj->ni", Rs[owner[rows]], cuboid[ids[rows]]) + ts[owner[rows]]) @ K.T
     with np.errstate(divide="ignore", invalid="ignore"):
-        d = uvw[:, :2] / uvw[:, 2:] - img
-    err = np.where(uvw[:, 2] > 0, d[:, 0] ** 2 + d[:, 1] ** 2, np.inf)                      # squared, px^2
-    bad = ~(err[first_of] <= threshold_px ** 2) | (err < err[first_of])
-    decided = np.bincount(owner[bad], minlength=len(solved)) == 0
-    chosen = [j for jj, j in enumerate(solved) if decided[jj]]
-    for jj, j in enumerate(solved):
-        out[j] = (False, None, poses[j])
-    if chosen:
-        kp = np.full((len(chosen), NUM_KEYPOINTS, 2), np.nan)
-        kp_scores = np.zeros((len(chosen), NUM_KEYPOINTS))
-        for n, j in enumerate(chosen):
-            c = cands[j]
-            kp[n, c.types] = c.pts[c.first]
-            kp_scores[n, c.types] = c.sc[c.first]
-        ests = _solve_pnp_many(kp, kp_scores, cands[chosen[0]].cuboid, cands[chosen[0]].K,
-                               ([poses[j][0] for j in chosen], [poses[j][1] for j in chosen]), **pnp_options)
-        for j, est in zip(chosen, ests):
-            out[j] = (True, est, poses[j])
+        d = uvw[:, :2] / uvw[:, 2:] - pts[rows]
+    err = np.full(len(order), np.inf)
+    err[pos] = np.where(uvw[:, 2] > 0, d[:, 0] ** 2 + d[:, 1] ** 2, np.inf)                # squared, px^2
+    ref = err[first_at[pos]]
+    bad = ~(ref <= threshold_px ** 2) | (err[pos] < ref)
+    decided = np.flatnonzero(solved & (np.bincount(owner[rows[bad]], minlength=m) == 0))
+    if decided.size:
+        slot = np.full(m, -1)
+        slot[decided] = np.arange(decided.size)
+        f = first[slot[owner[first]] >= 0]
+        kp = np.full((decided.size, NUM_KEYPOINTS, 2), np.nan)
+        kp_scores = np.zeros((decided.size, NUM_KEYPOINTS))
+        kp[slot[owner[f]], ids[f]] = pts[f]
+        kp_scores[slot[owner[f]], ids[f]] = sc[f]
+        ests = _solve_pnp_many(kp, kp_scores, cuboid, K, (Rs[decided], ts[decided]), **pnp_options)
+        for c, est in zip(decided.tolist(), ests):
+            out[c] = (True, est, (Rs[c], ts[c]))
     return out
 
 
