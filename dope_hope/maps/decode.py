@@ -361,16 +361,25 @@ def assign_corners(
     return _one_to_one(feasible, cost)
 
 
-def _one_to_one(feasible: np.ndarray, cost: np.ndarray) -> np.ndarray:
+def _one_to_one(feasible: np.ndarray, cost: np.ndarray, kinds: np.ndarray | None = None) -> np.ndarray:
     """(n,) int centroid of each corner peak under the one-to-one assignment of the (n, m)
-    ``feasible`` pairs at least total ``cost``; -1 where none (see :func:`assign_corners`)."""
-    out = np.full(cost.shape[0], -1, dtype=int)
+    ``feasible`` pairs at least total ``cost``; -1 where none (see :func:`assign_corners`).
+    With ``kinds`` ((n,) int corner type of each peak) one assignment per type, solved as one
+    block-diagonal problem (a column per type and centroid; another type's column is
+    infeasible), which has the per-type assignments as its optimum."""
+    n, m = cost.shape
+    out = np.full(n, -1, dtype=int)
     if cost.size == 0:
         return out
     big = 1e9 + cost.max()
-    rows, cols = linear_sum_assignment(np.where(feasible, cost, big))
-    keep = feasible[rows, cols]
-    out[rows[keep]] = cols[keep]
+    if kinds is None:
+        kinds = np.zeros(n, dtype=int)
+    types, block = np.unique(kinds, return_inverse=True)
+    full = np.full((n, len(types) * m), big)
+    full[np.arange(n)[:, None], block[:, None] * m + np.arange(m)] = np.where(feasible, cost, big)
+    rows, cols = linear_sum_assignment(full)
+    keep = (cols // m == block[rows]) & feasible[rows, cols % m]
+    out[rows[keep]] = cols[keep] % m
     return out
 
 
@@ -475,11 +484,7 @@ def _corner_groups(peaks: Peaks, aff: np.ndarray, centroids_xy: np.ndarray, angl
     vectors = np.nan_to_num(vectors.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     feasible, cost, angle, dist = corner_centroid_costs(cells, peaks.xy[corner], vectors, centroids_xy,
                                                         angle_threshold, min_affinity, peaks.score[corner])
-    owner = np.full(len(corner), -1, dtype=int)
-    for k in np.unique(ch):
-        rows = np.flatnonzero(ch == k)
-        owner[rows] = _one_to_one(feasible[rows], cost[rows])
-    return corner, feasible, cost, angle, dist, owner
+    return corner, feasible, cost, angle, dist, _one_to_one(feasible, cost, ch)
 
 
 @dataclass
