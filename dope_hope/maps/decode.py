@@ -257,11 +257,9 @@ def find_peaks(
     C, h, w = raw.shape
     smooth = _smooth(raw, smooth_sigma) if smooth_sigma > 0 else raw
     local_max = (smooth >= _window_max(smooth, nms_radius)) & (smooth > 0)  # flat empty regions are not peaks
-    # Raw belief near each candidate: the 3x3 maximum (cells inside the map).
-    cand = np.flatnonzero(local_max)
+    # A peak: a local maximum of the smoothed map whose raw 3x3 maximum (cells inside the map) passes.
     raw_near = _window_max(raw, 1)
-    near = raw_near.ravel()[cand]
-    idx = cand[near > threshold]
+    idx = np.flatnonzero(local_max & (raw_near > threshold))
     if idx.size == 0:
         empty = np.zeros((0, 2))
         return Peaks(np.zeros(0, int), empty.astype(int), empty, np.zeros(0))
