@@ -479,7 +479,8 @@ def _corner_groups(peaks: Peaks, aff: np.ndarray, centroids_xy: np.ndarray, angl
     corner = np.flatnonzero(peaks.channel != CENTROID_INDEX)
     ch, cells = peaks.channel[corner], peaks.cell[corner]
     vectors = np.stack([aff[2 * ch, cells[:, 1], cells[:, 0]], aff[2 * ch + 1, cells[:, 1], cells[:, 0]]], 1)
-    vectors = np.nan_to_num(vectors.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    vectors = vectors.astype(np.float64)
+    vectors[~np.isfinite(vectors)] = 0.0
     feasible, cost, angle, dist = corner_centroid_costs(cells, peaks.xy[corner], vectors, centroids_xy,
                                                         angle_threshold, min_affinity, peaks.score[corner])
     return corner, feasible, cost, angle, dist, _one_to_one(feasible, cost, ch)
@@ -566,13 +567,14 @@ def corner_candidates(
     is_owner = (owner[:, None] == rows[None]) & near
     rank = np.where(is_owner, -np.inf, np.where(keep, cost, np.inf))
     # Rows (centroid, type, rank, peak): each centroid itself (type -1: first), then its entries.
-    table = [np.stack([rows, np.full(m, -1), np.zeros(m, dtype=int), np.flatnonzero(is_c)], axis=1)]
-    for k in np.unique(ch):
-        sel = np.flatnonzero(ch == k)
-        order = np.argsort(rank[sel], axis=0, kind="stable")[:max_per_type]             # (r, m)
-        r, c = np.nonzero(rank[sel[order], rows] < np.inf)
-        table.append(np.stack([c, np.full(len(c), k), r, corner[sel[order[r, c]]]], axis=1))
-    table = np.concatenate(table)
+    # Per centroid (column) the corner peaks by type, then rank (stable): the first
+    # max_per_type of each type, where ranked, are its entries.
+    by = np.lexsort((rank, np.broadcast_to(ch[:, None], rank.shape)), axis=0)          # (N, m)
+    kinds = np.sort(ch)
+    place = np.arange(len(ch)) - np.searchsorted(kinds, kinds)                          # rank within its type
+    r, c = np.nonzero((place[:, None] < max_per_type) & (np.take_along_axis(rank, by, axis=0) < np.inf))
+    table = np.concatenate([np.stack([rows, np.full(m, -1), np.zeros(m, dtype=int), np.flatnonzero(is_c)], axis=1),
+                            np.stack([c, kinds[r], place[r], corner[by[r, c]]], axis=1)])
     table = table[np.lexsort((table[:, 2], table[:, 1], table[:, 0]))]
     bounds = np.searchsorted(table[:, 0], np.arange(m + 1))
     ids = np.where(table[:, 1] < 0, CENTROID_INDEX, table[:, 1])
