@@ -278,10 +278,13 @@ def find_peaks(
     if refine_on == "raw" and smooth is not raw:
         # Smoothing finds the peaks (and keeps close instances apart) but shifts a skewed
         # peak's cell; fit the raw map around its own maximum next to the detected cell.
-        y, x = _snap_to_raw_max(raw, c, y, x)
-        _, keep = np.unique(np.ravel_multi_index((c, y, x), raw.shape), return_index=True)  # climbed together
-        keep.sort()
-        c, y, x = c[keep], y[keep], x[keep]
+        climb = np.flatnonzero(raw_near[c, y, x] > raw[c, y, x])   # not the raw maximum of their 3x3
+        if climb.size:
+            y, x = y.copy(), x.copy()
+            y[climb], x[climb] = _snap_to_raw_max(raw, c[climb], y[climb], x[climb])
+            _, keep = np.unique(np.ravel_multi_index((c, y, x), raw.shape), return_index=True)  # climbed together
+            keep.sort()
+            c, y, x = c[keep], y[keep], x[keep]
     primary, secondary = (raw, smooth) if refine_on == "raw" else (smooth, raw)
     coords, heights, raw_ok = [], [], []
     inside = np.ones(len(c), dtype=bool)
