@@ -289,7 +289,7 @@ def _least_squares_pose(obj: np.ndarray, img: np.ndarray, K: np.ndarray,
         ok, rvec, tvec = cv2.solvePnP(obj, np.ascontiguousarray(img), K, None, flags=cv2.SOLVEPNP_SQPNP)
     except cv2.error:
         return None, None
-    if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+    if not ok or not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
         return None, None
     return cv2.Rodrigues(rvec)[0], tvec.ravel()
 
@@ -480,7 +480,7 @@ class _Candidates:
     def of(cls, keypoint_ids, points, scores, cuboid_points, K, pnp_options: dict) -> "_Candidates | None":
         """Checked inputs, or None when no pose can pass :func:`solve_pnp`
         (:func:`_pose_possible`)."""
-        ids, pts, sc = _checked(keypoint_ids, points, scores)
+        ids, pts, sc, _ = _checked([(keypoint_ids, points, scores)])
         usable = np.flatnonzero(np.isfinite(pts).all(axis=1) & np.isfinite(sc))
         counts = np.bincount(ids[usable], minlength=NUM_KEYPOINTS)
         if not _pose_possible(counts, pnp_options):
@@ -493,17 +493,22 @@ class _Candidates:
                    np.asarray(K, dtype=np.float64), usable, counts, types, order, starts, order[starts])
 
 
-def _checked(keypoint_ids, points, scores) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One centroid's candidates as (n,) int ids, (n, 2) float px, (n,) float scores;
-    ValueError when their lengths differ or an id is not a keypoint index."""
-    ids = np.asarray(keypoint_ids, dtype=int).ravel()
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    sc = np.asarray(scores, dtype=np.float64).ravel()
-    if not (len(ids) == len(pts) == len(sc)):
-        raise ValueError(f"keypoint_ids, points and scores differ in length: {len(ids)}, {len(pts)}, {len(sc)}")
+def _checked(candidates: Sequence[tuple]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Centroids' candidates (keypoint_ids, points, scores) as one table: (n,) int ids,
+    (n, 2) float px, (n,) float scores, (n,) int centroid of each row; ValueError when a
+    centroid's lengths differ or an id is not a keypoint index."""
+    ids = [np.asarray(c[0], dtype=int).ravel() for c in candidates]
+    pts = [np.asarray(c[1], dtype=np.float64).reshape(-1, 2) for c in candidates]
+    sc = [np.asarray(c[2], dtype=np.float64).ravel() for c in candidates]
+    sizes = [len(a) for a in ids]
+    for a, b, c in zip(sizes, pts, sc):
+        if not a == len(b) == len(c):
+            raise ValueError(f"keypoint_ids, points and scores differ in length: {a}, {len(b)}, {len(c)}")
+    owner = np.repeat(np.arange(len(candidates)), sizes)
+    ids, pts, sc = np.concatenate(ids), np.concatenate(pts), np.concatenate(sc)
     if len(ids) and (ids.min() < 0 or ids.max() >= NUM_KEYPOINTS):
         raise ValueError(f"keypoint ids must be in 0..{NUM_KEYPOINTS - 1}, got {sorted(set(ids.tolist()))}")
-    return ids, pts, sc
+    return ids, pts, sc, owner
 
 
 def _pose_possible(counts: np.ndarray, pnp_options: dict) -> np.ndarray:
@@ -528,11 +533,7 @@ def _first_choices(candidates: Sequence[tuple], cuboid_points: np.ndarray, K: np
     out: list[tuple | None] = [None] * m
     if m == 0:
         return out
-    checked = [_checked(*c) for c in candidates]
-    owner = np.repeat(np.arange(m), [len(c[0]) for c in checked])
-    ids = np.concatenate([c[0] for c in checked])
-    pts = np.concatenate([c[1] for c in checked])
-    sc = np.concatenate([c[2] for c in checked])
+    ids, pts, sc, owner = _checked(candidates)
     cuboid = np.asarray(cuboid_points, dtype=np.float64).reshape(NUM_KEYPOINTS, 3)
     K = np.asarray(K, dtype=np.float64)
     usable = np.flatnonzero(np.isfinite(pts).all(axis=1) & np.isfinite(sc))
