@@ -26,7 +26,9 @@ both lower it. All thresholds are in pixels of the image the keypoints and ``K``
 
 The multi-hypothesis search (:func:`solve_pnp_candidates`) tries the least-squares pose through
 each type's first candidate, then minimal sets of candidate corner peaks per centroid, and
-keeps the pose that explains most candidates.
+keeps the pose that explains most candidates. :func:`solve_pnp_instances` runs it for every
+centroid of an image: the first step for all at once, the search only where that step does not
+decide, without the peaks that accepted poses already hold (a peak belongs to one object).
 """
 from __future__ import annotations
 
@@ -51,6 +53,8 @@ DEFAULT_REPROJECTION_PX = 8.0
 #: lost two boxes); a hypothesis explaining all keypoint types present but one, and at least
 #: ``_ENOUGH_TYPES``, ends the search.
 DEFAULT_MAX_HYPOTHESES = 400
+#: A candidate supports a pose hypothesis within this distance of its projection, px.
+DEFAULT_HYPOTHESIS_PX = 5.0
 _STALL_AFTER = 64
 _ENOUGH_TYPES = 6
 #: Minimal sets solved between two later checks of its stopping rules.
@@ -315,7 +319,7 @@ def solve_pnp_candidates(
     scores: np.ndarray,
     cuboid_points: np.ndarray,
     K: np.ndarray,
-    hypothesis_threshold_px: float = 5.0,
+    hypothesis_threshold_px: float = DEFAULT_HYPOTHESIS_PX,
     max_hypotheses: int = DEFAULT_MAX_HYPOTHESES,
     **pnp_options,
 ) -> PoseEstimate | None:
@@ -369,8 +373,8 @@ def solve_pnp_candidates(
 
     Returns:
         :class:`PoseEstimate` (``keypoints``: the chosen candidate per type), or None: no
-        centroid, fewer than three corner types, or the chosen assignment fails
-        :func:`solve_pnp`.
+        centroid, fewer keypoint types than :func:`solve_pnp`'s ``min_points`` (no minimal
+        set is solved then), or the chosen assignment fails :func:`solve_pnp`.
     """
     step1 = _first_choices([(keypoint_ids, points, scores)], cuboid_points, K, hypothesis_threshold_px,
                            max_hypotheses, pnp_options)[0]
@@ -409,7 +413,7 @@ def solve_pnp_instances(
     Returns:
         The estimates kept, highest score first.
     """
-    threshold = float(options.pop("hypothesis_threshold_px", 5.0))
+    threshold = float(options.pop("hypothesis_threshold_px", DEFAULT_HYPOTHESIS_PX))
     max_hypotheses = int(options.pop("max_hypotheses", DEFAULT_MAX_HYPOTHESES))
     found: list[PoseEstimate | None] = [None] * len(candidates)
     pending = []

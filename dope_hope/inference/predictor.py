@@ -15,7 +15,9 @@ run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.pr
    centroid keeps every corner peak whose affinity points at it
    (:func:`dope_hope.maps.decode.corner_candidates`) and
    :func:`dope_hope.inference.pnp.solve_pnp_candidates` finds the pose that explains most of
-   them; two centroids explaining the same peaks give one detection, the higher-scoring.
+   them (:func:`dope_hope.inference.pnp.solve_pnp_instances`: the peaks an accepted pose holds
+   are no candidates of the centroids searched after it); two centroids explaining the same
+   peaks give one detection, the higher-scoring.
    ``pose_search="groups"``: DOPE's decoding, one corner per type and centroid
    (:func:`dope_hope.maps.decode.decode_maps`), then :func:`dope_hope.inference.pnp.solve_pnp`.
    The cuboid is the model's: the checkpoint's size (mesh frame) or, with ``mesh=``, the

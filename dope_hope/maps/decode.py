@@ -45,8 +45,8 @@ Pipeline (all channels at once, no Python loops over pixels):
 
 Scores: ``Instance2D.scores[k]`` is the height of keypoint k's peak: the fitted Gaussian
 height on the raw map (``ln h = h_x + h_y - ln f(cell)``, exact for a separable Gaussian, so
-a perfect prediction scores 1 whatever its sub-pixel phase), or the raw 3x3 maximum where
-the fit fails; 0 where missing. ``Instance2D.score`` = ``scores.sum() / 9`` (mean over all
+a perfect prediction scores 1 whatever its sub-pixel phase), or the raw 3x3 maximum (at the
+cell the peak climbed to) where the fit fails; 0 where missing. ``Instance2D.score`` = ``scores.sum() / 9`` (mean over all
 nine, missing keypoints count 0).
 """
 from __future__ import annotations
