@@ -422,7 +422,7 @@ def solve_pnp_instances(
             decided, found[i], first_pose = step1
             if not decided:
                 pending.append((i, _Candidates.of(*candidates[i], cuboid_points, K, options), first_pose))
-    taken = [_inlier_peaks(e) for e in found if e is not None] if pending else []   # (k, 3) type, u, v
+    taken = [_inlier_peaks([e for e in found if e is not None])] if pending else []   # (k, 3) type, u, v
     for i, prep, first_pose in pending:                                               # 2
         peaks = np.concatenate(taken) if taken else np.zeros((0, 3))
         mine = np.concatenate([prep.ids[:, None], prep.pts], axis=1)
@@ -435,7 +435,7 @@ def solve_pnp_instances(
             first_pose = None if first_pose[0] is None else first_pose
         found[i] = _search(prep, first_pose, threshold, max_hypotheses, options)
         if found[i] is not None:
-            taken.append(_inlier_peaks(found[i]))
+            taken.append(_inlier_peaks([found[i]]))
     found = sorted((e for e in found if e is not None), key=lambda e: -e.score)       # 3
     if len(found) < 2:
         return found
@@ -450,11 +450,12 @@ def solve_pnp_instances(
     return [found[i] for i in kept]
 
 
-def _inlier_peaks(e: PoseEstimate) -> np.ndarray:
-    """(k, 3) keypoint type, u, v (px) of each inlier of ``e``."""
-    k = np.flatnonzero(e.inliers)
-    return np.concatenate([k[:, None], e.keypoints[k]], axis=1)
-
+def _inlier_peaks(ests: list[PoseEstimate]) -> np.ndarray:
+    """(k, 3) keypoint type, u, v (px) of each inlier of the estimates."""
+    if not ests:
+        return np.zeros((0, 3))
+    which, kind = np.nonzero(np.stack([e.inliers for e in ests]))
+    return np.concatenate([kind[:, None], np.stack([e.keypoints for e in ests])[which, kind]], axis=1)
 
 
 @dataclass
@@ -682,6 +683,8 @@ class _HypothesisScorer:
         d = proj[:, :, self.ids] - self.pts.T[None]                           # (H, 2, n)
         err = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)                            # (H, n)
         centre_ok = err[:, self.anchor] <= self.threshold
+        if not centre_ok.any():
+            return  # none fits its centroid: it explains nothing
         err[~np.isfinite(err) | ~centre_ok[:, None]] = np.inf
         err = np.concatenate([err, np.full((len(err), 1), np.inf)], axis=1)  # column n: no candidate
         per_slot = err[:, self.slots]                                         # (H, T, w)
