@@ -427,10 +427,11 @@ def solve_pnp_instances(
         peaks = np.concatenate(taken) if taken else np.zeros((0, 3))
         mine = np.concatenate([prep.ids[:, None], prep.pts], axis=1)
         free = ~np.any(np.all(mine[:, None] == peaks[None], axis=2), axis=1)
-        if not free.all():
-            prep = _Candidates.of(prep.ids[free], prep.pts[free], prep.sc[free], prep.cuboid, prep.K, options)
-            if prep is None:
-                continue
+        if not free.all() or first_pose is None:  # (None: left to this step, or no solution)
+            if not free.all():
+                prep = _Candidates.of(prep.ids[free], prep.pts[free], prep.sc[free], prep.cuboid, prep.K, options)
+                if prep is None:
+                    continue
             first_pose = _least_squares_pose(prep.cuboid[prep.types], prep.pts[prep.first], prep.K)
             first_pose = None if first_pose[0] is None else first_pose
         found[i] = _search(prep, first_pose, threshold, max_hypotheses, options)
@@ -519,8 +520,12 @@ def _checked(candidates: Sequence[tuple]) -> tuple[np.ndarray, np.ndarray, np.nd
 def _pose_possible(counts: np.ndarray, pnp_options: dict) -> np.ndarray:
     """(...,) bool from (..., 9) usable candidates per keypoint type: a centroid is present and
     at least :func:`solve_pnp`'s ``min_points`` types (one keypoint per type reaches it)."""
-    min_points = max(4, int(pnp_options.get("min_points", DEFAULT_MIN_POINTS)))
-    return (counts[..., CENTROID_INDEX] > 0) & (np.count_nonzero(counts, axis=-1) >= min_points)
+    return (counts[..., CENTROID_INDEX] > 0) & (np.count_nonzero(counts, axis=-1) >= _min_points(pnp_options))
+
+
+def _min_points(pnp_options: dict) -> int:
+    """:func:`solve_pnp`'s ``min_points`` under these options (at least 4)."""
+    return max(4, int(pnp_options.get("min_points", DEFAULT_MIN_POINTS)))
 
 
 def _first_choices(candidates: Sequence[tuple], cuboid_points: np.ndarray, K: np.ndarray, threshold_px: float,
@@ -552,9 +557,20 @@ def _first_choices(candidates: Sequence[tuple], cuboid_points: np.ndarray, K: np
     first = order[group_start]                             # each centroid's first candidate per type
     first_at = group_start[np.cumsum(new_type) - 1]        # per position in order: its type's first
     bounds = np.searchsorted(owner[first], np.arange(m + 1))
+    # A centroid whose first candidates are, on all but fewer than min_points types, those of
+    # a centroid listed before it (stronger) is left to step 2 (a noise blob beside a box, or
+    # the box's second centroid peak): where that centroid's pose holds them, they are gone.
+    peak = np.stack([ids[first], pts[first, 0], pts[first, 1]], axis=1)
+    by_peak = np.lexsort((owner[first], peak[:, 2], peak[:, 1], peak[:, 0]))
+    shared = np.zeros(len(first), dtype=bool)
+    shared[by_peak[1:]] = np.all(peak[by_peak[1:]] == peak[by_peak[:-1]], axis=1)
+    own = np.bincount(owner[first[~shared]], minlength=m)
     Rs, ts = np.zeros((m, 3, 3)), np.zeros((m, 3))
     solved = np.zeros(m, dtype=bool)
     for c in np.flatnonzero(possible):
+        if own[c] < _min_points(pnp_options):
+            out[c] = (False, None, None)
+            continue
         f = first[bounds[c]: bounds[c + 1]]
         R, t = _least_squares_pose(cuboid[ids[f]], pts[f], K)
         out[c] = (False, None, None if R is None else (R, t))
