@@ -395,7 +395,9 @@ def solve_pnp_instances(
     belonging to one object only.
 
     1. Every centroid's step 1 (the least-squares pose through each type's first candidate):
-       a centroid whose first candidates it explains is decided there (clean maps: all).
+       a centroid whose first candidates it explains is decided there (clean maps: all). A
+       centroid whose first candidates are, on all but fewer than ``min_points`` types, a
+       centroid's listed before it goes straight to 2.
     2. The other centroids in the given order (strongest first), each searched without the
        peaks (same type, same position) that an accepted pose holds as inliers: a noise
        blob next to boxes passes the angle test with their corners; without those it lacks
