@@ -86,6 +86,15 @@ def project_points(
         return uvw[:, :2] / uvw[:, 2:3]
 
 
+def project_points_poses(points: np.ndarray, K: np.ndarray, Rs: np.ndarray, ts: np.ndarray) -> np.ndarray:
+    """:func:`project_points` of (N, 3) model points under B poses, Rs (B, 3, 3) and ts (B, 3)
+    metres, at once: (B, N, 2) pixel coordinates (inf/nan where z <= 0)."""
+    cam = np.asarray(points, dtype=np.float64) @ np.asarray(Rs, dtype=np.float64).transpose(0, 2, 1)
+    uvw = (cam + np.asarray(ts, dtype=np.float64)[:, None]) @ np.asarray(K, dtype=np.float64).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return uvw[..., :2] / uvw[..., 2:3]
+
+
 def projected_bbox(points: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
                    image_hw: tuple[int, int] | None) -> np.ndarray | None:
     """2D box [u_min, v_min, u_max, v_max] of model points projected under (R, t), pixels
@@ -96,17 +105,28 @@ def projected_bbox(points: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarr
     points: (N, 3) model points, metres. K: (3, 3). R: (3, 3), t: (3,) metres.
     image_hw: (H, W) pixels, or None for no clipping.
     """
-    cam = transform_points(np.asarray(points, dtype=np.float64), R, t)
-    if len(cam) == 0 or np.any(cam[:, 2] <= 0):
-        return None
-    uv = project_points(cam, K)
-    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    return projected_bboxes(points, K, np.asarray(R)[None], np.asarray(t).reshape(1, 3), image_hw)[0]
+
+
+def projected_bboxes(points: np.ndarray, K: np.ndarray, Rs: np.ndarray, ts: np.ndarray,
+                     image_hw: tuple[int, int] | None) -> list[np.ndarray | None]:
+    """:func:`projected_bbox` under B poses (Rs (B, 3, 3), ts (B, 3) metres) at once."""
+    pts = np.asarray(points, dtype=np.float64)
+    Rs, ts = np.asarray(Rs, dtype=np.float64), np.asarray(ts, dtype=np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        return [None] * len(Rs)
+    cam = pts @ Rs.transpose(0, 2, 1) + ts[:, None]                        # (B, N, 3)
+    behind = np.any(cam[..., 2] <= 0, axis=1)
+    uvw = cam @ np.asarray(K, dtype=np.float64).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = uvw[..., :2] / uvw[..., 2:3]
+    lo, hi = uv.min(axis=1), uv.max(axis=1)                                # (B, 2)
     if image_hw is not None:
         lo = np.maximum(lo, 0.0)
         hi = np.minimum(hi, [image_hw[1] - 1.0, image_hw[0] - 1.0])
-    if np.any(lo > hi):
-        return None
-    return np.concatenate([lo, hi])
+    boxes = np.concatenate([lo, hi], axis=1)
+    missing = behind | np.any(lo > hi, axis=1)
+    return [None if m else b for m, b in zip(missing.tolist(), boxes)]
 
 
 def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:

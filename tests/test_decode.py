@@ -180,6 +180,20 @@ def test_a_peak_with_a_shoulder_is_fitted_at_its_raw_maximum_not_the_smoothed_on
         assert abs(peaks.xy[0, 0] - 8.3) < 0.2 and peaks.xy[0, 1] == pytest.approx(7.0)
 
 
+
+def test_a_peak_that_climbed_and_cannot_be_fitted_scores_its_raw_height():
+    """Where the log-parabola fit fails (here: an empty cell on one side of the raw maximum),
+    the score is the raw 3x3 maximum at the cell the peak climbed to, not 0: a noisy net's
+    true corner scored 0 ranked behind noise peaks of its type."""
+    from dope_hope.maps.decode import find_peaks
+
+    raw = np.zeros((9, 12, 16), np.float32)
+    raw[0, 6, 5:10] = [0.0, 1.0, 0.95, 0.95, 0.9]   # smoothing peaks right of the raw maximum
+    raw[0, 5, 5:10] = raw[0, 7, 5:10] = [0.0, 0.5, 0.5, 0.5, 0.45]
+    peaks = find_peaks(raw, 0.1, smooth_sigma=1.0)
+    assert len(peaks.score) == 1 and tuple(peaks.cell[0]) == (6, 6)
+    assert peaks.score[0] == pytest.approx(1.0)
+
 def test_a_strong_corner_peak_beats_a_weak_one_nearer_to_the_centroid():
     """Trained nets leave weak secondary peaks; grouping by distance alone took the weak one
     next to the centroid instead of the true corner (a third of a trained model's corners)."""

@@ -14,7 +14,7 @@ from dope_hope.geometry import (
     rotation_error_deg,
     scale_intrinsics,
 )
-from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_candidates
+from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_candidates, solve_pnp_instances
 from dope_hope.maps.decode import decode_maps
 from dope_hope.maps.targets import make_targets
 from dope_hope.refine.depth import HOPE_REALSENSE_DEPTH_CALIBRATION, DepthImage
@@ -206,6 +206,39 @@ def test_the_search_solves_no_more_hypotheses_than_the_candidates_need(monkeypat
     with pytest.raises(ValueError, match="max_hypotheses"):
         solve_pnp_candidates(ids, pts, scores, CUBOID, K640, max_hypotheses=0)
 
+
+
+def test_instances_give_each_peak_to_one_object_and_drop_a_noise_centroid_before_any_minimal_set(monkeypatch):
+    """solve_pnp_instances: box A, decided by step 1, holds its inlier peaks; a noise
+    centroid beside it whose candidates are A's corners (they passed its angle test) and two
+    noise peaks has too few types left and costs no minimal set; box B, listed wrong-first on
+    three types, is still searched and found; a second centroid peak on A gives no second
+    estimate."""
+    import cv2
+
+    import dope_hope.inference.pnp as pose_mod
+
+    calls = []
+    real = cv2.solvePnP
+
+    def counting(*a, **kw):
+        calls.append(kw.get("flags"))
+        return real(*a, **kw)
+
+    monkeypatch.setattr(pose_mod.cv2, "solvePnP", counting)
+    RA, tA = Rotation.random(random_state=4).as_matrix(), np.array([-0.12, 0.0, 0.7])
+    RB, tB = Rotation.random(random_state=5).as_matrix(), np.array([0.12, 0.02, 0.7])
+    a, b = project_points(CUBOID, K640, RA, tA), project_points(CUBOID, K640, RB, tB)
+    box_a = (np.arange(9), a, np.ones(9))
+    noise = (np.r_[8, np.arange(8), 0, 1], np.vstack([a[8] + [25.0, 15.0], a[:8], a[8] + [[-30.0, 5.0], [10.0, -35.0]]]),
+             np.r_[0.2, np.ones(8), 0.3, 0.3])
+    box_b = (np.r_[8, 0, 1, 2, np.arange(8)], np.vstack([b[8], b[[2, 3, 0]], b[:8]]), np.r_[0.5, 0.9, 0.9, 0.9, np.full(8, 0.5)])
+    twin_a = (np.arange(9), np.vstack([a[:8], a[8] + [1.0, 0.5]]), np.r_[np.ones(8), 0.9])
+    found = solve_pnp_instances([box_a, noise, box_b, twin_a], CUBOID, K640)
+    assert len(found) == 2
+    _check_all_found(found, [RA, RB], [tA, tB], rot_deg=0.1, trans_m=1e-3)
+    np.testing.assert_allclose(found[0].keypoints, a)  # A's own centroid peak, not its twin's
+    assert calls.count(cv2.SOLVEPNP_AP3P) == 4  # box B's search only
 
 def test_candidates_without_a_pose_or_a_centroid_give_none():
     rng = np.random.default_rng(0)

@@ -26,17 +26,19 @@ both lower it. All thresholds are in pixels of the image the keypoints and ``K``
 
 The multi-hypothesis search (:func:`solve_pnp_candidates`) tries the least-squares pose through
 each type's first candidate, then minimal sets of candidate corner peaks per centroid, and
-keeps the pose that explains most candidates.
+keeps the pose that explains most candidates. :func:`solve_pnp_instances` runs it for every
+centroid of an image: the first step for all at once, the search only where that step does not
+decide, without the peaks that accepted poses already hold (a peak belongs to one object).
 """
 from __future__ import annotations
 
 import functools
 import itertools
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
 
@@ -51,6 +53,8 @@ DEFAULT_REPROJECTION_PX = 8.0
 #: lost two boxes); a hypothesis explaining all keypoint types present but one, and at least
 #: ``_ENOUGH_TYPES``, ends the search.
 DEFAULT_MAX_HYPOTHESES = 400
+#: A candidate supports a pose hypothesis within this distance of its projection, px.
+DEFAULT_HYPOTHESIS_PX = 5.0
 _STALL_AFTER = 64
 _ENOUGH_TYPES = 6
 #: Minimal sets solved between two later checks of its stopping rules.
@@ -93,11 +97,6 @@ class PoseEstimate:
     keypoint_scores: np.ndarray | None = None
 
 
-def _reprojection_errors(obj: np.ndarray, img: np.ndarray, rvec, tvec, K, dist) -> np.ndarray:
-    proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
-    return np.linalg.norm(proj.reshape(-1, 2) - img, axis=1)
-
-
 def solve_pnp(
     keypoints: np.ndarray,
     scores: np.ndarray | None,
@@ -135,62 +134,106 @@ def solve_pnp(
     Returns:
         :class:`PoseEstimate`, or None when the keypoints do not support a pose.
     """
+    poses = None if initial_pose is None else ([initial_pose[0]], [initial_pose[1]])
+    return _solve_pnp_many(
+        np.asarray(keypoints, dtype=np.float64).reshape(1, NUM_KEYPOINTS, 2),
+        None if scores is None else np.asarray(scores, dtype=np.float64).reshape(1, NUM_KEYPOINTS),
+        cuboid_points, K, poses, min_points, reprojection_threshold_px, max_mean_error_px, dist_coeffs,
+        min_score, min_inlier_ratio, ransac_iterations, ransac_confidence)[0]
+
+
+def _project(obj: np.ndarray, Rs: np.ndarray, ts: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(B, n, 2) image px of (n, 3) model points under B poses (Rs (B, 3, 3), ts (B, 3));
+    ``cv2.projectPoints`` per pose where ``dist`` has a non-zero coefficient."""
+    if not dist.any():
+        uvw = (obj @ Rs.transpose(0, 2, 1) + ts[:, None]) @ K.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return uvw[..., :2] / uvw[..., 2:]
+    return np.stack([cv2.projectPoints(obj, cv2.Rodrigues(R)[0], t, K, dist)[0].reshape(-1, 2)
+                     for R, t in zip(Rs, ts)]).reshape(len(Rs), len(obj), 2)
+
+
+def _solve_pnp_many(keypoints: np.ndarray, scores: np.ndarray | None, cuboid_points: np.ndarray, K: np.ndarray,
+                    initial_poses: tuple | None, min_points: int = DEFAULT_MIN_POINTS,
+                    reprojection_threshold_px: float = DEFAULT_REPROJECTION_PX, max_mean_error_px: float = 4.0,
+                    dist_coeffs: np.ndarray | None = None, min_score: float = 0.0, min_inlier_ratio: float = 0.75,
+                    ransac_iterations: int = 200, ransac_confidence: float = 0.999,
+                    ) -> list[PoseEstimate | None]:
+    """:func:`solve_pnp` of B keypoint sets at once (its steps and checks; the projections
+    and checks of all sets in one pass, the solvers per set): keypoints (B, 9, 2) px, scores
+    (B, 9) or None, initial_poses None or (B rotations (3, 3), B translations (3,))."""
     if min_points < 4:
         raise ValueError("min_points must be >= 4: three points leave up to four poses")
-    kp = np.asarray(keypoints, dtype=np.float64).reshape(NUM_KEYPOINTS, 2)
-    sc = np.ones(NUM_KEYPOINTS) if scores is None else np.asarray(scores, dtype=np.float64)
+    kp = np.asarray(keypoints, dtype=np.float64).reshape(-1, NUM_KEYPOINTS, 2)
+    B = len(kp)
+    sc = np.ones((B, NUM_KEYPOINTS)) if scores is None else np.asarray(scores, dtype=np.float64).reshape(B, -1)
     obj_all = np.asarray(cuboid_points, dtype=np.float64).reshape(NUM_KEYPOINTS, 3)
     K = np.asarray(K, dtype=np.float64)
     dist = np.zeros(5) if dist_coeffs is None else np.asarray(dist_coeffs, dtype=np.float64)
-    present = np.all(np.isfinite(kp), axis=1) & np.isfinite(sc) & (sc > min_score)
-    idx = np.flatnonzero(present)
-    if idx.size < min_points:
-        return None
-    obj, img = obj_all[idx], kp[idx]
-    if initial_pose is None:
-        try:
-            ok, rvec, tvec, inl = cv2.solvePnPRansac(
-                obj, img, K, dist,
-                iterationsCount=ransac_iterations,
-                reprojectionError=float(reprojection_threshold_px),
-                confidence=ransac_confidence,
-                flags=cv2.SOLVEPNP_SQPNP,
-            )
-        except cv2.error:
-            return None
-        if not ok or inl is None:
-            return None
-        inl = inl.ravel()
+    thr = float(reprojection_threshold_px)
+    present = np.all(np.isfinite(kp), axis=2) & np.isfinite(sc) & (sc > min_score)      # (B, 9)
+    n_present = present.sum(axis=1)
+    out: list[PoseEstimate | None] = [None] * B
+    starts = []                              # (set, rvec, tvec, (9,) bool consensus)
+    if initial_poses is None:
+        for b in np.flatnonzero(n_present >= min_points):
+            idx = np.flatnonzero(present[b])
+            try:
+                ok, rvec, tvec, inl = cv2.solvePnPRansac(
+                    obj_all[idx], kp[b, idx], K, dist,
+                    iterationsCount=ransac_iterations,
+                    reprojectionError=thr,
+                    confidence=ransac_confidence,
+                    flags=cv2.SOLVEPNP_SQPNP,
+                )
+            except cv2.error:
+                continue
+            if ok and inl is not None:
+                consensus = np.zeros(NUM_KEYPOINTS, dtype=bool)
+                consensus[idx[inl.ravel()]] = True
+                starts.append((b, rvec, tvec, consensus))
     else:
-        rvec = cv2.Rodrigues(np.asarray(initial_pose[0], dtype=np.float64))[0]
-        tvec = np.asarray(initial_pose[1], dtype=np.float64).reshape(3, 1)
-        inl = np.flatnonzero(_reprojection_errors(obj, img, rvec, tvec, K, dist) <= reprojection_threshold_px)
-    if len(inl) < min_points:
-        return None
-    try:
-        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, dist, rvec, tvec, criteria=_LM_CRITERIA)
-    except cv2.error:
-        return None
-    projected = cv2.projectPoints(obj_all, rvec, tvec, K, dist)[0].reshape(-1, 2)
-    err = np.linalg.norm(projected[idx] - img, axis=1)
-    inlier_local = err <= reprojection_threshold_px
-    if inlier_local.sum() < min_points or inlier_local.sum() < min_inlier_ratio * idx.size:
-        return None
-    R, _ = cv2.Rodrigues(rvec)
-    t = tvec.reshape(3)
-    centre_z = (R @ obj_all[CENTROID_INDEX] + t)[2]
-    if t[2] <= 0 or centre_z <= 0:
-        return None
-    mean_err = float(err[inlier_local].mean())
-    if mean_err > max_mean_error_px:
-        return None
-    inliers = np.zeros(NUM_KEYPOINTS, dtype=bool)
-    inliers[idx[inlier_local]] = True
-    score = float(np.clip(sc[inliers], 0.0, 1.0).sum() / NUM_KEYPOINTS)
-    return PoseEstimate(
-        R=R, t=t.copy(), score=score, inliers=inliers, reprojection_error_px=mean_err,
-        keypoints=kp.copy(), projected=projected, keypoint_scores=sc.copy(),
-    )
+        Rs = np.asarray(initial_poses[0], dtype=np.float64).reshape(B, 3, 3)
+        ts = np.asarray(initial_poses[1], dtype=np.float64).reshape(B, 3)
+        d = _project(obj_all, Rs, ts, K, dist) - kp
+        with np.errstate(invalid="ignore"):
+            consensus = present & (np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2) <= thr)
+        for b in np.flatnonzero(n_present >= min_points):
+            starts.append((b, cv2.Rodrigues(Rs[b])[0], ts[b].reshape(3, 1), consensus[b]))
+    refined = []
+    for b, rvec, tvec, consensus in starts:
+        if consensus.sum() < min_points:
+            continue
+        try:
+            rvec, tvec = cv2.solvePnPRefineLM(obj_all[consensus], np.ascontiguousarray(kp[b, consensus]), K, dist,
+                                              rvec, tvec, criteria=_LM_CRITERIA)
+        except cv2.error:
+            continue
+        refined.append((b, cv2.Rodrigues(rvec)[0], tvec.reshape(3)))
+    if not refined:
+        return out
+    sets = np.array([b for b, _, _ in refined])
+    Rs = np.stack([R for _, R, _ in refined])
+    ts = np.stack([t for _, _, t in refined])
+    projected = _project(obj_all, Rs, ts, K, dist)                                     # (B', 9, 2)
+    d = projected - kp[sets]
+    with np.errstate(invalid="ignore"):
+        err = np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
+        inliers = present[sets] & (err <= thr)
+    n_in = inliers.sum(axis=1)
+    centre_z = (Rs @ obj_all[CENTROID_INDEX] + ts)[:, 2]
+    mean_err = np.where(inliers, err, 0.0).sum(axis=1) / np.maximum(n_in, 1)
+    ok = ((n_in >= min_points) & (n_in >= min_inlier_ratio * n_present[sets]) & (ts[:, 2] > 0) & (centre_z > 0)
+          & (mean_err <= max_mean_error_px))
+    scores_out = np.where(inliers, np.clip(sc[sets], 0.0, 1.0), 0.0).sum(axis=1) / NUM_KEYPOINTS
+    for j in np.flatnonzero(ok):
+        b = sets[j]
+        out[b] = PoseEstimate(
+            R=Rs[j], t=ts[j].copy(), score=float(scores_out[j]), inliers=inliers[j],
+            reprojection_error_px=float(mean_err[j]), keypoints=kp[b].copy(), projected=projected[j],
+            keypoint_scores=sc[b].copy(),
+        )
+    return out
 
 
 def _covering_order(n_types: int) -> np.ndarray:
@@ -250,7 +293,7 @@ def _least_squares_pose(obj: np.ndarray, img: np.ndarray, K: np.ndarray,
         ok, rvec, tvec = cv2.solvePnP(obj, np.ascontiguousarray(img), K, None, flags=cv2.SOLVEPNP_SQPNP)
     except cv2.error:
         return None, None
-    if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+    if not ok or not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
         return None, None
     return cv2.Rodrigues(rvec)[0], tvec.ravel()
 
@@ -258,18 +301,16 @@ def _least_squares_pose(obj: np.ndarray, img: np.ndarray, K: np.ndarray,
 def _ap3p_poses(objs: np.ndarray, imgs: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``cv2.SOLVEPNP_AP3P`` on each of (H, 4, 3) model / (H, 4, 2) image point quadruples (no
     distortion): ((h, 3, 3) R, (h, 3) t) of the h that succeed."""
-    rvecs, tvecs = [], []
+    Rs, ts = [], []
     for obj, img in zip(objs, imgs):
         try:
             ok, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_AP3P)
         except cv2.error:
             continue
-        if ok:
-            rvecs.append(rvec.ravel())
-            tvecs.append(tvec.ravel())
-    rvecs, tvecs = np.array(rvecs).reshape(-1, 3), np.array(tvecs).reshape(-1, 3)
-    ok = np.isfinite(rvecs).all(axis=1) & np.isfinite(tvecs).all(axis=1)
-    return Rotation.from_rotvec(rvecs[ok]).as_matrix().reshape(-1, 3, 3), tvecs[ok]
+        if ok and np.isfinite(rvec).all() and np.isfinite(tvec).all():
+            Rs.append(cv2.Rodrigues(rvec)[0])
+            ts.append(tvec.ravel())
+    return np.array(Rs).reshape(-1, 3, 3), np.array(ts).reshape(-1, 3)
 
 
 def solve_pnp_candidates(
@@ -278,7 +319,7 @@ def solve_pnp_candidates(
     scores: np.ndarray,
     cuboid_points: np.ndarray,
     K: np.ndarray,
-    hypothesis_threshold_px: float = 5.0,
+    hypothesis_threshold_px: float = DEFAULT_HYPOTHESIS_PX,
     max_hypotheses: int = DEFAULT_MAX_HYPOTHESES,
     **pnp_options,
 ) -> PoseEstimate | None:
@@ -332,46 +373,241 @@ def solve_pnp_candidates(
 
     Returns:
         :class:`PoseEstimate` (``keypoints``: the chosen candidate per type), or None: no
-        centroid, fewer than three corner types, or the chosen assignment fails
-        :func:`solve_pnp`.
+        centroid, fewer keypoint types than :func:`solve_pnp`'s ``min_points`` (no minimal
+        set is solved then), or the chosen assignment fails :func:`solve_pnp`.
     """
-    ids = np.asarray(keypoint_ids, dtype=int).ravel()
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    sc = np.asarray(scores, dtype=np.float64).ravel()
-    if not (len(ids) == len(pts) == len(sc)):
-        raise ValueError(f"keypoint_ids, points and scores differ in length: {len(ids)}, {len(pts)}, {len(sc)}")
+    step1 = _first_choices([(keypoint_ids, points, scores)], cuboid_points, K, hypothesis_threshold_px,
+                           max_hypotheses, pnp_options)[0]
+    if step1 is None or step1[0]:
+        return None if step1 is None else step1[1]
+    prep = _Candidates.of(keypoint_ids, points, scores, cuboid_points, K, pnp_options)
+    return _search(prep, step1[2], hypothesis_threshold_px, max_hypotheses, pnp_options)
+
+
+
+def solve_pnp_instances(
+    candidates: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    cuboid_points: np.ndarray,
+    K: np.ndarray,
+    **options,
+) -> list[PoseEstimate]:
+    """Poses of the objects of one image: :func:`solve_pnp_candidates` per centroid, a peak
+    belonging to one object only.
+
+    1. Every centroid's step 1 (the least-squares pose through each type's first candidate):
+       a centroid whose first candidates it explains is decided there (clean maps: all). A
+       centroid whose first candidates are, on all but fewer than ``min_points`` types, a
+       centroid's listed before it goes straight to 2.
+    2. The other centroids in the given order (strongest first), each searched without the
+       peaks (same type, same position) that an accepted pose holds as inliers: a noise
+       blob next to boxes passes the angle test with their corners; without those it lacks
+       the ``min_points`` types any pose needs and is dropped before any minimal set.
+    3. Two estimates explaining one object (at least half of one's inliers are the other's
+       inlier peaks): the higher-scoring is kept.
+
+    Args:
+        candidates: per centroid (keypoint_ids (n,), points (n, 2) px, scores (n,)) as
+            :func:`solve_pnp_candidates` takes them.
+        cuboid_points, K: as in :func:`solve_pnp_candidates`.
+        **options: its keyword arguments (``hypothesis_threshold_px``, ``max_hypotheses``) and
+            :func:`solve_pnp`'s.
+
+    Returns:
+        The estimates kept, highest score first.
+    """
+    threshold = float(options.pop("hypothesis_threshold_px", DEFAULT_HYPOTHESIS_PX))
+    max_hypotheses = int(options.pop("max_hypotheses", DEFAULT_MAX_HYPOTHESES))
+    found: list[PoseEstimate | None] = [None] * len(candidates)
+    pending = []
+    for i, step1 in enumerate(_first_choices(candidates, cuboid_points, K, threshold, max_hypotheses, options)):
+        if step1 is not None:                                                         # 1
+            decided, found[i], first_pose = step1
+            if not decided:
+                pending.append((i, _Candidates.of(*candidates[i], cuboid_points, K, options), first_pose))
+    taken = [_inlier_peaks([e for e in found if e is not None])] if pending else []   # (k, 3) type, u, v
+    for i, prep, first_pose in pending:                                               # 2
+        peaks = np.concatenate(taken) if taken else np.zeros((0, 3))
+        mine = np.concatenate([prep.ids[:, None], prep.pts], axis=1)
+        free = ~np.any(np.all(mine[:, None] == peaks[None], axis=2), axis=1)
+        if not free.all() or first_pose is None:  # (None: left to this step, or no solution)
+            if not free.all():
+                prep = _Candidates.of(prep.ids[free], prep.pts[free], prep.sc[free], prep.cuboid, prep.K, options)
+                if prep is None:
+                    continue
+            first_pose = _least_squares_pose(prep.cuboid[prep.types], prep.pts[prep.first], prep.K)
+            first_pose = None if first_pose[0] is None else first_pose
+        found[i] = _search(prep, first_pose, threshold, max_hypotheses, options)
+        if found[i] is not None:
+            taken.append(_inlier_peaks([found[i]]))
+    found = sorted((e for e in found if e is not None), key=lambda e: -e.score)       # 3
+    if len(found) < 2:
+        return found
+    inliers = np.stack([e.inliers for e in found])                                   # (E, 9)
+    keypoints = np.stack([e.keypoints for e in found])                               # (E, 9, 2)
+    same = inliers[:, None] & inliers[None] & np.all(np.abs(keypoints[:, None] - keypoints[None]) < 1e-6, axis=3)
+    covers = (2 * same.sum(axis=2) >= inliers.sum(axis=1)[:, None]).tolist()         # [i][j]: j holds half of i
+    kept: list[int] = []
+    for i in range(len(found)):
+        if not any(covers[i][j] for j in kept):
+            kept.append(i)
+    return [found[i] for i in kept]
+
+
+def _inlier_peaks(ests: list[PoseEstimate]) -> np.ndarray:
+    """(k, 3) keypoint type, u, v (px) of each inlier of the estimates."""
+    if not ests:
+        return np.zeros((0, 3))
+    which, kind = np.nonzero(np.stack([e.inliers for e in ests]))
+    return np.concatenate([kind[:, None], np.stack([e.keypoints for e in ests])[which, kind]], axis=1)
+
+
+@dataclass
+class _Candidates:
+    """One centroid's checked candidates, grouped by type (see :func:`solve_pnp_candidates`).
+
+    ids (n,) int, pts (n, 2) px, sc (n,): the input; cuboid (9, 3) metres; K (3, 3);
+    usable: (u,) indices of the finite candidates; counts (9,) usable candidates per type;
+    types: (T,) keypoint types present (the centroid, 8, last); order: usable candidates
+    grouped by type, each group best first; starts (T,) where each group begins in order;
+    first (T,) each type's first candidate.
+    """
+
+    ids: np.ndarray
+    pts: np.ndarray
+    sc: np.ndarray
+    cuboid: np.ndarray
+    K: np.ndarray
+    usable: np.ndarray
+    counts: np.ndarray
+    types: np.ndarray
+    order: np.ndarray
+    starts: np.ndarray
+    first: np.ndarray
+
+    @classmethod
+    def of(cls, keypoint_ids, points, scores, cuboid_points, K, pnp_options: dict) -> "_Candidates | None":
+        """Checked inputs, or None when no pose can pass :func:`solve_pnp`
+        (:func:`_pose_possible`)."""
+        ids, pts, sc, _ = _checked([(keypoint_ids, points, scores)])
+        usable = np.flatnonzero(np.isfinite(pts).all(axis=1) & np.isfinite(sc))
+        counts = np.bincount(ids[usable], minlength=NUM_KEYPOINTS)
+        if not _pose_possible(counts, pnp_options):
+            return None
+        types = np.flatnonzero(counts)
+        # Candidate indices per type present, each best first (the input order).
+        order = usable[np.argsort(ids[usable], kind="stable")]
+        starts = np.cumsum(counts[types]) - counts[types]
+        return cls(ids, pts, sc, np.asarray(cuboid_points, dtype=np.float64).reshape(NUM_KEYPOINTS, 3),
+                   np.asarray(K, dtype=np.float64), usable, counts, types, order, starts, order[starts])
+
+
+def _checked(candidates: Sequence[tuple]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Centroids' candidates (keypoint_ids, points, scores) as one table: (n,) int ids,
+    (n, 2) float px, (n,) float scores, (n,) int centroid of each row; ValueError when a
+    centroid's lengths differ or an id is not a keypoint index."""
+    ids = [np.asarray(c[0], dtype=int).ravel() for c in candidates]
+    pts = [np.asarray(c[1], dtype=np.float64).reshape(-1, 2) for c in candidates]
+    sc = [np.asarray(c[2], dtype=np.float64).ravel() for c in candidates]
+    sizes = [len(a) for a in ids]
+    for a, b, c in zip(sizes, pts, sc):
+        if not a == len(b) == len(c):
+            raise ValueError(f"keypoint_ids, points and scores differ in length: {a}, {len(b)}, {len(c)}")
+    owner = np.repeat(np.arange(len(candidates)), sizes)
+    ids, pts, sc = np.concatenate(ids), np.concatenate(pts), np.concatenate(sc)
     if len(ids) and (ids.min() < 0 or ids.max() >= NUM_KEYPOINTS):
         raise ValueError(f"keypoint ids must be in 0..{NUM_KEYPOINTS - 1}, got {sorted(set(ids.tolist()))}")
+    return ids, pts, sc, owner
+
+
+def _pose_possible(counts: np.ndarray, pnp_options: dict) -> np.ndarray:
+    """(...,) bool from (..., 9) usable candidates per keypoint type: a centroid is present and
+    at least :func:`solve_pnp`'s ``min_points`` types (one keypoint per type reaches it)."""
+    return (counts[..., CENTROID_INDEX] > 0) & (np.count_nonzero(counts, axis=-1) >= _min_points(pnp_options))
+
+
+def _min_points(pnp_options: dict) -> int:
+    """:func:`solve_pnp`'s ``min_points`` under these options (at least 4)."""
+    return max(4, int(pnp_options.get("min_points", DEFAULT_MIN_POINTS)))
+
+
+def _first_choices(candidates: Sequence[tuple], cuboid_points: np.ndarray, K: np.ndarray, threshold_px: float,
+                   max_hypotheses: int, pnp_options: dict) -> list[tuple | None]:
+    """Step 1 of :func:`solve_pnp_candidates` for every centroid of one image at once: the
+    least-squares pose through each type's first candidate (one solve per centroid, the
+    candidates of all projected and checked together). Per centroid None (no pose possible:
+    :func:`_pose_possible`), else (decided, estimate, pose): decided when each first
+    candidate lies within ``threshold_px`` of that pose and is the nearest of its type (the
+    estimate is then :func:`solve_pnp`'s answer, maybe None, for all decided at once); pose:
+    (R, t), or None where the solver failed."""
     if max_hypotheses < 1:
         raise ValueError(f"max_hypotheses must be >= 1, got {max_hypotheses}")
+    m = len(candidates)
+    out: list[tuple | None] = [None] * m
+    if m == 0:
+        return out
+    ids, pts, sc, owner = _checked(candidates)
     cuboid = np.asarray(cuboid_points, dtype=np.float64).reshape(NUM_KEYPOINTS, 3)
     K = np.asarray(K, dtype=np.float64)
     usable = np.flatnonzero(np.isfinite(pts).all(axis=1) & np.isfinite(sc))
-    counts = np.bincount(ids[usable], minlength=NUM_KEYPOINTS)
-    if counts[CENTROID_INDEX] == 0 or np.count_nonzero(counts[:CENTROID_INDEX]) < 3:
-        return None
-    # Candidate indices per type present, each best first (the input order).
-    order = usable[np.argsort(ids[usable], kind="stable")]
-    types = np.flatnonzero(counts)
-    starts = np.cumsum(counts[types]) - counts[types]
-    first = order[starts]
-    anchor = first[-1]                                       # the centroid (type 8, last)
-    R, t = _least_squares_pose(cuboid[types], pts[first], K)                   # step 1
-    if R is not None:
-        # Every type's first candidate within the threshold of this pose and the nearest of its
-        # type: nothing to search (the scoring below would find just that).
-        uvw = (cuboid[ids[usable]] @ R.T + t) @ K.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            d = uvw[:, :2] / uvw[:, 2:] - pts[usable]
-        err = np.full(len(ids), np.inf)
-        err[usable] = np.where(uvw[:, 2] > 0, d[:, 0] ** 2 + d[:, 1] ** 2, np.inf)       # squared, px^2
-        first_of = np.repeat(first, counts[types])           # per candidate in order: its type's first
-        if np.all(err[first] <= hypothesis_threshold_px ** 2) and np.all(err[order] >= err[first_of]):
-            kp = np.full((NUM_KEYPOINTS, 2), np.nan)
-            kp[types] = pts[first]
-            kp_scores = np.zeros(NUM_KEYPOINTS)
-            kp_scores[types] = sc[first]
-            return solve_pnp(kp, kp_scores, cuboid, K, initial_pose=(R, t), **pnp_options)
+    order = usable[np.lexsort((usable, ids[usable], owner[usable]))]   # by centroid, type, input order
+    key = owner[order] * NUM_KEYPOINTS + ids[order]
+    possible = _pose_possible(np.bincount(key, minlength=m * NUM_KEYPOINTS).reshape(m, NUM_KEYPOINTS), pnp_options)
+    if not possible.any():
+        return out
+    new_type = np.r_[True, key[1:] != key[:-1]]
+    group_start = np.flatnonzero(new_type)
+    first = order[group_start]                             # each centroid's first candidate per type
+    first_at = group_start[np.cumsum(new_type) - 1]        # per position in order: its type's first
+    bounds = np.searchsorted(owner[first], np.arange(m + 1))
+    # A centroid whose first candidates are, on all but fewer than min_points types, those of
+    # a centroid listed before it (stronger) is left to step 2 (a noise blob beside a box, or
+    # the box's second centroid peak): where that centroid's pose holds them, they are gone.
+    peak = np.stack([ids[first], pts[first, 0], pts[first, 1]], axis=1)
+    by_peak = np.lexsort((owner[first], peak[:, 2], peak[:, 1], peak[:, 0]))
+    shared = np.zeros(len(first), dtype=bool)
+    shared[by_peak[1:]] = np.all(peak[by_peak[1:]] == peak[by_peak[:-1]], axis=1)
+    own = np.bincount(owner[first[~shared]], minlength=m)
+    Rs, ts = np.zeros((m, 3, 3)), np.zeros((m, 3))
+    solved = np.zeros(m, dtype=bool)
+    for c in np.flatnonzero(possible):
+        if own[c] < _min_points(pnp_options):
+            out[c] = (False, None, None)
+            continue
+        f = first[bounds[c]: bounds[c + 1]]
+        R, t = _least_squares_pose(cuboid[ids[f]], pts[f], K)
+        out[c] = (False, None, None if R is None else (R, t))
+        if R is not None:
+            Rs[c], ts[c], solved[c] = R, t, True
+    pos = np.flatnonzero(solved[owner[order]])
+    rows = order[pos]
+    uvw = (np.einsum("nij,nj->ni", Rs[owner[rows]], cuboid[ids[rows]]) + ts[owner[rows]]) @ K.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = uvw[:, :2] / uvw[:, 2:] - pts[rows]
+    err = np.full(len(order), np.inf)
+    err[pos] = np.where(uvw[:, 2] > 0, d[:, 0] ** 2 + d[:, 1] ** 2, np.inf)                # squared, px^2
+    ref = err[first_at[pos]]
+    bad = ~(ref <= threshold_px ** 2) | (err[pos] < ref)
+    decided = np.flatnonzero(solved & (np.bincount(owner[rows[bad]], minlength=m) == 0))
+    if decided.size:
+        slot = np.full(m, -1)
+        slot[decided] = np.arange(decided.size)
+        f = first[slot[owner[first]] >= 0]
+        kp = np.full((decided.size, NUM_KEYPOINTS, 2), np.nan)
+        kp_scores = np.zeros((decided.size, NUM_KEYPOINTS))
+        kp[slot[owner[f]], ids[f]] = pts[f]
+        kp_scores[slot[owner[f]], ids[f]] = sc[f]
+        ests = _solve_pnp_many(kp, kp_scores, cuboid, K, (Rs[decided], ts[decided]), **pnp_options)
+        for c, est in zip(decided.tolist(), ests):
+            out[c] = (True, est, (Rs[c], ts[c]))
+    return out
+
+
+def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, hypothesis_threshold_px: float,
+            max_hypotheses: int, pnp_options: dict) -> PoseEstimate | None:
+    """Step 2 of :func:`solve_pnp_candidates` (and its final :func:`solve_pnp`), after step 1's
+    ``first_pose`` (scored first; None: the solver failed)."""
+    ids, pts, sc, cuboid, K, types, order, starts = c.ids, c.pts, c.sc, c.cuboid, c.K, c.types, c.order, c.starts
+    anchor = c.first[-1]                                       # the centroid (type 8, last)
     groups = np.split(order, starts[1:])
     scorer = _HypothesisScorer(ids, pts, np.clip(sc, 0.0, 1.0), groups, anchor, cuboid, K,
                                float(hypothesis_threshold_px))
@@ -389,8 +625,8 @@ def solve_pnp_candidates(
             if fit[0] is not None:
                 scorer.add([fit[0]], [fit[1]])
 
-    if R is not None:
-        add([R], [t])
+    if first_pose is not None:
+        add([first_pose[0]], [first_pose[1]])
     n_types = len(types)
     enough = n_types if n_types - 1 < _ENOUGH_TYPES else n_types - 1
     if scorer.most_explained < enough:                                         # step 2
@@ -465,6 +701,8 @@ class _HypothesisScorer:
         d = proj[:, :, self.ids] - self.pts.T[None]                           # (H, 2, n)
         err = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)                            # (H, n)
         centre_ok = err[:, self.anchor] <= self.threshold
+        if not centre_ok.any():
+            return  # none fits its centroid: it explains nothing
         err[~np.isfinite(err) | ~centre_ok[:, None]] = np.inf
         err = np.concatenate([err, np.full((len(err), 1), np.inf)], axis=1)  # column n: no candidate
         per_slot = err[:, self.slots]                                         # (H, T, w)

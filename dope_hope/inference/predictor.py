@@ -15,7 +15,9 @@ run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.pr
    centroid keeps every corner peak whose affinity points at it
    (:func:`dope_hope.maps.decode.corner_candidates`) and
    :func:`dope_hope.inference.pnp.solve_pnp_candidates` finds the pose that explains most of
-   them; two centroids explaining the same peaks give one detection, the higher-scoring.
+   them (:func:`dope_hope.inference.pnp.solve_pnp_instances`: the peaks an accepted pose holds
+   are no candidates of the centroids searched after it); two centroids explaining the same
+   peaks give one detection, the higher-scoring.
    ``pose_search="groups"``: DOPE's decoding, one corner per type and centroid
    (:func:`dope_hope.maps.decode.decode_maps`), then :func:`dope_hope.inference.pnp.solve_pnp`.
    The cuboid is the model's: the checkpoint's size (mesh frame) or, with ``mesh=``, the
@@ -55,12 +57,14 @@ from dope_hope.geometry import (
     legacy_keypoints_to_current,
     legacy_rotation_to_mesh,
     project_points,
+    project_points_poses,
     projected_bbox,
+    projected_bboxes,
 )
 from dope_hope.inference.backends import MapBackend, open_backend
 from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.detection import Detection
-from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_candidates
+from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_instances
 from dope_hope.maps.decode import corner_candidates, decode_maps
 from dope_hope.preprocess import (
     NetworkInput,
@@ -292,9 +296,13 @@ class DopePredictor:
                     self._refine_icp(det, depth)
             elif self.options.icp:
                 det.icp_reason = "no depth image"
-            det.projected_2d = project_points(self.cuboid_mesh, K, det.R, det.t)
-            det.bbox_2d = projected_bbox(self.bbox_points, K, det.R, det.t, net_in.original_hw)
             out.append(det)
+        if out:  # the final poses' projections, all at once
+            Rs, ts = np.stack([d.R for d in out]), np.stack([d.t for d in out])
+            projected = project_points_poses(self.cuboid_mesh, K, Rs, ts)
+            boxes = projected_bboxes(self.bbox_points, K, Rs, ts, net_in.original_hw)
+            for det, uv, box in zip(out, projected, boxes):
+                det.projected_2d, det.bbox_2d = uv, box
         out.sort(key=lambda d: -d.score)
         return out
 
@@ -331,18 +339,9 @@ class DopePredictor:
             found = [solve_pnp(inst.keypoints, inst.scores, self.cuboid_pnp, K_net, **self.options.pnp)
                      for inst in decode_maps(belief, affinity, self.stride, **self.options.decode)]
             return [e for e in found if e is not None]
-        found = [solve_pnp_candidates(c.keypoint_ids, c.xy, c.scores, self.cuboid_pnp, K_net,
-                                      **self.options.hypotheses, **self.options.pnp)
-                 for c in corner_candidates(belief, affinity, self.stride, **self.options.decode)]
-        found = sorted((e for e in found if e is not None), key=lambda e: -e.score)
-        kept: list[PoseEstimate] = []
-        inliers = np.zeros((len(found), NUM_KEYPOINTS), dtype=bool)
-        keypoints = np.zeros((len(found), NUM_KEYPOINTS, 2))
-        for est in found:
-            if not _same_peaks(est, inliers[: len(kept)], keypoints[: len(kept)]):
-                inliers[len(kept)], keypoints[len(kept)] = est.inliers, est.keypoints
-                kept.append(est)
-        return kept
+        candidates = corner_candidates(belief, affinity, self.stride, **self.options.decode)
+        return solve_pnp_instances([(c.keypoint_ids, c.xy, c.scores) for c in candidates], self.cuboid_pnp,
+                                   K_net, **self.options.hypotheses, **self.options.pnp)
 
     def __repr__(self) -> str:
         return (f"DopePredictor(class_name={self.class_name!r}, stride={self.stride}, "
@@ -356,14 +355,6 @@ def as_depth_image(depth: np.ndarray | DepthImage | None, K: np.ndarray, depth_s
     if depth is None or isinstance(depth, DepthImage):
         return depth
     return DepthImage.from_raw(depth, K, depth_scale_m, calibration, image_hw)
-
-
-def _same_peaks(a: PoseEstimate, inliers: np.ndarray, keypoints: np.ndarray) -> bool:
-    """True when, for one of the kept estimates ((k, 9) inliers, (k, 9, 2) keypoints), at least
-    half of ``a``'s inlier keypoints are the very peaks (same type, same position) among its
-    inliers: two centroids that explain one object."""
-    same = a.inliers & inliers & np.all(np.abs(a.keypoints - keypoints) < 1e-6, axis=2)
-    return bool(np.any(2 * same.sum(axis=1) >= int(a.inliers.sum())))
 
 
 def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.ndarray,

@@ -45,14 +45,15 @@ Pipeline (all channels at once, no Python loops over pixels):
 
 Scores: ``Instance2D.scores[k]`` is the height of keypoint k's peak: the fitted Gaussian
 height on the raw map (``ln h = h_x + h_y - ln f(cell)``, exact for a separable Gaussian, so
-a perfect prediction scores 1 whatever its sub-pixel phase), or the raw 3x3 maximum where
-the fit fails; 0 where missing. ``Instance2D.score`` = ``scores.sum() / 9`` (mean over all
+a perfect prediction scores 1 whatever its sub-pixel phase), or the raw 3x3 maximum (at the
+cell the peak climbed to) where the fit fails; 0 where missing. ``Instance2D.score`` = ``scores.sum() / 9`` (mean over all
 nine, missing keypoints count 0).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter, label
 from scipy.optimize import linear_sum_assignment
@@ -161,18 +162,39 @@ def _log_parabola(maps: np.ndarray, c: np.ndarray, y: np.ndarray, x: np.ndarray,
 
 def _window_max(a: np.ndarray, radius: int) -> np.ndarray:
     """(C, h, w) maximum of each cell's (2r+1)^2 neighbourhood within its channel, cells
-    outside the map not counted (separable: rows, then columns)."""
+    outside the map not counted (separable: ``cv2.dilate`` along rows with the channels
+    stacked, then along columns with them side by side; the replicated border is a cell of
+    the map, so it adds nothing)."""
     if radius <= 0:
         return a
-    h, w = a.shape[1:]
-    padded = np.pad(a, ((0, 0), (radius, radius), (radius, radius)), constant_values=-np.inf)
-    rows = padded[:, :, : w]
-    for d in range(1, 2 * radius + 1):
-        rows = np.maximum(rows, padded[:, :, d: d + w])
-    out = rows[:, : h]
-    for d in range(1, 2 * radius + 1):
-        out = np.maximum(out, rows[:, d: d + h])
-    return out
+    C, h, w = a.shape
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    size = 2 * radius + 1
+    rows = cv2.dilate(a.reshape(C * h, w), np.ones((1, size), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    wide = np.ascontiguousarray(rows.reshape(C, h, w).transpose(1, 0, 2)).reshape(h, C * w)
+    out = cv2.dilate(wide, np.ones((size, 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    return out.reshape(h, C, w).transpose(1, 0, 2)
+
+
+def _smooth(a: np.ndarray, sigma: float) -> np.ndarray:
+    """(C, h, w) float32: ``scipy.ndimage.gaussian_filter(a, (0, sigma, sigma))`` (truncated at
+    4 sigma, reflected border, float64 sums, float32 after each axis), computed as two
+    ``cv2.sepFilter2D`` passes over all channels at once: columns with the channels side by
+    side, rows with them stacked (neither pass mixes channels). scipy where the kernel is
+    wider than the map (its reflection repeats, OpenCV's does not)."""
+    C, h, w = a.shape
+    radius = int(4.0 * float(sigma) + 0.5)
+    if radius >= min(h, w):
+        return gaussian_filter(a, sigma=(0, sigma, sigma))
+    x = np.arange(-radius, radius + 1)
+    kernel = np.exp(-0.5 / (float(sigma) * float(sigma)) * x ** 2)
+    kernel = kernel / kernel.sum()
+    one = np.ones(1)
+    wide = a.transpose(1, 0, 2).reshape(h, C * w).astype(np.float64)
+    cols = cv2.sepFilter2D(wide, cv2.CV_64F, one, kernel, borderType=cv2.BORDER_REFLECT).astype(np.float32)
+    tall = cols.reshape(h, C, w).transpose(1, 0, 2).reshape(C * h, w).astype(np.float64)
+    out = cv2.sepFilter2D(tall, cv2.CV_64F, kernel, one, borderType=cv2.BORDER_REFLECT)
+    return out.astype(np.float32).reshape(C, h, w)
 
 
 _DY = np.repeat([-1, 0, 1], 3)   # the 3x3 neighbourhood, row by row
@@ -233,15 +255,11 @@ def find_peaks(
     if not np.isfinite(raw).all():
         raw = np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0)
     C, h, w = raw.shape
-    smooth = gaussian_filter(raw, sigma=(0, smooth_sigma, smooth_sigma)) if smooth_sigma > 0 else raw
+    smooth = _smooth(raw, smooth_sigma) if smooth_sigma > 0 else raw
     local_max = (smooth >= _window_max(smooth, nms_radius)) & (smooth > 0)  # flat empty regions are not peaks
-    # Raw belief near each candidate: the 3x3 maximum (edge-clamped), gathered at the candidates only.
-    cand = np.flatnonzero(local_max)
-    cc, cy, cx = np.unravel_index(cand, raw.shape)
-    near = _neighbourhood(raw, cc, cy, cx)[0].max(axis=1)
-    idx = cand[near > threshold]
-    value = np.zeros(raw.shape, dtype=raw.dtype)
-    value.ravel()[cand] = near
+    # A peak: a local maximum of the smoothed map whose raw 3x3 maximum (cells inside the map) passes.
+    raw_near = _window_max(raw, 1)
+    idx = np.flatnonzero(local_max & (raw_near > threshold))
     if idx.size == 0:
         empty = np.zeros((0, 2))
         return Peaks(np.zeros(0, int), empty.astype(int), empty, np.zeros(0))
@@ -260,16 +278,22 @@ def find_peaks(
     if refine_on == "raw" and smooth is not raw:
         # Smoothing finds the peaks (and keeps close instances apart) but shifts a skewed
         # peak's cell; fit the raw map around its own maximum next to the detected cell.
-        y, x = _snap_to_raw_max(raw, c, y, x)
-        _, keep = np.unique(np.ravel_multi_index((c, y, x), raw.shape), return_index=True)  # climbed together
-        keep.sort()
-        c, y, x = c[keep], y[keep], x[keep]
+        climb = np.flatnonzero(raw_near[c, y, x] > raw[c, y, x])   # not the raw maximum of their 3x3
+        if climb.size:
+            y, x = y.copy(), x.copy()
+            y[climb], x[climb] = _snap_to_raw_max(raw, c[climb], y[climb], x[climb])
+            _, keep = np.unique(np.ravel_multi_index((c, y, x), raw.shape), return_index=True)  # climbed together
+            keep.sort()
+            c, y, x = c[keep], y[keep], x[keep]
     primary, secondary = (raw, smooth) if refine_on == "raw" else (smooth, raw)
     coords, heights, raw_ok = [], [], []
     inside = np.ones(len(c), dtype=bool)
     for axis in (2, 1):  # x then y
         v1, ok1, h1 = _log_parabola(primary, c, y, x, axis)
-        v2, ok2, _ = _log_parabola(secondary, c, y, x, axis)
+        v2, ok2 = v1.copy(), np.zeros(len(c), dtype=bool)  # the other map, where the first fit fails
+        redo = np.flatnonzero(~ok1)
+        if redo.size:
+            v2[redo], ok2[redo], _ = _log_parabola(secondary, c[redo], y[redo], x[redo], axis)
         if primary is raw:
             hr, okr = h1, ok1
         else:
@@ -286,7 +310,7 @@ def find_peaks(
     xy = np.stack(coords, axis=1)
     # Score: the fitted Gaussian height on the raw map (independent of the sub-pixel phase;
     # for a separable Gaussian ln peak = h_x + h_y - ln f(cell)), else the raw 3x3 maximum.
-    value = value[c, y, x].astype(np.float64)
+    value = raw_near[c, y, x].astype(np.float64)  # at the cell fitted (after the climb)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         fitted = np.exp(heights[0] + heights[1] - np.log(np.maximum(raw[c, y, x], 1e-30)))
     score = np.where(raw_ok[0] & raw_ok[1] & np.isfinite(fitted), np.maximum(fitted, value), value)
@@ -338,16 +362,25 @@ def assign_corners(
     return _one_to_one(feasible, cost)
 
 
-def _one_to_one(feasible: np.ndarray, cost: np.ndarray) -> np.ndarray:
+def _one_to_one(feasible: np.ndarray, cost: np.ndarray, kinds: np.ndarray | None = None) -> np.ndarray:
     """(n,) int centroid of each corner peak under the one-to-one assignment of the (n, m)
-    ``feasible`` pairs at least total ``cost``; -1 where none (see :func:`assign_corners`)."""
-    out = np.full(cost.shape[0], -1, dtype=int)
+    ``feasible`` pairs at least total ``cost``; -1 where none (see :func:`assign_corners`).
+    With ``kinds`` ((n,) int corner type of each peak) one assignment per type, solved as one
+    block-diagonal problem (a column per type and centroid; another type's column is
+    infeasible), which has the per-type assignments as its optimum."""
+    n, m = cost.shape
+    out = np.full(n, -1, dtype=int)
     if cost.size == 0:
         return out
     big = 1e9 + cost.max()
-    rows, cols = linear_sum_assignment(np.where(feasible, cost, big))
-    keep = feasible[rows, cols]
-    out[rows[keep]] = cols[keep]
+    if kinds is None:
+        kinds = np.zeros(n, dtype=int)
+    types, block = np.unique(kinds, return_inverse=True)
+    full = np.full((n, len(types) * m), big)
+    full[np.arange(n)[:, None], block[:, None] * m + np.arange(m)] = np.where(feasible, cost, big)
+    rows, cols = linear_sum_assignment(full)
+    keep = (cols // m == block[rows]) & feasible[rows, cols % m]
+    out[rows[keep]] = cols[keep] % m
     return out
 
 
@@ -449,14 +482,11 @@ def _corner_groups(peaks: Peaks, aff: np.ndarray, centroids_xy: np.ndarray, angl
     corner = np.flatnonzero(peaks.channel != CENTROID_INDEX)
     ch, cells = peaks.channel[corner], peaks.cell[corner]
     vectors = np.stack([aff[2 * ch, cells[:, 1], cells[:, 0]], aff[2 * ch + 1, cells[:, 1], cells[:, 0]]], 1)
-    vectors = np.nan_to_num(vectors.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    vectors = vectors.astype(np.float64)
+    vectors[~np.isfinite(vectors)] = 0.0
     feasible, cost, angle, dist = corner_centroid_costs(cells, peaks.xy[corner], vectors, centroids_xy,
                                                         angle_threshold, min_affinity, peaks.score[corner])
-    owner = np.full(len(corner), -1, dtype=int)
-    for k in np.unique(ch):
-        rows = np.flatnonzero(ch == k)
-        owner[rows] = _one_to_one(feasible[rows], cost[rows])
-    return corner, feasible, cost, angle, dist, owner
+    return corner, feasible, cost, angle, dist, _one_to_one(feasible, cost, ch)
 
 
 @dataclass
@@ -540,13 +570,14 @@ def corner_candidates(
     is_owner = (owner[:, None] == rows[None]) & near
     rank = np.where(is_owner, -np.inf, np.where(keep, cost, np.inf))
     # Rows (centroid, type, rank, peak): each centroid itself (type -1: first), then its entries.
-    table = [np.stack([rows, np.full(m, -1), np.zeros(m, dtype=int), np.flatnonzero(is_c)], axis=1)]
-    for k in np.unique(ch):
-        sel = np.flatnonzero(ch == k)
-        order = np.argsort(rank[sel], axis=0, kind="stable")[:max_per_type]             # (r, m)
-        r, c = np.nonzero(rank[sel[order], rows] < np.inf)
-        table.append(np.stack([c, np.full(len(c), k), r, corner[sel[order[r, c]]]], axis=1))
-    table = np.concatenate(table)
+    # Per centroid (column) the corner peaks by type, then rank (stable): the first
+    # max_per_type of each type, where ranked, are its entries.
+    by = np.lexsort((rank, np.broadcast_to(ch[:, None], rank.shape)), axis=0)          # (N, m)
+    kinds = np.sort(ch)
+    place = np.arange(len(ch)) - np.searchsorted(kinds, kinds)                          # rank within its type
+    r, c = np.nonzero((place[:, None] < max_per_type) & (np.take_along_axis(rank, by, axis=0) < np.inf))
+    table = np.concatenate([np.stack([rows, np.full(m, -1), np.zeros(m, dtype=int), np.flatnonzero(is_c)], axis=1),
+                            np.stack([c, kinds[r], place[r], corner[by[r, c]]], axis=1)])
     table = table[np.lexsort((table[:, 2], table[:, 1], table[:, 0]))]
     bounds = np.searchsorted(table[:, 0], np.arange(m + 1))
     ids = np.where(table[:, 1] < 0, CENTROID_INDEX, table[:, 1])
