@@ -30,7 +30,7 @@ def unpacked_wheel(tmp_path_factory) -> Path:
 def test_wheel_holds_configs_model_and_entry_points(unpacked_wheel):
     pkg = unpacked_wheel / "dope_hope"
     assert {p.stem for p in (pkg / "configs").glob("*.yaml")} >= {
-        "lite", "dope_dr_50", "dope_dr_400", "synth", "demo", "infer"}
+        "lite", "dope_dr_50", "dope_dr_400", "synth", "demo", "procedural", "infer"}
     assert (pkg / "assets" / "demo_lite.pt").is_file() and (pkg / "__main__.py").is_file()
 
 
