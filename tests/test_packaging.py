@@ -32,6 +32,7 @@ def test_wheel_holds_configs_model_and_entry_points(unpacked_wheel):
     assert {p.stem for p in (pkg / "configs").glob("*.yaml")} >= {
         "lite", "dope_dr_50", "dope_dr_400", "synth", "demo", "procedural", "infer"}
     assert (pkg / "assets" / "demo_lite.pt").is_file() and (pkg / "__main__.py").is_file()
+    assert (pkg / "assets" / "pretrained_lite.pt").is_file()  # the default start of a lite run
 
 
 def test_wheel_finds_its_configs_outside_the_repository(unpacked_wheel, tmp_path):

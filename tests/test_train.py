@@ -345,6 +345,20 @@ def test_cli_init_demo_starts_from_the_shipped_model(frames, tmp_path):
     assert load_checkpoint(tmp_path / "o" / "last.pt")["extra"]["job"]["init"] == str(DEMO_WEIGHTS)
 
 
+def test_cli_new_lite_run_starts_from_the_shipped_pretrained_start(frames, tmp_path):
+    """No --init: a new lite run starts from the shipped pretrained weights (recorded)."""
+    from dope_hope.training.settings import PRETRAINED_WEIGHTS
+
+    if not PRETRAINED_WEIGHTS.is_file():
+        pytest.skip("this checkout has no shipped pretrained start")
+    r = _cli("train", "--config", "lite", "--data", str(frames), "--object", "Ketchup", "--out", str(tmp_path / "o"),
+             "--steps", "1", "--batch-size", "2", "--workers", "0", "--no-progress",
+             "--set", "input.size=[64,64]", "train.time_limit_min=null", timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "start: the shipped pretrained start" in r.stderr
+    assert load_checkpoint(tmp_path / "o" / "last.pt")["extra"]["job"]["init"] == str(PRETRAINED_WEIGHTS)
+
+
 @pytest.mark.slow
 def test_torchrun_two_cpu_processes_write_one_checkpoint(frames, tmp_path):
     out = tmp_path / "ddp"
