@@ -147,3 +147,23 @@ def test_init_choices(tmp_path, monkeypatch):
     assert path is None and "differs" in why
     assert settings.resolve_init("none", lite) == (None, "random start (--init none)")
     assert settings.resolve_init(str(tmp_path / "x.pt"), lite)[0] == tmp_path / "x.pt"
+
+
+def test_the_shipped_pretrained_start_is_refused_as_a_detector(tmp_path):
+    """Inference and export refuse the pretrained start (no object's size: wrong poses), while
+    training starts from it."""
+    from dope_hope.errors import ModelFileError
+    from dope_hope.model.checkpoint import load_checkpoint, load_model
+    from dope_hope.training.settings import PRETRAINED_WEIGHTS
+
+    if not PRETRAINED_WEIGHTS.is_file():
+        pytest.skip("this checkout has no shipped pretrained start")
+    assert load_checkpoint(PRETRAINED_WEIGHTS)["config"]["model"]["arch"] == "lite"
+    with pytest.raises(ModelFileError, match="pretrained start"):
+        load_model(PRETRAINED_WEIGHTS)
+    img = tmp_path / "x.png"
+    import cv2
+    cv2.imwrite(str(img), np.zeros((48, 64, 3), np.uint8))
+    r = subprocess.run([sys.executable, "-m", "dope_hope.cli", "infer", str(img), "--weights", str(PRETRAINED_WEIGHTS),
+                        "--out", str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "pretrained start" in r.stderr and r.stderr.strip().count("\n") == 0

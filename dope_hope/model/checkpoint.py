@@ -294,19 +294,35 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     return ckpt
 
 
-def save_inference_checkpoint(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
+#: ``source`` of a checkpoint that is a start for training, not a detector (the shipped
+#: pretrained lite start): inference and export refuse it.
+PRETRAINED_START_SOURCE = "pretrained start"
+
+
+def save_inference_checkpoint(src: str | os.PathLike, dst: str | os.PathLike,
+                              source: str | None = None) -> Path:
     """Copy a checkpoint without its training state (optimizer, scheduler, RNG): what a
     model ships as. Adam's moments double a checkpoint's size and are useless for inference;
-    ``--resume`` needs the full file. Written atomically; returns ``dst``."""
+    ``--resume`` needs the full file. ``source`` replaces the recorded origin (e.g.
+    :data:`PRETRAINED_START_SOURCE`). Written atomically; returns ``dst``."""
     ckpt = load_checkpoint(src)
     ckpt.update(optimizer=None, scheduler=None, rng=None)
+    if source is not None:
+        ckpt["source"] = source
     atomic_write_stream(dst, lambda f: torch.save(ckpt, f))
     return Path(dst)
 
 
 def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[DopeNetwork, dict[str, Any]]:
-    """Load a checkpoint and build its network: ``(model in eval mode on device, checkpoint)``."""
+    """Load a checkpoint and build its network: ``(model in eval mode on device, checkpoint)``.
+
+    Raises ModelFileError for a pretrained start (:data:`PRETRAINED_START_SOURCE`): it finds
+    cuboid keypoints of many objects and knows no object's size, so its poses would be wrong.
+    """
     ckpt = load_checkpoint(path)
+    if ckpt.get("source") == PRETRAINED_START_SOURCE:
+        raise ModelFileError(path, "a pretrained start, not a detector of one object: train your "
+                                   "object from it (`dope-hope train --config lite`, its default start)")
     model = build_model(ckpt["config"], load_backbone=False)
     model.load_state_dict(ckpt["model"], strict=True)
     return model.to(device).eval(), ckpt
