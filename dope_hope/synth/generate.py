@@ -66,8 +66,8 @@ class SynthFrame:
     annotation: FrameAnnotation
     stats: list[InstanceStats]
     scene: SceneSpec
+    target: MeshAsset
     alone_depth: dict[int, np.ndarray] = field(default_factory=dict)
-    target: MeshAsset | None = None
     category: str | None = None
 
     def json_extra(self, seed: int, class_name: str, mesh_name: str, cuboid_size: np.ndarray,
@@ -233,7 +233,7 @@ class FrameGenerator:
                           target=target, category=category)
 
     def json_extra(self, frame: SynthFrame, seed: int | None = None) -> dict[str, Any]:
-        target = frame.target if frame.target is not None else self.target
+        target = frame.target
         mesh_name = "procedural" if frame.category is not None else target.path.name
         return frame.json_extra(self.seed if seed is None else seed, self.class_name, mesh_name,
                                 target.cuboid_size, target.cuboid_center,

@@ -22,6 +22,7 @@ import trimesh
 
 from dope_hope.catalog import CATEGORIES, HOPE_OBJECTS
 from dope_hope.synth.assets import MeshAsset, bounding_shape
+from dope_hope.synth.primitives import corner_normals, split_mesh
 from dope_hope.synth.textures import label_image, random_color
 
 #: Fraction of a can / bottle texture's height (top rows) holding the cap colour.
@@ -36,14 +37,6 @@ class ProceduralObject:
 
     category: str
     asset: MeshAsset
-
-
-def _split_with_uv(shape: trimesh.Trimesh, uv: np.ndarray, normals: np.ndarray) -> trimesh.Trimesh:
-    """Mesh with vertices split per triangle: (3F, 2) uv and (3F, 3) normals given per corner."""
-    positions = np.asarray(shape.vertices)[np.asarray(shape.faces)].reshape(-1, 3)
-    faces = np.arange(len(positions)).reshape(-1, 3)
-    return trimesh.Trimesh(vertices=positions, faces=faces, vertex_normals=normals, process=False,
-                           visual=trimesh.visual.TextureVisuals(uv=uv))
 
 
 def box_mesh(size_m: np.ndarray) -> trimesh.Trimesh:
@@ -62,7 +55,7 @@ def box_mesh(size_m: np.ndarray) -> trimesh.Trimesh:
         row, col = _BOX_CELLS[face_id[f]]
         uv[f, :, 0] = (col + np.clip(local[:, 0], 0, 1)) / 3.0
         uv[f, :, 1] = (row + np.clip(local[:, 1], 0, 1)) / 2.0
-    return _split_with_uv(shape, uv.reshape(-1, 2), np.repeat(fn, 3, axis=0))
+    return split_mesh(shape, uv.reshape(-1, 2), np.repeat(fn, 3, axis=0))
 
 
 def _wrapped_uv(shape: trimesh.Trimesh, y_range: tuple[float, float]) -> np.ndarray:
@@ -81,13 +74,9 @@ def _wrapped_uv(shape: trimesh.Trimesh, y_range: tuple[float, float]) -> np.ndar
     return np.stack([u, v], axis=-1).reshape(-1, 2)
 
 
-def _smooth_normals(shape: trimesh.Trimesh) -> np.ndarray:
-    """(3F, 3) per-corner normals: smooth on the side, flat on faces facing along y (caps)."""
-    normals = np.asarray(shape.vertex_normals)[np.asarray(shape.faces)].reshape(-1, 3)
-    fn = np.repeat(np.asarray(shape.face_normals), 3, axis=0)
-    cap = np.abs(fn[:, 1]) > 0.95
-    normals[cap] = fn[cap]
-    return normals
+def _cap_normals(shape: trimesh.Trimesh) -> np.ndarray:
+    """(3F, 3) corner normals of a can or bottle standing along y: smooth, flat on its caps."""
+    return corner_normals(shape, flat_axis=1, flat_cos=0.95)
 
 
 def _y_up(shape: trimesh.Trimesh) -> trimesh.Trimesh:
@@ -103,7 +92,7 @@ def can_mesh(size_m: np.ndarray, sections: int = 32) -> trimesh.Trimesh:
     shape = _y_up(trimesh.creation.cylinder(radius=0.5, height=1.0, sections=sections))
     shape.apply_scale(size)  # unit diameter and height -> the extents (elliptic when x != z)
     shape.apply_translation(-shape.bounds.mean(axis=0))
-    return _split_with_uv(shape, _wrapped_uv(shape, (-size[1] / 2, size[1] / 2)), _smooth_normals(shape))
+    return split_mesh(shape, _wrapped_uv(shape, (-size[1] / 2, size[1] / 2)), _cap_normals(shape))
 
 
 def bottle_profile(rng: np.random.Generator) -> tuple[np.ndarray, float]:
@@ -130,7 +119,7 @@ def bottle_mesh(size_m: np.ndarray, rng: np.random.Generator, sections: int = 32
     shape.apply_translation(-shape.bounds.mean(axis=0))
     height = float(shape.extents[1])
     y_range = (-height / 2, -height / 2 + cap_from * height)
-    return _split_with_uv(shape, _wrapped_uv(shape, y_range), _smooth_normals(shape))
+    return split_mesh(shape, _wrapped_uv(shape, y_range), _cap_normals(shape))
 
 
 def sample_size(rng: np.random.Generator, category: str, jitter: float) -> np.ndarray:

@@ -65,44 +65,55 @@ def dims_for_radius(kind: str, radius: float, rng: np.random.Generator) -> np.nd
     return np.array([radius])
 
 
-def box_uv(vertices: np.ndarray, faces: np.ndarray,
-           tile_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Tri-planar texture coordinates with vertices split per triangle.
+def box_uv(vertices: np.ndarray, faces: np.ndarray, tile_m: float) -> np.ndarray:
+    """(3F, 2) tri-planar texture coordinates, one per triangle corner (the order of
+    :func:`split_mesh`'s vertices).
 
     Args:
         vertices: (V, 3) metres; faces: (F, 3); tile_m: metres per texture repeat.
-
-    Returns:
-        positions (3F, 3), uv (3F, 2), faces (F, 3) indexing the split vertices, and the index
-        (3F,) of the original vertex of each split vertex (for carrying normals).
     """
     tri = vertices[faces]                                   # (F, 3, 3)
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     axis = np.argmax(np.abs(n), axis=1)                     # dominant normal axis per face
     keep = np.array([[1, 2], [0, 2], [0, 1]])[axis]         # the two in-plane axes
     uv = np.take_along_axis(tri, keep[:, None, :].repeat(3, axis=1), axis=2) / tile_m
-    positions = tri.reshape(-1, 3)
-    split_faces = np.arange(3 * len(faces)).reshape(-1, 3)
-    return positions, uv.reshape(-1, 2), split_faces, faces.reshape(-1)
+    return uv.reshape(-1, 2)
+
+
+def corner_normals(shape: trimesh.Trimesh, flat_axis: int | None = None,
+                   flat_cos: float = 0.99) -> np.ndarray:
+    """(3F, 3) normals per triangle corner: the shape's smooth vertex normals, except on the
+    faces whose normal lies along axis ``flat_axis`` (|component| > ``flat_cos``: caps), which
+    keep their flat face normal."""
+    normals = np.asarray(shape.vertex_normals)[np.asarray(shape.faces)].reshape(-1, 3)
+    if flat_axis is not None:
+        fn = np.repeat(shape.face_normals, 3, axis=0)
+        cap = np.abs(fn[:, flat_axis]) > flat_cos
+        normals[cap] = fn[cap]
+    return normals
+
+
+def split_mesh(shape: trimesh.Trimesh, uv: np.ndarray, normals: np.ndarray) -> trimesh.Trimesh:
+    """``shape`` with its vertices split per triangle (so that uv and normals can differ on
+    each side of an edge): (3F, 2) ``uv`` and (3F, 3) ``normals`` are given per corner."""
+    positions = np.asarray(shape.vertices)[np.asarray(shape.faces)].reshape(-1, 3)
+    faces = np.arange(len(positions)).reshape(-1, 3)
+    return trimesh.Trimesh(vertices=positions, faces=faces, vertex_normals=normals, process=False,
+                           visual=trimesh.visual.TextureVisuals(uv=uv))
 
 
 def make_primitive(kind: str, dims: np.ndarray, tile_m: float = 0.1) -> trimesh.Trimesh:
-    """A primitive with smooth normals (flat on box faces and cylinder caps) and uv coordinates.
+    """A primitive with smooth normals (flat on box faces and cylinder / bottle caps) and uv
+    coordinates.
 
     Returns:
         trimesh.Trimesh in metres, centred at the origin; ``visual`` is TextureVisuals with uv
         (the image is attached by the material, see materials.py); vertex normals set.
     """
     shape = primitive_shape(kind, np.asarray(dims, dtype=np.float64))
-    positions, uv, faces, src = box_uv(np.asarray(shape.vertices), np.asarray(shape.faces), tile_m)
+    uv = box_uv(np.asarray(shape.vertices), np.asarray(shape.faces), tile_m)
     if kind == "box":
         normals = np.repeat(shape.face_normals, 3, axis=0)
-    else:
-        normals = np.asarray(shape.vertex_normals)[src]
-        if kind in ("cylinder", "bottle"):  # flat caps: faces whose normal is along the axis
-            fn = np.repeat(shape.face_normals, 3, axis=0)
-            cap = np.abs(fn[:, 2]) > 0.99
-            normals[cap] = fn[cap]
-    mesh = trimesh.Trimesh(vertices=positions, faces=faces, vertex_normals=normals, process=False,
-                           visual=trimesh.visual.TextureVisuals(uv=uv))
-    return mesh
+    else:  # cylinders and bottles stand along z: flat caps
+        normals = corner_normals(shape, flat_axis=2 if kind in ("cylinder", "bottle") else None)
+    return split_mesh(shape, uv, normals)
