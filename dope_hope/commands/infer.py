@@ -61,10 +61,9 @@ import time
 import warnings
 from pathlib import Path
 
+from dope_hope.assets import DEMO_WEIGHTS  # used when --weights is not given
 from dope_hope.commands.argtypes import fixed_device, finite_float, positive_float, positive_int, working_side
 
-#: Where the shipped demo model lives; used when --weights is not given.
-DEMO_WEIGHTS = Path(__file__).resolve().parent.parent / "assets" / "demo_lite.pt"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 #: Name endings of auxiliary images in dataset folders (not colour frames).
 AUX_SUFFIXES = (".depth.png", ".depth.exr", ".seg.png", ".seg.exr", "_depth.png", "_seg.png",

@@ -8,15 +8,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from dope_hope.assets import DEMO_WEIGHTS, PRETRAINED_WEIGHTS
 from dope_hope.errors import ConfigError, UnknownObjectError
 
 if TYPE_CHECKING:
     from dope_hope.training.trainer import Trainer
 
 
-#: The shipped pretrained lite start (README "Pretraining"): ``--init pretrained``, and the
-#: start of every new run whose architecture is the shipped one's.
-PRETRAINED_WEIGHTS = Path(__file__).resolve().parent.parent / "assets" / "pretrained_lite.pt"
 #: ``--init`` choices besides a checkpoint path.
 INIT_CHOICES = ("auto", "pretrained", "demo", "none")
 
@@ -250,7 +248,6 @@ def resolve_init(choice: str | None, config: dict[str, Any]) -> tuple[Path | Non
     if value == "none":
         return None, "random start (--init none)"
     if value == "demo":
-        from dope_hope.commands.infer import DEMO_WEIGHTS
         if not DEMO_WEIGHTS.is_file():
             raise InputFileError(DEMO_WEIGHTS, "--init demo: this installation has no shipped demo model")
         return DEMO_WEIGHTS, "the shipped demo model (--init demo)"
