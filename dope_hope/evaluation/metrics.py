@@ -225,26 +225,28 @@ def _group_potentials(C: np.ndarray, prior: np.ndarray) -> np.ndarray:
     The indices are split into ``_WARM_START_GROUPS`` interleaved groups ``g`` (every 4th
     point: for farthest-point samples each group is an even sample of the whole cloud) and
     each square sub-problem ``C[g, g]`` is solved exactly. Of its optimal duals roughly the
-    largest ``v <= prior`` (n,) is taken (a few Bellman-Ford passes on the sub-matrix minus
-    ``prior``: unconstrained columns keep the prior's shape), and its row duals ``u`` are
-    extended to all columns by the c-transform ``v_j = min_{i in g} (C_ij - u_i)`` (for a
-    Euclidean cost the optimal duals are a 1-Lipschitz potential, so nearby points get
-    nearby values). The result is the mean of these extensions, each shifted to mean 0: every
-    sub-problem's duals carry their own discretisation error, and the mean is much closer to
-    the full problem's duals than any one of them. Only a warm start: any ``v`` leaves the
-    result exact.
+    largest ``v <= p`` is taken (a few Bellman-Ford passes on the sub-matrix minus ``p``:
+    unconstrained columns keep its shape), and its row duals ``u`` are extended to all
+    columns by the c-transform ``v_j = min_{i in g} (C_ij - u_i)`` (for a Euclidean cost the
+    optimal duals are a 1-Lipschitz potential, so nearby points get nearby values). ``p`` is
+    ``prior`` (n,) for the first group and the previous group's extension for the others
+    (a closer start: shorter sub-problem solves). The result is the mean of the extensions,
+    each shifted to mean 0: every sub-problem's duals carry their own discretisation error,
+    and the mean is much closer to the full problem's duals than any one of them. Only a
+    warm start: any ``v`` leaves the result exact.
     """
     n = len(C)
     total = np.zeros(n)
+    p = prior
     for offset in range(_WARM_START_GROUPS):
         idx = np.arange(offset, n, _WARM_START_GROUPS)
         Cs = C[np.ix_(idx, idx)]
-        Cs -= prior[idx][None, :]  # a column constant: the sub-problem's solutions are unchanged
+        Cs -= p[idx][None, :]  # a column constant: the sub-problem's solutions are unchanged
         _, sub_match = linear_sum_assignment(Cs - Cs.min(axis=1, keepdims=True))
         v_sub = _column_potentials(Cs, sub_match, max_iter=_WARM_START_BF_PASSES)
         u_sub = Cs[np.arange(len(idx)), sub_match] - v_sub[sub_match]
-        v = (C[idx, :] - u_sub[:, None]).min(axis=0)
-        total += v - v.mean()
+        p = (C[idx, :] - u_sub[:, None]).min(axis=0)
+        total += p - p.mean()
     return total / _WARM_START_GROUPS
 
 
