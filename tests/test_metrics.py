@@ -110,10 +110,10 @@ def lattice(spacing=0.01) -> np.ndarray:
 
 @pytest.fixture
 def stages(monkeypatch):
-    """Records which solver stages assignment_distance ran: 'sub' (subsample duals), 'lsa'."""
+    """Records which solver stages assignment_distance ran: 'sub' (group duals), 'lsa'."""
     calls: list[str] = []
-    sub, lsa = metrics._subsample_potentials, metrics.linear_sum_assignment
-    monkeypatch.setattr(metrics, "_subsample_potentials", lambda *a: calls.append("sub") or sub(*a))
+    sub, lsa = metrics._group_potentials, metrics.linear_sum_assignment
+    monkeypatch.setattr(metrics, "_group_potentials", lambda *a: calls.append("sub") or sub(*a))
     monkeypatch.setattr(metrics, "linear_sum_assignment", lambda *a: calls.append("lsa") or lsa(*a))
     return calls
 
@@ -121,8 +121,8 @@ def stages(monkeypatch):
 @pytest.mark.parametrize("deg,shift,expected_stages", [
     (0, 0.02, []),                      # pure translation: the identity meets the centroid bound
     (2, 0.01, ["lsa"]),                 # near: the solver on the linear-potential reduction
-    (30, 0.02, ["sub", "lsa", "lsa"]),  # hard: subsample duals as the warm start
-    (180, 0.3, ["sub", "lsa", "lsa"]),
+    (30, 0.02, ["sub"] + ["lsa"] * 5),  # hard: 4 sub-problems' duals, then the solver
+    (180, 0.3, ["sub"] + ["lsa"] * 5),
 ])
 def test_addh_is_bitwise_the_dense_solvers_value_at_500_points(deg, shift, expected_stages, stages):
     pts = box_points(n=500, seed=1)
@@ -148,6 +148,32 @@ def test_addh_certified_by_a_dual_potential_skips_the_solver(shift, stages):
     expected, c = dense_lsa(a, b)
     assert value == expected
     assert np.array_equal(perm, c)
+
+
+@pytest.mark.parametrize("n", [160, 161, 163, 250, 333])
+def test_addh_group_warm_start_keeps_the_dense_solvers_optimum(n, stages):
+    # a far rotation with groups of unequal size (n not a multiple of 4): the interleaved
+    # sub-problems' averaged duals only seed the solver; the optimum is the dense one's
+    pts = box_points(n=n, seed=n)
+    R_e = Rotation.from_rotvec([2.0, -1.0, 0.5]).as_matrix()
+    b = pts @ R_e.T + np.array([0.02, 0.0, -0.01])
+    value, perm = metrics.assignment_distance(pts, b, return_assignment=True)
+    assert stages[0] == "sub"
+    expected, c = dense_lsa(pts, b)
+    assert value == expected
+    assert np.array_equal(perm, c)
+
+
+def test_addh_group_warm_start_with_ties_has_the_dense_solvers_value(stages):
+    # a symmetric lattice turned by 180 deg: many optimal permutations, and the sub-problems
+    # (every 4th grid point) are degenerate too
+    a = lattice()
+    b = a @ rot("y", 180).T + np.array([0.0, 0.004, 0.0])
+    value, perm = metrics.assignment_distance(a, b, return_assignment=True)
+    assert stages[0] == "sub"
+    assert sorted(perm) == list(range(len(a)))
+    assert cdist(a, b)[np.arange(len(a)), perm].mean() == value
+    assert value == pytest.approx(dense_lsa(a, b)[0], abs=1e-12)
 
 
 def _tie_case(name: str) -> tuple[np.ndarray, np.ndarray]:

@@ -157,18 +157,25 @@ class _Buffers(threading.local):
 _BUFFERS = _Buffers()
 
 
-#: Below this size scipy's solver alone is already fast; the subsample warm start does not pay.
+#: Below this size scipy's solver alone is already fast; the group warm start does not pay.
 _WARM_START_MIN_N = 160
 
 
-#: Size of the sub-problem that provides the subsample warm-start dual potentials.
-_WARM_START_SUBSET = 125
+#: Number of interleaved sub-problems (each of ~n / 4 points) whose duals are averaged into
+#: the group warm-start potential (measured optimum, bench/addh_speed.py: 2 or 3 groups leave
+#: the final solve slower, 8 or 16 smaller ones too).
+_WARM_START_GROUPS = 4
 
 
-#: The subsample potentials are tried only when fewer than this fraction of the rows have
+#: Bellman-Ford passes for each sub-problem's duals (about a third of what convergence takes;
+#: the averaged warm start is as good, measured).
+_WARM_START_BF_PASSES = 8
+
+
+#: The group potentials are tried only when fewer than this fraction of the rows have
 #: distinct minimisers under the linear potential (measured crossover, bench/addh_speed.py);
 #: above it the linear potential alone leaves scipy's solver little to do.
-_WARM_START_MAX_UNIQUE = 0.45
+_WARM_START_MAX_UNIQUE = 0.6
 
 
 def _column_potentials(C: np.ndarray, match: np.ndarray, max_iter: int) -> np.ndarray:
@@ -212,23 +219,35 @@ def _linear_potential(a: np.ndarray, b: np.ndarray, shift: np.ndarray, add: floa
     return b @ (shift * (slope / length))
 
 
-def _subsample_potentials(C: np.ndarray, prior: np.ndarray) -> np.ndarray:
-    """(n,) approximate column duals of ``C`` from an exact solve of a subsample.
+def _group_potentials(C: np.ndarray, prior: np.ndarray) -> np.ndarray:
+    """(n,) approximate column duals of ``C`` (n, n) from exact solves of interleaved sub-problems.
 
-    Of the sub-problem's optimal duals the largest ``v <= prior`` (n,) is taken (the
-    Bellman-Ford runs on the sub-matrix minus ``prior``: unconstrained columns keep the
-    prior's shape); its row duals ``u`` are extended to all columns by the c-transform
-    ``v_j = min_i (C_ij - u_i)`` over the subsample rows (for a Euclidean cost the optimal
-    duals are a 1-Lipschitz potential, so nearby points get nearby values).
+    The indices are split into ``_WARM_START_GROUPS`` interleaved groups ``g`` (every 4th
+    point: for farthest-point samples each group is an even sample of the whole cloud) and
+    each square sub-problem ``C[g, g]`` is solved exactly. Of its optimal duals roughly the
+    largest ``v <= p`` is taken (a few Bellman-Ford passes on the sub-matrix minus ``p``:
+    unconstrained columns keep its shape), and its row duals ``u`` are extended to all
+    columns by the c-transform ``v_j = min_{i in g} (C_ij - u_i)`` (for a Euclidean cost the
+    optimal duals are a 1-Lipschitz potential, so nearby points get nearby values). ``p`` is
+    ``prior`` (n,) for the first group and the previous group's extension for the others
+    (a closer start: shorter sub-problem solves). The result is the mean of the extensions,
+    each shifted to mean 0: every sub-problem's duals carry their own discretisation error,
+    and the mean is much closer to the full problem's duals than any one of them. Only a
+    warm start: any ``v`` leaves the result exact.
     """
     n = len(C)
-    idx = np.arange(0, n, max(1, n // _WARM_START_SUBSET))[:_WARM_START_SUBSET]
-    Cs = C[np.ix_(idx, idx)]
-    Cs -= prior[idx][None, :]  # a column constant: the sub-problem's solutions are unchanged
-    _, sub_match = linear_sum_assignment(Cs - Cs.min(axis=1, keepdims=True))
-    v_sub = _column_potentials(Cs, sub_match, max_iter=len(idx) + 2)
-    u_sub = Cs[np.arange(len(idx)), sub_match] - v_sub[sub_match]
-    return (C[idx, :] - u_sub[:, None]).min(axis=0)
+    total = np.zeros(n)
+    p = prior
+    for offset in range(_WARM_START_GROUPS):
+        idx = np.arange(offset, n, _WARM_START_GROUPS)
+        Cs = C[np.ix_(idx, idx)]
+        Cs -= p[idx][None, :]  # a column constant: the sub-problem's solutions are unchanged
+        _, sub_match = linear_sum_assignment(Cs - Cs.min(axis=1, keepdims=True))
+        v_sub = _column_potentials(Cs, sub_match, max_iter=_WARM_START_BF_PASSES)
+        u_sub = Cs[np.arange(len(idx)), sub_match] - v_sub[sub_match]
+        p = (C[idx, :] - u_sub[:, None]).min(axis=0)
+        total += p - p.mean()
+    return total / _WARM_START_GROUPS
 
 
 def _distinct(idx: np.ndarray) -> int:
@@ -278,8 +297,9 @@ def assignment_distance(a: np.ndarray, b: np.ndarray, upper: float | None = None
     3. Otherwise scipy's ``linear_sum_assignment`` on ``C`` reduced by ``v`` (see
        :func:`_reduce`): the optimal permutation is unchanged, but the closer ``v`` is to
        an optimal dual, the shorter the solver's augmenting paths. On hard problems (n >=
-       160, < 45% distinct minimisers) duals from an exact solve of a 125-point subsample
-       are tried too, and whichever potential gives the higher dual bound is used.
+       160, < 60% distinct minimisers) the mean duals of exact solves of four interleaved
+       quarter-size sub-problems (:func:`_group_potentials`) are tried too, and whichever
+       potential gives the higher dual bound is used.
 
     Exactness: the reduced entries carry rounding errors of ~1e-16 of the largest
     distance, so a certified or reduced-matrix optimum is within that (per point) of the
@@ -328,7 +348,7 @@ def assignment_distance(a: np.ndarray, b: np.ndarray, upper: float | None = None
     if optimal:
         return result(arg)
     if n >= _WARM_START_MIN_N and _distinct(arg) < _WARM_START_MAX_UNIQUE * n:
-        optimal, arg, bound_sub = _reduce(C, _subsample_potentials(C, v), R)
+        optimal, arg, bound_sub = _reduce(C, _group_potentials(C, v), R)
         if optimal:
             return result(arg)
         if bound_sub < bound:
