@@ -237,6 +237,19 @@ def test_addh_of_a_pure_translation_is_the_translation_length():
     assert metrics.addh(I3, t, I3, Z3, pts) == pytest.approx(0.05, abs=1e-12)
 
 
+@pytest.mark.parametrize("n,scale,seed", [(1, 0.05, 0), (7, 1e-4, 1), (500, 0.05, 2), (500, 30.0, 3)])
+def test_addh_of_a_pure_translation_is_bitwise_the_dense_solvers_value(n, scale, seed, stages):
+    # the short-cut computes the identity's distances without the distance matrix: they must
+    # be the very floats cdist gives, or the mean would differ from the dense solver's
+    rng = np.random.default_rng(seed)
+    a = rng.normal(scale=scale, size=(n, 3))
+    b = a + scale * rng.normal(size=3)
+    value, perm = metrics.assignment_distance(a, b, return_assignment=True)
+    assert stages == []
+    assert np.array_equal(perm, np.arange(n))
+    assert value == dense_lsa(a, b)[0]
+
+
 def test_addh_upper_cutoff_returns_a_bound_at_or_above_the_cutoff():
     pts = box_points(n=200)
     R_e, t_e = rot("x", 90), np.array([0.5, 0.0, 0.0])

@@ -185,18 +185,22 @@ def _column_potentials(C: np.ndarray, match: np.ndarray, max_iter: int) -> np.nd
     rounding) and equality on the assignment: shortest-path distances in the residual
     graph, by a dense Bellman-Ford (hand-written: scipy's ``bellman_ford`` has no early
     exit and is an order of magnitude slower here). Of the many optimal duals this gives
-    the largest ``v <= 0``. Stops early; the result only seeds a warm start, so an inexact
-    one costs time, never correctness.
+    the largest ``v <= 0``; constants added to rows of ``C`` leave it unchanged. Stops
+    early; the result only seeds a warm start, so an inexact one costs time, never
+    correctness.
     """
     n = len(C)
     matched = C[np.arange(n), match]
     d = np.zeros(n)
+    d_new = np.empty(n)
+    work = np.empty_like(C)
     for _ in range(max_iter):
         row = d[match] - matched  # distance of row i: reached through its matched column
-        d_new = np.minimum(d, (C + row[:, None]).min(axis=0))
-        if np.all(d - d_new <= 1e-13):
+        np.add(C, row[:, None], out=work)
+        np.minimum(d, work.min(axis=0), out=d_new)
+        if (d - d_new).max() <= 1e-13:
             return d_new
-        d = d_new
+        d, d_new = d_new, d
     return d
 
 
@@ -238,16 +242,27 @@ def _group_potentials(C: np.ndarray, prior: np.ndarray) -> np.ndarray:
     n = len(C)
     total = np.zeros(n)
     p = prior
+    block = _BUFFERS.get(n, 2)
     for offset in range(_WARM_START_GROUPS):
-        idx = np.arange(offset, n, _WARM_START_GROUPS)
-        Cs = C[np.ix_(idx, idx)]
-        Cs -= p[idx][None, :]  # a column constant: the sub-problem's solutions are unchanged
-        _, sub_match = linear_sum_assignment(Cs - Cs.min(axis=1, keepdims=True))
+        g = slice(offset, None, _WARM_START_GROUPS)  # strided views: no copies of C's rows
+        Cs = C[g, g] - p[g][None, :]  # a column constant: the sub-problem's solutions are unchanged
+        low = Cs.min(axis=1)
+        Cs -= low[:, None]  # row constants too; the duals below are taken back to C - p
+        _, sub_match = linear_sum_assignment(Cs - Cs.min(axis=0))  # column minima: a faster solve
         v_sub = _column_potentials(Cs, sub_match, max_iter=_WARM_START_BF_PASSES)
-        u_sub = Cs[np.arange(len(idx)), sub_match] - v_sub[sub_match]
-        p = (C[idx, :] - u_sub[:, None]).min(axis=0)
+        u_sub = Cs[np.arange(len(Cs)), sub_match] + low - v_sub[sub_match]
+        rows = np.subtract(C[g], u_sub[:, None], out=block[:len(Cs)])
+        p = rows.min(axis=0)
         total += p - p.mean()
     return total / _WARM_START_GROUPS
+
+
+def _pair_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n,) ``|a_i - b_i|`` for (n, 3) ``a``, ``b``, with ``cdist``'s arithmetic (the square
+    root of the squared differences summed in coordinate order): bitwise its diagonal."""
+    d = a - b
+    d *= d
+    return np.sqrt(d.sum(axis=1))
 
 
 def _distinct(idx: np.ndarray) -> int:
@@ -255,27 +270,28 @@ def _distinct(idx: np.ndarray) -> int:
     return int(np.count_nonzero(np.bincount(idx, minlength=len(idx))))
 
 
-def _reduce(C: np.ndarray, v: np.ndarray, out: np.ndarray) -> tuple[bool, np.ndarray, float]:
-    """Reduce ``C`` (n, n) by the column potential ``v`` (n,) into ``out``.
+def _reduce(C: np.ndarray, v: np.ndarray, out: np.ndarray
+            ) -> tuple[bool, np.ndarray, np.ndarray | None, float]:
+    """Reduce ``C`` (n, n) by the column potential ``v`` (n,) and the row minima into ``out``.
 
-    ``out = C - v``, minus each row's minimum, minus each column's minimum: >= 0, and every
+    ``out = C - v`` minus each row's minimum; subtracting the returned column minima ``col``
+    (n,) too (``out -= col``) makes it >= 0 with a zero in every row and column. Every
     permutation's total changes by the same constant, the dual bound ``D = sum(row minima)
-    + sum(column minima) + sum(v)`` (a lower bound on every assignment's total cost).
+    + sum(col) + sum(v)`` (a lower bound on every assignment's total cost).
 
     Returns:
         (whether the row-wise minimisers of ``C - v`` form a permutation — then it is an
-        optimal assignment, ``out`` is left as ``C - v`` and ``D`` is ``inf`` —, those (n,)
-        minimisers, ``D``).
+        optimal assignment, ``out`` is left as ``C - v``, ``col`` is None and ``D`` is
+        ``inf`` —, those (n,) minimisers, ``col``, ``D``).
     """
     np.subtract(C, v[None, :], out=out)
     arg = out.argmin(axis=1)
     if _distinct(arg) == len(arg):
-        return True, arg, math.inf
+        return True, arg, None, math.inf
     mins = out[np.arange(len(out)), arg]
     out -= mins[:, None]
     col = out.min(axis=0)
-    out -= col[None, :]
-    return False, arg, float(mins.sum() + col.sum() + v.sum())
+    return False, arg, col, float(mins.sum() + col.sum() + v.sum())
 
 
 def assignment_distance(a: np.ndarray, b: np.ndarray, upper: float | None = None,
@@ -332,30 +348,32 @@ def assignment_distance(a: np.ndarray, b: np.ndarray, upper: float | None = None
     def cut(bound: float) -> float | tuple[float, None]:
         return (bound, None) if return_assignment else bound
 
-    C = _BUFFERS.get(n, 0)
-    cdist(a, b, out=C)
     shift = b.mean(axis=0) - a.mean(axis=0)
     centroid = float(np.linalg.norm(shift))
-    ub = float(C[rows, rows].mean())
+    ub = float(_pair_distances(a, b).mean())  # the identity's cost, = C[rows, rows].mean()
     if ub <= centroid + 1e-12 * max(ub, 1e-12):
-        return result(rows)
+        return (ub, rows) if return_assignment else ub
     if upper is not None and centroid >= upper:
         return cut(centroid)
+    C = _BUFFERS.get(n, 0)
+    cdist(a, b, out=C)
 
     v = _linear_potential(a, b, shift, ub)
     R = _BUFFERS.get(n, 1)
-    optimal, arg, bound = _reduce(C, v, R)
+    optimal, arg, col, bound = _reduce(C, v, R)
     if optimal:
         return result(arg)
     if n >= _WARM_START_MIN_N and _distinct(arg) < _WARM_START_MAX_UNIQUE * n:
-        optimal, arg, bound_sub = _reduce(C, _group_potentials(C, v), R)
+        optimal, arg, col_sub, bound_sub = _reduce(C, _group_potentials(C, v), R)
         if optimal:
             return result(arg)
-        if bound_sub < bound:
-            _reduce(C, v, R)  # the linear potential was the better start after all
-        bound = max(bound, bound_sub)
+        if bound_sub < bound:  # the linear potential was the better start after all
+            _, _, col, _ = _reduce(C, v, R)
+        else:
+            col, bound = col_sub, bound_sub
     if upper is not None and bound >= upper * n:
         return cut(bound / n)
+    R -= col[None, :]
     _, perm = linear_sum_assignment(R)
     return result(perm)
 
