@@ -6,10 +6,12 @@ item size (lite: its 128x128 object-centred crops, ``augment.crop``; DOPE-DR-50 
 with real belief/affinity targets. A warm-up
 step is not timed. Besides wall-clock images/s it prints the process CPU time per image,
 which on a shared machine (other jobs competing for the cores) tracks the uncontended cost
-better than wall time does, above all with one thread. On CUDA (when available) it runs the trainer's CUDA path too: bf16
-autocast + channels_last.
+better than wall time does, above all with one thread. Each model runs as the trainer runs it
+(its config's ``train.amp``: bf16 autocast where the device computes bf16 natively, and
+``train.channels_last``), on the CPU and, when available, on CUDA. ``--precision`` also times
+lite on the CPU in plain float32 NCHW (the baseline) and prints the recipe's ratio to it.
 
-    python bench/train_throughput.py [--batch 2] [--steps-lite 10] [--steps-dr50 3] [--threads 2] [--channels-last]
+    python bench/train_throughput.py [--batch 2] [--steps-lite 10] [--steps-dr50 3] [--threads 2] [--precision]
 """
 from __future__ import annotations
 
@@ -20,11 +22,12 @@ import numpy as np
 import torch
 
 from dope_hope.config import load_config
+from dope_hope.devices import native_bf16
 from dope_hope.maps.targets import make_targets
 from dope_hope.model import build_model
 from dope_hope.training.augment import AugmentParams, crop_size
 from dope_hope.training.loss import optimizer_step
-from dope_hope.training.settings import input_hw
+from dope_hope.training.settings import input_hw, train_settings
 
 
 def item_hw(config: dict) -> tuple[int, int]:
@@ -48,33 +51,36 @@ def batch_for(config: dict, stride: int, batch: int, device: torch.device):
 
 
 def measure(name: str, batch: int, steps: int, warmup: int, device: torch.device,
-            channels_last: bool | None = None) -> tuple[float, float]:
+            recipe: bool = True) -> tuple[float, float]:
     """(images per second, process CPU seconds per image) of training steps for the config
-    ``name``; ``channels_last`` None: the trainer's choice (on CUDA only)."""
+    ``name``: as the trainer runs it (``recipe``: the config's amp where native, its
+    channels_last), or in plain float32 NCHW."""
     config = load_config(name)
+    ts = train_settings(config)
+    amp = recipe and bool(ts["amp"]) and native_bf16(device.type)
+    channels_last = recipe and bool(ts["channels_last"])
     torch.manual_seed(0)
     model = build_model(config).to(device)
     cuda = device.type == "cuda"
     images, belief, affinity = batch_for(config, model.stride, batch, device)
-    if channels_last is None:
-        channels_last = cuda
     if channels_last:
         model = model.to(memory_format=torch.channels_last)
         images = images.contiguous(memory_format=torch.channels_last)
     opt = torch.optim.Adam(model.parameters(), lr=1e-5)
     for _ in range(warmup):
-        optimizer_step(model, opt, images, belief, affinity, amp=cuda)
+        optimizer_step(model, opt, images, belief, affinity, amp=amp)
     if cuda:
         torch.cuda.synchronize()
     t0, c0 = time.perf_counter(), time.process_time()
     for _ in range(steps):
-        optimizer_step(model, opt, images, belief, affinity, amp=cuda)
+        optimizer_step(model, opt, images, belief, affinity, amp=amp)
     if cuda:
         torch.cuda.synchronize()
     dt, cpu = time.perf_counter() - t0, time.process_time() - c0
     ips = steps * batch / dt
     H, W = item_hw(config)
-    print(f"  {name + (' NHWC' if channels_last else ''):<11} {W}x{H}  batch {batch}: {dt / steps * 1000:9.1f} ms/step  {ips:8.2f} images/s  "
+    label = name + (" bf16" if amp else " fp32") + (" NHWC" if channels_last else "")
+    print(f"  {label:<20} {W}x{H}  batch {batch}: {dt / steps * 1000:9.1f} ms/step  {ips:8.2f} images/s  "
           f"(process CPU {cpu / (steps * batch) * 1000:.0f} ms/image)")
     return ips, cpu / (steps * batch)
 
@@ -86,8 +92,8 @@ def main() -> None:
     ap.add_argument("--steps-dr50", type=int, default=3, help="0: lite only")
     ap.add_argument("--warmup", type=int, default=1)
     ap.add_argument("--threads", type=int, default=2, help="torch threads on CPU")
-    ap.add_argument("--channels-last", action="store_true",
-                    help="also time lite with channels_last (NHWC) memory on the CPU, and the ratio")
+    ap.add_argument("--precision", action="store_true",
+                    help="also time lite on the CPU in plain float32 NCHW, and the recipe's ratio to it")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
@@ -96,9 +102,10 @@ def main() -> None:
         print(f"{label}:")
         scale = 1 if device.type == "cpu" else 10
         lite, lite_cpu = measure("lite", args.batch, args.steps_lite * scale, args.warmup, device)
-        if args.channels_last and device.type == "cpu":
-            nhwc, _ = measure("lite", args.batch, args.steps_lite, args.warmup, device, channels_last=True)
-            print(f"  ratio lite NHWC / NCHW: {nhwc / lite:.2f}x images/s (wall)")
+        if args.precision and device.type == "cpu":
+            plain, plain_cpu = measure("lite", args.batch, args.steps_lite, args.warmup, device, recipe=False)
+            print(f"  ratio lite recipe / plain float32 NCHW: {lite / plain:.2f}x images/s (wall), "
+                  f"{plain_cpu / lite_cpu:.2f}x (process CPU time per image)")
         if args.steps_dr50 <= 0:  # lite only (DR-50 on a CPU costs minutes)
             continue
         dr50, dr50_cpu = measure("dope_dr_50", args.batch, args.steps_dr50 * scale, args.warmup, device)

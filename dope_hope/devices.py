@@ -1,7 +1,14 @@
 """Torch device names: checked once, with a one-line error, before a model or data is loaded."""
 from __future__ import annotations
 
+from functools import lru_cache
+from pathlib import Path
+
 from dope_hope.errors import ConfigError
+
+#: /proc/cpuinfo flags of x86 CPUs that compute bfloat16 in hardware (oneDNN's AMX and
+#: AVX512-BF16 kernels); elsewhere bf16 autocast on the CPU is emulated and slower than fp32.
+_CPU_BF16_FLAGS = ("amx_bf16", "avx512_bf16")
 
 
 def check_device(name: str, allow_auto: bool = True) -> str:
@@ -32,3 +39,25 @@ def check_device(name: str, allow_auto: bool = True) -> str:
         if available is None or not available():
             raise ConfigError(f"{text!r}: not available on this machine")
     return text
+
+
+@lru_cache(maxsize=None)
+def cpu_has_native_bf16(cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
+    """Whether ``cpuinfo``'s first ``flags`` line names AMX-BF16 or AVX512-BF16 (False where
+    the file is missing: not Linux)."""
+    try:
+        text = cpuinfo.read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return False
+    flags = next((line.split(":", 1)[1].split() for line in text.splitlines() if line.startswith("flags")), [])
+    return any(flag in flags for flag in _CPU_BF16_FLAGS)
+
+
+def native_bf16(device_type: str) -> bool:
+    """Whether bf16 autocast is a speed-up on this machine's ``device_type`` ("cuda", "cpu"):
+    a CUDA device with bf16 support, or an x86 CPU with AMX-BF16 / AVX512-BF16 (Linux)."""
+    if device_type == "cuda":
+        import torch
+
+        return bool(torch.cuda.is_available() and torch.cuda.is_bf16_supported())
+    return device_type == "cpu" and cpu_has_native_bf16()

@@ -3,6 +3,7 @@ validation metric, bad files, torchrun (2 CPU processes), CLI errors."""
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -128,6 +129,45 @@ def test_training_skips_a_corrupt_frame_and_lowers_the_loss(tmp_path, caplog):
               if json.loads(line)["event"] == "train"]
     assert len(losses) == 30 and np.all(np.isfinite(losses))
     assert np.mean(losses[-10:]) < 0.95 * np.mean(losses[:3])  # it learns (noisy: 2-image batches)
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_amp_trains_in_bfloat16_only_where_the_device_computes_it_natively(frames, tmp_path, monkeypatch,
+                                                                         caplog, native):
+    import dope_hope.training.trainer as trainer_module
+
+    monkeypatch.setattr(trainer_module, "native_bf16", lambda device_type: native)
+    caplog.set_level(logging.INFO, logger="dope_hope")
+    dtypes: list[torch.dtype] = []
+
+    def watch(trainer, step):  # from step 1 on: the dtype the first convolution computes in
+        if step == 1:
+            conv = next(m for m in trainer.model.modules() if isinstance(m, torch.nn.Conv2d))
+            conv.register_forward_hook(lambda module, args, out: dtypes.append(out.dtype))
+
+    ov = _overrides(steps=12, lr=3e-3, warmup_steps=0, amp=True, channels_last=True, val_every=0)
+    out = train(TrainJob([frames], "Ketchup", tmp_path, progress=False, overrides=ov, on_step=watch),
+                load_config("lite"))
+    assert out["status"] == "completed"
+    assert dtypes and set(dtypes) == {torch.bfloat16 if native else torch.float32}
+    said = [r.getMessage() for r in caplog.records if "train.amp" in r.getMessage()]
+    assert said == ([] if native else ["train.amp: float32 (this CPU has no native bfloat16)"])
+    losses = [r["loss"] for r in _rows(tmp_path / "metrics.jsonl", "train")]
+    assert np.all(np.isfinite(losses)) and np.mean(losses[-4:]) < np.mean(losses[:3])
+
+
+def test_native_bf16_reads_the_cpu_flags(tmp_path):
+    from dope_hope.devices import cpu_has_native_bf16
+
+    def flags(text: str) -> Path:
+        path = tmp_path / f"cpuinfo{len(list(tmp_path.iterdir()))}"
+        path.write_text(f"processor\t: 0\nflags\t\t: {text}\n")
+        return path
+
+    assert cpu_has_native_bf16(flags("fpu sse avx2 avx512f avx512_vnni amx_bf16 amx_tile"))
+    assert cpu_has_native_bf16(flags("fpu avx2 avx512f avx512_bf16"))
+    assert not cpu_has_native_bf16(flags("fpu sse avx2 fma avx512f avx512_vnni"))  # emulated bf16: slower
+    assert not cpu_has_native_bf16(tmp_path / "missing")
 
 
 # ----------------------------------------------------------------------------- watching a run

@@ -40,10 +40,10 @@ def optimizer_step(model: nn.Module, optimizer: torch.optim.Optimizer, images: t
                    affinity: torch.Tensor, amp: bool = False, belief_weight: float = 1.0,
                    affinity_weight: float = 1.0, grad_clip: float | None = None,
                    foreground_weight: float = 0.0) -> float:
-    """One training step: forward (bf16 autocast on CUDA when ``amp``), per-stage loss,
-    backward, optional global grad-norm clipping, optimizer step. Returns the loss."""
+    """One training step: forward (bf16 autocast on the images' device when ``amp``), per-stage
+    loss in float32, backward, optional global grad-norm clipping, optimizer step. Returns the loss."""
     model.train()
-    with torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp):
+    with torch.autocast(images.device.type, dtype=torch.bfloat16, enabled=amp):
         outputs = model(images)
     loss = stage_loss(outputs, belief, affinity, belief_weight, affinity_weight, foreground_weight)
     optimizer.zero_grad(set_to_none=True)

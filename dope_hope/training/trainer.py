@@ -37,6 +37,7 @@ import torch.distributed as dist
 from torch import nn
 
 from dope_hope.config import merge
+from dope_hope.devices import native_bf16
 from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.geometry import KEYPOINT_ORDER
 from dope_hope.model.checkpoint import (
@@ -164,8 +165,10 @@ class Trainer:
         # ---- model, optimizer, schedule
         self.model.to(self.device)
         self.cuda = self.device.type == "cuda"
-        self.channels_last = self.cuda and bool(ts["channels_last"])
-        self.amp = self.cuda and bool(ts["amp"])
+        self.channels_last = bool(ts["channels_last"])
+        self.amp = bool(ts["amp"]) and native_bf16(self.device.type)
+        if self.dist.main and bool(ts["amp"]) != self.amp:
+            log.info("train.amp: float32 (this %s has no native bfloat16)", self.device.type.upper())
         if self.channels_last:
             self.model.to(memory_format=torch.channels_last)
         opt_cls = torch.optim.AdamW if ts["optimizer"] == "adamw" else torch.optim.Adam
@@ -354,7 +357,7 @@ class Trainer:
         return x
 
     def _forward(self, model: nn.Module, images: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.amp):
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.amp):
             return model(images)
 
     def train_step(self, batch: dict[str, Any]) -> float:
