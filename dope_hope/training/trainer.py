@@ -46,7 +46,7 @@ from dope_hope.model.checkpoint import (
     save_checkpoint,
 )
 from dope_hope.training.distributed import init_distributed
-from dope_hope.training.loss import optimizer_step, stage_loss
+from dope_hope.training.loss import autocast, optimizer_step, stage_loss
 from dope_hope.training.metrics_log import MetricsLog
 from dope_hope.training.schedule import LrLambda
 from dope_hope.training.settings import (
@@ -357,7 +357,7 @@ class Trainer:
         return x
 
     def _forward(self, model: nn.Module, images: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.amp):
+        with autocast(self.device.type, self.amp):
             return model(images)
 
     def train_step(self, batch: dict[str, Any]) -> float:
