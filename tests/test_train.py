@@ -140,16 +140,20 @@ def test_amp_trains_in_bfloat16_only_where_the_device_computes_it_natively(frame
     caplog.set_level(logging.INFO, logger="dope_hope")
     dtypes: list[torch.dtype] = []
 
+    validation: list[torch.dtype] = []
+
     def watch(trainer, step):  # from step 1 on: the dtype the first convolution computes in
         if step == 1:
             conv = next(m for m in trainer.model.modules() if isinstance(m, torch.nn.Conv2d))
-            conv.register_forward_hook(lambda module, args, out: dtypes.append(out.dtype))
+            conv.register_forward_hook(
+                lambda module, args, out: (dtypes if module.training else validation).append(out.dtype))
 
-    ov = _overrides(steps=12, lr=3e-3, warmup_steps=0, amp=True, channels_last=True, val_every=0)
+    ov = _overrides(steps=12, lr=3e-3, warmup_steps=0, amp=True, channels_last=True, val_every=1)
     out = train(TrainJob([frames], "Ketchup", tmp_path, progress=False, overrides=ov, on_step=watch),
                 load_config("lite"))
     assert out["status"] == "completed"
     assert dtypes and set(dtypes) == {torch.bfloat16 if native else torch.float32}
+    assert validation and set(validation) == {torch.float32}  # best.pt is chosen as inference runs it
     said = [r.getMessage() for r in caplog.records if "train.amp" in r.getMessage()]
     assert said == ([] if native else ["train.amp: float32 (this CPU has no native bfloat16)"])
     losses = [r["loss"] for r in _rows(tmp_path / "metrics.jsonl", "train")]

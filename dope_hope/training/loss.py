@@ -36,20 +36,15 @@ def stage_loss(outputs: list[tuple[torch.Tensor, torch.Tensor]], belief: torch.T
     return total
 
 
-def autocast(device_type: str, amp: bool) -> torch.autocast:
-    """The forward passes' precision context: bf16 autocast on ``device_type`` when ``amp``
-    (the trainer sets it only where the device computes bf16 natively), else a no-op."""
-    return torch.autocast(device_type, dtype=torch.bfloat16, enabled=amp)
-
-
 def optimizer_step(model: nn.Module, optimizer: torch.optim.Optimizer, images: torch.Tensor, belief: torch.Tensor,
                    affinity: torch.Tensor, amp: bool = False, belief_weight: float = 1.0,
                    affinity_weight: float = 1.0, grad_clip: float | None = None,
                    foreground_weight: float = 0.0) -> float:
-    """One training step: forward (bf16 autocast on the images' device when ``amp``), per-stage
+    """One training step: forward (bf16 autocast on the images' device when ``amp``; the trainer
+    sets it only where the device computes bf16 natively), per-stage
     loss in float32, backward, optional global grad-norm clipping, optimizer step. Returns the loss."""
     model.train()
-    with autocast(images.device.type, amp):
+    with torch.autocast(images.device.type, dtype=torch.bfloat16, enabled=amp):
         outputs = model(images)
     loss = stage_loss(outputs, belief, affinity, belief_weight, affinity_weight, foreground_weight)
     optimizer.zero_grad(set_to_none=True)

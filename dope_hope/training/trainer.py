@@ -46,7 +46,7 @@ from dope_hope.model.checkpoint import (
     save_checkpoint,
 )
 from dope_hope.training.distributed import init_distributed
-from dope_hope.training.loss import autocast, optimizer_step, stage_loss
+from dope_hope.training.loss import optimizer_step, stage_loss
 from dope_hope.training.metrics_log import MetricsLog
 from dope_hope.training.schedule import LrLambda
 from dope_hope.training.settings import (
@@ -356,10 +356,6 @@ class Trainer:
             x = x.contiguous(memory_format=torch.channels_last)
         return x
 
-    def _forward(self, model: nn.Module, images: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        with autocast(self.device.type, self.amp):
-            return model(images)
-
     def train_step(self, batch: dict[str, Any]) -> float:
         images = self._to_device(batch["image"], image=True)
         belief, affinity = self._to_device(batch["belief"]), self._to_device(batch["affinity"])
@@ -383,7 +379,7 @@ class Trainer:
         for batch in self._loader(self.val_set, self.val_sampler, bs, drop_last=False):
             self._report_bad(batch["bad_files"])
             images = self._to_device(batch["image"], image=True)
-            outputs = self._forward(self.model, images)
+            outputs = self.model(images)  # float32, as inference runs it (train.amp is for training)
             n = images.shape[0]
             loss = stage_loss(outputs, self._to_device(batch["belief"]), self._to_device(batch["affinity"]),
                               float(self.ts["belief_weight"]), float(self.ts["affinity_weight"]),
@@ -450,7 +446,7 @@ class Trainer:
         self.model.eval()
         items = [self.val_set[(0, i)] for i in range(n)]  # the same frames after every validation
         images = self._to_device(torch.stack([it["image"] for it in items]), image=True)
-        belief, affinity = (o.float().cpu().numpy() for o in self._forward(self.model, images)[-1])
+        belief, affinity = (o.float().cpu().numpy() for o in self.model(images)[-1])
         panel = snapshot_panel(
             [SnapshotItem(denormalize_rgb(it["image"].numpy()), belief[i], affinity[i], it["keypoints"].numpy(),
                           f"step {self.step}  {self.val_set.records[i].image_path.name}")
