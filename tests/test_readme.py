@@ -270,9 +270,10 @@ def test_video_section(tmp_path, monkeypatch):
     mesh = write_demo_object(work / "demo_out" / "mesh")
     from dope_hope.synth.settings import PLAIN_OVERRIDES
 
-    # the shipped demo model never saw clutter, hard negatives or sensor artefacts in training
+    # the demo's own scenes: no clutter, hard negatives or sensor artefacts (configs/demo.yaml), the box
+    # at 0.45-0.6 m: inside the demo model's 0.45-0.9 m (at 320x240 its input sees it as at 640x480)
     still = {**PLAIN_OVERRIDES, "camera": {"focal_jitter": 0.0, "aspect_jitter": 0.0, "principal_jitter_px": 0.0}}
-    with FrameGenerator(mesh, size=(320, 240), config={**still, "target": {"count": [1, 1], "distance_m": [0.3, 0.45],
+    with FrameGenerator(mesh, size=(320, 240), config={**still, "target": {"count": [1, 1], "distance_m": [0.45, 0.6],
                                                                           "truncation_prob": 0.0}},
                         class_name=DEMO_CLASS_NAME, depth_noise=True, seed=11) as gen:
         frames = [gen.render_frame(i) for i in range(8)]

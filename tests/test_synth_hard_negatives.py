@@ -137,8 +137,9 @@ def test_config_errors_name_the_key(override, key):
 
 
 def test_demo_scenes_keep_the_new_randomization_off():
-    """configs/demo.yaml: the shipped demo model's scenes, which it was trained without clutter,
-    hard negatives and sensor artefacts; synth.yaml's defaults have all three on."""
+    """configs/demo.yaml: `dope-hope demo`'s scenes keep clutter, hard negatives and sensor
+    artefacts off (its figures compare with earlier demo models'); synth.yaml's defaults have all
+    three on."""
     from dope_hope.config import merge
     from dope_hope.synth.settings import PLAIN_OVERRIDES
 
