@@ -525,9 +525,11 @@ def test_evaluate_without_ground_truth_prints_no_matplotlib_warning(mesh, predic
 def _synth_process(out: Path, mesh: Path) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "dope_hope.cli", "synth", "--mesh", str(mesh), "--out", str(out), "--count", "400",
-         "--size", "160x120", "--workers", "2", "--no-progress"],
+         "--size", "32x32", "--workers", "2", "--no-progress"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
-        env=dict(os.environ, PYTHONPATH=str(REPO)))
+        env=dict(os.environ, PYTHONPATH=str(REPO)),
+        # as from a shell: Ctrl-C not ignored (a child inherits SIG_IGN, and Python keeps it)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 @pytest.mark.parametrize("how", ["SIGTERM to the main process", "Ctrl-C to the process group"])
