@@ -138,9 +138,8 @@ def test_amp_trains_in_bfloat16_only_where_the_device_computes_it_natively(frame
 
     monkeypatch.setattr(trainer_module, "native_bf16", lambda device_type: native)
     caplog.set_level(logging.INFO, logger="dope_hope")
-    dtypes: list[torch.dtype] = []
-
-    validation: list[torch.dtype] = []
+    dtypes: list[torch.dtype] = []      # training forward passes
+    validation: list[torch.dtype] = []  # validation and snapshot forward passes
 
     def watch(trainer, step):  # from step 1 on: the dtype the first convolution computes in
         if step == 1:

@@ -41,8 +41,8 @@ def optimizer_step(model: nn.Module, optimizer: torch.optim.Optimizer, images: t
                    affinity_weight: float = 1.0, grad_clip: float | None = None,
                    foreground_weight: float = 0.0) -> float:
     """One training step: forward (bf16 autocast on the images' device when ``amp``; the trainer
-    sets it only where the device computes bf16 natively), per-stage
-    loss in float32, backward, optional global grad-norm clipping, optimizer step. Returns the loss."""
+    sets it only where the device computes bf16 natively), per-stage loss in float32, backward,
+    optional global grad-norm clipping, optimizer step. Returns the loss."""
     model.train()
     with torch.autocast(images.device.type, dtype=torch.bfloat16, enabled=amp):
         outputs = model(images)
