@@ -51,6 +51,7 @@ import sys
 import time
 from pathlib import Path
 
+from dope_hope.config import differing_keys
 from dope_hope.synth.settings import PLAIN_OVERRIDES
 
 REPO = Path(__file__).resolve().parent.parent
@@ -176,7 +177,7 @@ def check_settings(out: Path, settings: dict) -> None:
     if path.is_file():
         old = json.loads(path.read_text())
         if old != settings:
-            diff = sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k))
+            diff = differing_keys(old, settings)
             raise SystemExit(f"{out} holds a run with other settings ({', '.join(diff)}); "
                              "use another --out or delete it")
         return

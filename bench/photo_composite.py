@@ -20,10 +20,10 @@ same photographs WITHOUT the box, how many frames hold a detection and the detec
 per 50 frames. -LS moves detections, it never adds or drops one, so the empty-photo figures
 hold for both.
 
-    python bench/photo_composite.py --photos /path/to/photos [--weights W.pt] [--frames 30]
+    python bench/photo_composite.py --photos PHOTO_OR_FOLDER [...] [--weights W.pt] [--frames 30]
         [--empty 50] [--sizes 640x480 1920x1080] [--seed 0] [--sensor] [--preview composites.png]
 
-The photo folder is read in place (photos under a licence stay out of the repository).
+The photographs are read in place (photos under a licence stay out of the repository).
 """
 from __future__ import annotations
 
@@ -177,7 +177,8 @@ def write_preview(path: Path, preview: list) -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--photos", type=Path, required=True, help="folder of photographs (read in place)")
+    ap.add_argument("--photos", type=Path, nargs="+", required=True,
+                    help="photographs: folders and/or image files (read in place)")
     ap.add_argument("--weights", type=Path, default=DEMO_WEIGHTS, help="demo-box model (default: the shipped one)")
     ap.add_argument("--frames", type=int, default=30, help="composites per size (default 30)")
     ap.add_argument("--empty", type=int, default=50, help="photos without the box per size (default 50)")
@@ -195,7 +196,7 @@ def main() -> int:
     args.min_scores = sorted({0.0, float(default_min)})
     predictor = DopePredictor(args.weights, threads=args.threads, mesh=mesh, min_score=0.0)
     photos = BackgroundSource(composite_config()["background"], args.photos).files
-    print(f"model {args.weights}; photos {args.photos}: {len(photos)} ({', '.join(p.name for p in photos)}); "
+    print(f"model {args.weights}; photos {' '.join(map(str, args.photos))}: {len(photos)} ({', '.join(p.name for p in photos)}); "
           f"{args.frames} composites + {args.empty} empty crops per size, seed {args.seed}; "
           f"min scores {', '.join(f'{m:g}' for m in args.min_scores)} (default {default_min:g}); "
           f"sensor artefacts {'on' if args.sensor else 'off'}", flush=True)

@@ -79,6 +79,20 @@ def unknown_keys(config: dict[str, Any], defaults: dict[str, Any], prefix: str =
     return out
 
 
+def differing_keys(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:
+    """Sorted dotted keys whose values differ between ``a`` and ``b``, sections compared
+    recursively (a key present in only one of them differs)."""
+    out = []
+    for key in sorted(set(a) | set(b), key=str):
+        name = f"{prefix}{key}"
+        left, right = a.get(key), b.get(key)
+        if isinstance(left, dict) and isinstance(right, dict):
+            out += differing_keys(left, right, name + ".")
+        elif key not in a or key not in b or left != right:
+            out.append(name)
+    return out
+
+
 def check_known_keys(config: dict[str, Any], defaults: dict[str, Any], what: str) -> None:
     """ConfigError naming the keys of ``config`` that ``defaults`` lacks (typos: ``target.cuont``)."""
     unknown = unknown_keys(config, defaults)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ from dope_hope.cli import main
 from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.geometry import cuboid_keypoints, project_points
 from dope_hope.io.dope_json import list_dope_frames, read_dope_json
-from dope_hope.io.images import read_depth_m, read_image_raw, read_rgb
+from dope_hope.io.images import read_depth_m, read_image_raw, read_rgb, write_rgb
 from dope_hope.io.meshes import load_mesh, mesh_cuboid
 from dope_hope.synth.assets import (
     guess_class_name,
@@ -205,6 +206,20 @@ def test_other_settings_in_same_folder_are_refused(dataset: Path, simple_obj: Pa
         generate_dataset(dataset, simple_obj, 10, seed=6, size=SIZE, config=CFG, progress=False)
 
 
+def test_folder_made_before_a_setting_existed_names_that_setting(dataset: Path, simple_obj: Path,
+                                                                 tmp_path: Path):
+    out = tmp_path / "old"
+    shutil.copytree(dataset, out)
+    info_path = out / "_synth_info.json"
+    info = json.loads(info_path.read_text())
+    del info["config"]["background"]["clutter_prob"]  # as an earlier dope-hope wrote it
+    info_path.write_text(json.dumps(info))
+    with pytest.raises(ConfigError, match=r"other settings \(config\.background\.clutter_prob: absent "
+                                          r"\(made before this setting existed\) -> 0\.\d+\)"):
+        generate_dataset(out, simple_obj, 12, seed=5, size=SIZE, config=CFG, progress=False)
+    assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in dataset.iterdir())
+
+
 def test_two_workers_and_shards_give_the_same_frames(dataset: Path, simple_obj: Path, tmp_path: Path):
     out = tmp_path / "w"
     summary = generate_dataset(out, simple_obj, 4, seed=5, size=SIZE, config=CFG, workers=2,
@@ -330,6 +345,17 @@ def test_background_source_crops_photos(shared_data: Path):
         BackgroundSource(cfg, shared_data / "hope_ketchup" / "missing")
 
 
+def test_background_photos_from_folders_and_files(shared_data: Path, tmp_path: Path):
+    cfg = load_synth_config()["background"]
+    folder = sorted(BackgroundSource(cfg, shared_data / "backgrounds").files)
+    extra = tmp_path / "garage.png"
+    extra.write_bytes(folder[0].read_bytes())
+    both = BackgroundSource(cfg, [shared_data / "backgrounds", extra]).files
+    assert both == folder + [extra]  # folders' files in sorted order, then the file, as given
+    with pytest.raises(InputFileError, match="not an image"):
+        BackgroundSource(cfg, [extra, shared_data / "hope_ketchup" / "textured.obj"])
+
+
 def test_reference_camera_scales_with_size():
     cam = load_synth_config()["camera"]
     K = reference_intrinsics((640, 480), cam)
@@ -370,6 +396,18 @@ def test_cli_writes_frames_and_preview(simple_obj: Path, tmp_path: Path, capsys)
     doc = json.loads((out / "000000.json").read_text())
     assert doc["synth"]["depth_noise"] is True and doc["synth"]["seed"] == 0
     assert "2 frames written" in capsys.readouterr().out
+
+
+def test_cli_backgrounds_from_folders_and_files(simple_obj: Path, shared_data: Path, tmp_path: Path):
+    photo = tmp_path / "lab.png"
+    write_rgb(photo, np.full((120, 160, 3), 200, np.uint8))
+    common = ["synth", "--mesh", str(simple_obj), "--count", "1", "--size", "32x32", "--no-progress"]
+    assert main(common + ["--out", str(tmp_path / "one"), "--backgrounds", str(shared_data / "backgrounds")]) == 0
+    assert main(common + ["--out", str(tmp_path / "two"), "--backgrounds", str(shared_data / "backgrounds"),
+                          str(photo)]) == 0
+    info = {name: json.loads((tmp_path / name / "_synth_info.json").read_text()) for name in ("one", "two")}
+    assert info["one"]["backgrounds"] == "backgrounds"  # as a one-folder dataset always recorded it
+    assert info["two"]["backgrounds"] == ["backgrounds", "lab.png"]
 
 
 def test_cli_reports_bad_input_in_one_line(tmp_path: Path, capsys):

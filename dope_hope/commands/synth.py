@@ -46,8 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--shard", metavar="i/n", help="only frames with index %% n == i (several machines)")
     parser.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
     parser.add_argument("--size", default="640x480", metavar="WxH", help="image size (default 640x480)")
-    parser.add_argument("--backgrounds", type=Path, metavar="DIR",
-                        help="background photos (random crops); default: procedural backgrounds")
+    parser.add_argument("--backgrounds", type=Path, nargs="+", metavar="PATH",
+                        help="background photos (random crops): folders (searched recursively) "
+                             "and/or image files; default: procedural backgrounds")
     parser.add_argument("--distractors", type=Path, metavar="DIR",
                         help="extra distractor meshes (.obj/.ply, e.g. the other HOPE objects; copies "
                              "of the target are excluded); default: procedural primitives only")

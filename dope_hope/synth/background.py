@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from collections import OrderedDict
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -16,14 +17,23 @@ from dope_hope.synth.clutter import clutter_image
 from dope_hope.synth.textures import procedural_image
 
 
-def list_images(folder: str | os.PathLike) -> list[Path]:
-    """Image files under ``folder`` (recursive), sorted so that indices are reproducible."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise InputFileError(folder, "background folder not found")
-    files = image_files(folder, recursive=True)
-    if not files:
-        raise InputFileError(folder, f"no images ({', '.join(IMAGE_SUFFIXES)}) in the background folder")
+def list_images(photos: str | os.PathLike | Sequence[str | os.PathLike]) -> list[Path]:
+    """Image files of ``photos``: one path or several, each a folder (searched recursively,
+    sorted so that indices are reproducible) or an image file, in the order given."""
+    paths = [photos] if isinstance(photos, (str, os.PathLike)) else list(photos)
+    files: list[Path] = []
+    for path in map(Path, paths):
+        if path.is_file():
+            if path.suffix.lower() not in IMAGE_SUFFIXES:
+                raise InputFileError(path, f"not an image ({', '.join(IMAGE_SUFFIXES)})")
+            files.append(path)
+            continue
+        if not path.is_dir():
+            raise InputFileError(path, "background folder not found")
+        found = image_files(path, recursive=True)
+        if not found:
+            raise InputFileError(path, f"no images ({', '.join(IMAGE_SUFFIXES)}) in the background folder")
+        files += found
     return files
 
 
@@ -64,12 +74,14 @@ class BackgroundSource:
 
     Args:
         cfg: the ``background`` section of the synth config.
-        folder: photographs to crop from, or None for procedural backgrounds only.
+        photos: photographs to crop from (a folder, an image file, or several of either:
+            :func:`list_images`), or None for procedural backgrounds only.
     """
 
-    def __init__(self, cfg: dict[str, Any], folder: str | os.PathLike | None = None):
+    def __init__(self, cfg: dict[str, Any],
+                 photos: str | os.PathLike | Sequence[str | os.PathLike] | None = None):
         self.cfg = cfg
-        self.files = list_images(folder) if folder is not None else []
+        self.files = list_images(photos) if photos is not None else []
         self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
 
     def _load(self, i: int) -> np.ndarray:

@@ -10,7 +10,7 @@ import multiprocessing as mp
 import os
 import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -106,7 +106,8 @@ class FrameGenerator:
         config: synth config name/path/overrides (see settings.load_synth_config).
         class_name: annotation class (default: catalog name guessed from the path, else stem).
         units: mesh file units override ("m", "cm", "mm").
-        backgrounds: folder of background photos (default: procedural backgrounds).
+        backgrounds: background photos, a folder or image file or several of either
+            (default: procedural backgrounds).
         distractors: folder of distractor meshes (default: procedural primitives only).
         depth_noise: apply RealSense-like noise to the depth that is returned as ``depth``.
         seed: dataset seed (frame i uses SeedSequence([seed, i])).
@@ -116,7 +117,8 @@ class FrameGenerator:
 
     def __init__(self, mesh_path: str | os.PathLike | None, size: tuple[int, int] | str = (640, 480),
                  config: str | os.PathLike | dict | None = None, class_name: str | None = None,
-                 units: str | None = None, backgrounds: str | os.PathLike | None = None,
+                 units: str | None = None,
+                 backgrounds: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
                  distractors: str | os.PathLike | None = None, depth_noise: bool = False,
                  seed: int = 0, procedural: bool = False):
         self.size = parse_size(size)
@@ -301,11 +303,25 @@ class GenerateSummary:
         return self.written / self.seconds if self.seconds > 0 else 0.0
 
 
+def photo_paths(photos: str | os.PathLike | Sequence[str | os.PathLike] | None) -> str | list[str] | None:
+    """``backgrounds`` as plain strings for the worker processes and the dataset's settings: one
+    path stays a string (the settings file of a one-folder dataset is the same as before
+    several were allowed), several become a list."""
+    if photos is None:
+        return None
+    if isinstance(photos, (str, os.PathLike)):
+        return str(photos)
+    paths = [str(p) for p in photos]
+    return paths[0] if len(paths) == 1 else paths
+
+
 def dataset_info(gen_kwargs: dict[str, Any], cfg: dict[str, Any], class_name: str,
                  cuboid_size: np.ndarray | None, cuboid_center: np.ndarray | None) -> dict[str, Any]:
     """Settings that define a dataset's frames (must match when resuming or adding shards);
     procedural objects have no dataset-wide cuboid (None: each frame's JSON records its own)."""
     def name(p):
+        if isinstance(p, list):
+            return [Path(q).name for q in p]
         return None if p is None else Path(p).name
 
     return {"generator": GENERATOR_NAME, "version": __version__, "class": class_name,
@@ -324,7 +340,7 @@ def generate_dataset(out_dir: str | os.PathLike, mesh_path: str | os.PathLike | 
                      seed: int = 0, size: tuple[int, int] | str = (640, 480),
                      config: str | os.PathLike | dict | None = None, workers: int = 1,
                      shard: tuple[int, int] | str | None = None,
-                     backgrounds: str | os.PathLike | None = None,
+                     backgrounds: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
                      distractors: str | os.PathLike | None = None, depth_noise: bool = False,
                      preview: bool = False, class_name: str | None = None, units: str | None = None,
                      progress: bool = True, indices: list[int] | None = None,
@@ -355,7 +371,7 @@ def generate_dataset(out_dir: str | os.PathLike, mesh_path: str | os.PathLike | 
     out.mkdir(parents=True, exist_ok=True)
     gen_kwargs = dict(mesh_path=None if mesh_path is None else str(mesh_path), size=parse_size(size), config=config,
                       class_name=class_name, units=units,
-                      backgrounds=None if backgrounds is None else str(backgrounds),
+                      backgrounds=photo_paths(backgrounds),
                       distractors=None if distractors is None else str(distractors),
                       depth_noise=depth_noise, seed=int(seed), procedural=bool(procedural))
     # Validate inputs in this process (clear errors before any worker starts).

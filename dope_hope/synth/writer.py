@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from dope_hope.annotation import FrameAnnotation
+from dope_hope.config import differing_keys
 from dope_hope.errors import ConfigError
 from dope_hope.io import atomic
 from dope_hope.io.atomic import atomic_write_text
@@ -71,6 +72,25 @@ def write_frame(out_dir: str | os.PathLike, index: int, rgb: np.ndarray, depth_m
     return paths["json"]
 
 
+def settings_difference(folder: dict[str, Any], run: dict[str, Any], shown: int = 3) -> str:
+    """The first ``shown`` settings that differ between a folder's ``_synth_info.json`` and this
+    run, as ``key: folder value -> this run's``; a key the folder lacks was added to dope-hope
+    after the folder was made."""
+    keys = differing_keys(folder, run)
+
+    def value(settings: dict[str, Any], key: str) -> str:
+        node: Any = settings
+        for part in key.split("."):
+            if not isinstance(node, dict) or part not in node:
+                return "absent (made before this setting existed)" if settings is folder else "absent"
+            node = node[part]
+        return json.dumps(node)
+
+    parts = [f"{key}: {value(folder, key)} -> {value(run, key)}" for key in keys[:shown]]
+    more = f"; {len(keys) - shown} more" if len(keys) > shown else ""
+    return "; ".join(parts) + more
+
+
 def check_or_write_info(out_dir: str | os.PathLike, info: dict[str, Any]) -> None:
     """Record the dataset settings; refuse to mix frames made with different settings.
 
@@ -85,9 +105,9 @@ def check_or_write_info(out_dir: str | os.PathLike, info: dict[str, Any]) -> Non
         except (OSError, json.JSONDecodeError):
             old = None
         if old is not None and old != json.loads(text):
-            diff = sorted(k for k in set(old) | set(info) if old.get(k) != json.loads(text).get(k))
             raise ConfigError(f"{out_dir}: holds frames generated with other settings "
-                              f"(different {', '.join(diff)}); use another --out or the same options")
+                              f"({settings_difference(old, json.loads(text))}); use another --out or "
+                              "the same options")
         if old is not None:
             return
     atomic_write_text(path, text)
