@@ -117,6 +117,32 @@ def test_time_budget_stops_with_validation_and_checkpoint(frames, tmp_path):
     assert json.loads((tmp_path / "summary.json").read_text())["status"] == "time_limit"
 
 
+def test_time_budget_plans_with_the_loaders_steady_speed(tmp_path, monkeypatch, caplog):
+    """The batches the loader workers fetched while the run started come for free; a plan that
+    counted them would overrun the budget of a run whose loading is the bottleneck."""
+    import re
+    import time
+
+    from dope_hope.training.dataset import DopeDataset
+
+    write_frames(tmp_path / "d", 44, seed=3)  # 40 training frames: 20 steps per epoch
+    load = DopeDataset.__getitem__
+
+    def slow_load(self, key):
+        time.sleep(0.03)
+        return load(self, key)
+
+    monkeypatch.setattr(DopeDataset, "__getitem__", slow_load)  # forked workers inherit it
+    caplog.set_level(logging.INFO, logger="dope_hope")
+    ov = _overrides(epochs=1000, time_limit_min=3 / 60, workers=2, horizon_estimate_after=6)
+    train(TrainJob([tmp_path / "d"], "Ketchup", tmp_path / "o", progress=False, overrides=ov), load_config("lite"))
+    plan = next(r.getMessage() for r in caplog.records if "the run ends at step" in r.getMessage())
+    per_step = float(re.search(r"\(([0-9.]+) s per step", plan).group(1))
+    # Two workers each load a 2-frame batch in >= 0.06 s: no step comes faster than 0.03 s once
+    # the batches fetched ahead are used up (a slower machine only raises the figure).
+    assert per_step >= 0.9 * 0.03, plan
+
+
 def test_training_skips_a_corrupt_frame_and_lowers_the_loss(tmp_path, caplog):
     write_frames(tmp_path / "d", 9, seed=2)
     (tmp_path / "d" / "000004.json").write_text("{ not json")

@@ -12,8 +12,8 @@ full config (sections ``model``, ``input``, ``targets``, ``train``, ``augment``;
   item of (seed, epoch, index); a checkpoint records model, optimizer, scheduler, step, epoch,
   the batch position inside the epoch and the python/numpy/torch RNG states, so an interrupted
   CPU run resumed from its checkpoint ends with the same weights as an uninterrupted one.
-* Time limit: the budget belongs to the run. After ``horizon_estimate_after`` steps (or the
-  first epoch, if shorter) the measured speed turns the budget left into the step the run ends
+* Time limit: the budget belongs to the run. After the batches the loader fetched ahead and
+  ``horizon_estimate_after`` more steps (or the first epoch, if shorter) the measured speed turns the budget left into the step the run ends
   at (``planned_steps``; the cosine spans it unless steps were given). The plan and the time
   used are saved in every checkpoint, so a resumed run ends at the same step with the same
   weights; before the plan the run stops when the time (of every process so far) runs out.
@@ -60,6 +60,10 @@ from dope_hope.training.settings import (
 from dope_hope.training.validation import validation_hits
 
 log = logging.getLogger(__name__)
+
+#: Batches each DataLoader worker fetches ahead (PyTorch's default, passed explicitly because the
+#: time-budget plan starts its clock once those are used up).
+LOADER_PREFETCH = 2
 
 
 # =============================================================================== trainer
@@ -305,12 +309,18 @@ class Trainer:
         if self.time_limit_s is None or self.planned_steps is not None:
             return
         n = self._steps_this_run
-        if n == 1 and not epoch_end:
-            self._plan_t1, self._plan_val1 = time.monotonic(), self._val_time_run  # after start-up
+        # The clock starts after start-up (step 1) and again once the batches the loader fetched
+        # ahead while the run started are used up: they come for free, and counting them makes a
+        # loader-bound run look faster than it is (it would overrun its budget).
+        steady = 1 + (int(self.ts["workers"]) * LOADER_PREFETCH)
+        if n in (1, steady) and not epoch_end:
+            self._plan_t1, self._plan_val1, self._plan_n1 = time.monotonic(), self._val_time_run, n
             return
-        if self._plan_t1 is None or n < 2 or (n < int(self.ts["horizon_estimate_after"]) and not epoch_end):
+        if (self._plan_t1 is None or n <= self._plan_n1
+                or (n < steady + int(self.ts["horizon_estimate_after"]) - 1 and not epoch_end)):
             return
-        per_step = max(1e-9, (time.monotonic() - self._plan_t1 - (self._val_time_run - self._plan_val1)) / (n - 1))
+        per_step = max(1e-9, (time.monotonic() - self._plan_t1 - (self._val_time_run - self._plan_val1))
+                       / (n - self._plan_n1))
         val_batches = math.ceil(len(self.val_set) / max(1, int(self.ts["val_batch_size"] or self.batch_size)))
         # No validation measured yet: a batch costs about a training step per unit of image area
         # (forward + decoding of whole frames vs forward + backward of the training crops).
@@ -341,6 +351,7 @@ class Trainer:
         return torch.utils.data.DataLoader(
             dataset, batch_size=batch_size, sampler=sampler, num_workers=workers, collate_fn=collate,
             drop_last=drop_last, pin_memory=self.cuda, persistent_workers=False,
+            prefetch_factor=LOADER_PREFETCH if workers > 0 else None,
             multiprocessing_context="fork" if workers > 0 and os.name == "posix" else None)
 
     def _report_bad(self, files: list[str]) -> None:
@@ -472,6 +483,7 @@ class Trainer:
         self._val_time_run = 0.0
         self._plan_t1: float | None = None
         self._plan_val1 = 0.0
+        self._plan_n1 = 1
         output_dir(self.out)
         if self.dist.main:  # a process killed while writing leaves .last.<random>.tmp.pt
             remove_stale_temporaries(self.out, {"last", "best", "summary", "metrics"})
