@@ -13,7 +13,7 @@ default options but min score 0, without and with the depth line search (-LS), a
 its detections to the box one-to-one by ADD-H (dope_hope.evaluation.matching: greedy in
 descending score, error strictly below the threshold).
 
-Per size and min score (0, and the default of configs/infer.yaml, 0.5) it prints: the recall
+Per size and min score (0, the default of configs/infer.yaml, 0.5, and any --min-scores) it prints: the recall
 at 2 cm ADD-H (frames whose box is matched), false detections per frame (detections left
 unmatched at 2 cm, and at 10 cm: those nowhere near the box), and, on --empty crops of the
 same photographs WITHOUT the box, how many frames hold a detection and the detections, both
@@ -21,7 +21,8 @@ per 50 frames. -LS moves detections, it never adds or drops one, so the empty-ph
 hold for both.
 
     python bench/photo_composite.py --photos PHOTO_OR_FOLDER [...] [--weights W.pt] [--frames 30]
-        [--empty 50] [--sizes 640x480 1920x1080] [--seed 0] [--sensor] [--preview composites.png]
+        [--empty 50] [--sizes 640x480 1920x1080] [--seed 0] [--sensor] [--min-scores 0.6 0.7]
+        [--preview composites.png]
 
 The photographs are read in place (photos under a licence stay out of the repository).
 """
@@ -188,12 +189,14 @@ def main() -> int:
     ap.add_argument("--sensor", action="store_true",
                     help="apply the synth config's sensor artefacts (optics, shot noise, JPEG) to the "
                          "composites and empty photos too")
+    ap.add_argument("--min-scores", type=float, nargs="+", default=[], metavar="S",
+                    help="more min scores to report, besides 0 and the default")
     ap.add_argument("--preview", type=Path, help="write a montage of the first composites here")
     args = ap.parse_args()
 
     mesh = demo_object_mesh()
     default_min = InferenceOptions.from_mapping({}).min_score
-    args.min_scores = sorted({0.0, float(default_min)})
+    args.min_scores = sorted({0.0, float(default_min), *args.min_scores})
     predictor = DopePredictor(args.weights, threads=args.threads, mesh=mesh, min_score=0.0)
     photos = BackgroundSource(composite_config()["background"], args.photos).files
     print(f"model {args.weights}; photos {' '.join(map(str, args.photos))}: {len(photos)} ({', '.join(p.name for p in photos)}); "
