@@ -78,15 +78,16 @@ def settings_difference(folder: dict[str, Any], run: dict[str, Any], shown: int 
     after the folder was made."""
     keys = differing_keys(folder, run)
 
-    def value(settings: dict[str, Any], key: str) -> str:
+    def value(settings: dict[str, Any], key: str, missing: str) -> str:
         node: Any = settings
         for part in key.split("."):
             if not isinstance(node, dict) or part not in node:
-                return "absent (made before this setting existed)" if settings is folder else "absent"
+                return missing
             node = node[part]
         return json.dumps(node)
 
-    parts = [f"{key}: {value(folder, key)} -> {value(run, key)}" for key in keys[:shown]]
+    parts = [f"{key}: {value(folder, key, 'absent (made before this setting existed)')} -> "
+             f"{value(run, key, 'absent')}" for key in keys[:shown]]
     more = f"; {len(keys) - shown} more" if len(keys) > shown else ""
     return "; ".join(parts) + more
 
@@ -95,7 +96,8 @@ def check_or_write_info(out_dir: str | os.PathLike, info: dict[str, Any]) -> Non
     """Record the dataset settings; refuse to mix frames made with different settings.
 
     The first run writes ``_synth_info.json``; later runs (resume, more frames, other shards)
-    must have equal settings, else ConfigError names the first differing key.
+    must have equal settings, else ConfigError names the differing keys with both values
+    (:func:`settings_difference`).
     """
     path = Path(out_dir) / INFO_NAME
     text = json.dumps(info, indent=1, sort_keys=True) + "\n"
@@ -104,9 +106,10 @@ def check_or_write_info(out_dir: str | os.PathLike, info: dict[str, Any]) -> Non
             old = json.loads(path.read_text(encoding="utf-8"))
         except (OSError, json.JSONDecodeError):
             old = None
-        if old is not None and old != json.loads(text):
+        current = json.loads(text)  # as written: tuples and paths in their JSON form
+        if old is not None and old != current:
             raise ConfigError(f"{out_dir}: holds frames generated with other settings "
-                              f"({settings_difference(old, json.loads(text))}); use another --out or "
+                              f"({settings_difference(old, current)}); use another --out or "
                               "the same options")
         if old is not None:
             return

@@ -13,10 +13,11 @@ full config (sections ``model``, ``input``, ``targets``, ``train``, ``augment``;
   the batch position inside the epoch and the python/numpy/torch RNG states, so an interrupted
   CPU run resumed from its checkpoint ends with the same weights as an uninterrupted one.
 * Time limit: the budget belongs to the run. After the batches the loader fetched ahead and
-  ``horizon_estimate_after`` more steps (or the first epoch, if shorter) the measured speed turns the budget left into the step the run ends
-  at (``planned_steps``; the cosine spans it unless steps were given). The plan and the time
-  used are saved in every checkpoint, so a resumed run ends at the same step with the same
-  weights; before the plan the run stops when the time (of every process so far) runs out.
+  ``horizon_estimate_after`` more steps (or the first epoch, if shorter) the measured speed
+  turns the budget left into the step the run ends at (``planned_steps``; the cosine spans it
+  unless steps were given). The plan and the time used are saved in every checkpoint, so a
+  resumed run ends at the same step with the same weights; before the plan the run stops when
+  the time (of every process so far) runs out.
 * Ctrl-C / SIGTERM: finish the current step, write ``last.pt``, return ``interrupted``.
 """
 from __future__ import annotations
