@@ -15,6 +15,7 @@ and for candidate thresholds how many of each survive.
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,7 @@ import numpy as np
 from dope_hope.commands.demo import DEMO_CONFIG, IMAGE_SIZE
 from dope_hope.commands.infer import DEMO_WEIGHTS
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
-from dope_hope.inference.backends import open_backend
+from dope_hope.inference.backends import model_min_score, open_backend
 from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.evaluation.matching import TABLE_THRESHOLDS_M, match_frame
@@ -32,28 +33,29 @@ from dope_hope.evaluation.models import load_models
 TRUE_CM = 10.0
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--weights", type=Path, default=DEMO_WEIGHTS)
-    ap.add_argument("--seeds", nargs="+", default=["3000:30"], metavar="SEED:SCENES")
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--mesh-dir", type=Path, default=Path("runs/demo_mesh"))
-    ap.add_argument("--thresholds", type=float, nargs="+",
-                    default=[0.0, 0.1, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55,
-                             InferenceOptions.from_mapping().min_score])
-    args = ap.parse_args()
+@dataclass
+class DemoSceneScores:
+    """Pose scores of a model's detections on demo scenes, sorted ascending."""
 
-    mesh = demo_object_mesh()
-    mesh_path = write_demo_object(args.mesh_dir)
-    # The network backend before any rendering: torch imported after the GL context crashes here.
-    pred = DopePredictor(open_backend(args.weights, "torch", threads=args.threads), mesh=mesh, min_score=0.0)
+    true: np.ndarray    # (T,) detections of the box within TRUE_CM ADD-H with -LS
+    false: np.ndarray   # (F,) every other detection
+    scenes: int
+    boxes: int
+    within_2cm: int     # true detections within the 2 cm table threshold
+
+
+def demo_scene_scores(pred: DopePredictor, seeds: list[str], mesh_dir: Path,
+                      verbose: bool = True) -> DemoSceneScores:
+    """Run ``pred`` (min score 0, the demo mesh) with -LS on the demo scenes of ``seeds``
+    ("SEED:SCENES") and label each detection true or false (module docstring)."""
     from dope_hope.synth import FrameGenerator
 
+    mesh_path = write_demo_object(mesh_dir)
     # The demo box's model as `dope-hope evaluate` loads it (points, declared symmetries).
     model = load_models([DEMO_CLASS_NAME], [f"{DEMO_CLASS_NAME}={mesh_path}"])[DEMO_CLASS_NAME]
     threshold_cm = 100 * TABLE_THRESHOLDS_M[0]
     true, false, scenes, boxes, within_2cm = [], [], 0, 0, 0
-    for item in args.seeds:
+    for item in seeds:
         seed, _, n = item.partition(":")
         with FrameGenerator(mesh_path, size=IMAGE_SIZE, config=DEMO_CONFIG, class_name=DEMO_CLASS_NAME,
                             depth_noise=True, seed=int(seed)) as gen:
@@ -69,19 +71,39 @@ def main() -> int:
                     within_2cm += addh.get(id(d), np.inf) < threshold_cm
                 scenes += 1
                 boxes += len(gts)
-                print(f"seed {seed} scene {i:3d}: " + (", ".join(
-                    f"score {d.score:.3f} " + (f"ADD-H {addh[id(d)]:.2f} cm" if id(d) in addh else "unmatched")
-                    + ("" if addh.get(id(d), np.inf) < TRUE_CM else " FALSE") for d in dets) or "no detection"),
-                      flush=True)
-    true, false = np.sort(true), np.sort(false)
-    print(f"\n{args.weights}, {scenes} scenes ({', '.join(args.seeds)}), {boxes} boxes: "
-          f"{len(true)} true detections (within {TRUE_CM:g} cm ADD-H with -LS; {within_2cm} within "
+                if verbose:
+                    print(f"seed {seed} scene {i:3d}: " + (", ".join(
+                        f"score {d.score:.3f} " + (f"ADD-H {addh[id(d)]:.2f} cm" if id(d) in addh else "unmatched")
+                        + ("" if addh.get(id(d), np.inf) < TRUE_CM else " FALSE") for d in dets) or "no detection"),
+                          flush=True)
+    return DemoSceneScores(np.sort(true), np.sort(false), scenes, boxes, within_2cm)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--weights", type=Path, default=DEMO_WEIGHTS)
+    ap.add_argument("--seeds", nargs="+", default=["3000:30"], metavar="SEED:SCENES")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--mesh-dir", type=Path, default=Path("runs/demo_mesh"))
+    ap.add_argument("--thresholds", type=float, nargs="+",
+                    default=[0.0, 0.1, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55,
+                             InferenceOptions.from_mapping().min_score])
+    args = ap.parse_args()
+
+    # The network backend before any rendering: torch imported after the GL context crashes here.
+    pred = DopePredictor(open_backend(args.weights, "torch", threads=args.threads), mesh=demo_object_mesh(),
+                         min_score=0.0)
+    s = demo_scene_scores(pred, args.seeds, args.mesh_dir)
+    true, false, threshold_cm = s.true, s.false, 100 * TABLE_THRESHOLDS_M[0]
+    print(f"\n{args.weights}, {s.scenes} scenes ({', '.join(args.seeds)}), {s.boxes} boxes: "
+          f"{len(true)} true detections (within {TRUE_CM:g} cm ADD-H with -LS; {s.within_2cm} within "
           f"{threshold_cm:g} cm), {len(false)} false")
     print(f"true scores:  min {true.min() if len(true) else float('nan'):.3f}, "
           f"lowest five {np.round(true[:5], 3).tolist()}")
     print(f"false scores: max {false.max() if len(false) else float('nan'):.3f}, all {np.round(false, 3).tolist()}")
     print("| --min-score | true kept | false kept |\n|---|---|---|")
-    for t in sorted(set(args.thresholds)):
+    own = model_min_score(pred.backend)  # the model's own threshold, when its file records one
+    for t in sorted(set(args.thresholds) | ({own} if own is not None else set())):
         print(f"| {t:g} | {int(np.sum(true >= t))}/{len(true)} | {int(np.sum(false >= t))}/{len(false)} |")
     return 0
 

@@ -13,7 +13,8 @@ default options but min score 0, without and with the depth line search (-LS), a
 its detections to the box one-to-one by ADD-H (dope_hope.evaluation.matching: greedy in
 descending score, error strictly below the threshold).
 
-Per size and min score (0, the default of configs/infer.yaml, 0.5, and any --min-scores) it prints: the recall
+Per size and min score (0, the model's default: its own threshold when its file records one, else
+configs/infer.yaml's 0.5, and any --min-scores) it prints: the recall
 at 2 cm ADD-H (frames whose box is matched), false detections per frame (detections left
 unmatched at 2 cm, and at 10 cm: those nowhere near the box), and, on --empty crops of the
 same photographs WITHOUT the box, how many frames hold a detection and the detections, both
@@ -41,6 +42,7 @@ from dope_hope.commands.infer import DEMO_WEIGHTS
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
 from dope_hope.evaluation.matching import TABLE_THRESHOLDS_M, error_matrix, greedy_match
 from dope_hope.evaluation.models import load_models
+from dope_hope.inference.backends import model_min_score
 from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.refine.depth import DepthImage
@@ -131,19 +133,29 @@ def run_size(size: tuple[int, int], args: argparse.Namespace, predictor: DopePre
             t_model += t2 - t1
             if len(preview) < 8:
                 preview.append((frame, dets["LS"]))
-        background = BackgroundSource(gen.cfg["background"], args.photos)
-        for i in range(args.empty):
-            rng = np.random.default_rng((args.seed, 2, i))
-            rgb = post_process(rng, background.sample(rng, *size), gen.cfg["post"])
-            K = gen.sample_scene(i)[0].K  # the camera of a composite (jittered as synth.yaml)
-            t0 = time.perf_counter()
-            scores = [d.score for d in predictor.predict(rgb, K)]
-            t_model += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        for scores in empty_photo_scores(gen, predictor, args.photos, args.empty, args.seed):
             for m in args.min_scores:
                 n = sum(sc >= m for sc in scores)
                 empty[m]["dets"] += n
                 empty[m]["frames"] += int(n > 0)
+        t_model += time.perf_counter() - t0
     return {"tallies": tallies, "empty": empty, "render_s": t_render, "model_s": t_model}
+
+
+def empty_photo_scores(gen: FrameGenerator, predictor: DopePredictor, photos: list[Path], count: int,
+                       seed: int) -> list[list[float]]:
+    """Scores of the predictor's detections (all false) on ``count`` random crops of the
+    photographs without the box: crop, flips and post-processing as the generator ``gen``
+    (:func:`composite_config`) composites, each with the camera of composite i."""
+    background = BackgroundSource(gen.cfg["background"], photos)
+    out = []
+    for i in range(count):
+        rng = np.random.default_rng((seed, 2, i))
+        rgb = post_process(rng, background.sample(rng, *gen.size), gen.cfg["post"])
+        K = gen.sample_scene(i)[0].K  # the camera of a composite (jittered as synth.yaml)
+        out.append([d.score for d in predictor.predict(rgb, K)])
+    return out
 
 
 def composite_config(size: tuple[int, int] = (640, 480), sensor: bool = False) -> dict:
@@ -195,9 +207,10 @@ def main() -> int:
     args = ap.parse_args()
 
     mesh = demo_object_mesh()
-    default_min = InferenceOptions.from_mapping({}).min_score
-    args.min_scores = sorted({0.0, float(default_min), *args.min_scores})
     predictor = DopePredictor(args.weights, threads=args.threads, mesh=mesh, min_score=0.0)
+    # The model's default: its own threshold when its file records one, else the packaged one.
+    default_min = InferenceOptions.from_mapping({}, model_min_score=model_min_score(predictor.backend)).min_score
+    args.min_scores = sorted({0.0, float(default_min), *args.min_scores})
     photos = BackgroundSource(composite_config()["background"], args.photos).files
     print(f"model {args.weights}; photos {' '.join(map(str, args.photos))}: {len(photos)} ({', '.join(p.name for p in photos)}); "
           f"{args.frames} composites + {args.empty} empty crops per size, seed {args.seed}; "

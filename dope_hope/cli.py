@@ -19,6 +19,7 @@ from collections.abc import Iterator
 
 from dope_hope import __version__
 from dope_hope.errors import DopeHopeError
+from dope_hope.io.paths import forget_created_folders, remove_empty_created_folders
 
 #: (subcommand, module under dope_hope.commands, one-line help)
 COMMANDS: tuple[tuple[str, str, str], ...] = (
@@ -73,10 +74,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0
     prefix = f"dope-hope {args.command}"
+    forget_created_folders()
     try:
         with _one_line_warnings(prefix), _sigterm_raises():
             return int(args._run(args) or 0)
     except DopeHopeError as exc:
+        remove_empty_created_folders()  # bad input: no empty --out folder left behind
         print(f"{prefix}: error: {exc}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # e.g. `dope-hope objects | head`
@@ -85,6 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         if exc.errno not in ENVIRONMENT_ERRNOS:
             raise
+        remove_empty_created_folders()
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"{prefix}: error: {where}{(exc.strerror or str(exc)).lower()}", file=sys.stderr)
         return 2

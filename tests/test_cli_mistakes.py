@@ -240,7 +240,7 @@ def test_disk_full_evaluate_writes_all_tables_or_none(frames, mesh, predictions,
                                 "--out", out, "--no-progress"], capfd)
     line = one_line_error(code, err, "evaluate")
     assert "detection_rate.png: cannot write (file too large)" in line
-    assert list(out.iterdir()) == []  # no half set of tables, no temporary files
+    assert not out.exists()  # no half set of tables, no temporary files, no empty folder it made
     code, _, err = run_cli(["evaluate", "-p", predictions, "-d", frames, "--mesh", mesh, "--out", out,
                             "--no-progress"], capfd)
     assert code == 0, err
@@ -342,7 +342,7 @@ def test_evaluate_refuses_a_mesh_that_is_not_the_datasets_object(mesh_flags, fra
     argv = ["evaluate", "-p", predictions, "-d", frames, *flags, "--out", tmp_path / "e", "--no-progress"]
     line = one_line_error(*run_cli(argv, capsys)[::2], "evaluate")
     assert "does not match the cuboid 000000.json records [12.27, 16.72, 4.02] cm for DemoBox" in line
-    assert not list((tmp_path / "e").iterdir())
+    assert not (tmp_path / "e").exists()  # nothing scored, no empty folder left
 
 
 def test_same_file_names_in_two_folders_get_distinct_records(frames, weights, tmp_path, capsys):
@@ -510,7 +510,19 @@ def test_demo_writes_nothing_when_its_weights_do_not_load(tmp_path, capsys):
     line = one_line_error(*run_cli(["demo", "--weights", junk, "--out", tmp_path / "o", "--no-onnx"],
                                    capsys)[::2], "demo")
     assert "junk.pt" in line
-    assert list((tmp_path / "o").iterdir()) == []
+    assert not (tmp_path / "o").exists()  # the folder it made for --out is taken back
+
+
+def test_bad_input_found_after_out_was_made_leaves_no_empty_folder(mesh, tmp_path, capsys):
+    """--out is checked (and made) first; an input refused after that takes the new, still
+    empty folders back, parents included, and never a folder that was there or holds a file."""
+    argv = ["synth", "--mesh", mesh, "--count", 1, "--backgrounds", tmp_path / "no_such_photos"]
+    line = one_line_error(*run_cli(argv + ["--out", tmp_path / "new" / "deeper" / "s"], capsys)[::2], "synth")
+    assert "no_such_photos" in line
+    assert not (tmp_path / "new").exists()
+    (tmp_path / "kept").mkdir()
+    one_line_error(*run_cli(argv + ["--out", tmp_path / "kept"], capsys)[::2], "synth")
+    assert (tmp_path / "kept").is_dir()
 
 
 def test_evaluate_without_ground_truth_prints_no_matplotlib_warning(mesh, predictions, tmp_path, capfd):

@@ -380,4 +380,5 @@ def test_help_states_the_default_min_score(capsys):
     with pytest.raises(SystemExit):
         cli.main(["infer", "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    assert f"(default {default:g}, dope_hope/configs/infer.yaml:" in text and "held-out synthetic" in text
+    assert "(default: the model's own threshold when its file records one" in text
+    assert f"else {default:g} from dope_hope/configs/infer.yaml" in text

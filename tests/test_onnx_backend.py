@@ -18,6 +18,7 @@ from dope_hope.export.pipeline import export_checkpoint
 from dope_hope.inference.backends import TorchBackend
 from dope_hope.inference.onnx_backend import OnnxBackend, OnnxModelInfo
 from dope_hope.inference.predictor import DopePredictor
+from dope_hope.model.checkpoint import save_inference_checkpoint
 
 torch.set_num_threads(1)
 
@@ -135,6 +136,10 @@ def test_unusable_files_give_one_line_errors(models, tmp_path, capsys):
             p.value = "[0, 0, 1, 2, 3, 4, 5, 6, 8]"
     onnx.save(reordered, str(tmp_path / "reordered.onnx"))
     cases["reordered.onnx"] = "isaac_ros.channel_order: not a permutation"
+    threshold = onnx.load(str(native))
+    threshold.metadata_props.add(key="dope_hope.min_score", value="nan")
+    onnx.save(threshold, str(tmp_path / "threshold.onnx"))
+    cases["threshold.onnx"] = "min_score must be a finite number >= 0 or null, got nan"
     cases["missing.onnx"] = "not found"
     for name, problem in cases.items():
         with pytest.raises(ModelFileError) as err:
@@ -169,8 +174,39 @@ def test_model_info_round_trip():
     meta = info.to_metadata()
     assert all(isinstance(v, str) for v in meta.values())
     assert json.loads(meta["dope_hope.input_hw"]) is None
+    assert "dope_hope.min_score" not in meta  # no threshold of its own: no key
     back = OnnxModelInfo.from_metadata(meta, "x.onnx")
-    assert back == info
+    assert back == info and back.min_score is None
+    info.min_score = 0.6
+    assert OnnxModelInfo.from_metadata(info.to_metadata(), "x.onnx") == info
+
+
+def test_a_threshold_recorded_with_the_model_is_its_default(models, tmp_path, capsys):
+    """A model's own min_score (its checkpoint, carried into its ONNX export) replaces the
+    packaged default; an explicit min_score, in Python or on the command line, still wins."""
+    ckpt = models[0]
+    rgb, _ = scene()
+    (score,) = [d.score for d in DopePredictor(ckpt, min_score=0.0).predict(rgb, K)]
+    assert DopePredictor(ckpt).options.min_score == 0.5  # none recorded: the packaged default
+    own = save_inference_checkpoint(ckpt, tmp_path / "own.pt", min_score=score + 0.01)
+    export_checkpoint(own, tmp_path / "own.onnx")
+    assert OnnxBackend(tmp_path / "own.onnx").info.min_score == pytest.approx(score + 0.01)
+    for weights in (own, tmp_path / "own.onnx"):
+        assert DopePredictor(weights).options.min_score == pytest.approx(score + 0.01)
+        assert DopePredictor(weights).predict(rgb, K) == []
+        assert len(DopePredictor(weights, min_score=score - 0.01).predict(rgb, K)) == 1
+    cv2.imwrite(str(tmp_path / "image.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    cmd = ["infer", str(tmp_path / "image.png"), "--weights", str(own), "--fx", str(fx), "--fy", str(fy),
+           "--cx", str(cx), "--cy", str(cy), "--no-overlay", "--out", str(tmp_path / "res")]
+    for extra, found in (([], 0), (["--min-score", "0"], 1)):
+        assert main(cmd + extra) == 0
+        captured = capsys.readouterr()
+        assert sum(line.startswith("{") for line in captured.out.splitlines()) == found
+        assert ("the model's own" in captured.err) == (not extra), captured.err
+    with pytest.raises(ModelFileError, match="min_score must be a finite number >= 0 or null"):
+        save_inference_checkpoint(ckpt, tmp_path / "bad.pt", min_score=-0.1)
+    assert not (tmp_path / "bad.pt").exists()
 
 
 def test_cli_infer_needs_only_the_onnx_file(models, tmp_path, capsys):

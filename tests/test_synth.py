@@ -173,6 +173,23 @@ def test_truncated_instances_have_lower_visibility(simple_obj: Path):
             assert 0.0 <= obj.visibility < 0.75
 
 
+def test_frames_without_a_target_are_negatives_the_trainer_reads(simple_obj: Path, tmp_path: Path):
+    """target.count starting at 0 makes frames with background, distractors and look-alikes
+    but no annotated instance; training reads them as frames whose maps are all zero."""
+    from dope_hope.training.dataset import scan_frames
+
+    cfg = {"target": {"count": [0, 0]}, "distractors": {"count": [3, 3]}, "hard_negatives": {"count": [1, 1]}}
+    generate_dataset(tmp_path / "neg", simple_obj, 2, seed=4, size=SIZE, config=cfg, progress=False)
+    for i in range(2):
+        assert read_dope_json(tmp_path / "neg" / f"{i:06d}.json").objects == []
+        seg = read_image_raw(tmp_path / "neg" / f"{i:06d}.seg.png")
+        assert not np.isin(seg, [1, 2, 3]).any() and (seg > 0).any()  # no target id, other objects
+    records, bad = scan_frames([tmp_path / "neg"], "Ketchup")
+    assert not bad and [r.keypoints.shape for r in records] == [(0, 9, 2)] * 2
+    with pytest.raises(ConfigError, match="target.count must start at 0 or more"):
+        load_synth_config({"target": {"count": [-1, 2]}})
+
+
 # --------------------------------------------------------------------------- determinism
 def test_same_seed_gives_identical_files(dataset: Path, simple_obj: Path, tmp_path: Path):
     out = tmp_path / "b"

@@ -7,8 +7,9 @@ and reused while the weights are unchanged), refines the distance with the depth
 (-LS), and prints each detection next to the ground truth: translation and rotation error,
 ADD-H and MeanSSD without -LS, with -LS and with -LS + ICP (dope_hope/refine/icp.py: the whole
 pose refined against the depth), and how closely the ONNX keypoints agree with PyTorch's.
-Detections scoring under the inference options' min_score (dope_hope/configs/infer.yaml, as
-`dope-hope infer`) are dropped. Ends with "found N/10 scenes with ADD-H < 2 cm (with -LS; ...)".
+Detections scoring under the model's min score (its own threshold when its file records one,
+as the shipped model does, else dope_hope/configs/infer.yaml's; as `dope-hope infer`) are
+dropped. Ends with "found N/10 scenes with ADD-H < 2 cm (with -LS; ...)".
 
 The errors and the matching are `dope-hope evaluate`'s (dope_hope/evaluation/matching.py), on
 the model evaluate loads from OUT/mesh (500 points of DemoBox.obj, the box's symmetries from
@@ -171,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
 
     from dope_hope.evaluation.models import load_models
     from dope_hope.geometry import cuboid_keypoints, project_points
-    from dope_hope.inference.backends import open_backend
+    from dope_hope.inference.backends import model_min_score, open_backend
     from dope_hope.inference.predictor import DopePredictor
     from dope_hope.io.images import write_rgb
     from dope_hope.io.predictions import write_predictions_jsonl
@@ -202,7 +203,8 @@ def run(args: argparse.Namespace) -> int:
     _clear_old_outputs(out)
     print(f"dope-hope demo: {args.scenes} scene(s) of {DEMO_CLASS_NAME}, seed {seed} (repeat with "
           f"--seed {seed}), {IMAGE_SIZE[0]}x{IMAGE_SIZE[1]}, RealSense-like depth noise; model "
-          f"{weights} (network input {input_hw[1]}x{input_hw[0]}); {onnx_note}", flush=True)
+          f"{weights} (network input {input_hw[1]}x{input_hw[0]}, min score {torch_pred.options.min_score:g}"
+          f"{', its own' if model_min_score(torch_backend) is not None else ''}); {onnx_note}", flush=True)
 
     results: list[SceneResult] = []
     records: list[dict] = []

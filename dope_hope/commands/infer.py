@@ -152,9 +152,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="network working height, pixels (default: the model's training scale; "
                              "400 for official DOPE weights)")
     parser.add_argument("--min-score", type=finite_float, metavar="S",
-                        help=f"drop detections whose pose score is lower (default {_default_min_score():g}, "
-                             "dope_hope/configs/infer.yaml: on held-out synthetic demo frames it keeps every "
-                             "true detection and drops the low-score false ones; bench/RESULTS.md); 0 keeps all")
+                        help="drop detections whose pose score is lower (default: the model's own threshold "
+                             "when its file records one, as the shipped demo model does, else "
+                             f"{_default_min_score():g} from dope_hope/configs/infer.yaml; bench/RESULTS.md); "
+                             "0 keeps all")
     parser.add_argument("--pose-search", choices=("hypotheses", "groups"), default="hypotheses",
                         help="hypotheses (default): candidate corner peaks + multi-hypothesis PnP; "
                              "groups: DOPE's one corner per type (faster, finds fewer)")
@@ -265,7 +266,7 @@ def _global_camera(args: argparse.Namespace):
 
 def build_predictors(args: argparse.Namespace, weights: list[Path]):
     from dope_hope.errors import ConfigError
-    from dope_hope.inference.backends import open_backend
+    from dope_hope.inference.backends import model_min_score, open_backend
     from dope_hope.inference.predictor import DopePredictor
     from dope_hope.io.models_dir import find_object_mesh
 
@@ -289,6 +290,9 @@ def build_predictors(args: argparse.Namespace, weights: list[Path]):
         given = {} if args.min_score is None else {"min_score": args.min_score}
         predictors.append(DopePredictor(backend, height=args.height, mesh=mesh, mesh_units=args.mesh_units,
                                         pose_search=args.pose_search, icp=args.icp, **given))
+        if args.min_score is None and model_min_score(backend) is not None:
+            print(f"dope-hope infer: {backend.class_name}: min score {predictors[-1].options.min_score:g}, "
+                  "the model's own (recorded with its weights; --min-score overrides)", file=sys.stderr)
     return predictors
 
 

@@ -270,7 +270,7 @@ def model_info(checkpoint: dict[str, Any], model: nn.Module, layout: str,
         layout=layout, input_hw=meta.input_hw, fixed_input_hw=fixed_input_hw, opset=int(opset),
         precision="fp32", version=__version__,
         exporter=f"torch.onnx.export(dynamo=False) TorchScript exporter, torch {torch.__version__}",
-        source=source, extra=extra)
+        source=source, extra=extra, min_score=meta.min_score)
 
 
 def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.PathLike,

@@ -33,7 +33,9 @@ class MapBackend(Protocol):
         input_hw: (H, W) training input size, or None when unknown.
 
     A backend whose network only accepts one input size may also set ``fixed_input_hw``
-    (H, W); the predictor then fits and pads every image to it.
+    (H, W); the predictor then fits and pads every image to it. A backend with ``info`` (a
+    :class:`~dope_hope.model.info.ModelInfo`) offers the model's own ``min_score``
+    (:func:`model_min_score`).
     """
 
     stride: int
@@ -93,6 +95,13 @@ class TorchBackend:
         with torch.inference_mode():
             belief, affinity = self.model(x)[-1]
         return belief.float().cpu().numpy(), affinity.float().cpu().numpy()
+
+
+def model_min_score(backend: MapBackend) -> float | None:
+    """The score threshold recorded with the backend's weights (``info.min_score``), or None
+    (none recorded, or a backend without ``info``)."""
+    info = getattr(backend, "info", None)
+    return None if info is None else info.min_score
 
 
 def require_model_file(path: Path, what: str = "weights file") -> str:

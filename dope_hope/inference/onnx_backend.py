@@ -58,7 +58,8 @@ class OnnxModelInfo(ModelInfo):
     """The metadata of a dope-hope ONNX file (``metadata_props``, all values strings there).
 
     The :class:`~dope_hope.model.info.ModelInfo` fields (class_name, size_m, frame,
-    keypoint_order, mean, std, input_hw), plus:
+    keypoint_order, mean, std, input_hw, and min_score: written only when the model records
+    one), plus:
     input_mean, input_std: the normalization the GRAPH input expects (= mean/std for the
         native layout; the Isaac ROS encoder's for the isaac-ros layout, converted in-graph).
     stride: image px per map cell. head: 50 | 400 | 100. arch: "dope" | "lite".
@@ -85,14 +86,18 @@ class OnnxModelInfo(ModelInfo):
 
     _JSON_FIELDS = ("size_m", "mean", "std", "input_mean", "input_std", "input_hw", "fixed_input_hw")
     _INT_FIELDS = ("stride", "head", "opset")
+    #: Optional numbers: written only when set (a file without the key reads as None).
+    _OPTIONAL_FLOAT_FIELDS = ("min_score",)
 
     def to_metadata(self) -> dict[str, str]:
         """``{"dope_hope.<key>": str}`` for ``metadata_props`` (lists as JSON)."""
         out = {f"{META_PREFIX}format": ONNX_FORMAT,
                f"{META_PREFIX}format_version": str(ONNX_FORMAT_VERSION)}
         for key, value in asdict(self).items():
-            if key == "extra":
+            if key == "extra" or (key in self._OPTIONAL_FLOAT_FIELDS and value is None):
                 continue
+            if key in self._OPTIONAL_FLOAT_FIELDS:
+                value = repr(float(value))
             if key in self._JSON_FIELDS:
                 value = json.dumps(None if value is None else [float(v) if key not in (
                     "input_hw", "fixed_input_hw") else int(v) for v in value])
@@ -130,6 +135,8 @@ class OnnxModelInfo(ModelInfo):
                         int(x) if name.endswith("_hw") else float(x) for x in v)
                 elif name in cls._INT_FIELDS:
                     values[name] = int(raw)
+                elif name in cls._OPTIONAL_FLOAT_FIELDS:
+                    values[name] = float(raw)
                 else:
                     values[name] = raw
             except (ValueError, TypeError):

@@ -96,11 +96,19 @@ class InferenceOptions:
         object.__setattr__(self, "min_score", float(self.min_score))
 
     @classmethod
-    def from_mapping(cls, overrides: Mapping[str, Any] | None = None, base: str = "infer") -> InferenceOptions:
-        """The packaged defaults (config ``base``) with ``overrides`` on top; unknown keys refused."""
+    def from_mapping(cls, overrides: Mapping[str, Any] | None = None, base: str = "infer",
+                     model_min_score: float | None = None) -> InferenceOptions:
+        """The packaged defaults (config ``base``) with ``overrides`` on top; unknown keys refused.
+
+        ``model_min_score``: the model's own threshold (recorded with its weights,
+        :attr:`dope_hope.model.info.ModelInfo.min_score`); it replaces the packaged
+        ``min_score`` unless ``overrides`` gives one.
+        """
         from dope_hope.config import load_config
 
         values = dict(load_config(base))
+        if model_min_score is not None:
+            values["min_score"] = model_min_score
         for key, value in (overrides or {}).items():
             if key not in values:
                 raise ConfigError(f"unknown inference option {key!r}; known: {', '.join(sorted(values))}")

@@ -61,7 +61,7 @@ from dope_hope.geometry import (
     projected_bbox,
     projected_bboxes,
 )
-from dope_hope.inference.backends import MapBackend, open_backend
+from dope_hope.inference.backends import MapBackend, model_min_score, open_backend
 from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.detection import Detection
 from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_instances
@@ -99,6 +99,9 @@ class DopePredictor:
             overrides of the packaged defaults (``dope_hope/configs/infer.yaml``).
         **overrides: single options on top (``height=400``, ``icp=True``, ``pnp={...}``, ...);
             an unknown name is a ConfigError.
+
+    ``min_score``: when neither ``options`` nor ``overrides`` gives one, the model's own
+    threshold when its file records one (``ModelInfo.min_score``), else the packaged default.
     """
 
     def __init__(
@@ -114,7 +117,8 @@ class DopePredictor:
     ):
         if isinstance(options, InferenceOptions):
             options = options.to_dict()
-        self.options = InferenceOptions.from_mapping({**(options or {}), **overrides})
+        given = {**(options or {}), **overrides}
+        InferenceOptions.from_mapping(given)  # a bad option is refused before a model loads
         if isinstance(weights, (str, os.PathLike)):
             self.backend: MapBackend = open_backend(weights, backend, device, threads)
         elif hasattr(weights, "run") and hasattr(weights, "stride"):
@@ -122,6 +126,7 @@ class DopePredictor:
         else:
             raise ConfigError(f"weights must be a file path or a MapBackend, got {type(weights).__name__}")
         b = self.backend
+        self.options = InferenceOptions.from_mapping(given, model_min_score=model_min_score(b))
         self.class_name = str(b.class_name)
         self.legacy = b.frame == "legacy" or b.keypoint_order == LEGACY_KEYPOINT_ORDER
         self.mean = tuple(float(v) for v in b.mean)

@@ -14,6 +14,10 @@ from pathlib import Path
 
 from dope_hope.errors import InputFileError, OutputPathError
 
+#: Folders :func:`output_dir` created since :func:`forget_created_folders`, outermost first
+#: (:func:`remove_empty_created_folders` takes back those a failed command left empty).
+_CREATED: list[Path] = []
+
 #: What ``path_kind`` calls each kind of file system entry.
 _KINDS = ((stat.S_ISDIR, "folder"), (stat.S_ISFIFO, "named pipe"), (stat.S_ISSOCK, "socket"),
           (stat.S_ISCHR, "character device"), (stat.S_ISBLK, "block device"))
@@ -105,11 +109,30 @@ def output_dir(path: str | os.PathLike, flag: str | None = "--out") -> Path:
     _check_writable_folder(existing, path, flag)
     if kind is None:
         _check_name_lengths(path, existing, flag)
+        missing = [p for p in (path.absolute(), *path.absolute().parents)
+                   if len(p.parts) > len(existing.parts)][::-1]
         try:
             path.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise OutputPathError(path, f"cannot create the folder ({os_problem(exc)})", flag) from None
+        _CREATED.extend(missing)
     return path
+
+
+def forget_created_folders() -> None:
+    """Start a new command: the folders created so far are no longer its to take back."""
+    _CREATED.clear()
+
+
+def remove_empty_created_folders() -> None:
+    """Remove the folders :func:`output_dir` created that are still empty, deepest first: a
+    command that stops on bad input after checking ``--out`` leaves no empty folder behind.
+    A folder holding anything, or one that cannot be removed, stays."""
+    while _CREATED:
+        try:
+            _CREATED.pop().rmdir()
+        except OSError:
+            pass
 
 
 def output_file(path: str | os.PathLike, flag: str | None = "--out") -> Path:

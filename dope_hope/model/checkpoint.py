@@ -300,15 +300,20 @@ PRETRAINED_START_SOURCE = "pretrained start"
 
 
 def save_inference_checkpoint(src: str | os.PathLike, dst: str | os.PathLike,
-                              source: str | None = None) -> Path:
+                              source: str | None = None, min_score: float | None = None) -> Path:
     """Copy a checkpoint without its training state (optimizer, scheduler, RNG): what a
     model ships as. Adam's moments double a checkpoint's size and are useless for inference;
     ``--resume`` needs the full file. ``source`` replaces the recorded origin (e.g.
-    :data:`PRETRAINED_START_SOURCE`). Written atomically; returns ``dst``."""
+    :data:`PRETRAINED_START_SOURCE`). ``min_score`` records the model's own default score
+    threshold (:attr:`ModelInfo.min_score <dope_hope.model.info.ModelInfo.min_score>`; the
+    source's is kept when None). Written atomically; returns ``dst``."""
     ckpt = load_checkpoint(src)
     ckpt.update(optimizer=None, scheduler=None, rng=None)
     if source is not None:
         ckpt["source"] = source
+    if min_score is not None:
+        ckpt["min_score"] = min_score
+        ModelInfo.from_checkpoint(ckpt, dst)
     atomic_write_stream(dst, lambda f: torch.save(ckpt, f))
     return Path(dst)
 

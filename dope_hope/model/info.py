@@ -8,8 +8,9 @@ No torch import here.
 """
 from __future__ import annotations
 
+import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -28,7 +29,10 @@ class ModelInfo:
     class_name: object the model detects. size_m: (3,) cuboid extents, mesh frame, metres.
     frame: "mesh" | "legacy". keypoint_order: "dope-current" | "dope-legacy" (must match frame).
     mean, std: the model's normalization of RGB in [0, 1]. input_hw: (H, W) training input
-    size, or None when unknown.
+    size, or None when unknown. min_score: the model's own default pose-score threshold
+    (chosen for it and recorded with its weights; None: the inference options' default);
+    an explicit ``min_score`` still wins (:meth:`~dope_hope.inference.options.
+    InferenceOptions.from_mapping`).
     """
 
     class_name: str
@@ -38,6 +42,7 @@ class ModelInfo:
     mean: tuple[float, float, float]
     std: tuple[float, float, float]
     input_hw: tuple[int, int] | None
+    min_score: float | None = field(default=None, kw_only=True)
 
     @property
     def legacy(self) -> bool:
@@ -62,6 +67,9 @@ class ModelInfo:
                 f"(expected {expected!r})")
         if self.input_hw is not None and (len(self.input_hw) != 2 or min(self.input_hw) < 1):
             bad(f"input_hw must be [H, W] or null, got {self.input_hw}")
+        if self.min_score is not None and (isinstance(self.min_score, bool) or not isinstance(
+                self.min_score, (int, float)) or not math.isfinite(self.min_score) or self.min_score < 0):
+            bad(f"min_score must be a finite number >= 0 or null, got {self.min_score!r}")
 
     @classmethod
     def from_checkpoint(cls, ckpt: dict[str, Any], path: str | os.PathLike = "<checkpoint>") -> ModelInfo:
@@ -83,6 +91,6 @@ class ModelInfo:
             input_hw = (int(size_in[0]), int(size_in[1]))
         info = cls(class_name=str(obj.get("class_name")), size_m=size, frame=obj.get("frame", "mesh"),
                    keypoint_order=ckpt.get("keypoint_order", KEYPOINT_ORDER), mean=mean, std=std,
-                   input_hw=input_hw)
+                   input_hw=input_hw, min_score=ckpt.get("min_score"))
         info.validate(path)
         return info

@@ -133,8 +133,8 @@ def validate_synth_config(cfg: dict[str, Any]) -> None:
         if isinstance(v, bool) or not isinstance(v, int) or v < (4 if path[-1] == "texture_px" else 1):
             raise ConfigError(f"synth config: {'.'.join(path)} must be a whole number "
                               f"(>= {4 if path[-1] == 'texture_px' else 1}), got {v!r}")
-    if cfg["target"]["count"][0] < 1:
-        raise ConfigError("synth config: target.count must start at 1 or more")
+    if cfg["target"]["count"][0] < 0:
+        raise ConfigError("synth config: target.count must start at 0 or more")
     if cfg["target"]["distance_m"][0] <= cfg["camera"]["znear"]:
         raise ConfigError("synth config: target.distance_m must lie beyond camera.znear")
     base = int(cfg["output"]["seg_distractor_base"])
