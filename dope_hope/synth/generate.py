@@ -404,11 +404,17 @@ def generate_dataset(out_dir: str | os.PathLike, mesh_path: str | os.PathLike | 
             finally:
                 if previous is not None:
                     signal.signal(signal.SIGINT, previous)
-            with pool:
-                for i in pool.imap_unordered(_work, todo, chunksize=1):
-                    bar.update(1)
-                    if on_frame is not None:
-                        on_frame(i)
+            try:
+                with pool:
+                    for i in pool.imap_unordered(_work, todo, chunksize=1):
+                        bar.update(1)
+                        if on_frame is not None:
+                            on_frame(i)
+            except BaseException:
+                # Leaving the pool terminated and joined its workers: the temporary files of
+                # the frames they were writing (Ctrl-C, SIGTERM, a failed frame) are nobody's now.
+                remove_stale_temporaries(out, set(todo))
+                raise
     finally:
         bar.close()
         local.close()
