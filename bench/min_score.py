@@ -44,13 +44,13 @@ class DemoSceneScores:
     within_2cm: int     # true detections within the 2 cm table threshold
 
 
-def demo_scene_scores(pred: DopePredictor, seeds: list[str], mesh_dir: Path,
+def demo_scene_scores(pred: DopePredictor, seeds: list[str], mesh_path: Path,
                       verbose: bool = True) -> DemoSceneScores:
     """Run ``pred`` (min score 0, the demo mesh) with -LS on the demo scenes of ``seeds``
-    ("SEED:SCENES") and label each detection true or false (module docstring)."""
+    ("SEED:SCENES") and label each detection true or false (module docstring); ``mesh_path``:
+    the demo box as :func:`~dope_hope.demo_object.write_demo_object` wrote it."""
     from dope_hope.synth import FrameGenerator
 
-    mesh_path = write_demo_object(mesh_dir)
     # The demo box's model as `dope-hope evaluate` loads it (points, declared symmetries).
     model = load_models([DEMO_CLASS_NAME], [f"{DEMO_CLASS_NAME}={mesh_path}"])[DEMO_CLASS_NAME]
     threshold_cm = 100 * TABLE_THRESHOLDS_M[0]
@@ -93,7 +93,7 @@ def main() -> int:
     # The network backend before any rendering: torch imported after the GL context crashes here.
     pred = DopePredictor(open_backend(args.weights, "torch", threads=args.threads), mesh=demo_object_mesh(),
                          min_score=0.0)
-    s = demo_scene_scores(pred, args.seeds, args.mesh_dir)
+    s = demo_scene_scores(pred, args.seeds, write_demo_object(args.mesh_dir))
     true, false, threshold_cm = s.true, s.false, 100 * TABLE_THRESHOLDS_M[0]
     print(f"\n{args.weights}, {s.scenes} scenes ({', '.join(args.seeds)}), {s.boxes} boxes: "
           f"{len(true)} true detections (within {TRUE_CM:g} cm ADD-H with -LS; {s.within_2cm} within "

@@ -76,7 +76,7 @@ def main() -> int:
     with FrameGenerator(mesh_path, size=(640, 480), config=composite_config(), class_name=DEMO_CLASS_NAME,
                         backgrounds=args.photos, seed=args.seed) as gen:
         empty = empty_photo_scores(gen, pred, args.photos, args.empty, args.seed)
-    demo = demo_scene_scores(pred, args.seeds, args.mesh_dir, verbose=False)
+    demo = demo_scene_scores(pred, args.seeds, mesh_path, verbose=False)
     allowed = args.target_per_50 / args.margin
     print(f"{args.weights}: {args.empty} crops of {' '.join(map(str, args.photos))} without the box "
           f"(seed {args.seed}); {len(demo.true)} true and {len(demo.false)} false detections on "
