@@ -43,6 +43,9 @@ CUBOID_EDGES = (
     (0, 4), (1, 5), (2, 6), (3, 7),
 )
 
+#: Largest accepted deviation of a predicted R from a rotation matrix (Frobenius norm).
+ROTATION_TOLERANCE = 1e-3
+
 
 def cuboid_keypoints(size: np.ndarray, center: np.ndarray | None = None) -> np.ndarray:
     """Nine cuboid keypoints in the model frame.
@@ -171,6 +174,25 @@ def nearest_rotation(M: np.ndarray) -> np.ndarray:
     if np.linalg.det(R) < 0:
         U[:, -1] *= -1
         R = U @ Vt
+    return R
+
+
+def checked_rotation(M: np.ndarray) -> np.ndarray:
+    """The rule for a predicted R (JSON lines and BOP CSV alike): within
+    ``ROTATION_TOLERANCE`` (Frobenius) of a rotation.
+
+    Args:
+        M: (3, 3) finite matrix.
+
+    Returns:
+        (3, 3) the nearest rotation.
+
+    Raises:
+        ValueError: M is no rotation (a reflection, a scaled or sheared matrix).
+    """
+    R = nearest_rotation(M)
+    if np.linalg.norm(R - np.asarray(M, dtype=np.float64)) > ROTATION_TOLERANCE:
+        raise ValueError("not a rotation matrix (rows must be orthonormal, det +1)")
     return R
 
 

@@ -99,7 +99,7 @@ def test_non_finite_numbers_are_refused(tmp_path):
 
 @pytest.mark.parametrize("R", ["-1 0 0 0 1 0 0 0 1", "0.01 0 0 0 0.01 0 0 0 0.01", "1 2 3 4 5 6 7 8 9"])
 def test_an_r_that_is_no_rotation_is_refused_with_its_line(tmp_path, R):
-    """The same rule as the JSON-lines reader (one owner: io.predictions.checked_rotation);
+    """The same rule as the JSON-lines reader (one owner: geometry.checked_rotation);
     the line number counts the blank line before the row."""
     path = tmp_path / "m_hope-test.csv"
     path.write_text("scene_id,im_id,obj_id,score,R,t,time\n"

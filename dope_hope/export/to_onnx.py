@@ -76,7 +76,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from dope_hope import __version__
+from dope_hope.version import __version__
 from dope_hope.errors import ConfigError, DopeHopeError
 from dope_hope.export.compare import MapDeviation
 from dope_hope.export.isaac_ros import ENCODERS as ISAAC_ENCODERS

@@ -6,7 +6,7 @@ Format (BOP Challenge 2019+, ``docs/bop_challenge_2019.md`` of the BOP toolkit):
     1,0,11,0.93,r11 r12 r13 r21 r22 r23 r31 r32 r33,tx ty tz,0.153
 
 * ``R``: the 3x3 rotation, row-major, 9 numbers separated by spaces (model -> camera); the
-  reader refuses a matrix that is no rotation (:func:`dope_hope.io.predictions.checked_rotation`)
+  reader refuses a matrix that is no rotation (:func:`dope_hope.geometry.checked_rotation`)
   and keeps the numbers as written (the BOP toolkit scores them as written);
 * ``t``: translation in **millimetres**, 3 numbers separated by spaces (metres in memory, and
   the millimetres as written in ``t_mm``, which BOP19 scoring uses);
@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 
 from dope_hope.errors import InputFileError
+from dope_hope.geometry import checked_rotation
 from dope_hope.io.atomic import atomic_write_text
 from dope_hope.io.jsonfields import read_text_file
-from dope_hope.io.predictions import checked_rotation
 
 HEADER = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
 #: Two estimates of one image whose times differ by more than this (s) are rejected (BOP).

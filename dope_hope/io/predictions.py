@@ -49,17 +49,13 @@ from typing import Any
 import numpy as np
 
 from dope_hope.errors import DopeHopeError, InputFileError
-from dope_hope.geometry import nearest_rotation, quaternion_xyzw_to_matrix
+from dope_hope.geometry import ROTATION_TOLERANCE, checked_rotation, nearest_rotation, quaternion_xyzw_to_matrix
 from dope_hope.io.atomic import atomic_write_text
 from dope_hope.io.jsonfields import read_text_file
 
 FORMAT_NAME = "dope-hope-predictions"
 #: How the official DOPE inference's cuboid frame relates to the mesh frame.
 OFFICIAL_FRAMES = ("legacy", "cuboid")
-#: Largest accepted deviation of a given R from a rotation matrix (Frobenius norm).
-ROTATION_TOLERANCE = 1e-3
-
-
 @dataclass
 class Prediction:
     """One detection with its 6-DoF pose.
@@ -117,25 +113,6 @@ def write_predictions_jsonl(path: str | os.PathLike, records: list[dict[str, Any
         lines.append(json.dumps({"format": FORMAT_NAME, "method": method}))
     lines += [json.dumps(r) for r in records]
     atomic_write_text(path, "\n".join(lines) + ("\n" if lines else ""))
-
-
-def checked_rotation(M: np.ndarray) -> np.ndarray:
-    """The rule for a predicted R (JSON lines and BOP CSV alike): within
-    ``ROTATION_TOLERANCE`` (Frobenius) of a rotation.
-
-    Args:
-        M: (3, 3) finite matrix.
-
-    Returns:
-        (3, 3) the nearest rotation.
-
-    Raises:
-        ValueError: M is no rotation (a reflection, a scaled or sheared matrix).
-    """
-    R = nearest_rotation(M)
-    if np.linalg.norm(R - np.asarray(M, dtype=np.float64)) > ROTATION_TOLERANCE:
-        raise ValueError("not a rotation matrix (rows must be orthonormal, det +1)")
-    return R
 
 
 def _fail(path: Path, lineno: int, problem: str) -> InputFileError:

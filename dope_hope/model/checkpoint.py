@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from dope_hope import __version__
+from dope_hope.version import __version__
 from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, InputFileError, ModelFileError
 from dope_hope.geometry import KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from dope_hope import __version__
+from dope_hope.version import __version__
 from dope_hope.annotation import FrameAnnotation
 from dope_hope.errors import ConfigError
 from dope_hope.synth.annotate import InstanceStats, annotate_frame, canonical_pose_labels
