@@ -1,4 +1,5 @@
-"""The 28 HOPE objects: names, BOP ids, categories, cuboid sizes and symmetry groups.
+"""The 28 HOPE objects: names, BOP ids, categories and cuboid sizes (a category's symmetry group:
+:func:`dope_hope.symmetry.transforms.category_symmetries`).
 
 Sizes are stored in the **mesh frame** (x width, y vertical, z depth), metres. The official
 DOPE configs list them in the legacy keypoint frame, e.g. Ketchup [14.8608, 4.3368, 6.4514]
@@ -10,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from dope_hope.errors import UnknownObjectError
 from dope_hope.geometry import legacy_size_to_mesh
@@ -105,10 +105,6 @@ class HopeObject:
         """Box diagonal, metres."""
         return float(np.linalg.norm(self.size))
 
-    def symmetries(self, step_deg: float = 1.0) -> np.ndarray:
-        """(S, 4, 4) model-frame symmetry transforms of the category (identity first)."""
-        return category_symmetries(self.category, step_deg=step_deg)
-
 
 def _build_catalog() -> tuple[HopeObject, ...]:
     objects = []
@@ -137,35 +133,3 @@ def get_object(name_or_id: str | int) -> HopeObject:
         return _BY_NAME[key]
     raise UnknownObjectError(
         f"unknown HOPE object {name_or_id!r}; known: {', '.join(o.name for o in HOPE_OBJECTS)}")
-
-
-def _rigid(R: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = R
-    return T
-
-
-def category_symmetries(category: str, step_deg: float = 1.0) -> np.ndarray:
-    """Geometric symmetry group of a HOPE category as model-frame transforms.
-
-    cylinder: rotation about the vertical (y) axis in ``step_deg`` steps, combined with the
-    180° top-bottom flip (about x); cuboid: identity and the 180° flips about x, y and z;
-    bottle: identity and the 180° front-back flip (about the vertical y axis).
-
-    Returns:
-        (S, 4, 4) float, identity first; rotations about the model origin (the HOPE meshes
-        are centred on their bounding box).
-    """
-    if category == "cylinder":
-        angles = np.arange(0.0, 360.0, step_deg)
-        about_y = Rotation.from_euler("y", angles[:, None], degrees=True)
-        flip = Rotation.from_euler("x", 180, degrees=True)
-        rots = np.concatenate([about_y.as_matrix(), (about_y * flip).as_matrix()])
-    elif category == "cuboid":
-        rots = np.stack([np.eye(3)] + [Rotation.from_euler(a, 180, degrees=True).as_matrix()
-                                       for a in "xyz"])
-    elif category == "bottle":
-        rots = np.stack([np.eye(3), Rotation.from_euler("y", 180, degrees=True).as_matrix()])
-    else:
-        raise UnknownObjectError(f"unknown category {category!r}; known: {', '.join(CATEGORIES)}")
-    return np.stack([_rigid(R) for R in rots])

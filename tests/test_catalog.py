@@ -10,12 +10,12 @@ from dope_hope.catalog import (
     CATEGORIES,
     HOPE_OBJECTS,
     VERTICAL_AXIS,
-    category_symmetries,
     get_object,
 )
 from dope_hope.errors import DopeHopeError, UnknownObjectError
 from dope_hope.geometry import cuboid_keypoints, legacy_size_to_mesh
 from dope_hope.io.meshes import load_mesh, mesh_cuboid
+from dope_hope.symmetry.transforms import category_symmetries
 
 
 def test_28_objects_with_bop_ids_in_alphabetical_order():
@@ -95,7 +95,7 @@ def test_symmetry_group_shapes_identity_first_and_rotations():
         np.testing.assert_allclose(T[:, :3, 3], 0.0)
         np.testing.assert_allclose(T[:, 3], np.broadcast_to([0, 0, 0, 1], (n, 4)))
     assert category_symmetries("cylinder", step_deg=90).shape == (8, 4, 4)
-    assert get_object("Tuna").symmetries(step_deg=30).shape == (24, 4, 4)
+    assert category_symmetries(get_object("Tuna").category, step_deg=30).shape == (24, 4, 4)
     with pytest.raises(UnknownObjectError):
         category_symmetries("sphere")
 

@@ -2,7 +2,6 @@
 import numpy as np
 import trimesh
 
-from dope_hope.catalog import category_symmetries
 from dope_hope.demo_object import (
     DEMO_SIZE_M,
     demo_object_mesh,
@@ -10,7 +9,8 @@ from dope_hope.demo_object import (
     demo_texture,
     write_demo_object,
 )
-from dope_hope.io.symmetries import declared_symmetries
+from dope_hope.io.symmetries import model_info_declaration
+from dope_hope.symmetry.transforms import category_symmetries, declaration_transforms
 
 
 def test_mesh_is_a_centred_box_of_the_stated_size():
@@ -33,7 +33,7 @@ def test_every_face_looks_different_so_the_label_fixes_the_rotation():
 
 def test_geometry_is_invariant_under_the_declared_symmetries():
     """The declaration is the cuboid category's group (identity and the three flips)."""
-    declared = demo_symmetries().transforms()
+    declared = declaration_transforms(demo_symmetries())
     np.testing.assert_allclose(declared, category_symmetries("cuboid"), atol=1e-12)
     verts = demo_object_mesh().vertices
     for T in declared:
@@ -49,6 +49,6 @@ def test_written_obj_is_in_centimetres_with_its_texture(tmp_path):
     assert isinstance(loaded.visual, trimesh.visual.TextureVisuals)
     assert loaded.visual.uv.shape == (24, 2)
     # the declaration beside it is what every command reads for the box
-    found = declared_symmetries(mesh_path=path)
+    found = model_info_declaration(path)
     assert found.source == str(tmp_path / "model_info.json")
-    np.testing.assert_allclose(found.transforms(), demo_symmetries().transforms())
+    np.testing.assert_allclose(declaration_transforms(found), declaration_transforms(demo_symmetries()))

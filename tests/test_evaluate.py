@@ -580,6 +580,7 @@ def test_declared_symmetries_of_a_custom_object_are_used(tmp_path):
     import trimesh
 
     from dope_hope.io.symmetries import read_declaration
+    from dope_hope.symmetry.transforms import symmetries_from_models_info
 
     folder = tmp_path / "widget"
     folder.mkdir()
@@ -594,8 +595,8 @@ def test_declared_symmetries_of_a_custom_object_are_used(tmp_path):
     assert model.source.endswith(f"+ symmetries {folder / 'model_info.json'}")
     assert len(model.symmetries) == 2 * math.ceil(math.pi / 0.01)
     decl = read_declaration(folder / "model_info.json")
-    np.testing.assert_array_equal(model.symmetries, metrics.symmetries_from_models_info(decl.entry, unit=0.001))
-    np.testing.assert_array_equal(model.bop.symmetries, metrics.symmetries_from_models_info(decl.entry, unit=1.0))
+    np.testing.assert_array_equal(model.symmetries, symmetries_from_models_info(decl.entry, unit=0.001))
+    np.testing.assert_array_equal(model.bop.symmetries, symmetries_from_models_info(decl.entry, unit=1.0))
     # a turn about the declared axis costs nothing under MSSD
     R_e = rot("z", 73.0)
     err = metrics.mssd(R_e, np.zeros(3), np.eye(3), np.zeros(3), model.points, model.symmetries)

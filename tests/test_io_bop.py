@@ -21,9 +21,9 @@ from dope_hope.io.bop import (
     read_scene_gt_info,
     read_scene_gt_stored,
     read_test_targets,
-    symmetry_transforms,
 )
 from dope_hope.io.meshes import load_mesh
+from dope_hope.symmetry.transforms import symmetry_transforms
 
 K0 = [1390.5, 0.0, 964.9, 0.0, 1386.9, 522.5, 0.0, 0.0, 1.0]
 R_A = Rotation.from_euler("zyx", [30, 20, -50], degrees=True).as_matrix()

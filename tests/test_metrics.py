@@ -14,7 +14,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
-from dope_hope.catalog import category_symmetries
+from dope_hope.symmetry.transforms import category_symmetries, symmetries_from_models_info
 from dope_hope.evaluation import metrics
 
 I3 = np.eye(3)
@@ -318,7 +318,7 @@ def test_mspd_scales_with_focal_length():
 def test_symmetries_from_models_info_discretizes_like_the_bop_toolkit():
     info = {"symmetries_discrete": [[1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 20, 0, 0, 0, 1]],
             "symmetries_continuous": [{"axis": [0, 0, 2], "offset": [10, 0, 0]}]}
-    S = metrics.symmetries_from_models_info(info, max_sym_disc_step=0.01)
+    S = symmetries_from_models_info(info, max_sym_disc_step=0.01)
     steps = math.ceil(math.pi / 0.01)  # 315
     assert S.shape == (2 * steps, 4, 4)
     np.testing.assert_allclose(S[0], np.eye(4), atol=1e-12)
@@ -333,9 +333,9 @@ def test_symmetries_from_models_info_discretizes_like_the_bop_toolkit():
                                [0, 0, 2 * math.pi / steps], atol=1e-12)
     # discrete part combined: translation in metres (20 mm)
     np.testing.assert_allclose(S[steps, :3, 3], [0, 0, 0.02], atol=1e-12)
-    only_discrete = metrics.symmetries_from_models_info({"symmetries_discrete": info["symmetries_discrete"]})
+    only_discrete = symmetries_from_models_info({"symmetries_discrete": info["symmetries_discrete"]})
     assert only_discrete.shape == (2, 4, 4)
-    assert metrics.symmetries_from_models_info({}).shape == (1, 4, 4)
+    assert symmetries_from_models_info({}).shape == (1, 4, 4)
 
 
 def test_bop_units_keep_the_stored_numbers_and_errors_are_exact_on_integer_data():
@@ -344,7 +344,7 @@ def test_bop_units_keep_the_stored_numbers_and_errors_are_exact_on_integer_data(
     f = 1000, MSPD 15.0 px, exactly: the ties the BOP thresholds are compared with."""
     R_s = [1.0000001, 0, 0, 0, -1, 0, 0, 0, -1]
     info = {"symmetries_discrete": [R_s[0:3] + [0] + R_s[3:6] + [0] + R_s[6:9] + [20, 0, 0, 0, 1]]}
-    S = metrics.symmetries_from_models_info(info, unit=1.0)
+    S = symmetries_from_models_info(info, unit=1.0)
     np.testing.assert_array_equal(S[1, :3, :3].ravel(), R_s)
     assert S[1, 2, 3] == 20.0
     square = np.array([[-50.0, -50, 0], [50, -50, 0], [-50, 50, 0], [50, 50, 0]])
@@ -356,7 +356,7 @@ def test_bop_units_keep_the_stored_numbers_and_errors_are_exact_on_integer_data(
 
 def test_symmetries_of_the_shared_cylinder_model_make_axis_rotations_nearly_free(shared_data):
     info = json.loads((shared_data / "symmetric_models" / "cylinder" / "model_info.json").read_text())
-    syms = metrics.symmetries_from_models_info(info)
+    syms = symmetries_from_models_info(info)
     mesh = trimesh.load(str(shared_data / "symmetric_models" / "cylinder" / "textured.obj"), force="mesh")
     pts = np.asarray(mesh.vertices)
     pts = pts - (pts.max(0) + pts.min(0)) / 2

@@ -1,20 +1,21 @@
-"""symmetric_labels: one corner order per view of a symmetric object."""
+"""symmetry.labels: one corner order per view of a symmetric object."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dope_hope.catalog import category_symmetries, get_object
+from dope_hope.catalog import get_object
 from dope_hope.errors import ConfigError
 from dope_hope.geometry import cuboid_keypoints, intrinsics_matrix, project_points
-from dope_hope.training.settings import label_symmetries
-from dope_hope.training.symmetric_labels import (
+from dope_hope.symmetry.labels import (
     camera_direction,
     canonical_keypoints,
     canonical_permutation,
     corner_permutations,
 )
+from dope_hope.symmetry.resolve import label_symmetries
+from dope_hope.symmetry.transforms import category_symmetries
 
 K = intrinsics_matrix(615.0, 615.0, 319.5, 239.5)
 

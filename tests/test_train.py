@@ -360,7 +360,7 @@ def test_init_starts_from_a_checkpoint_with_a_fresh_schedule(frames, tmp_path):
 def test_symmetry_aware_labels_relabel_the_flipped_views(frames, tmp_path):
     """targets.symmetry auto (Ketchup: bottle, 180° about y): every instance seen from its
     back half gets the front-half labels; the others keep theirs; validation alike."""
-    from dope_hope.training.symmetric_labels import REFERENCE_VIEW
+    from dope_hope.symmetry.labels import REFERENCE_VIEW
     from dope_hope.training.trainer import Trainer
 
     plain = Trainer(TrainJob([frames], "Ketchup", tmp_path / "a", progress=False, overrides=_overrides()),
@@ -487,9 +487,9 @@ def test_label_symmetries_use_the_declaration_beside_the_mesh(tmp_path):
     axis plus the flip gives the cylinder category's corner-permuting turns."""
     import trimesh
 
-    from dope_hope.catalog import category_symmetries
     from dope_hope.errors import ConfigError
-    from dope_hope.training.settings import label_symmetries
+    from dope_hope.symmetry.resolve import label_symmetries
+    from dope_hope.symmetry.transforms import category_symmetries
 
     folder = tmp_path / "widget"
     folder.mkdir()

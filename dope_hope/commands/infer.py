@@ -54,8 +54,6 @@ icp_reason).
 from __future__ import annotations
 
 import argparse
-import glob
-import os
 import sys
 import time
 import warnings
@@ -64,11 +62,6 @@ from pathlib import Path
 from dope_hope.assets import DEMO_WEIGHTS  # used when --weights is not given
 from dope_hope.commands.argtypes import fixed_device, finite_float, positive_float, positive_int, working_side
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-#: Name endings of auxiliary images in dataset folders (not colour frames).
-AUX_SUFFIXES = (".depth.png", ".depth.exr", ".seg.png", ".seg.exr", "_depth.png", "_seg.png",
-                "_mask.png", ".mask.png", ".cs.png")
-_GLOB_CHARS = set("*?[")
 #: Frame rate of an overlay video when the source reports none.
 FALLBACK_FPS = 30.0
 #: Options of video and camera inputs only.
@@ -162,76 +155,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", type=fixed_device, default="cpu", help="torch device (cpu, cuda, cuda:1)")
     parser.add_argument("--threads", type=positive_int, help="CPU threads for the network")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-
-
-# ----------------------------------------------------------------------------- inputs
-def _is_image(path: Path) -> bool:
-    name = path.name.lower()
-    return path.suffix.lower() in IMAGE_SUFFIXES and not name.endswith(AUX_SUFFIXES) and not name.startswith(".")
-
-
-def _glob_base(pattern: str) -> Path:
-    """The fixed folder prefix of a glob pattern."""
-    parts = Path(pattern).parts
-    fixed = []
-    for part in parts[:-1]:
-        if _GLOB_CHARS & set(part):
-            break
-        fixed.append(part)
-    return Path(*fixed) if fixed else Path(".")
-
-
-def collect_images(inputs: list[str]) -> list[tuple[Path, str]]:
-    """(image path, record name) for each input image, in order, without duplicates.
-
-    A record name is the image's path relative to its input's base (the folder, the glob's
-    fixed prefix, the loose files' common folder); when the inputs have different bases,
-    relative to the bases' common folder instead, so that names never repeat
-    (``a/000000.png``, ``b/000000.png``).
-    """
-    from dope_hope.errors import InputFileError
-    from dope_hope.io.paths import path_kind, require_file
-
-    found: list[tuple[Path, Path]] = []  # (path, base folder for the name)
-    loose: list[Path] = []
-    for item in inputs:
-        p = Path(item)
-        if p.is_dir():
-            files = sorted(f for f in p.iterdir() if f.is_file() and _is_image(f))
-            if not files:
-                raise InputFileError(p, "folder holds no images (" + ", ".join(IMAGE_SUFFIXES) + ")")
-            found += [(f, p) for f in files]
-        elif p.is_file():
-            loose.append(p)
-        elif path_kind(p) is not None:
-            require_file(p, "image file")  # a named pipe, a socket...: says so
-        elif _GLOB_CHARS & set(item):
-            files = sorted(Path(f) for f in glob.glob(item, recursive=True)
-                           if Path(f).is_file() and _is_image(Path(f)))
-            if not files:
-                raise InputFileError(item, "no images match this pattern")
-            found += [(f, _glob_base(item)) for f in files]
-        else:
-            raise InputFileError(p, "image file not found")
-    if loose:
-        base = Path(os.path.commonpath([str(f.resolve().parent) for f in loose]))
-        found += [(f, base) for f in loose]
-    bases = {str(b.resolve()) for _, b in found}
-    if len(bases) > 1:
-        common = Path(os.path.commonpath(sorted(bases)))
-        found = [(f, common) for f, _ in found]
-    out, seen = [], set()
-    for f, base in found:
-        key = f.resolve()
-        if key in seen:
-            continue
-        seen.add(key)
-        try:
-            name = f.resolve().relative_to(base.resolve()).as_posix()
-        except ValueError:
-            name = f.name
-        out.append((f, name))
-    return out
 
 
 # ----------------------------------------------------------------------------- setup
@@ -334,6 +257,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from dope_hope.errors import ConfigError, DopeHopeError, OutputPathError
+    from dope_hope.io.images import collect_images
     from dope_hope.io.paths import output_dir
     from dope_hope.io.predictions import write_predictions_jsonl
     from dope_hope.io.sources import stream_kind

@@ -2,9 +2,8 @@
 
 Conventions: a pose is ``R`` (3, 3), ``t`` (3,) metres with ``x_c = R x + t``; model points
 are (N, 3) metres in the model frame; symmetries are (S, 4, 4) model-frame rigid transforms
-(metres) with the identity first (:func:`dope_hope.catalog.category_symmetries` or
-:func:`symmetries_from_models_info`). All errors are in metres, except MSPD (pixels), re
-(degrees) and VSD (a fraction in [0, 1]). The BOP errors (``mssd``, ``mspd``, ``vsd``) work in
+(metres) with the identity first (:mod:`dope_hope.symmetry.transforms`). All errors are in
+metres, except MSPD (pixels), re (degrees) and VSD (a fraction in [0, 1]). The BOP errors (``mssd``, ``mspd``, ``vsd``) work in
 whatever length unit they are given; BOP19 scoring gives them millimetres, as the toolkit.
 
 Names and definitions follow the BOP toolkit (``bop_toolkit_lib/pose_error.py``):
@@ -24,7 +23,6 @@ Euclidean distances, not of squared distances.
 from __future__ import annotations
 
 import math
-import os
 import threading
 from collections.abc import Sequence
 from typing import Any
@@ -441,44 +439,6 @@ def mspd(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray, K: 
         proj_gt_sym = project_pts(pts, K, R_g.dot(R_s), R_g.dot(t_s) + t_g)
         es.append(np.linalg.norm(proj_est - proj_gt_sym, axis=1).max())
     return float(min(es))
-
-
-# --------------------------------------------------------------------------- symmetries
-def symmetries_from_models_info(info: dict[str, Any], max_sym_disc_step: float = 0.01,
-                                unit: float = 0.001, source: str | os.PathLike = "models_info.json",
-                                where: str = "") -> np.ndarray:
-    """Symmetry transforms of one BOP ``models_info.json`` entry (or a symmetry declaration,
-    :mod:`dope_hope.io.symmetries`), as the BOP toolkit builds them
-    (``misc.get_symmetry_transformations``, same operations).
-
-    ``symmetries_discrete``: 4x4 row-major lists (R used as stored), translation in the file's
-    unit. ``symmetries_continuous``: ``{"axis": [x, y, z], "offset": [x, y, z]}``,
-    discretized into ``ceil(pi / max_sym_disc_step)`` rotations about the axis through
-    ``offset`` (so the point farthest from the axis moves at most ``max_sym_disc_step`` x
-    diameter per step); each discrete symmetry (identity included) is combined with each of
-    these rotations (:func:`dope_hope.io.bop.compose_symmetries`). The fields are read by
-    :func:`dope_hope.io.bop.parse_symmetries`.
-
-    Args:
-        unit: output units per file unit: 0.001 -> metres from millimetres (default), 1.0 ->
-            the file's numbers exactly (BOP19 scoring).
-        source, where: the file and entry, for error messages.
-
-    Returns:
-        (S, 4, 4) float, identity first.
-
-    Raises:
-        InputFileError: a malformed symmetry field (named with ``source`` and ``where``).
-    """
-    from dope_hope.io.bop import compose_symmetries, parse_symmetries
-    from dope_hope.io.jsonfields import JsonFields
-
-    discrete, continuous = parse_symmetries(JsonFields(source), info, where)
-    steps = int(np.ceil(np.pi / max_sym_disc_step)) if continuous else 0
-    out = compose_symmetries(discrete, continuous, steps)
-    if unit != 1.0:
-        out[:, :3, 3] *= unit
-    return out
 
 
 def depth_to_distance(depth: np.ndarray, K: np.ndarray) -> np.ndarray:

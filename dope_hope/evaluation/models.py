@@ -3,9 +3,9 @@
 :func:`load_models` builds one :class:`ObjectModel` per class from its mesh (found by
 :func:`dope_hope.io.models_dir.find_object_mesh`: ``--mesh``, then ``--models-dir``) or,
 without one, from the catalog's cuboid. Symmetries: the object's declaration
-(:mod:`dope_hope.io.symmetries`: a BOP ``models_info.json`` entry or ``model_info.json``
-beside the mesh, or ``--symmetries``; the one ``dope-hope demo`` writes for its box), else
-the catalog category's. Each also carries a :class:`BopModel`: the model as BOP19 scoring
+(:func:`dope_hope.symmetry.resolve.resolve_symmetries`: a BOP ``models_info.json`` entry
+beside the mesh, ``--symmetries``, ``model_info.json`` beside the mesh (the one
+``dope-hope demo`` writes for its box)), else the catalog category's. Each also carries a :class:`BopModel`: the model as BOP19 scoring
 uses it (every vertex of the file, millimetres).
 """
 from __future__ import annotations
@@ -18,8 +18,10 @@ from typing import Any
 
 import numpy as np
 
-from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
-from dope_hope.evaluation import metrics
+from dope_hope.errors import InputFileError, UnknownObjectError
+from dope_hope.io.symmetries import SymmetryDeclaration
+from dope_hope.symmetry.resolve import ObjectSymmetries, resolve_symmetries
+from dope_hope.symmetry.transforms import category_symmetries, centred_symmetries, symmetries_from_models_info
 
 #: Number of model points for the ADD family (the HOPE paper: 500).
 NUM_MODEL_POINTS = 500
@@ -79,15 +81,130 @@ class ObjectModel:
     bop: BopModel | None = None
 
 
-def _centred_symmetries(syms: np.ndarray, center: np.ndarray) -> np.ndarray:
-    """Symmetries about ``center`` instead of the origin: ``T(c) S T(-c)``."""
-    if np.allclose(center, 0.0, atol=1e-6):
-        return syms
-    T = np.eye(4)
-    T[:3, 3] = center
-    Ti = np.eye(4)
-    Ti[:3, 3] = -center
-    return np.einsum("ij,sjk,kl->sil", T, syms, Ti)
+@dataclass
+class _LoadedMesh:
+    """A class's mesh as loaded: the trimesh (metres), the file's vertices as stored (a PLY:
+    (points, faces or None); None for other formats), the file's unit and a description."""
+
+    mesh: Any
+    ply: tuple[np.ndarray, np.ndarray | None] | None
+    units: str
+    source: str
+
+
+def _load_mesh_file(path: Path, mesh_units: str | None) -> _LoadedMesh:
+    """Read one mesh for the metrics (a PLY without faces becomes a point cloud: no VSD)."""
+    import trimesh
+
+    from dope_hope.io.meshes import UNIT_SCALE, load_mesh, read_ply
+
+    ply, units, source = None, mesh_units or "mm", f"mesh {path}"
+    if path.suffix.lower() == ".ply":
+        ply = read_ply(path)  # as stored (BOP19 scoring); faces may be absent
+    if ply is not None and ply[1] is None:
+        return _LoadedMesh(trimesh.PointCloud(ply[0] * UNIT_SCALE[units]), ply, units,
+                           source + " (point cloud: no VSD)")
+    mesh = load_mesh(path, units=mesh_units)
+    return _LoadedMesh(mesh, ply, mesh.metadata["source_units"], source)
+
+
+def _check_box(name: str, loaded: _LoadedMesh, path: Path, obj: Any,
+               recorded_sizes: dict[str, tuple[np.ndarray, Path]] | None) -> None:
+    """A mesh without a BOP entry must match the box recorded for its object (the dataset's,
+    else the catalog's; extents in any axis order)."""
+    from dope_hope.io.meshes import check_mesh_box, mesh_cuboid
+
+    if recorded_sizes and name in recorded_sizes:
+        size, where = recorded_sizes[name]
+        check_mesh_box(mesh_cuboid(loaded.mesh)[0], size, str(path), name,
+                       f"the cuboid {Path(where).name} records", any_axis_order=True)
+    elif obj is not None:
+        check_mesh_box(mesh_cuboid(loaded.mesh)[0], obj.size_array, str(path), name,
+                       "the HOPE catalog's cuboid", any_axis_order=True)
+
+
+def _declared_model_symmetries(decl: SymmetryDeclaration, mesh: Any) -> tuple[np.ndarray, float]:
+    """A declaration's symmetries discretized as the BOP toolkit does ((S, 4, 4) metres) and
+    the diameter (the declaration's, else the mesh's), metres."""
+    from dope_hope.io.meshes import mesh_diameter
+
+    syms = symmetries_from_models_info(decl.entry, BOP19_MAX_SYM_DISC_STEP, unit=decl.unit_m, source=decl.source)
+    return syms, decl.diameter_m or mesh_diameter(mesh)
+
+
+def _bop_model(loaded: _LoadedMesh, path: Path | None, found: ObjectSymmetries, syms: np.ndarray,
+               diameter: float) -> BopModel:
+    """The model for BOP19 scoring: the file's vertices (to mm unless in mm), the declaration's
+    numbers in mm (as stored for a BOP one), else the metre symmetries and diameter x 1000."""
+    from dope_hope.io.meshes import UNIT_SCALE
+
+    if loaded.ply is not None:  # the file's vertices as stored; to mm unless in mm (BOP)
+        to_mm = UNIT_SCALE[loaded.units] / UNIT_SCALE["mm"]
+        verts, faces = (loaded.ply[0] if to_mm == 1.0 else loaded.ply[0] * to_mm), loaded.ply[1]
+    else:
+        verts, faces = 1000.0 * np.asarray(loaded.mesh.vertices, np.float64), np.asarray(loaded.mesh.faces)
+    decl = found.declaration
+    if decl is not None:
+        exact = (found.from_bop_table and loaded.ply is not None and "diameter" in decl.entry
+                 and decl.units == "mm")
+        return BopModel(verts, faces, decl.entry["diameter"] if exact else 1000.0 * diameter,
+                        symmetries_from_models_info(decl.entry, BOP19_MAX_SYM_DISC_STEP,
+                                                    unit=1000.0 * decl.unit_m, source=decl.source),
+                        exact=exact, path=path)
+    syms_mm = syms.copy()
+    syms_mm[:, :3, 3] *= 1000.0
+    return BopModel(verts, faces, 1000.0 * diameter, syms_mm, path=path)
+
+
+@dataclass
+class _ModelArgs:
+    """What :func:`load_models` was asked, shared by every class."""
+
+    mesh_units: str | None
+    n_points: int
+    cyl_step_deg: float
+    declared: dict[str, Any]
+    recorded_sizes: dict[str, tuple[np.ndarray, Path]] | None
+
+
+def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectModel:
+    """One class's :class:`ObjectModel` (see :func:`load_models`)."""
+    import trimesh
+
+    from dope_hope.catalog import get_object
+    from dope_hope.io.meshes import mesh_cuboid, mesh_diameter, sample_surface_points
+    from dope_hope.io.models_dir import bop_obj_id
+
+    try:
+        obj = get_object(name)
+    except UnknownObjectError:
+        obj = None
+    category, obj_id = (obj.category if obj else "other"), bop_obj_id(name)
+    explicit = models.declared.get(name)
+    if path is not None:
+        loaded = _load_mesh_file(path, models.mesh_units)
+        found = resolve_symmetries(name, path, explicit, loaded.units, obj_id)
+        if not found.from_bop_table:  # a BOP entry describes the dataset's own model
+            _check_box(name, loaded, path, obj, models.recorded_sizes)
+    elif obj is None:
+        raise UnknownObjectError(f"class {name!r} is not a HOPE object and no mesh was "
+                                 f"given for it (--mesh {name}=PATH)")
+    else:
+        loaded = _LoadedMesh(trimesh.creation.box(extents=obj.size_array), None, models.mesh_units or "mm",
+                             "procedural cuboid (catalog size; no mesh given)")
+        found = resolve_symmetries(name, None, explicit, loaded.units, obj_id)
+    points = sample_surface_points(loaded.mesh, models.n_points)
+    source = loaded.source
+    if found.declaration is not None:
+        syms, diameter = _declared_model_symmetries(found.declaration, loaded.mesh)
+        source += f" + symmetries {found.declaration.source}"
+    else:
+        syms = (category_symmetries(category, step_deg=models.cyl_step_deg) if obj else np.eye(4)[None])
+        syms = centred_symmetries(syms, mesh_cuboid(loaded.mesh)[1])
+        diameter = mesh_diameter(loaded.mesh)
+    return ObjectModel(name=name, obj_id=obj_id, category=category, points=points, diameter=diameter,
+                       symmetries=syms, mesh=loaded.mesh, source=source, procedural=path is None,
+                       bop=_bop_model(loaded, path, found, syms, diameter))
 
 
 def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
@@ -100,15 +217,15 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
     Mesh: ``--mesh [NAME=]PATH``, then ``--models-dir`` (the search order of
     :mod:`dope_hope.io.models_dir`); else a **procedural** stand-in: points on the surface of
     the catalog cuboid (reported as such). Symmetries and diameter: the object's declaration
-    (:func:`dope_hope.io.symmetries.declared_symmetries`: a BOP ``models_info.json`` entry
+    (:func:`dope_hope.symmetry.resolve.resolve_symmetries`: a BOP ``models_info.json`` entry
     beside the mesh, else ``--symmetries [NAME=]FILE``, else ``model_info.json`` beside the
     mesh; lengths in the mesh's unit), discretized as the toolkit does from the numbers as
-    written (:func:`metrics.symmetries_from_models_info`); else the catalog category's
-    (cylinders in ``cyl_step_deg`` steps) about the mesh's box centre; a class outside the
-    catalog without a declaration has only the identity. The tables use ``n_points`` surface
-    samples; BOP19 scoring (``ObjectModel.bop``) every vertex of the file, as the toolkit (a
-    PLY is read as stored: :func:`io.meshes.read_ply`); a BOP PLY in mm with its
-    ``models_info.json`` entry (diameter included) is the toolkit's exact input.
+    written (:func:`dope_hope.symmetry.transforms.symmetries_from_models_info`); else the
+    catalog category's (cylinders in ``cyl_step_deg`` steps) about the mesh's box centre; a
+    class outside the catalog without a declaration has only the identity. The tables use
+    ``n_points`` surface samples; BOP19 scoring (``ObjectModel.bop``) every vertex of the
+    file, as the toolkit (a PLY is read as stored: :func:`io.meshes.read_ply`); a BOP PLY in
+    mm with its ``models_info.json`` entry (diameter included) is the toolkit's exact input.
 
     A mesh without a BOP entry must match the box recorded for its object
     (io.meshes.check_mesh_box, extents in any axis order): the dataset's (``recorded_sizes``:
@@ -121,95 +238,15 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
         whose ``models_info.json`` entry declares them; a class neither in the catalog nor
         given a mesh. ConfigError: a mesh whose box does not match.
     """
-    import trimesh
-
-    from dope_hope.catalog import category_symmetries, get_object
-    from dope_hope.io.meshes import (
-        UNIT_SCALE,
-        check_mesh_box,
-        load_mesh,
-        mesh_cuboid,
-        mesh_diameter,
-        read_ply,
-        sample_surface_points,
-    )
-    from dope_hope.io.models_dir import bop_obj_id, find_object_mesh, parse_mesh_args
-    from dope_hope.io.symmetries import declared_symmetries, find_declaration
+    from dope_hope.io.models_dir import find_object_mesh, parse_mesh_args
 
     meshes = parse_mesh_args(mesh_args, class_names)
-    declared = parse_mesh_args(symmetry_args, class_names, flag="--symmetries")
+    args = _ModelArgs(mesh_units, n_points, cyl_step_deg,
+                      parse_mesh_args(symmetry_args, class_names, flag="--symmetries"), recorded_sizes)
     if models_dir is not None and not os.path.isdir(models_dir):
         raise InputFileError(models_dir, "models folder not found")
     out: dict[str, ObjectModel] = {}
     for name in class_names:
-        try:
-            obj = get_object(name)
-        except UnknownObjectError:
-            obj = None
-        category = obj.category if obj else "other"
-        obj_id = bop_obj_id(name)
         path = find_object_mesh(name, models_dir, meshes, required=False)
-        ply, decl, bop_entry, units = None, None, False, mesh_units or "mm"
-        if path is not None:
-            path = Path(path)
-            source = f"mesh {path}"
-            if path.suffix.lower() == ".ply":
-                ply = read_ply(path)  # as stored (BOP19 scoring); faces may be absent
-            if ply is not None and ply[1] is None:
-                mesh = trimesh.PointCloud(ply[0] * UNIT_SCALE[units])
-                source += " (point cloud: no VSD)"
-            else:
-                mesh = load_mesh(path, units=mesh_units)
-                units = mesh.metadata["source_units"]
-            decl = declared_symmetries(None, path, units, obj_id)
-            bop_entry = decl is not None and find_declaration(path).name == "models_info.json"
-            if bop_entry and declared.get(name) is not None:
-                raise ConfigError(f"--symmetries for {name} would be ignored: its models_info.json entry "
-                                  f"({decl.source}) declares the symmetries BOP scoring uses; drop one of "
-                                  f"the two")
-            if bop_entry:
-                pass  # the dataset's own model, described by its models_info.json entry
-            elif recorded_sizes and name in recorded_sizes:
-                size, where = recorded_sizes[name]
-                check_mesh_box(mesh_cuboid(mesh)[0], size, str(path), name,
-                               f"the cuboid {Path(where).name} records", any_axis_order=True)
-            elif obj is not None:
-                check_mesh_box(mesh_cuboid(mesh)[0], obj.size_array, str(path), name,
-                               "the HOPE catalog's cuboid", any_axis_order=True)
-        elif obj is None:
-            raise UnknownObjectError(f"class {name!r} is not a HOPE object and no mesh was "
-                                     f"given for it (--mesh {name}=PATH)")
-        else:
-            mesh = trimesh.creation.box(extents=obj.size_array)
-            source = "procedural cuboid (catalog size; no mesh given)"
-        if not bop_entry and declared.get(name) is not None:
-            decl = declared_symmetries(declared[name], path, units, obj_id)
-        points = sample_surface_points(mesh, n_points)
-        if decl is not None:
-            syms = metrics.symmetries_from_models_info(decl.entry, BOP19_MAX_SYM_DISC_STEP,
-                                                       unit=decl.unit_m, source=decl.source)
-            diameter = decl.diameter_m or mesh_diameter(mesh)
-            source += f" + symmetries {decl.source}"
-        else:
-            syms = (category_symmetries(category, step_deg=cyl_step_deg) if obj else np.eye(4)[None])
-            syms = _centred_symmetries(syms, mesh_cuboid(mesh)[1])
-            diameter = mesh_diameter(mesh)
-        if ply is not None:  # the file's vertices as stored; to mm unless in mm (BOP)
-            to_mm = UNIT_SCALE[units] / UNIT_SCALE["mm"]
-            verts, faces = (ply[0] if to_mm == 1.0 else ply[0] * to_mm), ply[1]
-        else:
-            verts, faces = 1000.0 * np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces)
-        if decl is not None:  # the declaration's numbers, in mm (as stored for a BOP one)
-            exact = bop_entry and ply is not None and "diameter" in decl.entry and decl.units == "mm"
-            bop = BopModel(verts, faces, decl.entry["diameter"] if exact else 1000.0 * diameter,
-                           metrics.symmetries_from_models_info(decl.entry, BOP19_MAX_SYM_DISC_STEP,
-                                                               unit=1000.0 * decl.unit_m, source=decl.source),
-                           exact=exact, path=path)
-        else:
-            syms_mm = syms.copy()
-            syms_mm[:, :3, 3] *= 1000.0
-            bop = BopModel(verts, faces, 1000.0 * diameter, syms_mm, path=path)
-        out[name] = ObjectModel(name=name, obj_id=obj_id, category=category, points=points,
-                                diameter=diameter, symmetries=syms, mesh=mesh, source=source,
-                                procedural=path is None, bop=bop)
+        out[name] = _object_model(name, None if path is None else Path(path), args)
     return out

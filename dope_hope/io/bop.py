@@ -7,7 +7,8 @@ Readers for the scene-wise BOP files, everything converted to metres at this bou
 - ``scene_gt.json``      -> :func:`read_scene_gt`      {im_id: [(obj_id, R (3, 3), t (3,) m)]}
   (:func:`read_scene_gt_stored`: the numbers as stored, millimetres, for BOP19 scoring)
 - ``scene_gt_info.json`` -> :func:`read_scene_gt_info` {im_id: [GtInfo]}
-- ``models_info.json`` / per-model ``model_info.json`` -> :func:`read_models_info`
+- ``models_info.json`` / per-model ``model_info.json`` -> :func:`read_models_info` (the
+  symmetry fields as stored, in metres; what they mean as transforms: :mod:`dope_hope.symmetry`)
 - ``test_targets_bop19.json`` -> :func:`read_test_targets`
 - a split folder (``<split>/<scene_id:06d>/{rgb,depth}/<im_id:06d>.png|jpg``) as
   FrameAnnotation objects -> :func:`iter_bop_split`
@@ -16,7 +17,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple, TypeVar
@@ -333,70 +334,3 @@ def iter_bop_split(split_dir: str | os.PathLike, scene_ids: list[int] | None = N
                 K=K, width=width, height=height, objects=objects, image_path=image,
                 depth_path=_image_file(scene / "depth", im_id), depth_scale_m=depth_scale_m)
             yield BopFrame(scene_id, im_id, frame)
-
-
-def _axis_rotation(angle: float, axis: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation by ``angle`` (rad) about ``axis`` (normalized here), with the
-    operations of the BOP toolkit's ``transform.rotation_matrix`` (Gohlke's transformations)."""
-    sina, cosa = math.sin(angle), math.cos(angle)
-    d = np.array(axis[:3], dtype=np.float64, copy=True)
-    d /= math.sqrt(np.dot(d, d))
-    R = np.diag([cosa, cosa, cosa])
-    R += np.outer(d, d) * (1.0 - cosa)
-    d *= sina
-    R += np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
-    return R
-
-
-def compose_symmetries(discrete: Sequence[np.ndarray],
-                       continuous: Sequence[tuple[np.ndarray, np.ndarray]], steps: int) -> np.ndarray:
-    """Discrete symmetries combined with discretized continuous ones, as the BOP toolkit's
-    ``get_symmetry_transformations`` builds them (same operations, so the same numbers).
-
-    Args:
-        discrete: (4, 4) model-frame transforms, the identity NOT included (it is put first
-            here); used as given.
-        continuous: (axis (3,), offset (3,)) rotational symmetries, lengths in the unit of the
-            discrete translations; each is sampled at ``k * 2 pi / steps``, k = 0 .. steps - 1
-            (so the identity is kept), about the axis through ``offset``.
-        steps: rotations per continuous symmetry.
-
-    Returns:
-        (S, 4, 4) float, identity first: each discrete symmetry (identity included) composed
-        with each continuous rotation, ``R = R_c R_d``, ``t = R_c t_d + t_c``; just the
-        discrete ones when no continuous rotation is sampled.
-    """
-    discrete = [np.eye(4)] + [np.asarray(D, dtype=np.float64) for D in discrete]
-    rotations = []
-    for axis, offset in continuous:
-        step = 2.0 * np.pi / steps
-        offset = np.asarray(offset, dtype=np.float64).reshape((3, 1))
-        for i in range(steps):
-            R = _axis_rotation(i * step, np.asarray(axis, dtype=np.float64))
-            rotations.append((R, -R.dot(offset) + offset))
-    if not rotations:
-        return np.stack(discrete)
-    out = []
-    for D in discrete:
-        R_d, t_d = D[:3, :3], D[:3, 3].reshape((3, 1))
-        for R_c, t_c in rotations:
-            T = np.eye(4)
-            T[:3, :3] = R_c.dot(R_d)
-            T[:3, 3:] = R_c.dot(t_d) + t_c
-            out.append(T)
-    return np.stack(out)
-
-
-def symmetry_transforms(info: dict, step_deg: float = 1.0) -> np.ndarray:
-    """All symmetry transforms of a model (from :func:`parse_model_info`), metres.
-
-    Continuous symmetries (rotation about ``axis`` through ``offset``) are sampled every
-    ``step_deg`` (at most; the step divides 360°) and composed with the discrete ones by
-    :func:`compose_symmetries`; discrete entries equal to the identity are dropped.
-
-    Returns:
-        (S, 4, 4) float, identity first: ``x' = T[:3, :3] x + T[:3, 3]``.
-    """
-    discrete = [T for T in info.get("symmetries_discrete", []) if not np.allclose(T, np.eye(4))]
-    steps = max(1, int(np.ceil(360.0 / step_deg)))
-    return compose_symmetries(discrete, info.get("symmetries_continuous", []), steps)

@@ -86,12 +86,11 @@ from dope_hope.geometry import (
     quaternion_xyzw_to_matrix,
 )
 from dope_hope.io.atomic import atomic_write_text
-from dope_hope.io.images import image_size, read_depth_m
+from dope_hope.io.images import IMAGE_SUFFIXES, image_size, read_depth_m
 from dope_hope.io.jsonfields import JsonFields as _Fields
 from dope_hope.io.jsonfields import load_json_object as _load_json
 
 FORMAT_NAME = "dope-hope"
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 _UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 _KEYPOINT_ORDERS = (KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER)
 #: Corner sign patterns, in the object's own frame, of each keypoint order.
@@ -127,7 +126,7 @@ def _first_existing(candidates: list[Path]) -> Path | None:
 def find_image(json_path: str | os.PathLike) -> Path | None:
     """``NNNNNN.png`` / ``.jpg`` beside ``NNNNNN.json``, or None."""
     stem = _frame_stem(Path(json_path))
-    return _first_existing([stem.with_name(stem.name + s) for s in IMAGE_SUFFIXES])
+    return _first_existing([stem.with_name(stem.name + s) for s in IMAGE_SUFFIXES[:3]])
 
 
 def _siblings(path: Path) -> tuple[Path | None, Path | None, Path | None]:

@@ -7,6 +7,7 @@ one-line error of the file, or drop them when the image decoded whole.
 from __future__ import annotations
 
 import contextlib
+import glob
 import os
 import sys
 import tempfile
@@ -19,10 +20,16 @@ import numpy as np
 
 from dope_hope.errors import InputFileError
 from dope_hope.io.atomic import atomic_write_bytes
-from dope_hope.io.paths import require_file
+from dope_hope.io.paths import path_kind, require_file
 
-#: Suffixes taken as photographs when a folder of images is scanned (backgrounds, calibration).
+#: Suffixes of image files, the one list: folders of images (``infer`` inputs, backgrounds,
+#: INT8 calibration) and a DOPE frame's image beside its JSON (the first three, in this order).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+#: Name endings of auxiliary images in dataset folders (not colour frames).
+AUX_SUFFIXES = (".depth.png", ".depth.exr", ".seg.png", ".seg.exr", "_depth.png", "_seg.png",
+                "_mask.png", ".mask.png", ".cs.png")
+#: Characters that make an input a glob pattern.
+GLOB_CHARS = set("*?[")
 
 
 def image_files(folder: str | os.PathLike, recursive: bool = False) -> list[Path]:
@@ -30,6 +37,74 @@ def image_files(folder: str | os.PathLike, recursive: bool = False) -> list[Path
     are reproducible. The caller checks that the folder exists and says what it is for."""
     entries = Path(folder).rglob("*") if recursive else Path(folder).iterdir()
     return sorted(p for p in entries if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def is_colour_image(path: Path) -> bool:
+    """An input image by name: an :data:`IMAGE_SUFFIXES` suffix, not an auxiliary image of a
+    dataset (:data:`AUX_SUFFIXES`), not hidden."""
+    name = path.name.lower()
+    return path.suffix.lower() in IMAGE_SUFFIXES and not name.endswith(AUX_SUFFIXES) and not name.startswith(".")
+
+
+def _glob_base(pattern: str) -> Path:
+    """The fixed folder prefix of a glob pattern."""
+    parts = Path(pattern).parts
+    fixed = []
+    for part in parts[:-1]:
+        if GLOB_CHARS & set(part):
+            break
+        fixed.append(part)
+    return Path(*fixed) if fixed else Path(".")
+
+
+def collect_images(inputs: list[str]) -> list[tuple[Path, str]]:
+    """(image path, record name) for each input image, in order, without duplicates.
+
+    A record name is the image's path relative to its input's base (the folder, the glob's
+    fixed prefix, the loose files' common folder); when the inputs have different bases,
+    relative to the bases' common folder instead, so that names never repeat
+    (``a/000000.png``, ``b/000000.png``).
+    """
+    found: list[tuple[Path, Path]] = []  # (path, base folder for the name)
+    loose: list[Path] = []
+    for item in inputs:
+        p = Path(item)
+        if p.is_dir():
+            files = sorted(f for f in p.iterdir() if f.is_file() and is_colour_image(f))
+            if not files:
+                raise InputFileError(p, "folder holds no images (" + ", ".join(IMAGE_SUFFIXES) + ")")
+            found += [(f, p) for f in files]
+        elif p.is_file():
+            loose.append(p)
+        elif path_kind(p) is not None:
+            require_file(p, "image file")  # a named pipe, a socket...: says so
+        elif GLOB_CHARS & set(item):
+            files = sorted(Path(f) for f in glob.glob(item, recursive=True)
+                           if Path(f).is_file() and is_colour_image(Path(f)))
+            if not files:
+                raise InputFileError(item, "no images match this pattern")
+            found += [(f, _glob_base(item)) for f in files]
+        else:
+            raise InputFileError(p, "image file not found")
+    if loose:
+        base = Path(os.path.commonpath([str(f.resolve().parent) for f in loose]))
+        found += [(f, base) for f in loose]
+    bases = {str(b.resolve()) for _, b in found}
+    if len(bases) > 1:
+        common = Path(os.path.commonpath(sorted(bases)))
+        found = [(f, common) for f, _ in found]
+    out, seen = [], set()
+    for f, base in found:
+        key = f.resolve()
+        if key in seen:
+            continue
+        seen.add(key)
+        try:
+            name = f.resolve().relative_to(base.resolve()).as_posix()
+        except ValueError:
+            name = f.name
+        out.append((f, name))
+    return out
 
 
 #: libjpeg warnings that mean pixels are missing or invented (the decoder fills them in).

@@ -30,6 +30,7 @@ import numpy as np
 
 from dope_hope.errors import CameraError, ConfigError, DeviceError, InputFileError
 from dope_hope.io.camera import ImageCamera, Rectification
+from dope_hope.io.images import GLOB_CHARS
 
 #: File suffixes read as videos.
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".flv")
@@ -38,7 +39,6 @@ REALSENSE_DEFAULT_SIZE = (640, 480)
 REALSENSE_DEFAULT_FPS = 30
 #: How long a RealSense read may wait for a frame set, milliseconds.
 REALSENSE_TIMEOUT_MS = 5000
-_GLOB_CHARS = set("*?[")
 _REALSENSE = "realsense"
 
 
@@ -317,7 +317,7 @@ def stream_kind(item: str) -> str | None:
         return "camera"
     if item == _REALSENSE or item.startswith(_REALSENSE + ":"):
         return "realsense"
-    if Path(item).suffix.lower() in VIDEO_SUFFIXES and not (_GLOB_CHARS & set(item)):
+    if Path(item).suffix.lower() in VIDEO_SUFFIXES and not (GLOB_CHARS & set(item)):
         return "video"
     return None
 

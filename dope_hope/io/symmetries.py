@@ -11,10 +11,10 @@ keyed by obj_id. Lengths (translations, offsets, diameter) are in the unit of th
 belongs to: millimetres for BOP, centimetres beside a HOPE OBJ. A transform maps the model
 onto itself, ``x' = R x + t``, in the model frame.
 
-Where a declaration comes from: a file named on the command line (``--symmetries``), else
-``model_info.json`` beside the mesh (or ``models_info.json`` there, with the object's
-obj_id). Training labels, ``dope-hope demo``, the evaluation tables and BOP AR all take it
-from here; objects without one fall back on the HOPE catalog's category.
+This module reads and finds declaration files; which one an object uses (the one resolution
+order of training labels, ``dope-hope demo``, the evaluation tables and BOP AR) is
+:func:`dope_hope.symmetry.resolve.resolve_symmetries`, and what a declaration means as
+transforms is :mod:`dope_hope.symmetry.transforms`.
 """
 from __future__ import annotations
 
@@ -23,10 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from dope_hope.errors import InputFileError
-from dope_hope.io.bop import parse_model_info, symmetry_transforms
+from dope_hope.io.bop import parse_model_info
 from dope_hope.io.jsonfields import JsonFields, load_json_object
 from dope_hope.io.meshes import DEFAULT_UNITS, UNIT_SCALE
 
@@ -56,12 +54,6 @@ class SymmetryDeclaration:
     def unit_m(self) -> float:
         """Metres per length unit of ``entry``."""
         return UNIT_SCALE[self.units]
-
-    def transforms(self, step_deg: float = 1.0) -> np.ndarray:
-        """(S, 4, 4) model-frame transforms in metres, identity first; continuous symmetries
-        sampled every ``step_deg`` (90 gives the ones that can permute cuboid corners)."""
-        info = parse_model_info(JsonFields(self.source), self.entry, "", self.units)
-        return symmetry_transforms(info, step_deg)
 
     @property
     def diameter_m(self) -> float | None:
@@ -100,37 +92,31 @@ def read_declaration(path: str | os.PathLike, units: str = "mm",
     return SymmetryDeclaration(kept, units, f"{path}" + (f" [{where}]" if where else ""))
 
 
-def find_declaration(mesh_path: str | os.PathLike) -> Path | None:
-    """``model_info.json`` / ``models_info.json`` in the mesh's folder, or None."""
-    folder = Path(mesh_path).parent
-    return next((folder / n for n in DECLARATION_NAMES if (folder / n).is_file()), None)
-
-
 def mesh_units(mesh_path: str | os.PathLike, units: str | None = None) -> str:
     """The unit of a mesh file: ``units`` if given, else the default of its suffix (mm)."""
     return units or DEFAULT_UNITS.get(Path(mesh_path).suffix.lower(), "mm")
 
 
-def declared_symmetries(explicit: str | os.PathLike | None = None,
-                        mesh_path: str | os.PathLike | None = None, units: str | None = None,
-                        obj_id: int | None = None) -> SymmetryDeclaration | None:
-    """The declaration of one object: ``explicit`` (a file named by the user), else the one
-    beside ``mesh_path``; None when neither exists (or a BOP table there has no entry for the
-    object: ``obj_id``, else the ``obj_NNNNNN`` mesh name). Lengths are in ``units``, else
-    the mesh's unit (its suffix's default), else millimetres (BOP)."""
-    unit = mesh_units(mesh_path, units) if mesh_path is not None else (units or "mm")
-    if explicit is not None:
-        return read_declaration(explicit, unit, obj_id)
-    if mesh_path is None:
+def bop_table_declaration(mesh_path: str | os.PathLike, units: str | None = None,
+                          obj_id: int | None = None) -> SymmetryDeclaration | None:
+    """The object's entry in a BOP ``models_info.json`` beside the mesh (obj_id from an
+    ``obj_NNNNNN`` mesh name, else ``obj_id``), lengths in ``units`` (else the mesh's unit);
+    None when there is no such file or entry."""
+    path = Path(mesh_path).parent / DECLARATION_NAMES[1]
+    stem = Path(mesh_path).stem
+    if stem.startswith("obj_") and stem[4:].isdigit():
+        obj_id = int(stem[4:])
+    if obj_id is None or not path.is_file():
         return None
-    path = find_declaration(mesh_path)
-    if path is None:
+    data = load_json_object(path, "symmetry declaration")
+    if str(obj_id) not in {str(int(k)) for k in data if str(k).isdigit()}:
         return None
-    if path.name == "models_info.json":
-        stem = Path(mesh_path).stem
-        if stem.startswith("obj_") and stem[4:].isdigit():
-            obj_id = int(stem[4:])
-        data = load_json_object(path, "symmetry declaration")
-        if obj_id is None or str(obj_id) not in {str(int(k)) for k in data if str(k).isdigit()}:
-            return None
-    return read_declaration(path, unit, obj_id)
+    return read_declaration(path, mesh_units(mesh_path, units), obj_id)
+
+
+def model_info_declaration(mesh_path: str | os.PathLike, units: str | None = None,
+                           obj_id: int | None = None) -> SymmetryDeclaration | None:
+    """``model_info.json`` (one object's declaration; ``obj_id`` picks the entry if it holds a
+    table) beside the mesh, lengths in ``units`` (else the mesh's unit); None when there is none."""
+    path = Path(mesh_path).parent / DECLARATION_NAMES[0]
+    return read_declaration(path, mesh_units(mesh_path, units), obj_id) if path.is_file() else None

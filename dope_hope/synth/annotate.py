@@ -76,16 +76,13 @@ def annotate_frame(spec: SceneSpec, render: RenderOutput, class_name: str, cuboi
 
 def canonical_pose_labels(spec: SceneSpec, category: str, cuboid_size: np.ndarray) -> SceneSpec:
     """The scene with each target's rotation replaced by its symmetric equivalent ``R S`` that
-    :mod:`dope_hope.training.symmetric_labels` makes canonical for a HOPE ``category`` (what
+    :mod:`dope_hope.symmetry.labels` makes canonical for a HOPE ``category`` (what
     ``targets.symmetry=auto`` does to a HOPE object of that category), for annotation only:
     the model frame must be centred on the cuboid (procedural objects are)."""
     from dataclasses import replace
 
-    from dope_hope.catalog import category_symmetries
-    from dope_hope.training.symmetric_labels import (
-        canonical_rotation,
-        corner_permutations,
-    )
+    from dope_hope.symmetry.labels import canonical_rotation, corner_permutations
+    from dope_hope.symmetry.transforms import category_symmetries
 
     rotations, _ = corner_permutations(cuboid_size, category_symmetries(category, step_deg=90.0))
     objects = [replace(o, R=canonical_rotation(o.R, o.t, rotations)) if o.role == "target" else o

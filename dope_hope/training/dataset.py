@@ -38,7 +38,7 @@ from dope_hope.geometry import (
     legacy_keypoints_to_current,
 )
 from dope_hope.training.augment import AugmentParams, augment
-from dope_hope.training.symmetric_labels import camera_direction, canonical_keypoints
+from dope_hope.symmetry.labels import camera_direction, canonical_keypoints
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +86,7 @@ class FrameRecord:
     image_path: Path
     keypoints: np.ndarray  # (I, 9, 2) float64 in the model's keypoint order
     #: (I, 3) unit camera direction in each instance's object frame (NaN without a pose);
-    #: what symmetry-aware relabelling (dope_hope.training.symmetric_labels) decides on.
+    #: what symmetry-aware relabelling (dope_hope.symmetry.labels) decides on.
     view_dirs: np.ndarray | None = None
 
 
@@ -321,8 +321,8 @@ class EpochSampler(Sampler):
 def relabel_symmetric(records: list[FrameRecord], rotations: np.ndarray,
                       permutations: np.ndarray) -> list[FrameRecord]:
     """Records with each instance's keypoints in the canonical order of its view (see
-    :mod:`dope_hope.training.symmetric_labels`); ``rotations``/``permutations`` from
-    :func:`~dope_hope.training.symmetric_labels.corner_permutations`. Instances without a recorded
+    :mod:`dope_hope.symmetry.labels`); ``rotations``/``permutations`` from
+    :func:`~dope_hope.symmetry.labels.corner_permutations`. Instances without a recorded
     pose keep their order."""
     out = []
     for r in records:

@@ -6,10 +6,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 
 from dope_hope.assets import DEMO_WEIGHTS, PRETRAINED_WEIGHTS
 from dope_hope.errors import ConfigError, UnknownObjectError
+from dope_hope.symmetry.resolve import label_symmetries  # noqa: F401 (the trainer's import)
 
 if TYPE_CHECKING:
     from dope_hope.training.trainer import Trainer
@@ -48,7 +48,7 @@ class TrainJob:
         resume: checkpoint to continue from, or None.
         mesh: optional mesh whose AABB gives the cuboid size recorded in the checkpoint.
         symmetries: optional symmetry declaration file (else ``model_info.json`` beside the
-            mesh is used when present; :mod:`dope_hope.io.symmetries`).
+            mesh is used when present; :mod:`dope_hope.symmetry.resolve`).
         backbone_weights: optional local VGG19 state dict (arch dope).
         init_weights: optional dope-hope checkpoint whose network weights start this run
             (fine-tuning: fresh optimizer, schedule and step count; same architecture).
@@ -184,49 +184,6 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None) -> tuple[d
         raise ConfigError(f"cannot tell the cuboid size of {name!r}: the dataset records none and it is "
                           "not a HOPE object; pass --mesh")
     return make_object_info(name, hope.size_array, "mesh"), "catalog"
-
-
-def label_symmetries(setting: Any, object_name: str, declaration_file: Path | None = None,
-                     mesh: Path | None = None) -> tuple[np.ndarray, str] | None:
-    """Symmetries whose corner permutations relabel the keypoints (config ``targets.symmetry``):
-    ``((S, 4, 4) model-frame transforms, where they come from)``, or None.
-
-    "none" (default, the official DOPE labels); "auto": the object's declaration
-    (:mod:`dope_hope.io.symmetries`: ``declaration_file``, else ``model_info.json`` beside
-    ``mesh``), else the demo box's, else the HOPE catalog's category of the object; or a
-    category name: "cuboid", "bottle", "cylinder". Continuous symmetries are sampled every 90
-    degrees (the only turns that can permute box corners).
-
-    Raises:
-        ConfigError: an unknown setting; a declaration file with a setting other than auto.
-    """
-    from dope_hope.catalog import CATEGORIES, category_symmetries, get_object
-
-    value = "none" if setting in (None, False) else str(setting).lower()
-    if declaration_file is not None and value != "auto":
-        raise ConfigError(f"--symmetries {declaration_file}: targets.symmetry is {value}; add "
-                          "--set targets.symmetry=auto to relabel with the declared symmetries")
-    if value == "none":
-        return None
-    if value == "auto":
-        from dope_hope.demo_object import DEMO_CLASS_NAME, demo_symmetries
-        from dope_hope.io.symmetries import declared_symmetries
-
-        declaration = declared_symmetries(declaration_file, mesh)
-        if declaration is None and object_name.lower() == DEMO_CLASS_NAME.lower():
-            declaration = demo_symmetries()
-        if declaration is not None:
-            return declaration.transforms(step_deg=90.0), f"declared in {declaration.source}"
-        try:
-            category = get_object(object_name).category
-        except UnknownObjectError:
-            raise ConfigError(f"targets.symmetry auto: {object_name!r} is not a HOPE object and declares "
-                              "no symmetries (--symmetries FILE, or model_info.json beside --mesh); set "
-                              f"targets.symmetry to one of {', '.join(CATEGORIES)} or none") from None
-        return category_symmetries(category, step_deg=90.0), f"{category} category"
-    if value not in CATEGORIES:
-        raise ConfigError(f"targets.symmetry must be none, auto or one of {', '.join(CATEGORIES)}; got {setting!r}")
-    return category_symmetries(value, step_deg=90.0), f"{value} category"
 
 
 def resolve_init(choice: str | None, config: dict[str, Any]) -> tuple[Path | None, str]:

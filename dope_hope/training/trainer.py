@@ -148,7 +148,7 @@ class Trainer:
         self.symmetry_permutations = 1
         if symmetry is not None:
             from dope_hope.training.dataset import relabel_symmetric
-            from dope_hope.training.symmetric_labels import corner_permutations
+            from dope_hope.symmetry.labels import corner_permutations
 
             rots, perms = corner_permutations(np.asarray(self.object["size_m"]), symmetry[0])
             self.symmetry_permutations = len(perms)

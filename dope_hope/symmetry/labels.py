@@ -33,7 +33,7 @@ def corner_permutations(size_m: np.ndarray, symmetries: np.ndarray,
     Args:
         size_m: (3,) cuboid extents, metres (mesh frame, box centred on the origin).
         symmetries: (S, 4, 4) or (S, 3, 3) model-frame symmetry transforms (identity included),
-            e.g. :func:`dope_hope.catalog.category_symmetries`.
+            e.g. :func:`dope_hope.symmetry.transforms.category_symmetries`.
         tol: largest corner mismatch accepted, as a fraction of the box diagonal.
 
     Returns:

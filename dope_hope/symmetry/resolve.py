@@ -1,0 +1,131 @@
+"""Which symmetries an object has: the one resolution order.
+
+Training labels (``targets.symmetry auto``), ``dope-hope demo`` and the evaluation
+(``dope-hope evaluate``, BOP AR) all ask :func:`resolve_symmetries`. The first that exists wins:
+
+1. the object's entry in a BOP ``models_info.json`` beside its mesh (the dataset's own
+   description; naming another declaration as well is refused);
+2. a declaration named by the user (``--symmetries``);
+3. ``model_info.json`` beside the mesh;
+4. the built-in declaration of the demo box (:mod:`dope_hope.demo_object`);
+5. the HOPE catalog's category of the object.
+
+An object with none of these has no symmetries (the evaluation scores it with the identity
+only; ``targets.symmetry auto`` refuses it).
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from dope_hope.catalog import CATEGORIES, get_object
+from dope_hope.demo_object import DEMO_CLASS_NAME, demo_symmetries
+from dope_hope.errors import ConfigError, UnknownObjectError
+from dope_hope.io.models_dir import bop_obj_id
+from dope_hope.io.symmetries import (
+    SymmetryDeclaration,
+    bop_table_declaration,
+    mesh_units,
+    model_info_declaration,
+    read_declaration,
+)
+from dope_hope.symmetry.transforms import category_symmetries, declaration_transforms
+
+
+@dataclass(frozen=True)
+class ObjectSymmetries:
+    """Where an object's symmetries come from.
+
+    Attributes:
+        declaration: the declaration that applies, or None.
+        category: the HOPE category when no declaration applies and the object is in the
+            catalog, else None.
+        from_bop_table: True when ``declaration`` is the object's ``models_info.json`` entry.
+    """
+
+    declaration: SymmetryDeclaration | None
+    category: str | None
+    from_bop_table: bool = False
+
+    def describe(self) -> str:
+        """Where they come from, for reports: ``declared in FILE``, ``C category``, ``none``."""
+        if self.declaration is not None:
+            return f"declared in {self.declaration.source}"
+        return f"{self.category} category" if self.category else "none"
+
+
+def resolve_symmetries(name: str, mesh_path: str | os.PathLike | None = None,
+                       explicit: str | os.PathLike | None = None, units: str | None = None,
+                       obj_id: int | None = None) -> ObjectSymmetries:
+    """The symmetries of object ``name`` in the order of the module docstring.
+
+    Args:
+        name: class name (catalog lookup, demo box).
+        mesh_path: its mesh file, where declarations beside it are looked for.
+        explicit: a declaration file named by the user.
+        units: length unit of the declarations (default: the mesh's, by suffix; else mm).
+        obj_id: BOP obj_id of the object (default: the catalog's, or ``obj_NNNNNN``).
+
+    Raises:
+        ConfigError: ``explicit`` for an object whose ``models_info.json`` entry declares them.
+        InputFileError: a malformed declaration (file and field named).
+    """
+    if obj_id is None:
+        obj_id = bop_obj_id(name)
+    if mesh_path is not None:
+        table = bop_table_declaration(mesh_path, units, obj_id)
+        if table is not None:
+            if explicit is not None:
+                raise ConfigError(f"--symmetries for {name} would be ignored: its models_info.json entry "
+                                  f"({table.source}) declares the symmetries BOP scoring uses; drop one of "
+                                  f"the two")
+            return ObjectSymmetries(table, None, from_bop_table=True)
+    if explicit is not None:
+        unit = mesh_units(mesh_path, units) if mesh_path is not None else (units or "mm")
+        return ObjectSymmetries(read_declaration(explicit, unit, obj_id), None)
+    beside = model_info_declaration(mesh_path, units, obj_id) if mesh_path is not None else None
+    if beside is not None:
+        return ObjectSymmetries(beside, None)
+    if name.lower() == DEMO_CLASS_NAME.lower():
+        return ObjectSymmetries(demo_symmetries(), None)
+    try:
+        return ObjectSymmetries(None, get_object(name).category)
+    except UnknownObjectError:
+        return ObjectSymmetries(None, None)
+
+
+def label_symmetries(setting: Any, object_name: str, declaration_file: str | os.PathLike | None = None,
+                     mesh: str | os.PathLike | None = None) -> tuple[np.ndarray, str] | None:
+    """Symmetries whose corner permutations relabel the keypoints (config ``targets.symmetry``):
+    ``((S, 4, 4) model-frame transforms, where they come from)``, or None.
+
+    "none" (default, the official DOPE labels); "auto": :func:`resolve_symmetries` with
+    ``declaration_file`` (``--symmetries``) and ``mesh``; or a category name: "cuboid",
+    "bottle", "cylinder". Continuous symmetries are sampled every 90 degrees (the only turns
+    that can permute box corners).
+
+    Raises:
+        ConfigError: an unknown setting; a declaration file with a setting other than auto;
+            auto for an object with no symmetries.
+    """
+    value = "none" if setting in (None, False) else str(setting).lower()
+    if declaration_file is not None and value != "auto":
+        raise ConfigError(f"--symmetries {declaration_file}: targets.symmetry is {value}; add "
+                          "--set targets.symmetry=auto to relabel with the declared symmetries")
+    if value == "none":
+        return None
+    if value == "auto":
+        found = resolve_symmetries(object_name, mesh, declaration_file)
+        if found.declaration is not None:
+            return declaration_transforms(found.declaration, step_deg=90.0), found.describe()
+        if found.category is None:
+            raise ConfigError(f"targets.symmetry auto: {object_name!r} is not a HOPE object and declares "
+                              "no symmetries (--symmetries FILE, or model_info.json beside --mesh); set "
+                              f"targets.symmetry to one of {', '.join(CATEGORIES)} or none")
+        return category_symmetries(found.category, step_deg=90.0), found.describe()
+    if value not in CATEGORIES:
+        raise ConfigError(f"targets.symmetry must be none, auto or one of {', '.join(CATEGORIES)}; got {setting!r}")
+    return category_symmetries(value, step_deg=90.0), f"{value} category"
