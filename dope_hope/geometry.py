@@ -137,6 +137,16 @@ def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
+_PINHOLE_LAST_ROW = np.array([0.0, 0.0, 1.0])
+
+
+def is_pinhole(K: np.ndarray) -> bool:
+    """The pinhole rule for a (3, 3) finite K, the one check of every reader and the predictor:
+    fx, fy > 0 and the last row ``0 0 1`` (within ``np.allclose``'s tolerances)."""
+    return bool(K[0, 0] > 0 and K[1, 1] > 0
+                and np.all(np.abs(K[2] - _PINHOLE_LAST_ROW) <= 1e-8 + 1e-5 * _PINHOLE_LAST_ROW))
+
+
 def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     """K for the image resized by (sx, sy), under the pixel-centre-at-integer convention.
 

@@ -25,9 +25,7 @@ import cv2
 import numpy as np
 
 from dope_hope.errors import CameraError, ConfigError
-from dope_hope.geometry import (
-    scale_intrinsics,
-)
+from dope_hope.geometry import is_pinhole, scale_intrinsics
 
 #: ImageNet statistics used to normalize RGB in [0, 1] (torchvision convention).
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -223,11 +221,9 @@ def prepare_input(rgb: np.ndarray, resized_hw: tuple[int, int], mean: Sequence[f
     return NetworkInput(batch=batch, resized_hw=(Hr, Wr), original_hw=(H, W), scale=(Wr / W, Hr / H))
 
 
-_LAST_ROW = np.array([0.0, 0.0, 1.0])
-
-
 def check_intrinsics(K: Any) -> np.ndarray:
-    """(3, 3) float64 K with positive focal lengths; CameraError otherwise."""
+    """(3, 3) float64 K with positive focal lengths (:func:`dope_hope.geometry.is_pinhole`);
+    CameraError otherwise."""
     try:
         K = np.asarray(K, dtype=np.float64)
     except (TypeError, ValueError):
@@ -236,7 +232,7 @@ def check_intrinsics(K: Any) -> np.ndarray:
         raise CameraError(f"camera intrinsics K must be a 3x3 matrix, got shape {K.shape}")
     if not np.all(np.isfinite(K)):
         raise CameraError(f"camera intrinsics K holds NaN or infinity: {K.tolist()}")
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.all(np.abs(K[2] - _LAST_ROW) <= 1e-8 + 1e-5 * _LAST_ROW):  # np.allclose
+    if not is_pinhole(K):
         raise CameraError(f"camera intrinsics K is not a pinhole matrix (fx, fy > 0, last row "
                           f"0 0 1): {K.tolist()}")
     return K

@@ -28,8 +28,17 @@ def test_overrides_and_stage_keywords_are_accepted():
     ({"min_score": float("nan")}, "min_score must be a finite number"),
     ({"pose_search": "brute"}, "pose_search must be one of hypotheses, groups"),
     ({"icp": "yes"}, "icp must be true or false"),
+    ({"ls_points": 10.5}, "ls_points must be a whole number, got 10.5"),
+    ({"icp_points": 9}, "icp_points must be >= 10, got 9"),
+    ({"ls_points": True}, "ls_points must be a number, got True"),
 ])
 def test_mistakes_are_refused_in_one_line(overrides, message):
     with pytest.raises(ConfigError) as exc:
         InferenceOptions.from_mapping(overrides)
     assert message in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_whole_numbers_follow_the_config_rule():
+    """The one number rule (config.whole_number): 10.0 counts as 10, as it does in a config."""
+    o = InferenceOptions.from_mapping({"ls_points": 10.0, "icp_points": 12})
+    assert o.ls_points == 10 and isinstance(o.ls_points, int) and o.icp_points == 12

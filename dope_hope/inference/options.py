@@ -5,7 +5,6 @@ every key, top level and per stage, is checked (an unknown key is a ConfigError)
 from __future__ import annotations
 
 import inspect
-import math
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, fields
 from typing import Any
@@ -67,6 +66,7 @@ class InferenceOptions:
     icp_refine: Mapping[str, Any]
 
     def __post_init__(self) -> None:
+        from dope_hope.config import finite_float, whole_number
         from dope_hope.preprocess import check_working_side
 
         h = self.height
@@ -74,13 +74,8 @@ class InferenceOptions:
             check_working_side(h)
         if self.pose_search not in POSE_SEARCHES:
             raise ConfigError(f"pose_search must be one of {', '.join(POSE_SEARCHES)}, got {self.pose_search!r}")
-        if isinstance(self.min_score, bool) or not isinstance(self.min_score, (int, float)) \
-                or not math.isfinite(self.min_score):
-            raise ConfigError(f"min_score must be a finite number, got {self.min_score!r}")
-        for name in ("ls_points", "icp_points"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 10:
-                raise ConfigError(f"{name} must be an integer >= 10, got {v!r}")
+        min_score = finite_float(self.min_score, "min_score")
+        points = {name: whole_number(getattr(self, name), name, 10) for name in ("ls_points", "icp_points")}
         if not isinstance(self.icp, bool):
             raise ConfigError(f"icp must be true or false, got {self.icp!r}")
         for section, functions in _stage_functions().items():
@@ -93,7 +88,9 @@ class InferenceOptions:
                 raise ConfigError(f"unknown {section} option(s) {', '.join(unknown)}; known: "
                                   f"{', '.join(sorted(allowed))}")
         object.__setattr__(self, "height", None if h is None else int(h))
-        object.__setattr__(self, "min_score", float(self.min_score))
+        object.__setattr__(self, "min_score", min_score)
+        for name, value in points.items():
+            object.__setattr__(self, name, value)
 
     @classmethod
     def from_mapping(cls, overrides: Mapping[str, Any] | None = None, base: str = "infer",

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from dope_hope.errors import InputFileError
-from dope_hope.geometry import intrinsics_matrix
+from dope_hope.geometry import intrinsics_matrix, is_pinhole
 from dope_hope.io.jsonfields import JsonFields, load_json_object
 
 _HOPE_RGB = re.compile(r"^(?P<stem>.+)_rgb\.(jpg|jpeg|png)$", re.IGNORECASE)
@@ -129,7 +129,7 @@ def _intrinsics(f: JsonFields, value: Any, field: str) -> np.ndarray:
         K = arr.reshape(3, 3)
     if not np.all(np.isfinite(K)):
         raise f.fail(field, "contains NaN or infinity")
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]):
+    if not is_pinhole(K):
         raise f.fail(field, "expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
     return K
 

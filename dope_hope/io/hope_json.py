@@ -20,7 +20,7 @@ import numpy as np
 
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
 from dope_hope.errors import InputFileError
-from dope_hope.geometry import nearest_rotation
+from dope_hope.geometry import is_pinhole, nearest_rotation
 from dope_hope.io.jsonfields import JsonFields as _Fields
 from dope_hope.io.jsonfields import load_json_object as _load_json
 
@@ -70,7 +70,7 @@ def read_hope_json(path: str | os.PathLike) -> FrameAnnotation:
     f = _Fields(path)
     camera = f.get(data, "camera", "")
     K = f.array(f.get(camera, "intrinsics", "camera"), "camera.intrinsics", (3, 3), "rows", "columns")
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]):
+    if not is_pinhole(K):
         raise f.fail("camera.intrinsics", "expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
     size = [None if camera.get(k) is None else f.positive_int(camera[k], f"camera.{k}")
             for k in ("width", "height")]
