@@ -67,16 +67,6 @@ def obj_id_of(class_name: str) -> int:
     return obj_id
 
 
-def split_folder(bop_root: Path, dataset: str, split: str) -> Path:
-    """BOP_ROOT/DATASET/SPLIT, or BOP_ROOT/SPLIT when BOP_ROOT is the dataset folder."""
-    from dope_hope.errors import InputFileError
-
-    for candidate in (bop_root / dataset / split, bop_root / split):
-        if candidate.is_dir():
-            return candidate
-    raise InputFileError(bop_root / dataset / split, "BOP split folder not found")
-
-
 def run(args: argparse.Namespace) -> int:
     import sys
     import time
@@ -86,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.errors import ConfigError, InputFileError
     from dope_hope.inference.backends import open_backend
     from dope_hope.inference.predictor import DopePredictor, predict_many
-    from dope_hope.io.bop import iter_bop_split, list_bop_scenes, read_test_targets
+    from dope_hope.io.bop import TEST_TARGETS_NAME, find_split_folder, targeted_frames
     from dope_hope.io.bop_csv import (
         BopEstimate,
         parse_bop_result_filename,
@@ -102,11 +92,11 @@ def run(args: argparse.Namespace) -> int:
     output_file(args.out)
     if args.out.exists() and not args.overwrite:
         raise InputFileError(args.out, "file exists; pass --overwrite to replace it")
-    split_dir = split_folder(args.bop_root, args.dataset, args.split)
+    split_dir = find_split_folder(args.bop_root, args.dataset, args.split)
     dataset_dir = split_dir.parent
     targets_path = args.targets
-    if targets_path is None and (dataset_dir / "test_targets_bop19.json").is_file():
-        targets_path = dataset_dir / "test_targets_bop19.json"
+    if targets_path is None and (dataset_dir / TEST_TARGETS_NAME).is_file():
+        targets_path = dataset_dir / TEST_TARGETS_NAME
     models_dir = args.models_dir if args.models_dir is not None else dataset_dir / "models"
     if args.models_dir is not None and not models_dir.is_dir():
         raise InputFileError(models_dir, "models folder not found")
@@ -123,23 +113,7 @@ def run(args: argparse.Namespace) -> int:
         predictors[obj_id] = DopePredictor(backend, height=args.height, min_score=args.min_score,
                                            mesh=mesh, icp=args.icp)
 
-    wanted: dict[tuple[int, int], list[int]] | None = None
-    if targets_path is not None:
-        wanted = {}
-        for scene_id, im_id, obj_id, _count in read_test_targets(targets_path):
-            wanted.setdefault((scene_id, im_id), []).append(obj_id)
-    scene_ids = list_bop_scenes(split_dir)
-    if wanted is not None:
-        scene_ids = [s for s in scene_ids if any(k[0] == s for k in wanted)]
-        missing = sorted({s for s, _ in wanted} - set(scene_ids))
-        if missing:
-            raise InputFileError(targets_path, f"targets name scene(s) {missing[:5]} that {split_dir} lacks")
-    frames = [bf for bf in iter_bop_split(split_dir, scene_ids)
-              if wanted is None or (bf.scene_id, bf.im_id) in wanted]
-    if wanted is not None and len(frames) < len(wanted):
-        found = {(bf.scene_id, bf.im_id) for bf in frames}
-        s, i = sorted(set(wanted) - found)[0]
-        raise InputFileError(targets_path, f"target image {i} of scene {s} is not in {split_dir}")
+    frames, wanted = targeted_frames(split_dir, targets_path)
     no_model = sorted({o for objs in (wanted or {}).values() for o in objs} - set(predictors))
 
     estimates: list[BopEstimate] = []

@@ -29,8 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "cuboid (its cuboid frame is the mesh frame, e.g. YCB weights on FAT data)")
     parser.add_argument("--dataset", "-d", required=True, type=Path, metavar="DIR",
                         help="test set folder (searched recursively for dope/hope frames)")
-    parser.add_argument("--format", choices=("dope", "hope", "bop"), default="dope",
-                        help="dataset annotation format (default: dope)")
+    parser.add_argument("--format", choices=("auto", "dope", "hope", "bop"), default="auto",
+                        help="dataset annotation format (default: auto, the layout the folder's "
+                             "annotations follow, as infer finds them)")
     parser.add_argument("--metric", default="addh", metavar="M[,M...]",
                         help="error metric(s): addh (default, HOPE paper), add, adds, meanssd, mssd; "
                              "the first one fills the table, all get curves")

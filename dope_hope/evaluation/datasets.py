@@ -80,13 +80,15 @@ def _frame_from_annotation(root: Path, ann, json_path: Path) -> EvalFrame:
                      image_path=image, depth_path=ann.depth_path, depth_scale_m=ann.depth_scale_m)
 
 
-def load_dataset(root: str | os.PathLike, fmt: str = "dope") -> Dataset:
+def load_dataset(root: str | os.PathLike, fmt: str = "auto") -> Dataset:
     """Read the ground truth of a test set.
 
     Args:
         root: dataset folder (searched recursively for DOPE / HOPE frames).
-        fmt: "dope" (``dope_hope.io.dope_json``), "hope" (``io.hope_json``) or "bop"
-            (``io.bop``, a BOP split folder or a dataset folder with ``test/``).
+        fmt: "auto" (the layout :func:`dope_hope.io.layouts.dataset_layout` finds, as
+            ``dope-hope infer`` finds an image's camera), "dope" (``dope_hope.io.dope_json``),
+            "hope" (``io.hope_json``) or "bop" (``io.bop``, a BOP split folder or a dataset
+            folder with ``test/``).
 
     Raises:
         InputFileError: no frames found or a malformed annotation.
@@ -94,6 +96,10 @@ def load_dataset(root: str | os.PathLike, fmt: str = "dope") -> Dataset:
     root = Path(root)
     if not root.is_dir():
         raise InputFileError(root, "dataset folder not found")
+    if fmt == "auto":
+        from dope_hope.io.layouts import dataset_layout
+
+        fmt = dataset_layout(root)
     if fmt == "dope":
         from dope_hope.io.dope_json import list_dope_frames, read_dope_json, recorded_cuboid_size
 
@@ -115,7 +121,7 @@ def load_dataset(root: str | os.PathLike, fmt: str = "dope") -> Dataset:
     elif fmt == "bop":
         ds = _load_bop(root)
     else:
-        raise ConfigError(f"unknown dataset format {fmt!r}; use dope, hope or bop")
+        raise ConfigError(f"unknown dataset format {fmt!r}; use auto, dope, hope or bop")
     if not ds.frames:
         raise InputFileError(root, f"no {fmt}-format frames found (annotation + image pairs)")
     return ds

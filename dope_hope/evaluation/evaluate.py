@@ -65,7 +65,7 @@ class EvalConfig:
 
     predictions: list[Path]
     dataset: Path
-    fmt: str = "dope"
+    fmt: str = "auto"
     metrics: list[str] = field(default_factory=lambda: [DEFAULT_METRIC])
     mesh: list[str] = field(default_factory=list)
     models_dir: Path | None = None

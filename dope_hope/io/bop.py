@@ -11,7 +11,8 @@ Readers for the scene-wise BOP files, everything converted to metres at this bou
   symmetry fields as stored, in metres; what they mean as transforms: :mod:`dope_hope.symmetry`)
 - ``test_targets_bop19.json`` -> :func:`read_test_targets`
 - a split folder (``<split>/<scene_id:06d>/{rgb,depth}/<im_id:06d>.png|jpg``) as
-  FrameAnnotation objects -> :func:`iter_bop_split`
+  FrameAnnotation objects -> :func:`iter_bop_split` (:func:`find_split_folder` finds it;
+  :func:`targeted_frames`: only the images a ``test_targets_bop19.json`` names)
 """
 from __future__ import annotations
 
@@ -334,3 +335,49 @@ def iter_bop_split(split_dir: str | os.PathLike, scene_ids: list[int] | None = N
                 K=K, width=width, height=height, objects=objects, image_path=image,
                 depth_path=_image_file(scene / "depth", im_id), depth_scale_m=depth_scale_m)
             yield BopFrame(scene_id, im_id, frame)
+
+
+def find_split_folder(bop_root: str | os.PathLike, dataset: str, split: str) -> Path:
+    """BOP_ROOT/DATASET/SPLIT, or BOP_ROOT/SPLIT when BOP_ROOT is the dataset folder."""
+    bop_root = Path(bop_root)
+    for candidate in (bop_root / dataset / split, bop_root / split):
+        if candidate.is_dir():
+            return candidate
+    raise InputFileError(bop_root / dataset / split, "BOP split folder not found")
+
+
+#: The BOP19 test targets file in a dataset folder (beside its split folders).
+TEST_TARGETS_NAME = "test_targets_bop19.json"
+
+
+def targeted_frames(split_dir: str | os.PathLike, targets_path: str | os.PathLike | None
+                    ) -> tuple[list[BopFrame], dict[tuple[int, int], list[int]] | None]:
+    """The frames of a split a BOP test targets file names, and its targets.
+
+    Args:
+        split_dir: the split folder.
+        targets_path: a ``test_targets_bop19.json``; None: every frame of the split.
+
+    Returns:
+        (frames in scene / image order; {(scene_id, im_id): [obj_id, ...]} in file order, or
+        None without a targets file).
+
+    Raises:
+        InputFileError: a target scene or image the split lacks (naming the targets file).
+    """
+    split_dir = Path(split_dir)
+    if targets_path is None:
+        return list(iter_bop_split(split_dir)), None
+    wanted: dict[tuple[int, int], list[int]] = {}
+    for scene_id, im_id, obj_id, _count in read_test_targets(targets_path):
+        wanted.setdefault((scene_id, im_id), []).append(obj_id)
+    scene_ids = [s for s in list_bop_scenes(split_dir) if any(k[0] == s for k in wanted)]
+    missing = sorted({s for s, _ in wanted} - set(scene_ids))
+    if missing:
+        raise InputFileError(targets_path, f"targets name scene(s) {missing[:5]} that {split_dir} lacks")
+    frames = [bf for bf in iter_bop_split(split_dir, scene_ids) if (bf.scene_id, bf.im_id) in wanted]
+    if len(frames) < len(wanted):
+        found = {(bf.scene_id, bf.im_id) for bf in frames}
+        s, i = sorted(set(wanted) - found)[0]
+        raise InputFileError(targets_path, f"target image {i} of scene {s} is not in {split_dir}")
+    return frames, wanted

@@ -21,7 +21,8 @@ images: with non-zero distortion coefficients every frame is rectified as ROS ``
 does (``cv2.initUndistortRectifyMap(K, D, R, P[:, :3])``, :class:`Rectification`) and
 ``P[:, :3]`` is the K of the rectified frames; with zero distortion K is ``camera_matrix``.
 
-**Sibling annotation** (:func:`find_image_camera`), tried in this order for ``DIR/NAME``:
+**Sibling annotation** (:func:`find_image_camera`; the layouts are :mod:`dope_hope.io.layouts`'s),
+tried in this order for ``DIR/NAME``:
 
 1. DOPE / project JSON ``DIR/<stem>.json`` (``000123.png`` -> ``000123.json``; NDDS files
    without intrinsics fall back to ``DIR/_camera_settings.json`` inside the reader);
@@ -36,7 +37,6 @@ guessed: no camera found is reported as such (None here, CameraError in the CLI)
 from __future__ import annotations
 
 import os
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,9 +46,8 @@ import numpy as np
 from dope_hope.errors import InputFileError
 from dope_hope.geometry import intrinsics_matrix, is_pinhole
 from dope_hope.io.jsonfields import JsonFields, load_json_object
+from dope_hope.io.layouts import LAYOUTS, annotation_file, annotation_search_description
 
-_HOPE_RGB = re.compile(r"^(?P<stem>.+)_rgb\.(jpg|jpeg|png)$", re.IGNORECASE)
-_BOP_IMAGE_FOLDERS = ("rgb", "gray")
 
 
 @dataclass
@@ -274,8 +273,8 @@ def read_camera_file(path: str | os.PathLike) -> ImageCamera:
 
 
 def _from_dope(image: Path) -> ImageCamera | None:
-    ann = image.with_suffix(".json")
-    if not ann.is_file():
+    ann = annotation_file(image, "dope")
+    if ann is None:
         return None
     from dope_hope.io.dope_json import read_dope_json
 
@@ -287,11 +286,8 @@ def _from_dope(image: Path) -> ImageCamera | None:
 
 
 def _from_hope(image: Path) -> ImageCamera | None:
-    m = _HOPE_RGB.match(image.name)
-    if m is None:
-        return None
-    ann = image.with_name(m.group("stem") + ".json")
-    if not ann.is_file():
+    ann = annotation_file(image, "hope")
+    if ann is None:
         return None
     from dope_hope.io.hope_json import read_hope_json
 
@@ -301,12 +297,10 @@ def _from_hope(image: Path) -> ImageCamera | None:
 
 
 def _from_bop(image: Path) -> ImageCamera | None:
-    if image.parent.name not in _BOP_IMAGE_FOLDERS or not image.stem.isdigit():
+    cam_file = annotation_file(image, "bop")
+    if cam_file is None:
         return None
-    scene = image.parent.parent
-    cam_file = scene / "scene_camera.json"
-    if not cam_file.is_file():
-        return None
+    scene = cam_file.parent
     from dope_hope.io.bop import read_scene_camera
 
     cams = read_scene_camera(cam_file)
@@ -326,8 +320,9 @@ def find_image_camera(image: str | os.PathLike) -> ImageCamera | None:
     A sibling annotation that exists but is malformed raises its reader's InputFileError.
     """
     image = Path(image)
-    for finder in (_from_dope, _from_hope, _from_bop):
-        cam = finder(image)
+    finders = {"dope": _from_dope, "hope": _from_hope, "bop": _from_bop}
+    for layout in LAYOUTS:
+        cam = finders[layout](image)
         if cam is not None:
             return cam
     return None
@@ -335,11 +330,4 @@ def find_image_camera(image: str | os.PathLike) -> ImageCamera | None:
 
 def camera_search_description(image: str | os.PathLike) -> str:
     """Which sibling files :func:`find_image_camera` looks for (for error messages)."""
-    image = Path(image)
-    names = [image.with_suffix(".json").name]
-    m = _HOPE_RGB.match(image.name)
-    if m is not None:
-        names.append(m.group("stem") + ".json")
-    if image.parent.name in _BOP_IMAGE_FOLDERS:
-        names.append("../scene_camera.json")
-    return ", ".join(names)
+    return annotation_search_description(image)
