@@ -35,7 +35,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from dope_hope.commands.demo import DEMO_CONFIG, IMAGE_SIZE
-from dope_hope.commands.infer import DEMO_WEIGHTS
+from dope_hope.assets import DEMO_WEIGHTS
 from dope_hope.demo_object import (
     DEMO_CLASS_NAME,
     demo_object_mesh,

@@ -66,15 +66,14 @@ from dope_hope.preprocess import IMAGENET_MEAN, IMAGENET_STD
 from dope_hope.refine.depth import DepthImage
 from dope_hope.refine.icp import icp_refine
 from dope_hope.refine.line_search import (
-    _sample_depth,
     auto_splat_px,
     depth_line_search,
+    sample_depth,
     visible_points,
 )
+from dope_hope.render.box import box_surface_points, render_box_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the tests' box helpers (one definition)
-from box_depth import box_surface_points, render_box_depth  # noqa: E402
 from official_dope import find_object_poses  # noqa: E402
 
 STRIDE = 8
@@ -298,7 +297,7 @@ def ls_section(repeats: int) -> None:
             for s in dense:
                 X = A + s * t0
                 uvw = X @ K640.T
-                r = _sample_depth(D, uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]) - uvw[:, 2]
+                r = sample_depth(D, uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]) - uvw[:, 2]
                 c = np.median(np.abs(r[np.isfinite(r)]))
                 if c < best:
                     best, best_s = c, s

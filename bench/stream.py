@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from dope_hope.commands.demo import DEMO_CONFIG, IMAGE_SIZE, ensure_onnx
-from dope_hope.commands.infer import DEMO_WEIGHTS
+from dope_hope.assets import DEMO_WEIGHTS
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
 from dope_hope.inference.stream import passive_openmp, run_stream
 from dope_hope.io.camera import ImageCamera

@@ -127,7 +127,7 @@ def auto_splat_px(model_points: np.ndarray, K: np.ndarray, depth_m: float) -> in
     return int(np.clip(np.ceil(spacing_px / 2.0), 1, 6))
 
 
-def _sample_depth(D: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+def sample_depth(D: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Bilinear depth at (u, v); nearest pixel where a neighbour is invalid; NaN outside."""
     H, W = D.shape
     out = np.full(u.shape, np.nan)
@@ -209,7 +209,7 @@ def depth_line_search(
         uvw = X @ K.T
         z = uvw[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
-            r = _sample_depth(D, uvw[:, 0] / z, uvw[:, 1] / z) - z
+            r = sample_depth(D, uvw[:, 0] / z, uvw[:, 1] / z) - z
         return r[np.isfinite(r)]
 
     def objective(s: float) -> float:
