@@ -211,31 +211,10 @@ def bop_targets_from_gt(dataset: Dataset) -> tuple[dict[tuple[int, str], int], b
     return out, missing
 
 
-def bop19_average_recall(dataset: Dataset, preds_by_frame: list[list[Prediction]],
-                         models: dict[str, ObjectModel], use_vsd: bool | None = None,
-                         progress: bool = False, renderer: Any = None,
-                         details: bool = False) -> dict[str, Any]:
-    """BOP19 AR_VSD, AR_MSSD, AR_MSPD and AR, as the BOP toolkit computes them.
-
-    Errors are computed in the toolkit's units and operations (mm, every model vertex, the
-    stored poses, thresholds ``np.arange``); see the module docstring.
-
-    Args:
-        use_vsd: compute AR_VSD (None: when every frame with targets has depth and K and
-            every model has triangles).
-        renderer: for VSD (default: the shared :class:`dope_hope.render.depth.DepthRenderer`).
-        details: also return ``"details"``: ``"pairs"`` (one record per evaluated (estimate,
-            GT) pair with the toolkit's ``est_id`` / ``gt_id`` and its raw errors: MSSD mm,
-            MSPD px, VSD per tau) and ``"matches"`` (:func:`_match_details`), for comparing
-            with the toolkit's ``errors_*.json`` / ``matches_*.json``.
-
-    Returns:
-        {"ar", "ar_vsd" (None when skipped), "ar_mssd", "ar_mspd", "recalls": {...},
-        "targets", "gt_valid", "notes": [...]}.
-    """
-    from tqdm import tqdm
-
-    notes = []
+def _select_targets(dataset: Dataset, models: dict[str, ObjectModel],
+                    notes: list[str]) -> dict[tuple[int, str], int]:
+    """{(frame index, class): inst_count}: the dataset's ``test_targets_bop19.json`` entries,
+    else every GT instance visible enough (the toolkit's rule); says which in ``notes``."""
     if dataset.targets is not None:
         targets = {}
         for fi, f in enumerate(dataset.frames):
@@ -245,12 +224,25 @@ def bop19_average_recall(dataset: Dataset, preds_by_frame: list[list[Prediction]
                 if key in dataset.targets:
                     targets[(fi, o)] = dataset.targets[key]
         notes.append(f"targets: test_targets_bop19.json ({len(targets)} image-object targets)")
-    else:
-        targets, missing = bop_targets_from_gt(dataset)
-        notes.append(f"targets: all GT instances with visibility >= {VISIB_GT_MIN} "
-                     f"({len(targets)} image-object targets)")
-        if missing:
-            notes.append("some GT instances have no visibility: counted as visible")
+        return targets
+    targets, missing = bop_targets_from_gt(dataset)
+    notes.append(f"targets: all GT instances with visibility >= {VISIB_GT_MIN} "
+                 f"({len(targets)} image-object targets)")
+    if missing:
+        notes.append("some GT instances have no visibility: counted as visible")
+    return targets
+
+
+def _check_inputs(dataset: Dataset, preds_by_frame: list[list[Prediction]], models: dict[str, ObjectModel],
+                  targets: dict[tuple[int, str], int], use_vsd: bool | None,
+                  notes: list[str]) -> tuple[bool, tuple[int, int] | None]:
+    """Whether VSD is computed (``use_vsd`` None: when every target image has depth and every
+    model triangles) and the dataset's image size for MSPD (None: each image's width); what
+    differs from the toolkit's inputs goes to ``notes``.
+
+    Raises:
+        InputFileError: a target image without K or width.
+    """
     n_est = sum(len(p) for p in preds_by_frame)
     n_target_est = sum(1 for fi, ps in enumerate(preds_by_frame) for p in ps
                        if (fi, p.class_name) in targets)
@@ -289,53 +281,64 @@ def bop19_average_recall(dataset: Dataset, preds_by_frame: list[list[Prediction]
     procedural = sorted(n for n, m in models.items() if m.procedural)
     if procedural:
         notes.append("procedural cuboid models (no mesh) for: " + ", ".join(procedural))
+    return bool(use_vsd), image_size
 
-    per_frame: dict[int, list[tuple[str, int]]] = {}
-    for (fi, cls), count in sorted(targets.items()):
-        per_frame.setdefault(fi, []).append((cls, count))
-    bop_targets: list[BopTarget] = []
-    pairs: list[dict[str, Any]] = []
-    for fi in tqdm(frames_used, desc="BOP errors", unit="img", disable=not progress):
-        f = dataset.frames[fi]
-        width = image_size[0] if image_size is not None else f.width
-        depth = _bop_depth_mm(f) if use_vsd else None
-        for cls, count in per_frame[fi]:
-            model = models[cls].bop
-            gt_objs = [o for o in f.objects if o.class_name == cls]
-            gts = [bop_pose_mm(o) for o in gt_objs]
-            ests = [p for p in preds_by_frame[fi] if p.class_name == cls]  # file order
-            scores = np.array([p.score for p in ests], dtype=np.float64)
-            top = _top_estimates(scores, count)
-            est_poses = [bop_pose_mm(ests[i]) for i in top]
-            E, G = len(est_poses), len(gts)
-            errs = {"mssd": np.empty((E, G)), "mspd": np.empty((E, G))}
+
+@dataclass
+class _FrameInputs:
+    """What one target image's errors need: the frame, its predictions, the MSPD width, the
+    depth (mm) when VSD is computed, the renderer and where to put the details (or None)."""
+
+    frame: EvalFrame
+    preds: list[Prediction]
+    width: int
+    depth: np.ndarray | None
+    renderer: Any
+    pairs: list[dict[str, Any]] | None
+
+
+def _target_errors(inp: _FrameInputs, obj: ObjectModel, cls: str, count: int) -> BopTarget:
+    """The errors of one (image, object) target: its ``count`` top-scoring estimates (file order
+    among equals) against every GT instance of the class, in the toolkit's units."""
+    f, model, use_vsd = inp.frame, obj.bop, inp.depth is not None
+    gt_objs = [o for o in f.objects if o.class_name == cls]
+    gts = [bop_pose_mm(o) for o in gt_objs]
+    ests = [p for p in inp.preds if p.class_name == cls]  # file order
+    scores = np.array([p.score for p in ests], dtype=np.float64)
+    top = _top_estimates(scores, count)
+    est_poses = [bop_pose_mm(ests[i]) for i in top]
+    E, G = len(est_poses), len(gts)
+    errs = {"mssd": np.empty((E, G)), "mspd": np.empty((E, G))}
+    if use_vsd:
+        errs["vsd"] = np.empty((E, G, len(metrics.BOP19_VSD_TAUS)))
+    key = (f.scene_id, f.im_id, obj.obj_id)
+    gt_ids = np.array([o.instance_id for o in gt_objs])
+    for i, (R_e, t_e) in enumerate(est_poses):
+        for j, (R_g, t_g) in enumerate(gts):
+            mssd_mm = bop_mssd_mm(R_e, t_e, R_g, t_g, model)
+            mspd_px = metrics.mspd(R_e, t_e, R_g, t_g, f.K, model.points, model.symmetries)
+            errs["mssd"][i, j] = mssd_mm / float(model.diameter)
+            errs["mspd"][i, j] = _mspd_factor(inp.width) * mspd_px
             if use_vsd:
-                errs["vsd"] = np.empty((E, G, len(metrics.BOP19_VSD_TAUS)))
-            key = (f.scene_id, f.im_id, models[cls].obj_id)
-            gt_ids = np.array([o.instance_id for o in gt_objs])
-            for i, (R_e, t_e) in enumerate(est_poses):
-                for j, (R_g, t_g) in enumerate(gts):
-                    mssd_mm = bop_mssd_mm(R_e, t_e, R_g, t_g, model)
-                    mspd_px = metrics.mspd(R_e, t_e, R_g, t_g, f.K, model.points, model.symmetries)
-                    errs["mssd"][i, j] = mssd_mm / float(model.diameter)
-                    errs["mspd"][i, j] = _mspd_factor(width) * mspd_px
-                    if use_vsd:
-                        errs["vsd"][i, j] = bop_vsd_errors(R_e, t_e, R_g, t_g, depth, f.K, model,
-                                                           renderer)
-                    if details:
-                        pairs.append({"scene_id": key[0], "im_id": key[1], "obj_id": key[2],
-                                      "est_id": int(top[i]), "gt_id": int(gt_ids[j]),
-                                      "mssd": mssd_mm, "mspd": mspd_px,
-                                      "vsd": errs["vsd"][i, j].tolist() if use_vsd else None})
-            vis = np.array([1.0 if o.visibility is None else o.visibility for o in gt_objs])
-            bop_targets.append(BopTarget(count, scores[top], vis, errs, key, top, gt_ids))
+                errs["vsd"][i, j] = bop_vsd_errors(R_e, t_e, R_g, t_g, inp.depth, f.K, model, inp.renderer)
+            if inp.pairs is not None:
+                inp.pairs.append({"scene_id": key[0], "im_id": key[1], "obj_id": key[2],
+                                  "est_id": int(top[i]), "gt_id": int(gt_ids[j]),
+                                  "mssd": mssd_mm, "mspd": mspd_px,
+                                  "vsd": errs["vsd"][i, j].tolist() if use_vsd else None})
+    vis = np.array([1.0 if o.visibility is None else o.visibility for o in gt_objs])
+    return BopTarget(count, scores[top], vis, errs, key, top, gt_ids)
+
+
+def _average_recalls(bop_targets: list[BopTarget], n_targets: int, use_vsd: bool) -> dict[str, Any]:
+    """AR_MSSD, AR_MSPD, AR_VSD (None when skipped) and AR as eval_bop19_pose.py averages them."""
     rec_mssd = bop_recalls(bop_targets, "mssd", BOP19_MSSD_THRESHOLDS)
     rec_mspd = bop_recalls(bop_targets, "mspd", BOP19_MSPD_THRESHOLDS)
     # AR = np.mean over the list of recalls, as eval_bop19_pose.py averages them
     out: dict[str, Any] = {"ar_mssd": float(np.mean(list(rec_mssd))),
                            "ar_mspd": float(np.mean(list(rec_mspd))),
                            "recalls": {"mssd": rec_mssd.tolist(), "mspd": rec_mspd.tolist()},
-                           "targets": len(targets),
+                           "targets": n_targets,
                            "gt_valid": int(sum(_valid_gt(t.visibility, t.inst_count).sum()
                                                for t in bop_targets))}
     if use_vsd:
@@ -346,6 +349,47 @@ def bop19_average_recall(dataset: Dataset, preds_by_frame: list[list[Prediction]
     else:
         out["ar_vsd"] = None
         out["ar"] = float(np.mean([out["ar_mssd"], out["ar_mspd"]]))
+    return out
+
+
+def bop19_average_recall(dataset: Dataset, preds_by_frame: list[list[Prediction]],
+                         models: dict[str, ObjectModel], use_vsd: bool | None = None,
+                         progress: bool = False, renderer: Any = None,
+                         details: bool = False) -> dict[str, Any]:
+    """BOP19 AR_VSD, AR_MSSD, AR_MSPD and AR, as the BOP toolkit computes them.
+
+    Errors are computed in the toolkit's units and operations (mm, every model vertex, the
+    stored poses, thresholds ``np.arange``); see the module docstring.
+
+    Args:
+        use_vsd: compute AR_VSD (None: when every frame with targets has depth and K and
+            every model has triangles).
+        renderer: for VSD (default: the shared :class:`dope_hope.render.depth.DepthRenderer`).
+        details: also return ``"details"``: ``"pairs"`` (one record per evaluated (estimate,
+            GT) pair with the toolkit's ``est_id`` / ``gt_id`` and its raw errors: MSSD mm,
+            MSPD px, VSD per tau) and ``"matches"`` (:func:`_match_details`), for comparing
+            with the toolkit's ``errors_*.json`` / ``matches_*.json``.
+
+    Returns:
+        {"ar", "ar_vsd" (None when skipped), "ar_mssd", "ar_mspd", "recalls": {...},
+        "targets", "gt_valid", "notes": [...]}.
+    """
+    from tqdm import tqdm
+
+    notes: list[str] = []
+    targets = _select_targets(dataset, models, notes)
+    use_vsd, image_size = _check_inputs(dataset, preds_by_frame, models, targets, use_vsd, notes)
+    per_frame: dict[int, list[tuple[str, int]]] = {}
+    for (fi, cls), count in sorted(targets.items()):
+        per_frame.setdefault(fi, []).append((cls, count))
+    bop_targets: list[BopTarget] = []
+    pairs: list[dict[str, Any]] = []
+    for fi in tqdm(sorted({fi for fi, _ in targets}), desc="BOP errors", unit="img", disable=not progress):
+        f = dataset.frames[fi]
+        inp = _FrameInputs(f, preds_by_frame[fi], image_size[0] if image_size is not None else f.width,
+                           _bop_depth_mm(f) if use_vsd else None, renderer, pairs if details else None)
+        bop_targets += [_target_errors(inp, models[cls], cls, count) for cls, count in per_frame[fi]]
+    out = _average_recalls(bop_targets, len(targets), use_vsd)
     out["notes"] = notes
     if details:
         out["details"] = {"pairs": pairs, "matches": _match_details(bop_targets, use_vsd)}

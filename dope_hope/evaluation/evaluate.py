@@ -34,7 +34,7 @@ import numpy as np
 
 from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.evaluation.bop19 import bop19_average_recall
-from dope_hope.evaluation.datasets import assign_predictions, load_dataset
+from dope_hope.evaluation.datasets import Dataset, assign_predictions, load_dataset
 from dope_hope.evaluation.matching import (
     DEFAULT_METRIC,
     METRIC_LABELS,
@@ -99,21 +99,11 @@ def _safe_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "-", name).strip("-") or "method"
 
 
-def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Evaluate one or more prediction files; write tables, curves and ``summary.json``.
-
-    Returns:
-        The summary dict (also written to ``<out>/summary.json``).
-    """
+def _load_predictions(cfg: EvalConfig, dataset: Dataset, log: Callable[[str], None]) -> list[tuple]:
+    """[(method name, path, predictions, predictions per dataset frame)] of every file; names
+    from ``--method``, else the file's header, else its stem (each once)."""
     from dope_hope.io.predictions import read_predictions
 
-    for m in cfg.metrics:
-        if m not in METRICS:
-            raise ConfigError(f"unknown metric {m!r}; use one of {', '.join(METRICS)}")
-    if cfg.methods is not None and len(cfg.methods) != len(cfg.predictions):
-        raise ConfigError(f"--method: {len(cfg.methods)} names for {len(cfg.predictions)} "
-                          f"prediction files")
-    dataset = load_dataset(cfg.dataset, cfg.fmt)
     loaded = []
     for k, path in enumerate(cfg.predictions):
         preds, meta = read_predictions(path, cfg.official_frame)
@@ -129,6 +119,89 @@ def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[
     if len(set(names)) != len(names):
         raise ConfigError(f"two prediction files have the same method name ({', '.join(names)}); "
                           f"name them with --method")
+    return loaded
+
+
+def _report_notes(dataset: Dataset, path: Path, preds: list[Prediction], primary: str,
+                  models: dict[str, ObjectModel]) -> list[str]:
+    """The lines above a method's table: dataset, predictions (how many were refined), metric,
+    models."""
+    n_gt = sum(len(f.objects) for f in dataset.frames)
+    ls = [p.ls_applied for p in preds if p.ls_applied is not None]
+    icp = [p.extra["icp_applied"] for p in preds if isinstance(p.extra.get("icp_applied"), bool)]
+    return [f"dataset: {dataset.root} ({dataset.fmt} format, {len(dataset.frames)} images, "
+            f"{n_gt} GT instances)",
+            f"predictions: {path} ({len(preds)} detections"
+            + (f"; depth line search applied to {sum(ls)} of the {len(ls)} that record it"
+               if ls else "")
+            + (f"; depth ICP applied to {sum(icp)} of the {len(icp)} that record it" if icp else "")
+            + ")",
+            f"metric: {METRIC_LABELS[primary]} ({NUM_MODEL_POINTS} model points); matching "
+            f"per image and class, one-to-one, greedy in descending score, error < threshold",
+            "models: " + "; ".join(f"{n}: {m.source}" for n, m in sorted(models.items()))]
+
+
+def _log_results(name: str, overall: Any, bop: dict[str, Any] | None, md_path: Path,
+                 log: Callable[[str], None]) -> None:
+    """A method's overall precision / recall, BOP19 AR and table path, one line each."""
+    if overall is not None:
+        log(f"{name}: overall (mean of objects) " + ", ".join(
+            f"P@{_th_label(t)} {_f(overall.precision[t], 3)} R@{_th_label(t)} "
+            f"{_f(overall.recall[t], 3)}" for t in overall.precision))
+    if bop is not None:
+        log(f"{name}: BOP19 AR {_f(bop['ar'], 3)} (VSD "
+            f"{'skipped' if bop['ar_vsd'] is None else _f(bop['ar_vsd'], 3)}, MSSD "
+            f"{_f(bop['ar_mssd'], 3)}, MSPD {_f(bop['ar_mspd'], 3)})")
+        for n in bop["notes"]:
+            log(f"  {n}")
+    log(f"  table: {md_path}")
+
+
+def _evaluate_method(cfg: EvalConfig, dataset: Dataset, models: dict[str, ObjectModel], method: tuple,
+                     bop_ar: bool, files: dict[Path, bytes], curves: dict,
+                     log: Callable[[str], None]) -> dict[str, Any]:
+    """One predictions file: its tables into ``files``, its curves into ``curves``; returns its
+    summary entry."""
+    name, path, preds, by_frame = method
+    primary = cfg.metrics[0]
+    log(f"{name}: {len(preds)} detections in {sum(1 for b in by_frame if b)} of "
+        f"{len(dataset.frames)} images; {sum(len(f.objects) for f in dataset.frames)} GT instances")
+    groups = compute_errors(dataset, by_frame, models, cfg.metrics, progress=cfg.progress)
+    rows = object_table(dataset, groups, models, primary)
+    for m in cfg.metrics:
+        curves[(name, m)] = detection_rates(groups, models, m)
+    bop = bop19_average_recall(dataset, by_frame, models, progress=cfg.progress) if bop_ar else None
+    notes = _report_notes(dataset, path, preds, primary, models)
+    stem = _safe_name(name)
+    out_dir = Path(cfg.out)
+    md_path, csv_path = out_dir / f"per_object_{stem}.md", out_dir / f"per_object_{stem}.csv"
+    files[md_path] = table_markdown(rows, f"dope-hope evaluation: {name}", notes, bop).encode("utf-8")
+    files[csv_path] = table_csv(rows).encode("utf-8")
+    overall = dict(summary_rows(rows)).get("overall")
+    _log_results(name, overall, bop, md_path, log)
+    return {"predictions": str(path), "detections": len(preds), "table_md": str(md_path),
+            "table_csv": str(csv_path),
+            "overall": None if overall is None else {
+                **{f"precision_{_th_label(t)}": overall.precision[t] for t in overall.precision},
+                **{f"recall_{_th_label(t)}": overall.recall[t] for t in overall.recall},
+                "median_tp_error_cm": overall.median_tp_error_cm},
+            "bop19": bop}
+
+
+def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Evaluate one or more prediction files; write tables, curves and ``summary.json``.
+
+    Returns:
+        The summary dict (also written to ``<out>/summary.json``).
+    """
+    for m in cfg.metrics:
+        if m not in METRICS:
+            raise ConfigError(f"unknown metric {m!r}; use one of {', '.join(METRICS)}")
+    if cfg.methods is not None and len(cfg.methods) != len(cfg.predictions):
+        raise ConfigError(f"--method: {len(cfg.methods)} names for {len(cfg.predictions)} "
+                          f"prediction files")
+    dataset = load_dataset(cfg.dataset, cfg.fmt)
+    loaded = _load_predictions(cfg, dataset, log)
     classes = sorted({o.class_name for f in dataset.frames for o in f.objects} |
                      {p.class_name for _, _, preds, _ in loaded for p in preds})
     bop_ar = cfg.bop_ar if cfg.bop_ar is not None else dataset.fmt == "bop"
@@ -138,59 +211,16 @@ def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[
         cuboid_centres_to_origins(preds, models)
     out_dir = Path(cfg.out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    primary = cfg.metrics[0]
-    n_gt = sum(len(f.objects) for f in dataset.frames)
-    model_notes = [f"{n}: {m.source}" for n, m in sorted(models.items())]
     summary: dict[str, Any] = {"dataset": str(dataset.root), "format": dataset.fmt,
-                               "frames": len(dataset.frames), "gt_instances": n_gt,
-                               "metric": primary, "metrics": list(cfg.metrics),
+                               "frames": len(dataset.frames),
+                               "gt_instances": sum(len(f.objects) for f in dataset.frames),
+                               "metric": cfg.metrics[0], "metrics": list(cfg.metrics),
                                "models": {n: m.source for n, m in models.items()}, "methods": {}}
-    curves = {}
+    curves: dict = {}
     files: dict[Path, bytes] = {}  # written all or none at the end
-    for name, path, preds, by_frame in loaded:
-        log(f"{name}: {len(preds)} detections in {sum(1 for b in by_frame if b)} of "
-            f"{len(dataset.frames)} images; {n_gt} GT instances")
-        groups = compute_errors(dataset, by_frame, models, cfg.metrics, progress=cfg.progress)
-        rows = object_table(dataset, groups, models, primary)
-        for m in cfg.metrics:
-            curves[(name, m)] = detection_rates(groups, models, m)
-        bop = bop19_average_recall(dataset, by_frame, models, progress=cfg.progress) if bop_ar else None
-        ls = [p.ls_applied for p in preds if p.ls_applied is not None]
-        icp = [p.extra["icp_applied"] for p in preds if isinstance(p.extra.get("icp_applied"), bool)]
-        notes = [f"dataset: {dataset.root} ({dataset.fmt} format, {len(dataset.frames)} images, "
-                 f"{n_gt} GT instances)",
-                 f"predictions: {path} ({len(preds)} detections"
-                 + (f"; depth line search applied to {sum(ls)} of the {len(ls)} that record it"
-                    if ls else "")
-                 + (f"; depth ICP applied to {sum(icp)} of the {len(icp)} that record it" if icp else "")
-                 + ")",
-                 f"metric: {METRIC_LABELS[primary]} ({NUM_MODEL_POINTS} model points); matching "
-                 f"per image and class, one-to-one, greedy in descending score, error < threshold",
-                 "models: " + "; ".join(model_notes)]
-        stem = _safe_name(name)
-        md_path, csv_path = out_dir / f"per_object_{stem}.md", out_dir / f"per_object_{stem}.csv"
-        files[md_path] = table_markdown(rows, f"dope-hope evaluation: {name}", notes, bop).encode("utf-8")
-        files[csv_path] = table_csv(rows).encode("utf-8")
-        overall = dict(summary_rows(rows)).get("overall")
-        summary["methods"][name] = {
-            "predictions": str(path), "detections": len(preds), "table_md": str(md_path),
-            "table_csv": str(csv_path),
-            "overall": None if overall is None else {
-                **{f"precision_{_th_label(t)}": overall.precision[t] for t in overall.precision},
-                **{f"recall_{_th_label(t)}": overall.recall[t] for t in overall.recall},
-                "median_tp_error_cm": overall.median_tp_error_cm},
-            "bop19": bop}
-        if overall is not None:
-            log(f"{name}: overall (mean of objects) " + ", ".join(
-                f"P@{_th_label(t)} {_f(overall.precision[t], 3)} R@{_th_label(t)} "
-                f"{_f(overall.recall[t], 3)}" for t in overall.precision))
-        if bop is not None:
-            log(f"{name}: BOP19 AR {_f(bop['ar'], 3)} (VSD "
-                f"{'skipped' if bop['ar_vsd'] is None else _f(bop['ar_vsd'], 3)}, MSSD "
-                f"{_f(bop['ar_mssd'], 3)}, MSPD {_f(bop['ar_mspd'], 3)})")
-            for n in bop["notes"]:
-                log(f"  {n}")
-        log(f"  table: {md_path}")
+    for method in loaded:
+        summary["methods"][method[0]] = _evaluate_method(cfg, dataset, models, method, bop_ar, files,
+                                                         curves, log)
     curve_csv, curve_png = out_dir / "detection_rate.csv", out_dir / "detection_rate.png"
     files[curve_csv], files[curve_png] = render_curves(curves, models)
     summary["detection_rate_csv"] = str(curve_csv)

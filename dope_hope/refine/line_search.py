@@ -146,6 +146,61 @@ def sample_depth(D: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return out
 
 
+@dataclass
+class _ScaleCost:
+    """The disagreement with the depth image of the visible model points at scale ``s`` of the
+    translation: ``X = A + s t`` (A (M, 3) rotated model points, camera frame, metres)."""
+
+    A: np.ndarray
+    t: np.ndarray
+    K: np.ndarray
+    D: np.ndarray
+    min_valid: int
+    cost: str
+    huber_delta_m: float
+
+    def residuals(self, s: float) -> np.ndarray:
+        """(M',) depth minus point depth, metres, where both are finite."""
+        X = self.A + s * self.t
+        uvw = X @ self.K.T
+        z = uvw[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = sample_depth(self.D, uvw[:, 0] / z, uvw[:, 1] / z) - z
+        return r[np.isfinite(r)]
+
+    def __call__(self, s: float) -> float:
+        """The robust cost (median |r| or mean Huber); inf with too few valid points."""
+        r = self.residuals(s)
+        if r.size < self.min_valid:
+            return np.inf
+        a = np.abs(r)
+        if self.cost == "median":
+            return float(np.median(a))
+        d = self.huber_delta_m
+        quad = a <= d
+        return float(np.mean(np.where(quad, 0.5 * a * a, d * (a - 0.5 * d))))
+
+
+def _best_scale(objective: _ScaleCost, search: tuple[float, float],
+                grid_steps: int) -> tuple[float, bool] | None:
+    """The scale minimizing ``objective``: a grid over ``search``, then a bounded search around
+    the grid's best. Returns (scale, whether it sits at a search bound), or None when no
+    scale has valid depth."""
+    lo, hi = float(search[0]), float(search[1])
+    grid = np.linspace(lo, hi, max(int(grid_steps), 3))
+    costs = np.array([objective(s) for s in grid])
+    if not np.isfinite(costs).any():
+        return None
+    i = int(np.argmin(costs))
+    a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+    res = minimize_scalar(objective, bounds=(a, b), method="bounded", options={"xatol": 1e-6})
+    s_best = float(res.x) if res.fun <= costs[i] else grid[i]
+    step = grid[1] - grid[0]
+    at_lo = i == 0 and s_best <= lo + 0.5 * step
+    at_hi = i == len(grid) - 1 and s_best >= hi - 0.5 * step
+    return s_best, bool(at_lo or at_hi)
+
+
 def depth_line_search(
     R: np.ndarray,
     t: np.ndarray,
@@ -204,43 +259,17 @@ def depth_line_search(
         return refuse("object does not project into the depth image")
     A = A[vis]
 
-    def residuals(s: float) -> np.ndarray:
-        X = A + s * t
-        uvw = X @ K.T
-        z = uvw[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r = sample_depth(D, uvw[:, 0] / z, uvw[:, 1] / z) - z
-        return r[np.isfinite(r)]
-
-    def objective(s: float) -> float:
-        r = residuals(s)
-        if r.size < min_valid:
-            return np.inf
-        a = np.abs(r)
-        if cost == "median":
-            return float(np.median(a))
-        quad = a <= huber_delta_m
-        return float(np.mean(np.where(quad, 0.5 * a * a, huber_delta_m * (a - 0.5 * huber_delta_m))))
-
-    n0 = residuals(1.0).size
+    f = _ScaleCost(A, t, K, D, min_valid, cost, huber_delta_m)
+    n0 = f.residuals(1.0).size
     if n0 < min_valid:
         return refuse(f"too few visible points with valid depth ({n0} < {min_valid})", n_valid=n0)
-
-    lo, hi = float(search[0]), float(search[1])
-    grid = np.linspace(lo, hi, max(int(grid_steps), 3))
-    costs = np.array([objective(s) for s in grid])
-    if not np.isfinite(costs).any():
+    found = _best_scale(f, search, grid_steps)
+    if found is None:
         return refuse("no valid depth along the search range", n_valid=n0)
-    i = int(np.argmin(costs))
-    a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
-    res = minimize_scalar(objective, bounds=(a, b), method="bounded", options={"xatol": 1e-6})
-    s_best, c_best = (float(res.x), float(res.fun)) if res.fun <= costs[i] else (grid[i], costs[i])
-    n_valid = int(residuals(s_best).size)
-    residual = float(np.median(np.abs(residuals(s_best))))
-    step = grid[1] - grid[0]
-    at_lo = i == 0 and s_best <= lo + 0.5 * step
-    at_hi = i == len(grid) - 1 and s_best >= hi - 0.5 * step
-    if at_lo or at_hi:
+    s_best, at_bound = found
+    n_valid = int(f.residuals(s_best).size)
+    residual = float(np.median(np.abs(f.residuals(s_best))))
+    if at_bound:
         return refuse(f"optimum at the search bound (s = {s_best:.3f})",
                       residual_m=residual, n_valid=n_valid)
     if max_residual_m is not None and residual > max_residual_m:

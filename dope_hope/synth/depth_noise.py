@@ -15,6 +15,9 @@ Missing pixels are 0 (what the camera reports). The function is pure numpy/OpenC
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
+from typing import Any
+
 import cv2
 import numpy as np
 
@@ -64,24 +67,11 @@ def stereo_shadow(disparity_px: np.ndarray) -> np.ndarray:
     return (d > 0) & (right_min < r - 0.5)
 
 
-def add_realsense_noise(depth_m: np.ndarray, rgb: np.ndarray | None, K: np.ndarray,
-                        rng: np.random.Generator | int | None = None, *,
-                        baseline_m: float = 0.055, subpixel_sigma_px: float = 0.08,
-                        disparity_step_px: float = 1.0 / 32.0, edge_threshold: float = 0.02,
-                        edge_width_px: tuple[int, int] = (1, 3), edge_drop_prob: float = 0.8,
-                        stereo_shadow_enabled: bool = True, dark_threshold: float = 0.06,
-                        dark_drop_prob: float = 0.6, specular_threshold: float = 0.96,
-                        specular_drop_prob: float = 0.6, dropout_prob: float = 0.002,
-                        min_depth_m: float = 0.16, max_depth_m: float = 10.0,
-                        stereo_fx_px: float | None = None) -> np.ndarray:
-    """Corrupt a perfect depth image like a RealSense D415 would.
+@dataclass(frozen=True)
+class RealSenseNoise:
+    """How :func:`add_realsense_noise` corrupts depth (defaults: a RealSense D415).
 
-    Args:
-        depth_m: (H, W) depth in metres; 0 or NaN = no measurement.
-        rgb: (H, W, 3) uint8 colour image registered to the depth (dark / specular dropouts),
-            or None to skip those.
-        K: (3, 3) intrinsics of the depth image (fx sets the disparity scale).
-        rng: generator or seed (same rng state -> same output).
+    Attributes:
         baseline_m: stereo baseline (D415: 0.055 m, D435: 0.050 m).
         subpixel_sigma_px: disparity noise std (pixels).
         disparity_step_px: disparity quantization step (pixels); 0 disables it.
@@ -97,46 +87,80 @@ def add_realsense_noise(depth_m: np.ndarray, rgb: np.ndarray | None, K: np.ndarr
             sets the size of the disparity noise and quantization (e.g. 615 for a D415 at
             640x480 whose depth was resized to this image); default: ``K``'s fx. Shadows and
             edge bands are always in this image's pixels.
+    """
+
+    baseline_m: float = 0.055
+    subpixel_sigma_px: float = 0.08
+    disparity_step_px: float = 1.0 / 32.0
+    edge_threshold: float = 0.02
+    edge_width_px: tuple[int, int] = (1, 3)
+    edge_drop_prob: float = 0.8
+    stereo_shadow_enabled: bool = True
+    dark_threshold: float = 0.06
+    dark_drop_prob: float = 0.6
+    specular_threshold: float = 0.96
+    specular_drop_prob: float = 0.6
+    dropout_prob: float = 0.002
+    min_depth_m: float = 0.16
+    max_depth_m: float = 10.0
+    stereo_fx_px: float | None = None
+
+
+def add_realsense_noise(depth_m: np.ndarray, rgb: np.ndarray | None, K: np.ndarray,
+                        rng: np.random.Generator | int | None = None,
+                        settings: RealSenseNoise | None = None, **overrides: Any) -> np.ndarray:
+    """Corrupt a perfect depth image like a RealSense D415 would.
+
+    Args:
+        depth_m: (H, W) depth in metres; 0 or NaN = no measurement.
+        rgb: (H, W, 3) uint8 colour image registered to the depth (dark / specular dropouts),
+            or None to skip those.
+        K: (3, 3) intrinsics of the depth image (fx sets the disparity scale).
+        rng: generator or seed (same rng state -> same output).
+        settings: the noise model (default :class:`RealSenseNoise`'s).
+        overrides: fields of :class:`RealSenseNoise` replaced in ``settings`` (e.g. the
+            config's ``depth_noise`` section through :func:`noise_kwargs`).
 
     Returns:
         (H, W) float32 metres, 0 where missing.
     """
+    n = replace(settings or RealSenseNoise(), **overrides)
     if not isinstance(rng, np.random.Generator):
         rng = np.random.default_rng(rng)
     z = np.nan_to_num(np.asarray(depth_m, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     valid = z > 0
     H, W = z.shape
-    fb_image = float(K[0, 0]) * float(baseline_m)
-    fb = (float(stereo_fx_px) if stereo_fx_px else float(K[0, 0])) * float(baseline_m)
+    fb_image = float(K[0, 0]) * float(n.baseline_m)
+    fb = (float(n.stereo_fx_px) if n.stereo_fx_px else float(K[0, 0])) * float(n.baseline_m)
 
     # Draw every random field up front (fixed order -> reproducible whatever the options).
     disp_noise = rng.normal(0.0, 1.0, (H, W))
     edge_u, dark_u, spec_u, drop_u = rng.random((4, H, W))
-    width = int(rng.integers(edge_width_px[0], edge_width_px[1] + 1))
+    width = int(rng.integers(n.edge_width_px[0], n.edge_width_px[1] + 1))
 
     disparity = np.where(valid, fb / np.where(valid, z, 1.0), 0.0)
-    noisy = disparity + subpixel_sigma_px * disp_noise
-    if disparity_step_px > 0:
-        noisy = np.round(noisy / disparity_step_px) * disparity_step_px
+    noisy = disparity + n.subpixel_sigma_px * disp_noise
+    if n.disparity_step_px > 0:
+        noisy = np.round(noisy / n.disparity_step_px) * n.disparity_step_px
     keep = valid & (noisy > 0)
     out = np.where(keep, fb / np.where(keep, noisy, 1.0), 0.0)
 
     drop = np.zeros((H, W), dtype=bool)
-    edges = depth_edges(z, edge_threshold)
+    edges = depth_edges(z, n.edge_threshold)
     if width > 0 and edges.any():
         kernel = np.ones((2 * width + 1, 2 * width + 1), np.uint8)
         band = cv2.dilate(edges.astype(np.uint8), kernel) > 0
     else:
         band = edges
-    drop |= band & (edge_u < edge_drop_prob)
-    if stereo_shadow_enabled:
+    drop |= band & (edge_u < n.edge_drop_prob)
+    if n.stereo_shadow_enabled:
         drop |= stereo_shadow(disparity * (fb_image / fb))
     if rgb is not None:
         lum = _luminance(np.asarray(rgb))
-        drop |= (lum < dark_threshold) & (dark_u < dark_drop_prob)
-        drop |= (lum > specular_threshold) & (spec_u < specular_drop_prob)
-    drop |= drop_u < dropout_prob
-    drop |= (out < min_depth_m) | (out > max_depth_m)
+        drop |= (lum < n.dark_threshold) & (dark_u < n.dark_drop_prob)
+        drop |= (lum > n.specular_threshold) & (spec_u < n.specular_drop_prob)
+    drop |= drop_u < n.dropout_prob
+    drop |= (out < n.min_depth_m) | (out > n.max_depth_m)
     out[drop] = 0.0
     return out.astype(np.float32)
 
