@@ -1,0 +1,220 @@
+"""The import graph of dope_hope/ and bench/ (read with ast) against docs/ARCHITECTURE.md:
+no circles, no arrow up (or sideways) the layers table, export/ free of inference/, the
+package face used by the entry points only, bench/ on the library only."""
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+PACKAGE = "dope_hope"
+
+# Known violations that work in progress elsewhere removes; each entry names its fix. Empty
+# it as they land: a listed violation that no longer occurs fails the test too.
+ALLOWED_CIRCLES = {
+    # the ONNX backend moves under the model's ONNX contract (inference/backends.open_backend
+    # and onnx_backend.OnnxBackend import each other today)
+    frozenset({"dope_hope.inference.backends", "dope_hope.inference.onnx_backend"}),
+    # the Trainer split: training/settings names Trainer for type hints, trainer imports settings
+    frozenset({"dope_hope.training.settings", "dope_hope.training.trainer"}),
+}
+ALLOWED_EXPORT_TO_INFERENCE = {
+    # the ONNX file contract moves beside model/info.py
+    ("dope_hope.export.int8", "dope_hope.inference.onnx_backend"),
+    ("dope_hope.export.to_onnx", "dope_hope.inference.onnx_backend"),
+}
+ALLOWED_BENCH = {
+    # the demo's configuration (DEMO_CONFIG, IMAGE_SIZE, ensure_onnx) moves into the library
+    ("demo_pose_search.py", "dope_hope.commands.demo"),
+    ("isaac_ros_lite.py", "dope_hope.commands.demo"),
+    ("min_score.py", "dope_hope.commands.demo"),
+    ("photo_composite.py", "dope_hope.commands.demo"),
+    ("stream.py", "dope_hope.commands.demo"),
+}
+ENTRY_POINTS = ("dope_hope.commands", "dope_hope.cli", "dope_hope.__main__")
+
+
+def layers() -> dict[str, int]:
+    """{unit: layer} from the table under "## Layers" in docs/ARCHITECTURE.md (the one place
+    the order is written)."""
+    text = (REPO / "docs" / "ARCHITECTURE.md").read_text()
+    section = text.split("\n## Layers\n", 1)[1].split("\n## ", 1)[0]
+    out = {}
+    for layer, units in re.findall(r"^\| (\d+) \| (.+?) \|$", section, re.M):
+        for unit in units.split(","):
+            out[unit.split("(")[0].strip()] = int(layer)
+    return out
+
+
+def _modules() -> dict[str, Path]:
+    mods = {}
+    for path in sorted((REPO / PACKAGE).rglob("*.py")):
+        name = ".".join(path.relative_to(REPO).with_suffix("").parts)
+        mods[name.removesuffix(".__init__")] = path
+    return mods
+
+
+MODULES = _modules()
+
+
+def _imports(path: Path, package: str | None) -> list[tuple[str, list[str], int]]:
+    """(absolute module, imported names, line) of every import in a file, nested ones too."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out += [(a.name, [], node.lineno) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")[: len(package.split(".")) - (node.level - 1)]
+                base = ".".join(parts + ([base] if base else []))
+            out.append((base, [a.name for a in node.names], node.lineno))
+    return out
+
+
+def _owner(name: str) -> str | None:
+    """The dope_hope module a dotted name refers to (a module, or a name inside one)."""
+    while name and name not in MODULES:
+        name = name.rpartition(".")[0]
+    return name or None
+
+
+def _graph() -> dict[str, set[str]]:
+    graph: dict[str, set[str]] = {}
+    for name, path in MODULES.items():
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        deps = set()
+        for module, names, _ in _imports(path, package):
+            targets = [f"{module}.{n}" if f"{module}.{n}" in MODULES else module for n in names] or [module]
+            deps |= {o for o in map(_owner, targets) if o and o != name}
+        graph[name] = deps
+    return graph
+
+
+GRAPH = _graph()
+
+
+def _unit(module: str) -> str:
+    return PACKAGE if module == PACKAGE else module.split(".")[1]
+
+
+def _circles() -> set[frozenset[str]]:
+    """Strongly connected components of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: set[frozenset[str]] = set()
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(GRAPH[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = set()
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.add(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.add(frozenset(component))
+
+    for v in sorted(GRAPH):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_every_unit_has_a_layer():
+    units = {_unit(m) for m in MODULES}
+    table = layers()
+    assert units - set(table) == set(), "units missing from the ARCHITECTURE.md layers table"
+    assert set(table) - units == set(), "layers table names units that do not exist"
+
+
+def test_no_import_circles():
+    assert _circles() == ALLOWED_CIRCLES
+
+
+def test_imports_go_down_the_layers():
+    table = layers()
+    wrong = sorted(f"{m} (layer {table[_unit(m)]}) -> {d} (layer {table[_unit(d)]})"
+                   for m, deps in GRAPH.items() for d in deps
+                   if _unit(d) != _unit(m) and table[_unit(d)] >= table[_unit(m)])
+    assert wrong == []
+
+
+def test_export_does_not_import_inference():
+    found = {(m, d) for m, deps in GRAPH.items() for d in deps
+             if m.startswith("dope_hope.export") and d.startswith("dope_hope.inference")}
+    assert found == ALLOWED_EXPORT_TO_INFERENCE
+
+
+def test_library_modules_do_not_import_the_package_face():
+    users = sorted(m for m, deps in GRAPH.items() if PACKAGE in deps
+                   and m != PACKAGE and not m.startswith(ENTRY_POINTS))
+    assert users == []
+
+
+def _bench_violations(path: Path) -> set[tuple[str, str]]:
+    found = set()
+    source = path.read_text()
+    for module, names, _ in _imports(path, None):
+        if module.startswith("dope_hope.commands") or module.split(".")[0] == "tests":
+            found.add((path.name, module))
+        if module.startswith(PACKAGE) and any(n.startswith("_") for n in names):
+            found.add((path.name, f"{module}: private name"))
+        if module.startswith(PACKAGE) and module.rpartition(".")[2].startswith("_") \
+                and not module.endswith("__main__"):
+            found.add((path.name, f"{module}: private module"))
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__") \
+                and isinstance(node.value, ast.Name) and node.value.id in _library_aliases(path):
+            found.add((path.name, f"{node.value.id}.{node.attr}: private name"))
+    if re.search(r"sys\.path\.(insert|append)\([^)]*tests", source):
+        found.add((path.name, "tests on sys.path"))
+    return found
+
+
+def _library_aliases(path: Path) -> set[str]:
+    """Local names bound to dope_hope modules (``import dope_hope.x as y``, ``from dope_hope
+    import x``) in a bench script."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names |= {a.asname or a.name.split(".")[0] for a in node.names if a.name.startswith(PACKAGE)}
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith(PACKAGE):
+            names |= {a.asname or a.name for a in node.names
+                      if f"{node.module}.{a.name}" in MODULES}
+    return names
+
+
+def test_bench_uses_the_library_only():
+    found = set().union(*(_bench_violations(p) for p in sorted((REPO / "bench").glob("*.py"))))
+    assert found == ALLOWED_BENCH
+
+
+@pytest.mark.parametrize("source, expected", [
+    ("from dope_hope.commands.infer import X\n", {("x.py", "dope_hope.commands.infer")}),
+    ("from dope_hope.refine.line_search import _sample_depth\n",
+     {("x.py", "dope_hope.refine.line_search: private name")}),
+    ("import sys\nsys.path.insert(0, 'tests')\nfrom fitted_model import scene\n", {("x.py", "tests on sys.path")}),
+    ("from dope_hope.refine import line_search as ls\nls._sample_depth\n",
+     {("x.py", "ls._sample_depth: private name")}),
+    ("from dope_hope.geometry import cuboid_keypoints\n", set()),
+])
+def test_the_bench_check_catches_each_kind(tmp_path, source, expected):
+    path = tmp_path / "x.py"
+    path.write_text(source)
+    assert _bench_violations(path) == expected
