@@ -55,3 +55,15 @@ def test_unreadable_images_name_the_file(tmp_path, name, content):
     assert str(path) in str(err.value)
     with pytest.raises(InputFileError):
         image_size(path)
+
+
+def test_collect_images_takes_every_image_suffix_and_skips_auxiliary_images(tmp_path):
+    """One IMAGE_SUFFIXES for infer's folders, synth's backgrounds and INT8 calibration:
+    a folder's .webp counts; depth / segmentation images and hidden files do not."""
+    from dope_hope.io.images import IMAGE_SUFFIXES, collect_images, image_files
+
+    for name in ("a.png", "b.webp", "a.depth.png", "a.seg.png", ".hidden.png", "notes.txt"):
+        (tmp_path / name).write_bytes(b"")
+    assert ".webp" in IMAGE_SUFFIXES
+    assert [name for _, name in collect_images([str(tmp_path)])] == ["a.png", "b.webp"]
+    assert (tmp_path / "b.webp") in image_files(tmp_path)
