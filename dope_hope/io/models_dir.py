@@ -12,8 +12,8 @@ An object's mesh is, in this order:
    - ``<Name>.obj``, ``<Name>.ply``,
    - ``<Name>/*.obj``, then ``<Name>/*.ply`` (sorted).
 
-Symmetry declarations beside the mesh are read by
-:func:`dope_hope.io.symmetries.declared_symmetries`.
+Symmetry declarations beside the mesh are read by :mod:`dope_hope.io.symmetries`; which one
+an object uses: :func:`dope_hope.symmetry.resolve.resolve_symmetries`.
 """
 from __future__ import annotations
 
