@@ -18,7 +18,10 @@ official code does on the network's (CPU) tensors. Rules reproduced:
   ``cv2.solvePnP`` (SOLVEPNP_ITERATIVE for 6+ points, i.e. always here) with zero
   distortion, a pose behind the camera is mirrored (location negated, turned 180 deg about it).
 
-Not reproduced: the debug prints, quaternion output (R is returned instead), sampling.
+Not reproduced: the debug prints, quaternion output (R is returned instead), sampling; and
+one crash: on very noisy maps (negative raw values in the window) a weighted mean can land
+outside the map, where the official code's affinity read raises IndexError (a negative index
+within the map's size wraps, as there); such a peak is skipped here.
 Used by ``bench/postprocess.py`` only; nothing in the package depends on it.
 """
 from __future__ import annotations
@@ -90,6 +93,9 @@ def find_objects(belief: torch.Tensor, affinity: torch.Tensor, config: dict = OF
                 if value < config["thresh_points"]:
                     continue
                 best, best_dist, best_angle = -1, 10000, 100
+                h, w = affinity.shape[1:]
+                if not (-h <= int(py) < h and -w <= int(px) < w):
+                    continue  # the official affinity read would raise IndexError (module docstring)
                 for i, obj in enumerate(objects):
                     cx, cy = obj[0]
                     ix, iy = int(px), int(py)

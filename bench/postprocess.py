@@ -1,9 +1,9 @@
 """Post-processing speed: maps -> poses per image, and the depth line search (-LS) per object.
 
-Maps -> poses (``--only-maps``): three decoders on the same belief/affinity maps of 10 boxes,
-interleaved in one process (the order rotates each round), median CPU time per image
-(``time.process_time`` with OpenCV and torch on one thread, so other jobs on a shared machine
-do not count):
+Maps -> poses (``--only-maps``): four decoders on the same belief/affinity maps of 10 boxes
+(one object's map set: 9 belief + 16 affinity channels), interleaved in one process (the order
+rotates each round), median CPU time per image (``time.process_time`` with OpenCV and torch
+on one thread, so other jobs on a shared machine do not count):
 
 * **official**: the official DOPE decoder, ``bench/official_dope.py`` (a transcription of
   NVlabs/Deep_Object_Pose ``ObjectDetector.find_object_poses`` with ``config_pose.yaml``:
@@ -11,13 +11,16 @@ do not count):
   ``cv2.solvePnP`` ITERATIVE), fed torch tensors as the network returns them;
 * **default**: ``DopePredictor.detections_from_maps`` with ``pose_search="hypotheses"``
   (``maps.decode.corner_candidates`` + ``inference.pnp.solve_pnp_candidates``);
+* **no floor**: the default without the peaks' noise floor (``decode: {noise_sigmas: 0}``:
+  every peak above the threshold, as before the floor);
 * **groups**: the same with ``pose_search="groups"`` (``maps.decode.decode_maps`` +
   ``inference.pnp.solve_pnp``).
 
 Map sets (``maps.targets.make_targets`` of seeded random Popcorn-box poses at 0.6-1.0 m, every
 keypoint at least 32 px inside the image; 640x480 input at stride 8 = 80x60 maps unless
 noted; K of a 615-px camera): ideal; Gaussian noise of std 0.01 added to the belief and 0.05
-to the affinity; 0.03 / 0.1; one corner peak (belief and field) missing per box; noise
+to the affinity; 0.03 / 0.1; 0.1 / 0.3 (heavy: noise blobs pass the 0.1 peak threshold
+everywhere); one corner peak (belief and field) missing per box; noise
 0.01 / 0.05 + a missing corner + five overlapping pairs of boxes; ideal maps of a 400x400
 input (50x50); "confused" maps where corner maps 0-2 of every box also peak, stronger (1.0,
 the true peak lowered to 0.7), on its corners 2, 3, 0 with fields pointing at its centroid
@@ -91,6 +94,7 @@ MAP_SETS = {
     "ideal, 80x60": ((480, 640), 0.0, 0.0, False, False, False),
     "noise 0.01 / 0.05": ((480, 640), 0.01, 0.05, False, False, False),
     "noise 0.03 / 0.1": ((480, 640), 0.03, 0.1, False, False, False),
+    "noise 0.1 / 0.3": ((480, 640), 0.1, 0.3, False, False, False),
     "one corner missing per box": ((480, 640), 0.0, 0.0, True, False, False),
     "noise + missing corner + overlap": ((480, 640), 0.01, 0.05, True, True, False),
     "ideal, 400x400 input (50x50)": ((400, 400), 0.0, 0.0, False, False, False),
@@ -207,31 +211,38 @@ def maps_section(scenes: int, rounds: int, objects: int) -> None:
         torch.set_num_threads(threads)
 
 
+#: The decoders compared besides the official one: name -> DopePredictor options.
+ARMS = {"default": {"pose_search": "hypotheses"},
+        "no floor": {"pose_search": "hypotheses", "decode": {"noise_sigmas": 0.0}},
+        "groups": {"pose_search": "groups"}}
+
+
 def _maps_table(scenes: int, rounds: int, objects: int) -> None:
     predictors = {}
     for hw in {v[0] for v in MAP_SETS.values()}:
-        for search in ("hypotheses", "groups"):
-            p = DopePredictor(MapsOnly(), height=hw[0], pose_search=search)
-            predictors[hw, search] = (p, p.prepare(np.zeros(hw + (3,), np.uint8)))
-    print(f"maps -> poses, {objects} boxes per image, {scenes} scenes x {rounds} rounds per map set "
-          f"(interleaved; median CPU ms per image; found: mean boxes per image)")
-    print(f"  {'map set':34s} {'official':>16s} {'default':>16s} {'groups':>16s}   official/default  official/groups")
+        for arm, options in ARMS.items():
+            p = DopePredictor(MapsOnly(), height=hw[0], **options)
+            predictors[hw, arm] = (p, p.prepare(np.zeros(hw + (3,), np.uint8)))
+    print(f"maps -> poses, {objects} boxes per image (one object's maps), {scenes} scenes x {rounds} rounds "
+          f"per map set (interleaved; median CPU ms per image; found: mean boxes per image)")
+    print(f"  {'map set':34s} {'official':>16s}" + "".join(f" {a:>16s}" for a in ARMS)
+          + "   official/default  official/groups")
+
+    def arm_run(arm, hw, b, a, K):
+        p, net = predictors[hw, arm]
+        return lambda: [(d.R, d.t) for d in p.detections_from_maps(b, a, net, K)]
+
     for name in MAP_SETS:
-        times = {m: [] for m in ("official", "default", "groups")}
+        times = {m: [] for m in ("official", *ARMS)}
         found = {m: [] for m in times}
         for s in range(scenes):
             b, a, K, hw, Rs, ts = map_set(name, 1000 + s, objects)
             bt, at = torch.from_numpy(b), torch.from_numpy(a)
-            runs = {
-                "official": lambda: find_object_poses(bt, at, CUBOID, K),
-                "default": lambda: [(d.R, d.t) for d in predictors[hw, "hypotheses"][0].detections_from_maps(
-                    b, a, predictors[hw, "hypotheses"][1], K)],
-                "groups": lambda: [(d.R, d.t) for d in predictors[hw, "groups"][0].detections_from_maps(
-                    b, a, predictors[hw, "groups"][1], K)],
-            }
+            runs = {"official": lambda: find_object_poses(bt, at, CUBOID, K),
+                    **{arm: arm_run(arm, hw, b, a, K) for arm in ARMS}}
             order = list(runs)
             for r in range(rounds):
-                for m in order[r % 3:] + order[: r % 3]:
+                for m in order[r % len(order):] + order[: r % len(order)]:
                     t0 = time.process_time()
                     poses = runs[m]()
                     times[m].append(time.process_time() - t0)

@@ -289,3 +289,54 @@ def test_another_objects_corner_that_passes_the_angle_test_is_no_candidate():
     assert candidates_of_a(size_factor=np.inf) == [0, 1, 2, 3, 8]        # the angle margin alone
     with pytest.raises(ValueError, match="angle_margin"):
         corner_candidates(belief, affinity, 1, angle_margin=-1.0)
+
+
+# ----------------------------------------------------------------------------- noise floor
+def _noisy(b: np.ndarray, a: np.ndarray, sb: float, sa: float, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    return ((b + rng.normal(0.0, sb, b.shape)).astype(np.float32),
+            (a + rng.normal(0.0, sa, a.shape)).astype(np.float32))
+
+
+def test_noise_floor_is_the_background_plus_robust_standard_deviations():
+    from dope_hope.maps.decode import noise_floor
+
+    rng = np.random.default_rng(0)
+    maps = rng.normal(0.02, 0.1, (9, 60, 80)).astype(np.float32)
+    maps[:, 20:23, 30:33] = 1.0  # a peak barely moves the median and the MAD
+    np.testing.assert_allclose(noise_floor(maps, 4.0), 0.02 + 4.0 * 0.1, atol=0.04)
+    np.testing.assert_allclose(noise_floor(np.zeros((9, 300, 400), np.float32), 4.0), 0.0)
+
+
+def test_heavy_noise_leaves_the_true_peaks_not_every_noise_blob():
+    """Belief noise of std 0.1 (the peak threshold) and affinity noise 0.3 at stride 8: every
+    noise blob passes the threshold alone (~150 peaks per channel on 50x38 maps); with the
+    noise floor each centroid's candidates are its own box's, as on clean maps."""
+    from dope_hope.maps.decode import find_peaks
+
+    kp = _scene(2)
+    b, a = make_targets(kp, HW, 8)
+    nb, na = _noisy(b, a, 0.1, 0.3)
+    assert np.bincount(find_peaks(nb).channel, minlength=9).min() > 40     # no floor: noise everywhere
+    cands = corner_candidates(nb, na, 8)
+    assert len(cands) == 3
+    for c in cands:
+        j = int(np.argmin(np.linalg.norm(kp[:, 8] - c.xy[0], axis=1)))
+        near = np.linalg.norm(c.xy - kp[j, c.keypoint_ids], axis=1) < 8.0
+        assert near.mean() > 0.8
+    assert len(corner_candidates(nb, na, 8, noise_sigmas=0.0)) > 30       # the floor is what drops them
+    assert decode_maps(*_noisy(np.zeros_like(b), np.zeros_like(a), 0.1, 0.3, seed=1), 8) == []
+
+
+def test_noise_floor_leaves_clean_and_lightly_noisy_maps_as_they_were():
+    kp = _scene(3)
+    b, a = make_targets(kp, HW, 8)
+    for maps in ((b, a), _noisy(b, a, 0.01, 0.05)):
+        with_floor = corner_candidates(*maps, 8)
+        without = corner_candidates(*maps, 8, noise_sigmas=0.0)
+        assert len(with_floor) == len(without) == 3
+        for c, d in zip(with_floor, without):
+            assert c.keypoint_ids.tolist() == d.keypoint_ids.tolist()
+            np.testing.assert_array_equal(c.xy, d.xy)
+    with pytest.raises(ValueError, match="noise_sigmas"):
+        corner_candidates(b, a, 8, noise_sigmas=-1.0)

@@ -11,8 +11,8 @@ BOP_ROOT/DATASET/test_targets_bop19.json: only the targeted images are processed
 models of its targeted objects (a model's object: the HOPE catalog's obj_id of its class, or a
 class named obj_NNNNNN). Poses are refined with the depth line search (-LS) on the split's
 depth images unless --no-depth; the line search uses the object's mesh from
-BOP_ROOT/DATASET/models (or --models-dir: obj_NNNNNN.ply, or the other names of
-dope_hope/io/models_dir.py) when found; --icp adds the depth ICP after it (all six DoF,
+BOP_ROOT/DATASET/models when found (or --models-dir: obj_NNNNNN.ply, or the other names of
+dope_hope/io/models_dir.py; a --models-dir without the object's mesh is an error); --icp adds the depth ICP after it (all six DoF,
 dope_hope/refine/icp.py). Every estimate is written with its score and the image's total
 time (reading + all models, seconds), t in millimetres (io/bop_csv.py). Evaluate it with
   dope-hope evaluate -p dopehope-lite_hope-test.csv -d bop/hope --format bop --models-dir bop/hope/models_eval
@@ -109,7 +109,8 @@ def run(args: argparse.Namespace) -> int:
         obj_id = obj_id_of(backend.class_name)
         if obj_id in predictors:
             raise ConfigError(f"{w}: a second model for obj_id {obj_id} ({backend.class_name})")
-        mesh = find_object_mesh(backend.class_name, models_dir, required=False)
+        # a --models-dir given must hold the object's mesh; DATASET/models may lack it (cuboid)
+        mesh = find_object_mesh(backend.class_name, models_dir, required=args.models_dir is not None)
         predictors[obj_id] = DopePredictor(backend, height=args.height, min_score=args.min_score,
                                            mesh=mesh, icp=args.icp)
 

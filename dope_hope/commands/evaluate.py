@@ -8,7 +8,8 @@ submission CSV, or a folder of NVIDIA's DOPE inference output (inference/inferen
 JSON per image, location in cm, quaternion_xyzw; no scores, so equal ranks in file order) to
 score the official pipeline. Several files (methods) can be compared in one run.
 
-Meshes: --mesh, then --models-dir (one search order: dope_hope/io/models_dir.py). Symmetries:
+Meshes: --mesh, then --models-dir (one search order: dope_hope/io/models_dir.py; a --models-dir
+without an evaluated object's mesh is an error), else a procedural cuboid. Symmetries:
 the object's BOP models_info.json entry beside its mesh, else its declaration (--symmetries
 NAME=FILE, or model_info.json beside its mesh: BOP fields symmetries_discrete /
 symmetries_continuous in the mesh's unit), else the HOPE catalog's category.
@@ -42,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "model_info.json beside its mesh); repeat for several objects")
     parser.add_argument("--models-dir", type=Path, metavar="DIR",
                         help="folder of meshes: BOP models (obj_000001.ply + models_info.json) or "
-                             "HOPE (<Name>/textured.obj, <Name>.obj)")
+                             "HOPE (<Name>/textured.obj, <Name>.obj); it must hold every evaluated object's mesh "
+                             "not given by --mesh")
     parser.add_argument("--mesh-units", choices=("m", "cm", "mm"),
                         help="unit of the mesh files (default: .obj cm, .ply mm)")
     parser.add_argument("--out", type=Path, default=Path("out/eval"), metavar="DIR",

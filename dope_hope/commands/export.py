@@ -39,9 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dynamic", action="store_true", help="dynamic input height and width (native only)")
     parser.add_argument("--layout", choices=("native", "isaac-ros"), default="native",
                         help="graph layout (default native)")
-    parser.add_argument("--isaac-ros-version", default=ISAAC_ROS_CURRENT, metavar="X.Y",
-                        help=f"isaac-ros: the Isaac ROS release to deploy on (default {ISAAC_ROS_CURRENT}); "
-                             "3.2 and later order the cuboid vertices differently from 3.1 and earlier")
+    parser.add_argument("--isaac-ros-version", metavar="X.Y",
+                        help=f"isaac-ros: the Isaac ROS release to deploy on (default and newest known "
+                             f"{ISAAC_ROS_CURRENT}); 3.2 and later order the cuboid vertices differently "
+                             "from 3.1 and earlier")
     parser.add_argument("--isaac-normalization", choices=("half", "imagenet"),
                         help="isaac-ros: the image encoder's mean/std (half = 0.5/0.5, imagenet) "
                              "(default: the release's launch default: half up to 3.1, imagenet since 3.2)")
@@ -61,6 +62,13 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.export.pipeline import export_checkpoint
     from dope_hope.io.paths import output_file
 
+    from dope_hope.errors import ConfigError
+
+    if args.layout != "isaac-ros":
+        for flag, value in (("--isaac-ros-version", args.isaac_ros_version),
+                            ("--isaac-normalization", args.isaac_normalization)):
+            if value is not None:
+                raise ConfigError(f"{flag} applies only to --layout isaac-ros (this export: --layout {args.layout})")
     output_file(args.out)
     res = export_checkpoint(args.weights, args.out, height=args.height, width=args.width,
                             dynamic=args.dynamic, layout=args.layout, int8=args.int8,
@@ -68,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
                             isaac_encoder=args.isaac_normalization,
                             calibration_images=args.calibration_images,
                             calibration_method=args.calibration_method,
-                            isaac_ros_version=args.isaac_ros_version)
+                            isaac_ros_version=args.isaac_ros_version or ISAAC_ROS_CURRENT)
     info = res.info
     size = "dynamic" if info.fixed_input_hw is None else f"{info.fixed_input_hw[0]}x{info.fixed_input_hw[1]}"
     isaac = isaac_ros_deployment(info, res.path) if info.layout == "isaac-ros" else None

@@ -449,6 +449,9 @@ def _run_stream(args: argparse.Namespace) -> int:
         stats = run_stream(source, process, pace=args.realtime, max_frames=args.max_frames,
                            on_source_error=source_failed)
         bar.close()
+        if stats.expected is not None:
+            warn(f"{source.name}: the stream ended early: {stats.read} of the {stats.expected} frames the "
+                 "file states could be decoded (corrupt or truncated file); the outputs hold those")
         write_predictions_jsonl(out / "predictions.jsonl", records)
         video_path = None if video is None else video.close()
     except BaseException:

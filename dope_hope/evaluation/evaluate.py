@@ -202,11 +202,11 @@ def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[
                           f"prediction files")
     dataset = load_dataset(cfg.dataset, cfg.fmt)
     loaded = _load_predictions(cfg, dataset, log)
-    classes = sorted({o.class_name for f in dataset.frames for o in f.objects} |
-                     {p.class_name for _, _, preds, _ in loaded for p in preds})
+    gt_classes = {o.class_name for f in dataset.frames for o in f.objects}
+    classes = sorted(gt_classes | {p.class_name for _, _, preds, _ in loaded for p in preds})
     bop_ar = cfg.bop_ar if cfg.bop_ar is not None else dataset.fmt == "bop"
     models = load_models(classes, cfg.mesh, cfg.models_dir, cfg.mesh_units, symmetry_args=cfg.symmetries,
-                         recorded_sizes=dataset.cuboid_sizes)
+                         recorded_sizes=dataset.cuboid_sizes, mesh_required=gt_classes)
     for _, _, preds, _ in loaded:
         cuboid_centres_to_origins(preds, models)
     out_dir = Path(cfg.out)

@@ -11,7 +11,7 @@ uses it (every vertex of the file, millimetres).
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -211,11 +211,14 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
                 models_dir: str | os.PathLike | None = None, mesh_units: str | None = None,
                 n_points: int = NUM_MODEL_POINTS, cyl_step_deg: float = 1.0,
                 symmetry_args: Sequence[str] = (),
-                recorded_sizes: dict[str, tuple[np.ndarray, Path]] | None = None) -> dict[str, ObjectModel]:
+                recorded_sizes: dict[str, tuple[np.ndarray, Path]] | None = None,
+                mesh_required: Collection[str] | None = None) -> dict[str, ObjectModel]:
     """Model points, diameter and symmetries of every class.
 
     Mesh: ``--mesh [NAME=]PATH``, then ``--models-dir`` (the search order of
-    :mod:`dope_hope.io.models_dir`); else a **procedural** stand-in: points on the surface of
+    :mod:`dope_hope.io.models_dir`; a given folder without the mesh of a class in
+    ``mesh_required``, default every class, is an error: evaluate requires the classes of
+    the ground truth); else a **procedural** stand-in: points on the surface of
     the catalog cuboid (reported as such). Symmetries and diameter: the object's declaration
     (:func:`dope_hope.symmetry.resolve.resolve_symmetries`: a BOP ``models_info.json`` entry
     beside the mesh, else ``--symmetries [NAME=]FILE``, else ``model_info.json`` beside the
@@ -233,7 +236,8 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
     object's mesh is refused instead of scored.
 
     Raises:
-        InputFileError / ConfigError / UnknownObjectError: unreadable mesh or declaration; a
+        InputFileError / ConfigError / UnknownObjectError: unreadable mesh or declaration;
+        ``models_dir`` without the mesh of a required class (and no ``--mesh`` for it); a
         bare ``--mesh PATH`` of an unknown class among several; ``--symmetries`` for an object
         whose ``models_info.json`` entry declares them; a class neither in the catalog nor
         given a mesh. ConfigError: a mesh whose box does not match.
@@ -247,6 +251,8 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
         raise InputFileError(models_dir, "models folder not found")
     out: dict[str, ObjectModel] = {}
     for name in class_names:
-        path = find_object_mesh(name, models_dir, meshes, required=False)
+        # an explicit models folder must hold the objects scored (no silent stand-in)
+        required = models_dir is not None and (mesh_required is None or name in mesh_required)
+        path = find_object_mesh(name, models_dir, meshes, required=required)
         out[name] = _object_model(name, None if path is None else Path(path), args)
     return out

@@ -51,8 +51,10 @@ if TYPE_CHECKING:
 # numpy and dope_hope.geometry (scipy) are imported inside the functions: the CLI imports this
 # module for ISAAC_ROS_CURRENT when it builds its parser, and must stay quick to start.
 
-#: The newest release checked (isaac_ros_dope package.xml 4.0.0); the default target.
+#: The newest release checked (isaac_ros_dope package.xml 4.0.0); the default target. Later
+#: versions are refused: their decoder's vertex order is unknown.
 ISAAC_ROS_CURRENT = "4.0"
+NEWEST = (4, 0)
 #: First release whose ``CuboidVertices`` is turned 180 degrees about z.
 FLIPPED_SINCE = (3, 2)
 #: Oldest release accepted (0.x "DP" releases hard-coded 60x80 maps in a ROS node).
@@ -128,6 +130,10 @@ def isaac_ros_release(version: str = ISAAC_ROS_CURRENT) -> IsaacRosRelease:
     if major_minor < OLDEST:
         raise ConfigError(f"--isaac-ros-version {version}: releases before {OLDEST[0]}.{OLDEST[1]} "
                           "(hard-coded 60x80 maps) are not supported")
+    if major_minor > NEWEST:
+        raise ConfigError(f"--isaac-ros-version {version}: newer than the newest known release "
+                          f"{ISAAC_ROS_CURRENT} (its decoder's cuboid vertex order is unchecked); "
+                          f"use {ISAAC_ROS_CURRENT} or earlier")
     version = str(version).strip()
     if major_minor >= FLIPPED_SINCE:
         return IsaacRosRelease(version, True, "isaac_ros_dope_core.launch.py",

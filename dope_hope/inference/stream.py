@@ -52,13 +52,16 @@ class StreamStats:
     """What a stream run did. read: frames taken from the source; processed: frames the
     callback got; dropped: frames replaced before the loop took them; seconds: from taking the
     first frame to the end of the last callback; stopped: why it ended ("end of stream",
-    "interrupted", "max frames", "stopped by the callback", or a source error's message)."""
+    "interrupted", "max frames", "stopped by the callback", "ended early: ..." or a source
+    error's message); expected: the frame count the file states when its stream ended before
+    it (a corrupt or truncated file), else None."""
 
     read: int = 0
     processed: int = 0
     dropped: int = 0
     seconds: float = 0.0
     stopped: str = "end of stream"
+    expected: int | None = None
 
     @property
     def fps(self) -> float:
@@ -154,6 +157,7 @@ def run_stream(source: FrameSource, process: Callable[[Frame], bool | None], lat
     ``latest`` defaults to ``source.live or pace``. ``process(frame)`` returning False ends
     the stream. A source error (e.g. a camera unplugged) is raised unless
     ``on_source_error(exc)`` returns True, which ends the stream as if it had ended there.
+    A file whose frames end before the count it states ends with ``stats.expected`` set.
     Ctrl-C ends the stream like its end. The source is closed on return.
     """
     latest = (source.live or pace) if latest is None else latest
@@ -173,6 +177,9 @@ def run_stream(source: FrameSource, process: Callable[[Frame], bool | None], lat
         else:
             if feed.reached_max:
                 stats.stopped = "max frames"
+            elif not source.live and source.length is not None and feed.read < source.length:
+                stats.expected = source.length
+                stats.stopped = f"ended early: {feed.read} of the {source.length} frames the file states"
     except KeyboardInterrupt:
         stats.stopped = "interrupted"
     except Exception as exc:

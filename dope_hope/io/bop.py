@@ -201,7 +201,7 @@ def parse_model_info(f: JsonFields, info: Any, where: str, units: str = "mm") ->
     pre = f"{where}." if where else ""
     out: dict[str, Any] = {"diameter_m": None}
     if info.get("diameter") is not None:
-        out["diameter_m"] = f.number(info["diameter"], f"{pre}diameter") * scale
+        out["diameter_m"] = f.positive_number(info["diameter"], f"{pre}diameter") * scale
     if all(info.get(f"size_{a}") is not None for a in "xyz"):
         out["size_m"] = np.array([f.number(info[f"size_{a}"], f"{pre}size_{a}") for a in "xyz"]) * scale
     if all(info.get(f"min_{a}") is not None for a in "xyz"):

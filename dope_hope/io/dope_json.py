@@ -178,8 +178,14 @@ def _read_camera_settings(folder: Path) -> tuple[np.ndarray | None, int | None, 
     intr = f.get(cams[0], "intrinsic_settings", "camera_settings[0]")
     vals = [f.number(f.get(intr, k, "camera_settings[0].intrinsic_settings"),
                      f"camera_settings[0].intrinsic_settings.{k}") for k in ("fx", "fy", "cx", "cy")]
-    size = cams[0].get("captured_image_size") or {}
-    return intrinsics_matrix(*vals), size.get("width"), size.get("height")
+    size = cams[0].get("captured_image_size")
+    if size is None:
+        return intrinsics_matrix(*vals), None, None
+    where = "camera_settings[0].captured_image_size"
+    if not isinstance(size, dict):  # NDDS writes {"width": W, "height": H}
+        raise f.fail(where, f'expected an object {{"width": W, "height": H}}, got {type(size).__name__}')
+    w, h = (None if size.get(k) is None else f.positive_int(size[k], f"{where}.{k}") for k in ("width", "height"))
+    return intrinsics_matrix(*vals), w, h
 
 
 # --------------------------------------------------------------------------- objects

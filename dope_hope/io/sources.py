@@ -39,6 +39,8 @@ REALSENSE_DEFAULT_SIZE = (640, 480)
 REALSENSE_DEFAULT_FPS = 30
 #: How long a RealSense read may wait for a frame set, milliseconds.
 REALSENSE_TIMEOUT_MS = 5000
+#: Largest camera index OpenCV takes (a C int).
+MAX_CAMERA_INDEX = 2**31 - 1
 _REALSENSE = "realsense"
 
 
@@ -179,6 +181,8 @@ class CameraDevice(_Capture):
                  fps: float | None = None):
         import cv2
 
+        if not 0 <= index <= MAX_CAMERA_INDEX:
+            raise DeviceError(f"camera {index}: camera index out of range (OpenCV takes 0 to {MAX_CAMERA_INDEX})")
         capture = open_capture(index)
         if not capture.isOpened():
             raise DeviceError(f"camera {index}: cannot be opened (no such device, or in use)")

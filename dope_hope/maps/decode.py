@@ -5,8 +5,13 @@ Pipeline (all channels at once, no Python loops over pixels):
 1. **Peaks.** Each belief map is smoothed with a Gaussian (``smooth_sigma`` map px,
    ``scipy.ndimage.gaussian_filter``); a cell is a peak when it is the maximum of its
    ``(2*nms_radius+1)^2`` neighbourhood and its belief (the largest raw value in its 3x3
-   neighbourhood) exceeds ``threshold``. Plateaus of equal maxima yield one peak (connected
-   components, ``scipy.ndimage.label``, only where peak cells touch).
+   neighbourhood) exceeds ``threshold`` and, with ``noise_sigmas`` (the decoders' default
+   :data:`DEFAULT_NOISE_SIGMAS`), its channel's background by that many robust standard
+   deviations (median + ``noise_sigmas`` x 1.4826 MAD of the raw map): on a map with noise
+   near the threshold every noise blob would pass, and the grouping and pose search would
+   pay for each (a network's background is near zero, where this adds nothing). Plateaus
+   of equal maxima yield one peak (connected components, ``scipy.ndimage.label``, only
+   where peak cells touch).
 2. **Sub-pixel position.** The peak cell first climbs to the raw map's local maximum next to
    it (smoothing moves a skewed peak's cell towards its shoulder; fitting there put a trained
    model's keypoints ~1 cell off). Then a separable *log-parabola* (Gaussian) fit on the three
@@ -73,6 +78,14 @@ DEFAULT_SMOOTH_SIGMA = 1.0
 #: lies within this many times the centroid's object size.
 DEFAULT_ANGLE_MARGIN = 0.2
 DEFAULT_SIZE_FACTOR = 2.0
+#: :func:`decode_maps` / :func:`corner_candidates`: a peak stands this many robust standard
+#: deviations above its map's background. Gaussian noise of std s makes ~150 peaks per channel
+#: of an 80x60 map, up to ~4 s high: about one per channel passes 4 s (3.5-5 s find as many
+#: boxes on bench/postprocess.py's noise 0.1 / 0.3 maps; 6 s loses weakened true peaks).
+DEFAULT_NOISE_SIGMAS = 4.0
+#: Cells of each channel sampled for its background level: a strided subsample of between
+#: this many and four times as many (the floor of 512 noise samples is within ~6 % of 4 std).
+_NOISE_SAMPLE_CELLS = 512
 #: Grouping cost per unit of missing peak height, map px: a peak's height outranks any
 #: centroid distance (see :func:`assign_corners`).
 SCORE_PRIORITY = 1e4
@@ -228,12 +241,27 @@ def _snap_to_raw_max(raw: np.ndarray, c: np.ndarray, y: np.ndarray, x: np.ndarra
     return y, x
 
 
+def noise_floor(raw: np.ndarray, noise_sigmas: float) -> np.ndarray:
+    """(C,) per channel of (C, h, w) maps: median + ``noise_sigmas`` x 1.4826 x the median
+    absolute deviation (a Gaussian's std, robust to the few cells the peaks cover), from a
+    strided subsample of :data:`_NOISE_SAMPLE_CELLS` to 4x as many cells (every cell of a
+    small map); medians by partition (the upper one of an even count)."""
+    C, h, w = raw.shape
+    step = max(1, int(np.sqrt(h * w / _NOISE_SAMPLE_CELLS)))
+    sample = raw[:, ::step, ::step].reshape(C, -1)
+    mid = sample.shape[1] // 2
+    median = np.partition(sample, mid, axis=1)[:, mid]
+    mad = np.partition(np.abs(sample - median[:, None]), mid, axis=1)[:, mid]
+    return median + float(noise_sigmas) * 1.4826 * mad
+
+
 def find_peaks(
     belief,
     threshold: float = DEFAULT_THRESHOLD,
     smooth_sigma: float = DEFAULT_SMOOTH_SIGMA,
     nms_radius: int = 1,
     refine_on: str = "raw",
+    noise_sigmas: float = 0.0,
 ) -> Peaks:
     """Sub-pixel peaks of every belief channel (see the module docstring).
 
@@ -243,12 +271,15 @@ def find_peaks(
         smooth_sigma: Gaussian smoothing for detection, map px (0 = none).
         nms_radius: a peak is the maximum of its (2r+1)^2 neighbourhood, map px.
         refine_on: "raw" (default) or "smoothed": which map the log-parabola fit uses first.
+        noise_sigmas: a peak also exceeds its channel's :func:`noise_floor` (0: no floor).
 
     Returns:
         :class:`Peaks` with positions in continuous map coordinates inside the map.
     """
     if refine_on not in ("raw", "smoothed"):
         raise ValueError(f"refine_on must be 'raw' or 'smoothed', got {refine_on!r}")
+    if not noise_sigmas >= 0.0:
+        raise ValueError(f"noise_sigmas must be >= 0, got {noise_sigmas}")
     raw = _to_numpy(belief)
     if raw.ndim != 3:
         raise ValueError(f"belief must be (C, h, w), got {raw.shape}")
@@ -259,7 +290,10 @@ def find_peaks(
     local_max = (smooth >= _window_max(smooth, nms_radius)) & (smooth > 0)  # flat empty regions are not peaks
     # A peak: a local maximum of the smoothed map whose raw 3x3 maximum (cells inside the map) passes.
     raw_near = _window_max(raw, 1)
-    idx = np.flatnonzero(local_max & (raw_near > threshold))
+    floor = threshold
+    if noise_sigmas > 0:
+        floor = np.maximum(threshold, noise_floor(raw, noise_sigmas))[:, None, None]
+    idx = np.flatnonzero(local_max & (raw_near > floor))
     if idx.size == 0:
         empty = np.zeros((0, 2))
         return Peaks(np.zeros(0, int), empty.astype(int), empty, np.zeros(0))
@@ -418,6 +452,7 @@ def decode_maps(
     min_affinity: float = 0.0,
     refine_on: str = "raw",
     min_keypoints: int = 1,
+    noise_sigmas: float = DEFAULT_NOISE_SIGMAS,
 ) -> list[Instance2D]:
     """Decode one image's maps into instances.
 
@@ -432,10 +467,12 @@ def decode_maps(
         min_affinity: minimum affinity vector length at a corner peak.
         refine_on: "raw" or "smoothed" (see :func:`find_peaks`).
         min_keypoints: drop instances with fewer keypoints (the centroid counts).
+        noise_sigmas: a peak stands this many robust standard deviations above its map's
+            background (:func:`noise_floor`; 0: only ``threshold``).
     Returns:
         Instances sorted by decreasing score; keypoints in image px via mapgrid.
     """
-    peaks, aff = _peaks_and_field(belief, affinity, threshold, smooth_sigma, nms_radius, refine_on)
+    peaks, aff = _peaks_and_field(belief, affinity, threshold, smooth_sigma, nms_radius, refine_on, noise_sigmas)
     is_c = peaks.channel == CENTROID_INDEX
     centroids_xy = peaks.xy[is_c]
     m = len(centroids_xy)
@@ -461,7 +498,7 @@ def decode_maps(
 
 
 def _peaks_and_field(belief, affinity, threshold: float, smooth_sigma: float, nms_radius: int,
-                     refine_on: str) -> tuple[Peaks, np.ndarray]:
+                     refine_on: str, noise_sigmas: float) -> tuple[Peaks, np.ndarray]:
     """Checked maps -> (peaks of all nine channels, (16, h, w) affinity)."""
     bel = _to_numpy(belief)
     aff = _to_numpy(affinity)
@@ -469,7 +506,7 @@ def _peaks_and_field(belief, affinity, threshold: float, smooth_sigma: float, nm
         raise ValueError(f"belief must be ({NUM_KEYPOINTS}, h, w), got {bel.shape}")
     if aff.shape != (2 * CENTROID_INDEX,) + bel.shape[1:]:
         raise ValueError(f"affinity must be ({2 * CENTROID_INDEX}, h, w) like belief, got {aff.shape}")
-    return find_peaks(bel, threshold, smooth_sigma, nms_radius, refine_on), aff
+    return find_peaks(bel, threshold, smooth_sigma, nms_radius, refine_on, noise_sigmas), aff
 
 
 def _corner_groups(peaks: Peaks, aff: np.ndarray, centroids_xy: np.ndarray, angle_threshold: float,
@@ -521,12 +558,13 @@ def corner_candidates(
     max_per_type: int = 3,
     angle_margin: float = DEFAULT_ANGLE_MARGIN,
     size_factor: float = DEFAULT_SIZE_FACTOR,
+    noise_sigmas: float = DEFAULT_NOISE_SIGMAS,
 ) -> list[CornerCandidates]:
     """Per centroid peak, the corner peaks whose affinity points at it (module docstring, 4).
 
     Args:
         belief, affinity, stride, threshold, angle_threshold, smooth_sigma, nms_radius,
-            min_affinity, refine_on: as in :func:`decode_maps`.
+            min_affinity, refine_on, noise_sigmas: as in :func:`decode_maps`.
         max_per_type: keep at most this many peaks of each corner type per centroid: the one
             :func:`decode_maps` would give it, then the others by its grouping cost (strongest
             first, nearest among equals).
@@ -545,7 +583,7 @@ def corner_candidates(
         raise ValueError(f"max_per_type must be >= 1, got {max_per_type}")
     if not (angle_margin >= 0.0 and size_factor > 0.0):
         raise ValueError(f"angle_margin must be >= 0 and size_factor > 0, got {angle_margin}, {size_factor}")
-    peaks, aff = _peaks_and_field(belief, affinity, threshold, smooth_sigma, nms_radius, refine_on)
+    peaks, aff = _peaks_and_field(belief, affinity, threshold, smooth_sigma, nms_radius, refine_on, noise_sigmas)
     is_c = peaks.channel == CENTROID_INDEX
     centroids_xy = peaks.xy[is_c]
     m = len(centroids_xy)

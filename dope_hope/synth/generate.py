@@ -268,11 +268,52 @@ def _main_thread() -> bool:
 _WORKER_OUT: Path | None = None
 
 
+class _CtrlCHeld:
+    """Ctrl-C held back while worker processes start, and acted on once they have.
+
+    The workers must never see SIGINT (the parent terminates them), including while their
+    interpreter starts, before :func:`_init_worker` ignores it: a process started from a
+    thread that blocks SIGINT inherits the block, and a Ctrl-C stays pending in it until the
+    worker ignores the signal (which discards it). The parent's handler meanwhile only
+    records a Ctrl-C (a KeyboardInterrupt inside ``Pool()`` would orphan half a pool);
+    :meth:`release` restores the handler and raises the recorded interrupt, which the caller
+    does inside the pool's ``with`` so that the started workers are terminated.
+    """
+
+    def __init__(self) -> None:
+        self.active = _main_thread()
+        self.caught = False
+        self.previous: Any = None
+        if self.active:
+            self.previous = signal.getsignal(signal.SIGINT)
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+            if self.previous is not signal.SIG_IGN:
+                signal.signal(signal.SIGINT, self._record)
+
+    def _record(self, signum: int, frame: Any) -> None:
+        self.caught = True
+
+    def release(self) -> None:
+        """Restore Ctrl-C; one that came while held is acted on now (KeyboardInterrupt)."""
+        if not self.active:
+            return
+        self.active = False
+        signal.signal(signal.SIGINT, self.previous)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # a pending one is handled here
+        if self.caught:
+            if callable(self.previous):
+                self.previous(signal.SIGINT, None)
+            elif self.previous == signal.SIG_DFL:
+                raise KeyboardInterrupt
+
+
 def _init_worker(gen_kwargs: dict[str, Any], out_dir: str, threads: int) -> None:
     global _WORKER, _WORKER_OUT
     # The parent alone handles Ctrl-C and SIGTERM (it terminates the pool): a worker ignores
-    # SIGINT (already ignored since it started, see generate_dataset) and dies quietly on SIGTERM.
+    # SIGINT (blocked since it started, see _CtrlCHeld; ignoring discards a pending one) and
+    # dies quietly on SIGTERM.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     # Share the cores between the workers' software rasterizers (Mesa llvmpipe) instead of
     # each one starting a thread per core (unless the user set these).
@@ -396,16 +437,17 @@ def generate_dataset(out_dir: str | os.PathLike, mesh_path: str | os.PathLike | 
             ctx = mp.get_context("spawn")
             n_proc = min(workers, len(todo))
             threads = max(1, (os.cpu_count() or 1) // n_proc)
-            # Workers start with SIGINT ignored (Python keeps an inherited SIG_IGN), so that a
-            # Ctrl-C reaches the parent alone, which terminates them with the pool.
-            previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if _main_thread() else None
+            # A Ctrl-C reaches the parent alone, which terminates the workers with the pool;
+            # one that comes while they start is acted on once the pool stands (_CtrlCHeld).
+            held = _CtrlCHeld()
             try:
                 pool = ctx.Pool(n_proc, initializer=_init_worker, initargs=(gen_kwargs, str(out), threads))
-            finally:
-                if previous is not None:
-                    signal.signal(signal.SIGINT, previous)
+            except BaseException:
+                held.release()
+                raise
             try:
                 with pool:
+                    held.release()
                     for i in pool.imap_unordered(_work, todo, chunksize=1):
                         bar.update(1)
                         if on_frame is not None:
