@@ -4,15 +4,12 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from dope_hope.assets import DEMO_WEIGHTS, PRETRAINED_WEIGHTS
 from dope_hope.errors import ConfigError, UnknownObjectError
-
-if TYPE_CHECKING:
-    from dope_hope.training.trainer import Trainer
 
 
 #: ``--init`` choices besides a checkpoint path.
@@ -58,7 +55,9 @@ class TrainJob:
         overrides: nested config values set on the command line (``--epochs``, ``--set``...);
             merged over the given config, or over the checkpoint's config when resuming.
         on_step: hook called with (trainer, step) after every optimizer step (tests use it to
-            interrupt a run at a given step).
+            interrupt a run at a given step); typed loosely, as this module sits below the trainer.
+        clock: the seconds the time budget counts (default ``time.monotonic``; tests inject a
+            clock to make the plans of a time-limited run reproducible).
     """
 
     data: list[Path]
@@ -74,7 +73,8 @@ class TrainJob:
     device: str = "auto"
     progress: bool = True
     overrides: dict[str, Any] = field(default_factory=dict)
-    on_step: Callable[["Trainer", int], None] | None = None
+    on_step: Callable[[Any, int], None] | None = None
+    clock: Callable[[], float] | None = None
 
 
 #: The ``train`` keys that hold numbers: key -> (rule, may be null). Rules: "int>=N" a whole

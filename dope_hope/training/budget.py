@@ -1,0 +1,77 @@
+"""A time budget turned into the step a training run ends at, re-planned as the speed changes.
+
+The trainer measures the seconds per step of the recent steps (validation time left out) and
+asks :class:`BudgetPlan` for the end step: first once the speed is known, then again at every
+validation and whenever a share of the budget has passed since the last plan (the share
+shrinks as the end approaches), and at every step it checks that one more step still fits.
+Each plan is a plain dict (:func:`make_plan`) kept in the checkpoint, so a resumed run
+continues with the plans made before the interruption (the learning rate followed them; see
+:meth:`dope_hope.training.schedule.LrLambda.replan`) and plans again from its own
+measurements.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+#: Share of the budget kept free at the end (the last checkpoint, summary, what the speed
+#: estimate misses): the run plans to end at 99 % of its budget.
+END_MARGIN = 0.01
+#: A re-plan is due when this share of the budget, or a quarter of what is left (whichever is
+#: less), has passed since the last plan.
+REPLAN_SHARE = 0.05
+#: Steps a re-plan's speed window needs; fewer (just after a resume) reuse the last plan's speed.
+MIN_WINDOW_STEPS = 5
+
+
+def make_plan(step: int, end: int, budget_end: int, per_step_s: float, val_s: float, used_s: float,
+              why: str) -> dict[str, Any]:
+    """One plan: made after ``step`` steps with ``used_s`` seconds of the budget used, from
+    ``per_step_s`` seconds per step and ``val_s`` per validation; the budget allows
+    ``budget_end`` steps, the run ends at ``end`` (<= its nominal length); ``why`` in words."""
+    return {"step": int(step), "end": int(end), "budget_end": int(budget_end), "per_step_s": float(per_step_s),
+            "val_s": float(val_s), "used_s": float(used_s), "why": str(why)}
+
+
+@dataclass
+class BudgetPlan:
+    """The plans of one time-limited run (``limit_s`` seconds of budget).
+
+    Attributes:
+        limit_s: the budget in seconds.
+        plans: every plan so far, oldest first (:func:`make_plan` dicts; checkpointed).
+    """
+
+    limit_s: float
+    plans: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def last(self) -> dict[str, Any] | None:
+        return self.plans[-1] if self.plans else None
+
+    def due(self, used_s: float) -> bool:
+        """Whether a re-plan is due after ``used_s`` seconds (a first plan always is)."""
+        if self.last is None:
+            return True
+        since = used_s - self.last["used_s"]
+        return since >= min(REPLAN_SHARE * self.limit_s, 0.25 * max(0.0, self.limit_s - used_s))
+
+    def budget_steps(self, step: int, used_s: float, per_step_s: float, val_s: float, val_every_steps: int) -> int:
+        """The step the budget allows: the time left after the final validation and the end
+        margin, spent on steps and on the validations every ``val_every_steps`` (0: none)."""
+        left = self.limit_s * (1.0 - END_MARGIN) - used_s - val_s
+        per = max(per_step_s, 1e-9) + (val_s / val_every_steps if val_every_steps > 0 else 0.0)
+        return step + max(0, math.floor(max(0.0, left) / per))
+
+    def plan(self, step: int, used_s: float, per_step_s: float, val_s: float, val_every_steps: int,
+             nominal_end: int, why: str) -> dict[str, Any]:
+        """Make, record and return a plan (its ``end`` never before ``step``)."""
+        budget_end = self.budget_steps(step, used_s, per_step_s, val_s, val_every_steps)
+        plan = make_plan(step, max(step, min(nominal_end, budget_end)), budget_end, per_step_s, val_s, used_s, why)
+        self.plans.append(plan)
+        return plan
+
+    def one_more_fits(self, used_s: float, per_step_s: float, val_s: float) -> bool:
+        """Whether one more step of ``per_step_s`` and the final validation fit in the budget."""
+        return used_s + per_step_s + val_s <= self.limit_s
