@@ -26,12 +26,13 @@ MIN_WINDOW_STEPS = 5
 
 
 def make_plan(step: int, end: int, budget_end: int, per_step_s: float, val_s: float, used_s: float,
-              why: str) -> dict[str, Any]:
-    """One plan: made after ``step`` steps with ``used_s`` seconds of the budget used, from
-    ``per_step_s`` seconds per step and ``val_s`` per validation; the budget allows
-    ``budget_end`` steps, the run ends at ``end`` (<= its nominal length); ``why`` in words."""
+              val_total_s: float, why: str) -> dict[str, Any]:
+    """One plan: made after ``step`` steps with ``used_s`` seconds of the budget used
+    (``val_total_s`` of them by validations), from ``per_step_s`` seconds per step and ``val_s``
+    per validation; the budget allows ``budget_end`` steps, the run ends at ``end`` (<= its
+    nominal length); ``why`` in words."""
     return {"step": int(step), "end": int(end), "budget_end": int(budget_end), "per_step_s": float(per_step_s),
-            "val_s": float(val_s), "used_s": float(used_s), "why": str(why)}
+            "val_s": float(val_s), "used_s": float(used_s), "val_total_s": float(val_total_s), "why": str(why)}
 
 
 @dataclass
@@ -64,11 +65,12 @@ class BudgetPlan:
         per = max(per_step_s, 1e-9) + (val_s / val_every_steps if val_every_steps > 0 else 0.0)
         return step + max(0, math.floor(max(0.0, left) / per))
 
-    def plan(self, step: int, used_s: float, per_step_s: float, val_s: float, val_every_steps: int,
-             nominal_end: int, why: str) -> dict[str, Any]:
+    def plan(self, step: int, used_s: float, val_total_s: float, per_step_s: float, val_s: float,
+             val_every_steps: int, nominal_end: int, why: str) -> dict[str, Any]:
         """Make, record and return a plan (its ``end`` never before ``step``)."""
         budget_end = self.budget_steps(step, used_s, per_step_s, val_s, val_every_steps)
-        plan = make_plan(step, max(step, min(nominal_end, budget_end)), budget_end, per_step_s, val_s, used_s, why)
+        plan = make_plan(step, max(step, min(nominal_end, budget_end)), budget_end, per_step_s, val_s, used_s,
+                         val_total_s, why)
         self.plans.append(plan)
         return plan
 

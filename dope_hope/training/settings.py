@@ -91,6 +91,23 @@ _TRAIN_NUMBERS: dict[str, tuple[str, bool]] = {
     "val_batch_size": ("int>=1", True), "max_instances": ("int>=1", False), "min_visibility": ("float>=0", False),
     "log_every": ("int>=1", False), "horizon_estimate_after": ("int>=2", False),
 }
+#: The longest time budget accepted, minutes (a year): longer ones are mistakes (1e308
+#: minutes is no number of seconds a clock can count); leave the budget out for no limit.
+MAX_TIME_LIMIT_MIN = 525_600.0
+
+
+def check_time_limit(value: Any, name: str = "train.time_limit_min") -> float:
+    """A time budget in minutes: a finite number > 0 and at most :data:`MAX_TIME_LIMIT_MIN`;
+    ConfigError naming ``name`` otherwise."""
+    from dope_hope.config import positive_float
+
+    minutes = positive_float(value, name)
+    if minutes > MAX_TIME_LIMIT_MIN:
+        raise ConfigError(f"{name} must be at most {MAX_TIME_LIMIT_MIN:g} minutes (a year; leave it out for "
+                          f"no time limit), got {value!r}")
+    return minutes
+
+
 #: Top-level config sections, and the keys of those that no other reader checks.
 CONFIG_SECTIONS = ("model", "input", "targets", "train", "augment")
 _SECTION_KEYS = {"input": ("size", "normalization"), "targets": ("sigma", "radius", "symmetry")}
@@ -124,6 +141,8 @@ def train_settings(config: dict[str, Any]) -> dict[str, Any]:
             continue
         if rule.startswith("int>="):
             out[key] = whole_number(value, name, int(rule[5:]))
+        elif key == "time_limit_min":
+            out[key] = check_time_limit(value, name)
         elif rule == "float>0":
             out[key] = positive_float(value, name)
         elif rule == "float>=0":
@@ -262,6 +281,44 @@ def resolve_init(choice: str | None, config: dict[str, Any]) -> tuple[Path | Non
         return None, ("random start: the config's model differs from the shipped pretrained lite "
                       "start's (--init none to say so, --init PATH for another checkpoint)")
     return Path(value), f"the weights of {value} (--init)"
+
+
+def resolve_resume(choice: str | None, out: Path, init: str | None) -> tuple[Path | None, str | None]:
+    """The checkpoint a run continues from (``--resume``) and the ``--init`` that still applies.
+
+    Args:
+        choice: None (a new run), "auto" (``out/last.pt`` when it exists, else a new run) or a
+            checkpoint path.
+        out: the run's output folder.
+        init: the ``--init`` given, or None.
+
+    Returns:
+        (checkpoint or None, init or None): "auto" finding ``last.pt`` continues it with its
+        own weights (a given ``--init`` is ignored, said in a warning).
+
+    Raises:
+        ConfigError: a checkpoint path together with ``--init``.
+        InputFileError: a checkpoint path that is not a readable file.
+    """
+    import logging
+
+    from dope_hope.io.paths import require_file
+
+    log = logging.getLogger(__name__)
+    if choice is None:
+        return None, init
+    if choice != "auto":
+        if init is not None:
+            raise ConfigError("--resume PATH continues a run with its own weights; --init starts a new run "
+                              "from other weights: give one of them")
+        return require_file(Path(choice), "checkpoint to resume from"), None
+    candidate = Path(out) / "last.pt"
+    if not candidate.is_file():
+        log.info("--resume: %s does not exist yet, starting fresh", candidate)
+        return None, init
+    if init is not None:
+        log.warning("--init %s ignored: --resume continues %s with its own weights", init, candidate)
+    return candidate, None
 
 
 def same_architecture(config: dict[str, Any], checkpoint: Path) -> bool:

@@ -210,10 +210,11 @@ class Trainer:
         self.val_done_epoch = -1
         self._time_used_before = 0.0
         self._metrics_rows = 0
-        self._val_seconds = 0.0  # the last validation's seconds (plots included), this process
+        self._val_seconds = 0.0  # the last validation's seconds (plots included)
         self._val_time_run = 0.0  # all validations' seconds, this process
         self._steps_this_run = 0
-        self._window: tuple[float, float, int] | None = None  # speed window: (clock, val time, steps of this process)
+        self._val_time_before = 0.0  # the validations' seconds of earlier processes
+        self._window: tuple[float, float, int] | None = None  # first plan's window: (clock, val time, steps)
         self.loss_window = [0.0, 0]  # the loss sum and steps of the next train row
         self.metrics: MetricsLog | None = None
         if ck is not None:
@@ -241,6 +242,8 @@ class Trainer:
         if self.batch_in_epoch < self.steps_per_epoch and self.val_done_epoch == self.epoch:
             self.val_done_epoch = -1  # stopped mid-epoch: validate again when the epoch ends
         self._time_used_before = float(extra.get("time_used_s", 0.0))
+        self._val_time_before = float(extra.get("val_time_s", 0.0))
+        self._val_seconds = float(extra.get("last_val_s", 0.0))
         self._metrics_rows = int(extra.get("metrics_rows", 0))
         self.last_val = dict(extra.get("val") or {})
         window = extra.get("loss_window")
@@ -259,7 +262,7 @@ class Trainer:
         plans = extra.get("plans")
         if plans is None and extra.get("planned_steps") is not None:  # a checkpoint of one fixed plan
             planned = int(extra["planned_steps"])
-            plans = [make_plan(self.step, planned, planned, 0.0, 0.0, self._time_used_before, "planned")]
+            plans = [make_plan(self.step, planned, planned, 0.0, 0.0, self._time_used_before, 0.0, "planned")]
         keys = ("steps", "epochs", "time_limit_min")
         changed = [k for k in keys if self.ts[k] != saved_ts.get(k)]
         if self.budget is not None and plans and "time_limit_min" not in changed:
@@ -298,7 +301,8 @@ class Trainer:
             return path
         extra = {
             "batch_in_epoch": self.batch_in_epoch, "best_acc": self.best_acc, "val_done_epoch": self.val_done_epoch,
-            "time_used_s": self.budget_used(), "size_source": self.size_source,
+            "time_used_s": self.budget_used(), "val_time_s": self.val_time(),
+            "last_val_s": self._val_seconds, "size_source": self.size_source,
             "planned_steps": self.planned_steps, "plans": self.budget.plans if self.budget is not None else None,
             "loss_window": list(self.loss_window),
             "metrics_rows": self.metrics.rows if self.metrics is not None else self._metrics_rows,
@@ -364,9 +368,13 @@ class Trainer:
             self.lr_lambda.replan(self.step, max(self.step + 1, end))
         self.total_steps = end
 
-    def _measured_speed(self) -> tuple[float | None, int]:
-        """Seconds per step of this process's steps since the window started (validation time
-        left out) and the number of those steps; (None, 0) before the window started."""
+    def val_time(self) -> float:
+        """Seconds of the budget the validations used (every process so far)."""
+        return self._val_time_before + self._val_time_run
+
+    def _first_window_speed(self) -> tuple[float | None, int]:
+        """Seconds per step of this process's steps since its speed window started
+        (validation time left out) and the number of those steps; (None, 0) before."""
         if self._window is None:
             return None, 0
         t, val, n = self._window
@@ -374,6 +382,16 @@ class Trainer:
         if steps <= 0:
             return None, 0
         return max(1e-9, (self.clock() - t - (self._val_time_run - val)) / steps), steps
+
+    def _recent_speed(self, last: dict[str, Any]) -> float:
+        """Seconds per step since the last plan (budget used minus validation time, over the
+        steps: the same figures whichever process made them, so a resumed run measures what an
+        uninterrupted one does); the last plan's figure when fewer than MIN_WINDOW_STEPS steps."""
+        steps = self.step - int(last["step"])
+        if steps < MIN_WINDOW_STEPS:
+            return float(last["per_step_s"])
+        train_s = (self.budget_used() - self.val_time()) - (float(last["used_s"]) - float(last.get("val_total_s", 0.0)))
+        return max(1e-9, train_s / steps)
 
     def _val_cost(self, per_step: float) -> float:
         """Seconds a validation (plots included) costs: this process's last, else the last
@@ -394,26 +412,24 @@ class Trainer:
     def _decide_end(self, validated: bool) -> int | None:
         """Rank 0: the new end step when a plan is due or the budget is spent, else None.
 
-        The speed window starts at this process's first step and again once the batches the
-        loader fetched ahead are used up (they come for free: counting them makes a
-        loader-bound run look faster than it is), and again after each plan (the recent speed).
+        The first plan measures this process's steps from its first one, and again once the
+        batches the loader fetched ahead are used up (they come for free: counting them makes a
+        loader-bound run look faster than it is); re-plans measure the steps since the last plan.
         """
-        n = self._steps_this_run
-        steady = 1 + int(self.ts["workers"]) * LOADER_PREFETCH
-        if not validated and n in (1, steady) and (self._window is None or self._window[2] < n - 1):
-            self._window = (self.clock(), self._val_time_run, n)
-        measured, window_steps = self._measured_speed()
         last = self.budget.last
         used = self.budget_used()
-        if last is None:  # before the first plan: stop when the final validation would not fit
-            if used + self._val_seconds >= self.budget.limit_s:
+        if last is None:
+            n = self._steps_this_run
+            steady = 1 + int(self.ts["workers"]) * LOADER_PREFETCH
+            if not validated and n in (1, steady):
+                self._window = (self.clock(), self._val_time_run, n)
+            measured, window_steps = self._first_window_speed()
+            if used + self._val_seconds >= self.budget.limit_s:  # the final validation would not fit
                 return self._plan_now("budget spent before a plan", per_step=measured or 0.0, end=self.step)
-            first_after = int(self.ts["horizon_estimate_after"])
-            if measured is None or (window_steps < first_after and not validated):
+            if measured is None or (window_steps < int(self.ts["horizon_estimate_after"]) and not validated):
                 return None
             return self._plan_now("first", per_step=measured)
-        per_step = measured if measured is not None and (window_steps >= MIN_WINDOW_STEPS or validated) \
-            else float(last["per_step_s"])
+        per_step = self._recent_speed(last)
         if not self.budget.one_more_fits(used, per_step, self._val_cost(per_step)):
             return self._plan_now("budget spent", per_step=per_step, end=self.step)
         if validated or self.budget.due(used):
@@ -422,20 +438,19 @@ class Trainer:
 
     def _plan_now(self, why: str, per_step: float | None = None, end: int | None = None) -> int:
         """Record a plan from ``per_step`` (default: the last plan's) or, given ``end``, the
-        end itself; restart the speed window; return the end step."""
+        end itself; return the end step."""
         last = self.budget.last
         per_step = float(last["per_step_s"]) if per_step is None and last is not None else float(per_step or 0.0)
         val_cost = self._val_cost(per_step)
         used = self.budget_used()
         if end is None:
             every = int(self.ts["val_every"]) * self.steps_per_epoch
-            plan = self.budget.plan(self.step, used, per_step, val_cost, every, self._nominal_total, why)
+            plan = self.budget.plan(self.step, used, self.val_time(), per_step, val_cost, every, self._nominal_total, why)
         else:
-            plan = make_plan(self.step, end, end, per_step, val_cost, used, why)
+            plan = make_plan(self.step, end, end, per_step, val_cost, used, self.val_time(), why)
             self.budget.plans.append(plan)
-        self._window = (self.clock(), self._val_time_run, self._steps_this_run)
         if self.dist.main:
-            level = logging.INFO if why != "re-plan" and why != "validation" else logging.DEBUG
+            level = logging.DEBUG if why in ("re-plan", "validation") else logging.INFO
             log.log(level, "time budget %.3g min (%s): the run ends at step %d (%.3f s per step, %.1f s of the "
                     "budget used by step %d)", self.budget.limit_s / 60.0, why, plan["end"], per_step, used, self.step)
         self._set_end(plan["end"])
@@ -658,13 +673,13 @@ class Trainer:
                         self.loss_window = [self.loss_window[0] + loss, self.loss_window[1] + 1]
                         n_log += 1
                         bar.update(1)
+                        if self.job.on_step is not None:
+                            self.job.on_step(self, self.step)
                         self._budget_step()
                         if bar.total != self.total_steps:
                             bar.total = self.total_steps
                         if self.step % log_every == 0:
                             log_train()
-                        if self.job.on_step is not None:
-                            self.job.on_step(self, self.step)
                         if ck_steps and self.step % ck_steps == 0:
                             self.save("last.pt")
                         if self._agree_stop():
@@ -695,13 +710,20 @@ class Trainer:
 def load_init_weights(model: nn.Module, path: str | Path) -> None:
     """Copy a dope-hope checkpoint's network weights into ``model`` (``--init``).
 
-    Raises ModelFileError naming the file when it is no checkpoint or was trained with
-    another architecture than ``model`` (compare the configs' ``model`` sections).
+    Raises ModelFileError naming the file when it is no checkpoint, was trained with another
+    architecture than ``model`` (compare the configs' ``model`` sections) or holds weights
+    that are not finite (NaN / inf: every step from them would be NaN).
     """
+    from dope_hope.errors import ModelFileError
     from dope_hope.model.checkpoint import check_state_dict, load_checkpoint
 
     ck = load_checkpoint(path)
     check_state_dict(model.state_dict(), ck["model"], path)
+    bad = [k for k, v in ck["model"].items()
+           if isinstance(v, torch.Tensor) and v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise ModelFileError(path, f"{len(bad)} weight tensor(s) hold NaN or inf values (e.g. {bad[0]}); "
+                                   "a run cannot start from them")
     model.load_state_dict(ck["model"], strict=True)
     log.info("initialised the network from %s", path)
 
