@@ -82,6 +82,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import time
+
+    started = time.monotonic()  # a time budget counts the command's own checks too
     from dope_hope.config import apply_overrides, load_config
     from dope_hope.errors import ConfigError, InputFileError
     from dope_hope.io.dope_json import list_dope_frames
@@ -125,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
                    resume=resume, mesh=args.mesh, symmetries=args.symmetries,
                    backbone_weights=args.backbone_weights,
                    init_weights=init_weights, init_reason=why, device=args.device,
-                   progress=not args.no_progress, overrides=overrides)
+                   progress=not args.no_progress, overrides=overrides, started=started)
     summary = train(job, config)
     status = summary["status"]
     acc, acc_d = summary.get("val_kp_acc"), summary.get("val_kp_acc_decoded")

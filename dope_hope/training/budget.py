@@ -26,13 +26,13 @@ MIN_WINDOW_STEPS = 5
 
 
 def make_plan(step: int, end: int, budget_end: int, per_step_s: float, val_s: float, used_s: float,
-              val_total_s: float, why: str) -> dict[str, Any]:
+              other_s: float, why: str) -> dict[str, Any]:
     """One plan: made after ``step`` steps with ``used_s`` seconds of the budget used
-    (``val_total_s`` of them by validations), from ``per_step_s`` seconds per step and ``val_s``
+    (``other_s`` of them not by steps: validations, each process's start), from ``per_step_s`` seconds per step and ``val_s``
     per validation; the budget allows ``budget_end`` steps, the run ends at ``end`` (<= its
     nominal length); ``why`` in words."""
     return {"step": int(step), "end": int(end), "budget_end": int(budget_end), "per_step_s": float(per_step_s),
-            "val_s": float(val_s), "used_s": float(used_s), "val_total_s": float(val_total_s), "why": str(why)}
+            "val_s": float(val_s), "used_s": float(used_s), "other_s": float(other_s), "why": str(why)}
 
 
 @dataclass
@@ -58,22 +58,45 @@ class BudgetPlan:
         since = used_s - self.last["used_s"]
         return since >= min(REPLAN_SHARE * self.limit_s, 0.25 * max(0.0, self.limit_s - used_s))
 
-    def budget_steps(self, step: int, used_s: float, per_step_s: float, val_s: float, val_every_steps: int) -> int:
-        """The step the budget allows: the time left after the final validation and the end
-        margin, spent on steps and on the validations every ``val_every_steps`` (0: none)."""
-        left = self.limit_s * (1.0 - END_MARGIN) - used_s - val_s
-        per = max(per_step_s, 1e-9) + (val_s / val_every_steps if val_every_steps > 0 else 0.0)
-        return step + max(0, math.floor(max(0.0, left) / per))
+    @staticmethod
+    def run_cost(step: int, end: int, per_step_s: float, val_s: float, val_every_steps: int,
+                 validated: bool = False) -> float:
+        """Seconds from ``step`` to the end of a run that ends at ``end``: its steps and its
+        validations, at the multiples of ``val_every_steps`` (0: none) after ``step`` (and at
+        ``step`` unless ``validated`` there already), the last one before a run's end skipped
+        when the run ends before the next (the final validation, at ``end``, replaces it)."""
+        seconds = (end - step) * per_step_s
+        lo = step if validated else step - 1
+        if val_every_steps <= 0 or end <= lo:
+            return seconds
+        count = end // val_every_steps - lo // val_every_steps  # multiples in (lo, end]
+        return seconds + val_s * (count if end % val_every_steps == 0 else max(1, count))
 
-    def plan(self, step: int, used_s: float, val_total_s: float, per_step_s: float, val_s: float,
-             val_every_steps: int, nominal_end: int, why: str) -> dict[str, Any]:
+    def budget_steps(self, step: int, used_s: float, per_step_s: float, val_s: float, val_every_steps: int,
+                     validated: bool = False) -> int:
+        """The last step the budget allows: the largest end whose :meth:`run_cost` (which grows
+        with the end) fits in the time left before the end margin; ``step`` when none does."""
+        left = self.limit_s * (1.0 - END_MARGIN) - used_s
+        per = max(per_step_s, 1e-9)
+        lo, hi = step, step + math.ceil(max(0.0, left) / per) + 1  # the cost of hi exceeds left
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            fits = self.run_cost(step, mid, per, val_s, val_every_steps, validated) <= left
+            lo, hi = (mid, hi) if fits else (lo, mid)
+        return lo
+
+    def plan(self, step: int, used_s: float, other_s: float, per_step_s: float, val_s: float,
+             val_every_steps: int, nominal_end: int, why: str, validated: bool = False) -> dict[str, Any]:
         """Make, record and return a plan (its ``end`` never before ``step``)."""
-        budget_end = self.budget_steps(step, used_s, per_step_s, val_s, val_every_steps)
+        budget_end = self.budget_steps(step, used_s, per_step_s, val_s, val_every_steps, validated)
         plan = make_plan(step, max(step, min(nominal_end, budget_end)), budget_end, per_step_s, val_s, used_s,
-                         val_total_s, why)
+                         other_s, why)
         self.plans.append(plan)
         return plan
 
-    def one_more_fits(self, used_s: float, per_step_s: float, val_s: float) -> bool:
-        """Whether one more step of ``per_step_s`` and the final validation fit in the budget."""
-        return used_s + per_step_s + val_s <= self.limit_s
+    def one_more_fits(self, step: int, used_s: float, per_step_s: float, val_s: float, val_every_steps: int,
+                      validated: bool = False) -> bool:
+        """Whether a run ending one step later (validations included) fits in the budget, half
+        the end margin kept free (for what the estimates miss)."""
+        cost = self.run_cost(step, step + 1, per_step_s, val_s, val_every_steps, validated)
+        return used_s + cost <= self.limit_s * (1.0 - END_MARGIN / 2)

@@ -58,6 +58,8 @@ class TrainJob:
             interrupt a run at a given step); typed loosely, as this module sits below the trainer.
         clock: the seconds the time budget counts (default ``time.monotonic``; tests inject a
             clock to make the plans of a time-limited run reproducible).
+        started: the clock's reading when the budget started (the command's start), or None
+            for the trainer's start.
     """
 
     data: list[Path]
@@ -75,6 +77,7 @@ class TrainJob:
     overrides: dict[str, Any] = field(default_factory=dict)
     on_step: Callable[[Any, int], None] | None = None
     clock: Callable[[], float] | None = None
+    started: float | None = None
 
 
 #: The ``train`` keys that hold numbers: key -> (rule, may be null). Rules: "int>=N" a whole

@@ -88,7 +88,7 @@ class Trainer:
 
         self.job = job
         self.clock: Callable[[], float] = job.clock or time.monotonic
-        self._t0 = self.clock()  # the budget counts from here (set-up included)
+        self._t0 = self.clock() if job.started is None else job.started  # the budget counts from here
         self.dist, self.device = init_distributed(job.device)
         if not self.dist.main:  # rank 0 alone reports (skipped files, progress, results)
             logging.getLogger("dope_hope").setLevel(logging.ERROR)
@@ -211,9 +211,11 @@ class Trainer:
         self._time_used_before = 0.0
         self._metrics_rows = 0
         self._val_seconds = 0.0  # the last validation's seconds (plots included)
+        self._val_steps: list[float] = []  # the validations' seconds over the seconds per step then (rank 0)
         self._val_time_run = 0.0  # all validations' seconds, this process
         self._steps_this_run = 0
-        self._val_time_before = 0.0  # the validations' seconds of earlier processes
+        self._other_before = 0.0  # seconds of earlier processes not spent on steps (validations, start-ups)
+        self._startup_s = 0.0  # this process's seconds before its first step
         self._window: tuple[float, float, int] | None = None  # first plan's window: (clock, val time, steps)
         self.loss_window = [0.0, 0]  # the loss sum and steps of the next train row
         self.metrics: MetricsLog | None = None
@@ -242,8 +244,9 @@ class Trainer:
         if self.batch_in_epoch < self.steps_per_epoch and self.val_done_epoch == self.epoch:
             self.val_done_epoch = -1  # stopped mid-epoch: validate again when the epoch ends
         self._time_used_before = float(extra.get("time_used_s", 0.0))
-        self._val_time_before = float(extra.get("val_time_s", 0.0))
+        self._other_before = float(extra.get("other_s", 0.0))
         self._val_seconds = float(extra.get("last_val_s", 0.0))
+        self._val_steps = [float(v) for v in extra.get("val_steps") or []]
         self._metrics_rows = int(extra.get("metrics_rows", 0))
         self.last_val = dict(extra.get("val") or {})
         window = extra.get("loss_window")
@@ -301,8 +304,8 @@ class Trainer:
             return path
         extra = {
             "batch_in_epoch": self.batch_in_epoch, "best_acc": self.best_acc, "val_done_epoch": self.val_done_epoch,
-            "time_used_s": self.budget_used(), "val_time_s": self.val_time(),
-            "last_val_s": self._val_seconds, "size_source": self.size_source,
+            "time_used_s": self.budget_used(), "other_s": self.other_time(),
+            "last_val_s": self._val_seconds, "val_steps": self._val_steps[-3:], "size_source": self.size_source,
             "planned_steps": self.planned_steps, "plans": self.budget.plans if self.budget is not None else None,
             "loss_window": list(self.loss_window),
             "metrics_rows": self.metrics.rows if self.metrics is not None else self._metrics_rows,
@@ -368,9 +371,10 @@ class Trainer:
             self.lr_lambda.replan(self.step, max(self.step + 1, end))
         self.total_steps = end
 
-    def val_time(self) -> float:
-        """Seconds of the budget the validations used (every process so far)."""
-        return self._val_time_before + self._val_time_run
+    def other_time(self) -> float:
+        """Seconds of the budget not spent on steps: validations and each process's start-up
+        (every process so far)."""
+        return self._other_before + self._startup_s + self._val_time_run
 
     def _first_window_speed(self) -> tuple[float | None, int]:
         """Seconds per step of this process's steps since its speed window started
@@ -384,24 +388,23 @@ class Trainer:
         return max(1e-9, (self.clock() - t - (self._val_time_run - val)) / steps), steps
 
     def _recent_speed(self, last: dict[str, Any]) -> float:
-        """Seconds per step since the last plan (budget used minus validation time, over the
-        steps: the same figures whichever process made them, so a resumed run measures what an
+        """Seconds per step since the last plan (budget used minus validations and start-ups,
+        over the steps: the same figures whichever process made them, so a resumed run measures what an
         uninterrupted one does); the last plan's figure when fewer than MIN_WINDOW_STEPS steps."""
         steps = self.step - int(last["step"])
         if steps < MIN_WINDOW_STEPS:
             return float(last["per_step_s"])
-        train_s = (self.budget_used() - self.val_time()) - (float(last["used_s"]) - float(last.get("val_total_s", 0.0)))
+        train_s = (self.budget_used() - self.other_time()) - (float(last["used_s"]) - float(last.get("other_s", 0.0)))
         return max(1e-9, train_s / steps)
 
     def _val_cost(self, per_step: float) -> float:
-        """Seconds a validation (plots included) costs: this process's last, else the last
-        plan's, else an estimate: a batch costs about a training step per unit of image area
-        (forward + decoding of whole frames vs forward + backward of the training crops)."""
-        if self._val_seconds:
-            return self._val_seconds
-        last = self.budget.last if self.budget is not None else None
-        if last is not None and last["val_s"] > 0:
-            return float(last["val_s"])
+        """Seconds a validation (best.pt and plots included) costs at ``per_step`` seconds per
+        step: the median of the last three validations, in training steps of their time (a
+        load that slows the steps slows the validation too), else an estimate: a batch costs
+        about a training step per unit of image area (forward + decoding of whole frames vs
+        forward + backward of the training crops)."""
+        if self._val_steps:
+            return float(np.median(self._val_steps[-3:])) * per_step
         if int(self.ts["val_every"]) <= 0:
             return 0.0
         val_batches = math.ceil(len(self.val_set) / max(1, int(self.ts["val_batch_size"] or self.batch_size)))
@@ -424,19 +427,25 @@ class Trainer:
             if not validated and n in (1, steady):
                 self._window = (self.clock(), self._val_time_run, n)
             measured, window_steps = self._first_window_speed()
+            if validated and measured:
+                self._val_steps.append(self._val_seconds / measured)
             if used + self._val_seconds >= self.budget.limit_s:  # the final validation would not fit
                 return self._plan_now("budget spent before a plan", per_step=measured or 0.0, end=self.step)
             if measured is None or (window_steps < int(self.ts["horizon_estimate_after"]) and not validated):
                 return None
             return self._plan_now("first", per_step=measured)
         per_step = self._recent_speed(last)
-        if not self.budget.one_more_fits(used, per_step, self._val_cost(per_step)):
+        if validated:
+            self._val_steps.append(self._val_seconds / per_step)
+        every = int(self.ts["val_every"]) * self.steps_per_epoch
+        if not self.budget.one_more_fits(self.step, used, per_step, self._val_cost(per_step), every, validated):
             return self._plan_now("budget spent", per_step=per_step, end=self.step)
         if validated or self.budget.due(used):
-            return self._plan_now("validation" if validated else "re-plan", per_step=per_step)
+            return self._plan_now("validation" if validated else "re-plan", per_step=per_step, validated=validated)
         return None
 
-    def _plan_now(self, why: str, per_step: float | None = None, end: int | None = None) -> int:
+    def _plan_now(self, why: str, per_step: float | None = None, end: int | None = None,
+                  validated: bool = False) -> int:
         """Record a plan from ``per_step`` (default: the last plan's) or, given ``end``, the
         end itself; return the end step."""
         last = self.budget.last
@@ -445,9 +454,10 @@ class Trainer:
         used = self.budget_used()
         if end is None:
             every = int(self.ts["val_every"]) * self.steps_per_epoch
-            plan = self.budget.plan(self.step, used, self.val_time(), per_step, val_cost, every, self._nominal_total, why)
+            plan = self.budget.plan(self.step, used, self.other_time(), per_step, val_cost, every, self._nominal_total, why,
+                                    validated)
         else:
-            plan = make_plan(self.step, end, end, per_step, val_cost, used, self.val_time(), why)
+            plan = make_plan(self.step, end, end, per_step, val_cost, used, self.other_time(), why)
             self.budget.plans.append(plan)
         if self.dist.main:
             level = logging.DEBUG if why in ("re-plan", "validation") else logging.INFO
@@ -527,10 +537,17 @@ class Trainer:
             "val_frames": int(s[1]), "val_keypoints": int(s[3]), "val_radius_px": radius,
         }
 
-    def _end_of_epoch(self) -> None:
+    def _end_of_epoch(self) -> bool:
+        """Validate (rank 0 also logs, saves best.pt, draws the plots) when this epoch's end is
+        a validation's; returns whether it validated. A time-limited run skips the validation
+        of an epoch end from which its planned end is less than one validation interval away
+        (the final validation replaces it; the budget plans count it so)."""
         every = int(self.ts["val_every"])
         last_epoch = self.epoch + 1 >= self.epochs or self.step >= self.total_steps or self.stop_reason is not None
-        if (every > 0 and ((self.epoch + 1) % every == 0 or last_epoch)) or (every > 0 and self.stop_reason == "time_limit"):
+        if self.budget is not None and self.step < self.total_steps < self.step + every * self.steps_per_epoch:
+            return False
+        validates = every > 0 and ((self.epoch + 1) % every == 0 or last_epoch)
+        if validates:
             t0 = self.clock()  # the validation's cost, as the time budget plans with it: all of this block
             self.last_val = self.validate()
             self.val_done_epoch = self.epoch
@@ -548,6 +565,7 @@ class Trainer:
                     self._write_progress_images()
             self._val_seconds = self.clock() - t0
             self._val_time_run += self._val_seconds
+        return validates
 
     @torch.no_grad()
     def _write_progress_images(self) -> None:
@@ -650,6 +668,7 @@ class Trainer:
             self.loss_window = [0.0, 0]
             t_log, n_log = time.monotonic(), 0
 
+        self._startup_s = self.elapsed()  # (the time budget's step speed leaves it out)
         try:
             while self.epoch < self.epochs and self.step < self.total_steps and self.stop_reason is None:
                 if self.batch_in_epoch < self.steps_per_epoch:
@@ -690,9 +709,9 @@ class Trainer:
                 # the epoch's batches are done (or the step / time budget ran out inside it)
                 if self.val_done_epoch != self.epoch:
                     log_train()  # the curves in results.png reach the validated step
-                    self._end_of_epoch()
-                    t_log = time.monotonic()  # images/s counts training time only
-                    self._budget_step(validated=True)
+                    if self._end_of_epoch():
+                        t_log = time.monotonic()  # images/s counts training time only
+                        self._budget_step(validated=True)
                 if self.step >= self.total_steps or self.stop_reason is not None:
                     break
                 self.epoch += 1
