@@ -11,7 +11,7 @@ Writes OUT/last.pt (and every checkpoint_every epochs / checkpoint_every_steps s
 OUT/best.pt (best validation keypoint accuracy), OUT/metrics.csv + metrics.jsonl,
 OUT/summary.json, and after each validation OUT/results.png (the curves) and
 OUT/val_snapshot.png (validation frames, predicted belief maps, decoded cuboids). Ctrl-C
-writes last.pt before exiting; --resume continues exactly.
+(exit 130) and SIGTERM (exit 143) write last.pt before exiting; --resume continues exactly.
 """
 from __future__ import annotations
 

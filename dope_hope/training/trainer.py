@@ -263,9 +263,8 @@ class Trainer:
         a length (``steps``, ``epochs``) or budget given now that differs wins, at once (one
         line says so) and the learning rate falls from where it is to the new end."""
         plans = extra.get("plans")
-        if plans is None and extra.get("planned_steps") is not None:  # a checkpoint of one fixed plan
-            planned = int(extra["planned_steps"])
-            plans = [make_plan(self.step, planned, planned, 0.0, 0.0, self._time_used_before, 0.0, "planned")]
+        if plans is None and extra.get("planned_steps") is not None and self.budget is not None:
+            self.total_steps = min(self._nominal_total, int(extra["planned_steps"]))  # one fixed plan: measured again
         keys = ("steps", "epochs", "time_limit_min")
         changed = [k for k in keys if self.ts[k] != saved_ts.get(k)]
         if self.budget is not None and plans and "time_limit_min" not in changed:
@@ -390,12 +389,13 @@ class Trainer:
     def _recent_speed(self, last: dict[str, Any]) -> float:
         """Seconds per step since the last plan (budget used minus validations and start-ups,
         over the steps: the same figures whichever process made them, so a resumed run measures what an
-        uninterrupted one does); the last plan's figure when fewer than MIN_WINDOW_STEPS steps."""
-        steps = self.step - int(last["step"])
-        if steps < MIN_WINDOW_STEPS:
-            return float(last["per_step_s"])
-        train_s = (self.budget_used() - self.other_time()) - (float(last["used_s"]) - float(last.get("other_s", 0.0)))
-        return max(1e-9, train_s / steps)
+        uninterrupted one does); since an earlier plan when the last is fewer than
+        MIN_WINDOW_STEPS steps back, the first plan's figure when all are."""
+        since = next((p for p in reversed(self.budget.plans) if self.step - int(p["step"]) >= MIN_WINDOW_STEPS), None)
+        if since is None:
+            return float(self.budget.plans[0]["per_step_s"]) if self.budget.plans else float(last["per_step_s"])
+        train_s = (self.budget_used() - self.other_time()) - (float(since["used_s"]) - float(since.get("other_s", 0.0)))
+        return max(1e-9, train_s / (self.step - int(since["step"])))
 
     def _val_cost(self, per_step: float) -> float:
         """Seconds a validation (best.pt and plots included) costs at ``per_step`` seconds per
