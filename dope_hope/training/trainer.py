@@ -196,7 +196,6 @@ class Trainer:
         #: Under a time limit: the plans turning the budget into the step the run ends at
         #: (see _budget_step), kept in the checkpoint. None without a time limit.
         self.budget = BudgetPlan(self.time_limit_s) if self.time_limit_s is not None else None
-        self._force_plan = ""  # a plan is due at once (why, in words): the length or budget changed at resume
         # Under a time limit the schedule follows the plans, unless steps were given.
         self.lr_lambda = LrLambda(ts["schedule"], self.total_steps, int(ts["warmup_steps"]), float(ts["min_lr_factor"]),
                                   int(ts["step_epochs"]) * self.steps_per_epoch, float(ts["step_gamma"]))
@@ -270,10 +269,10 @@ class Trainer:
         if self.budget is not None and plans and "time_limit_min" not in changed:
             self.budget.plans = [dict(p) for p in plans]
             self.total_steps = min(self._nominal_total, int(plans[-1]["budget_end"]))
-        if self.budget is not None and plans and changed:
+        if self.budget is not None and plans and changed:  # planned again at once, at the last plan's speed
             self.budget.plans = [dict(p) for p in plans]
-            self._force_plan = "changed at resume"
-            self._plan_now(self._force_plan)
+            end = self._plan_now("length or budget changed at resume") if self.dist.main else None
+            self._set_end(self._broadcast_end(end))
         elif changed and self.budget is None:
             self.total_steps = self._nominal_total
         if changed and self.ts["schedule"] == "cosine" and not self.budget_sets_horizon:
@@ -356,13 +355,17 @@ class Trainer:
         takes the end it planned."""
         if self.budget is None or self.step >= self.total_steps:
             return
-        end = self._decide_end(validated) if self.dist.main else None
-        if self.dist.active:
-            t = torch.tensor([-1 if end is None else end], dtype=torch.int64, device=self.device if self.cuda else "cpu")
-            dist.broadcast(t, 0)
-            end = None if int(t.item()) < 0 else int(t.item())
+        end = self._broadcast_end(self._decide_end(validated) if self.dist.main else None)
         if end is not None:
             self._set_end(end)
+
+    def _broadcast_end(self, end: int | None) -> int | None:
+        """Rank 0's end step (or None) on every rank."""
+        if not self.dist.active:
+            return end
+        t = torch.tensor([-1 if end is None else end], dtype=torch.int64, device=self.device if self.cuda else "cpu")
+        dist.broadcast(t, 0)
+        return None if int(t.item()) < 0 else int(t.item())
 
     def _set_end(self, end: int) -> None:
         """End the run at step ``end``; the cosine (when the budget sets it) falls to it."""
