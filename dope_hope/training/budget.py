@@ -19,7 +19,8 @@ from typing import Any
 #: estimate misses): the run plans to end at 99 % of its budget.
 END_MARGIN = 0.01
 #: A re-plan is due when this share of the budget, or a quarter of what is left (whichever is
-#: less), has passed since the last plan.
+#: less), has passed since the last plan, or half of the steps it planned (a run that speeds up
+#: re-plans before it reaches an end planned at the slower speed).
 REPLAN_SHARE = 0.05
 #: Steps a re-plan's speed window needs; fewer (just after a resume) reuse the last plan's speed.
 MIN_WINDOW_STEPS = 5
@@ -51,12 +52,16 @@ class BudgetPlan:
     def last(self) -> dict[str, Any] | None:
         return self.plans[-1] if self.plans else None
 
-    def due(self, used_s: float) -> bool:
-        """Whether a re-plan is due after ``used_s`` seconds (a first plan always is)."""
-        if self.last is None:
+    def due(self, used_s: float, step: int) -> bool:
+        """Whether a re-plan is due after ``step`` steps and ``used_s`` seconds (a first plan
+        always is)."""
+        last = self.last
+        if last is None:
             return True
-        since = used_s - self.last["used_s"]
-        return since >= min(REPLAN_SHARE * self.limit_s, 0.25 * max(0.0, self.limit_s - used_s))
+        halfway = max(MIN_WINDOW_STEPS, (last["end"] - last["step"]) // 2)
+        since = used_s - last["used_s"]
+        return (step - last["step"] >= halfway
+                or since >= min(REPLAN_SHARE * self.limit_s, 0.25 * max(0.0, self.limit_s - used_s)))
 
     @staticmethod
     def run_cost(step: int, end: int, per_step_s: float, val_s: float, val_every_steps: int,

@@ -443,7 +443,7 @@ class Trainer:
         every = int(self.ts["val_every"]) * self.steps_per_epoch
         if not self.budget.one_more_fits(self.step, used, per_step, self._val_cost(per_step), every, validated):
             return self._plan_now("budget spent", per_step=per_step, end=self.step)
-        if validated or self.budget.due(used):
+        if validated or self.budget.due(used, self.step):
             return self._plan_now("validation" if validated else "re-plan", per_step=per_step, validated=validated)
         return None
 
