@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 #: Share of the budget kept free at the end (the last checkpoint, summary, what the speed
-#: estimate misses): the run plans to end at 99 % of its budget.
-END_MARGIN = 0.01
+#: estimate misses): the run plans to end at 98.5 % of its budget.
+END_MARGIN = 0.015
 #: A re-plan is due when this share of the budget, or a quarter of what is left (whichever is
 #: less), has passed since the last plan, or half of the steps it planned (a run that speeds up
 #: re-plans before it reaches an end planned at the slower speed).
