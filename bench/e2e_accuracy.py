@@ -3,8 +3,11 @@
 Stages (each one a `dope-hope` command run as a subprocess, exactly what a user types; the
 commands are printed and logged to OUT/logs/):
 
-1. ``synth-train``: `dope-hope synth` a training set for the mesh (procedural backgrounds,
-   seed 1), rendered at the lite input size (256x192: no resampling in training).
+1. ``synth-train``: `dope-hope synth` a training set for the mesh (seed 1), rendered at the
+   lite input size (256x192: no resampling in training). ``--recipe defaults`` (the default):
+   the packaged configs/synth.yaml as a user gets it (clutter backgrounds, look-alikes, sensor
+   artefacts, empty frames); ``--recipe plain``: those switched off (the frames of the earlier
+   figures in bench/RESULTS.md). No training frame uses a photograph.
 2. ``train``: `dope-hope train --config lite` for a fixed wall-clock budget (default 20
    minutes on the 2 CPU cores; `--train-minutes`), validation on a seeded 10 % split, with
    symmetry-aware labels (`--train-set`, default ``targets.symmetry=auto``); from scratch, or
@@ -12,8 +15,9 @@ commands are printed and logged to OUT/logs/):
 3. ``synth-test``: a held-out test set at 640x480 (the RealSense colour size) with other seeds
    (1001), photo backgrounds (`--backgrounds`) and RealSense-like depth noise (`--depth-noise`).
 
-Both sets share the scene ranges of :data:`SCENE` (one or two instances at 0.45-1.0 m, as in
-the HOPE scenes' table-top views) over configs/synth.yaml's distractors, occluders and lights.
+Both sets share the target ranges of :data:`TARGET` (one or two instances at 0.45-1.0 m, as
+in the HOPE scenes' table-top views) over configs/synth.yaml's distractors, occluders and
+lights; the test set is the same for both recipes (:data:`SCENE`: plain, photo backgrounds).
 4. ``infer-ls`` / ``infer`` / ``infer-icp``: `dope-hope infer TEST --depth auto` (with the
    depth line search, "-LS"), the same without `--depth` (no -LS), and with `--depth auto
    --icp` (-LS, then ICP against the depth: rotation too), with the mesh for the points.
@@ -22,7 +26,10 @@ the HOPE scenes' table-top views) over configs/synth.yaml's distractors, occlude
    (500 model points, the bottle category's symmetries), and the BOP19 AR_MSSD / AR_MSPD /
    AR_VSD.
 
-Prints the table (and writes OUT/results.md + OUT/results.json). Resumable at stage
+Prints the CPU and its precision flags (:func:`dope_hope.devices.cpu_line`), the steps trained
+and the share of the time budget used, the table, and how the held-out instances are lost
+(with -LS, detections scoring at least the infer default: none, beyond 10 cm, within 10 cm
+but not 2 cm, within 2 cm MeanSSD); writes OUT/results.md + OUT/results.json. Resumable at stage
 granularity: a stage whose marker OUT/stages/<stage>.json exists is skipped (an interrupted
 synth resumes frame by frame, an interrupted train with --resume); OUT/e2e_settings.json
 refuses a rerun with other settings in the same folder.
@@ -32,6 +39,7 @@ refuses a rerun with other settings in the same folder.
     python bench/e2e_accuracy.py --train-set targets.symmetry=none --out runs/e2e_plain  # official labels
     python bench/e2e_accuracy.py --train-minutes 30 --init demo --out runs/e2e_init      # from the demo model
     python bench/e2e_accuracy.py --train-minutes 30 --init pretrained --out runs/e2e_pre  # the pretrained start
+    python bench/e2e_accuracy.py --train-minutes 30 --init pretrained --recipe plain --out runs/e2e_plain
     python bench/e2e_accuracy.py --config dope_dr_50 --train-minutes 240 --train-count 20000 \\
         --workers 8 --device cuda --out bench/out/e2e_dr50         # on a GPU machine
 
@@ -51,7 +59,8 @@ import sys
 import time
 from pathlib import Path
 
-from dope_hope.config import differing_keys
+from dope_hope.config import differing_keys, load_config
+from dope_hope.devices import cpu_description, cpu_line
 from dope_hope.synth.settings import PLAIN_OVERRIDES
 
 REPO = Path(__file__).resolve().parent.parent
@@ -70,10 +79,16 @@ def _set_args(overrides: dict, prefix: str = "") -> list[str]:
     return out
 
 
-#: Scene ranges of both sets (`dope-hope synth --set`), over configs/synth.yaml, without the
-#: clutter backgrounds, hard negatives and sensor artefacts synth.yaml gained in session 8: the
-#: frames of every figure in bench/RESULTS.md (same seeds, same frames).
-SCENE = ["target.count=[1,2]", "target.distance_m=[0.45,1.0]", *_set_args(PLAIN_OVERRIDES)]
+#: Target ranges of both sets (`dope-hope synth --set`), over configs/synth.yaml.
+TARGET = ["target.count=[1,2]", "target.distance_m=[0.45,1.0]"]
+#: The test set's scene, and the training set's with ``--recipe plain``: without the clutter
+#: backgrounds, hard negatives and sensor artefacts of configs/synth.yaml (the frames of the
+#: earlier figures in bench/RESULTS.md: same seeds, same frames).
+SCENE = [*TARGET, *_set_args(PLAIN_OVERRIDES)]
+#: The training set's scene per ``--recipe``.
+RECIPES = {"defaults": TARGET, "plain": SCENE}
+#: The loss classes of a held-out instance (:func:`loss_breakdown`).
+LOSS_CLASSES = ("no detection", "beyond 10 cm", "within 10 cm, not 2 cm", "within 2 cm")
 #: Training overrides: symmetry-aware labels for the bottle (6x the recall at 2 cm ADD-H of the
 #: official labels in the same 20 minutes; bench/RESULTS.md).
 TRAIN_SET = ("targets.symmetry=auto",)
@@ -112,6 +127,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "shipped pretrained lite start, 'demo' the shipped demo model, a checkpoint PATH; "
                         "default none (a random start, as the figures of bench/RESULTS.md before "
                         "session 8)")
+    p.add_argument("--recipe", choices=sorted(RECIPES), default="defaults",
+                   help="training frames: 'defaults' the packaged configs/synth.yaml (clutter, look-alikes, "
+                        "sensor artefacts, empty frames; what a user trains on), 'plain' those switched off "
+                        "(the earlier figures' frames); the held-out test set is the same for both")
     p.add_argument("--quick", action="store_true",
                    help="tiny sizes and budget: checks that every stage runs (numbers meaningless)")
     args = p.parse_args(argv)
@@ -230,6 +249,42 @@ def results_table(out: Path, methods: dict[str, str]) -> tuple[str, dict]:
     return "\n".join(rows), data
 
 
+def loss_breakdown(test_dir: Path, predictions: Path, object_name: str, mesh: Path,
+                   min_score: float) -> dict[str, int]:
+    """How the held-out GT instances of ``object_name`` are lost: per instance, the estimate
+    (score >= ``min_score``) paired with it as `evaluate` pairs them at 2 cm MeanSSD, then the
+    remaining ones without a threshold (:func:`dope_hope.evaluation.matching.match_frame`), and
+    its MeanSSD error: counts of :data:`LOSS_CLASSES`."""
+    from dope_hope.evaluation.datasets import assign_predictions, load_dataset
+    from dope_hope.evaluation.evaluate import cuboid_centres_to_origins
+    from dope_hope.evaluation.matching import match_frame
+    from dope_hope.evaluation.models import load_models
+    from dope_hope.io.predictions import read_predictions
+
+    dataset = load_dataset(test_dir)
+    models = load_models([object_name], [f"{object_name}={mesh}"])
+    preds = [p for p in read_predictions(predictions)[0] if p.class_name == object_name and p.score >= min_score]
+    cuboid_centres_to_origins(preds, models)
+    counts = dict.fromkeys(LOSS_CLASSES, 0)
+    for frame, estimates in zip(dataset.frames, assign_predictions(dataset, preds)[0]):
+        gts = [o for o in frame.objects if o.class_name == object_name]
+        if not gts:
+            continue
+        match = match_frame(estimates, gts, models[object_name], metric="meanssd")
+        for g, p in enumerate(match.estimate_of_gt):
+            error = math.inf if p < 0 else float(match.errors[p, g])
+            key = (LOSS_CLASSES[0] if p < 0 else LOSS_CLASSES[1] if error >= 0.10
+                   else LOSS_CLASSES[2] if error >= 0.02 else LOSS_CLASSES[3])
+            counts[key] += 1
+    return counts
+
+
+def breakdown_text(counts: dict[str, int], min_score: float) -> str:
+    total = max(1, sum(counts.values()))
+    return (f"held-out instances ({sum(counts.values())}, -LS, scores >= {min_score:g}, MeanSSD): "
+            + ", ".join(f"{k} {v} ({100 * v / total:.1f} %)" for k, v in counts.items()))
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     out: Path = args.out.resolve()
@@ -239,33 +294,42 @@ def main(argv: list[str] | None = None) -> int:
                 "test_count": args.test_count, "size": args.size, "device": args.device,
                 "backgrounds": None if args.backgrounds is None else str(args.backgrounds.resolve()),
                 "quick": args.quick, "train_seed": TRAIN_SEED, "test_seed": TEST_SEED}
+    if args.recipe != "plain":  # only when not plain: earlier runs' settings stay valid
+        settings["recipe"] = args.recipe
     if args.init is not None and args.init != "none":  # only when given: earlier runs' settings stay valid
         settings["init"] = args.init if args.init in ("pretrained", "demo") else str(Path(args.init).resolve())
     check_settings(out, settings)
-    print(f"e2e accuracy: {args.object} ({args.mesh}), {args.train_count} training frames, "
+    print(cpu_line(), flush=True)
+    print(f"e2e accuracy: {args.object} ({args.mesh}), {args.train_count} training frames ({args.recipe} recipe), "
           f"{args.config} for {args.train_minutes:g} min, {args.test_count} test frames at {args.size}, "
           f"{os.cpu_count()} CPU core(s){' [--quick: numbers are meaningless]' if args.quick else ''}; "
           f"work folder {out}", flush=True)
     pipe = Pipeline(out)
     mesh = args.mesh.resolve()
     train_dir, test_dir, run_dir = out / "train", out / "test", out / "run"
-    common = ["--mesh", mesh, "--class-name", args.object, "--no-progress", "--set", *SCENE]
-    pipe.stage("synth-train", ["synth", *common, "--size", args.train_size, "--out", train_dir,
-                               "--count", args.train_count, "--seed", TRAIN_SEED, "--workers", args.workers])
+    common = ["--mesh", mesh, "--class-name", args.object, "--no-progress"]
+    pipe.stage("synth-train", ["synth", *common, "--set", *RECIPES[args.recipe], "--size", args.train_size,
+                               "--out", train_dir, "--count", args.train_count, "--seed", TRAIN_SEED,
+                               "--workers", args.workers])
     train = ["train", "--config", args.config, "--data", train_dir, "--object", args.object,
              "--mesh", mesh, "--out", run_dir, "--time-budget", args.train_minutes, "--resume", "--no-progress"]
     if args.device:
         train += ["--device", args.device]
     train += ["--init", settings.get("init", "none")]
     sets = list(args.train_set)
-    if args.quick:  # a few steps of a tiny-input run: checks the plumbing only
-        train += ["--steps", "2", "--batch-size", "2", "--workers", "0"]
+    if args.quick:  # a tiny-input run for the small budget: checks the plumbing only
+        train += ["--batch-size", "2", "--workers", "0"]
         sets += ["input.size=[64,64]", "train.threads=1"]
     if sets:
         train += ["--set", *sets]
     pipe.stage("train", train)
     ckpt = checkpoint_of(run_dir)
-    test = ["synth", *common, "--size", args.size, "--out", test_dir, "--count", args.test_count, "--seed", TEST_SEED,
+    trained = json.loads((run_dir / "summary.json").read_text())
+    share = trained["budget_used_s"] / (60.0 * args.train_minutes)
+    trained_text = (f"trained {trained['step']} steps ({trained['status']}), {trained['budget_used_s']:.0f} s: "
+                    f"{100 * share:.1f} % of the {args.train_minutes:g}-min budget")
+    print(trained_text, flush=True)
+    test = ["synth", *common, "--set", *SCENE, "--size", args.size, "--out", test_dir, "--count", args.test_count, "--seed", TEST_SEED,
             "--workers", args.workers, "--depth-noise"]
     if args.backgrounds is not None:
         test += ["--backgrounds", args.backgrounds.resolve()]
@@ -288,18 +352,25 @@ def main(argv: list[str] | None = None) -> int:
     pipe.stage("eval-addh", evaluate + ["--metric", "addh,meanssd", "--no-bop-ar", "--out", out / "eval_addh"])
 
     table, data = results_table(out, methods)
+    min_score = float(load_config("infer")["min_score"])
+    lost = loss_breakdown(test_dir, out / "infer_ls" / "predictions.jsonl", args.object, mesh, min_score)
+    lost_text = breakdown_text(lost, min_score)
     times = ", ".join(f"{k} {v:.0f} s" for k, v in pipe.timings.items())
     text = (f"# e2e accuracy: {args.object}, {args.config}, {args.train_minutes:g} min training\n\n"
             f"Held-out synthetic test set: {args.test_count} frames at {args.size} (seed {TEST_SEED}, photo "
             f"backgrounds, RealSense-like depth noise); {args.train_count} training frames at "
-            f"{args.train_size} (seed {TRAIN_SEED}); scenes {' '.join(SCENE)}; checkpoint {ckpt.name}. Recall = true positives / GT instances "
+            f"{args.train_size} (seed {TRAIN_SEED}, {args.recipe} recipe: {' '.join(RECIPES[args.recipe])}); "
+            f"test scenes {' '.join(SCENE)}; checkpoint {ckpt.name}; {cpu_line()}; {trained_text}. Recall = true positives / GT instances "
             f"(matching per image, greedy by score, error < threshold); median = median error of the "
-            f"true positives at 10 cm; AR = BOP19 average recall.\n\n{table}\n\nStage times: {times}\n")
+            f"true positives at 10 cm; AR = BOP19 average recall.\n\n{table}\n\n{lost_text}\n\n"
+            f"Stage times: {times}\n")
     (out / "results.md").write_text(text)
     (out / "results.json").write_text(json.dumps({"settings": settings, "checkpoint": str(ckpt),
-                                                  "results": data, "stage_seconds": pipe.timings},
+                                                  "cpu": cpu_description(), "steps": trained["step"],
+                                                  "budget_share": share, "lost": lost, "results": data,
+                                                  "stage_seconds": pipe.timings},
                                                  indent=1, default=float) + "\n")
-    print("\n" + table + f"\n\nstage times: {times}\nwritten: {out / 'results.md'}, {out / 'results.json'}")
+    print("\n" + table + f"\n\n{trained_text}\n{lost_text}\nstage times: {times}\nwritten: {out / 'results.md'}, {out / 'results.json'}")
     return 0
 
 

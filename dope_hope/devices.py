@@ -53,6 +53,36 @@ def cpu_has_native_bf16(cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
     return any(flag in flags for flag in _CPU_BF16_FLAGS)
 
 
+#: /proc/cpuinfo flags that decide how fast (and in which precision) the CPU trains and infers:
+#: AMX (bf16 tiles), AVX-512 BF16, VNNI (int8 dot products), and the vector widths below them.
+CPU_PRECISION_FLAGS = ("amx_bf16", "amx_int8", "avx512_bf16", "avx512_vnni", "avx_vnni", "avx512f", "avx2")
+
+
+def cpu_description(cpuinfo: Path = Path("/proc/cpuinfo")) -> dict[str, object]:
+    """The CPU's ``model`` name, its ``flags`` among :data:`CPU_PRECISION_FLAGS` (name ->
+    present) and whether training's bf16 is native (``native_bf16``), from ``cpuinfo``'s first
+    processor (model "unknown" and no flags where the file is missing: not Linux)."""
+    try:
+        text = cpuinfo.read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        text = ""
+    lines = text.splitlines()
+    model = next((ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("model name")), "unknown")
+    flags = set(next((ln.split(":", 1)[1].split() for ln in lines if ln.startswith("flags")), []))
+    return {"model": model, "flags": {f: f in flags for f in CPU_PRECISION_FLAGS},
+            "native_bf16": any(f in flags for f in _CPU_BF16_FLAGS)}
+
+
+def cpu_line(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """One line for a benchmark's header: the CPU model and which precision flags it has."""
+    d = cpu_description(cpuinfo)
+    has = [f for f, v in d["flags"].items() if v]
+    lacks = [f for f, v in d["flags"].items() if not v]
+    return (f"CPU {d['model']}: {', '.join(has) or 'none'} of the precision flags"
+            + (f" (no {', '.join(lacks)})" if lacks else "")
+            + f"; bf16 training {'native' if d['native_bf16'] else 'emulated: float32 used'}")
+
+
 def native_bf16(device_type: str) -> bool:
     """Whether bf16 autocast is a speed-up on this machine's ``device_type`` ("cuda", "cpu"):
     a CUDA device with bf16 support, or an x86 CPU with AMX-BF16 / AVX512-BF16 (Linux)."""

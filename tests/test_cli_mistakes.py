@@ -30,15 +30,12 @@ import torch
 
 from dope_hope import cli
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
-from dope_hope.config import load_config
 from dope_hope.demo_object import DEMO_SIZE_M, write_demo_object
 from dope_hope.geometry import cuboid_keypoints, intrinsics_matrix, project_points
 from dope_hope.io.dope_json import write_dope_json
 from dope_hope.io.images import write_rgb
 from dope_hope.model import build_model
-from dope_hope.model.checkpoint import load_checkpoint, make_object_info, save_checkpoint
-from dope_hope.training.settings import TrainJob
-from dope_hope.training.trainer import train
+from dope_hope.model.checkpoint import make_object_info, save_checkpoint
 from test_train import write_frames as write_train_frames
 
 torch.set_num_threads(1)
@@ -564,69 +561,3 @@ def test_synth_workers_stop_quietly(how, mesh, tmp_path):
     while subprocess.run(["pgrep", "-g", str(proc.pid)], capture_output=True).returncode == 0:
         assert time.monotonic() < deadline, "a process of the synth run outlived it"
         time.sleep(0.1)
-
-
-# ============================================================================= time budget + kill + resume
-def _last_logged_step(folder: Path) -> int:
-    """The largest step in metrics.jsonl (a line being appended is skipped)."""
-    steps = [0]
-    for line in (folder / "metrics.jsonl").read_text().splitlines():
-        with contextlib.suppress(ValueError):
-            steps.append(int(json.loads(line).get("step", 0)))
-    return max(steps)
-
-
-def test_time_budget_survives_sigkill_and_resume_bit_identically(train_data, tmp_path, capsys):
-    """A time-limited run (budget turned into a step count after the first steps) is copied as
-    a kill would leave it, resumed in a new process, killed with SIGKILL while it trains,
-    resumed again: it ends at the uninterrupted run's step with bit-identical weights, its
-    metrics without duplicated rows, no temporary file left."""
-    ov = {"input": {"size": [64, 64]},
-          "model": {"stages": 1, "head": 50, "lite": {"width": 8, "feature_channels": 16, "stage_channels": 16}},
-          "train": {"batch_size": 2, "workers": 0, "threads": 1, "log_every": 1, "epochs": 1000,
-                    "time_limit_min": 0.1, "checkpoint_every_steps": 1, "horizon_estimate_after": 4}}
-    full, part = tmp_path / "full", tmp_path / "part"
-    part.mkdir()
-    copied = {}
-
-    def copy_when_planned(trainer, step):  # last.pt on disk is the one of step - 1
-        if trainer.planned_steps is not None and not copied and step >= 6:
-            ck = load_checkpoint(full / "last.pt")
-            if ck["extra"]["planned_steps"] is not None:
-                for name in ("last.pt", "metrics.csv", "metrics.jsonl"):
-                    (part / name).write_bytes((full / name).read_bytes())
-                copied["step"] = ck["step"]
-
-    a = train(TrainJob([train_data], "Ketchup", full, progress=False, overrides=ov, on_step=copy_when_planned),
-              load_config("lite"))
-    planned = a["planned_steps"]
-    assert a["status"] == "time_limit" and a["step"] == planned and copied, a
-    assert planned >= copied["step"] + 4, "the budget ended before a resume could be tested"
-
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.Popen([sys.executable, "-m", "dope_hope.cli", "train", "--out", str(part), "--resume",
-                             "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
-    target = copied["step"] + 2
-    deadline = time.monotonic() + 120
-    while proc.poll() is None and time.monotonic() < deadline and _last_logged_step(part) < target:
-        time.sleep(0.01)
-    proc.kill()  # SIGKILL, possibly inside a checkpoint write
-    proc.communicate()
-    assert proc.returncode == -signal.SIGKILL, "the resumed run ended before it could be killed"
-    killed_at = load_checkpoint(part / "last.pt")["step"]
-    assert copied["step"] < killed_at < planned
-
-    code, _, err = run_cli(["train", "--out", part, "--resume", "--no-progress"], capsys)
-    assert code == 0, err
-    b = json.loads((part / "summary.json").read_text())
-    assert (b["status"], b["step"], b["planned_steps"]) == ("time_limit", planned, planned)
-    wa, wb = load_checkpoint(full / "last.pt")["model"], load_checkpoint(part / "last.pt")["model"]
-    assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
-
-    def rows(folder):
-        keep = ("event", "step", "epoch", "lr", "loss", "val_loss", "val_kp_acc")
-        return [{k: r.get(k) for k in keep} for r in map(json.loads, (folder / "metrics.jsonl").read_text().splitlines())]
-
-    assert rows(part) == rows(full)
-    assert len((part / "metrics.csv").read_text().splitlines()) == len((full / "metrics.csv").read_text().splitlines())
-    assert no_temporaries(part)

@@ -39,6 +39,18 @@ def test_quick_run_writes_the_table_and_resumes(shared_data, ketchup_obj, tmp_pa
         assert 0.0 <= row["recall_2cm_meanssd"] <= 1.0 and 0.0 <= row["ar_mssd"] <= 1.0
     assert (out / "results.md").read_text().count("| lite |") == 3
     assert len(list((out / "test").glob("*.depth.png"))) == 3
+    # what is measured: the default recipe's training frames, the CPU, the budget spent, the losses
+    synth_train = next(line for line in proc.stdout.splitlines() if line.startswith("[synth-train] $"))
+    synth_test = next(line for line in proc.stdout.splitlines() if line.startswith("[synth-test] $"))
+    assert "clutter_prob" not in synth_train and "--backgrounds" not in synth_train
+    assert "background.clutter_prob=0.0" in synth_test and "--backgrounds" in synth_test
+    assert proc.stdout.splitlines()[0].startswith("CPU ") and "avx512_bf16" in proc.stdout.splitlines()[0]
+    assert results["steps"] > 0 and 0.5 < results["budget_share"] <= 1.1
+    assert f"trained {results['steps']} steps" in proc.stdout and "% of the 0.2-min budget" in proc.stdout
+    gt = sum(len(json.loads(p.read_text())["objects"]) for p in (out / "test").glob("[0-9]*.json"))
+    assert set(results["lost"]) == {"no detection", "beyond 10 cm", "within 10 cm, not 2 cm", "within 2 cm"}
+    assert sum(results["lost"].values()) == gt and "held-out instances" in proc.stdout
+    assert set(results["cpu"]["flags"]) >= {"amx_bf16", "avx512_bf16", "avx512_vnni"}
 
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert again.returncode == 0, again.stderr[-2000:]
@@ -46,3 +58,21 @@ def test_quick_run_writes_the_table_and_resumes(shared_data, ketchup_obj, tmp_pa
 
     other = subprocess.run(cmd + ["--test-count", "4"], capture_output=True, text=True, timeout=60)
     assert other.returncode != 0 and "other settings (test_count)" in (other.stdout + other.stderr)
+
+
+def test_cpu_description_reads_the_model_and_the_precision_flags(tmp_path):
+    from dope_hope.devices import cpu_description, cpu_line
+
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nmodel name\t: Intel(R) Xeon(R) Platinum 8480+\n"
+                    "flags\t\t: fpu avx2 avx512f avx512_vnni avx512_bf16 amx_bf16 amx_tile amx_int8\n")
+    d = cpu_description(info)
+    assert d["model"] == "Intel(R) Xeon(R) Platinum 8480+" and d["native_bf16"]
+    assert d["flags"]["amx_bf16"] and d["flags"]["avx512_vnni"] and not d["flags"]["avx_vnni"]
+    assert cpu_line(info).startswith("CPU Intel(R) Xeon(R) Platinum 8480+: amx_bf16, amx_int8, avx512_bf16")
+    info.write_text("processor\t: 0\nmodel name\t: AMD EPYC\nflags\t\t: fpu avx2\n")
+    assert cpu_line(info) == ("CPU AMD EPYC: avx2 of the precision flags (no amx_bf16, amx_int8, avx512_bf16, "
+                              "avx512_vnni, avx_vnni, avx512f); bf16 training emulated: float32 used")
+    assert cpu_description(tmp_path / "missing") == {"model": "unknown", "flags": dict.fromkeys(
+        ("amx_bf16", "amx_int8", "avx512_bf16", "avx512_vnni", "avx_vnni", "avx512f", "avx2"), False),
+        "native_bf16": False}

@@ -11,7 +11,7 @@ Writes OUT/last.pt (and every checkpoint_every epochs / checkpoint_every_steps s
 OUT/best.pt (best validation keypoint accuracy), OUT/metrics.csv + metrics.jsonl,
 OUT/summary.json, and after each validation OUT/results.png (the curves) and
 OUT/val_snapshot.png (validation frames, predicted belief maps, decoded cuboids). Ctrl-C
-writes last.pt before exiting; --resume continues exactly.
+(exit 130) and SIGTERM (exit 143) write last.pt before exiting; --resume continues exactly.
 """
 from __future__ import annotations
 
@@ -20,6 +20,18 @@ import logging
 from pathlib import Path
 
 from dope_hope.commands.argtypes import device, nonnegative_float, nonnegative_int, positive_float, positive_int
+
+
+def _time_budget(text: str) -> float:
+    """argparse type of --time-budget: a finite number of minutes > 0, at most a year."""
+    from dope_hope.errors import ConfigError
+    from dope_hope.training.settings import check_time_limit
+
+    value = positive_float(text)
+    try:
+        return check_time_limit(value, "value")
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc).replace("value ", "", 1)) from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,10 +52,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=positive_int, help="batch size per process (train.batch_size)")
     parser.add_argument("--workers", type=nonnegative_int, help="DataLoader workers per process (train.workers)")
     parser.add_argument("--lr", type=nonnegative_float, help="peak learning rate (train.lr)")
-    parser.add_argument("--time-budget", type=positive_float, metavar="MIN",
-                        help="the run's time budget: stop cleanly after MIN minutes with validation and a "
-                             "checkpoint (train.time_limit_min). The budget is turned into a step count "
-                             "after the first steps; --resume ends at that step (time used before counts)")
+    parser.add_argument("--time-budget", type=_time_budget, metavar="MIN",
+                        help="the run's time budget, at most a year: stop cleanly after MIN minutes with "
+                             "validation and a checkpoint (train.time_limit_min). The budget becomes a step "
+                             "count after the first steps, planned again from the measured speed as the run "
+                             "goes; --resume counts the time used before")
     parser.add_argument("--seed", type=nonnegative_int, help="seed of init, data order and augmentation (train.seed)")
     parser.add_argument("--resume", nargs="?", const="auto", metavar="PATH",
                         help="continue from a checkpoint (no PATH: OUT/last.pt, if it exists)")
@@ -69,37 +82,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import time
+
+    started = time.monotonic()  # a time budget counts the command's own checks too
     from dope_hope.config import apply_overrides, load_config
     from dope_hope.errors import ConfigError, InputFileError
     from dope_hope.io.dope_json import list_dope_frames
-    from dope_hope.io.paths import output_dir, require_file
+    from dope_hope.io.paths import output_dir
 
-    if args.resume not in (None, "auto") and args.init_weights is not None:
-        raise ConfigError("--resume PATH continues a run with its own weights; --init starts a new run "
-                          "from other weights: give one of them")
+    if args.resume not in (None, "auto") and args.init_weights is not None:  # before any folder is made
+        from dope_hope.training.settings import resolve_resume
+
+        resolve_resume(args.resume, args.out, args.init_weights)
     output_dir(args.out)
     for folder in [*(args.data or []), *args.val]:  # fail fast, before importing torch
         if not folder.is_dir():
             raise InputFileError(folder, "data folder not found")
         if not list_dope_frames(folder):
             raise InputFileError(folder, "no DOPE frames (NNNNNN.json beside an image) in this folder")
-    from dope_hope.training.settings import TrainJob
+    from dope_hope.training.settings import TrainJob, resolve_resume
     from dope_hope.training.trainer import train
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    resume: Path | None = None
-    if args.resume == "auto":
-        candidate = args.out / "last.pt"
-        if candidate.is_file():
-            resume = candidate
-            if args.init_weights is not None:
-                logging.getLogger("dope_hope.training").warning(
-                    "--init %s ignored: --resume continues %s with its own weights", args.init_weights, candidate)
-                args.init_weights = None
-        else:
-            logging.getLogger("dope_hope.training").info("--resume: %s does not exist yet, starting fresh", candidate)
-    elif args.resume is not None:
-        resume = require_file(args.resume, "checkpoint to resume from")
+    resume, args.init_weights = resolve_resume(args.resume, args.out, args.init_weights)
 
     overrides = apply_overrides({}, list(args.overrides))
     cli = {"epochs": args.epochs, "steps": args.steps, "batch_size": args.batch_size, "workers": args.workers,
@@ -123,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
                    resume=resume, mesh=args.mesh, symmetries=args.symmetries,
                    backbone_weights=args.backbone_weights,
                    init_weights=init_weights, init_reason=why, device=args.device,
-                   progress=not args.no_progress, overrides=overrides)
+                   progress=not args.no_progress, overrides=overrides, started=started)
     summary = train(job, config)
     status = summary["status"]
     acc, acc_d = summary.get("val_kp_acc"), summary.get("val_kp_acc_decoded")
@@ -131,6 +136,4 @@ def run(args: argparse.Namespace) -> int:
                 f"{acc_d:.3f} (decoded instances)") if isinstance(acc, float) and isinstance(acc_d, float) else ""
     if summary.get("rank", 0) == 0:
         print(f"{status}: step {summary['step']} epoch {summary['epoch']}{acc_text}; checkpoint {summary['last']}")
-    if status in ("interrupted", "terminated"):
-        return 130
-    return 0
+    return {"interrupted": 130, "terminated": 143}.get(status, 0)  # 128 + SIGINT / SIGTERM, as a shell reports

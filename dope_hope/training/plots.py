@@ -91,7 +91,9 @@ def plot_results(csv_path: str | Path, png_path: str | Path) -> Path:
             ax.plot(x, gaussian_filter1d(y, sigma=SMOOTH_SIGMA, mode="nearest"), ":", linewidth=2, label="smooth")
         if col == "lr":
             ax.ticklabel_format(axis="y", style="sci", scilimits=(-2, 3))
-    axes[0].legend(fontsize=8)
+    legend = next((ax for ax in axes if ax.get_legend_handles_labels()[0]), None)
+    if legend is not None:  # (a legend without curves makes matplotlib warn on stderr)
+        legend.legend(fontsize=8)
     png_path = Path(png_path)
     atomic_write_with(png_path, lambda tmp: fig.savefig(tmp, dpi=100))
     return png_path

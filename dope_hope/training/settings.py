@@ -4,15 +4,12 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 
 from dope_hope.assets import DEMO_WEIGHTS, PRETRAINED_WEIGHTS
 from dope_hope.errors import ConfigError, UnknownObjectError
 from dope_hope.symmetry.resolve import label_symmetries  # noqa: F401 (the trainer's import)
-
-if TYPE_CHECKING:
-    from dope_hope.training.trainer import Trainer
 
 
 #: ``--init`` choices besides a checkpoint path.
@@ -58,7 +55,11 @@ class TrainJob:
         overrides: nested config values set on the command line (``--epochs``, ``--set``...);
             merged over the given config, or over the checkpoint's config when resuming.
         on_step: hook called with (trainer, step) after every optimizer step (tests use it to
-            interrupt a run at a given step).
+            interrupt a run at a given step); typed loosely, as this module sits below the trainer.
+        clock: the seconds the time budget counts (default ``time.monotonic``; tests inject a
+            clock to make the plans of a time-limited run reproducible).
+        started: the clock's reading when the budget started (the command's start), or None
+            for the trainer's start.
     """
 
     data: list[Path]
@@ -74,7 +75,9 @@ class TrainJob:
     device: str = "auto"
     progress: bool = True
     overrides: dict[str, Any] = field(default_factory=dict)
-    on_step: Callable[["Trainer", int], None] | None = None
+    on_step: Callable[[Any, int], None] | None = None
+    clock: Callable[[], float] | None = None
+    started: float | None = None
 
 
 #: The ``train`` keys that hold numbers: key -> (rule, may be null). Rules: "int>=N" a whole
@@ -91,6 +94,23 @@ _TRAIN_NUMBERS: dict[str, tuple[str, bool]] = {
     "val_batch_size": ("int>=1", True), "max_instances": ("int>=1", False), "min_visibility": ("float>=0", False),
     "log_every": ("int>=1", False), "horizon_estimate_after": ("int>=2", False),
 }
+#: The longest time budget accepted, minutes (a year): longer ones are mistakes (1e308
+#: minutes is no number of seconds a clock can count); leave the budget out for no limit.
+MAX_TIME_LIMIT_MIN = 525_600.0
+
+
+def check_time_limit(value: Any, name: str = "train.time_limit_min") -> float:
+    """A time budget in minutes: a finite number > 0 and at most :data:`MAX_TIME_LIMIT_MIN`;
+    ConfigError naming ``name`` otherwise."""
+    from dope_hope.config import positive_float
+
+    minutes = positive_float(value, name)
+    if minutes > MAX_TIME_LIMIT_MIN:
+        raise ConfigError(f"{name} must be at most {MAX_TIME_LIMIT_MIN:g} minutes (a year; leave it out for "
+                          f"no time limit), got {value!r}")
+    return minutes
+
+
 #: Top-level config sections, and the keys of those that no other reader checks.
 CONFIG_SECTIONS = ("model", "input", "targets", "train", "augment")
 _SECTION_KEYS = {"input": ("size", "normalization"), "targets": ("sigma", "radius", "symmetry")}
@@ -124,6 +144,8 @@ def train_settings(config: dict[str, Any]) -> dict[str, Any]:
             continue
         if rule.startswith("int>="):
             out[key] = whole_number(value, name, int(rule[5:]))
+        elif key == "time_limit_min":
+            out[key] = check_time_limit(value, name)
         elif rule == "float>0":
             out[key] = positive_float(value, name)
         elif rule == "float>=0":
@@ -219,6 +241,44 @@ def resolve_init(choice: str | None, config: dict[str, Any]) -> tuple[Path | Non
         return None, ("random start: the config's model differs from the shipped pretrained lite "
                       "start's (--init none to say so, --init PATH for another checkpoint)")
     return Path(value), f"the weights of {value} (--init)"
+
+
+def resolve_resume(choice: str | None, out: Path, init: str | None) -> tuple[Path | None, str | None]:
+    """The checkpoint a run continues from (``--resume``) and the ``--init`` that still applies.
+
+    Args:
+        choice: None (a new run), "auto" (``out/last.pt`` when it exists, else a new run) or a
+            checkpoint path.
+        out: the run's output folder.
+        init: the ``--init`` given, or None.
+
+    Returns:
+        (checkpoint or None, init or None): "auto" finding ``last.pt`` continues it with its
+        own weights (a given ``--init`` is ignored, said in a warning).
+
+    Raises:
+        ConfigError: a checkpoint path together with ``--init``.
+        InputFileError: a checkpoint path that is not a readable file.
+    """
+    import logging
+
+    from dope_hope.io.paths import require_file
+
+    log = logging.getLogger(__name__)
+    if choice is None:
+        return None, init
+    if choice != "auto":
+        if init is not None:
+            raise ConfigError("--resume PATH continues a run with its own weights; --init starts a new run "
+                              "from other weights: give one of them")
+        return require_file(Path(choice), "checkpoint to resume from"), None
+    candidate = Path(out) / "last.pt"
+    if not candidate.is_file():
+        log.info("--resume: %s does not exist yet, starting fresh", candidate)
+        return None, init
+    if init is not None:
+        log.warning("--init %s ignored: --resume continues %s with its own weights", init, candidate)
+    return candidate, None
 
 
 def same_architecture(config: dict[str, Any], checkpoint: Path) -> bool:

@@ -12,13 +12,17 @@ full config (sections ``model``, ``input``, ``targets``, ``train``, ``augment``;
   item of (seed, epoch, index); a checkpoint records model, optimizer, scheduler, step, epoch,
   the batch position inside the epoch and the python/numpy/torch RNG states, so an interrupted
   CPU run resumed from its checkpoint ends with the same weights as an uninterrupted one.
-* Time limit: the budget belongs to the run. After the batches the loader fetched ahead and
-  ``horizon_estimate_after`` more steps (or the first epoch, if shorter) the measured speed
-  turns the budget left into the step the run ends at (``planned_steps``; the cosine spans it
-  unless steps were given). The plan and the time used are saved in every checkpoint, so a
-  resumed run ends at the same step with the same weights; before the plan the run stops when
-  the time (of every process so far) runs out.
-* Ctrl-C / SIGTERM: finish the current step, write ``last.pt``, return ``interrupted``.
+* Time limit: the budget belongs to the run (the time of every process so far, from the
+  trainer's start). After the batches the loader fetched ahead and ``horizon_estimate_after``
+  more steps (or the first epoch, if shorter) the measured speed turns the budget left into
+  the step the run ends at; the run plans again from the speed of its recent steps at every
+  validation and whenever a share of the budget has passed (:mod:`~dope_hope.training.budget`),
+  and stops early when one more step and the final validation would not fit. The cosine
+  follows the plans (unless steps were given). The plans and the time used are saved in every
+  checkpoint: a resumed run continues with them and plans again from its own measurements
+  (with the same measurements, e.g. an injected clock, it ends with the same weights).
+* Ctrl-C / SIGTERM: finish the current step, write ``last.pt`` (with the partial loss average
+  of the current log row), return ``interrupted`` / ``terminated``.
 """
 from __future__ import annotations
 
@@ -30,7 +34,7 @@ import random
 import signal
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -46,6 +50,7 @@ from dope_hope.model.checkpoint import (
     restore_rng_state,
     save_checkpoint,
 )
+from dope_hope.training.budget import MIN_WINDOW_STEPS, BudgetPlan, make_plan
 from dope_hope.training.distributed import init_distributed
 from dope_hope.training.loss import optimizer_step, stage_loss
 from dope_hope.training.metrics_log import MetricsLog
@@ -82,6 +87,8 @@ class Trainer:
         )
 
         self.job = job
+        self.clock: Callable[[], float] = job.clock or time.monotonic
+        self._t0 = self.clock() if job.started is None else job.started  # the budget counts from here
         self.dist, self.device = init_distributed(job.device)
         if not self.dist.main:  # rank 0 alone reports (skipped files, progress, results)
             logging.getLogger("dope_hope").setLevel(logging.ERROR)
@@ -90,9 +97,10 @@ class Trainer:
         self._signal_count = 0
 
         ck = None
+        saved_config: dict[str, Any] = {}
         if job.resume is not None:
             ck = load_checkpoint(job.resume)
-            config = ck.get("config") or config
+            config = saved_config = ck.get("config") or config
             saved_job = _extra(ck).get("job") or {}
             if not job.data:
                 job.data = [Path(p) for p in saved_job.get("data", [])]
@@ -185,12 +193,10 @@ class Trainer:
             self.epochs = math.ceil(self.total_steps / self.steps_per_epoch)
         self.time_limit_s = float(ts["time_limit_min"]) * 60.0 if ts["time_limit_min"] else None
         self._nominal_total = self.total_steps
-        #: Under a time limit: the step the run ends at, fixed once from the measured speed
-        #: (see _maybe_plan) and kept in the checkpoint, so that a resumed run ends where an
-        #: uninterrupted one does. None until planned.
-        self.planned_steps: int | None = None
-        # Under a time limit the schedule spans the planned steps, unless steps were given.
-        self.estimate_horizon = self.time_limit_s is not None and not ts["steps"]
+        #: Under a time limit: the plans turning the budget into the step the run ends at
+        #: (see _budget_step), kept in the checkpoint. None without a time limit.
+        self.budget = BudgetPlan(self.time_limit_s) if self.time_limit_s is not None else None
+        # Under a time limit the schedule follows the plans, unless steps were given.
         self.lr_lambda = LrLambda(ts["schedule"], self.total_steps, int(ts["warmup_steps"]), float(ts["min_lr_factor"]),
                                   int(ts["step_epochs"]) * self.steps_per_epoch, float(ts["step_gamma"]))
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, self.lr_lambda)
@@ -203,16 +209,26 @@ class Trainer:
         self.val_done_epoch = -1
         self._time_used_before = 0.0
         self._metrics_rows = 0
+        self._val_seconds = 0.0  # the last validation's seconds (plots included)
+        self._val_steps: list[float] = []  # the validations' seconds over the seconds per step then (rank 0)
+        self._val_time_run = 0.0  # all validations' seconds, this process
+        self._steps_this_run = 0
+        self._other_before = 0.0  # seconds of earlier processes not spent on steps (validations, start-ups)
+        self._startup_s = 0.0  # this process's seconds before its first step
+        self._window: tuple[float, float, int] | None = None  # first plan's window: (clock, val time, steps)
+        self.loss_window = [0.0, 0]  # the loss sum and steps of the next train row
         self.metrics: MetricsLog | None = None
         if ck is not None:
-            self._restore(ck)
+            self._restore(ck, train_settings(saved_config) if saved_config else ts)
         self.ddp_model: nn.Module = self.model
         if self.dist.active:
             self.ddp_model = nn.parallel.DistributedDataParallel(
                 self.model, device_ids=[self.device.index] if self.cuda else None)
 
     # ------------------------------------------------------------------ checkpoints
-    def _restore(self, ck: dict[str, Any]) -> None:
+    def _restore(self, ck: dict[str, Any], saved_ts: dict[str, Any]) -> None:
+        """Continue from checkpoint ``ck``; ``saved_ts``: its ``train`` settings (a length or
+        budget given now that differs wins, said in one line)."""
         self.model.load_state_dict(ck["model"])
         if ck.get("optimizer") is not None:
             self.optimizer.load_state_dict(ck["optimizer"])
@@ -227,21 +243,57 @@ class Trainer:
         if self.batch_in_epoch < self.steps_per_epoch and self.val_done_epoch == self.epoch:
             self.val_done_epoch = -1  # stopped mid-epoch: validate again when the epoch ends
         self._time_used_before = float(extra.get("time_used_s", 0.0))
+        self._other_before = float(extra.get("other_s", 0.0))
+        self._val_seconds = float(extra.get("last_val_s", 0.0))
+        self._val_steps = [float(v) for v in extra.get("val_steps") or []]
         self._metrics_rows = int(extra.get("metrics_rows", 0))
         self.last_val = dict(extra.get("val") or {})
-        plan = extra.get("planned_steps")
-        if plan is not None and self.time_limit_s is not None and extra.get("plan_budget_min") == self.ts["time_limit_min"]:
-            self.planned_steps = int(plan)  # the same budget: the same end
-            self.total_steps = min(self.total_steps, self.planned_steps)
-        elif self.estimate_horizon:
-            self.lr_lambda.horizon = max(1, self.total_steps)  # planned again (budget changed)
+        window = extra.get("loss_window")
+        if isinstance(window, (list, tuple)) and len(window) == 2:
+            self.loss_window = [float(window[0]), int(window[1])]
         if ck.get("rng"):
             restore_rng_state(ck["rng"])
-        # the scheduler's state restored lr_lambda's attributes; steps / epochs given now win
-        if not self.estimate_horizon:
-            self.lr_lambda.horizon = max(1, self.total_steps)
         if self.dist.main:
             log.info("resumed from %s at step %d (epoch %d, batch %d)", self.job.resume, self.step, self.epoch, self.batch_in_epoch)
+        self._restore_length(extra, saved_ts)
+
+    def _restore_length(self, extra: dict[str, Any], saved_ts: dict[str, Any]) -> None:
+        """The resumed run's end: the checkpoint's plans when its length and budget are kept;
+        a length (``steps``, ``epochs``) or budget given now that differs wins, at once (one
+        line says so) and the learning rate falls from where it is to the new end."""
+        plans = extra.get("plans")
+        if plans is None and extra.get("planned_steps") is not None and self.budget is not None:
+            self.total_steps = min(self._nominal_total, int(extra["planned_steps"]))  # one fixed plan: measured again
+        keys = ("steps", "epochs", "time_limit_min")
+        changed = [k for k in keys if self.ts[k] != saved_ts.get(k)]
+        if self.budget is not None and plans and "time_limit_min" not in changed:
+            self.budget.plans = [dict(p) for p in plans]
+            self.total_steps = min(self._nominal_total, int(plans[-1]["budget_end"]))
+        if self.budget is not None and plans and changed:  # planned again at once, at the last plan's speed
+            self.budget.plans = [dict(p) for p in plans]
+            end = self._plan_now("length or budget changed at resume") if self.dist.main else None
+            self._set_end(self._broadcast_end(end))
+        elif changed and self.budget is None:
+            self.total_steps = self._nominal_total
+        if changed and self.ts["schedule"] == "cosine" and not self.budget_sets_horizon:
+            self.lr_lambda.replan(self.step, max(self.step + 1, self.total_steps))
+        if changed and self.dist.main:
+            now = ", ".join(f"train.{k} {self.ts[k]}" for k in changed)
+            before = ", ".join(f"{saved_ts.get(k)}" for k in changed)
+            tail = (f", or earlier when the {self.ts['time_limit_min']:g}-min time budget is spent"
+                    if self.budget is not None and self.total_steps >= self._nominal_total else "")
+            log.warning("resume: %s given now win(s) over the checkpoint's %s: the run ends at step %d%s",
+                        now, before, self.total_steps, tail)
+
+    @property
+    def budget_sets_horizon(self) -> bool:
+        """Whether the time budget's plans set the cosine's end (a time limit without steps)."""
+        return self.budget is not None and not self.ts["steps"]
+
+    @property
+    def planned_steps(self) -> int | None:
+        """The step the time budget's last plan ends the run at (None before a plan / without)."""
+        return None if self.budget is None or self.budget.last is None else int(self.budget.last["end"])
 
     def save(self, name: str) -> Path:
         """Write ``out/name`` atomically (rank 0 only); returns its path."""
@@ -250,8 +302,10 @@ class Trainer:
             return path
         extra = {
             "batch_in_epoch": self.batch_in_epoch, "best_acc": self.best_acc, "val_done_epoch": self.val_done_epoch,
-            "time_used_s": self.budget_used(), "size_source": self.size_source,
-            "planned_steps": self.planned_steps, "plan_budget_min": self.ts["time_limit_min"],
+            "time_used_s": self.budget_used(), "other_s": self.other_time(),
+            "last_val_s": self._val_seconds, "val_steps": self._val_steps[-3:], "size_source": self.size_source,
+            "planned_steps": self.planned_steps, "plans": self.budget.plans if self.budget is not None else None,
+            "loss_window": list(self.loss_window),
             "metrics_rows": self.metrics.rows if self.metrics is not None else self._metrics_rows,
             "val": {k: v for k, v in self.last_val.items() if isinstance(v, (int, float))},
             "world_size": self.dist.world_size,
@@ -266,8 +320,8 @@ class Trainer:
 
     # ------------------------------------------------------------------ control
     def elapsed(self) -> float:
-        """Seconds this process has run the loop."""
-        return time.monotonic() - self._t0
+        """Seconds since this process's trainer started (by its clock)."""
+        return self.clock() - self._t0
 
     def budget_used(self) -> float:
         """Seconds of the time budget used: earlier processes' (up to their last checkpoint)
@@ -285,12 +339,7 @@ class Trainer:
         self.request_stop("interrupted" if signum == signal.SIGINT else "terminated")
 
     def _agree_stop(self) -> bool:
-        """True on every rank when any rank wants to stop (time limit, signal)."""
-        # Before the plan (the first steps of a run): the final validation must fit in the
-        # budget too, stop when it would not. After it, the planned step count ends the run.
-        if (self.time_limit_s is not None and self.planned_steps is None and self.stop_reason is None
-                and self.budget_used() + self._val_seconds >= self.time_limit_s):
-            self.stop_reason = "time_limit"
+        """True on every rank when any rank wants to stop (signal)."""
         if not self.dist.active:
             return self.stop_reason is not None
         reasons = (None, "time_limit", "terminated", "interrupted")
@@ -299,51 +348,126 @@ class Trainer:
         self.stop_reason = reasons[int(t.item())]
         return self.stop_reason is not None
 
-    def _maybe_plan(self, epoch_end: bool = False) -> None:
-        """Time-limited run: once the speed is known (``horizon_estimate_after`` steps of this
-        process, or the end of an epoch), turn the budget left into the step the run ends at.
+    # ------------------------------------------------------------------ time budget
+    def _budget_step(self, validated: bool = False) -> None:
+        """Time-limited run, after each step (``validated``: after a validation): rank 0
+        measures the speed and plans when a plan is due (:meth:`_decide_end`); every rank
+        takes the end it planned."""
+        if self.budget is None or self.step >= self.total_steps:
+            return
+        end = self._broadcast_end(self._decide_end(validated) if self.dist.main else None)
+        if end is not None:
+            self._set_end(end)
 
-        The plan is made once, broadcast to every rank and saved in the checkpoint: from then
-        on the run is one of a fixed number of steps (the cosine spans them), so an
-        interrupted and resumed run ends at the same step with the same weights.
-        """
-        if self.time_limit_s is None or self.planned_steps is not None:
-            return
-        n = self._steps_this_run
-        # The clock starts after start-up (step 1) and again once the batches the loader fetched
-        # ahead while the run started are used up: they come for free, and counting them makes a
-        # loader-bound run look faster than it is (it would overrun its budget).
-        steady = 1 + (int(self.ts["workers"]) * LOADER_PREFETCH)
-        if n in (1, steady) and not epoch_end:
-            self._plan_t1, self._plan_val1, self._plan_n1 = time.monotonic(), self._val_time_run, n
-            return
-        if (self._plan_t1 is None or n <= self._plan_n1
-                or (n < steady + int(self.ts["horizon_estimate_after"]) - 1 and not epoch_end)):
-            return
-        per_step = max(1e-9, (time.monotonic() - self._plan_t1 - (self._val_time_run - self._plan_val1))
-                       / (n - self._plan_n1))
+    def _broadcast_end(self, end: int | None) -> int | None:
+        """Rank 0's end step (or None) on every rank."""
+        if not self.dist.active:
+            return end
+        t = torch.tensor([-1 if end is None else end], dtype=torch.int64, device=self.device if self.cuda else "cpu")
+        dist.broadcast(t, 0)
+        return None if int(t.item()) < 0 else int(t.item())
+
+    def _set_end(self, end: int) -> None:
+        """End the run at step ``end``; the cosine (when the budget sets it) falls to it."""
+        if end != self.total_steps and self.budget_sets_horizon:
+            self.lr_lambda.replan(self.step, max(self.step + 1, end))
+        self.total_steps = end
+
+    def other_time(self) -> float:
+        """Seconds of the budget not spent on steps: validations and each process's start-up
+        (every process so far)."""
+        return self._other_before + self._startup_s + self._val_time_run
+
+    def _first_window_speed(self) -> tuple[float | None, int]:
+        """Seconds per step of this process's steps since its speed window started
+        (validation time left out) and the number of those steps; (None, 0) before."""
+        if self._window is None:
+            return None, 0
+        t, val, n = self._window
+        steps = self._steps_this_run - n
+        if steps <= 0:
+            return None, 0
+        return max(1e-9, (self.clock() - t - (self._val_time_run - val)) / steps), steps
+
+    def _recent_speed(self, last: dict[str, Any]) -> float:
+        """Seconds per step since the last plan (budget used minus validations and start-ups,
+        over the steps: the same figures whichever process made them, so a resumed run measures what an
+        uninterrupted one does); since an earlier plan when the last is fewer than
+        MIN_WINDOW_STEPS steps back, the first plan's figure when all are."""
+        since = next((p for p in reversed(self.budget.plans) if self.step - int(p["step"]) >= MIN_WINDOW_STEPS), None)
+        if since is None:
+            return float(self.budget.plans[0]["per_step_s"]) if self.budget.plans else float(last["per_step_s"])
+        train_s = (self.budget_used() - self.other_time()) - (float(since["used_s"]) - float(since.get("other_s", 0.0)))
+        return max(1e-9, train_s / (self.step - int(since["step"])))
+
+    def _val_cost(self, per_step: float) -> float:
+        """Seconds a validation (best.pt and plots included) costs at ``per_step`` seconds per
+        step: the median of the last three validations, in training steps of their time (a
+        load that slows the steps slows the validation too), else an estimate: a batch costs
+        about a training step per unit of image area (forward + decoding of whole frames vs
+        forward + backward of the training crops)."""
+        if self._val_steps:
+            return float(np.median(self._val_steps[-3:])) * per_step
+        if int(self.ts["val_every"]) <= 0:
+            return 0.0
         val_batches = math.ceil(len(self.val_set) / max(1, int(self.ts["val_batch_size"] or self.batch_size)))
-        # No validation measured yet: a batch costs about a training step per unit of image area
-        # (forward + decoding of whole frames vs forward + backward of the training crops).
         h, w = input_hw(self.config)
         crop = self.train_set.augment.crop or (h, w)
-        val_cost = self._val_seconds or per_step * val_batches * max(1.0, h * w / (crop[0] * crop[1]))
-        every = int(self.ts["val_every"]) * self.steps_per_epoch  # steps between validations
-        remaining = self.time_limit_s - self.budget_used() - val_cost  # the final validation fits
-        steps = max(0.0, remaining / (per_step + (val_cost / every if every > 0 else 0.0)))
-        planned = min(self._nominal_total, max(self.step, self.step + int(steps)))
-        if self.dist.active:
-            t = torch.tensor([planned], dtype=torch.int64, device=self.device if self.cuda else "cpu")
-            dist.broadcast(t, 0)
-            planned = int(t.item())
-        self.planned_steps = planned
-        self.total_steps = planned
-        if self.estimate_horizon:
-            self.lr_lambda.horizon = max(self.step + 1, planned)
+        return per_step * val_batches * max(1.0, h * w / (crop[0] * crop[1]))
+
+    def _decide_end(self, validated: bool) -> int | None:
+        """Rank 0: the new end step when a plan is due or the budget is spent, else None.
+
+        The first plan measures this process's steps from its first one, and again once the
+        batches the loader fetched ahead are used up (they come for free: counting them makes a
+        loader-bound run look faster than it is); re-plans measure the steps since the last plan.
+        """
+        last = self.budget.last
+        used = self.budget_used()
+        if last is None:
+            n = self._steps_this_run
+            steady = 1 + int(self.ts["workers"]) * LOADER_PREFETCH
+            if not validated and n in (1, steady):
+                self._window = (self.clock(), self._val_time_run, n)
+            measured, window_steps = self._first_window_speed()
+            if validated and measured:
+                self._val_steps.append(self._val_seconds / measured)
+            if used + self._val_seconds >= self.budget.limit_s:  # the final validation would not fit
+                return self._plan_now("budget spent before a plan", per_step=measured or 0.0, end=self.step)
+            if measured is None or (window_steps < int(self.ts["horizon_estimate_after"]) and not validated):
+                return None
+            return self._plan_now("first", per_step=measured)
+        per_step = self._recent_speed(last)
+        if validated:
+            self._val_steps.append(self._val_seconds / per_step)
+        every = int(self.ts["val_every"]) * self.steps_per_epoch
+        if not self.budget.one_more_fits(self.step, used, per_step, self._val_cost(per_step), every, validated):
+            return self._plan_now("budget spent", per_step=per_step, end=self.step)
+        if validated or self.budget.due(used, self.step):
+            return self._plan_now("validation" if validated else "re-plan", per_step=per_step, validated=validated)
+        return None
+
+    def _plan_now(self, why: str, per_step: float | None = None, end: int | None = None,
+                  validated: bool = False) -> int:
+        """Record a plan from ``per_step`` (default: the last plan's) or, given ``end``, the
+        end itself; return the end step."""
+        last = self.budget.last
+        per_step = float(last["per_step_s"]) if per_step is None and last is not None else float(per_step or 0.0)
+        val_cost = self._val_cost(per_step)
+        used = self.budget_used()
+        if end is None:
+            every = int(self.ts["val_every"]) * self.steps_per_epoch
+            plan = self.budget.plan(self.step, used, self.other_time(), per_step, val_cost, every, self._nominal_total, why,
+                                    validated)
+        else:
+            plan = make_plan(self.step, end, end, per_step, val_cost, used, self.other_time(), why)
+            self.budget.plans.append(plan)
         if self.dist.main:
-            log.info("time budget %.3g min: the run ends at step %d (%.3f s per step, %.1f s of the "
-                     "budget used by step %d)", self.time_limit_s / 60.0, planned, per_step,
-                     self.budget_used(), self.step)
+            level = logging.DEBUG if why in ("re-plan", "validation") else logging.INFO
+            log.log(level, "time budget %.3g min (%s): the run ends at step %d (%.3f s per step, %.1f s of the "
+                    "budget used by step %d)", self.budget.limit_s / 60.0, why, plan["end"], per_step, used, self.step)
+        self._set_end(plan["end"])
+        return int(plan["end"])
 
     def _loader(self, dataset: Any, sampler: Any, batch_size: int, drop_last: bool) -> torch.utils.data.DataLoader:
         from dope_hope.training.dataset import collate
@@ -416,14 +540,19 @@ class Trainer:
             "val_frames": int(s[1]), "val_keypoints": int(s[3]), "val_radius_px": radius,
         }
 
-    def _end_of_epoch(self) -> None:
+    def _end_of_epoch(self) -> bool:
+        """Validate (rank 0 also logs, saves best.pt, draws the plots) when this epoch's end is
+        a validation's; returns whether it validated. A time-limited run skips the validation
+        of an epoch end from which its planned end is less than one validation interval away
+        (the final validation replaces it; the budget plans count it so)."""
         every = int(self.ts["val_every"])
         last_epoch = self.epoch + 1 >= self.epochs or self.step >= self.total_steps or self.stop_reason is not None
-        if (every > 0 and ((self.epoch + 1) % every == 0 or last_epoch)) or (every > 0 and self.stop_reason == "time_limit"):
-            t0 = time.monotonic()
+        if self.budget is not None and self.step < self.total_steps < self.step + every * self.steps_per_epoch:
+            return False
+        validates = every > 0 and ((self.epoch + 1) % every == 0 or last_epoch)
+        if validates:
+            t0 = self.clock()  # the validation's cost, as the time budget plans with it: all of this block
             self.last_val = self.validate()
-            self._val_seconds = time.monotonic() - t0
-            self._val_time_run += self._val_seconds
             self.val_done_epoch = self.epoch
             if self.dist.main:
                 self.metrics.write("val", step=self.step, epoch=self.epoch, time_s=round(self._time_used_before + self.elapsed(), 2),
@@ -436,11 +565,10 @@ class Trainer:
                     self.best_acc = acc
                     self.save("best.pt")
                 if self.ts["plots"]:
-                    t1 = time.monotonic()
                     self._write_progress_images()
-                    spent = time.monotonic() - t1  # budgeted as part of the validation
-                    self._val_seconds += spent
-                    self._val_time_run += spent
+            self._val_seconds = self.clock() - t0
+            self._val_time_run += self._val_seconds
+        return validates
 
     @torch.no_grad()
     def _write_progress_images(self) -> None:
@@ -478,13 +606,6 @@ class Trainer:
         from dope_hope.io.atomic import remove_stale_temporaries
         from dope_hope.io.paths import output_dir
 
-        self._t0 = time.monotonic()
-        self._steps_this_run = 0
-        self._val_seconds = 0.0
-        self._val_time_run = 0.0
-        self._plan_t1: float | None = None
-        self._plan_val1 = 0.0
-        self._plan_n1 = 1
         output_dir(self.out)
         if self.dist.main:  # a process killed while writing leaves .last.<random>.tmp.pt
             remove_stale_temporaries(self.out, {"last", "best", "summary", "metrics"})
@@ -529,24 +650,28 @@ class Trainer:
         ck_epochs = int(ts["checkpoint_every"] or 0)
         bar = tqdm(total=self.total_steps, initial=self.step, disable=not (self.job.progress and self.dist.main),
                    unit="step", dynamic_ncols=True, desc="train")
-        run_loss, run_n, t_log = 0.0, 0, time.monotonic()
+        t_log, n_log = time.monotonic(), 0  # images/s: this process's steps since the last row
 
         def log_train() -> None:
             """One train row: the mean loss of the steps since the last row (every log_every
-            steps, before each validation and at the end, so that short runs have rows)."""
-            nonlocal run_loss, run_n, t_log
-            if run_n == 0:
+            steps, before each validation and at the end, so that short runs have rows; the
+            partial sum of a stopped run is in its checkpoint, so a resumed run logs the row
+            an uninterrupted one does)."""
+            nonlocal t_log, n_log
+            loss_sum, n = self.loss_window
+            if n == 0:
                 return
             if self.dist.main:
-                dt = time.monotonic() - t_log
-                ips = run_n * self.batch_size * self.dist.world_size / max(dt, 1e-9)
+                ips = n_log * self.batch_size * self.dist.world_size / max(time.monotonic() - t_log, 1e-9)
                 lr = self.optimizer.param_groups[0]["lr"]
                 self.metrics.write("train", step=self.step, epoch=self.epoch, lr=lr,
-                                   loss=run_loss / run_n, images_per_s=round(ips, 2),
+                                   loss=loss_sum / n, images_per_s=round(ips, 2),
                                    time_s=round(self._time_used_before + self.elapsed(), 2))
-                bar.set_postfix(loss=f"{run_loss / run_n:.4f}", lr=f"{lr:.2e}", img_s=f"{ips:.1f}")
-            run_loss, run_n, t_log = 0.0, 0, time.monotonic()
+                bar.set_postfix(loss=f"{loss_sum / n:.4f}", lr=f"{lr:.2e}", img_s=f"{ips:.1f}")
+            self.loss_window = [0.0, 0]
+            t_log, n_log = time.monotonic(), 0
 
+        self._startup_s = self.elapsed()  # (the time budget's step speed leaves it out)
         try:
             while self.epoch < self.epochs and self.step < self.total_steps and self.stop_reason is None:
                 if self.batch_in_epoch < self.steps_per_epoch:
@@ -567,14 +692,16 @@ class Trainer:
                         self.step += 1
                         self.batch_in_epoch += 1
                         self._steps_this_run += 1
-                        run_loss += loss
-                        run_n += 1
+                        self.loss_window = [self.loss_window[0] + loss, self.loss_window[1] + 1]
+                        n_log += 1
                         bar.update(1)
-                        self._maybe_plan()
-                        if self.step % log_every == 0:
-                            log_train()
                         if self.job.on_step is not None:
                             self.job.on_step(self, self.step)
+                        self._budget_step()
+                        if bar.total != self.total_steps:
+                            bar.total = self.total_steps
+                        if self.step % log_every == 0:
+                            log_train()
                         if ck_steps and self.step % ck_steps == 0:
                             self.save("last.pt")
                         if self._agree_stop():
@@ -585,9 +712,9 @@ class Trainer:
                 # the epoch's batches are done (or the step / time budget ran out inside it)
                 if self.val_done_epoch != self.epoch:
                     log_train()  # the curves in results.png reach the validated step
-                    self._end_of_epoch()
-                    t_log = time.monotonic()  # images/s counts training time only
-                self._maybe_plan(epoch_end=True)
+                    if self._end_of_epoch():
+                        t_log = time.monotonic()  # images/s counts training time only
+                        self._budget_step(validated=True)
                 if self.step >= self.total_steps or self.stop_reason is not None:
                     break
                 self.epoch += 1
@@ -596,7 +723,7 @@ class Trainer:
                     self.save("last.pt")
                 self._agree_stop()
             if self.stop_reason not in ("interrupted", "terminated"):
-                log_train()  # (a stopped run leaves its partial window out: resumed, it logs as uninterrupted)
+                log_train()  # (a stopped run keeps its partial window in last.pt)
         finally:
             bar.close()
         self.save("last.pt")
@@ -605,13 +732,20 @@ class Trainer:
 def load_init_weights(model: nn.Module, path: str | Path) -> None:
     """Copy a dope-hope checkpoint's network weights into ``model`` (``--init``).
 
-    Raises ModelFileError naming the file when it is no checkpoint or was trained with
-    another architecture than ``model`` (compare the configs' ``model`` sections).
+    Raises ModelFileError naming the file when it is no checkpoint, was trained with another
+    architecture than ``model`` (compare the configs' ``model`` sections) or holds weights
+    that are not finite (NaN / inf: every step from them would be NaN).
     """
+    from dope_hope.errors import ModelFileError
     from dope_hope.model.checkpoint import check_state_dict, load_checkpoint
 
     ck = load_checkpoint(path)
     check_state_dict(model.state_dict(), ck["model"], path)
+    bad = [k for k, v in ck["model"].items()
+           if isinstance(v, torch.Tensor) and v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise ModelFileError(path, f"{len(bad)} weight tensor(s) hold NaN or inf values (e.g. {bad[0]}); "
+                                   "a run cannot start from them")
     model.load_state_dict(ck["model"], strict=True)
     log.info("initialised the network from %s", path)
 
