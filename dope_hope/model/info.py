@@ -27,6 +27,14 @@ OBJECT_FRAMES = ("mesh", "legacy")
 GROUP_BELIEF, GROUP_AFFINITY = 9, 16
 
 
+def group_channels(k: int, num_objects: int) -> np.ndarray:
+    """(25,) int: object ``k``'s channels within cat(belief (9N), affinity (16N)) of a model
+    of ``num_objects`` objects: its 9 belief maps, then its 16 affinity fields."""
+    belief = np.arange(GROUP_BELIEF * k, GROUP_BELIEF * (k + 1))
+    affinity = GROUP_BELIEF * num_objects + np.arange(GROUP_AFFINITY * k, GROUP_AFFINITY * (k + 1))
+    return np.concatenate([belief, affinity])
+
+
 @dataclass(frozen=True)
 class ObjectInfo:
     """One object of a model.
