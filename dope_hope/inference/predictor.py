@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -231,15 +231,19 @@ class DopePredictor:
         return self.detections_from_maps(belief, affinity, net_in, K, depth)
 
     def detections_from_maps(self, belief: np.ndarray, affinity: np.ndarray, net_in: NetworkInput,
-                             K: np.ndarray, depth: DepthImage | None = None) -> list[Detection]:
+                             K: np.ndarray, depth: DepthImage | None = None,
+                             classes: Collection[str] | None = None) -> list[Detection]:
         """Decode + PnP (+ line search, ICP) the maps of :meth:`infer_maps` (see :meth:`predict`),
         object by object; an object whose belief maps peak nowhere above the decode threshold
-        is skipped before any decoding (one max over its maps)."""
+        is skipped before any decoding (one max over its maps). ``classes``: decode only those
+        of the predictor's objects this time (exact class names; None: all)."""
         K = check_intrinsics(K)
         K_net = net_in.network_K(K)
         threshold = float(self.options.decode.get("threshold", DEFAULT_THRESHOLD))
         out: list[Detection] = []
         for obj in self.objects:
+            if classes is not None and obj.class_name not in classes:
+                continue
             b, a = obj.channels(belief, affinity)
             if not b.max() > threshold:  # find_peaks keeps no cell whose belief is <= threshold
                 continue
@@ -388,13 +392,14 @@ def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.n
                  depth: np.ndarray | DepthImage | None = None, depth_scale_m: float = 0.001,
                  calibration: float = 1.0,
                  on_maps: Callable[[DopePredictor, np.ndarray, np.ndarray, NetworkInput], None] | None = None,
-                 ) -> list[Detection]:
+                 classes: Collection[str] | None = None) -> list[Detection]:
     """Run several predictors on one image; detections sorted by decreasing score.
 
     The image is converted once, and resized/normalized once per distinct working size and
     normalization (predictors with equal settings share the network input).
     ``on_maps(predictor, belief, affinity, network_input)`` is called with each model's maps
-    (e.g. to draw them).
+    (e.g. to draw them). ``classes``: decode only these objects (exact class names; a
+    predictor with none of them is not run; None: every predictor's objects).
     """
     K = check_intrinsics(K)
     rgb = to_rgb8(image)
@@ -402,6 +407,8 @@ def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.n
     cache: dict[tuple, NetworkInput] = {}
     out: list[Detection] = []
     for p in predictors:
+        if classes is not None and not set(p.class_names) & set(classes):
+            continue
         resized, padded = p.working_size(rgb.shape[:2])
         key = (resized, padded, p.mean, p.std)
         if key not in cache:
@@ -409,6 +416,6 @@ def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.n
         belief, affinity, net_in = p.infer_maps(cache[key])
         if on_maps is not None:
             on_maps(p, belief, affinity, net_in)
-        out.extend(p.detections_from_maps(belief, affinity, net_in, K, depth))
+        out.extend(p.detections_from_maps(belief, affinity, net_in, K, depth, classes))
     out.sort(key=lambda d: -d.score)
     return out
