@@ -203,6 +203,19 @@ def test_onnx_holds_every_object_and_old_files_still_load(two_object_checkpoint,
     assert ob.shape == (1, 18, 8, 8) and oa.shape == (1, 32, 8, 8)
     assert np.abs(ob - tb.numpy()).max() < 1e-4 and np.abs(oa - ta.numpy()).max() < 1e-4
 
+    # INT8: one file for the whole model, compared with fp32 group by group.
+    calib = tmp_path / "calib"
+    calib.mkdir()
+    for i in range(2):
+        cv2.imwrite(str(calib / f"{i}.png"), np.random.default_rng(i).integers(0, 255, (64, 64, 3), np.uint8))
+    q = export_checkpoint(two_object_checkpoint, tmp_path / "two_int8.onnx", int8=True, calibration=calib,
+                          calibration_images=2)
+    int8 = OnnxBackend(tmp_path / "two_int8.onnx")
+    assert int8.info.precision == "int8" and int8.info.class_names == ("Ketchup", "Mustard")
+    assert q.int8 is not None and q.int8.images == 2
+    ib, ia = int8.run(x)
+    assert ib.shape == ob.shape and ia.shape == oa.shape
+
     # A file without the objects key (as every file was before it) is the one object class_name.
     one = save_checkpoint(tmp_path / "one.pt", build_model(LITE), LITE, make_object_info("Ketchup"))
     export_checkpoint(one, tmp_path / "one.onnx")
@@ -352,6 +365,23 @@ def test_bop_submit_with_one_multi_object_model(tmp_path, monkeypatch):
         name = next(n for n in poses if get_object(n).obj_id == r.obj_id)
         R, t = poses[name][0]
         assert rotation_error_deg(r.R, R) < 0.1 and np.linalg.norm(r.t - t) < 1e-3
+    # evaluate reports per object on the multi-object submission: every pose is right.
+    import trimesh
+
+    (tmp_path / "bop" / "hope" / "models").mkdir()
+    for name in poses:
+        box = trimesh.creation.box(extents=get_object(name).size_array * 1000.0)  # mm
+        box.export(tmp_path / "bop" / "hope" / "models" / f"obj_{get_object(name).obj_id:06d}.ply")
+    rc, _, err = _cli(["evaluate", "-p", out, "-d", tmp_path / "bop" / "hope", "--format", "bop",
+                       "--models-dir", tmp_path / "bop" / "hope" / "models", "--out", tmp_path / "eval",
+                       "--no-progress"])
+    assert rc == 0, err
+    summary = json.loads((tmp_path / "eval" / "summary.json").read_text())
+    (method,) = summary["methods"].values()
+    recalls = {k: v for k, v in method["overall"].items() if k.startswith("recall")}
+    assert recalls and all(v == pytest.approx(1.0) for v in recalls.values()), recalls
+    table = Path(method["table_csv"]).read_text()
+    assert all(f"obj_{get_object(n).obj_id:06d}" in table or n in table for n in poses), table
     # The same object in two models is refused.
     rc, _, err = _cli(["bop-submit", "--bop-root", tmp_path / "bop", "--weights", "a.pt", "b.pt",
                        "--out", tmp_path / "x_hope-test.csv", "--no-depth"])
