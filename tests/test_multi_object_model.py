@@ -157,7 +157,8 @@ def test_checkpoint_lists_the_objects_and_old_files_load_as_one(tmp_path):
     with pytest.raises(ConfigError, match="num_objects"):  # 3 objects for a 2-object network
         save_checkpoint(tmp_path / "x.pt", build_model(cfg), cfg, objects(3))
     with pytest.raises(ConfigError, match="listed twice"):
-        save_checkpoint(tmp_path / "x.pt", build_model(cfg), cfg, [objects(1)[0], make_object_info("ketchup", [0.1] * 3)])
+        save_checkpoint(tmp_path / "x.pt", build_model(cfg), cfg,
+                        [objects(1)[0], make_object_info("ketchup", [0.1] * 3)])
     assert not (tmp_path / "x.pt").exists()
 
     one = save_checkpoint(tmp_path / "one.pt", build_model(LITE), LITE, make_object_info("Ketchup"))
@@ -340,8 +341,9 @@ def test_infer_classes_keeps_a_subset(image_dir, tmp_path, monkeypatch):
 def test_bop_submit_with_one_multi_object_model(tmp_path, monkeypatch):
     W, H = 160, 120
     K = np.array([[150.0, 0.0, 79.5], [0.0, 150.0, 59.5], [0.0, 0.0, 1.0]])
-    poses = {"Ketchup": [(Rotation.from_euler("xyz", [20, -30, 15], degrees=True).as_matrix(), np.array([-0.04, 0.0, 0.6]))],
-             "Mustard": [(Rotation.from_euler("xyz", [-10, 40, 5], degrees=True).as_matrix(), np.array([0.05, 0.01, 0.65]))]}
+    rot = Rotation.from_euler
+    poses = {"Ketchup": [(rot("xyz", [20, -30, 15], degrees=True).as_matrix(), np.array([-0.04, 0.0, 0.6]))],
+             "Mustard": [(rot("xyz", [-10, 40, 5], degrees=True).as_matrix(), np.array([0.05, 0.01, 0.65]))]}
     scene = tmp_path / "bop" / "hope" / "test" / "000001"
     (scene / "rgb").mkdir(parents=True)
     cv2.imwrite(str(scene / "rgb" / "000000.png"), np.full((H, W, 3), 90, np.uint8))

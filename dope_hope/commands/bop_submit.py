@@ -11,7 +11,8 @@ Reads BOP_ROOT/DATASET/SPLIT/<scene_id>/{rgb,depth}/ and scene_camera.json (BOP 
 BOP_ROOT/DATASET/test_targets_bop19.json: only the targeted images are processed, each with the
 models of its targeted objects, decoding only those (a model's objects: the HOPE catalog's
 obj_id of each class, or a class named obj_NNNNNN; a multi-object model covers all of its
-objects with one forward pass; models of one object and of several mix). Poses are refined with the depth line search (-LS) on the split's
+objects with one forward pass; models of one object and of several mix).
+Poses are refined with the depth line search (-LS) on the split's
 depth images unless --no-depth; the line search uses the object's mesh from
 BOP_ROOT/DATASET/models (or --models-dir: obj_NNNNNN.ply, or the other names of
 dope_hope/io/models_dir.py) when found; --icp adds the depth ICP after it (all six DoF,

@@ -354,7 +354,8 @@ def select_groups(objects: Sequence[ObjectInfo], classes: Sequence[str] | None,
         raise ConfigError(f"{flag}: give at least one class (the model's objects: {', '.join(names)})")
     groups = set()
     for c in classes:
-        hits = [k for k, n in enumerate(names) if n == c] or [k for k, n in enumerate(names) if n.lower() == str(c).lower()]
+        hits = [k for k, n in enumerate(names) if n == c] or \
+            [k for k, n in enumerate(names) if n.lower() == str(c).lower()]
         if len(hits) != 1:
             raise ConfigError(f"{flag}: {c!r} is not an object of this model (its objects: {', '.join(names)})")
         groups.add(hits[0])

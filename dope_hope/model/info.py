@@ -74,7 +74,8 @@ class ModelInfo:
 
     class_name: object the model detects (the first object of a multi-object model). size_m:
     (3,) its cuboid extents, mesh frame, metres. objects: every object, in channel-group
-    order (default: the one object ``class_name``/``size_m``, no symmetries). frame: "mesh" | "legacy". keypoint_order: "dope-current" | "dope-legacy" (must match frame).
+    order (default: the one object ``class_name``/``size_m``, no symmetries).
+    frame: "mesh" | "legacy". keypoint_order: "dope-current" | "dope-legacy" (must match frame).
     mean, std: the model's normalization of RGB in [0, 1]. input_hw: (H, W) training input
     size, or None when unknown. min_score: the model's own default pose-score threshold
     (chosen for it and recorded with its weights; None: the inference options' default);
