@@ -6,8 +6,12 @@ numbers, strings, lists, tuples, dicts; no pickled classes)::
     format            "dope-hope-checkpoint"; format_version 1
     model             state dict (CPU tensors)
     config            the full config that built the model (model/input/targets/train/...)
-    object            {class_name, size_m: [x, y, z] cuboid extents in the MESH frame (m),
-                       frame: "mesh" | "legacy" (the object frame the network's keypoints use)}
+    objects           [{class_name, size_m: [x, y, z] cuboid extents in the MESH frame (m),
+                       frame: "mesh" | "legacy" (the object frame the network's keypoints use),
+                       symmetries: BOP models_info symmetry fields (mm) or None}], one per
+                      belief/affinity group, in channel order (``model.num_objects`` of them)
+    object            objects[0], written for one-object models only (what older readers
+                      read; a checkpoint with ``object`` alone is a one-object model)
     keypoint_order    "dope-current" (geometry.KEYPOINT_ORDER) or "dope-legacy"
     normalization     {mean: [3], std: [3]} applied to RGB in [0, 1]
     optimizer, scheduler   state dicts or None
@@ -42,11 +46,12 @@ from dope_hope.model.network import (
     IMAGENET_STD,
     DopeNetwork,
     build_model,
+    num_objects_of,
 )
 
 CHECKPOINT_FORMAT = "dope-hope-checkpoint"
 FORMAT_VERSION = 1
-_REQUIRED = ("model", "config", "object", "keypoint_order", "normalization")
+_REQUIRED = ("model", "config", "keypoint_order", "normalization")
 
 #: What the official DOPE inference code feeds the network (NVlabs/Deep_Object_Pose
 #: ``common/detector.py`` and ``scripts/train2/inference/detector.py``: torchvision
@@ -187,8 +192,10 @@ def restore_rng_state(state: dict[str, Any]) -> None:
 
 
 # ----------------------------------------------------------------------------- save / load
-def make_object_info(class_name: str, size_m: Any = None, frame: str = "mesh") -> dict[str, Any]:
-    """``{class_name, size_m (mesh frame, m), frame}``; size defaults to the catalog's."""
+def make_object_info(class_name: str, size_m: Any = None, frame: str = "mesh",
+                     symmetries: dict[str, Any] | None = None) -> dict[str, Any]:
+    """``{class_name, size_m (mesh frame, m), frame}`` (plus ``symmetries``, the BOP fields in
+    mm, when given); size defaults to the catalog's."""
     if frame not in OBJECT_FRAMES:
         raise ConfigError(f"object frame must be one of {OBJECT_FRAMES}, got {frame!r}")
     if size_m is None:
@@ -197,14 +204,35 @@ def make_object_info(class_name: str, size_m: Any = None, frame: str = "mesh") -
     size = [float(v) for v in np.asarray(size_m, dtype=np.float64).reshape(-1)]
     if len(size) != 3 or min(size) <= 0:
         raise ConfigError(f"object size must be 3 positive extents in metres, got {size}")
-    return {"class_name": str(class_name), "size_m": size, "frame": frame}
+    info = {"class_name": str(class_name), "size_m": size, "frame": frame}
+    if symmetries is not None:
+        info["symmetries"] = _plain(dict(symmetries))
+    return info
+
+
+def object_entries(object_info: dict[str, Any] | list[dict[str, Any]] | tuple) -> list[dict[str, Any]]:
+    """The checkpoint's ``objects`` list from one object dict or a list of them (channel
+    order), each through :func:`make_object_info`; ConfigError for an empty list, mixed
+    frames or a repeated class (case-insensitive)."""
+    items = [object_info] if isinstance(object_info, dict) else list(object_info)
+    if not items:
+        raise ConfigError("a model needs at least one object")
+    out = [make_object_info(o["class_name"], o.get("size_m"), o.get("frame", "mesh"), o.get("symmetries"))
+           for o in items]
+    if len({o["frame"] for o in out}) != 1:
+        raise ConfigError("the objects of one model must share one frame")
+    names = [o["class_name"].lower() for o in out]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise ConfigError(f"object class {repeated[0]!r} is listed twice (class names are case-insensitive)")
+    return out
 
 
 def save_checkpoint(
     path: str | os.PathLike,
     model: nn.Module,
     config: dict[str, Any],
-    object_info: dict[str, Any],
+    object_info: dict[str, Any] | list[dict[str, Any]],
     optimizer: torch.optim.Optimizer | None = None,
     scheduler: Any = None,
     step: int = 0,
@@ -220,14 +248,18 @@ def save_checkpoint(
     Args:
         model: the network (DDP/compile wrappers are unwrapped; tensors saved on CPU).
         config: the full config that built it.
-        object_info: ``{class_name, size_m, frame}`` (see :func:`make_object_info`).
+        object_info: ``{class_name, size_m, frame[, symmetries]}`` (see :func:`make_object_info`),
+            or a list of them in channel-group order, one per ``model.num_objects``.
         keypoint_order: default "dope-legacy" for frame "legacy", else "dope-current".
         normalization: default ImageNet mean/std.
     Returns the path written.
     """
     path = Path(path)
-    info = make_object_info(object_info["class_name"], object_info.get("size_m"),
-                            object_info.get("frame", "mesh"))
+    objects = object_entries(object_info)
+    if len(objects) != num_objects_of(config):
+        raise ConfigError(f"{len(objects)} object(s) given for a model of model.num_objects = "
+                          f"{num_objects_of(config)}")
+    info = objects[0]
     if keypoint_order is None:
         keypoint_order = LEGACY_KEYPOINT_ORDER if info["frame"] == "legacy" else KEYPOINT_ORDER
     norm = normalization or {"mean": list(IMAGENET_MEAN), "std": list(IMAGENET_STD)}
@@ -238,7 +270,8 @@ def save_checkpoint(
         "dope_hope_version": __version__,
         "model": state,
         "config": _plain(config),
-        "object": info,
+        "objects": objects,
+        **({"object": info} if len(objects) == 1 else {}),
         "keypoint_order": keypoint_order,
         "normalization": _plain(norm),
         "optimizer": optimizer.state_dict() if optimizer is not None else None,
@@ -277,10 +310,18 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
         raise ModelFileError(path, f"checkpoint lacks {', '.join(missing)}")
     if not isinstance(ckpt["model"], dict) or not isinstance(ckpt["config"], dict):
         raise ModelFileError(path, "checkpoint 'model' and 'config' must be dicts")
-    obj = ckpt["object"]
-    if not isinstance(obj, dict) or "class_name" not in obj or obj.get("frame") not in OBJECT_FRAMES:
-        raise ModelFileError(path, "checkpoint 'object' must hold class_name, size_m and frame")
-    ModelInfo.from_checkpoint(ckpt, path)
+    if "objects" not in ckpt and "object" not in ckpt:
+        raise ModelFileError(path, "checkpoint lacks objects")
+    entries = ckpt["objects"] if "objects" in ckpt else [ckpt["object"]]
+    if not isinstance(entries, (list, tuple)) or not entries or not all(
+            isinstance(o, dict) and "class_name" in o and o.get("frame") in OBJECT_FRAMES for o in entries):
+        key = "objects" if "objects" in ckpt else "object"
+        raise ModelFileError(path, f"checkpoint '{key}' must hold class_name, size_m and frame"
+                                   + (" per object" if key == "objects" else ""))
+    info = ModelInfo.from_checkpoint(ckpt, path)
+    if info.num_objects != num_objects_of(ckpt["config"]):
+        raise ModelFileError(path, f"checkpoint lists {info.num_objects} object(s) but its config "
+                                   f"builds model.num_objects = {num_objects_of(ckpt['config'])}")
     try:
         expected = expected_state(ckpt["config"])
     except ConfigError as exc:
@@ -327,7 +368,7 @@ def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> t
     ckpt = load_checkpoint(path)
     if ckpt.get("source") == PRETRAINED_START_SOURCE:
         raise ModelFileError(path, "a pretrained start, not a detector of one object: train your "
-                                   "object from it (`dope-hope train --config lite`, its default start)")
+                                   "object(s) from it (`dope-hope train --config lite`, its default start)")
     model = build_model(ckpt["config"], load_backbone=False)
     model.load_state_dict(ckpt["model"], strict=True)
     return model.to(device).eval(), ckpt
@@ -383,6 +424,7 @@ def import_official(
         "dope_hope_version": __version__,
         "model": {k: state[k].detach().to("cpu", torch.float32) for k in expected},
         "config": config,
+        "objects": [info],
         "object": info,
         "keypoint_order": LEGACY_KEYPOINT_ORDER if frame == "legacy" else KEYPOINT_ORDER,
         "normalization": dict(OFFICIAL_NORMALIZATION),

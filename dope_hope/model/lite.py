@@ -58,16 +58,20 @@ class LiteTrunk(nn.Module):
         width: encoder base width w (channels w, 2w, 4w, 4w, 4w at strides 2..32).
         feature_channels: F, width of the merged stride-s features the stages read.
         stage_channels: C, width inside each stage.
+        num_objects: N; each stage returns belief (B, 9N, h, w) and affinity (B, 16N, h, w)
+            (object k: channels [9k, 9k + 9) and [16k, 16k + 16)); stage s > 1 reads
+            cat(belief, affinity, features).
     """
 
     def __init__(self, head: int = 50, stages: int = 2, width: int = 24,
-                 feature_channels: int = 96, stage_channels: int = 64):
+                 feature_channels: int = 96, stage_channels: int = 64, num_objects: int = 1):
         super().__init__()
         if head not in LITE_HEAD_STRIDES:
             raise ConfigError(f"model.head must be 50 or 100 for arch lite, got {head!r}")
         if not 1 <= stages <= 4:
             raise ConfigError(f"model.stages must be 1..4 for arch lite, got {stages!r}")
         self.stride = LITE_HEAD_STRIDES[head]
+        self.num_objects = n = int(num_objects)
         w, fc, sc = int(width), int(feature_channels), int(stage_channels)
         self.stem = nn.Sequential(conv_bn_relu(3, w, 2), conv_bn_relu(w, w))                # /2
         self.down4 = nn.Sequential(conv_bn_relu(w, 2 * w, 2), conv_bn_relu(2 * w, 2 * w))     # /4
@@ -82,13 +86,13 @@ class LiteTrunk(nn.Module):
         self.merge = conv_bn_relu(fc, fc)
         blocks = []
         for s in range(stages):
-            cin = fc if s == 0 else fc + NUM_MAPS
+            cin = fc if s == 0 else fc + NUM_MAPS * n
             dilations = (1, 2) if s == 0 else (1, 2, 4)
             layers: list[nn.Module] = []
             for d in dilations:
                 layers.append(conv_bn_relu(cin, sc, dilation=d))
                 cin = sc
-            layers.append(nn.Conv2d(sc, NUM_MAPS, 1))
+            layers.append(nn.Conv2d(sc, NUM_MAPS * n, 1))
             blocks.append(nn.Sequential(*layers))
         self.stages = nn.ModuleList(blocks)
 
@@ -116,9 +120,10 @@ class LiteTrunk(nn.Module):
         feats = self.features(x)
         outputs = []
         inp = feats
+        nb = NUM_BELIEF * self.num_objects
         for i, block in enumerate(self.stages):
             maps = block(inp)
-            outputs.append((maps[:, :NUM_BELIEF], maps[:, NUM_BELIEF:]))
+            outputs.append((maps[:, :nb], maps[:, nb:]))
             if i + 1 < len(self.stages):
                 inp = torch.cat([maps, feats], 1)
         return outputs

@@ -1,8 +1,11 @@
 """DopeNetwork: VGG19 trunk + six two-branch refinement stages, with a 50-px or 400-px head.
 
-Input: ImageNet-normalized RGB, (N, 3, H, W) float32 with H, W divisible by 8. Output: a list
-with one ``(belief (N, 9, h, w), affinity (N, 16, h, w))`` pair per stage (deep supervision);
-``h, w = dope_hope.maps.grid.map_size((H, W), model.stride)``.
+Input: ImageNet-normalized RGB, (B, 3, H, W) float32 with H, W divisible by 8. Output: a list
+with one ``(belief (B, 9N, h, w), affinity (B, 16N, h, w))`` pair per stage (deep supervision)
+for a model of N objects (``model.num_objects``, default 1): object k owns belief channels
+[9k, 9k + 9) and affinity channels [16k, 16k + 16); N = 1 is the official layout.
+``h, w = dope_hope.maps.grid.map_size((H, W), model.stride)``. :func:`widen_to_objects` turns
+a one-object state dict into an N-object one whose every group starts as the one object's.
 
 Parameter names follow the official DOPE checkpoints (NVlabs/Deep_Object_Pose, class
 ``DopeNetwork``), so an official ``.pth`` loads with ``strict=True``:
@@ -112,8 +115,10 @@ class UpsamplingDecoder(nn.Module):
     """
 
     def __init__(self, feature_channels: int = FEATURE_CHANNELS, reduce_channels: int = 32,
-                 channels: tuple[int, ...] = (32, 16, 16), decode_stages: str = "all"):
+                 channels: tuple[int, ...] = (32, 16, 16), decode_stages: str = "all", num_objects: int = 1):
         super().__init__()
+        self.num_objects = int(num_objects)
+        maps_channels = NUM_MAPS * self.num_objects
         if len(channels) != 3:
             raise ConfigError(f"model.decoder.channels must list 3 widths (x2 each), got {channels}")
         if decode_stages not in ("all", "last"):
@@ -121,25 +126,26 @@ class UpsamplingDecoder(nn.Module):
         self.decode_stages = decode_stages
         self.reduce = nn.Sequential(nn.Conv2d(feature_channels, reduce_channels, 1), nn.ReLU(inplace=True))
         layers: list[nn.Module] = []
-        c = NUM_MAPS + reduce_channels
+        c = maps_channels + reduce_channels
         for co in channels:
             layers += [nn.ConvTranspose2d(c, co, kernel_size=4, stride=2, padding=1), nn.ReLU(inplace=True)]
             c = co
         self.up = nn.Sequential(*layers)
-        self.out = nn.Conv2d(c, NUM_MAPS, 1)
+        self.out = nn.Conv2d(c, maps_channels, 1)
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
 
     def forward(self, outputs: list[tuple[torch.Tensor, torch.Tensor]],
                 features: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
         reduced = self.reduce(features)
+        nb = NUM_BELIEF * self.num_objects
         result = []
         for i, (belief, affinity) in enumerate(outputs):
             maps = torch.cat([belief, affinity], 1)
             up = F.interpolate(maps, scale_factor=8, mode="bilinear", align_corners=False)
             if self.decode_stages == "all" or i == len(outputs) - 1:
                 up = up + self.out(self.up(torch.cat([maps, reduced], 1)))
-            result.append((up[:, :NUM_BELIEF], up[:, NUM_BELIEF:]))
+            result.append((up[:, :nb], up[:, nb:]))
         return result
 
 
@@ -166,6 +172,7 @@ class DopeNetwork(nn.Module):
         stages: number of refinement stages (dope: 1..6, official 6).
         decoder: options of :class:`UpsamplingDecoder` for head 400.
         lite: options of :class:`dope_hope.model.lite.LiteTrunk` for arch lite.
+        num_objects: N, the objects the network detects (a belief/affinity group each).
 
     Attributes:
         stride: image pixels per map cell (8, 4 or 1).
@@ -173,11 +180,15 @@ class DopeNetwork(nn.Module):
     """
 
     def __init__(self, arch: str = "dope", head: int = 50, stages: int = 6,
-                 decoder: dict[str, Any] | None = None, lite: dict[str, Any] | None = None):
+                 decoder: dict[str, Any] | None = None, lite: dict[str, Any] | None = None,
+                 num_objects: int = 1):
         super().__init__()
         self.arch = arch
         self.head = int(head)
         self.num_stages = int(stages)
+        if isinstance(num_objects, bool) or not isinstance(num_objects, int) or num_objects < 1:
+            raise ConfigError(f"model.num_objects must be a whole number >= 1, got {num_objects!r}")
+        self.num_objects = n = num_objects
         if arch == "dope":
             if self.head not in HEAD_STRIDES:
                 raise ConfigError(f"model.head must be 50 or 400 for arch dope, got {head!r}")
@@ -185,26 +196,26 @@ class DopeNetwork(nn.Module):
                 raise ConfigError(f"model.stages must be 1..6 for arch dope, got {stages!r}")
             self.vgg = vgg_trunk()
             for s in range(1, self.num_stages + 1):
-                in_ch = FEATURE_CHANNELS if s == 1 else FEATURE_CHANNELS + NUM_MAPS
+                in_ch = FEATURE_CHANNELS if s == 1 else FEATURE_CHANNELS + NUM_MAPS * n
                 # Registration order as in the official code does not matter for loading.
-                setattr(self, f"m{s}_2", dope_stage(in_ch, NUM_BELIEF, first=s == 1))
-                setattr(self, f"m{s}_1", dope_stage(in_ch, NUM_AFFINITY, first=s == 1))
+                setattr(self, f"m{s}_2", dope_stage(in_ch, NUM_BELIEF * n, first=s == 1))
+                setattr(self, f"m{s}_1", dope_stage(in_ch, NUM_AFFINITY * n, first=s == 1))
             _init_weights(self)
             self.stride = HEAD_STRIDES[self.head]
             if self.head == 400:
                 opts = dict(decoder or {})
                 self.decoder = UpsamplingDecoder(
                     FEATURE_CHANNELS, int(opts.pop("reduce_channels", 32)),
-                    tuple(opts.pop("channels", (32, 16, 16))), str(opts.pop("stages", "all")))
+                    tuple(opts.pop("channels", (32, 16, 16))), str(opts.pop("stages", "all")), n)
                 if opts:
                     raise ConfigError(f"unknown model.decoder options: {', '.join(sorted(opts))}")
         elif arch == "lite":
             from dope_hope.model.lite import LiteTrunk
-            known = set(inspect.signature(LiteTrunk).parameters) - {"head", "stages"}
+            known = set(inspect.signature(LiteTrunk).parameters) - {"head", "stages", "num_objects"}
             unknown = sorted(set(lite or {}) - known)
             if unknown:
                 raise ConfigError(f"unknown model.lite options: {', '.join(unknown)} (known: {', '.join(sorted(known))})")
-            self.lite = LiteTrunk(head=self.head, stages=self.num_stages, **(lite or {}))
+            self.lite = LiteTrunk(head=self.head, stages=self.num_stages, num_objects=n, **(lite or {}))
             self.stride = self.lite.stride
             _init_weights(self)
             self.lite.reset_output_layers()
@@ -212,7 +223,7 @@ class DopeNetwork(nn.Module):
             raise ConfigError(f"model.arch must be 'dope' or 'lite', got {arch!r}")
 
     def forward(self, x: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """(N, 3, H, W) normalized RGB -> [(belief (N,9,h,w), affinity (N,16,h,w))] per stage."""
+        """(B, 3, H, W) normalized RGB -> [(belief (B, 9N, h, w), affinity (B, 16N, h, w))] per stage."""
         if self.arch == "lite":
             return self.lite(x)
         features = self.vgg(x)
@@ -241,7 +252,8 @@ def build_model(config: dict[str, Any] | str, load_backbone: bool = True) -> Dop
     the packaged YAML files), a full config or its ``model`` section.
 
     Keys: ``arch`` (dope|lite), ``head`` (50|400, lite 50|100), ``stages``, ``decoder``
-    (head 400), ``lite`` (arch lite); unknown keys raise ConfigError. ``backbone_weights``: a
+    (head 400), ``lite`` (arch lite), ``num_objects`` (default 1); unknown keys raise
+    ConfigError. ``backbone_weights``: a
     LOCAL torchvision VGG19 state-dict file loaded into the trunk when ``load_backbone``
     (nothing is ever downloaded; checkpoint loading passes False, its weights win).
     """
@@ -250,12 +262,13 @@ def build_model(config: dict[str, Any] | str, load_backbone: bool = True) -> Dop
         config = load_config(config)
     m = dict(model_section(config))
     backbone = m.pop("backbone_weights", None)
-    known = {"arch", "head", "stages", "decoder", "lite"}
+    known = {"arch", "head", "stages", "decoder", "lite", "num_objects"}
     unknown = sorted(set(m) - known)
     if unknown:
         raise ConfigError(f"unknown model options: {', '.join(unknown)}")
     model = DopeNetwork(arch=m.get("arch", "dope"), head=m.get("head", 50),
-                        stages=m.get("stages", 6), decoder=m.get("decoder"), lite=m.get("lite"))
+                        stages=m.get("stages", 6), decoder=m.get("decoder"), lite=m.get("lite"),
+                        num_objects=m.get("num_objects", 1))
     if backbone and load_backbone:
         load_backbone_weights(model, backbone)
     return model
@@ -303,3 +316,103 @@ def load_backbone_weights(model: DopeNetwork, path: str | os.PathLike) -> list[s
                                    f"(and {len(missing) - 1} more)")
     model.vgg.load_state_dict(mapped, strict=False)
     return [f"vgg.{k}" for k in own if k in mapped]
+
+
+# ----------------------------------------------------------------------------- many objects
+def num_objects_of(config: dict[str, Any]) -> int:
+    """``model.num_objects`` of a full config or model section (1 when absent)."""
+    return int(model_section(config).get("num_objects", 1))
+
+
+def _widen_rows(t: torch.Tensor, per: tuple[int, ...], n: int) -> torch.Tensor:
+    """Output channels (dim 0) laid out as consecutive blocks of sizes ``per`` (e.g. 9 belief
+    then 16 affinity), each block repeated ``n`` times in place: [b, b, ..., a, a, ...]."""
+    blocks = torch.split(t, list(per), dim=0)
+    return torch.cat([b.repeat((n,) + (1,) * (t.ndim - 1)) for b in blocks], 0)
+
+
+def _widen_map_inputs(t: torch.Tensor, per: tuple[int, ...], n: int, dim: int) -> torch.Tensor:
+    """Input channels along ``dim`` whose first sum(per) channels read maps (blocks ``per``,
+    the rest features): each map block repeated ``n`` times and divided by ``n`` (so N
+    identical groups sum to the one group's input), the feature channels unchanged."""
+    k = sum(per)
+    maps, rest = t.narrow(dim, 0, k), t.narrow(dim, k, t.shape[dim] - k)
+    blocks = torch.split(maps, list(per), dim=dim)
+    reps = [1] * t.ndim
+    reps[dim] = n
+    return torch.cat([b.repeat(reps) / n for b in blocks] + [rest], dim)
+
+
+def widen_to_objects(state: dict[str, torch.Tensor], config: dict[str, Any],
+                     num_objects: int) -> dict[str, torch.Tensor]:
+    """A one-object state dict of ``config``'s architecture -> the state dict of the same
+    architecture with ``num_objects`` belief/affinity groups.
+
+    Every group starts as a copy of the one group: the output convs' rows are repeated per
+    object, and the convs that read the previous stage's maps (stages s > 1; the lite stages;
+    the 400-px decoder) take their map-input weights repeated and divided by N, so that with
+    N identical groups each group's output equals the one-object network's (stage 1's groups
+    are identical, hence every later stage's). ``config`` describes the architecture
+    (its ``num_objects`` is ignored); ConfigError when ``state`` does not fit one object of it.
+    """
+    n = int(num_objects)
+    if n < 1:
+        raise ConfigError(f"num_objects must be >= 1, got {num_objects!r}")
+    section = {k: v for k, v in model_section(config).items() if k != "num_objects"}
+    with torch.device("meta"):
+        one = build_model({**section, "num_objects": 1}, load_backbone=False)
+    expected = one.state_dict()
+    bad = sorted(set(expected) ^ set(state)) or \
+        [k for k in expected if tuple(state[k].shape) != tuple(expected[k].shape)]
+    if bad:
+        raise ConfigError(f"widen_to_objects: the state dict is not a one-object {section.get('arch', 'dope')} "
+                          f"network of this config (first mismatch: {bad[0]})")
+    if n == 1:
+        return dict(state)
+    out = dict(state)
+    for key, value in state.items():
+        rule = _widen_rule(one, key)
+        if rule is None:
+            continue
+        rows, inputs, in_dim = rule
+        v = value
+        if inputs is not None and v.ndim > in_dim:
+            v = _widen_map_inputs(v, inputs, n, in_dim)
+        if rows is not None:
+            v = _widen_rows(v, rows, n)
+        out[key] = v.contiguous()
+    return out
+
+
+def _widen_rule(one: DopeNetwork, key: str) -> tuple[tuple[int, ...] | None, tuple[int, ...] | None, int] | None:
+    """How :func:`widen_to_objects` treats one parameter: (output blocks to repeat or None,
+    map-input blocks to repeat / N or None, the input dim of the weight) or None (shared)."""
+    parts = key.split(".")
+    maps = (NUM_BELIEF, NUM_AFFINITY)
+    if one.arch == "lite":
+        if parts[:2] != ["lite", "stages"]:
+            return None
+        stage, layer = int(parts[2]), int(parts[3])
+        last = len(one.lite.stages[stage]) - 1
+        if layer == last:
+            return maps, None, 1
+        if stage > 0 and layer == 0 and parts[4] == "0" and parts[-1] == "weight":
+            return None, maps, 1  # the first conv_bn_relu's conv: weight (C, 25 + F, 3, 3)
+        return None
+    if parts[0] == "decoder":
+        if parts[1] == "out":
+            return maps, None, 1
+        if parts[1] == "up" and parts[2] == "0" and parts[-1] == "weight":
+            return None, maps, 0  # ConvTranspose2d weight: (in, out, k, k)
+        return None
+    name = parts[0]
+    if len(name) > 1 and name[0] == "m" and "_" in name:
+        stage, branch = name[1:].split("_")
+        branch_out = (NUM_BELIEF,) if branch == "2" else (NUM_AFFINITY,)
+        seq = getattr(one, name)
+        layer = int(parts[1])
+        if layer == len(seq) - 1:
+            return branch_out, None, 1
+        if int(stage) > 1 and layer == 0 and parts[-1] == "weight":
+            return None, maps, 1
+    return None
