@@ -7,12 +7,13 @@ at hand its own extents take precedence over this table (ARCHITECTURE.md).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from dope_hope.errors import UnknownObjectError
+from dope_hope.errors import ConfigError, UnknownObjectError
 from dope_hope.geometry import legacy_size_to_mesh
 
 CATEGORIES = ("cylinder", "cuboid", "bottle")
@@ -169,3 +170,30 @@ def category_symmetries(category: str, step_deg: float = 1.0) -> np.ndarray:
     else:
         raise UnknownObjectError(f"unknown category {category!r}; known: {', '.join(CATEGORIES)}")
     return np.stack([_rigid(R) for R in rots])
+
+
+def object_names(names: Sequence[str]) -> list[str]:
+    """The objects a command names (``--object A B ...``): HOPE names in their catalog spelling
+    (any case), other names (custom objects, ``obj_NNNNNN``) as given, "all" for the 28 HOPE
+    objects; in the order given.
+
+    Raises:
+        ConfigError: no name, or one object twice (names compare case-insensitively).
+    """
+    out: list[str] = []
+    for name in names:
+        if str(name).lower() == "all":
+            out += [o.name for o in HOPE_OBJECTS]
+            continue
+        try:
+            out.append(get_object(name).name)
+        except UnknownObjectError:
+            out.append(str(name))
+    if not out:
+        raise ConfigError("--object: no object named")
+    seen: set[str] = set()
+    for name in out:
+        if name.lower() in seen:
+            raise ConfigError(f"--object: {name} is named twice")
+        seen.add(name.lower())
+    return out
