@@ -259,6 +259,12 @@ def test_two_object_training_writes_the_object_list_and_grouped_targets(tmp_path
     np.testing.assert_allclose(ck["objects"][1]["size_m"], _boxes(grocery)["Lemon"][0], atol=1e-9)
     out = trainer.model(torch.zeros(1, 3, 64, 64))[-1]
     assert out[0].shape[1] == 18 and out[1].shape[1] == 32
+    # --resume alone continues with the checkpoint's objects, meshes and units
+    again = TrainJob(data=[], object_name="", out=tmp_path / "run", resume=tmp_path / "run" / "last.pt",
+                     device="cpu", progress=False, overrides={"train": {"steps": 3}})
+    resumed = Trainer(again, {})
+    assert again.class_names == ["Can", "Lemon"] and again.units == {"Can": "m", "Lemon": "m"}
+    assert resumed.object == ck["objects"] and resumed.run()["step"] == 3
 
 
 def test_train_command_pairs_meshes_with_objects_and_reads_bop(tmp_path, grocery, bop_and_dope, capsys):

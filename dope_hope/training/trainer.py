@@ -97,6 +97,7 @@ class Trainer:
                 job.object_name = str(saved_job.get("object", ""))
                 job.objects = job.objects or list(saved_job.get("objects") or [])
                 job.meshes = job.meshes or {k: Path(v) for k, v in (saved_job.get("meshes") or {}).items() if v}
+                job.units = job.units or dict(saved_job.get("units") or {})
             if job.mesh is None and saved_job.get("mesh"):
                 job.mesh = Path(saved_job["mesh"])
             if job.symmetries is None and saved_job.get("symmetries"):
@@ -261,8 +262,8 @@ class Trainer:
             "world_size": self.dist.world_size,
             "job": {"data": [str(p) for p in self.job.data], "val": [str(p) for p in self.job.val],
                     "object": self.job.object_name, "mesh": str(self.job.mesh) if self.job.mesh else None,
-                    **({"objects": self.job.class_names, "meshes": object_mesh_paths(self.job)}
-                       if len(self.objects) > 1 else {}),
+                    **({"objects": self.job.class_names, "meshes": object_mesh_paths(self.job),
+                        "units": dict(self.job.units)} if len(self.objects) > 1 else {}),
                     "symmetries": str(self.job.symmetries) if self.job.symmetries else None,
                     "init": str(self.job.init_weights) if self.job.init_weights else None},
         }
