@@ -87,29 +87,19 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("give either --mesh or --models-dir with --object, not both")
     if args.procedural and (args.mesh is not None or args.models_dir is not None or args.object_name is not None):
         raise ConfigError("--procedural makes its own objects: drop --mesh / --models-dir / --object")
-    class_name = args.class_name
     if args.procedural:
         mesh = None
-        if class_name is not None and len(class_name) != 1:
-            raise ConfigError("--class-name: --procedural writes one class")
     elif args.mesh is not None:
         mesh = args.mesh
     elif args.models_dir is not None and args.object_name is not None:
         names = object_names(args.object_name)
         mesh = [find_object_mesh(name, args.models_dir) for name in names]
-        class_name = class_name or names
     else:
         raise ConfigError("no target: give --mesh PATH, --models-dir DIR --object NAME or --procedural")
-    if class_name is not None and mesh is not None and len(class_name) != len(mesh):
-        raise ConfigError(f"--class-name: {len(class_name)} name(s) for {len(mesh)} target mesh(es); "
-                          "give one per mesh")
-    if args.units is not None and mesh is not None and len(args.units) not in (1, len(mesh)):
-        raise ConfigError(f"--units: {len(args.units)} values for {len(mesh)} meshes; give one, or one per mesh")
-    one = mesh is None or len(mesh) == 1  # one target: the same arguments as ever
-    units = args.units[0] if args.units is not None and len(args.units) == 1 else args.units
-    if one:
-        mesh = None if mesh is None else mesh[0]
-        class_name = None if class_name is None else class_name[0]
+    class_name = args.class_name or (names if args.object_name is not None else None)
+    # one value stays one value: a one-object run passes the arguments it always did
+    mesh, class_name, units = (v[0] if v is not None and len(v) == 1 else v
+                               for v in (mesh, class_name, args.units))
     config = args.config
     if args.overrides:
         config = apply_overrides(load_synth_config(args.config), args.overrides,

@@ -139,6 +139,8 @@ class FrameGenerator:
                               else "no target: give a mesh or procedural objects")
         self.targets: list[MeshAsset] = []
         if self.procedural:
+            if class_name is not None and not isinstance(class_name, str):
+                raise ConfigError("--class-name: --procedural objects have one class")
             self.class_names = [class_name or str(self.cfg["procedural"]["class_name"])]
         else:
             self.targets = load_targets(mesh_path, class_name, units)
@@ -192,6 +194,16 @@ class FrameGenerator:
         if getattr(self, "_looks", None) is None:
             self._looks = [TargetLook.of(t.mesh, t.texture, t.colors, t.cuboid_size) for t in targets]
         return self._looks
+
+    def dataset_info(self, gen_kwargs: dict[str, Any]) -> dict[str, Any]:
+        """The dataset settings (:func:`dataset_info`) of this generator's targets: single
+        values for one target object (or procedural objects), lists for several."""
+        t = self.targets
+        if len(t) > 1:
+            return dataset_info(gen_kwargs, self.cfg, self.class_names, [a.cuboid_size for a in t],
+                                [a.cuboid_center for a in t])
+        return dataset_info(gen_kwargs, self.cfg, self.class_name, t[0].cuboid_size if t else None,
+                            t[0].cuboid_center if t else None)
 
     def boxes(self, targets: list[MeshAsset]) -> list[TargetBox]:
         """Class and cuboid of each target object (the annotation's)."""
@@ -438,14 +450,7 @@ def generate_dataset(out_dir: str | os.PathLike,
                       depth_noise=depth_noise, seed=int(seed), procedural=bool(procedural))
     # Validate inputs in this process (clear errors before any worker starts).
     local = FrameGenerator(**gen_kwargs)
-    targets = local.targets
-    if len(targets) > 1:
-        info = dataset_info(gen_kwargs, local.cfg, local.class_names, [t.cuboid_size for t in targets],
-                            [t.cuboid_center for t in targets])
-    else:
-        info = dataset_info(gen_kwargs, local.cfg, local.class_name,
-                            targets[0].cuboid_size if targets else None, targets[0].cuboid_center if targets else None)
-    check_or_write_info(out, info)
+    check_or_write_info(out, local.dataset_info(gen_kwargs))
     wanted = [i for i in (range(count) if indices is None else indices) if i % n_shard == i_shard]
     todo = [i for i in wanted if not is_complete(out, i)]
     remove_stale_temporaries(out, set(todo))
