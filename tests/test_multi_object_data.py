@@ -294,3 +294,20 @@ def test_a_one_object_start_is_widened_to_the_run_objects():
         belief, affinity = model(torch.rand(1, 3, 64, 64))[-1]
     torch.testing.assert_close(belief[:, 18:27], belief[:, :9], atol=1e-5, rtol=1e-4)
     torch.testing.assert_close(affinity[:, 16:32], affinity[:, :16], atol=1e-5, rtol=1e-4)
+
+
+def test_train_meshes_pair_in_order_by_name_or_from_a_models_dir(shared_data, grocery, tmp_path):
+    from dope_hope.training.settings import train_meshes
+
+    can, lemon = str(grocery["Can"]), str(grocery["Lemon"])
+    assert train_meshes(["Can", "Lemon"], [can, lemon], None, ["m"]) == (
+        {"Can": Path(can), "Lemon": Path(lemon)}, {"Can": "m", "Lemon": "m"})
+    assert train_meshes(["Can", "Lemon"], [f"Lemon={lemon}"], None)[0] == {"Lemon": Path(lemon)}
+    models = train_meshes(["Lemon", "Can"], None, shared_data / "grocery_objects", ["m", "cm"])
+    assert models == ({"Lemon": Path(lemon), "Can": Path(can)}, {"Lemon": "m", "Can": "cm"})
+    with pytest.raises(ConfigError, match="not one of the objects"):
+        train_meshes(["Can", "Lemon"], [f"Milk={lemon}"], None)
+    with pytest.raises(ConfigError, match="either --mesh or --models-dir"):
+        train_meshes(["Can"], [can], shared_data / "grocery_objects")
+    with pytest.raises(ConfigError, match="--units"):
+        train_meshes(["Can", "Lemon"], [can, lemon], None, ["m", "m", "m"])

@@ -122,7 +122,8 @@ def relabel_objects(setting: Any, job: TrainJob, objects: list[RunObject],
         most = max(most, len(perms))
         index = None if len(objects) == 1 else k
         record_sets = [relabel_symmetric(rs, rots, perms, index) for rs in record_sets]
-        lines.append(f"{obj.name}: {symmetry[1]}, {len(perms)} corner-permuting symmetries")
+        lines.append(("" if index is None else f"{obj.name}: ")
+                     + f"{symmetry[1]}, {len(perms)} corner-permuting symmetries")
     return record_sets, most, lines
 
 
