@@ -364,6 +364,15 @@ class GenerateSummary:
         return self.written / self.seconds if self.seconds > 0 else 0.0
 
 
+def _one_or_list(value: Any) -> Any:
+    """A string or None as it is; a sequence of one value as that value; else a list (the
+    settings of a one-object dataset keep their single values)."""
+    if value is None or isinstance(value, str):
+        return value
+    values = list(value)
+    return values[0] if len(values) == 1 else values
+
+
 def photo_paths(photos: str | os.PathLike | Sequence[str | os.PathLike] | None) -> str | list[str] | None:
     """``backgrounds`` (or the target meshes) as plain strings for the worker processes and the
     dataset's settings: one path stays a string (the settings file of a one-folder / one-mesh
@@ -443,8 +452,7 @@ def generate_dataset(out_dir: str | os.PathLike,
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     gen_kwargs = dict(mesh_path=photo_paths(mesh_path), size=parse_size(size), config=config,
-                      class_name=class_name if class_name is None or isinstance(class_name, str) else list(class_name),
-                      units=units if units is None or isinstance(units, str) else list(units),
+                      class_name=_one_or_list(class_name), units=_one_or_list(units),
                       backgrounds=photo_paths(backgrounds),
                       distractors=None if distractors is None else str(distractors),
                       depth_noise=depth_noise, seed=int(seed), procedural=bool(procedural))
