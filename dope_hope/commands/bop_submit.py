@@ -4,12 +4,15 @@ Examples:
   dope-hope bop-submit --bop-root bop --dataset hope --split test --weights ketchup.pt \\
       --out dopehope-lite_hope-test.csv
   dope-hope bop-submit --bop-root bop --weights imported/*.pt --out dopels_hope-test.csv --overwrite
+  dope-hope bop-submit --bop-root bop --weights shelf.pt mustard.onnx --out dopehope-shelf_hope-test.csv
 
 Reads BOP_ROOT/DATASET/SPLIT/<scene_id>/{rgb,depth}/ and scene_camera.json (BOP layout; with
 --bop-root pointing at the dataset folder itself, BOP_ROOT/SPLIT/ works too) and, when present,
 BOP_ROOT/DATASET/test_targets_bop19.json: only the targeted images are processed, each with the
-models of its targeted objects (a model's object: the HOPE catalog's obj_id of its class, or a
-class named obj_NNNNNN). Poses are refined with the depth line search (-LS) on the split's
+models of its targeted objects, decoding only those (a model's objects: the HOPE catalog's
+obj_id of each class, or a class named obj_NNNNNN; a multi-object model covers all of its
+objects with one forward pass; models of one object and of several mix).
+Poses are refined with the depth line search (-LS) on the split's
 depth images unless --no-depth; the line search uses the object's mesh from
 BOP_ROOT/DATASET/models (or --models-dir: obj_NNNNNN.ply, or the other names of
 dope_hope/io/models_dir.py) when found; --icp adds the depth ICP after it (all six DoF,
@@ -32,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dataset", default="hope", help="BOP dataset name (default hope)")
     parser.add_argument("--split", default="test", help="split folder (default test)")
     parser.add_argument("--weights", nargs="+", action="extend", type=Path, required=True, metavar="W",
-                        help="checkpoint(s) / .onnx file(s), one object each")
+                        help="checkpoint(s) / .onnx file(s) of one or more objects each (no object twice)")
     parser.add_argument("--out", type=Path, required=True, metavar="METHOD_DATASET-SPLIT.csv",
                         help="submission file; METHOD without underscores, e.g. dopehope-lite_hope-test.csv")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
@@ -84,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from dope_hope.errors import ConfigError, InputFileError
-    from dope_hope.inference.backends import open_backend
+    from dope_hope.inference.backends import backend_objects, open_backend
     from dope_hope.inference.predictor import DopePredictor, predict_many
     from dope_hope.io.bop import iter_bop_split, list_bop_scenes, read_test_targets
     from dope_hope.io.bop_csv import (
@@ -113,15 +116,20 @@ def run(args: argparse.Namespace) -> int:
     if not models_dir.is_dir():
         models_dir = None  # no DATASET/models: the line search uses each model's cuboid
 
-    predictors: dict[int, object] = {}
+    predictors: dict[int, object] = {}  # obj_id -> the predictor of the model detecting it
+    class_of: dict[int, str] = {}
     for w in args.weights:
         backend = open_backend(w, args.backend, args.device, args.threads)
-        obj_id = obj_id_of(backend.class_name)
-        if obj_id in predictors:
-            raise ConfigError(f"{w}: a second model for obj_id {obj_id} ({backend.class_name})")
-        mesh = find_object_mesh(backend.class_name, models_dir, required=False)
-        predictors[obj_id] = DopePredictor(backend, height=args.height, min_score=args.min_score,
-                                           mesh=mesh, icp=args.icp)
+        names = [o.class_name for o in backend_objects(backend)]
+        ids = [obj_id_of(name) for name in names]
+        for obj_id, name in zip(ids, names):
+            if obj_id in predictors or ids.count(obj_id) > 1:
+                raise ConfigError(f"{w}: a second model for obj_id {obj_id} ({name})")
+        meshes = {name: find_object_mesh(name, models_dir, required=False) for name in names}
+        pred = DopePredictor(backend, height=args.height, min_score=args.min_score, icp=args.icp,
+                             mesh={k: v for k, v in meshes.items() if v is not None})
+        for obj_id, name in zip(ids, names):
+            predictors[obj_id], class_of[obj_id] = pred, name
 
     wanted: dict[tuple[int, int], list[int]] | None = None
     if targets_path is not None:
@@ -156,11 +164,12 @@ def run(args: argparse.Namespace) -> int:
         depth = None
         if not args.no_depth and frame.depth_path is not None:
             depth = read_depth_m(frame.depth_path, frame.depth_scale_m)
-        dets = predict_many([predictors[o] for o in objs], rgb, frame.K, depth=depth,
-                            calibration=args.depth_calibration)
+        models = list({id(predictors[o]): predictors[o] for o in objs}.values())
+        dets = predict_many(models, rgb, frame.K, depth=depth, calibration=args.depth_calibration,
+                            classes={class_of[o] for o in objs})
         elapsed = time.perf_counter() - t0
         seconds += elapsed
-        by_class = {predictors[o].class_name: o for o in objs}
+        by_class = {class_of[o]: o for o in objs}
         estimates += [BopEstimate(bf.scene_id, bf.im_id, by_class[d.class_name], float(d.score), d.R, d.t,
                                   round(elapsed, 4)) for d in dets]
     write_bop_csv(args.out, estimates, overwrite=args.overwrite)

@@ -172,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
 
     from dope_hope.evaluation.models import load_models
     from dope_hope.geometry import cuboid_keypoints, project_points
-    from dope_hope.inference.backends import model_min_score, open_backend
+    from dope_hope.inference.backends import backend_objects, model_min_score, open_backend
     from dope_hope.inference.predictor import DopePredictor
     from dope_hope.io.images import write_rgb
     from dope_hope.io.predictions import write_predictions_jsonl
@@ -182,19 +182,22 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.viz import draw_cuboid, draw_label, montage, overlay_detections
 
     torch_backend = open_backend(weights, "torch", threads=args.threads)  # a bad file stops here
-    if torch_backend.class_name != DEMO_CLASS_NAME:
-        raise ModelFileError(weights, f"a model of {torch_backend.class_name!r}; the demo renders "
+    names = [o.class_name for o in backend_objects(torch_backend)]
+    if DEMO_CLASS_NAME not in names:
+        raise ModelFileError(weights, f"a model of {', '.join(map(repr, names))}; the demo renders "
                                       f"{DEMO_CLASS_NAME!r} (pass a demo model with --weights)")
     mesh_path = write_demo_object(out / "mesh")
     mesh = demo_object_mesh()
-    torch_pred = DopePredictor(torch_backend, mesh=mesh)
+    # The scenes hold the demo object only: a model of several objects reports that one.
+    torch_pred = DopePredictor(torch_backend, mesh=mesh, classes=[DEMO_CLASS_NAME])
     _, input_hw = torch_pred.working_size((IMAGE_SIZE[1], IMAGE_SIZE[0]))
     onnx_pred = None
     onnx_note = "ONNX off (--no-onnx)"
     if not args.no_onnx:
         t0 = time.perf_counter()
         onnx_path, exported = ensure_onnx(weights, out, input_hw)
-        onnx_pred = DopePredictor(open_backend(onnx_path, "onnx", threads=args.threads), mesh=mesh)
+        onnx_pred = DopePredictor(open_backend(onnx_path, "onnx", threads=args.threads), mesh=mesh,
+                                  classes=[DEMO_CLASS_NAME])
         onnx_note = (f"ONNX {onnx_path} (" + (f"exported in {time.perf_counter() - t0:.1f} s"
                                               if exported else "cached") + ")")
     seed = args.seed if args.seed is not None else int(np.random.SeedSequence().entropy % (2 ** 31))

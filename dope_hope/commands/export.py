@@ -6,6 +6,7 @@ Examples:
   dope-hope export --weights best.pt --out ketchup_isaac.onnx --layout isaac-ros
   dope-hope export --weights best.pt --out ketchup_isaac.onnx --layout isaac-ros --isaac-ros-version 3.1
   dope-hope export --weights best.pt --out ketchup_int8.onnx --int8 --calibration synth/val
+  dope-hope export --weights shelf.pt --out ketchup_isaac.onnx --layout isaac-ros --object Ketchup
 
 The .onnx file is self-contained: `dope-hope infer IMAGE --weights ketchup.onnx` needs no
 checkpoint (object class, cuboid size, keypoint order, normalization and map stride are in
@@ -18,6 +19,9 @@ average-pooled to stride 8 in the graph. The command prints every launch argumen
 dope_config.yaml `dimensions` entry (cm, mesh frame) to use.
 --int8 writes a statically quantized model (QDQ, per-channel) calibrated on --calibration
 images and prints its deviation from fp32.
+A multi-object model exports to one file holding every object (native), or with --object
+NAME to a file of that object's channels only; Isaac ROS DOPE runs one object per model, so
+--layout isaac-ros of a multi-object model needs --object.
 """
 from __future__ import annotations
 
@@ -45,6 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--isaac-normalization", choices=("half", "imagenet"),
                         help="isaac-ros: the image encoder's mean/std (half = 0.5/0.5, imagenet) "
                              "(default: the release's launch default: half up to 3.1, imagenet since 3.2)")
+    parser.add_argument("--object", metavar="NAME",
+                        help="export this object's channels only (a multi-object model; needed for "
+                             "--layout isaac-ros, which holds one object)")
     parser.add_argument("--int8", action="store_true", help="static INT8 quantization (needs --calibration)")
     parser.add_argument("--calibration", type=Path, metavar="DIR", help="folder of calibration images")
     parser.add_argument("--calibration-images", type=positive_int, default=32, metavar="N",
@@ -68,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
                             isaac_encoder=args.isaac_normalization,
                             calibration_images=args.calibration_images,
                             calibration_method=args.calibration_method,
-                            isaac_ros_version=args.isaac_ros_version)
+                            isaac_ros_version=args.isaac_ros_version, object_name=args.object)
     info = res.info
     size = "dynamic" if info.fixed_input_hw is None else f"{info.fixed_input_hw[0]}x{info.fixed_input_hw[1]}"
     isaac = isaac_ros_deployment(info, res.path) if info.layout == "isaac-ros" else None
@@ -82,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
             record["isaac_ros"] = isaac
         print(json.dumps(record))
         return 0
-    print(f"wrote {res.path} ({res.size_bytes / 1e6:.1f} MB, {res.seconds:.1f} s): {info.class_name}, "
+    print(f"wrote {res.path} ({res.size_bytes / 1e6:.1f} MB, {res.seconds:.1f} s): {', '.join(info.class_names)}, "
           f"{info.arch} head {info.head} (stride {info.stride}), {info.layout} layout, {info.precision}, "
           f"opset {info.opset}, input {size}")
     print(f"  fp32 graph vs PyTorch on a random input: max |d| = {res.verify_max_abs:.2e}")

@@ -7,13 +7,18 @@ Examples:
   dope-hope infer clip.mp4 --camera camera_info.yaml --out res/clip
   dope-hope infer 0 --camera camera_info.yaml --show            (camera 0; Ctrl-C or q stops)
   dope-hope infer realsense --icp --mesh meshes/                (pip install "dope-hope[realsense]")
+  dope-hope infer scene/ --weights shelf.pt --classes Ketchup Mustard --camera K.json
 
 Output: one JSON line per detection on stdout, in the predictions format that
 `dope-hope evaluate` reads (image, class, score, R, t in metres, ls_applied, plus
 quaternion_xyzw, keypoints_2d, bbox_2d = [u_min, v_min, u_max, v_max] pixels of the projected
 object, time, ...); in --out: OUT/predictions.jsonl (all detections, written atomically at
 the end), an overlay IMAGE.overlay.png per image (projected cuboids, axes, class and score)
-and with --belief IMAGE.belief.CLASS.png (belief maps of each model).
+and with --belief IMAGE.belief.CLASS.png (belief maps of each object).
+
+A model of several objects (one belief/affinity group each) returns all of them from one
+forward pass; --classes A B keeps a subset (objects of no model listed: exit 2; a model with
+none of them is not run).
 
 Inputs: image files, a folder (its images, not recursive; *.depth.png, *_depth.png, *.seg.png
 and similar are skipped) or a quoted glob ('**' recurses). The "image" of each record is its
@@ -102,9 +107,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="image file(s), a folder of images, a quoted glob, a video file, a camera "
                              "index (0) or realsense[:SERIAL]")
     parser.add_argument("--weights", action="append", type=Path, metavar="W",
-                        help="checkpoint (.pt/.pth) or exported .onnx of one object; repeat for several "
-                             f"objects (default: the demo model dope_hope/assets/demo_lite.pt when it "
+                        help="checkpoint (.pt/.pth) or exported .onnx of one or more objects; repeat "
+                             f"for several models (default: the demo model dope_hope/assets/demo_lite.pt when it "
                              f"exists; {demo} in this installation)")
+    parser.add_argument("--classes", nargs="+", metavar="CLASS",
+                        help="report only these objects of the model(s) (default: all)")
     cam = parser.add_argument_group("camera (default: the image's sibling annotation)")
     cam.add_argument("--camera", type=Path, metavar="K.json|YAML",
                      help="camera intrinsics file, or a ROS camera_info YAML (formats above)")
@@ -136,7 +143,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     stream.add_argument("--capture-fps", type=positive_float, metavar="FPS",
                         help="frame rate asked of a camera (RealSense default 30)")
     parser.add_argument("--mesh", action="append", type=Path, metavar="PATH",
-                        help="object mesh per --weights (same order), or one models folder holding "
+                        help="object mesh per --weights (same order; one-object models), or one models "
+                             "folder (any models) holding "
                              "obj_NNNNNN.ply / CLASS/textured.obj / CLASS.obj / CLASS.ply: its box and "
                              "surface replace the cuboid (default: the checkpoint's cuboid)")
     parser.add_argument("--mesh-units", choices=("m", "cm", "mm"),
@@ -145,7 +153,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="folder for overlays and predictions.jsonl (default ./infer_out)")
     parser.add_argument("--no-overlay", action="store_true", help="do not write overlay images / video")
     parser.add_argument("--belief", action="store_true",
-                        help="also write a montage of each model's belief maps (images only)")
+                        help="also write a montage of each object's belief maps (images only)")
     parser.add_argument("--backend", choices=("auto", "torch", "onnx"), default="auto",
                         help="auto: onnxruntime for .onnx files, PyTorch otherwise")
     parser.add_argument("--height", type=working_side, metavar="H",
@@ -264,9 +272,24 @@ def _global_camera(args: argparse.Namespace):
     return None
 
 
+def _kept_classes(classes: list[str] | None, models: list[tuple[Path, list[str]]]) -> list[list[str] | None]:
+    """Per model, the --classes it detects (None: all its objects; []: none, not run).
+    ConfigError naming --classes and the models' objects for a class no model detects."""
+    from dope_hope.errors import ConfigError
+
+    if not classes:
+        return [None] * len(models)
+    known = [n for _, names in models for n in names]
+    for c in classes:
+        if c.lower() not in {n.lower() for n in known}:
+            raise ConfigError(f"--classes: {c!r} is not an object of the model(s) (known: {', '.join(known)})")
+    wanted = {c.lower() for c in classes}
+    return [[n for n in names if n.lower() in wanted] for _, names in models]
+
+
 def build_predictors(args: argparse.Namespace, weights: list[Path]):
     from dope_hope.errors import ConfigError
-    from dope_hope.inference.backends import model_min_score, open_backend
+    from dope_hope.inference.backends import backend_objects, model_min_score, open_backend
     from dope_hope.inference.predictor import DopePredictor
     from dope_hope.io.models_dir import find_object_mesh
 
@@ -277,21 +300,29 @@ def build_predictors(args: argparse.Namespace, weights: list[Path]):
     elif meshes and len(meshes) != len(weights):
         raise ConfigError(f"give one --mesh per --weights ({len(weights)}), or one mesh folder; "
                           f"got {len(meshes)} meshes")
+    backends = [open_backend(w, args.backend, args.device, args.threads) for w in weights]
+    models = [(w, [o.class_name for o in backend_objects(b)]) for w, b in zip(weights, backends)]
+    kept = _kept_classes(getattr(args, "classes", None), models)
     predictors = []
-    for i, w in enumerate(weights):
-        backend = open_backend(w, args.backend, args.device, args.threads)
+    for i, (backend, (w, names), keep) in enumerate(zip(backends, models, kept)):
+        if keep == []:
+            continue  # none of --classes: this model is not run
         if hasattr(backend, "describe"):  # ONNX: fp32 or INT8, and what INT8 costs
             print(f"dope-hope infer: model {backend.describe()}", file=sys.stderr)
+        reported = names if keep is None else keep
         mesh = None
         if mesh_dir is not None:
-            mesh = find_object_mesh(backend.class_name, mesh_dir)
+            mesh = {name: find_object_mesh(name, mesh_dir) for name in reported}
         elif meshes:
+            if len(reported) > 1:
+                raise ConfigError(f"--mesh {meshes[i]}: {w} detects {len(reported)} objects "
+                                  f"({', '.join(reported)}); give a models folder as --mesh")
             mesh = meshes[i]
         given = {} if args.min_score is None else {"min_score": args.min_score}
         predictors.append(DopePredictor(backend, height=args.height, mesh=mesh, mesh_units=args.mesh_units,
-                                        pose_search=args.pose_search, icp=args.icp, **given))
+                                        pose_search=args.pose_search, icp=args.icp, classes=keep, **given))
         if args.min_score is None and model_min_score(backend) is not None:
-            print(f"dope-hope infer: {backend.class_name}: min score {predictors[-1].options.min_score:g}, "
+            print(f"dope-hope infer: {', '.join(reported)}: min score {predictors[-1].options.min_score:g}, "
                   "the model's own (recorded with its weights; --min-score overrides)", file=sys.stderr)
     return predictors
 
@@ -429,7 +460,9 @@ def _infer_image(args: argparse.Namespace, predictors: list, path: Path, name: s
 
     def keep_maps(p, belief, affinity, net_in):
         if args.belief:
-            maps.append((p.class_name, net_in.maps_on_image(belief, p.stride), net_in))
+            for obj in p.objects:
+                maps.append((obj.class_name, net_in.maps_on_image(obj.channels(belief, affinity)[0], p.stride),
+                             net_in))
 
     t0 = time.perf_counter()
     dets = predict_many(predictors, rgb, camera.K, depth=depth, calibration=args.depth_calibration,

@@ -90,12 +90,24 @@ def _peak_distances(ref_belief: np.ndarray, test_belief: np.ndarray, stride: int
     return len(pr.channel), (np.concatenate(out) if out else np.zeros(0))
 
 
+def _object_groups(maps: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """One (belief (9, h, w), affinity (16, h, w)) pair per image and object group."""
+    out = []
+    for belief, affinity in maps:
+        b, a = np.asarray(belief), np.asarray(affinity)
+        b, a = b.reshape(b.shape[-3:]), a.reshape(a.shape[-3:])
+        for k in range(b.shape[0] // 9):
+            out.append((b[9 * k:9 * k + 9], a[16 * k:16 * k + 16]))
+    return out
+
+
 def compare_maps(reference: Sequence[tuple[np.ndarray, np.ndarray]],
                  test: Sequence[tuple[np.ndarray, np.ndarray]], stride: int,
                  match_px: float | None = None, **decode_options: Any) -> MapDeviation:
     """Map and keypoint deviation of ``test`` from ``reference`` (one (belief, affinity) per image).
 
-    Maps: (9, h, w) and (16, h, w) per image (a leading batch of 1 is dropped). Keypoints:
+    Maps: (9K, h, w) and (16K, h, w) per image for K objects (a leading batch of 1 is dropped;
+    each object's channel group is compared as if it were an image of its own). Keypoints:
     both are decoded with :func:`dope_hope.maps.decode.decode_maps` (``decode_options``),
     instances are matched one-to-one by centroid (within ``match_px`` image px, default 4
     map cells), and the distance of every keypoint found in both is measured, image px.
@@ -109,6 +121,8 @@ def compare_maps(reference: Sequence[tuple[np.ndarray, np.ndarray]],
 
     if len(reference) != len(test) or not reference:
         raise ValueError("compare_maps needs the same non-zero number of reference and test images")
+    images = len(reference)
+    reference, test = _object_groups(reference), _object_groups(test)
     match_px = 4.0 * stride if match_px is None else float(match_px)
     max_abs = belief_max = 0.0
     abs_sum, count = 0.0, 0
@@ -139,7 +153,7 @@ def compare_maps(reference: Sequence[tuple[np.ndarray, np.ndarray]],
     d = np.concatenate(dists) if dists else np.zeros(0)
     p = np.concatenate(peak_d)
     return MapDeviation(
-        images=len(reference), max_abs=max_abs, mean_abs=abs_sum / max(count, 1), belief_max_abs=belief_max,
+        images=images, max_abs=max_abs, mean_abs=abs_sum / max(count, 1), belief_max_abs=belief_max,
         instances_ref=n_ref, instances_test=n_test, instances_matched=n_match,
         keypoints_compared=int(d.size), keypoints_lost=lost, keypoints_added=added,
         median_px=float(np.median(d)) if d.size else float("nan"),

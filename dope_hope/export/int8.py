@@ -21,9 +21,10 @@ import numpy as np
 from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.export.compare import MapDeviation, compare_maps
 from dope_hope.export.to_onnx import INT8_MIN_OPSET, _doc, _set_metadata
-from dope_hope.inference.onnx_backend import OnnxBackend, OnnxModelInfo
 from dope_hope.io.atomic import atomic_path
 from dope_hope.io.images import IMAGE_SUFFIXES, image_files
+from dope_hope.model.onnx_contract import OnnxModelInfo
+from dope_hope.model.onnx_graph import OnnxGraph
 
 CALIBRATION_METHODS = ("minmax", "entropy", "percentile")
 
@@ -45,11 +46,11 @@ class ImageFolderReader:
 
     Each image is read as RGB, fitted, padded and normalized by :mod:`dope_hope.preprocess`
     for ``backend`` (the fp32 model being quantized: its sizes, frame and normalization) and
-    converted to the graph input's normalization by :meth:`OnnxBackend.feeds` (isaac-ros: the
+    converted to the graph input's normalization by :meth:`OnnxGraph.feeds` (isaac-ros: the
     encoder's).
     """
 
-    def __init__(self, backend: OnnxBackend, files: Sequence[Path]):
+    def __init__(self, backend: OnnxGraph, files: Sequence[Path]):
         self.backend = backend
         self.files = list(files)
         self._iter = None
@@ -164,7 +165,7 @@ def quantize_int8(fp32_path: str | os.PathLike, out: str | os.PathLike, calibrat
 
     if method not in CALIBRATION_METHODS:
         raise ConfigError(f"calibration method must be one of {', '.join(CALIBRATION_METHODS)}, got {method!r}")
-    fp32 = OnnxBackend(fp32_path, threads=threads, providers=["CPUExecutionProvider"])
+    fp32 = OnnxGraph(fp32_path, threads=threads, providers=["CPUExecutionProvider"])
     if fp32.info.precision != "fp32":
         raise ConfigError(f"{fp32_path}: already {fp32.info.precision}; quantize the fp32 export")
     if fp32.info.opset < INT8_MIN_OPSET:
@@ -196,7 +197,7 @@ def quantize_int8(fp32_path: str | os.PathLike, out: str | os.PathLike, calibrat
         onnx.checker.check_model(proto)
         onnx.save(proto, str(tmp))
         del proto
-        int8 = OnnxBackend(tmp, threads=threads, providers=["CPUExecutionProvider"])
+        int8 = OnnxGraph(tmp, threads=threads, providers=["CPUExecutionProvider"])
         ref, test = [], []
         for path in files[:max(1, eval_images)]:
             batch = reader.prepare(path)

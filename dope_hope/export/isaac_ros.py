@@ -13,7 +13,7 @@ and ``isaac_ros_dope/config/dope_config.yaml``. No 3.1 source was at hand: 3.1 i
   and the 2026 ROS-node decoder) ``right = -x/2``, ``top = +y/2``: the same order turned 180
   degrees about z. Belief channel k is vertex k, channels ``9 + 2k, 10 + 2k`` its affinity
   field, channel 8 the centroid. :func:`channel_order` permutes the exported output
-  (:func:`dope_hope.inference.onnx_backend.output_order`) so that the decoder's PnP returns the
+  (:func:`dope_hope.model.onnx_contract.output_order`) so that the decoder's PnP returns the
   **mesh-frame** pose (for legacy-frame models too) when the ``dimensions`` are the mesh-frame
   extents in cm (:func:`dope_config_entry`).
 - **Decoder arithmetic** (:func:`decode`, a transcription used by tests and benches): blur

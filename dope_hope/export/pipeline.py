@@ -9,7 +9,8 @@ from pathlib import Path
 from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.export.int8 import list_images, quantize_int8
 from dope_hope.export.isaac_ros import ISAAC_ROS_CURRENT, isaac_ros_release
-from dope_hope.export.to_onnx import OPSET, ExportResult, export_model
+from dope_hope.export.to_onnx import OPSET, ExportResult, export_model, select_object
+from dope_hope.model.info import ModelInfo
 
 
 def export_checkpoint(weights: str | os.PathLike, out: str | os.PathLike, height: int | None = None,
@@ -17,8 +18,11 @@ def export_checkpoint(weights: str | os.PathLike, out: str | os.PathLike, height
                       int8: bool = False, calibration: str | os.PathLike | None = None,
                       opset: int = OPSET, isaac_encoder: str | None = None, calibration_images: int = 32,
                       calibration_method: str = "minmax",
-                      isaac_ros_version: str = ISAAC_ROS_CURRENT) -> ExportResult:
-    """Load a checkpoint and export it (see :func:`export_model`, :func:`quantize_int8`).
+                      isaac_ros_version: str = ISAAC_ROS_CURRENT,
+                      object_name: str | None = None) -> ExportResult:
+    """Load a checkpoint and export it (see :func:`export_model`, :func:`quantize_int8`):
+    every object of the model in one file, or ``object_name``'s channels only (the isaac-ros
+    layout of a multi-object model needs one).
 
     With ``int8`` the fp32 graph goes to a temporary file and ``out`` receives the INT8 model.
     """
@@ -43,16 +47,17 @@ def export_checkpoint(weights: str | os.PathLike, out: str | os.PathLike, height
     if layout == "isaac-ros":
         isaac_ros_release(isaac_ros_version)  # a bad version fails before the model loads
     model, ckpt = load_model(weights)
+    select_object(ModelInfo.from_checkpoint(ckpt, weights), layout, object_name)  # before any work
     hw = None if height is None else (height, width)
     if not int8:
         info, verify = export_model(model, ckpt, out, layout, hw, dynamic, opset, isaac_encoder, weights.name,
-                                    isaac_ros_version=isaac_ros_version)
+                                    isaac_ros_version=isaac_ros_version, object_name=object_name)
         deviation = None
     else:
         with tempfile.TemporaryDirectory(prefix="dope-hope-export-") as tmpdir:
             fp32_path = Path(tmpdir) / f"{out.stem}.fp32.onnx"
             _, verify = export_model(model, ckpt, fp32_path, layout, hw, dynamic, opset, isaac_encoder,
-                                     weights.name, isaac_ros_version=isaac_ros_version)
+                                     weights.name, isaac_ros_version=isaac_ros_version, object_name=object_name)
             del model
             info, deviation = quantize_int8(fp32_path, out, calibration, calibration_images,
                                             calibration_method)

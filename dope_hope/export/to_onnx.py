@@ -18,7 +18,7 @@ with the checkpoint's mean/std (ImageNet); outputs ``belief`` (N, 9, h, w) and `
 (N, 16, h, w) of the LAST stage only (:class:`LastStageMaps`). The batch axis is always
 dynamic; H and W are fixed (``input_hw``, default the training input size) or dynamic
 (``dynamic=True``). The file's ``metadata_props`` carry what inference needs
-(:class:`dope_hope.inference.onnx_backend.OnnxModelInfo`): ``dope_hope.format``, ``format_version``,
+(:class:`dope_hope.model.onnx_contract.OnnxModelInfo`): ``dope_hope.format``, ``format_version``,
 ``class_name``, ``size_m`` (mesh frame, m), ``frame``, ``keypoint_order``, ``mean``/``std``,
 ``input_mean``/``input_std``, ``stride``, ``head``, ``arch``, ``layout``, ``input_hw``,
 ``fixed_input_hw``, ``opset``, ``precision``, ``version``, ``exporter``, ``source``, plus
@@ -85,15 +85,15 @@ from dope_hope.export.isaac_ros import (
     channel_order,
     isaac_ros_release,
 )
-from dope_hope.inference.onnx_backend import (
+from dope_hope.io.atomic import atomic_path
+from dope_hope.model.info import ModelInfo, group_channels
+from dope_hope.model.onnx_contract import (
     CHANNEL_ORDER_KEY,
     LAYOUT_NAMES,
     LAYOUTS,
     OnnxModelInfo,
     output_order,
 )
-from dope_hope.io.atomic import atomic_path
-from dope_hope.model.info import ModelInfo
 
 #: Default ONNX opset and the range the TorchScript exporter handles here.
 OPSET = 17
@@ -124,14 +124,19 @@ class ExportError(DopeHopeError):
 
 # ----------------------------------------------------------------------------- wrappers
 class LastStageMaps(nn.Module):
-    """(N, 3, H, W) -> (belief (N, 9, h, w), affinity (N, 16, h, w)) of the last stage."""
+    """(N, 3, H, W) -> (belief (N, 9K, h, w), affinity (N, 16K, h, w)) of the last stage, all
+    K objects, or only object ``group`` (9 and 16 channels) when given."""
 
-    def __init__(self, model: nn.Module):
+    def __init__(self, model: nn.Module, group: int | None = None):
         super().__init__()
         self.model = model
+        self.group = group
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         belief, affinity = self.model(x)[-1]
+        if self.group is not None:
+            k = self.group
+            belief, affinity = belief[:, 9 * k:9 * k + 9], affinity[:, 16 * k:16 * k + 16]
         return belief, affinity
 
 
@@ -139,10 +144,11 @@ class IsaacRosMaps(nn.Module):
     """Isaac ROS DOPE graph: encoder-normalized (1, 3, H, W) -> (1, 25, H/8, W/8).
 
     ``x_model = x * (enc_std / std) + (enc_mean - mean) / std`` (fixed per-channel affine op),
-    then the network; its last stage's cat(belief (9), affinity (16)) is average-pooled by
+    then the network; its last stage's cat(belief (9K), affinity (16K)) is average-pooled by
     ``pool`` (stride-4 maps -> stride 8; 1 = none) and its channels gathered in ``order``
-    ((25,) int, :func:`dope_hope.inference.onnx_backend.output_order`; None = as the model has
-    them).
+    ((25,) int indices into that concatenation: one object's channels
+    (:func:`dope_hope.model.info.group_channels`) in the order of
+    :func:`dope_hope.model.onnx_contract.output_order`; None = as the model has them, one object).
     """
 
     def __init__(self, model: nn.Module, mean: Sequence[float], std: Sequence[float],
@@ -225,21 +231,41 @@ def _set_metadata(model_proto, info: OnnxModelInfo, doc: str) -> None:
 def _doc(info: OnnxModelInfo) -> str:
     names = LAYOUT_NAMES[info.layout]
     size = "dynamic H, W" if info.fixed_input_hw is None else f"{info.fixed_input_hw[0]}x{info.fixed_input_hw[1]}"
-    return (f"dope-hope {info.precision} DOPE belief/affinity network for {info.class_name} "
+    return (f"dope-hope {info.precision} DOPE belief/affinity network for {', '.join(info.class_names)} "
             f"({info.arch}, head {info.head}, stride {info.stride}, {info.layout} layout: "
             f"{', '.join(names[0])} -> {', '.join(names[1])}, input {size}, RGB normalized "
             f"with mean {list(info.input_mean)} std {list(info.input_std)}). Metadata keys dope_hope.*.")
 
 
+def select_object(meta: ModelInfo, layout: str, object_name: str | None) -> tuple[ModelInfo, int | None]:
+    """(the exported file's model info, the channel group to export or None for all).
+
+    ConfigError (naming ``--object``) for an unknown object, and for a multi-object model in the
+    isaac-ros layout without one (Isaac ROS DOPE runs one object per model)."""
+    names = ", ".join(meta.class_names)
+    if object_name is None:
+        if layout == "isaac-ros" and meta.num_objects > 1:
+            raise ConfigError(f"--object: the isaac-ros layout holds one object (Isaac ROS DOPE runs one "
+                              f"per model); name one of this model's objects: {names}")
+        return meta, None
+    try:
+        k = meta.object_index(object_name)
+    except KeyError:
+        raise ConfigError(f"--object: {object_name!r} is not an object of this model (its objects: {names})") from None
+    return meta.select(object_name), k
+
+
 def model_info(checkpoint: dict[str, Any], model: nn.Module, layout: str,
                fixed_input_hw: tuple[int, int] | None, opset: int, isaac_encoder: str | None = None,
-               source: str = "", isaac_ros_version: str = ISAAC_ROS_CURRENT) -> OnnxModelInfo:
-    """The :class:`OnnxModelInfo` of a checkpoint exported in ``layout``.
+               source: str = "", isaac_ros_version: str = ISAAC_ROS_CURRENT,
+               object_name: str | None = None) -> OnnxModelInfo:
+    """The :class:`OnnxModelInfo` of a checkpoint exported in ``layout`` (all its objects, or
+    ``object_name`` only: :func:`select_object`).
 
     isaac-ros: ``stride`` is the graph output's (8, after any resampling); ``isaac_encoder``
     None = the release's launch default.
     """
-    meta = ModelInfo.from_checkpoint(checkpoint, source or "<checkpoint>")
+    meta, _ = select_object(ModelInfo.from_checkpoint(checkpoint, source or "<checkpoint>"), layout, object_name)
     mean, std = meta.mean, meta.std
     stride = int(model.stride)
     extra = {
@@ -270,14 +296,15 @@ def model_info(checkpoint: dict[str, Any], model: nn.Module, layout: str,
         layout=layout, input_hw=meta.input_hw, fixed_input_hw=fixed_input_hw, opset=int(opset),
         precision="fp32", version=__version__,
         exporter=f"torch.onnx.export(dynamo=False) TorchScript exporter, torch {torch.__version__}",
-        source=source, extra=extra, min_score=meta.min_score)
+        source=source, extra=extra, min_score=meta.min_score, objects=meta.objects)
 
 
 def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.PathLike,
                  layout: str = "native", input_hw: Sequence[int] | None = None,
                  dynamic: bool = False, opset: int = OPSET, isaac_encoder: str | None = None,
                  source: str = "", seed: int = 0,
-                 isaac_ros_version: str = ISAAC_ROS_CURRENT) -> tuple[OnnxModelInfo, float]:
+                 isaac_ros_version: str = ISAAC_ROS_CURRENT,
+                 object_name: str | None = None) -> tuple[OnnxModelInfo, float]:
     """Export ``model`` (fp32) to ``out`` atomically; returns (metadata, verify max |d|).
 
     Args:
@@ -292,6 +319,8 @@ def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.Pat
             (None: the launch default of ``isaac_ros_version``).
         isaac_ros_version: the Isaac ROS release ("3.1", "4.0", ...) whose decoder the output
             channels are ordered for (:mod:`dope_hope.export.isaac_ros`).
+        object_name: export only this object's channel group (required for a multi-object
+            model in the isaac-ros layout); None: every object of the model.
     Raises ConfigError for impossible options, ExportError if the graph does not reproduce
     the model.
     """
@@ -317,19 +346,23 @@ def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.Pat
         input_hw = ISAAC_ROS_INPUT_HW if layout == "isaac-ros" else (train_hw or (400, 400))
     h, w = _check_hw(input_hw, "export input size")
     fixed = None if dynamic else (h, w)
-    info = model_info(checkpoint, model, layout, fixed, int(opset), isaac_encoder, source, isaac_ros_version)
+    full = ModelInfo.from_checkpoint(checkpoint, source or "<checkpoint>")
+    _, group = select_object(full, layout, object_name)
+    info = model_info(checkpoint, model, layout, fixed, int(opset), isaac_encoder, source, isaac_ros_version,
+                      object_name)
 
     was_training = model.training
     model.eval()  # the wrapper must be in eval mode too: BatchNorm with running statistics
     try:
         if layout == "native":
-            wrapper: nn.Module = LastStageMaps(model).eval()
+            wrapper: nn.Module = LastStageMaps(model, group).eval()
             dyn = {"image": {0: "N"}, "belief": {0: "N"}, "affinity": {0: "N"}}
             if dynamic:
                 dyn = {"image": {0: "N", 2: "H", 3: "W"}, "belief": {0: "N", 2: "h", 3: "w"},
                        "affinity": {0: "N", 2: "h", 3: "w"}}
         else:
             order = output_order(json.loads(info.extra[CHANNEL_ORDER_KEY]))
+            order = group_channels(group or 0, full.num_objects)[order]
             wrapper = IsaacRosMaps(model, info.mean, info.std, info.input_mean, info.input_std,
                                    order=order.tolist(), pool=ISAAC_ROS_STRIDE // stride).eval()
             dyn = None

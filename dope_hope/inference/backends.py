@@ -2,7 +2,8 @@
 
 :class:`MapBackend` is the protocol the predictor uses; :class:`TorchBackend` runs a
 checkpoint with PyTorch; :func:`open_backend` picks torch or onnxruntime
-(:mod:`dope_hope.inference.onnx_backend`) from the file.
+(:mod:`dope_hope.inference.onnx_backend`) from the file. A backend's maps hold one
+belief/affinity group per object of the model (:func:`backend_objects`).
 """
 from __future__ import annotations
 
@@ -12,8 +13,9 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from dope_hope.errors import ConfigError, DopeHopeError, ModelFileError
-from dope_hope.model.info import ModelInfo
+from dope_hope.errors import ConfigError, ModelFileError
+from dope_hope.model.info import ModelInfo, ObjectInfo
+from dope_hope.model.onnx_graph import require_model_file
 
 BACKENDS = ("auto", "torch", "onnx")
 
@@ -25,8 +27,8 @@ class MapBackend(Protocol):
 
     Attributes (metadata recorded with the weights):
         stride: image pixels per map cell (8 for the 50-px head, 4, or 1 for the 400-px head).
-        class_name: the object the model detects.
-        size_m: (3,) cuboid extents in the MESH frame, metres.
+        class_name: the object the model detects (the first of a multi-object model).
+        size_m: (3,) its cuboid extents in the MESH frame, metres.
         keypoint_order: "dope-current" or "dope-legacy".
         frame: "mesh" or "legacy" (the object frame of the network's keypoints).
         mean, std: 3 floats each, normalization of RGB in [0, 1].
@@ -35,7 +37,8 @@ class MapBackend(Protocol):
     A backend whose network only accepts one input size may also set ``fixed_input_hw``
     (H, W); the predictor then fits and pads every image to it. A backend with ``info`` (a
     :class:`~dope_hope.model.info.ModelInfo`) offers the model's own ``min_score``
-    (:func:`model_min_score`).
+    (:func:`model_min_score`) and its objects (:func:`backend_objects`; without ``info``: the
+    one object ``class_name``).
     """
 
     stride: int
@@ -48,7 +51,8 @@ class MapBackend(Protocol):
     input_hw: tuple[int, int] | None
 
     def run(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(N, 3, H, W) float32 normalized -> belief (N, 9, h, w), affinity (N, 16, h, w)."""
+        """(N, 3, H, W) float32 normalized -> belief (N, 9K, h, w), affinity (N, 16K, h, w)
+        for K objects."""
         ...
 
 
@@ -70,6 +74,7 @@ class TorchBackend:
         i = self.info
         self.class_name: str = i.class_name
         self.size_m: np.ndarray = np.asarray(i.size_m, dtype=np.float64)
+        self.objects: tuple[ObjectInfo, ...] = i.objects
         self.keypoint_order: str = i.keypoint_order
         self.frame: str = i.frame
         self.mean: tuple[float, float, float] = i.mean
@@ -88,7 +93,7 @@ class TorchBackend:
         return cls(model, ckpt, device=device, source=path)
 
     def run(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(N, 3, H, W) float32 normalized -> belief (N, 9, h, w), affinity (N, 16, h, w)."""
+        """(N, 3, H, W) float32 normalized -> belief (N, 9K, h, w), affinity (N, 16K, h, w)."""
         import torch
 
         x = torch.from_numpy(np.ascontiguousarray(batch, dtype=np.float32)).to(self.device)
@@ -104,15 +109,15 @@ def model_min_score(backend: MapBackend) -> float | None:
     return None if info is None else info.min_score
 
 
-def require_model_file(path: Path, what: str = "weights file") -> str:
-    """ModelFileError unless ``path`` is a regular file; returns its io.paths.weights_format."""
-    from dope_hope.io.paths import require_file, weights_format
-
-    try:
-        require_file(path, what)
-    except DopeHopeError as exc:
-        raise ModelFileError(path, exc.problem) from None
-    return weights_format(path)
+def backend_objects(backend: MapBackend) -> tuple[ObjectInfo, ...]:
+    """The objects a backend's maps hold, in channel-group order: ``info.objects`` when the
+    backend has a :class:`~dope_hope.model.info.ModelInfo`, else its one ``class_name`` /
+    ``size_m`` (no symmetries)."""
+    info = getattr(backend, "info", None)
+    if info is not None and getattr(info, "objects", None):
+        return tuple(info.objects)
+    size = tuple(float(v) for v in np.asarray(backend.size_m, dtype=np.float64).reshape(3))
+    return (ObjectInfo(str(backend.class_name), size),)
 
 
 def open_backend(weights: str | os.PathLike, backend: str = "auto", device: str = "cpu",

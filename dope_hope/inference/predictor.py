@@ -1,6 +1,7 @@
-"""DopePredictor: an image (+ K, optional depth) -> mesh-frame 6-DoF detections of one object.
+"""DopePredictor: an image (+ K, optional depth) -> mesh-frame 6-DoF detections of a model's objects.
 
-One predictor owns one network (one object class per model, as DOPE); several predictors can
+One predictor owns one network, of one object (as DOPE) or of several (a belief/affinity group
+per object, all from one forward pass; ``classes=`` keeps a subset); several predictors can
 run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.predict`:
 
 1. **Image** (:mod:`~dope_hope.preprocess`): layout, working size and letterbox.
@@ -10,7 +11,9 @@ run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.pr
    (``fixed_input_hw``) gets the image fitted inside and padded up to it.
 2. **Maps** from the backend (:class:`~dope_hope.inference.backends.MapBackend`, last stage),
    normalized with the model's recorded mean/std.
-3. **Decode and PnP** in network-image pixels with ``K_net``, so the pixel thresholds mean
+3. **Decode and PnP**, object by object (its own channel group, cuboid, mesh; a group whose
+   belief maps reach the decode threshold nowhere is skipped before any decoding, so absent
+   objects cost one max each) in network-image pixels with ``K_net``, so the pixel thresholds mean
    the same whatever the original resolution. ``pose_search="hypotheses"`` (default): each
    centroid keeps every corner peak whose affinity points at it
    (:func:`dope_hope.maps.decode.corner_candidates`) and
@@ -20,7 +23,7 @@ run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.pr
    peaks give one detection, the higher-scoring.
    ``pose_search="groups"``: DOPE's decoding, one corner per type and centroid
    (:func:`dope_hope.maps.decode.decode_maps`), then :func:`dope_hope.inference.pnp.solve_pnp`.
-   The cuboid is the model's: the checkpoint's size (mesh frame) or, with ``mesh=``, the
+   The cuboid is the object's: the model's size (mesh frame) or, with ``mesh=``, the
    mesh's own bounding box (size and centre; a size differing from the checkpoint's by more
    than 25 % is refused as a unit mistake). **Legacy frame** (official HOPE weights): PnP runs
    on the legacy cuboid and the rotation is converted with
@@ -42,18 +45,16 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
-from dope_hope.errors import ConfigError, ModelFileError, UnknownObjectError
+from dope_hope.errors import ConfigError, ModelFileError
 from dope_hope.geometry import (
     LEGACY_KEYPOINT_ORDER,
-    LEGACY_TO_MESH,
     NUM_KEYPOINTS,
-    cuboid_keypoints,
     legacy_keypoints_to_current,
     legacy_rotation_to_mesh,
     project_points,
@@ -61,11 +62,13 @@ from dope_hope.geometry import (
     projected_bbox,
     projected_bboxes,
 )
-from dope_hope.inference.backends import MapBackend, model_min_score, open_backend
-from dope_hope.inference.options import InferenceOptions
+from dope_hope.inference.backends import MapBackend, backend_objects, model_min_score, open_backend
 from dope_hope.inference.detection import Detection
+from dope_hope.inference.object_geometry import ObjectGeometry
+from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_instances
-from dope_hope.maps.decode import corner_candidates, decode_maps
+from dope_hope.maps.decode import DEFAULT_THRESHOLD, corner_candidates, decode_maps
+from dope_hope.model.info import ObjectInfo
 from dope_hope.preprocess import (
     NetworkInput,
     check_intrinsics,
@@ -84,7 +87,7 @@ ICP_LS_SEARCH = (0.5, 2.0)
 
 # ----------------------------------------------------------------------------- predictor
 class DopePredictor:
-    """A network for one object and everything to turn images into :class:`Detection` s.
+    """A network for one or more objects and everything to turn images into :class:`Detection` s.
 
     Args:
         weights: a dope-hope checkpoint (``.pth``/``.pt``), an exported ``.onnx`` model, or a
@@ -92,16 +95,25 @@ class DopePredictor:
         backend: "auto" (ONNX for ``.onnx``, else torch), "torch" or "onnx".
         device: torch device, or "cuda..." to ask onnxruntime for its CUDA provider.
         threads: CPU threads (torch.set_num_threads / onnxruntime intra-op threads).
-        mesh: optional mesh file (or loaded ``trimesh.Trimesh`` in metres) of the object: its
-            box replaces the checkpoint's cuboid and its surface feeds the depth steps.
-        mesh_units: units of the mesh file ("m", "cm", "mm"; default by suffix).
+        mesh: optional mesh of the object: a file (or loaded ``trimesh.Trimesh`` in metres)
+            when the predictor reports one object, or a mapping class name -> mesh for any
+            number (objects left out keep the model's cuboid). A mesh's box replaces the
+            model's cuboid and its surface feeds the depth steps.
+        mesh_units: units of the mesh files ("m", "cm", "mm"; default by suffix).
         options: :class:`~dope_hope.inference.options.InferenceOptions`, or a mapping of
             overrides of the packaged defaults (``dope_hope/configs/infer.yaml``).
+        classes: report only these of the model's objects (names, case-insensitive; default
+            all); ConfigError naming the model's objects for a class it does not detect.
         **overrides: single options on top (``height=400``, ``icp=True``, ``pnp={...}``, ...);
             an unknown name is a ConfigError.
 
     ``min_score``: when neither ``options`` nor ``overrides`` gives one, the model's own
     threshold when its file records one (``ModelInfo.min_score``), else the packaged default.
+
+    Attributes: backend, options, objects (one :class:`ObjectGeometry` per reported object,
+    channel order), class_names, legacy, mean, std, stride. A predictor of one object also
+    offers that object's class_name, cuboid_size_m, cuboid_center_m, mesh, cuboid_mesh,
+    cuboid_pnp, model_points, bbox_points and icp_model.
     """
 
     def __init__(
@@ -113,12 +125,15 @@ class DopePredictor:
         mesh: Any = None,
         mesh_units: str | None = None,
         options: InferenceOptions | Mapping[str, Any] | None = None,
+        classes: Sequence[str] | None = None,
         **overrides: Any,
     ):
         if isinstance(options, InferenceOptions):
             options = options.to_dict()
         given = {**(options or {}), **overrides}
         InferenceOptions.from_mapping(given)  # a bad option is refused before a model loads
+        if isinstance(classes, str):
+            classes = [classes]
         if isinstance(weights, (str, os.PathLike)):
             self.backend: MapBackend = open_backend(weights, backend, device, threads)
         elif hasattr(weights, "run") and hasattr(weights, "stride"):
@@ -127,99 +142,42 @@ class DopePredictor:
             raise ConfigError(f"weights must be a file path or a MapBackend, got {type(weights).__name__}")
         b = self.backend
         self.options = InferenceOptions.from_mapping(given, model_min_score=model_min_score(b))
-        self.class_name = str(b.class_name)
         self.legacy = b.frame == "legacy" or b.keypoint_order == LEGACY_KEYPOINT_ORDER
         self.mean = tuple(float(v) for v in b.mean)
         self.std = tuple(float(v) for v in b.std)
         self.stride = int(b.stride)
-        self.mesh = None
-        size = np.asarray(b.size_m, dtype=np.float64).reshape(3)
-        center = np.zeros(3)
-        if mesh is not None:
-            self.mesh, size, center = self._load_mesh(mesh, mesh_units, size)
-        self.cuboid_size_m = size
-        self.cuboid_center_m = center
-        if self.options.icp and self.mesh is None:
-            self._check_icp_surface()
-        #: (9, 3) mesh-frame cuboid keypoints, current order.
-        self.cuboid_mesh = cuboid_keypoints(size, center)
-        if self.legacy:
-            # The same box in the legacy frame (p_legacy = L^T p_mesh), listed in the legacy
-            # order: corner k at CUBOID_CORNER_SIGNS[k] * legacy extents / 2.
-            size_leg = np.abs(LEGACY_TO_MESH).T @ size
-            self.cuboid_pnp = cuboid_keypoints(size_leg, LEGACY_TO_MESH.T @ center)
-        else:
-            self.cuboid_pnp = self.cuboid_mesh
-        self._model_points: np.ndarray | None = None
-        self._bbox_points: np.ndarray | None = None
-        self._icp_model: tuple[np.ndarray, np.ndarray] | None = None
+        model_objects = backend_objects(b)
+        #: number of objects (channel groups) in the model's maps
+        self.num_model_objects = len(model_objects)
+        groups = select_groups(model_objects, classes)
+        meshes = _meshes_by_group(mesh, [model_objects[k].class_name for k in groups])
+        self.objects = [ObjectGeometry(model_objects[k], k, self.legacy, meshes.get(k), mesh_units,
+                                       self.options.ls_points, self.options.icp_points) for k in groups]
+        if self.options.icp:
+            for obj in self.objects:
+                obj.check_icp_surface()
 
-    # ------------------------------------------------------------------ setup helpers
-    def _load_mesh(self, mesh: Any, units: str | None, ckpt_size: np.ndarray):
-        from dope_hope.io.meshes import check_mesh_box, load_mesh, mesh_cuboid
-
-        source = "<mesh>"
-        if isinstance(mesh, (str, os.PathLike)):
-            source = str(mesh)
-            mesh = load_mesh(mesh, units=units)
-        size, center = mesh_cuboid(mesh)
-        check_mesh_box(size, ckpt_size, source, self.class_name, "the model's cuboid")
-        return mesh, size, center
-
-    def _surface(self):
-        """The mesh, else the cuboid's surface (see the module docstring), metres."""
-        if self.mesh is not None:
-            return self.mesh
-        import trimesh
-
-        box = trimesh.creation.box(extents=self.cuboid_size_m)
-        box.apply_translation(self.cuboid_center_m)
-        return box
-
-    def _check_icp_surface(self) -> None:
-        """Without a mesh ICP fits the cuboid's surface to the depth: right for a box only."""
-        from dope_hope.catalog import get_object
-
-        try:
-            category = get_object(self.class_name).category
-        except UnknownObjectError:
-            category = "object outside the HOPE catalog"
-        if category != "cuboid":
-            raise ConfigError(f"ICP for {self.class_name} ({category}) needs its mesh (mesh= / --mesh): "
-                              "without one it would fit the cuboid's surface, which is right for boxes only")
-
+    # ------------------------------------------------------------------ one-object view
     @property
-    def model_points(self) -> np.ndarray:
-        """(ls_points, 3) mesh-frame surface points for the line search, metres (cached)."""
-        if self._model_points is None:
-            from dope_hope.io.meshes import sample_surface_points
+    def class_names(self) -> tuple[str, ...]:
+        """The reported objects' classes, channel order."""
+        return tuple(o.class_name for o in self.objects)
 
-            self._model_points = sample_surface_points(self._surface(), self.options.ls_points, seed=0)
-        return self._model_points
+    def _only(self) -> ObjectGeometry:
+        if len(self.objects) != 1:
+            raise AttributeError(f"this predictor reports {len(self.objects)} objects "
+                                 f"({', '.join(self.class_names)}): use .objects")
+        return self.objects[0]
 
-    @property
-    def bbox_points(self) -> np.ndarray:
-        """(N, 3) mesh-frame points whose projection bounds the object, metres: the mesh's
-        convex hull vertices, else the cuboid's 8 corners (cached)."""
-        if self._bbox_points is None:
-            if self.mesh is not None:
-                self._bbox_points = np.asarray(self.mesh.convex_hull.vertices, dtype=np.float64)
-            else:
-                self._bbox_points = self.cuboid_mesh[:NUM_KEYPOINTS - 1].copy()
-        return self._bbox_points
-
-    @property
-    def icp_model(self) -> tuple[np.ndarray, np.ndarray]:
-        """((icp_points, 3) mesh-frame surface points, metres; their (icp_points, 3) unit
-        normals) for ICP (cached)."""
-        if self._icp_model is None:
-            from dope_hope.io.meshes import sample_surface_points
-
-            if self.mesh is None:
-                self._check_icp_surface()
-            self._icp_model = sample_surface_points(self._surface(), self.options.icp_points, seed=0,
-                                                    oversample=10, return_normals=True)
-        return self._icp_model
+    class_name = property(lambda self: self._only().class_name, doc="The one object's class.")
+    cuboid_size_m = property(lambda self: self._only().cuboid_size_m, doc="(3,) its box, mesh frame, m.")
+    cuboid_center_m = property(lambda self: self._only().cuboid_center_m, doc="(3,) its box centre, m.")
+    mesh = property(lambda self: self._only().mesh, doc="Its mesh or None.")
+    cuboid_mesh = property(lambda self: self._only().cuboid_mesh, doc="(9, 3) mesh-frame keypoints.")
+    cuboid_pnp = property(lambda self: self._only().cuboid_pnp, doc="(9, 3) keypoints PnP fits.")
+    model_points = property(lambda self: self._only().model_points, doc="Line-search surface points.")
+    bbox_points = property(lambda self: self._only().bbox_points, doc="Points bounding its projection.")
+    icp_model = property(lambda self: self._only().icp_model, doc="ICP surface points and normals.")
 
     def working_size(self, image_hw: tuple[int, int]) -> tuple[tuple[int, int], tuple[int, int]]:
         """((H', W') resized content, (Hp, Wp) padded network input) for an image of (H, W)
@@ -235,21 +193,23 @@ class DopePredictor:
         return prepare_input(rgb, resized, self.mean, self.std, padded)
 
     def infer_maps(self, image: np.ndarray | NetworkInput) -> tuple[np.ndarray, np.ndarray, NetworkInput]:
-        """Run the network: (belief (9, h, w), affinity (16, h, w), the NetworkInput)."""
+        """Run the network: (belief (9K, h, w), affinity (16K, h, w), the NetworkInput) for
+        the model's K objects (all of them, whatever ``classes`` keeps)."""
         net_in = image if isinstance(image, NetworkInput) else self.prepare(image)
         belief, affinity = self.backend.run(net_in.batch)
         belief, affinity = np.asarray(belief)[0], np.asarray(affinity)[0]
         Hp, Wp = net_in.batch.shape[2:]
-        if belief.shape != (NUM_KEYPOINTS, Hp // self.stride, Wp // self.stride) or \
-                affinity.shape != (2 * (NUM_KEYPOINTS - 1),) + belief.shape[1:]:
+        n = self.num_model_objects
+        if belief.shape != (NUM_KEYPOINTS * n, Hp // self.stride, Wp // self.stride) or \
+                affinity.shape != (2 * (NUM_KEYPOINTS - 1) * n,) + belief.shape[1:]:
             raise ModelFileError(getattr(self.backend, "source", "<model>"),
                                  f"network returned maps {belief.shape} / {affinity.shape} for an "
-                                 f"input of {Hp}x{Wp} at stride {self.stride}")
+                                 f"input of {Hp}x{Wp} at stride {self.stride} ({n} object(s))")
         return belief, affinity, net_in
 
     def predict(self, image: np.ndarray, K: np.ndarray, depth: np.ndarray | DepthImage | None = None,
                 depth_scale_m: float = 0.001, calibration: float = 1.0) -> list[Detection]:
-        """Detect this predictor's object in one image.
+        """Detect this predictor's objects in one image (one forward pass for all of them).
 
         Args:
             image: (H, W[, C]) RGB image array (see :func:`to_rgb8`).
@@ -263,7 +223,7 @@ class DopePredictor:
                 dataset's depth images already include it).
 
         Returns:
-            Detections sorted by decreasing score, mesh-frame poses.
+            Detections of every reported object, sorted by decreasing score, mesh-frame poses.
         """
         K = check_intrinsics(K)
         belief, affinity, net_in = self.infer_maps(image)
@@ -271,13 +231,33 @@ class DopePredictor:
         return self.detections_from_maps(belief, affinity, net_in, K, depth)
 
     def detections_from_maps(self, belief: np.ndarray, affinity: np.ndarray, net_in: NetworkInput,
-                             K: np.ndarray, depth: DepthImage | None = None) -> list[Detection]:
-        """Decode + PnP (+ line search, ICP) the maps of :meth:`infer_maps` (see :meth:`predict`)."""
+                             K: np.ndarray, depth: DepthImage | None = None,
+                             classes: Collection[str] | None = None) -> list[Detection]:
+        """Decode + PnP (+ line search, ICP) the maps of :meth:`infer_maps` (see :meth:`predict`),
+        object by object; an object whose belief maps peak nowhere above the decode threshold
+        is skipped before any decoding (one max over its maps). ``classes``: decode only those
+        of the predictor's objects this time (exact class names; None: all)."""
         K = check_intrinsics(K)
         K_net = net_in.network_K(K)
+        threshold = float(self.options.decode.get("threshold", DEFAULT_THRESHOLD))
+        out: list[Detection] = []
+        for obj in self.objects:
+            if classes is not None and obj.class_name not in classes:
+                continue
+            b, a = obj.channels(belief, affinity)
+            if not b.max() > threshold:  # find_peaks keeps no cell whose belief is <= threshold
+                continue
+            out += self._object_detections(obj, b, a, net_in, K, K_net, depth)
+        out.sort(key=lambda d: -d.score)
+        return out
+
+    def _object_detections(self, obj: ObjectGeometry, belief: np.ndarray, affinity: np.ndarray,
+                           net_in: NetworkInput, K: np.ndarray, K_net: np.ndarray,
+                           depth: DepthImage | None) -> list[Detection]:
+        """One object's detections from its own (9, h, w) / (16, h, w) maps."""
         mean_scale = math.sqrt(net_in.scale[0] * net_in.scale[1])
         out: list[Detection] = []
-        for est in self._poses(belief, affinity, K_net):
+        for est in self._poses(belief, affinity, K_net, obj.cuboid_pnp):
             if est.score < self.options.min_score:
                 continue
             R, t = est.R, est.t
@@ -288,69 +268,116 @@ class DopePredictor:
                 scores = legacy_keypoints_to_current(scores[:, None])[:, 0]
                 inliers = legacy_keypoints_to_current(inliers[:, None])[:, 0]
             det = Detection(
-                class_name=self.class_name, score=float(est.score), R=R, t=t.copy(),
+                class_name=obj.class_name, score=float(est.score), R=R, t=t.copy(),
                 keypoints_2d=net_in.to_original_px(kp), keypoint_scores=np.asarray(scores, float),
                 inliers=np.asarray(inliers, bool), projected_2d=np.zeros((NUM_KEYPOINTS, 2)),
                 reprojection_error_px=float(est.reprojection_error_px / mean_scale),
-                cuboid_size_m=self.cuboid_size_m.copy(), cuboid_center_m=self.cuboid_center_m.copy(),
+                cuboid_size_m=obj.cuboid_size_m.copy(), cuboid_center_m=obj.cuboid_center_m.copy(),
             )
             if depth is not None:
-                ls = depth_line_search(R, t, self.model_points, depth, **self.options.line_search)
+                ls = depth_line_search(R, t, obj.model_points, depth, **self.options.line_search)
                 det.t, det.ls_applied, det.ls_reason, det.ls_scale = ls.t, ls.applied, ls.reason, ls.scale
                 if self.options.icp:
-                    self._refine_icp(det, depth)
+                    self._refine_icp(obj, det, depth)
             elif self.options.icp:
                 det.icp_reason = "no depth image"
             out.append(det)
         if out:  # the final poses' projections, all at once
             Rs, ts = np.stack([d.R for d in out]), np.stack([d.t for d in out])
-            projected = project_points_poses(self.cuboid_mesh, K, Rs, ts)
-            boxes = projected_bboxes(self.bbox_points, K, Rs, ts, net_in.original_hw)
+            projected = project_points_poses(obj.cuboid_mesh, K, Rs, ts)
+            boxes = projected_bboxes(obj.bbox_points, K, Rs, ts, net_in.original_hw)
             for det, uv, box in zip(out, projected, boxes):
                 det.projected_2d, det.bbox_2d = uv, box
-        out.sort(key=lambda d: -d.score)
         return out
+
+    def object_of(self, det: Detection) -> ObjectGeometry:
+        """The reported object a detection of this predictor belongs to (by class)."""
+        for obj in self.objects:
+            if obj.class_name == det.class_name:
+                return obj
+        raise ConfigError(f"{det.class_name!r} is not an object of this predictor ({', '.join(self.class_names)})")
 
     def refine_icp(self, det: Detection, depth: DepthImage) -> Detection:
         """The ICP step of the module docstring on one detection, whatever ``icp`` was set to:
         a copy of ``det`` (as :meth:`predict` returns it with ``depth``, i.e. after the line
         search) refined by ICP against ``depth``; ``det`` itself is unchanged. Lets a caller
         keep both the -LS and the -LS + ICP pose without decoding the maps twice."""
+        obj = self.object_of(det)
         out = replace(det)
-        self._refine_icp(out, depth)
-        out.projected_2d = project_points(self.cuboid_mesh, depth.K, out.R, out.t)
-        out.bbox_2d = projected_bbox(self.bbox_points, depth.K, out.R, out.t, depth.hw)
+        self._refine_icp(obj, out, depth)
+        out.projected_2d = project_points(obj.cuboid_mesh, depth.K, out.R, out.t)
+        out.bbox_2d = projected_bbox(obj.bbox_points, depth.K, out.R, out.t, depth.hw)
         return out
 
-    def _refine_icp(self, det: Detection, depth: DepthImage) -> None:
+    def _refine_icp(self, obj: ObjectGeometry, det: Detection, depth: DepthImage) -> None:
         """The ICP step of the module docstring, in place on ``det`` (after the line search)."""
         if not det.ls_applied:  # ICP needs the depth within a few cm: a wider line search first
             options = {**self.options.line_search, "search": ICP_LS_SEARCH}
-            wide = depth_line_search(det.R, det.t, self.model_points, depth, **options)
+            wide = depth_line_search(det.R, det.t, obj.model_points, depth, **options)
             if wide.applied:
                 det.t, det.ls_applied, det.ls_scale = wide.t, True, wide.scale
                 det.ls_reason = f"ok (search {ICP_LS_SEARCH[0]:g}-{ICP_LS_SEARCH[1]:g}, for ICP)"
-        points, normals = self.icp_model
+        points, normals = obj.icp_model
         res = icp_refine(det.R, det.t, points, normals, depth, **self.options.icp_refine)
         det.icp_applied, det.icp_reason = res.applied, res.reason
         det.icp_fit = res.fit_after if res.applied else res.fit_before
         if res.applied:
             det.R, det.t = res.R, res.t
 
-    def _poses(self, belief: np.ndarray, affinity: np.ndarray, K_net: np.ndarray) -> list[PoseEstimate]:
-        """Network-image poses of the instances in one image's maps (step 4 of the module
-        docstring), best first; keypoints in the network's own order."""
+    def _poses(self, belief: np.ndarray, affinity: np.ndarray, K_net: np.ndarray,
+               cuboid: np.ndarray) -> list[PoseEstimate]:
+        """Network-image poses of the instances in one object's maps (step 3 of the module
+        docstring), best first; keypoints in the network's own order; ``cuboid`` (9, 3)."""
         if self.options.pose_search == "groups":
-            found = [solve_pnp(inst.keypoints, inst.scores, self.cuboid_pnp, K_net, **self.options.pnp)
+            found = [solve_pnp(inst.keypoints, inst.scores, cuboid, K_net, **self.options.pnp)
                      for inst in decode_maps(belief, affinity, self.stride, **self.options.decode)]
             return [e for e in found if e is not None]
         candidates = corner_candidates(belief, affinity, self.stride, **self.options.decode)
-        return solve_pnp_instances([(c.keypoint_ids, c.xy, c.scores) for c in candidates], self.cuboid_pnp,
+        return solve_pnp_instances([(c.keypoint_ids, c.xy, c.scores) for c in candidates], cuboid,
                                    K_net, **self.options.hypotheses, **self.options.pnp)
 
     def __repr__(self) -> str:
-        return (f"DopePredictor(class_name={self.class_name!r}, stride={self.stride}, "
+        return (f"DopePredictor(classes={list(self.class_names)!r}, stride={self.stride}, "
                 f"frame={'legacy' if self.legacy else 'mesh'}, height={self.options.height})")
+
+
+def select_groups(objects: Sequence[ObjectInfo], classes: Sequence[str] | None,
+                  flag: str = "classes") -> list[int]:
+    """Channel groups of ``classes`` among a model's ``objects`` (channel order; all when None).
+
+    Names match exactly, else case-insensitively; ConfigError naming ``flag`` and the model's
+    objects for a class it does not detect, or for an empty list."""
+    names = [o.class_name for o in objects]
+    if classes is None:
+        return list(range(len(objects)))
+    if not len(classes):
+        raise ConfigError(f"{flag}: give at least one class (the model's objects: {', '.join(names)})")
+    groups = set()
+    for c in classes:
+        hits = [k for k, n in enumerate(names) if n == c] or \
+            [k for k, n in enumerate(names) if n.lower() == str(c).lower()]
+        if len(hits) != 1:
+            raise ConfigError(f"{flag}: {c!r} is not an object of this model (its objects: {', '.join(names)})")
+        groups.add(hits[0])
+    return sorted(groups)
+
+
+def _meshes_by_group(mesh: Any, names: Sequence[str]) -> dict[int, Any]:
+    """``mesh`` (one mesh, or class name -> mesh) as {index into ``names``: mesh}."""
+    if mesh is None:
+        return {}
+    if not isinstance(mesh, Mapping):
+        if len(names) != 1:
+            raise ConfigError(f"mesh: this predictor reports {len(names)} objects ({', '.join(names)}): "
+                              "give a mapping class name -> mesh")
+        return {0: mesh}
+    out: dict[int, Any] = {}
+    lower = [n.lower() for n in names]
+    for name, m in mesh.items():
+        if str(name).lower() not in lower:
+            raise ConfigError(f"mesh: {name!r} is not an object this predictor reports ({', '.join(names)})")
+        out[lower.index(str(name).lower())] = m
+    return out
 
 
 def as_depth_image(depth: np.ndarray | DepthImage | None, K: np.ndarray, depth_scale_m: float,
@@ -366,13 +393,14 @@ def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.n
                  depth: np.ndarray | DepthImage | None = None, depth_scale_m: float = 0.001,
                  calibration: float = 1.0,
                  on_maps: Callable[[DopePredictor, np.ndarray, np.ndarray, NetworkInput], None] | None = None,
-                 ) -> list[Detection]:
-    """Run several one-object predictors on one image; detections sorted by decreasing score.
+                 classes: Collection[str] | None = None) -> list[Detection]:
+    """Run several predictors on one image; detections sorted by decreasing score.
 
     The image is converted once, and resized/normalized once per distinct working size and
     normalization (predictors with equal settings share the network input).
     ``on_maps(predictor, belief, affinity, network_input)`` is called with each model's maps
-    (e.g. to draw them).
+    (e.g. to draw them). ``classes``: decode only these objects (exact class names; a
+    predictor with none of them is not run; None: every predictor's objects).
     """
     K = check_intrinsics(K)
     rgb = to_rgb8(image)
@@ -380,6 +408,8 @@ def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.n
     cache: dict[tuple, NetworkInput] = {}
     out: list[Detection] = []
     for p in predictors:
+        if classes is not None and not set(p.class_names) & set(classes):
+            continue
         resized, padded = p.working_size(rgb.shape[:2])
         key = (resized, padded, p.mean, p.std)
         if key not in cache:
@@ -387,6 +417,6 @@ def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.n
         belief, affinity, net_in = p.infer_maps(cache[key])
         if on_maps is not None:
             on_maps(p, belief, affinity, net_in)
-        out.extend(p.detections_from_maps(belief, affinity, net_in, K, depth))
+        out.extend(p.detections_from_maps(belief, affinity, net_in, K, depth, classes))
     out.sort(key=lambda d: -d.score)
     return out

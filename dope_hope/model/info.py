@@ -27,6 +27,14 @@ OBJECT_FRAMES = ("mesh", "legacy")
 GROUP_BELIEF, GROUP_AFFINITY = 9, 16
 
 
+def group_channels(k: int, num_objects: int) -> np.ndarray:
+    """(25,) int: object ``k``'s channels within cat(belief (9N), affinity (16N)) of a model
+    of ``num_objects`` objects: its 9 belief maps, then its 16 affinity fields."""
+    belief = np.arange(GROUP_BELIEF * k, GROUP_BELIEF * (k + 1))
+    affinity = GROUP_BELIEF * num_objects + np.arange(GROUP_AFFINITY * k, GROUP_AFFINITY * (k + 1))
+    return np.concatenate([belief, affinity])
+
+
 @dataclass(frozen=True)
 class ObjectInfo:
     """One object of a model.
@@ -66,7 +74,8 @@ class ModelInfo:
 
     class_name: object the model detects (the first object of a multi-object model). size_m:
     (3,) its cuboid extents, mesh frame, metres. objects: every object, in channel-group
-    order (default: the one object ``class_name``/``size_m``, no symmetries). frame: "mesh" | "legacy". keypoint_order: "dope-current" | "dope-legacy" (must match frame).
+    order (default: the one object ``class_name``/``size_m``, no symmetries).
+    frame: "mesh" | "legacy". keypoint_order: "dope-current" | "dope-legacy" (must match frame).
     mean, std: the model's normalization of RGB in [0, 1]. input_hw: (H, W) training input
     size, or None when unknown. min_score: the model's own default pose-score threshold
     (chosen for it and recorded with its weights; None: the inference options' default);

@@ -252,7 +252,8 @@ def build_model(config: dict[str, Any] | str, load_backbone: bool = True) -> Dop
     the packaged YAML files), a full config or its ``model`` section.
 
     Keys: ``arch`` (dope|lite), ``head`` (50|400, lite 50|100), ``stages``, ``decoder``
-    (head 400), ``lite`` (arch lite), ``num_objects`` (default 1); unknown keys raise ConfigError. ``backbone_weights``: a
+    (head 400), ``lite`` (arch lite), ``num_objects`` (default 1); unknown keys raise
+    ConfigError. ``backbone_weights``: a
     LOCAL torchvision VGG19 state-dict file loaded into the trunk when ``load_backbone``
     (nothing is ever downloaded; checkpoint loading passes False, its weights win).
     """
@@ -361,7 +362,8 @@ def widen_to_objects(state: dict[str, torch.Tensor], config: dict[str, Any],
     with torch.device("meta"):
         one = build_model({**section, "num_objects": 1}, load_backbone=False)
     expected = one.state_dict()
-    bad = sorted(set(expected) ^ set(state)) or [k for k in expected if tuple(state[k].shape) != tuple(expected[k].shape)]
+    bad = sorted(set(expected) ^ set(state)) or \
+        [k for k in expected if tuple(state[k].shape) != tuple(expected[k].shape)]
     if bad:
         raise ConfigError(f"widen_to_objects: the state dict is not a one-object {section.get('arch', 'dope')} "
                           f"network of this config (first mismatch: {bad[0]})")

@@ -1,0 +1,133 @@
+"""ObjectGeometry: one object of a predictor's model: its channel group, its cuboid (mesh frame
+and the frame PnP runs in), its optional mesh and the surface points the depth steps use.
+
+A predictor holds one per object it reports (:class:`dope_hope.inference.predictor.DopePredictor`);
+each object's detections use its own cuboid, mesh and symmetries.
+"""
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+
+from dope_hope.errors import ConfigError, UnknownObjectError
+from dope_hope.geometry import LEGACY_TO_MESH, NUM_KEYPOINTS, cuboid_keypoints
+from dope_hope.model.info import ObjectInfo
+
+
+class ObjectGeometry:
+    """One object of a model, as the predictor uses it.
+
+    Args:
+        info: the model's :class:`~dope_hope.model.info.ObjectInfo` (class, cuboid, symmetries).
+        group: its channel group k (belief [9k, 9k + 9), affinity [16k, 16k + 16)).
+        legacy: the model's keypoints are in the legacy frame (official HOPE weights).
+        mesh: optional mesh file or loaded ``trimesh.Trimesh`` (metres): its box replaces the
+            model's cuboid (refused when it differs by more than 25 %) and its surface feeds
+            the depth steps.
+        mesh_units: units of a mesh file ("m", "cm", "mm"; default by suffix).
+        ls_points, icp_points: surface points sampled for the line search / ICP.
+
+    Attributes: class_name, group, symmetries (BOP fields, mm, or None), mesh,
+    cuboid_size_m / cuboid_center_m (mesh frame, m), cuboid_mesh ((9, 3) mesh-frame keypoints,
+    current order), cuboid_pnp (the keypoints PnP fits: legacy frame and order for a legacy model).
+    """
+
+    def __init__(self, info: ObjectInfo, group: int, legacy: bool, mesh: Any = None,
+                 mesh_units: str | None = None, ls_points: int = 1000, icp_points: int = 2000):
+        self.class_name = str(info.class_name)
+        self.group = int(group)
+        self.symmetries = info.symmetries
+        self.ls_points, self.icp_points = int(ls_points), int(icp_points)
+        self.mesh = None
+        size = np.asarray(info.size_m, dtype=np.float64).reshape(3)
+        center = np.zeros(3)
+        if mesh is not None:
+            self.mesh, size, center = self._load_mesh(mesh, mesh_units, size)
+        self.cuboid_size_m = size
+        self.cuboid_center_m = center
+        self.cuboid_mesh = cuboid_keypoints(size, center)
+        if legacy:
+            # The same box in the legacy frame (p_legacy = L^T p_mesh), listed in the legacy
+            # order: corner k at CUBOID_CORNER_SIGNS[k] * legacy extents / 2.
+            size_leg = np.abs(LEGACY_TO_MESH).T @ size
+            self.cuboid_pnp = cuboid_keypoints(size_leg, LEGACY_TO_MESH.T @ center)
+        else:
+            self.cuboid_pnp = self.cuboid_mesh
+        self._model_points: np.ndarray | None = None
+        self._bbox_points: np.ndarray | None = None
+        self._icp_model: tuple[np.ndarray, np.ndarray] | None = None
+
+    def channels(self, belief: np.ndarray, affinity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """This object's (9, h, w) belief and (16, h, w) affinity out of a model's maps."""
+        k = self.group
+        return belief[9 * k:9 * k + 9], affinity[16 * k:16 * k + 16]
+
+    def _load_mesh(self, mesh: Any, units: str | None, model_size: np.ndarray):
+        from dope_hope.io.meshes import check_mesh_box, load_mesh, mesh_cuboid
+
+        source = "<mesh>"
+        if isinstance(mesh, (str, os.PathLike)):
+            source = str(mesh)
+            mesh = load_mesh(mesh, units=units)
+        size, center = mesh_cuboid(mesh)
+        check_mesh_box(size, model_size, source, self.class_name, "the model's cuboid")
+        return mesh, size, center
+
+    def surface(self):
+        """The mesh, else the cuboid's surface (for a non-box object the box's front face lies
+        in front of the real surface: pass the mesh for non-box objects), metres."""
+        if self.mesh is not None:
+            return self.mesh
+        import trimesh
+
+        box = trimesh.creation.box(extents=self.cuboid_size_m)
+        box.apply_translation(self.cuboid_center_m)
+        return box
+
+    def check_icp_surface(self) -> None:
+        """Without a mesh ICP fits the cuboid's surface to the depth: right for a box only."""
+        if self.mesh is not None:
+            return
+        from dope_hope.catalog import get_object
+
+        try:
+            category = get_object(self.class_name).category
+        except UnknownObjectError:
+            category = "object outside the HOPE catalog"
+        if category != "cuboid":
+            raise ConfigError(f"ICP for {self.class_name} ({category}) needs its mesh (mesh= / --mesh): "
+                              "without one it would fit the cuboid's surface, which is right for boxes only")
+
+    @property
+    def model_points(self) -> np.ndarray:
+        """(ls_points, 3) mesh-frame surface points for the line search, metres (cached)."""
+        if self._model_points is None:
+            from dope_hope.io.meshes import sample_surface_points
+
+            self._model_points = sample_surface_points(self.surface(), self.ls_points, seed=0)
+        return self._model_points
+
+    @property
+    def bbox_points(self) -> np.ndarray:
+        """(N, 3) mesh-frame points whose projection bounds the object, metres: the mesh's
+        convex hull vertices, else the cuboid's 8 corners (cached)."""
+        if self._bbox_points is None:
+            if self.mesh is not None:
+                self._bbox_points = np.asarray(self.mesh.convex_hull.vertices, dtype=np.float64)
+            else:
+                self._bbox_points = self.cuboid_mesh[:NUM_KEYPOINTS - 1].copy()
+        return self._bbox_points
+
+    @property
+    def icp_model(self) -> tuple[np.ndarray, np.ndarray]:
+        """((icp_points, 3) mesh-frame surface points, metres; their (icp_points, 3) unit
+        normals) for ICP (cached)."""
+        if self._icp_model is None:
+            from dope_hope.io.meshes import sample_surface_points
+
+            self.check_icp_surface()
+            self._icp_model = sample_surface_points(self.surface(), self.icp_points, seed=0,
+                                                    oversample=10, return_normals=True)
+        return self._icp_model
