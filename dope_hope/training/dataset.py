@@ -322,13 +322,18 @@ class DopeDataset(Dataset):
         """Belief (9N, h, w) and affinity (16N, h, w): object k's group made from its instances
         (``classes == k``) alone, all zero when it has none."""
         from dope_hope.maps.targets import make_targets
+        from dope_hope.model.info import group_channels
 
-        groups = [make_targets(keypoints[classes == k], image_hw, self.stride, self.sigma, self.radius)
-                  for k in range(self.num_objects)]
-        if self.num_objects == 1:
-            return groups[0]
-        return (np.concatenate([g[0] for g in groups], axis=0),
-                np.concatenate([g[1] for g in groups], axis=0))
+        n = self.num_objects
+        if n == 1:
+            return make_targets(keypoints, image_hw, self.stride, self.sigma, self.radius)
+        maps = None
+        for k in range(n):
+            belief, affinity = make_targets(keypoints[classes == k], image_hw, self.stride, self.sigma, self.radius)
+            if maps is None:
+                maps = np.zeros((n * (len(belief) + len(affinity)),) + belief.shape[1:], np.float32)
+            maps[group_channels(k, n)] = np.concatenate([belief, affinity], axis=0)
+        return maps[:NUM_KEYPOINTS * n], maps[NUM_KEYPOINTS * n:]
 
 
 def collate(items: list[dict[str, Any]]) -> dict[str, Any]:

@@ -86,11 +86,14 @@ def object_hits(belief: np.ndarray, affinity: np.ndarray, gt: np.ndarray, classe
     Returns:
         (N, 4) int: per object (found, visible, found_decoded, visible_decoded).
     """
+    from dope_hope.model.info import group_channels
+
+    maps = np.concatenate([belief, affinity], axis=0)
     out = np.zeros((num_objects, 4), np.int64)
     for k in range(num_objects):
         mine = gt[classes == k]
         if not np.isfinite(mine).any():
             continue  # nothing of this object to find in this image
-        out[k] = validation_hits(belief[9 * k:9 * k + 9], affinity[16 * k:16 * k + 16], mine,
-                                 stride, radius_px, threshold)
+        group = maps[group_channels(k, num_objects)]
+        out[k] = validation_hits(group[:NUM_KEYPOINTS], group[NUM_KEYPOINTS:], mine, stride, radius_px, threshold)
     return out
