@@ -137,6 +137,8 @@ def _write_bop(root: Path, frame, masks: dict[int, tuple[np.ndarray, np.ndarray]
         lo = (center - size / 2) * 1000.0
         info[str(obj_id)] = {"diameter": float(np.linalg.norm(size) * 1000), **{f"min_{a}": float(v) for a, v in zip("xyz", lo)},
                              **{f"size_{a}": float(v) for a, v in zip("xyz", size * 1000.0)}}
+        if name == "Can":  # the can's axis of revolution (its z, the 8 cm extent)
+            info[str(obj_id)]["symmetries_continuous"] = [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]
     (root / "models").mkdir(parents=True, exist_ok=True)
     (root / "models" / "models_info.json").write_text(json.dumps(info))
     return root / "train_pbr"
@@ -277,6 +279,11 @@ def test_train_command_pairs_meshes_with_objects_and_reads_bop(tmp_path, grocery
     assert code == 0, capsys.readouterr().err
     summary = json.loads((run / "summary.json").read_text())
     assert summary["objects"] == ["obj_000001", "Lemon"] and summary["train_frames"] + summary["val_frames"] == 2
+    from dope_hope.model.checkpoint import load_checkpoint
+
+    objects = load_checkpoint(run / "last.pt")["objects"]  # symmetries from the BOP models_info.json
+    assert objects[0]["symmetries"] == {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]}
+    assert objects[1].get("symmetries") is None
 
 
 def test_a_one_object_start_is_widened_to_the_run_objects():

@@ -28,7 +28,8 @@ import numpy as np
 from dope_hope.annotation import FrameAnnotation
 from dope_hope.errors import InputFileError
 from dope_hope.geometry import KEYPOINT_ORDER, cuboid_keypoints, project_points
-from dope_hope.io.bop import iter_bop_split, list_bop_scenes, read_models_info
+from dope_hope.io.bop import iter_bop_split, list_bop_scenes, parse_symmetries, read_models_info
+from dope_hope.io.jsonfields import JsonFields, load_json_object
 
 #: Where models_info.json is looked for, relative to a split folder.
 MODELS_INFO_PLACES = ("../models/models_info.json", "models/models_info.json",
@@ -101,6 +102,24 @@ def recorded_box_size(scene_gt: str | os.PathLike, class_name: str) -> np.ndarra
         return None
     box = model_boxes(info).get(obj_id)
     return None if box is None else box[0]
+
+
+def recorded_symmetries(scene_gt: str | os.PathLike, class_name: str) -> dict | None:
+    """The BOP symmetry fields (``symmetries_discrete`` / ``symmetries_continuous``, as stored:
+    mm) of ``class_name``'s model in the ``models_info.json`` of the BOP dataset holding
+    ``scene_gt``, or None when it declares none."""
+    from dope_hope.io.models_dir import bop_obj_id
+
+    obj_id = bop_obj_id(class_name)
+    path = find_models_info(Path(scene_gt).parent)
+    if obj_id is None or path is None:
+        return None
+    entry = load_json_object(path, "models info file").get(str(obj_id))
+    if not isinstance(entry, dict):
+        return None
+    parse_symmetries(JsonFields(path), entry, str(obj_id))  # checked by the one reader
+    fields = {k: entry[k] for k in ("symmetries_discrete", "symmetries_continuous") if entry.get(k)}
+    return fields or None
 
 
 def _mask_pixels(path: Path) -> int | None:

@@ -82,16 +82,28 @@ def declared_entry_mm(job: TrainJob, name: str) -> dict[str, Any] | None:
     return entry
 
 
+def bop_symmetries(records: list[FrameRecord], object_index: int, name: str) -> dict[str, Any] | None:
+    """The symmetry fields the ``models_info.json`` of a BOP dataset among the records declares
+    for the object (:func:`dope_hope.io.bop_scenes.recorded_symmetries`), or None."""
+    from dope_hope.io.bop_scenes import recorded_symmetries
+
+    for r in records:
+        if r.json_path.name == "scene_gt.json" and np.any(r.object_indices() == object_index):
+            return recorded_symmetries(r.json_path, name)
+    return None
+
+
 def run_objects(job: TrainJob, records: list[FrameRecord]) -> list[RunObject]:
     """Each object's checkpoint entry (:func:`~dope_hope.training.settings.object_info`: mesh >
-    dataset > catalog), with its declared symmetries when it is one of several objects (a
-    one-object entry stays as it always was)."""
+    dataset > catalog), with its declared symmetries (beside its mesh, else in a BOP dataset's
+    models_info.json) when it is one of several objects (a one-object entry stays as it
+    always was)."""
     names = job.class_names
     out = []
     for k, name in enumerate(names):
         info, source = object_info(name, records, job.mesh_of(name), job.unit_of(name), k)
         if len(names) > 1:
-            symmetries = declared_entry_mm(job, name)
+            symmetries = declared_entry_mm(job, name) or bop_symmetries(records, k, name)
             if symmetries is not None:
                 info = {**info, "symmetries": symmetries}
         out.append(RunObject(info["class_name"], info, source))
