@@ -3,6 +3,7 @@ training data (alone and mixed with DOPE folders), training targets and checkpoi
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,8 @@ from dope_hope.io.dope_json import list_dope_frames, read_dope_json
 from dope_hope.io.images import read_image_raw, write_rgb
 from dope_hope.io.meshes import load_mesh, mesh_cuboid
 from dope_hope.io.models_dir import mesh_class_name
-from dope_hope.synth.generate import FrameGenerator, generate_dataset, load_targets
+from dope_hope.synth.generate import FrameGenerator, load_targets
+from dope_hope.synth.writer import write_frame
 
 torch.set_num_threads(1)
 SIZE = (96, 72)
@@ -154,7 +156,6 @@ def bop_and_dope(tmp_path_factory, grocery):
         synth = gen.render_frame(0, with_alone_depth=True)
         dope = root / "dope"
         dope.mkdir()
-        from dope_hope.synth.writer import write_frame
         write_frame(dope, 0, synth.rgb, synth.depth, synth.seg, synth.annotation, extra=gen.json_extra(synth))
     masks = {o.instance_id: ((synth.alone_depth[o.instance_id] > 0).astype(np.uint8),
                              (synth.seg == o.instance_id).astype(np.uint8)) for o in synth.annotation.objects}
@@ -194,8 +195,6 @@ def test_bop_visibility_comes_from_mask_visib(bop_and_dope):
 
 
 def test_bop_dataset_without_models_info_is_one_line(tmp_path, bop_and_dope, capsys):
-    import shutil
-
     split, _, _ = bop_and_dope
     copy = tmp_path / "ds" / "train_pbr"
     shutil.copytree(split, copy)

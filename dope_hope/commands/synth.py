@@ -75,9 +75,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dope_hope.catalog import object_names
     from dope_hope.config import apply_overrides
     from dope_hope.errors import ConfigError
-    from dope_hope.catalog import object_names
     from dope_hope.io.models_dir import find_object_mesh
     from dope_hope.io.paths import output_dir
     from dope_hope.synth.generate import generate_dataset

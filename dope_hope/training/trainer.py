@@ -49,8 +49,8 @@ from dope_hope.model.checkpoint import (
 from dope_hope.training.distributed import init_distributed
 from dope_hope.training.loss import optimizer_step, stage_loss
 from dope_hope.training.metrics_log import MetricsLog
-from dope_hope.training.schedule import LrLambda
 from dope_hope.training.objects import object_mesh_paths, relabel_objects
+from dope_hope.training.schedule import LrLambda
 from dope_hope.training.settings import (
     TrainJob,
     input_hw,
