@@ -6,7 +6,7 @@ Examples:
       --workers 2 --backgrounds coco/val2017 --distractors hope/meshes/full --preview
   dope-hope synth --models-dir bop/hope/models --object Ketchup --out D --count 100000 --shard 3/8
   dope-hope synth --procedural --out pretrain/frames --count 24000 --size 256x192 --workers 2
-  dope-hope synth --mesh grocery/Can/textured.obj grocery/Lemon/textured.obj --units m \
+  dope-hope synth --mesh grocery/Can/textured.obj grocery/Lemon/textured.obj --units m \\
       --out synth/shelf --count 4000 --set target.count=[0,4]
   dope-hope synth --models-dir hope/meshes/full --object Ketchup Mustard Mayo --out synth/three --count 6000
 

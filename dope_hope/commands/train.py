@@ -8,7 +8,7 @@ Examples:
   dope-hope train --out runs/ketchup --resume            # continue from runs/ketchup/last.pt
   torchrun --nproc_per_node 4 train.py --config dope_dr_50 --data D --object Ketchup --out R
   dope-hope train --data synth/shelf --object Can Lemon --out runs/shelf --time-budget 60
-  dope-hope train --data synth/three hope/train_pbr --object Ketchup Mustard Mayo \
+  dope-hope train --data synth/three hope/train_pbr --object Ketchup Mustard Mayo \\
       --models-dir hope/models --out runs/three
 
 Several objects (--object A B ...): one network with a belief/affinity group per object in
