@@ -8,11 +8,12 @@ at hand its own extents take precedence over this table (ARCHITECTURE.md).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from dope_hope.errors import UnknownObjectError
+from dope_hope.errors import ConfigError, UnknownObjectError
 from dope_hope.geometry import legacy_size_to_mesh
 
 CATEGORIES = ("cylinder", "cuboid", "bottle")
@@ -133,3 +134,30 @@ def get_object(name_or_id: str | int) -> HopeObject:
         return _BY_NAME[key]
     raise UnknownObjectError(
         f"unknown HOPE object {name_or_id!r}; known: {', '.join(o.name for o in HOPE_OBJECTS)}")
+
+
+def object_names(names: Sequence[str]) -> list[str]:
+    """The objects a command names (``--object A B ...``): HOPE names in their catalog spelling
+    (any case), other names (custom objects, ``obj_NNNNNN``) as given, "all" for the 28 HOPE
+    objects; in the order given.
+
+    Raises:
+        ConfigError: no name, or one object twice (names compare case-insensitively).
+    """
+    out: list[str] = []
+    for name in names:
+        if str(name).lower() == "all":
+            out += [o.name for o in HOPE_OBJECTS]
+            continue
+        try:
+            out.append(get_object(name).name)
+        except UnknownObjectError:
+            out.append(str(name))
+    if not out:
+        raise ConfigError("--object: no object named")
+    seen: set[str] = set()
+    for name in out:
+        if name.lower() in seen:
+            raise ConfigError(f"--object: {name} is named twice")
+        seen.add(name.lower())
+    return out

@@ -1,4 +1,4 @@
-"""Generate domain-randomized synthetic training frames (DOPE format) for one object.
+"""Generate domain-randomized synthetic training frames (DOPE format) for one or several objects.
 
 Examples:
   dope-hope synth --mesh ../shared/data/hope_ketchup/textured.obj --out synth/ketchup --count 2000
@@ -6,11 +6,19 @@ Examples:
       --workers 2 --backgrounds coco/val2017 --distractors hope/meshes/full --preview
   dope-hope synth --models-dir bop/hope/models --object Ketchup --out D --count 100000 --shard 3/8
   dope-hope synth --procedural --out pretrain/frames --count 24000 --size 256x192 --workers 2
+  dope-hope synth --mesh grocery/Can/textured.obj grocery/Lemon/textured.obj --units m \\
+      --out synth/shelf --count 4000 --set target.count=[0,4]
+  dope-hope synth --models-dir hope/meshes/full --object Ketchup Mustard Mayo --out synth/three --count 6000
 
 Writes OUT/NNNNNN.png (RGB), NNNNNN.depth.png (uint16 mm, 0 = no depth), NNNNNN.seg.png
 (uint8: 0 background, 1..k target instances = the JSON's instance_id, 101.. distractors),
 NNNNNN.json (project DOPE format: intrinsics, class, pose, projected cuboid, visibility,
 bounding box; extra keys "cuboid" and "synth") and OUT/_synth_info.json (settings).
+Several target objects (--mesh A B ..., --object A B ..., --object all): each frame's
+target.count instances take their objects from a random permutation of them (distinct objects
+while the count allows; a count of 0 is a negative frame) and each JSON object names its class;
+a mesh's class is the object its file names (HOPE name, obj_NNNNNN), else the folder of a
+generic file name (Can/textured.obj -> Can), else the file stem; --class-name sets them.
 --procedural renders a new box, can or bottle of HOPE size with a packaging-like texture in
 every frame (class "Object", each frame's JSON records its cuboid; README "Pretraining").
 Frame i depends only on (--seed, i): reruns, --workers and --shard give identical frames.
@@ -26,19 +34,22 @@ from dope_hope.commands.argtypes import nonnegative_int, positive_int
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    src = parser.add_argument_group("target object (one of)")
-    src.add_argument("--mesh", type=Path, metavar="PATH",
-                     help="target mesh: HOPE textured .obj (cm) or BOP .ply (mm)")
+    src = parser.add_argument_group("target objects (one of)")
+    src.add_argument("--mesh", type=Path, nargs="+", metavar="PATH",
+                     help="target mesh(es): HOPE textured .obj (cm) or BOP .ply (mm); several: "
+                          "several target objects per frame")
     src.add_argument("--models-dir", type=Path, metavar="DIR",
                      help="models folder (HOPE <Name>/textured.obj or BOP obj_NNNNNN.ply); with --object")
-    src.add_argument("--object", dest="object_name", metavar="NAME", help="HOPE object name, e.g. Ketchup")
+    src.add_argument("--object", dest="object_name", nargs="+", metavar="NAME",
+                     help="object name(s) in --models-dir, e.g. Ketchup Mustard; 'all': the 28 HOPE objects")
     src.add_argument("--procedural", action="store_true",
                      help="a new procedural box / can / bottle per frame (pretraining data; config "
                           "section 'procedural')")
-    parser.add_argument("--units", choices=("m", "cm", "mm"),
-                        help="mesh file units (default: .obj cm, .ply mm)")
-    parser.add_argument("--class-name", metavar="NAME",
-                        help="class written in the JSON (default: the HOPE name, else the mesh file stem)")
+    parser.add_argument("--units", choices=("m", "cm", "mm"), nargs="+",
+                        help="mesh file units, one for all meshes or one per mesh (default: .obj cm, .ply mm)")
+    parser.add_argument("--class-name", nargs="+", metavar="NAME",
+                        help="class written in the JSON, one per mesh (default: the HOPE name, else the "
+                             "folder of a generic file name such as textured.obj, else the file stem)")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     parser.add_argument("--count", type=nonnegative_int, required=True, metavar="N", help="frames 0..N-1")
     parser.add_argument("--workers", type=positive_int, default=1, metavar="W",
@@ -64,6 +75,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dope_hope.catalog import object_names
     from dope_hope.config import apply_overrides
     from dope_hope.errors import ConfigError
     from dope_hope.io.models_dir import find_object_mesh
@@ -80,14 +92,14 @@ def run(args: argparse.Namespace) -> int:
     elif args.mesh is not None:
         mesh = args.mesh
     elif args.models_dir is not None and args.object_name is not None:
-        mesh = find_object_mesh(args.object_name, args.models_dir)
+        names = object_names(args.object_name)
+        mesh = [find_object_mesh(name, args.models_dir) for name in names]
     else:
         raise ConfigError("no target: give --mesh PATH, --models-dir DIR --object NAME or --procedural")
-    class_name = args.class_name
-    if class_name is None and args.object_name is not None:
-        from dope_hope.catalog import get_object
-
-        class_name = get_object(args.object_name).name
+    class_name = args.class_name or (names if args.object_name is not None else None)
+    # one value stays one value: a one-object run passes the arguments it always did
+    mesh, class_name, units = (v[0] if v is not None and len(v) == 1 else v
+                               for v in (mesh, class_name, args.units))
     config = args.config
     if args.overrides:
         config = apply_overrides(load_synth_config(args.config), args.overrides,
@@ -97,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
         args.out, mesh, args.count, seed=args.seed, size=args.size, config=config,
         workers=args.workers, shard=args.shard, backgrounds=args.backgrounds,
         distractors=args.distractors, depth_noise=args.depth_noise, preview=args.preview,
-        class_name=class_name, units=args.units, progress=not args.no_progress, procedural=args.procedural)
+        class_name=class_name, units=units, progress=not args.no_progress, procedural=args.procedural)
     print(f"{summary.written} frames written, {summary.skipped} already there, "
           f"{summary.frames_per_s:.2f} frames/s -> {summary.out_dir}")
     if summary.preview is not None:

@@ -1,4 +1,5 @@
-"""Train a DOPE network (or the lite variant) for one object on DOPE-format folders.
+"""Train a DOPE network (or the lite variant) for one object or several on DOPE-format folders
+and/or BOP-format datasets.
 
 Examples:
   dope-hope train --config lite --data synth/train --object Ketchup --out runs/ketchup
@@ -6,6 +7,16 @@ Examples:
       --out runs/ketchup --time-budget 20
   dope-hope train --out runs/ketchup --resume            # continue from runs/ketchup/last.pt
   torchrun --nproc_per_node 4 train.py --config dope_dr_50 --data D --object Ketchup --out R
+  dope-hope train --data synth/shelf --object Can Lemon --out runs/shelf --time-budget 60
+  dope-hope train --data synth/three hope/train_pbr --object Ketchup Mustard Mayo \\
+      --models-dir hope/models --out runs/three
+
+Several objects (--object A B ...): one network with a belief/affinity group per object in
+the order given (model.num_objects); each instance trains its class's group. --mesh A.obj
+B.obj pairs the meshes with the objects in order (or NAME=PATH). A BOP dataset (a split
+such as train_pbr / train, or one scene folder, with scene_gt.json, scene_camera.json, rgb/,
+mask_visib/ and the dataset's models/models_info.json) is read like a DOPE folder: obj_id i
+is the run's object obj_00000i, or the HOPE object of BOP id i, else not trained.
 
 Writes OUT/last.pt (and every checkpoint_every epochs / checkpoint_every_steps steps),
 OUT/best.pt (best validation keypoint accuracy), OUT/metrics.csv + metrics.jsonl,
@@ -40,10 +51,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="config name (lite, dope_dr_50, dope_dr_400) or YAML path (default lite); "
                              "ignored with --resume, which continues with the checkpoint's config")
     parser.add_argument("--data", nargs="+", type=Path, metavar="DIR",
-                        help="training folder(s), DOPE format (with --resume: default the checkpoint's)")
-    parser.add_argument("--object", dest="object_name", metavar="NAME",
-                        help="object class to train (case-insensitive), e.g. Ketchup (with --resume: "
-                             "default the checkpoint's)")
+                        help="training folder(s), DOPE format or BOP datasets (with --resume: default "
+                             "the checkpoint's)")
+    parser.add_argument("--object", dest="object_name", nargs="+", metavar="NAME",
+                        help="object class(es) to train (case-insensitive), e.g. Ketchup, or Can Lemon "
+                             "for one network of several objects; 'all': the 28 HOPE objects (with "
+                             "--resume: default the checkpoint's)")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     parser.add_argument("--val", nargs="+", type=Path, default=[], metavar="DIR",
                         help="validation folder(s) (default: a seeded train.val_fraction split of --data)")
@@ -68,10 +81,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "the same architecture")
     parser.add_argument("--backbone-weights", type=Path, metavar="PATH",
                         help="local torchvision VGG19 state dict to initialize the trunk (arch dope)")
-    parser.add_argument("--mesh", type=Path, metavar="PATH",
-                        help="object mesh: its bounding box gives the cuboid size stored in the checkpoint "
-                             "(default: the size the dataset records, e.g. NDDS _object_settings.json, "
-                             "else the HOPE catalog's)")
+    parser.add_argument("--mesh", nargs="+", metavar="PATH",
+                        help="object mesh(es), one per object in --object order (or NAME=PATH): the "
+                             "bounding box gives the cuboid size stored in the checkpoint (default: the "
+                             "size the dataset records, e.g. a synth frame, NDDS _object_settings.json, "
+                             "BOP models_info.json, else the HOPE catalog's)")
+    parser.add_argument("--models-dir", type=Path, metavar="DIR",
+                        help="models folder holding the objects' meshes (HOPE <Name>/textured.obj, BOP "
+                             "obj_NNNNNN.ply, <Name>.obj ...), instead of --mesh")
+    parser.add_argument("--units", choices=("m", "cm", "mm"), nargs="+",
+                        help="mesh file units, one for all meshes or one per mesh (default: .obj cm, .ply mm)")
     parser.add_argument("--symmetries", type=Path, metavar="FILE",
                         help="the object's symmetries, BOP models_info style (default: model_info.json "
                              "beside --mesh); used by --set targets.symmetry=auto")
@@ -87,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
     started = time.monotonic()  # a time budget counts the command's own checks too
     from dope_hope.config import apply_overrides, load_config
     from dope_hope.errors import ConfigError, InputFileError
+    from dope_hope.io.bop_scenes import is_bop_dataset
     from dope_hope.io.dope_json import list_dope_frames
     from dope_hope.io.paths import output_dir
 
@@ -98,8 +118,9 @@ def run(args: argparse.Namespace) -> int:
     for folder in [*(args.data or []), *args.val]:  # fail fast, before importing torch
         if not folder.is_dir():
             raise InputFileError(folder, "data folder not found")
-        if not list_dope_frames(folder):
-            raise InputFileError(folder, "no DOPE frames (NNNNNN.json beside an image) in this folder")
+        if not list_dope_frames(folder) and not is_bop_dataset(folder):
+            raise InputFileError(folder, "no DOPE frames (NNNNNN.json beside an image) and no BOP scenes "
+                                         "(scene_gt.json + scene_camera.json) in this folder")
     from dope_hope.training.settings import TrainJob, resolve_resume
     from dope_hope.training.trainer import train
 
@@ -124,11 +145,19 @@ def run(args: argparse.Namespace) -> int:
         from dope_hope.training.settings import resolve_init
 
         init_weights, why = resolve_init(args.init_weights, merge(config, overrides))
-    job = TrainJob(data=list(args.data or []), object_name=args.object_name or "", out=args.out, val=list(args.val),
-                   resume=resume, mesh=args.mesh, symmetries=args.symmetries,
-                   backbone_weights=args.backbone_weights,
+    from dope_hope.catalog import object_names
+    from dope_hope.training.settings import train_meshes
+
+    objects = object_names(args.object_name) if args.object_name else []
+    meshes, units = train_meshes(objects, args.mesh, args.models_dir, args.units)
+    one = len(objects) <= 1
+    job = TrainJob(data=list(args.data or []), object_name=objects[0] if objects else "", out=args.out,
+                   val=list(args.val), resume=resume, mesh=next(iter(meshes.values()), None) if one else None,
+                   symmetries=args.symmetries, backbone_weights=args.backbone_weights,
                    init_weights=init_weights, init_reason=why, device=args.device,
-                   progress=not args.no_progress, overrides=overrides, started=started)
+                   progress=not args.no_progress, overrides=overrides, started=started,
+                   objects=[] if one else objects, meshes={} if one else meshes,
+                   units={"": u for u in units.values()} if one else units)
     summary = train(job, config)
     status = summary["status"]
     acc, acc_d = summary.get("val_kp_acc"), summary.get("val_kp_acc_decoded")

@@ -618,7 +618,8 @@ def recorded_cuboid_size(json_path: str | os.PathLike, class_name: str) -> np.nd
     """(3,) cuboid size in metres (the annotations' object frame) that a dataset records for a
     class (case-insensitive), or None.
 
-    Sources: the frame's own ``"cuboid": {"class", "size_m", ...}`` (``dope-hope synth``), else
+    Sources: the frame's own ``"cuboid": {"class", "size_m", ...}`` (``dope-hope synth``; a list
+    of them for frames of several target objects), else
     the folder's NDDS ``_object_settings.json``.
 
     Raises:
@@ -631,9 +632,11 @@ def recorded_cuboid_size(json_path: str | os.PathLike, class_name: str) -> np.nd
     except (OSError, ValueError):
         doc = None
     cub = doc.get("cuboid") if isinstance(doc, dict) else None
-    if isinstance(cub, dict) and str(cub.get("class", "")).lower() == want:
+    for entry in cub if isinstance(cub, list) else [cub]:
+        if not isinstance(entry, dict) or str(entry.get("class", "")).lower() != want:
+            continue
         try:
-            size = np.asarray(cub.get("size_m"), dtype=np.float64).reshape(3)
+            size = np.asarray(entry.get("size_m"), dtype=np.float64).reshape(3)
         except (TypeError, ValueError):
             size = None
         if size is not None and np.all(np.isfinite(size)) and np.all(size > 0):

@@ -67,6 +67,25 @@ def class_of_mesh(path: str | os.PathLike) -> str | None:
     return None
 
 
+#: File stems that name no object (a class is then its folder's name).
+GENERIC_MESH_STEMS = frozenset({"textured", "textured_simple", "model", "mesh", "object", "scan",
+                                "google_16k", "poisson", "meshed", "nontextured", "untitled"})
+
+
+def mesh_class_name(path: str | os.PathLike) -> str:
+    """The class of a mesh given by its file alone: :func:`class_of_mesh` (a catalog object or
+    ``obj_NNNNNN``), else the folder's name when the file stem is a generic one
+    (:data:`GENERIC_MESH_STEMS`, e.g. ``grocery_objects/Can/textured.obj`` -> "Can"), else the
+    file stem (``my_widget.obj`` -> "my_widget")."""
+    p = Path(path)
+    known = class_of_mesh(p)
+    if known is not None:
+        return known
+    if p.stem.lower() in GENERIC_MESH_STEMS and p.parent.name not in ("", ".", ".."):
+        return p.parent.name
+    return p.stem
+
+
 def parse_mesh_args(mesh_args: Sequence[str | os.PathLike], class_names: Sequence[str],
                     flag: str = "--mesh") -> dict[str, Path]:
     """``[NAME=]PATH`` values of ``flag`` -> {class name: path}.

@@ -12,6 +12,7 @@ Conventions of the generated annotation (also recorded in each JSON's ``synth`` 
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -24,6 +25,16 @@ from dope_hope.synth.scene import SceneSpec
 
 if TYPE_CHECKING:  # render.py imports OpenGL; annotations need only the arrays
     from dope_hope.synth.render import RenderOutput
+
+
+@dataclass(frozen=True)
+class TargetBox:
+    """What annotates one target object: its class and its cuboid (size (3,), centre (3,) in
+    the mesh frame, metres)."""
+
+    class_name: str
+    size: np.ndarray
+    center: np.ndarray
 
 
 @dataclass
@@ -46,14 +57,16 @@ def mask_bbox(mask: np.ndarray) -> np.ndarray | None:
     return np.array([cols[0], rows[0], cols[-1], rows[-1]], dtype=np.float64)
 
 
-def annotate_frame(spec: SceneSpec, render: RenderOutput, class_name: str, cuboid_size: np.ndarray,
-                   cuboid_center: np.ndarray, source: Path | str = Path("frame.json")
+def annotate_frame(spec: SceneSpec, render: RenderOutput, boxes: Sequence[TargetBox],
+                   source: Path | str = Path("frame.json")
                    ) -> tuple[FrameAnnotation, list[InstanceStats]]:
-    """The FrameAnnotation (targets only) and per-instance pixel statistics."""
-    kp3 = cuboid_keypoints(cuboid_size, cuboid_center)
+    """The FrameAnnotation (targets only, each with the class and cuboid of its target object
+    ``boxes[obj.target_index]``) and per-instance pixel statistics."""
+    keypoints = [cuboid_keypoints(b.size, b.center) for b in boxes]
     H, W = render.seg.shape
     objects, stats = [], []
     for obj in spec.targets:
+        class_name, kp3 = boxes[obj.target_index].class_name, keypoints[obj.target_index]
         mask = render.seg == obj.seg_id
         visib = int(mask.sum())
         total = int(render.px_all.get(obj.seg_id, 0))

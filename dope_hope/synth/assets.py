@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import os
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -18,7 +20,7 @@ import trimesh
 
 from dope_hope.errors import InputFileError
 from dope_hope.io.meshes import load_mesh, mesh_cuboid
-from dope_hope.io.models_dir import class_of_mesh
+from dope_hope.io.models_dir import mesh_class_name
 from dope_hope.synth.scene import ShapeInfo
 
 #: Mesh file suffixes of the distractor library (--distractors).
@@ -102,30 +104,39 @@ class MeshAsset:
 
 
 def guess_class_name(mesh_path: str | os.PathLike) -> str:
-    """The class a mesh file is of (:func:`dope_hope.io.models_dir.class_of_mesh`), else its stem."""
-    return class_of_mesh(mesh_path) or Path(mesh_path).stem
+    """The class a mesh file is of: :func:`dope_hope.io.models_dir.mesh_class_name` (a catalog
+    object, else the folder of a generic file name such as ``textured.obj``, else the stem)."""
+    return mesh_class_name(mesh_path)
 
 
-def list_distractor_meshes(folder: str | os.PathLike, target_path: str | os.PathLike | None = None,
-                           target_class: str | None = None) -> list[Path]:
-    """Mesh files under ``folder`` (recursive, sorted), minus copies of the target.
+def _as_list(value: Any) -> list[Any]:
+    if value is None:
+        return []
+    return [value] if isinstance(value, (str, os.PathLike)) else list(value)
 
-    Excluded, so that no unannotated target instance is ever rendered: the target file itself,
-    files beside it in its own sub-folder (e.g. ``Ketchup/textured_simple.obj``), and files
-    whose name or folder names the target class.
+
+def list_distractor_meshes(folder: str | os.PathLike,
+                           target_path: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
+                           target_class: str | Sequence[str] | None = None) -> list[Path]:
+    """Mesh files under ``folder`` (recursive, sorted), minus copies of the targets.
+
+    Excluded, so that no unannotated target instance is ever rendered: each target file
+    itself, files beside it in its own sub-folder (e.g. ``Ketchup/textured_simple.obj``), and
+    files whose name or folder names a target class (one path / class, or several).
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise InputFileError(folder, "distractor folder not found")
     files = sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
-    tgt = Path(target_path).resolve() if target_path is not None else None
-    cls = target_class.lower() if target_class else None
+    targets = [Path(p).resolve() for p in _as_list(target_path)]
+    classes = {c.lower() for c in _as_list(target_class) if c}
+    root = folder.resolve()
     out = []
     for f in files:
         r = f.resolve()
-        if tgt is not None and (r == tgt or (r.parent == tgt.parent and r.parent != folder.resolve())):
+        if any(r == tgt or (r.parent == tgt.parent and r.parent != root) for tgt in targets):
             continue
-        if cls is not None and (guess_class_name(f).lower() == cls):
+        if classes and guess_class_name(f).lower() in classes:
             continue
         out.append(f)
     if not out:

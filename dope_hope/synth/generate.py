@@ -20,7 +20,7 @@ import numpy as np
 from dope_hope.version import __version__
 from dope_hope.annotation import FrameAnnotation
 from dope_hope.errors import ConfigError
-from dope_hope.synth.annotate import InstanceStats, annotate_frame, canonical_pose_labels
+from dope_hope.synth.annotate import InstanceStats, TargetBox, annotate_frame, canonical_pose_labels
 from dope_hope.synth.assets import (
     DistractorLibrary,
     MeshAsset,
@@ -55,7 +55,8 @@ class SynthFrame:
             seg_distractor_base + j distractors); annotation: targets' FrameAnnotation;
             stats: per-target pixel counts; scene: the sampled scene; alone_depth: seg id ->
             (H, W) depth of that target rendered alone (only when requested); target: the
-            frame's target asset; category: its HOPE category (procedural objects only).
+            frame's (first) target asset; category: its HOPE category (procedural objects
+            only); targets: every target object's asset (``ObjectSpec.target_index`` order).
     """
 
     index: int
@@ -69,18 +70,22 @@ class SynthFrame:
     target: MeshAsset
     alone_depth: dict[int, np.ndarray] = field(default_factory=dict)
     category: str | None = None
+    targets: list[MeshAsset] = field(default_factory=list)
 
-    def json_extra(self, seed: int, class_name: str, mesh_name: str, cuboid_size: np.ndarray,
-                   cuboid_center: np.ndarray, seg_base: int, depth_noise: bool) -> dict[str, Any]:
-        """The extra top-level JSON keys written beside the project-format annotation."""
+    def json_extra(self, seed: int, boxes: Sequence[TargetBox], mesh_names: Sequence[str],
+                   seg_base: int, depth_noise: bool) -> dict[str, Any]:
+        """The extra top-level JSON keys written beside the project-format annotation:
+        ``cuboid`` (one target object: its class and box; several: a list of them, in the
+        order the objects were given) and ``synth``."""
+        cuboids = [{"class": b.class_name, "size_m": [float(v) for v in b.size],
+                    "center_m": [float(v) for v in b.center],
+                    "frame": "mesh (axis-aligned bounding box)"} for b in boxes]
         return {
-            "cuboid": {"class": class_name,
-                       "size_m": [float(v) for v in cuboid_size],
-                       "center_m": [float(v) for v in cuboid_center],
-                       "frame": "mesh (axis-aligned bounding box)"},
+            "cuboid": cuboids[0] if len(cuboids) == 1 else cuboids,
             "synth": {
                 "generator": GENERATOR_NAME, "version": __version__, "seed": int(seed),
-                "index": int(self.index), "mesh": mesh_name, "depth_noise": bool(depth_noise),
+                "index": int(self.index), "mesh": mesh_names[0] if len(mesh_names) == 1 else list(mesh_names),
+                "depth_noise": bool(depth_noise),
                 "seg_ids": {"background": 0, "targets": "instance_id (1..k)",
                             "distractors": f"{seg_base} + j (j = 1..)"},
                 "bbox": "visible pixels; inclusive pixel-centre coordinates (x_min, y_min) / (x_max, y_max)",
@@ -96,16 +101,18 @@ class SynthFrame:
 
 
 class FrameGenerator:
-    """Renders frames of one target object, or of a new procedural object per frame (one
-    OpenGL context; one per process).
+    """Renders frames of one or several target objects, or of a new procedural object per
+    frame (one OpenGL context; one per process).
 
     Args:
-        mesh_path: target mesh (HOPE OBJ in cm, BOP PLY in mm; see io.meshes.load_mesh); None
-            with ``procedural``.
+        mesh_path: target mesh (HOPE OBJ in cm, BOP PLY in mm; see io.meshes.load_mesh), or
+            several (each frame draws which of them appear: scene.sample_targets); None with
+            ``procedural``.
         size: (W, H) or "WxH".
         config: synth config name/path/overrides (see settings.load_synth_config).
-        class_name: annotation class (default: catalog name guessed from the path, else stem).
-        units: mesh file units override ("m", "cm", "mm").
+        class_name: annotation class, one per mesh (default: the class the file names,
+            io.models_dir.mesh_class_name); class names must differ (case-insensitive).
+        units: mesh file units override ("m", "cm", "mm"): one for every mesh, or one per mesh.
         backgrounds: background photos, a folder or image file or several of either
             (default: procedural backgrounds).
         distractors: folder of distractor meshes (default: procedural primitives only).
@@ -115,9 +122,11 @@ class FrameGenerator:
             ``procedural`` section) instead of ``mesh_path``: pretraining data.
     """
 
-    def __init__(self, mesh_path: str | os.PathLike | None, size: tuple[int, int] | str = (640, 480),
-                 config: str | os.PathLike | dict | None = None, class_name: str | None = None,
-                 units: str | None = None,
+    def __init__(self, mesh_path: str | os.PathLike | Sequence[str | os.PathLike] | None,
+                 size: tuple[int, int] | str = (640, 480),
+                 config: str | os.PathLike | dict | None = None,
+                 class_name: str | Sequence[str] | None = None,
+                 units: str | Sequence[str | None] | None = None,
                  backgrounds: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
                  distractors: str | os.PathLike | None = None, depth_noise: bool = False,
                  seed: int = 0, procedural: bool = False):
@@ -128,15 +137,19 @@ class FrameGenerator:
         if self.procedural == (mesh_path is not None):
             raise ConfigError("give a target mesh or procedural objects, not both" if self.procedural
                               else "no target: give a mesh or procedural objects")
+        self.targets: list[MeshAsset] = []
         if self.procedural:
-            self.class_name = class_name or str(self.cfg["procedural"]["class_name"])
-            self.target = None
+            if class_name is not None and not isinstance(class_name, str):
+                raise ConfigError("--class-name: --procedural objects have one class")
+            self.class_names = [class_name or str(self.cfg["procedural"]["class_name"])]
         else:
-            self.class_name = class_name or guess_class_name(mesh_path)
-            self.target = MeshAsset.load(mesh_path, name=self.class_name, units=units)
+            self.targets = load_targets(mesh_path, class_name, units)
+            self.class_names = [t.name for t in self.targets]
+        self.class_name = self.class_names[0]
+        self.target = self.targets[0] if self.targets else None
         self.library = None
         if distractors is not None:
-            files = list_distractor_meshes(distractors, mesh_path, self.class_name)
+            files = list_distractor_meshes(distractors, mesh_path, self.class_names)
             d = self.cfg["distractors"]
             self.library = DistractorLibrary(files, d["mesh_cache"], d["max_texture_px"])
         self.backgrounds = BackgroundSource(self.cfg["background"], backgrounds)
@@ -173,33 +186,50 @@ class FrameGenerator:
             return self._meshes.library_mesh(self.library.get(obj.mesh_index), obj.material)
         return self._meshes.primitive_mesh(obj.geometry, obj.material)
 
-    def _target_look(self, target: MeshAsset) -> TargetLook:
-        """The target's size, shape class and colours (for the hard negatives); the fixed
-        target's made once, a procedural target's per frame."""
-        if target is not self.target:
-            return TargetLook.of(target.mesh, target.texture, target.colors, target.cuboid_size)
-        if getattr(self, "_look", None) is None:
-            self._look = TargetLook.of(target.mesh, target.texture, target.colors, target.cuboid_size)
-        return self._look
+    def _target_looks(self, targets: list[MeshAsset]) -> list[TargetLook]:
+        """The targets' sizes, shape classes and colours (for the hard negatives); the fixed
+        targets' made once, a procedural target's per frame."""
+        if targets is not self.targets:
+            return [TargetLook.of(t.mesh, t.texture, t.colors, t.cuboid_size) for t in targets]
+        if getattr(self, "_looks", None) is None:
+            self._looks = [TargetLook.of(t.mesh, t.texture, t.colors, t.cuboid_size) for t in targets]
+        return self._looks
+
+    def dataset_info(self, gen_kwargs: dict[str, Any]) -> dict[str, Any]:
+        """The dataset settings (:func:`dataset_info`) of this generator's targets: single
+        values for one target object (or procedural objects), lists for several."""
+        t = self.targets
+        if len(t) > 1:
+            return dataset_info(gen_kwargs, self.cfg, self.class_names, [a.cuboid_size for a in t],
+                                [a.cuboid_center for a in t])
+        return dataset_info(gen_kwargs, self.cfg, self.class_name, t[0].cuboid_size if t else None,
+                            t[0].cuboid_center if t else None)
+
+    def boxes(self, targets: list[MeshAsset]) -> list[TargetBox]:
+        """Class and cuboid of each target object (the annotation's)."""
+        return [TargetBox(name, t.cuboid_size, t.cuboid_center) for name, t in zip(self.class_names, targets)]
 
     def sample_scene(self, index: int, seed: int | None = None, force_occluder: int | None = None
-                     ) -> tuple[SceneSpec, dict[str, np.random.Generator], MeshAsset, str | None]:
+                     ) -> tuple[SceneSpec, dict[str, np.random.Generator], list[MeshAsset], str | None]:
         """The random scene of frame ``index`` (no rendering), its remaining random streams, its
-        target asset and (procedural objects) the target's category."""
+        target assets (``ObjectSpec.target_index`` order) and (procedural objects) the
+        target's category."""
         streams = frame_streams(self.seed if seed is None else seed, index)
-        target, category = self.target, None
+        targets, category = self.targets, None
         if self.procedural:
             from dope_hope.synth.objects import sample_object
 
             p = self.cfg["procedural"]
             obj = sample_object(streams["object"], p["categories"], float(p["size_jitter"]),
                                 int(p["texture_px"]), name=self.class_name)
-            target, category = obj.asset, obj.category
+            targets, category = [obj.asset], obj.category
         n_lib = len(self.library) if self.library is not None else 0
-        spec = sample_scene(streams, self.size, self.cfg, target.shape, n_lib,
+        shapes = targets[0].shape if len(targets) == 1 else [t.shape for t in targets]
+        looks = self._target_looks(targets)
+        spec = sample_scene(streams, self.size, self.cfg, shapes, n_lib,
                             self.library.shape if self.library is not None else None,
-                            force_occluder=force_occluder, target_look=self._target_look(target))
-        return spec, streams, target, category
+                            force_occluder=force_occluder, target_look=looks[0] if len(looks) == 1 else looks)
+        return spec, streams, targets, category
 
     def render_frame(self, index: int, seed: int | None = None, force_occluder: int | None = None,
                      with_alone_depth: bool = False) -> SynthFrame:
@@ -213,10 +243,12 @@ class FrameGenerator:
             with_alone_depth: also return each target's depth rendered alone.
         """
         self._ensure_renderer()
-        spec, streams, target, category = self.sample_scene(index, seed, force_occluder)
+        spec, streams, targets, category = self.sample_scene(index, seed, force_occluder)
+        target = targets[0]
         W, H = self.size
-        out = self._renderer.render(spec, lambda obj: self._mesh_for(obj, target),
-                                    (target.cuboid_size, target.cuboid_center),
+        out = self._renderer.render(spec, lambda obj: self._mesh_for(obj, targets[obj.target_index]),
+                                    lambda obj: (targets[obj.target_index].cuboid_size,
+                                                 targets[obj.target_index].cuboid_center),
                                     with_alone_depth=with_alone_depth)
         background = self.backgrounds.sample(streams["background"], W, H)
         rgb = composite(background, out.color, out.alpha)
@@ -228,17 +260,15 @@ class FrameGenerator:
         labelled = spec
         if category is not None and self.cfg["procedural"]["canonical_labels"]:
             labelled = canonical_pose_labels(spec, category, target.cuboid_size)
-        annotation, stats = annotate_frame(labelled, out, self.class_name, target.cuboid_size,
-                                           target.cuboid_center)
+        annotation, stats = annotate_frame(labelled, out, self.boxes(targets))
         return SynthFrame(index=int(index), rgb=rgb, depth=depth, depth_clean=out.depth, seg=out.seg,
                           annotation=annotation, stats=stats, scene=spec, alone_depth=out.alone_depth,
-                          target=target, category=category)
+                          target=target, category=category, targets=list(targets))
 
     def json_extra(self, frame: SynthFrame, seed: int | None = None) -> dict[str, Any]:
-        target = frame.target
-        mesh_name = "procedural" if frame.category is not None else target.path.name
-        return frame.json_extra(self.seed if seed is None else seed, self.class_name, mesh_name,
-                                target.cuboid_size, target.cuboid_center,
+        targets = frame.targets or [frame.target]
+        names = ["procedural"] if frame.category is not None else [t.path.name for t in targets]
+        return frame.json_extra(self.seed if seed is None else seed, self.boxes(targets), names,
                                 int(self.cfg["output"]["seg_distractor_base"]), self.depth_noise)
 
     def write_frame(self, out_dir: str | os.PathLike, index: int) -> Path:
@@ -246,6 +276,37 @@ class FrameGenerator:
         frame = self.render_frame(index)
         return write_frame(out_dir, index, frame.rgb, frame.depth, frame.seg, frame.annotation,
                            extra=self.json_extra(frame))
+
+
+def load_targets(mesh_path: str | os.PathLike | Sequence[str | os.PathLike],
+                 class_name: str | Sequence[str] | None = None,
+                 units: str | Sequence[str | None] | None = None) -> list[MeshAsset]:
+    """The target meshes (one path or several), each named by its ``class_name`` entry or the
+    class its file names; ``units`` one for all or one per mesh.
+
+    Raises:
+        ConfigError: class names or units not one per mesh; two targets of one class.
+    """
+    paths = [mesh_path] if isinstance(mesh_path, (str, os.PathLike)) else list(mesh_path)
+    if not paths:
+        raise ConfigError("no target: give a mesh or procedural objects")
+    names = [None] * len(paths) if class_name is None else \
+        [class_name] if isinstance(class_name, str) else list(class_name)
+    unit_list = [units] * len(paths) if units is None or isinstance(units, str) else list(units)
+    if len(unit_list) == 1:
+        unit_list = unit_list * len(paths)
+    if len(names) != len(paths):
+        raise ConfigError(f"--class-name: {len(names)} name(s) for {len(paths)} mesh(es); give one per mesh")
+    if len(unit_list) != len(paths):
+        raise ConfigError(f"--units: {len(unit_list)} value(s) for {len(paths)} meshes; give one, or one per mesh")
+    names = [n or guess_class_name(p) for n, p in zip(names, paths)]
+    seen: dict[str, str] = {}
+    for name, path in zip(names, paths):
+        if name.lower() in seen:
+            raise ConfigError(f"--mesh {path}: class {name!r} is also the class of {seen[name.lower()]}; "
+                              "give each mesh its own --class-name")
+        seen[name.lower()] = str(path)
+    return [MeshAsset.load(p, name=n, units=u) for p, n, u in zip(paths, names, unit_list)]
 
 
 def render_frame(mesh_path: str | os.PathLike, index: int = 0, seed: int = 0,
@@ -344,10 +405,19 @@ class GenerateSummary:
         return self.written / self.seconds if self.seconds > 0 else 0.0
 
 
+def _one_or_list(value: Any) -> Any:
+    """A string or None as it is; a sequence of one value as that value; else a list (the
+    settings of a one-object dataset keep their single values)."""
+    if value is None or isinstance(value, str):
+        return value
+    values = list(value)
+    return values[0] if len(values) == 1 else values
+
+
 def photo_paths(photos: str | os.PathLike | Sequence[str | os.PathLike] | None) -> str | list[str] | None:
-    """``backgrounds`` as plain strings for the worker processes and the dataset's settings: one
-    path stays a string (the settings file of a one-folder dataset is the same as before
-    several were allowed), several become a list."""
+    """``backgrounds`` (or the target meshes) as plain strings for the worker processes and the
+    dataset's settings: one path stays a string (the settings file of a one-folder / one-mesh
+    dataset is the same as before several were allowed), several become a list."""
     if photos is None:
         return None
     if isinstance(photos, (str, os.PathLike)):
@@ -356,10 +426,20 @@ def photo_paths(photos: str | os.PathLike | Sequence[str | os.PathLike] | None) 
     return paths[0] if len(paths) == 1 else paths
 
 
-def dataset_info(gen_kwargs: dict[str, Any], cfg: dict[str, Any], class_name: str,
-                 cuboid_size: np.ndarray | None, cuboid_center: np.ndarray | None) -> dict[str, Any]:
+def dataset_info(gen_kwargs: dict[str, Any], cfg: dict[str, Any], class_name: str | list[str],
+                 cuboid_size: np.ndarray | list[np.ndarray] | None,
+                 cuboid_center: np.ndarray | list[np.ndarray] | None) -> dict[str, Any]:
     """Settings that define a dataset's frames (must match when resuming or adding shards);
-    procedural objects have no dataset-wide cuboid (None: each frame's JSON records its own)."""
+    procedural objects have no dataset-wide cuboid (None: each frame's JSON records its own).
+    Several target objects: ``class``, ``mesh`` and the cuboid entries are lists (one target
+    object: single values, as the settings of a one-object dataset always were)."""
+    def vec(v):
+        if v is None:
+            return None
+        if isinstance(v, list):
+            return [vec(x) for x in v]
+        return [float(x) for x in v]
+
     def name(p):
         if isinstance(p, list):
             return [Path(q).name for q in p]
@@ -372,18 +452,19 @@ def dataset_info(gen_kwargs: dict[str, Any], cfg: dict[str, Any], class_name: st
             "backgrounds": name(gen_kwargs.get("backgrounds")),
             "distractors": name(gen_kwargs.get("distractors")),
             "depth_noise": bool(gen_kwargs.get("depth_noise")),
-            "cuboid_size_m": None if cuboid_size is None else [float(v) for v in cuboid_size],
-            "cuboid_center_m": None if cuboid_center is None else [float(v) for v in cuboid_center],
+            "cuboid_size_m": vec(cuboid_size), "cuboid_center_m": vec(cuboid_center),
             "config": cfg}
 
 
-def generate_dataset(out_dir: str | os.PathLike, mesh_path: str | os.PathLike | None, count: int,
+def generate_dataset(out_dir: str | os.PathLike,
+                     mesh_path: str | os.PathLike | Sequence[str | os.PathLike] | None, count: int,
                      seed: int = 0, size: tuple[int, int] | str = (640, 480),
                      config: str | os.PathLike | dict | None = None, workers: int = 1,
                      shard: tuple[int, int] | str | None = None,
                      backgrounds: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
                      distractors: str | os.PathLike | None = None, depth_noise: bool = False,
-                     preview: bool = False, class_name: str | None = None, units: str | None = None,
+                     preview: bool = False, class_name: str | Sequence[str] | None = None,
+                     units: str | Sequence[str | None] | None = None,
                      progress: bool = True, indices: list[int] | None = None,
                      on_frame: Callable[[int], None] | None = None,
                      procedural: bool = False) -> GenerateSummary:
@@ -397,6 +478,7 @@ def generate_dataset(out_dir: str | os.PathLike, mesh_path: str | os.PathLike | 
         indices: explicit frame indices instead of range(count) (still filtered by shard).
         on_frame: called with each frame index once it is written (in this process).
         procedural: a new procedural object per frame instead of ``mesh_path`` (None).
+        mesh_path, class_name, units: one target object, or several (see FrameGenerator).
 
     Returns:
         A GenerateSummary (frames written / skipped, seconds, preview path).
@@ -410,17 +492,14 @@ def generate_dataset(out_dir: str | os.PathLike, mesh_path: str | os.PathLike | 
     i_shard, n_shard = parse_shard(shard)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    gen_kwargs = dict(mesh_path=None if mesh_path is None else str(mesh_path), size=parse_size(size), config=config,
-                      class_name=class_name, units=units,
+    gen_kwargs = dict(mesh_path=photo_paths(mesh_path), size=parse_size(size), config=config,
+                      class_name=_one_or_list(class_name), units=_one_or_list(units),
                       backgrounds=photo_paths(backgrounds),
                       distractors=None if distractors is None else str(distractors),
                       depth_noise=depth_noise, seed=int(seed), procedural=bool(procedural))
     # Validate inputs in this process (clear errors before any worker starts).
     local = FrameGenerator(**gen_kwargs)
-    target = local.target
-    check_or_write_info(out, dataset_info(gen_kwargs, local.cfg, local.class_name,
-                                          None if target is None else target.cuboid_size,
-                                          None if target is None else target.cuboid_center))
+    check_or_write_info(out, local.dataset_info(gen_kwargs))
     wanted = [i for i in (range(count) if indices is None else indices) if i % n_shard == i_shard]
     todo = [i for i in wanted if not is_complete(out, i)]
     remove_stale_temporaries(out, set(todo))

@@ -169,14 +169,16 @@ class SceneRenderer:
         self._r.viewport_width, self._r.viewport_height = int(w), int(h)
 
     def render(self, spec: SceneSpec, mesh_for: Callable[[ObjectSpec], pyrender.Mesh],
-               cuboid_for_target: tuple[np.ndarray, np.ndarray] | None = None,
+               cuboid_for_target: tuple[np.ndarray, np.ndarray]
+               | Callable[[ObjectSpec], tuple[np.ndarray, np.ndarray]] | None = None,
                with_alone_depth: bool = False) -> RenderOutput:
         """Render all passes of a scene.
 
         Args:
             spec: the scene.
             mesh_for: the pyrender mesh of an object.
-            cuboid_for_target: (size (3,), center (3,)) of the target's cuboid, to size the
+            cuboid_for_target: (size (3,), center (3,)) of the target's cuboid, or a function
+                giving it for a target instance (several target objects), to size the
                 alone-render canvas (default: the bounding sphere's box).
             with_alone_depth: also return each target's alone depth (tests, diagnostics).
         """
@@ -206,7 +208,7 @@ class SceneRenderer:
             if obj.role != "target":
                 continue
             if cuboid_for_target is not None:
-                size, center = cuboid_for_target
+                size, center = cuboid_for_target(obj) if callable(cuboid_for_target) else cuboid_for_target
                 kp = cuboid_keypoints(size, center)
             else:
                 kp = cuboid_keypoints(np.full(3, 2 * obj.radius), np.linalg.solve(obj.R, obj.center - obj.t))

@@ -8,7 +8,7 @@ Every part draws from its own random stream (:func:`frame_streams`), so switchin
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -71,6 +71,8 @@ class ObjectSpec:
         geometry: the primitive's trimesh (source "primitive").
         material: its material.
         occluder_of: for occluders, the seg id of the target it was placed in front of.
+        target_index: for targets, which of the generator's target objects it is (0 with
+            one target object).
     """
 
     role: str
@@ -84,6 +86,7 @@ class ObjectSpec:
     mesh_index: int | None = None
     geometry: Any = None
     occluder_of: int | None = None
+    target_index: int = 0
 
 
 @dataclass
@@ -163,12 +166,23 @@ def _target_center_pixel(rng: np.random.Generator, W: int, H: int, r_px: float,
     return _pixel_inside(rng, W, m), _pixel_inside(rng, H, m)
 
 
-def sample_targets(rng: np.random.Generator, K: np.ndarray, W: int, H: int, shape: ShapeInfo,
-                   cfg: dict[str, Any]) -> list[ObjectSpec]:
-    """Target instances: uniform random rotation, centre depth in ``distance_m``, no overlap."""
+def sample_targets(rng: np.random.Generator, K: np.ndarray, W: int, H: int,
+                   shapes: ShapeInfo | Sequence[ShapeInfo], cfg: dict[str, Any]) -> list[ObjectSpec]:
+    """Target instances: uniform random rotation, centre depth in ``distance_m``, no overlap.
+
+    ``shapes``: the bounding sphere of each target object (one, or one per object). With
+    several objects the frame's ``count`` instances take their objects from a random
+    permutation of them, cycled (distinct objects while the count allows; which objects a
+    frame shows is random, and a count of 0 is a negative frame); ``target_index`` records it.
+    With one object no extra number is drawn (its frames are the one-object generator's).
+    """
+    shapes = [shapes] if isinstance(shapes, ShapeInfo) else list(shapes)
     n = int(rng.integers(cfg["count"][0], cfg["count"][1] + 1))
+    order = rng.permutation(len(shapes)) if len(shapes) > 1 else np.zeros(1, int)
     placed: list[ObjectSpec] = []
-    for _ in range(n):
+    for i in range(n):
+        k = int(order[i % len(order)])
+        shape = shapes[k]
         for _try in range(int(cfg["max_tries"])):
             R = Rotation.random(random_state=rng).as_matrix()
             z = rng.uniform(*cfg["distance_m"])
@@ -179,7 +193,8 @@ def sample_targets(rng: np.random.Generator, K: np.ndarray, W: int, H: int, shap
                 t = c - R @ shape.center
                 placed.append(ObjectSpec(role="target", seg_id=len(placed) + 1, R=R, t=t,
                                          radius=shape.radius, center=c, source="target",
-                                         material=MaterialSpec(np.ones(4), 0.0, 0.5, keep_texture=True)))
+                                         material=MaterialSpec(np.ones(4), 0.0, 0.5, keep_texture=True),
+                                         target_index=k))
                 break
     return placed
 
@@ -289,18 +304,22 @@ def sample_occluders(rng: np.random.Generator, K: np.ndarray, targets: list[Obje
 
 
 def sample_hard_negatives(rng: np.random.Generator, K: np.ndarray, W: int, H: int,
-                          placed: list[ObjectSpec], look: TargetLook, cfg: dict[str, Any],
-                          target_cfg: dict[str, Any], first_seg_id: int) -> list[ObjectSpec]:
+                          placed: list[ObjectSpec], look: TargetLook | Sequence[TargetLook],
+                          cfg: dict[str, Any], target_cfg: dict[str, Any],
+                          first_seg_id: int) -> list[ObjectSpec]:
     """Look-alikes of the target (:mod:`dope_hope.synth.hard_negatives`), placed as the targets
     are (``target_cfg``: depth band, margins, truncation, separation) clear of ``placed``.
+    With several target objects (``look`` one per object) each look-alike imitates a random one.
 
     Role "hard_negative", seg ids ``first_seg_id``, ``first_seg_id + 1``, ...; never annotated.
     """
+    looks = [look] if isinstance(look, TargetLook) else list(look)
     n = int(rng.integers(cfg["count"][0], cfg["count"][1] + 1))
     out: list[ObjectSpec] = []
     for _ in range(n):
-        geometry = hard_negative_geometry(rng, look, cfg)
-        color, texture = hard_negative_material(rng, look, cfg)
+        one = looks[int(rng.integers(0, len(looks)))] if len(looks) > 1 else looks[0]
+        geometry = hard_negative_geometry(rng, one, cfg)
+        color, texture = hard_negative_material(rng, one, cfg)
         material = MaterialSpec(color, 0.0, float(rng.uniform(*target_cfg["roughness"])), texture)
         radius = float(np.linalg.norm(geometry.vertices, axis=1).max())
         R = Rotation.random(random_state=rng).as_matrix()
@@ -358,20 +377,23 @@ def sample_lights(rng: np.random.Generator, targets: list[ObjectSpec],
 
 
 def sample_scene(streams: dict[str, np.random.Generator], size: tuple[int, int],
-                 cfg: dict[str, Any], target_shape: ShapeInfo, n_distractor_meshes: int = 0,
+                 cfg: dict[str, Any], target_shape: ShapeInfo | Sequence[ShapeInfo],
+                 n_distractor_meshes: int = 0,
                  distractor_info: Callable[[int], ShapeInfo] | None = None,
-                 force_occluder: int | None = None, target_look: TargetLook | None = None) -> SceneSpec:
+                 force_occluder: int | None = None,
+                 target_look: TargetLook | Sequence[TargetLook] | None = None) -> SceneSpec:
     """The complete random scene of one frame (see module docstring for the streams).
 
     Args:
         streams: from :func:`frame_streams`.
         size: (W, H) pixels.
         cfg: the synth config.
-        target_shape: bounding sphere of the target mesh (model frame).
+        target_shape: bounding sphere of the target mesh (model frame), or one per target
+            object (:func:`sample_targets`).
         n_distractor_meshes, distractor_info: the distractor mesh library (size, bounds of i).
         force_occluder: index of a target instance that must get an occluder in front.
         target_look: the target's size, shape class and colours, for the hard negatives
-            (none without it).
+            (none without it); one per target object with several.
     """
     W, H = size
     K = sample_intrinsics(streams["camera"], size, cfg["camera"])

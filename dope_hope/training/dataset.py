@@ -1,12 +1,16 @@
-"""Training data: a torch Dataset over DOPE-format folders.
+"""Training data: a torch Dataset over DOPE-format folders (and BOP-format datasets:
+:mod:`dope_hope.io.bop_scenes`).
 
-One frame becomes one item:
+One frame becomes one item, for a model of N objects (N = 1: one class):
 
 * ``image``: (3, H, W) float32, ImageNet-normalized RGB at the training input size;
-* ``belief`` (9, h, w) and ``affinity`` (16, h, w): :func:`dope_hope.maps.targets.make_targets`
-  of the augmented keypoints (:mod:`~dope_hope.training.augment`) at the head's stride;
+* ``belief`` (9N, h, w) and ``affinity`` (16N, h, w): per object k (channels [9k, 9k+9) and
+  [16k, 16k+16)) :func:`dope_hope.maps.targets.make_targets` of the augmented keypoints
+  (:mod:`~dope_hope.training.augment`) of that object's instances at the head's stride; all
+  zero for an object absent from the frame;
 * ``keypoints``: (max_instances, 9, 2) float32 input-image pixels of the instances of the
-  class, NaN where padded or where the keypoint left the image (what validation scores);
+  classes, NaN where padded or where the keypoint left the image (what validation scores);
+* ``classes``: (max_instances,) int64 object index of each ``keypoints`` row, -1 where padded;
 * ``index`` (int) and ``bad_files`` (list of image files that could not be read and were
   replaced by another frame; the trainer reports each once).
 
@@ -29,6 +33,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, Sampler
 
+from dope_hope.annotation import FrameAnnotation
 from dope_hope.errors import ConfigError, DopeHopeError, InputFileError
 from dope_hope.geometry import (
     KEYPOINT_ORDER,
@@ -88,15 +93,68 @@ class FrameRecord:
     #: (I, 3) unit camera direction in each instance's object frame (NaN without a pose);
     #: what symmetry-aware relabelling (dope_hope.symmetry.labels) decides on.
     view_dirs: np.ndarray | None = None
+    #: (I,) int object index of each instance in the run's object list (None: all object 0).
+    classes: np.ndarray | None = None
+
+    def object_indices(self) -> np.ndarray:
+        """(I,) int object index of each instance."""
+        return self.classes if self.classes is not None else np.zeros(len(self.keypoints), np.int64)
+
+
+def class_index(class_names: str | Sequence[str]) -> dict[str, int]:
+    """{lower-case class name: object index} of a run's object list (one name or several)."""
+    names = [class_names] if isinstance(class_names, str) else list(class_names)
+    return {n.lower(): k for k, n in enumerate(names)}
+
+
+def instance_kept(visibility: float | None, visible_pixels: int | None, min_visibility: float) -> bool:
+    """The rule for a training instance's visibility: a recorded fraction must be positive and
+    >= ``min_visibility``; a recorded pixel count (BlenderProc) positive."""
+    if visibility is not None and (visibility <= 0 or visibility < min_visibility):
+        return False
+    return visible_pixels is None or visible_pixels > 0
+
+
+def frame_record(frame: FrameAnnotation, annotation_path: Path, want: dict[str, int],
+                 keypoint_order: str = KEYPOINT_ORDER, min_visibility: float = 0.0) -> FrameRecord:
+    """The record of one annotated frame (any reader's FrameAnnotation): the instances of the
+    run's classes (``want``: :func:`class_index`) with a projected cuboid that pass
+    :func:`instance_kept`, keypoints in ``keypoint_order``.
+
+    Raises:
+        InputFileError: no image beside the annotation.
+    """
+    from dope_hope.io.dope_json import find_image
+
+    kps: list[np.ndarray] = []
+    dirs: list[np.ndarray] = []
+    classes: list[int] = []
+    for obj in frame.objects:
+        k = want.get(obj.class_name.lower())
+        if k is None or obj.projected_cuboid is None:
+            continue
+        if not instance_kept(obj.visibility, obj.visible_pixels, min_visibility):
+            continue
+        kp = np.asarray(obj.projected_cuboid, dtype=np.float64).reshape(NUM_KEYPOINTS, 2)
+        kps.append(convert_keypoint_order(kp, obj.keypoint_order, keypoint_order))
+        dirs.append(camera_direction(obj.R, obj.t))
+        classes.append(k)
+    image = frame.image_path if frame.image_path is not None else find_image(annotation_path)
+    if image is None:
+        raise InputFileError(annotation_path, "no image beside this annotation")
+    return FrameRecord(annotation_path, Path(image),
+                       np.stack(kps) if kps else np.zeros((0, NUM_KEYPOINTS, 2)),
+                       np.stack(dirs) if dirs else np.zeros((0, 3)), np.array(classes, np.int64))
 
 
 def scan_frames(
-    folders: Sequence[str | Path], class_name: str, keypoint_order: str = KEYPOINT_ORDER,
+    folders: Sequence[str | Path], class_name: str | Sequence[str], keypoint_order: str = KEYPOINT_ORDER,
     min_visibility: float = 0.0, include_empty: bool = True, progress: bool = False,
 ) -> tuple[list[FrameRecord], list[tuple[Path, str]]]:
     """Parse every DOPE JSON of the folders once.
 
-    Objects are kept when their class equals ``class_name`` (case-insensitive), they carry a
+    Objects are kept when their class is ``class_name`` or one of the run's class names
+    (case-insensitive; the record's ``classes`` give each instance's index), they carry a
     projected cuboid and their visibility (when recorded) is positive and >= min_visibility;
     a recorded pixel count instead of a fraction (BlenderProc) must be positive, as in the
     official DOPE loader, and ``min_visibility`` cannot apply to it.
@@ -109,9 +167,9 @@ def scan_frames(
     Raises:
         InputFileError: a folder that does not exist or holds no DOPE frames.
     """
-    from dope_hope.io.dope_json import find_image, list_dope_frames, read_dope_json
+    from dope_hope.io.dope_json import list_dope_frames, read_dope_json
 
-    want = class_name.lower()
+    want = class_index(class_name)
     records: list[FrameRecord] = []
     bad: list[tuple[Path, str]] = []
     paths: list[Path] = []
@@ -135,32 +193,15 @@ def scan_frames(
             bad.append((Path(path), problem))
             report_bad_file(path, f"unreadable annotation ({problem})")
             continue
-        kps: list[np.ndarray] = []
-        dirs: list[np.ndarray] = []
-        for obj in frame.objects:
-            if obj.class_name.lower() != want or obj.projected_cuboid is None:
-                continue
-            if obj.visibility is not None and (obj.visibility <= 0 or obj.visibility < min_visibility):
-                continue
-            if obj.visible_pixels is not None and obj.visible_pixels <= 0:
-                continue
-            kp = np.asarray(obj.projected_cuboid, dtype=np.float64).reshape(NUM_KEYPOINTS, 2)
-            kps.append(convert_keypoint_order(kp, obj.keypoint_order, keypoint_order))
-            dirs.append(camera_direction(obj.R, obj.t))
-        if not kps and not include_empty:
-            continue
-        image = frame.image_path if frame.image_path is not None else find_image(path)
-        if image is None:
-            raise InputFileError(path, "no image beside this annotation")
-        records.append(FrameRecord(
-            Path(path), Path(image),
-            np.stack(kps) if kps else np.zeros((0, NUM_KEYPOINTS, 2)),
-            np.stack(dirs) if dirs else np.zeros((0, 3))))
+        record = frame_record(frame, Path(path), want, keypoint_order, min_visibility)
+        if include_empty or len(record.keypoints):
+            records.append(record)
     return records, bad
 
 
 class DopeDataset(Dataset):
-    """Frames of one object class from DOPE-format folders, as network inputs + targets.
+    """Frames of the run's object classes (DOPE-format folders, BOP datasets), as network
+    inputs + targets (a belief/affinity group per object).
 
     Args:
         records: from :func:`scan_frames` (or :meth:`from_folders`).
@@ -170,12 +211,13 @@ class DopeDataset(Dataset):
         augment: ranges; ``augment.enabled`` False for validation.
         seed: base of the per-item RNG ``default_rng((seed, epoch, index))``.
         max_instances: rows of the padded ``keypoints`` output.
+        num_objects: N, the belief/affinity groups of the targets (records' ``classes``).
     """
 
     def __init__(
         self, records: list[FrameRecord], input_hw: tuple[int, int], stride: int,
         sigma: float, radius: float, augment: AugmentParams | None = None, seed: int = 0,
-        max_instances: int = 8,
+        max_instances: int = 8, num_objects: int = 1,
     ):
         self.records = records
         self.input_hw = (int(input_hw[0]), int(input_hw[1]))
@@ -187,6 +229,7 @@ class DopeDataset(Dataset):
         self.augment = augment if augment is not None else AugmentParams(enabled=False)
         self.seed = int(seed)
         self.max_instances = int(max_instances)
+        self.num_objects = int(num_objects)
         self.epoch = 0
         self._bad_images: set[int] = set()
 
@@ -237,20 +280,24 @@ class DopeDataset(Dataset):
             bad_files.append(str(self.records[src].image_path))
         if rgb is None:
             raise InputFileError(self.records[index].image_path, "no readable image in the whole dataset")
-        return self.make_item(rgb, self.records[src].keypoints, self.item_rng(epoch, index),
-                              index=index, bad_files=bad_files)
+        rec = self.records[src]
+        return self.make_item(rgb, rec.keypoints, self.item_rng(epoch, index),
+                              index=index, bad_files=bad_files, classes=rec.object_indices())
 
     def make_item(self, rgb: np.ndarray, keypoints: np.ndarray, rng: np.random.Generator | None,
-                  index: int = -1, bad_files: list[str] | None = None) -> dict[str, Any]:
-        """Augment one image + keypoints and build the item dict (see the module docstring)."""
-        from dope_hope.maps.targets import make_targets
+                  index: int = -1, bad_files: list[str] | None = None,
+                  classes: np.ndarray | None = None) -> dict[str, Any]:
+        """Augment one image + keypoints (``classes``: (I,) object index of each instance,
+        default all 0) and build the item dict (see the module docstring)."""
         from dope_hope.model.network import normalize_image
 
         img, kp, _ = augment(rgb, keypoints, self.input_hw, self.augment,
                              rng if self.augment.enabled else None)
         H, W = img.shape[:2]  # the input size, or the augmentation's object-centred crop
-        belief, affinity = make_targets(kp, (H, W), self.stride, self.sigma, self.radius)
+        cls = np.zeros(len(kp), np.int64) if classes is None else np.asarray(classes, np.int64)
+        belief, affinity = self.object_targets(kp, cls, (H, W))
         out_kp = np.full((self.max_instances, NUM_KEYPOINTS, 2), np.nan, np.float32)
+        out_cls = np.full(self.max_instances, -1, np.int64)
         m = min(len(kp), self.max_instances)
         if m:
             vis = kp[:m].copy()
@@ -258,20 +305,41 @@ class DopeDataset(Dataset):
                         & (vis[..., 1] >= -0.5) & (vis[..., 1] < H - 0.5))
             vis[outside] = np.nan
             out_kp[:m] = vis
+            out_cls[:m] = cls[:m]
         return {
             "image": normalize_image(img),
             "belief": torch.from_numpy(belief),
             "affinity": torch.from_numpy(affinity),
             "keypoints": torch.from_numpy(out_kp),
+            "classes": torch.from_numpy(out_cls),
             "index": index,
             "bad_files": list(bad_files or []),
         }
 
 
+    def object_targets(self, keypoints: np.ndarray, classes: np.ndarray,
+                       image_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """Belief (9N, h, w) and affinity (16N, h, w): object k's group made from its instances
+        (``classes == k``) alone, all zero when it has none."""
+        from dope_hope.maps.targets import make_targets
+        from dope_hope.model.info import group_channels
+
+        n = self.num_objects
+        if n == 1:
+            return make_targets(keypoints, image_hw, self.stride, self.sigma, self.radius)
+        maps = None
+        for k in range(n):
+            belief, affinity = make_targets(keypoints[classes == k], image_hw, self.stride, self.sigma, self.radius)
+            if maps is None:
+                maps = np.zeros((n * (len(belief) + len(affinity)),) + belief.shape[1:], np.float32)
+            maps[group_channels(k, n)] = np.concatenate([belief, affinity], axis=0)
+        return maps[:NUM_KEYPOINTS * n], maps[NUM_KEYPOINTS * n:]
+
+
 def collate(items: list[dict[str, Any]]) -> dict[str, Any]:
     """Stack tensors, gather ``index`` into a tensor and concatenate ``bad_files``."""
     out: dict[str, Any] = {}
-    for key in ("image", "belief", "affinity", "keypoints"):
+    for key in ("image", "belief", "affinity", "keypoints", "classes"):
         out[key] = torch.stack([it[key] for it in items])
     out["index"] = torch.tensor([it["index"] for it in items], dtype=torch.long)
     out["bad_files"] = [f for it in items for f in it["bad_files"]]
@@ -319,15 +387,20 @@ class EpochSampler(Sampler):
 
 
 def relabel_symmetric(records: list[FrameRecord], rotations: np.ndarray,
-                      permutations: np.ndarray) -> list[FrameRecord]:
+                      permutations: np.ndarray, object_index: int | None = None) -> list[FrameRecord]:
     """Records with each instance's keypoints in the canonical order of its view (see
     :mod:`dope_hope.symmetry.labels`); ``rotations``/``permutations`` from
-    :func:`~dope_hope.symmetry.labels.corner_permutations`. Instances without a recorded
-    pose keep their order."""
+    :func:`~dope_hope.symmetry.labels.corner_permutations` (of one object's
+    symmetries: with ``object_index`` only that object's instances are relabelled). Instances
+    without a recorded pose keep their order."""
     out = []
     for r in records:
         dirs = r.view_dirs if r.view_dirs is not None else np.full((len(r.keypoints), 3), np.nan)
-        out.append(replace(r, keypoints=canonical_keypoints(r.keypoints, dirs, rotations, permutations)))
+        kp = canonical_keypoints(r.keypoints, dirs, rotations, permutations)
+        if object_index is not None:
+            mine = r.object_indices() == object_index
+            kp = np.where(mine[:, None, None], kp, r.keypoints)
+        out.append(replace(r, keypoints=kp))
     return out
 
 

@@ -38,8 +38,9 @@ class TrainJob:
     """What one ``dope-hope train`` call asks for (the config holds the recipe).
 
     Attributes:
-        data: training folders (DOPE format).
-        object_name: class to train (case-insensitive match against the annotations).
+        data: training folders (DOPE format, or BOP datasets: :mod:`dope_hope.training.sources`).
+        object_name: class to train (case-insensitive match against the annotations); the
+            first of ``objects`` in a run of several.
         out: output folder (checkpoints, metrics.csv / metrics.jsonl, summary.json).
         val: validation folders, or empty for a seeded split of ``data``.
         resume: checkpoint to continue from, or None.
@@ -60,6 +61,10 @@ class TrainJob:
             clock to make the plans of a time-limited run reproducible).
         started: the clock's reading when the budget started (the command's start), or None
             for the trainer's start.
+        objects: the classes of a run of several objects, in channel-group order (empty: the
+            one class ``object_name``); see :attr:`class_names`.
+        meshes: {class: mesh file} of the objects (several; one object: ``mesh``).
+        units: {class: unit of its mesh file} ("m", "cm", "mm"; default the suffix's).
     """
 
     data: list[Path]
@@ -78,6 +83,24 @@ class TrainJob:
     on_step: Callable[[Any, int], None] | None = None
     clock: Callable[[], float] | None = None
     started: float | None = None
+    objects: list[str] = field(default_factory=list)
+    meshes: dict[str, Path] = field(default_factory=dict)
+    units: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def class_names(self) -> list[str]:
+        """The run's classes in channel-group order (one: ``[object_name]``)."""
+        return list(self.objects) if self.objects else [self.object_name]
+
+    def unit_of(self, name: str) -> str | None:
+        """The unit of class ``name``'s mesh file (None: its suffix's default)."""
+        return self.units.get(name, self.units.get("") if len(self.class_names) == 1 else None)
+
+    def mesh_of(self, name: str) -> Path | None:
+        """The mesh file of class ``name`` (``meshes``, else ``mesh`` for a one-object run)."""
+        if name in self.meshes:
+            return self.meshes[name]
+        return self.mesh if len(self.class_names) == 1 else None
 
 
 #: The ``train`` keys that hold numbers: key -> (rule, may be null). Rules: "int>=N" a whole
@@ -181,9 +204,13 @@ def input_hw(config: dict[str, Any]) -> tuple[int, int]:
     return h, w
 
 
-def object_info(name: str, records: Sequence[Any], mesh: Path | None) -> tuple[dict[str, Any], str]:
+def object_info(name: str, records: Sequence[Any], mesh: Path | None, units: str | None = None,
+                object_index: int = 0) -> tuple[dict[str, Any], str]:
     """Checkpoint ``object`` entry (class_name, size_m in the mesh frame, frame "mesh") and
-    where the size came from: a mesh's AABB > the size the dataset records > the catalog."""
+    where the size came from: a mesh's AABB (file in ``units``, default its suffix's) > the
+    size the dataset records (a synth frame's JSON, an NDDS settings file, a BOP dataset's
+    models_info.json) > the catalog. ``object_index``: the object's index in the records'
+    ``classes``."""
     from dope_hope.catalog import get_object
     from dope_hope.model.checkpoint import make_object_info
 
@@ -194,12 +221,16 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None) -> tuple[d
         hope = None
     if mesh is not None:
         from dope_hope.io.meshes import load_mesh, mesh_cuboid
-        size, _ = mesh_cuboid(load_mesh(mesh))
+        size, _ = mesh_cuboid(load_mesh(mesh, units=units))
         return make_object_info(name, size, "mesh"), f"mesh {Path(mesh).name}"
+    from dope_hope.io.bop_scenes import recorded_box_size
     from dope_hope.io.dope_json import recorded_cuboid_size
 
-    for r in [r for r in records if len(r.keypoints)][:5]:
-        size = recorded_cuboid_size(r.json_path, name)
+    for r in [r for r in records if np.any(r.object_indices() == object_index)][:5]:
+        if r.json_path.name == "scene_gt.json":
+            size = recorded_box_size(r.json_path, name)
+        else:
+            size = recorded_cuboid_size(r.json_path, name)
         if size is not None:
             return make_object_info(name, size, "mesh"), f"dataset {r.json_path.name}"
     if hope is None:
@@ -283,7 +314,8 @@ def resolve_resume(choice: str | None, out: Path, init: str | None) -> tuple[Pat
 
 def same_architecture(config: dict[str, Any], checkpoint: Path) -> bool:
     """True when ``config`` builds the network ``checkpoint`` holds (same ``model`` section and
-    input normalization)."""
+    input normalization), up to ``model.num_objects``: a one-object start is widened to the
+    run's objects (:func:`dope_hope.model.network.widen_to_objects`)."""
     from dope_hope.model.checkpoint import load_checkpoint
 
     saved = load_checkpoint(checkpoint)["config"]
@@ -291,4 +323,52 @@ def same_architecture(config: dict[str, Any], checkpoint: Path) -> bool:
     def norm(c: dict[str, Any]) -> Any:
         return (c.get("input") or {}).get("normalization", "imagenet")
 
-    return saved.get("model") == config.get("model") and norm(saved) == norm(config)
+    def model(c: dict[str, Any]) -> Any:  # a one-object start widens to any number of objects
+        return {k: v for k, v in (c.get("model") or {}).items() if k != "num_objects"}
+
+    return model(saved) == model(config) and norm(saved) == norm(config)
+
+
+def train_meshes(objects: Sequence[str], mesh_args: Sequence[str] | None, models_dir: Path | None,
+                 units: Sequence[str] | None = None) -> tuple[dict[str, Path], dict[str, str]]:
+    """The objects' mesh files and their units (``train --mesh / --models-dir / --units``):
+    ({class: mesh}, {class: unit}).
+
+    ``--mesh`` values pair with the objects in order when there is one per object (else
+    ``NAME=PATH`` or a file that names its object: :func:`dope_hope.io.models_dir.parse_mesh_args`);
+    ``--models-dir`` is searched for every object (:func:`~dope_hope.io.models_dir.find_object_mesh`).
+    Without objects (a resumed run) one mesh is the run's object's, keyed "".
+
+    Raises:
+        ConfigError: both --mesh and --models-dir; a mesh of no object of the run; units not
+            one or one per mesh.
+    """
+    from dope_hope.io.models_dir import find_object_mesh, parse_mesh_args
+
+    names = list(objects)
+    if mesh_args and models_dir is not None:
+        raise ConfigError("give either --mesh or --models-dir, not both")
+    meshes: dict[str, Path] = {}
+    if models_dir is not None:
+        meshes = {n: find_object_mesh(n, models_dir) for n in names}
+    elif mesh_args:
+        if len(names) <= 1 and len(mesh_args) == 1:
+            text = str(mesh_args[0])
+            named = "=" in text and not Path(text).exists()
+            meshes = {names[0] if names else "": Path(text.split("=", 1)[1] if named else text)}
+        elif len(mesh_args) == len(names) and not any("=" in str(m) and not Path(m).exists() for m in mesh_args):
+            meshes = {n: Path(m) for n, m in zip(names, mesh_args)}
+        else:
+            lower = {n.lower(): n for n in names}
+            for key, path in parse_mesh_args(mesh_args, names).items():
+                if key.lower() not in lower:
+                    raise ConfigError(f"--mesh {path}: {key} is not one of the objects ({', '.join(names)})")
+                meshes[lower[key.lower()]] = path
+    if not units:
+        return meshes, {}
+    if not meshes:
+        raise ConfigError("--units: no --mesh / --models-dir to apply them to")
+    if len(units) not in (1, len(meshes)):
+        raise ConfigError(f"--units: {len(units)} values for {len(meshes)} meshes; give one, or one per mesh")
+    unit_list = list(units) * len(meshes) if len(units) == 1 else list(units)
+    return meshes, dict(zip(meshes, unit_list))

@@ -54,16 +54,15 @@ from dope_hope.training.budget import MIN_WINDOW_STEPS, BudgetPlan, make_plan
 from dope_hope.training.distributed import init_distributed
 from dope_hope.training.loss import optimizer_step, stage_loss
 from dope_hope.training.metrics_log import MetricsLog
+from dope_hope.training.objects import object_mesh_paths, relabel_objects
 from dope_hope.training.schedule import LrLambda
 from dope_hope.training.settings import (
     TrainJob,
     input_hw,
-    label_symmetries,
-    object_info,
     check_config_keys,
     train_settings,
 )
-from dope_hope.training.validation import validation_hits
+from dope_hope.training.validation import object_hits
 
 log = logging.getLogger(__name__)
 
@@ -79,12 +78,9 @@ class Trainer:
     def __init__(self, job: TrainJob, config: dict[str, Any]):
         from dope_hope.model.network import build_model
         from dope_hope.training.augment import AugmentParams
-        from dope_hope.training.dataset import (
-            DopeDataset,
-            EpochSampler,
-            scan_frames,
-            split_records,
-        )
+        from dope_hope.training.dataset import DopeDataset, EpochSampler, split_records
+        from dope_hope.training.objects import check_class_names, with_num_objects
+        from dope_hope.training.sources import scan_training_data
 
         self.job = job
         self.clock: Callable[[], float] = job.clock or time.monotonic
@@ -107,6 +103,9 @@ class Trainer:
                 job.val = job.val or [Path(p) for p in saved_job.get("val", [])]
             if not job.object_name:
                 job.object_name = str(saved_job.get("object", ""))
+                job.objects = job.objects or list(saved_job.get("objects") or [])
+                job.meshes = job.meshes or {k: Path(v) for k, v in (saved_job.get("meshes") or {}).items() if v}
+                job.units = job.units or dict(saved_job.get("units") or {})
             if job.mesh is None and saved_job.get("mesh"):
                 job.mesh = Path(saved_job["mesh"])
             if job.symmetries is None and saved_job.get("symmetries"):
@@ -115,6 +114,8 @@ class Trainer:
                 raise ConfigError(f"{job.resume} does not record its data folders / object; pass --data and --object")
         config = merge(config, job.overrides)
         check_config_keys(config)
+        check_class_names(job.class_names)
+        config = with_num_objects(config, len(job.class_names))
         self.config = config
         self.ts = train_settings(config)
         ts = self.ts
@@ -136,12 +137,12 @@ class Trainer:
         stride = int(self.model.stride)
         scan = dict(min_visibility=float(ts["min_visibility"]), include_empty=bool(ts["include_empty_frames"]),
                     progress=job.progress and self.dist.main)
-        records, _ = scan_frames(job.data, job.object_name, KEYPOINT_ORDER, **scan)
+        records, _ = scan_training_data(job.data, job.class_names, KEYPOINT_ORDER, **scan)
         if not any(len(r.keypoints) for r in records):
             folders = ", ".join(str(p) for p in job.data)
-            raise InputFileError(folders, f"no annotated instance of class {job.object_name!r}")
+            raise InputFileError(folders, f"no annotated instance of class {' / '.join(job.class_names)!r}")
         if job.val:
-            val_records, _ = scan_frames(job.val, job.object_name, KEYPOINT_ORDER, **scan)
+            val_records, _ = scan_training_data(job.val, job.class_names, KEYPOINT_ORDER, **scan)
             if not val_records:
                 raise InputFileError(", ".join(str(p) for p in job.val), "no readable validation frames")
         else:
@@ -151,20 +152,14 @@ class Trainer:
                 load_init_weights(self.model, job.init_weights)
             if job.init_reason:
                 log.info("start: %s", job.init_reason)
-        self.object, self.size_source = object_info(job.object_name, records, job.mesh)
-        symmetry = label_symmetries(tcfg.get("symmetry", "none"), job.object_name, job.symmetries, job.mesh)
-        self.symmetry_permutations = 1
-        if symmetry is not None:
-            from dope_hope.training.dataset import relabel_symmetric
-            from dope_hope.symmetry.labels import corner_permutations
-
-            rots, perms = corner_permutations(np.asarray(self.object["size_m"]), symmetry[0])
-            self.symmetry_permutations = len(perms)
-            records = relabel_symmetric(records, rots, perms)
-            val_records = relabel_symmetric(val_records, rots, perms)
-            log.info("symmetry-aware labels: %s, %d corner-permuting symmetries", symmetry[1], len(perms))
+        self._set_objects(records)
+        (records, val_records), self.symmetry_permutations, lines = relabel_objects(
+            tcfg.get("symmetry", "none"), job, self.objects, [records, val_records])
+        for line in lines:
+            log.info("symmetry-aware labels: %s", line)
         common = dict(input_hw=hw, stride=stride, sigma=float(tcfg.get("sigma", 2.0)),
-                      radius=float(tcfg.get("radius", 1.0)), seed=self.seed, max_instances=int(ts["max_instances"]))
+                      radius=float(tcfg.get("radius", 1.0)), seed=self.seed, max_instances=int(ts["max_instances"]),
+                      num_objects=len(self.objects))
         self.train_set = DopeDataset(records, augment=AugmentParams.from_config(config.get("augment")), **common)
         self.val_set = DopeDataset(val_records, augment=AugmentParams(enabled=False), **common)
         self.batch_size = int(ts["batch_size"])
@@ -224,6 +219,16 @@ class Trainer:
         if self.dist.active:
             self.ddp_model = nn.parallel.DistributedDataParallel(
                 self.model, device_ids=[self.device.index] if self.cuda else None)
+
+    def _set_objects(self, records: list[Any]) -> None:
+        """The run's objects (:mod:`dope_hope.training.objects`): ``objects``, the checkpoint's
+        ``object`` (one entry, or the list of several) and where the sizes came from."""
+        from dope_hope.training.objects import checkpoint_objects, run_objects
+
+        self.objects = run_objects(self.job, records)
+        self.object = checkpoint_objects(self.objects)
+        self.size_source = self.objects[0].size_source if len(self.objects) == 1 else \
+            {o.name: o.size_source for o in self.objects}
 
     # ------------------------------------------------------------------ checkpoints
     def _restore(self, ck: dict[str, Any], saved_ts: dict[str, Any]) -> None:
@@ -311,6 +316,8 @@ class Trainer:
             "world_size": self.dist.world_size,
             "job": {"data": [str(p) for p in self.job.data], "val": [str(p) for p in self.job.val],
                     "object": self.job.object_name, "mesh": str(self.job.mesh) if self.job.mesh else None,
+                    **({"objects": self.job.class_names, "meshes": object_mesh_paths(self.job),
+                        "units": dict(self.job.units)} if len(self.objects) > 1 else {}),
                     "symmetries": str(self.job.symmetries) if self.job.symmetries else None,
                     "init": str(self.job.init_weights) if self.job.init_weights else None},
         }
@@ -509,7 +516,9 @@ class Trainer:
         stride = int(self.model.stride)
         radius = float(self.ts["val_radius_px"])
         thr = float(self.ts["val_peak_threshold"])
-        sums = torch.zeros(6, dtype=torch.float64)  # loss*n, n, found, visible, found_dec, visible_dec
+        n_obj = len(self.objects)
+        # loss*n, n, then per object: found, visible, found_dec, visible_dec
+        sums = torch.zeros(2 + 4 * n_obj, dtype=torch.float64)
         self.val_sampler.set_epoch(0)
         bs = int(self.ts["val_batch_size"] or self.batch_size)
         for batch in self._loader(self.val_set, self.val_sampler, bs, drop_last=False):
@@ -525,19 +534,22 @@ class Trainer:
             belief = outputs[-1][0].float().cpu().numpy()
             affinity = outputs[-1][1].float().cpu().numpy()
             gt = batch["keypoints"].numpy().astype(np.float64)
+            classes = batch["classes"].numpy()
             for i in range(n):
-                f, v, fd, vd = validation_hits(belief[i], affinity[i], gt[i], stride, radius, thr)
-                sums[2:] += torch.tensor([f, v, fd, vd], dtype=torch.float64)
+                hits = object_hits(belief[i], affinity[i], gt[i], classes[i], n_obj, stride, radius, thr)
+                sums[2:] += torch.from_numpy(hits.reshape(-1).astype(np.float64))
         if self.dist.active:
             t = sums.to(self.device if self.cuda else "cpu")
             dist.all_reduce(t)
             sums = t.cpu()
         s = sums.tolist()
+        per = sums[2:].reshape(n_obj, 4).sum(0).tolist()
         return {
             "val_loss": s[0] / max(s[1], 1),
-            "val_kp_acc": s[2] / s[3] if s[3] else float("nan"),
-            "val_kp_acc_decoded": s[4] / s[5] if s[5] else float("nan"),
-            "val_frames": int(s[1]), "val_keypoints": int(s[3]), "val_radius_px": radius,
+            "val_kp_acc": per[0] / per[1] if per[1] else float("nan"),
+            "val_kp_acc_decoded": per[2] / per[3] if per[3] else float("nan"),
+            "val_frames": int(s[1]), "val_keypoints": int(per[1]), "val_radius_px": radius,
+            **per_object_accuracy([o.name for o in self.objects], sums[2:].reshape(n_obj, 4)),
         }
 
     def _end_of_epoch(self) -> bool:
@@ -556,7 +568,8 @@ class Trainer:
             self.val_done_epoch = self.epoch
             if self.dist.main:
                 self.metrics.write("val", step=self.step, epoch=self.epoch, time_s=round(self._time_used_before + self.elapsed(), 2),
-                                   **{k: self.last_val[k] for k in ("val_loss", "val_kp_acc", "val_kp_acc_decoded")})
+                                   **{k: v for k, v in self.last_val.items()
+                                      if k in ("val_loss", "val_kp_acc", "val_kp_acc_decoded") or "/" in k})
                 log.info("epoch %d step %d: val loss %.5f, keypoints within %g px %.3f (peaks) %.3f (decoded)",
                          self.epoch, self.step, self.last_val["val_loss"], self.last_val["val_radius_px"],
                          self.last_val["val_kp_acc"], self.last_val["val_kp_acc_decoded"])
@@ -632,7 +645,8 @@ class Trainer:
             "planned_steps": self.planned_steps, "budget_used_s": round(self.budget_used(), 2),
             "elapsed_s": round(self.elapsed(), 2), "train_frames": len(self.train_set), "val_frames": len(self.val_set),
             "best_val_kp_acc": self.best_acc if self.best_acc >= 0 else None, **self.last_val,
-            "object": self.object, "last": str(self.out / "last.pt"), "rank": self.dist.rank,
+            "object": self.object, "objects": [o.name for o in self.objects],
+            "last": str(self.out / "last.pt"), "rank": self.dist.rank,
         }
         if self.dist.main:
             from dope_hope.io.atomic import atomic_write_text
@@ -730,7 +744,9 @@ class Trainer:
 
 
 def load_init_weights(model: nn.Module, path: str | Path) -> None:
-    """Copy a dope-hope checkpoint's network weights into ``model`` (``--init``).
+    """Copy a dope-hope checkpoint's network weights into ``model`` (``--init``); a one-object
+    start of a model of N > 1 objects is widened first (every group a copy of its one group:
+    :func:`dope_hope.model.network.widen_to_objects`).
 
     Raises ModelFileError naming the file when it is no checkpoint, was trained with another
     architecture than ``model`` (compare the configs' ``model`` sections) or holds weights
@@ -738,16 +754,34 @@ def load_init_weights(model: nn.Module, path: str | Path) -> None:
     """
     from dope_hope.errors import ModelFileError
     from dope_hope.model.checkpoint import check_state_dict, load_checkpoint
+    from dope_hope.model.network import num_objects_of, widen_to_objects
 
     ck = load_checkpoint(path)
-    check_state_dict(model.state_dict(), ck["model"], path)
-    bad = [k for k, v in ck["model"].items()
+    state = ck["model"]
+    n = int(getattr(model, "num_objects", 1))
+    widen = n > 1 and num_objects_of(ck["config"]) == 1
+    if widen:
+        state = widen_to_objects(state, ck["config"], n)
+    check_state_dict(model.state_dict(), state, path)
+    bad = [k for k, v in state.items()
            if isinstance(v, torch.Tensor) and v.is_floating_point() and not bool(torch.isfinite(v).all())]
     if bad:
         raise ModelFileError(path, f"{len(bad)} weight tensor(s) hold NaN or inf values (e.g. {bad[0]}); "
                                    "a run cannot start from them")
-    model.load_state_dict(ck["model"], strict=True)
-    log.info("initialised the network from %s", path)
+    model.load_state_dict(state, strict=True)
+    log.info("initialised the network from %s%s", path, f" (its one object widened to {n})" if widen else "")
+
+
+def per_object_accuracy(names: list[str], hits: torch.Tensor) -> dict[str, float]:
+    """``val_kp_acc/<name>`` and ``val_kp_acc_decoded/<name>`` of each object of a run of
+    several (``hits``: (N, 4) found, visible, found_decoded, visible_decoded); {} for one."""
+    if len(names) < 2:
+        return {}
+    out = {}
+    for name, (f, v, fd, vd) in zip(names, hits.tolist()):
+        out[f"val_kp_acc/{name}"] = f / v if v else float("nan")
+        out[f"val_kp_acc_decoded/{name}"] = fd / vd if vd else float("nan")
+    return out
 
 
 def _extra(ck: dict[str, Any]) -> dict[str, Any]:

@@ -73,3 +73,27 @@ def validation_hits(belief: np.ndarray, affinity: np.ndarray, gt: np.ndarray, st
     pred_d = [np.array([inst.keypoints[k] for inst in instances]).reshape(-1, 2) for k in range(NUM_KEYPOINTS)]
     found_d, visible_d = keypoint_hits(pred_d, gt, radius_px)
     return found, visible, found_d, visible_d
+
+
+def object_hits(belief: np.ndarray, affinity: np.ndarray, gt: np.ndarray, classes: np.ndarray,
+                num_objects: int, stride: int, radius_px: float, threshold: float) -> np.ndarray:
+    """:func:`validation_hits` of each object's belief/affinity group against its own instances.
+
+    Args:
+        belief: (9N, h, w); affinity: (16N, h, w); gt: (I, 9, 2) input pixels (NaN = not
+            visible); classes: (I,) object index of each gt row (-1 = padding).
+
+    Returns:
+        (N, 4) int: per object (found, visible, found_decoded, visible_decoded).
+    """
+    from dope_hope.model.info import group_channels
+
+    maps = np.concatenate([belief, affinity], axis=0)
+    out = np.zeros((num_objects, 4), np.int64)
+    for k in range(num_objects):
+        mine = gt[classes == k]
+        if not np.isfinite(mine).any():
+            continue  # nothing of this object to find in this image
+        group = maps[group_channels(k, num_objects)]
+        out[k] = validation_hits(group[:NUM_KEYPOINTS], group[NUM_KEYPOINTS:], mine, stride, radius_px, threshold)
+    return out

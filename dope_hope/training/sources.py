@@ -1,0 +1,64 @@
+"""Where a run's frames come from: DOPE-format folders and BOP-format datasets, mixed freely.
+
+Each ``--data`` / ``--val`` folder is read by its format (a BOP split or scene folder:
+:mod:`dope_hope.io.bop_scenes`; anything else: DOPE JSON, :func:`~dope_hope.training.dataset.scan_frames`)
+into the same :class:`~dope_hope.training.dataset.FrameRecord` list, with the same rules
+(the run's classes, ``min_visibility``, frames without instances kept or not).
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+from dope_hope.geometry import KEYPOINT_ORDER
+from dope_hope.training.dataset import FrameRecord, class_index, frame_record, scan_frames
+
+
+def scan_bop(folder: str | Path, class_names: Sequence[str], keypoint_order: str = KEYPOINT_ORDER,
+             min_visibility: float = 0.0, include_empty: bool = True) -> list[FrameRecord]:
+    """The records of a BOP split or scene folder: each obj_id is the class
+    :func:`dope_hope.io.bop_scenes.bop_class_name` gives among ``class_names``."""
+    from dope_hope.io.bop_scenes import bop_class_name, iter_bop_frames
+
+    names = list(class_names)
+    want = class_index(names)
+    records = []
+    for frame in iter_bop_frames(folder, class_name=lambda obj_id: bop_class_name(obj_id, names)):
+        record = frame_record(frame, Path(frame.source), want, keypoint_order, min_visibility)
+        if include_empty or len(record.keypoints):
+            records.append(record)
+    return records
+
+
+def scan_training_data(folders: Sequence[str | Path], class_names: str | Sequence[str],
+                       keypoint_order: str = KEYPOINT_ORDER, min_visibility: float = 0.0,
+                       include_empty: bool = True, progress: bool = False,
+                       ) -> tuple[list[FrameRecord], list[tuple[Path, str]]]:
+    """Records of every folder, in the order given (BOP datasets and DOPE folders alike).
+
+    Returns:
+        (records, bad): bad lists DOPE annotation files that could not be parsed
+        (:func:`~dope_hope.training.dataset.scan_frames`).
+    """
+    from dope_hope.io.bop_scenes import is_bop_dataset
+
+    names = [class_names] if isinstance(class_names, str) else list(class_names)
+    records: list[FrameRecord] = []
+    bad: list[tuple[Path, str]] = []
+    dope: list[Path] = []
+
+    def flush() -> None:
+        if dope:
+            found, unreadable = scan_frames(dope, names, keypoint_order, min_visibility, include_empty, progress)
+            records.extend(found)
+            bad.extend(unreadable)
+            dope.clear()
+
+    for folder in folders:
+        if is_bop_dataset(folder):
+            flush()
+            records.extend(scan_bop(folder, names, keypoint_order, min_visibility, include_empty))
+        else:
+            dope.append(Path(folder))
+    flush()
+    return records, bad
