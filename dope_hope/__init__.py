@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 from dope_hope.errors import DopeHopeError
 
-__version__ = "0.1.0"
+from dope_hope.version import __version__
 
 #: Public name -> module that defines it (imported lazily by :func:`__getattr__`).
 _LAZY = {
