@@ -135,7 +135,8 @@ def summary_lines(results: list[SceneResult], with_onnx: bool) -> list[str]:
         diffs = [r.onnx_diff_px for r in results]
         same = sum(math.isfinite(d) for d in diffs)
         worst = max((d for d in diffs if math.isfinite(d)), default=0.0)
-        lines.append(f"  ONNX vs PyTorch: same objects in {same}/{len(results)} scenes, keypoints within {worst:.3f} px")
+        lines.append(f"  ONNX vs PyTorch: same objects in {same}/{len(results)} scenes, "
+                     f"keypoints within {worst:.3f} px")
     return lines
 
 

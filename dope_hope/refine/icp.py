@@ -331,14 +331,13 @@ def icp_refine(
         model_points, model_normals: (N, 3) surface points, metres (a few thousand), and their
             unit normals (sign irrelevant).
         depth: the depth image in metres with its K (:class:`~dope_hope.refine.depth.DepthImage`).
-        thresholds_m: correspondence distance of each iteration, metres.
-        mask_dilate: silhouette dilation, fraction of its bounding-box size.
-        max_scene_points, min_points: most depth pixels used; fewest scene points and pairs.
+        thresholds_m: correspondence distance of each iteration, metres. mask_dilate:
+            silhouette dilation, fraction of its bounding-box size. max_scene_points,
+            min_points: most depth pixels used; fewest scene points and pairs.
         fit_threshold_m: point-to-surface distance beyond which a scene point counts 0 in the
             fit (step 5); also the depth agreement of a supported point (step 6).
-        max_translation_m, max_rotation_deg: largest change accepted (the default 180 deg
-            bounds nothing: lite models' rotations are often off by 60-100 deg about the long
-            axis, which ICP corrects; the depth fit decides).
+        max_translation_m, max_rotation_deg: largest change accepted (180 deg bounds nothing:
+            lite models' rotations are often 60-100 deg off about the long axis).
         start_rotations: (3, 3) model-frame rotations S; ICP also starts from ``R @ S``; ()
             for the input pose only (step 4).
         fit_tie: runs whose fits differ by at most this are equal; the one whose rotation is
@@ -364,10 +363,9 @@ def icp_refine(
         return refuse(problem)
     Ri, ti = (R0, t0) if initial_pose is None else initial_pose
     region = silhouette_mask(P @ np.asarray(Ri, float).T + np.asarray(ti, float), depth.K, depth.hw, mask_dilate)
-    start_support = (float("inf") if initial_pose is None
-                     else depth_support(R0, t0, P, depth, region, fit_threshold_m))
-    if problem := support_problem("the start pose", start_support, min_own_support):
-        return refuse(problem, own_support=start_support, start_supported=False)
+    start = float("inf") if initial_pose is None else depth_support(R0, t0, P, depth, region, fit_threshold_m)
+    if problem := support_problem("the start pose", start, min_own_support):  # a wider search's start
+        return refuse(problem, own_support=start, start_supported=False)
     S = scene_points_under(P @ R0.T + t0, depth.metres, depth.K, mask_dilate, max_scene_points)
     if len(S) < min_points:
         return refuse(f"too few depth pixels under the object ({len(S)} < {min_points})", n_points=len(S))
@@ -382,9 +380,8 @@ def icp_refine(
                                   key=lambda r: Rotation.from_matrix(r[1] @ R0.T).magnitude())
     own_support = depth_support(Rc, tc, P, depth, region, fit_threshold_m)
     kw = dict(fit_before=fit_before, fit_after=fit_after, rmse_m=rmse, n_points=len(S), own_support=own_support)
-    reason = _refusal(float(np.linalg.norm(tc - t0)), float(np.degrees(Rotation.from_matrix(Rc @ R0.T).magnitude())),
-                      fit_after, fit_before, own_support, max_translation_m, max_rotation_deg, fit_tie,
-                      min_own_support)
-    if reason:
+    turned_deg = float(np.degrees(Rotation.from_matrix(Rc @ R0.T).magnitude()))
+    if reason := _refusal(float(np.linalg.norm(tc - t0)), turned_deg, fit_after, fit_before, own_support,
+                          max_translation_m, max_rotation_deg, fit_tie, min_own_support):
         return refuse(reason, **kw)
     return IcpResult(R=Rc, t=tc, applied=True, reason="ok", **kw)
