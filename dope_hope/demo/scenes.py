@@ -30,12 +30,13 @@ MAX_ATTEMPTS = 20
 
 @dataclass
 class DemoScene:
-    """One demo scene: the rendered frame, the synth seed it is frame ``frame.index`` of, and
-    how many draws it took (1 = the plain frame of the demo seed)."""
+    """One demo scene: the rendered frame, the synth seed it is frame ``frame.index`` of, how
+    many draws it took (1 = the plain frame of the demo seed) and the visibility it needed."""
 
     frame: SynthFrame
     seed: int
     draws: int
+    min_visibility: float = MIN_VISIBILITY
 
     @property
     def visibility(self) -> float:
@@ -46,7 +47,7 @@ class DemoScene:
     @property
     def measurable(self) -> bool:
         """Whether the box is visible enough for the scene to count."""
-        return self.visibility >= MIN_VISIBILITY
+        return self.visibility >= self.min_visibility
 
 
 def redraw_seed(seed: int, index: int, draw: int) -> int:
@@ -61,8 +62,8 @@ def render_scene(gen: FrameGenerator, index: int, min_visibility: float = MIN_VI
     best: DemoScene | None = None
     for draw in range(attempts):
         seed = gen.seed if draw == 0 else redraw_seed(gen.seed, index, draw)
-        scene = DemoScene(gen.render_frame(index, seed=seed), seed, draw + 1)
-        if scene.visibility >= min_visibility:
+        scene = DemoScene(gen.render_frame(index, seed=seed), seed, draw + 1, min_visibility)
+        if scene.measurable:
             return scene
         if best is None or scene.visibility > best.visibility:
             best = scene
