@@ -1,7 +1,8 @@
 """Demo scenes found: the multi-hypothesis pose search against DOPE's one corner per type.
 
 Renders the scenes of `dope-hope demo` (configs/demo.yaml, 640x480, RealSense-like depth
-noise; the same frames as `dope-hope demo --seed S --scenes N`), runs one demo model through
+noise; frame i of seed S, the frame `dope-hope demo --seed S` shows as scene i unless its box
+is less than half visible, which the demo draws again and this bench keeps), runs one demo model through
 both pose searches of ``DopePredictor`` on the same network maps - the default
 ``pose_search="hypotheses"`` (maps.decode.corner_candidates + inference.pnp.solve_pnp_candidates)
 and ``"groups"`` (maps.decode.decode_maps + inference.pnp.solve_pnp) - with -LS, and scores each
@@ -22,8 +23,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from dope_hope.commands.demo import DEMO_CONFIG, IMAGE_SIZE
 from dope_hope.assets import DEMO_WEIGHTS
+from dope_hope.demo.scenes import DEMO_CONFIG, IMAGE_SIZE
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
 from dope_hope.evaluation.matching import TABLE_THRESHOLDS_M, match_frame
 from dope_hope.evaluation.models import load_models

@@ -1,7 +1,8 @@
 """Lite head 100 (stride 4) in the Isaac ROS layout: accuracy of the in-graph resampling.
 
-Renders the scenes of `dope-hope demo` (configs/demo.yaml, 640x480; the same frames as
-`dope-hope demo --seed S --scenes N`) and runs the demo model (stride-4 maps) at its working
+Renders the scenes of `dope-hope demo` (configs/demo.yaml, 640x480; the frames of
+`dope-hope demo --seed S --scenes N`, keeping those whose box is less than half visible,
+which the demo draws again) and runs the demo model (stride-4 maps) at its working
 size three ways:
 
 * **native**: PyTorch, stride-4 maps, dope-hope's decoder and pose search (no -LS);
@@ -34,8 +35,8 @@ import numpy as np
 import torch
 from scipy.optimize import linear_sum_assignment
 
-from dope_hope.commands.demo import DEMO_CONFIG, IMAGE_SIZE
 from dope_hope.assets import DEMO_WEIGHTS
+from dope_hope.demo.scenes import DEMO_CONFIG, IMAGE_SIZE
 from dope_hope.demo_object import (
     DEMO_CLASS_NAME,
     demo_object_mesh,

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dope_hope.commands.demo import DEMO_CONFIG, IMAGE_SIZE
 from dope_hope.assets import DEMO_WEIGHTS
+from dope_hope.demo.scenes import DEMO_CONFIG, IMAGE_SIZE
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
 from dope_hope.inference.backends import model_min_score, open_backend
 from dope_hope.inference.options import InferenceOptions

@@ -37,8 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dope_hope.commands.demo import DEMO_CONFIG
 from dope_hope.assets import DEMO_WEIGHTS
+from dope_hope.demo.scenes import DEMO_CONFIG
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
 from dope_hope.evaluation.matching import TABLE_THRESHOLDS_M, error_matrix, greedy_match
 from dope_hope.evaluation.models import load_models

@@ -34,8 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dope_hope.commands.demo import DEMO_CONFIG, IMAGE_SIZE, ensure_onnx
 from dope_hope.assets import DEMO_WEIGHTS
+from dope_hope.demo.onnx_cache import ensure_onnx
+from dope_hope.demo.scenes import DEMO_CONFIG, IMAGE_SIZE
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
 from dope_hope.inference.stream import passive_openmp, run_stream
 from dope_hope.io.camera import ImageCamera

@@ -30,16 +30,15 @@ DEMO_INPUT_HW = (120, 160)
 
 def fit_demo_checkpoint(path: Path, seed: int, steps: int = 80) -> Path:
     """A lite network fitted to the belief/affinity targets of demo scene (seed, 0), saved at path."""
-    from dope_hope.commands import demo as demo_cmd
+    from dope_hope.demo.scenes import DEMO_CONFIG, IMAGE_SIZE, render_scene
     from dope_hope.demo_object import DEMO_CLASS_NAME, DEMO_SIZE_M, write_demo_object
     from dope_hope.model.checkpoint import make_object_info, save_checkpoint
     from dope_hope.synth import FrameGenerator
 
     path.parent.mkdir(parents=True, exist_ok=True)
     mesh = write_demo_object(path.parent / "fit_mesh")
-    with FrameGenerator(mesh, size=demo_cmd.IMAGE_SIZE, config=demo_cmd.DEMO_CONFIG,
-                        class_name=DEMO_CLASS_NAME, seed=seed) as gen:
-        frame = gen.render_frame(0)
+    with FrameGenerator(mesh, size=IMAGE_SIZE, config=DEMO_CONFIG, class_name=DEMO_CLASS_NAME, seed=seed) as gen:
+        frame = render_scene(gen, 0).frame
     H, W = DEMO_INPUT_HW
     s = W / frame.rgb.shape[1]
     rgb = cv2.resize(frame.rgb, (W, H), interpolation=cv2.INTER_AREA)

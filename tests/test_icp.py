@@ -1,4 +1,5 @@
-"""Depth ICP (dope_hope.refine.icp): exact box depth in, the pose that made it out; bad depth refused."""
+"""Depth ICP (dope_hope.refine.icp): exact box depth in, the pose that made it out; bad depth refused;
+a pose moved off the object's own depth support (onto a distractor) refused."""
 from __future__ import annotations
 
 import numpy as np
@@ -10,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from dope_hope.geometry import intrinsics_matrix, rotation_error_deg
 from dope_hope.io.meshes import sample_surface_points
 from dope_hope.refine.depth import DepthImage
-from dope_hope.refine.icp import icp_refine, scene_points_under
+from dope_hope.refine.icp import depth_support, icp_refine, scene_points_under, silhouette_mask
 
 K = intrinsics_matrix(600.0, 600.0, 319.5, 239.5)
 HW = (480, 640)
@@ -123,3 +124,39 @@ def test_a_geometric_symmetry_is_left_to_the_keypoints():
     assert res.applied
     flipped = R_GT @ Rotation.from_euler("y", 180, degrees=True).as_matrix()
     assert rotation_error_deg(res.R, flipped) < 1.0
+
+
+def board_depth(board_z: float = 0.38) -> DepthImage:
+    """The box of ``depth_mm`` behind a board at ``board_z`` m that hides all but its right
+    edge and reaches far up and left; no depth elsewhere (a photo background)."""
+    D = depth_mm().astype(np.float64) * 0.001
+    v, u = np.nonzero(D)
+    board = np.zeros(HW, bool)
+    board[: v.max() + 15, : int(u.max() - 0.2 * np.ptp(u))] = True
+    D[board] = board_z
+    return DepthImage.from_raw(D, K, image_hw=HW)
+
+
+def test_own_depth_support_counts_confirmed_surface_inside_the_detected_region():
+    exact = DepthImage.from_raw(depth_mm(), K)
+    region = silhouette_mask(POINTS @ R_GT.T + T_GT, K, HW, 0.15)
+    assert depth_support(R_GT, T_GT, POINTS, exact, region, 0.01) > 0.95
+    # an occluder says nothing against the pose: the surface it leaves is still confirmed
+    hidden = board_depth()
+    assert depth_support(R_GT, T_GT, POINTS, hidden, region, 0.01) > 0.95
+    # the box at the board's depth: a surface twice as large, mostly off the region or on no depth
+    assert depth_support(R_GT, T_GT * 0.38 / T_GT[2], POINTS, hidden, region, 0.01) < 0.3
+    # outside the detected region nothing counts
+    assert depth_support(R_GT, T_GT, POINTS, exact, np.zeros(HW, bool), 0.01) == 0.0
+
+
+def test_a_start_moved_onto_a_distractor_in_front_is_refused():
+    """A box hidden behind a board, moved to the board's depth (as a wide line search does):
+    ICP fits the board as well as the box, but the start has left the object's own support."""
+    start = T_GT * 0.38 / T_GT[2]
+    res = icp_refine(R_GT, start, POINTS, NORMALS, board_depth(), initial_pose=(R_GT, T_GT))
+    assert not res.applied and not res.start_supported and "own depth support" in res.reason
+    np.testing.assert_array_equal(res.t, start)
+    # the same start without the detected region it came from is ICP's own business
+    assert icp_refine(R_GT, start, POINTS, NORMALS, board_depth()).start_supported
+

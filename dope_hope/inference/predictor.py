@@ -37,9 +37,12 @@ run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.pr
    biases the distance: pass the mesh for non-box objects).
 6. **Depth ICP** (optional, ``icp=True``, :func:`dope_hope.refine.icp.icp_refine`): after the
    line search, point-to-plane ICP of ``icp_points`` model points against the depth under the
-   object refines all six DoF; kept only when it does not fit the depth worse. Without
-   ``mesh=`` only the catalog's boxes are allowed. When the line search refused, the ICP stage
-   first repeats it over :data:`ICP_LS_SEARCH`.
+   object refines all six DoF; kept only when it does not fit the depth worse and keeps to the
+   object's own depth support (the detected region: the silhouette of the pose before any
+   depth step). Without ``mesh=`` only the catalog's boxes are allowed. When the line search
+   refused, the ICP stage first repeats it over :data:`ICP_LS_SEARCH`; that pose too is kept
+   only within the object's own depth support (a box hidden behind a board is not moved onto
+   the board).
 """
 from __future__ import annotations
 
@@ -311,14 +314,23 @@ class DopePredictor:
 
     def _refine_icp(self, obj: ObjectGeometry, det: Detection, depth: DepthImage) -> None:
         """The ICP step of the module docstring, in place on ``det`` (after the line search)."""
+        points, normals = obj.icp_model
+        res = None
         if not det.ls_applied:  # ICP needs the depth within a few cm: a wider line search first
             options = {**self.options.line_search, "search": ICP_LS_SEARCH}
             wide = depth_line_search(det.R, det.t, obj.model_points, depth, **options)
-            if wide.applied:
-                det.t, det.ls_applied, det.ls_scale = wide.t, True, wide.scale
-                det.ls_reason = f"ok (search {ICP_LS_SEARCH[0]:g}-{ICP_LS_SEARCH[1]:g}, for ICP)"
-        points, normals = obj.icp_model
-        res = icp_refine(det.R, det.t, points, normals, depth, **self.options.icp_refine)
+            if wide.applied:  # kept only while the object's own depth support holds it
+                res = icp_refine(det.R, wide.t, points, normals, depth, initial_pose=(det.R, det.t),
+                                 **self.options.icp_refine)
+                search = f"search {ICP_LS_SEARCH[0]:g}-{ICP_LS_SEARCH[1]:g}, for ICP"
+                if res.start_supported:
+                    det.t, det.ls_applied, det.ls_scale = wide.t, True, wide.scale
+                    det.ls_reason = f"ok ({search})"
+                else:
+                    det.ls_reason += f"; s = {wide.scale:.3f} ({search}) {res.reason.removeprefix('the start pose ')}"
+                    res = None
+        if res is None:
+            res = icp_refine(det.R, det.t, points, normals, depth, **self.options.icp_refine)
         det.icp_applied, det.icp_reason = res.applied, res.reason
         det.icp_fit = res.fit_after if res.applied else res.fit_before
         if res.applied:

@@ -39,13 +39,22 @@ result only when it fits the depth better than the input pose did.
    point counts ``1 - (r / fit_threshold_m)^2``, ``r`` its point-to-plane distance, 0 beyond
    ``fit_threshold_m``: finer than a plain inlier count, which cannot tell a bottle's right
    roll from one a few degrees off). The refined pose is kept when its fit is not worse than
-   the input's (beyond ``fit_tie``) and it moved
-   less than ``max_translation_m`` (and turned less than ``max_rotation_deg``, by default no
-   bound); otherwise the input pose is
-   returned with the reason (bad depth never changes a pose, as for the line search).
-
-Run it after the line search: ICP's correspondences need the object's depth within a few
-centimetres, which the line search provides.
+   the input's (beyond ``fit_tie``), it moved less than ``max_translation_m`` (and turned
+   less than ``max_rotation_deg``, by default no bound) and it keeps to the object's own
+   depth support; otherwise the input pose is returned with the reason (bad depth never
+   changes a pose, as for the line search).
+6. **Own depth support** (:func:`depth_support`): the fit only counts the scene points, so it
+   cannot see a pose that grew or slid onto something else: a box hidden behind a board,
+   moved by a wide line search to the board's depth, projects twice as large and fits the
+   board as well as the box would. A pose's own support is the share of its visible model
+   points, leaving out those an occluder hides, that the depth confirms (within
+   ``fit_threshold_m``) inside the image region the object was detected in: the silhouette
+   of ``initial_pose`` (the keypoints' pose, before any depth step; by default the input),
+   dilated by ``mask_dilate`` as for the scene points. The refined pose needs at least
+   ``min_own_support``. Where the pose is right the share is the part of its surface the
+   sensor measured (0.6-0.9 on the demo scenes); a pose that snapped to a distractor claims
+   surface outside the region, or where the sensor saw nothing or saw through it (0.13 on
+   the demo scene that showed it).
 """
 from __future__ import annotations
 
@@ -58,6 +67,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from dope_hope.refine.depth import DepthImage
+from dope_hope.refine.line_search import auto_splat_px, visible_points
 
 #: Extra ICP starts: the input turned by +-90 and 180 deg about the model's x, y and z axes.
 TURN_STARTS: tuple[np.ndarray, ...] = tuple(
@@ -75,6 +85,10 @@ class IcpResult:
     applied: whether the pose changed. reason: "ok" or why not.
     fit_before / fit_after: soft fraction of the scene points on the model surface (1 = all
         exactly on it; see step 5) under the input / refined pose (NaN when not evaluated).
+    own_support: the refined pose's own depth support (step 6; NaN when not evaluated), or
+        the input pose's when that had too little.
+    start_supported: False when the input pose itself left the object's own depth support
+        (only checked when an ``initial_pose`` is given: a start a wider search moved).
     rmse_m: RMS point-to-plane residual of the last iteration's pairs, metres.
     n_points: scene points used.
     """
@@ -87,6 +101,31 @@ class IcpResult:
     fit_after: float = float("nan")
     rmse_m: float = float("nan")
     n_points: int = 0
+    own_support: float = float("nan")
+    start_supported: bool = True
+
+
+def silhouette_mask(points_c: np.ndarray, K: np.ndarray, hw: tuple[int, int], dilate: float) -> np.ndarray:
+    """(H, W) bool: the convex hull of projected points, dilated by ``dilate`` times its larger
+    bounding-box side (all False when fewer than three points project).
+
+    Args:
+        points_c: (N, 3) camera-frame points, metres (those at z <= 0 are ignored).
+        K: (3, 3). hw: (H, W) of the image. dilate: see above.
+    """
+    H, W = hw
+    uvw = points_c[points_c[:, 2] > 1e-6] @ K.T
+    uv = uvw[:, :2] / uvw[:, 2:3]
+    # far off-image points only widen the hull; clipping keeps the int32 cast exact
+    uv = np.clip(uv[np.isfinite(uv).all(axis=1)], -4.0 * max(H, W), 5.0 * max(H, W))
+    mask = np.zeros((H, W), np.uint8)
+    if len(uv) < 3:
+        return mask.astype(bool)
+    cv2.fillConvexPoly(mask, cv2.convexHull(np.round(uv).astype(np.int32).reshape(-1, 1, 2)), 1)
+    r = int(round(dilate * float(max(np.ptp(uv[:, 0]), np.ptp(uv[:, 1])))))
+    if r > 0:
+        mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+    return mask.astype(bool)
 
 
 def scene_points_under(points_c: np.ndarray, D: np.ndarray, K: np.ndarray, dilate: float,
@@ -102,26 +141,43 @@ def scene_points_under(points_c: np.ndarray, D: np.ndarray, K: np.ndarray, dilat
     Returns:
         (M, 3) camera-frame points, metres (M may be 0).
     """
-    H, W = D.shape
-    uvw = points_c[points_c[:, 2] > 1e-6] @ K.T
-    uv = uvw[:, :2] / uvw[:, 2:3]
-    # far off-image points only widen the hull; clipping keeps the int32 cast exact
-    uv = np.clip(uv[np.isfinite(uv).all(axis=1)], -4.0 * max(H, W), 5.0 * max(H, W))
-    if len(uv) < 3:
-        return np.empty((0, 3))
-    hull = cv2.convexHull(np.round(uv).astype(np.int32).reshape(-1, 1, 2))
-    mask = np.zeros((H, W), np.uint8)
-    cv2.fillConvexPoly(mask, hull, 1)
-    extent = float(max(np.ptp(uv[:, 0]), np.ptp(uv[:, 1])))
-    r = int(round(dilate * extent))
-    if r > 0:
-        mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
-    v, u = np.nonzero(mask.astype(bool) & np.isfinite(D))
+    v, u = np.nonzero(silhouette_mask(points_c, K, D.shape, dilate) & np.isfinite(D))
     if len(u) > max_points:
         keep = np.linspace(0, len(u) - 1, max_points).round().astype(np.int64)
         u, v = u[keep], v[keep]
     z = D[v, u]
     return np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], axis=1)
+
+
+def depth_support(R: np.ndarray, t: np.ndarray, model_points: np.ndarray, depth: DepthImage,
+                  region: np.ndarray, tolerance_m: float) -> float:
+    """A pose's own depth support (step 6 of the module docstring): the share of its visible,
+    unoccluded model points that the depth confirms inside the detected region.
+
+    A visible model point is confirmed where the depth at its pixel is within
+    ``tolerance_m`` of its own depth, occluded where the depth lies farther than that in
+    front of it (an occluder says nothing against the pose); a point with no depth or with
+    depth behind it (the sensor sees through where the surface would be) counts against it.
+
+    Args:
+        R: (3, 3), t: (3,) metres: the pose. model_points: (N, 3) surface points, metres.
+        depth: the depth image with its K. region: (H, W) bool, the detected region.
+        tolerance_m: depth agreement of a confirmed point, metres.
+
+    Returns:
+        The share in [0, 1]; NaN when no visible point is unoccluded.
+    """
+    D, K = depth.metres, depth.K
+    X = np.asarray(model_points, np.float64) @ np.asarray(R, np.float64).T + np.asarray(t, np.float64)
+    X = X[visible_points(X, K, D.shape, auto_splat_px(model_points, K, float(t[2])))]
+    uvw = X @ K.T
+    u = np.rint(uvw[:, 0] / uvw[:, 2]).astype(np.int64)
+    v = np.rint(uvw[:, 1] / uvw[:, 2]).astype(np.int64)  # visible points project into the image
+    r = D[v, u] - X[:, 2]  # NaN: no depth
+    with np.errstate(invalid="ignore"):
+        confirmed, occluded = np.abs(r) <= tolerance_m, r < -tolerance_m
+    n = int((~occluded).sum())
+    return float((confirmed & region[v, u]).sum() / n) if n else float("nan")
 
 
 def _fit(tree: cKDTree, normals: np.ndarray, x: np.ndarray, threshold_m: float) -> float:
@@ -157,6 +213,96 @@ def _iterate(S: np.ndarray, P: np.ndarray, N: np.ndarray, tree: cKDTree, R: np.n
     return R, t, rmse, ""
 
 
+@dataclass
+class _Search:
+    """What every ICP run of one call shares: scene points, model, tree and the settings."""
+
+    S: np.ndarray
+    P: np.ndarray
+    N: np.ndarray
+    tree: cKDTree
+    thresholds_m: Sequence[float]
+    min_points: int
+    fit_threshold_m: float
+
+    def fit(self, S: np.ndarray, R: np.ndarray, t: np.ndarray) -> float:
+        return _fit(self.tree, self.N, (S - t) @ R, self.fit_threshold_m)
+
+    def coarse(self, starts: list, coarse_points: int, iterations: int, finalists: int) -> tuple[list, str]:
+        """Step 4's coarse phase: every start, the first ``iterations`` on a thinned scene; the
+        plain start (first) and the ``finalists`` best-fitting others go on. Returns (starts
+        to finish, the first problem met)."""
+        sub = self.S[np.linspace(0, len(self.S) - 1, coarse_points).round().astype(np.int64)]
+        sub_min = max(10, round(self.min_points * len(sub) / len(self.S)))
+        coarse, first_problem = [], ""
+        for i, (Rs, ts) in enumerate(starts):
+            Rc, tc, _, problem = _iterate(sub, self.P, self.N, self.tree, Rs, ts,
+                                          self.thresholds_m[:iterations], sub_min)
+            if problem:
+                first_problem = first_problem or problem
+                continue
+            coarse.append((i == 0, self.fit(sub, Rc, tc), Rc, tc))
+        plain = [c for c in coarse if c[0]]
+        others = sorted((c for c in coarse if not c[0]), key=lambda c: -c[1])[:finalists]
+        return [(c[2], c[3]) for c in plain + others], first_problem
+
+    def runs(self, starts: list, coarse_points: int | None, coarse_iterations: int, finalists: int
+             ) -> tuple[list, str]:
+        """Step 4: ICP from every start (the coarse phase first when it applies): ([(fit, R, t,
+        rmse_m)] of the runs that kept the object, the first problem met)."""
+        fine, coarse_problem = self.thresholds_m, ""
+        if len(starts) > 1 and coarse_points and len(self.S) > coarse_points and len(fine) > coarse_iterations:
+            starts, coarse_problem = self.coarse(starts, coarse_points, coarse_iterations, finalists)
+            fine = fine[coarse_iterations:]
+        runs, problem = self.finish(starts, fine)
+        return runs, coarse_problem or problem
+
+    def finish(self, starts: list, thresholds_m: Sequence[float]) -> tuple[list, str]:
+        """Every start through ``thresholds_m`` on all scene points: ([(fit, R, t, rmse_m)],
+        the first problem met)."""
+        runs, first_problem = [], ""
+        for Rs, ts in starts:
+            Rc, tc, rmse, problem = _iterate(self.S, self.P, self.N, self.tree, Rs, ts, thresholds_m,
+                                             self.min_points)
+            if problem:
+                first_problem = first_problem or problem
+                continue
+            runs.append((self.fit(self.S, Rc, tc), Rc, tc, rmse))
+        return runs, first_problem
+
+
+def _model_arrays(model_points, model_normals, thresholds_m: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) points and normals as float64; ValueError for a programming mistake."""
+    if not thresholds_m:
+        raise ValueError("thresholds_m must name at least one iteration")
+    P = np.asarray(model_points, dtype=np.float64).reshape(-1, 3)
+    N = np.asarray(model_normals, dtype=np.float64).reshape(-1, 3)
+    if len(P) != len(N):
+        raise ValueError(f"{len(P)} model points but {len(N)} normals")
+    return P, N
+
+
+def _refusal(moved_m: float, turned_deg: float, fit_after: float, fit_before: float, own_support: float,
+             max_translation_m: float, max_rotation_deg: float, fit_tie: float, min_own_support: float) -> str:
+    """Why the refined pose is refused (step 5), or "" when it is kept."""
+    if moved_m > max_translation_m:
+        return f"ICP moved the object {moved_m * 100:.1f} cm > {max_translation_m * 100:.1f} cm"
+    if turned_deg > max_rotation_deg:
+        return f"ICP turned the object {turned_deg:.0f} deg > {max_rotation_deg:.0f} deg"
+    if fit_after < fit_before - fit_tie:
+        return f"ICP fits the depth worse (fit {fit_after:.3f} < {fit_before:.3f})"
+    return support_problem("ICP", own_support, min_own_support)
+
+
+def support_problem(what: str, own_support: float, min_own_support: float) -> str:
+    """Why a pose is refused by step 6 (``what`` names who moved it), or "" when it is kept."""
+    if own_support >= min_own_support:
+        return ""
+    share = "none of its surface is unoccluded" if np.isnan(own_support) else \
+        f"the depth confirms {100 * own_support:.0f} % of its surface there < {100 * min_own_support:.0f} %"
+    return f"{what} left the object's own depth support (detected region: {share})"
+
+
 def icp_refine(
     R: np.ndarray,
     t: np.ndarray,
@@ -175,97 +321,67 @@ def icp_refine(
     coarse_points: int | None = 750,
     coarse_iterations: int = 6,
     finalists: int = 3,
+    min_own_support: float = 0.3,
+    initial_pose: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> IcpResult:
-    """Refine a pose by point-to-plane ICP against a depth image (see the module docstring).
+    """Refine a pose by point-to-plane ICP against a depth image (steps of the module docstring).
 
     Args:
-        R: (3, 3), t: (3,) metres: the pose to refine (``x_c = R x + t``), best after the
-            line search.
-        model_points: (N, 3) model surface points, metres (a few thousand).
-        model_normals: (N, 3) their unit normals (sign irrelevant).
+        R: (3, 3), t: (3,) metres: the pose to refine (``x_c = R x + t``), best after -LS.
+        model_points, model_normals: (N, 3) surface points, metres (a few thousand), and their
+            unit normals (sign irrelevant).
         depth: the depth image in metres with its K (:class:`~dope_hope.refine.depth.DepthImage`).
-        thresholds_m: correspondence distance of each iteration, metres.
-        mask_dilate: silhouette dilation, fraction of its bounding-box size.
-        max_scene_points: depth pixels used at most.
-        min_points: fewest scene points and pairs to go on with.
+        thresholds_m: correspondence distance of each iteration, metres. mask_dilate:
+            silhouette dilation, fraction of its bounding-box size. max_scene_points,
+            min_points: most depth pixels used; fewest scene points and pairs.
         fit_threshold_m: point-to-surface distance beyond which a scene point counts 0 in the
-            fit (step 5).
-        max_translation_m, max_rotation_deg: largest change accepted (the default 180 deg
-            bounds nothing: lite models' rotations are often off by 60-100 deg about the long
-            axis, which ICP corrects; the depth fit decides).
-        start_rotations: (3, 3) model-frame rotations S; ICP also starts from ``R @ S`` (the
-            object turned about its own origin), and the best-fitting run wins; () for the
-            input pose only.
+            fit (step 5); also the depth agreement of a supported point (step 6).
+        max_translation_m, max_rotation_deg: largest change accepted (180 deg bounds nothing:
+            lite models' rotations are often 60-100 deg off about the long axis).
+        start_rotations: (3, 3) model-frame rotations S; ICP also starts from ``R @ S``; ()
+            for the input pose only (step 4).
         fit_tie: runs whose fits differ by at most this are equal; the one whose rotation is
             nearest the input's wins among them.
-        coarse_points, coarse_iterations, finalists: with several starts, each first runs
-            ``coarse_iterations`` iterations on ``coarse_points`` evenly thinned scene points;
-            the plain start and the ``finalists`` best-fitting others then finish on all
-            points (None: every start runs every iteration on all points).
+        coarse_points, coarse_iterations, finalists: step 4's coarse phase (None: every start
+            runs every iteration on all points).
+        min_own_support: least own depth support of a pose (step 6).
+        initial_pose: (R, t) of the estimate before any depth step (the keypoints' pose), whose
+            dilated silhouette is the detected region (step 6; None: (R, t)); given, the input
+            pose (moved there by a wider search) must keep to that region's support too.
 
     Returns:
         :class:`IcpResult`; the input pose with a reason when not applied.
     """
     R0 = np.asarray(R, dtype=np.float64).reshape(3, 3)
     t0 = np.asarray(t, dtype=np.float64).reshape(3)
-    K = depth.K
 
     def refuse(reason: str, **kw) -> IcpResult:
         return IcpResult(R=R0.copy(), t=t0.copy(), applied=False, reason=reason, **kw)
 
-    if not thresholds_m:
-        raise ValueError("thresholds_m must name at least one iteration")
-    P = np.asarray(model_points, dtype=np.float64).reshape(-1, 3)
-    N = np.asarray(model_normals, dtype=np.float64).reshape(-1, 3)
-    if len(P) != len(N):
-        raise ValueError(f"{len(P)} model points but {len(N)} normals")
-    problem = depth.problem_for(t0)
-    D = depth.metres
-    if problem:
+    P, N = _model_arrays(model_points, model_normals, thresholds_m)
+    if problem := depth.problem_for(t0):
         return refuse(problem)
-    S = scene_points_under(P @ R0.T + t0, D, K, mask_dilate, max_scene_points)
+    Ri, ti = (R0, t0) if initial_pose is None else initial_pose
+    region = silhouette_mask(P @ np.asarray(Ri, float).T + np.asarray(ti, float), depth.K, depth.hw, mask_dilate)
+    start = float("inf") if initial_pose is None else depth_support(R0, t0, P, depth, region, fit_threshold_m)
+    if problem := support_problem("the start pose", start, min_own_support):  # a wider search's start
+        return refuse(problem, own_support=start, start_supported=False)
+    S = scene_points_under(P @ R0.T + t0, depth.metres, depth.K, mask_dilate, max_scene_points)
     if len(S) < min_points:
         return refuse(f"too few depth pixels under the object ({len(S)} < {min_points})", n_points=len(S))
-    tree = cKDTree(P)
-    fit_before = _fit(tree, N, (S - t0) @ R0, fit_threshold_m)
+    search = _Search(S, P, N, cKDTree(P), list(thresholds_m), min_points, fit_threshold_m)
+    fit_before = search.fit(S, R0, t0)
     starts = [(R0 @ np.asarray(s, float).reshape(3, 3), t0) for s in [np.eye(3), *start_rotations]]
-    first_problem = ""
-    fine = list(thresholds_m)
-    if len(starts) > 1 and coarse_points and len(S) > coarse_points and len(fine) > coarse_iterations:
-        # Coarse phase: every start, the first iterations, a thinned scene; the plain start
-        # and the best-fitting others go on.
-        sub = S[np.linspace(0, len(S) - 1, coarse_points).round().astype(np.int64)]
-        sub_min = max(10, round(min_points * len(sub) / len(S)))
-        coarse = []
-        for i, (Rs, ts) in enumerate(starts):
-            Rc, tc, _, problem = _iterate(sub, P, N, tree, Rs, ts, fine[:coarse_iterations], sub_min)
-            if problem:
-                first_problem = first_problem or problem
-                continue
-            coarse.append((i == 0, _fit(tree, N, (sub - tc) @ Rc, fit_threshold_m), Rc, tc))
-        plain = [c for c in coarse if c[0]]
-        others = sorted((c for c in coarse if not c[0]), key=lambda c: -c[1])[:finalists]
-        starts = [(c[2], c[3]) for c in plain + others]
-        fine = fine[coarse_iterations:]
-    runs = []
-    for Rs, ts in starts:
-        Rc, tc, rmse, problem = _iterate(S, P, N, tree, Rs, ts, fine, min_points)
-        if problem:
-            first_problem = first_problem or problem
-            continue
-        runs.append((_fit(tree, N, (S - tc) @ Rc, fit_threshold_m), Rc, tc, rmse))
+    runs, problem = search.runs(starts, coarse_points, coarse_iterations, finalists)
     if not runs:
-        return refuse(first_problem, fit_before=fit_before, n_points=len(S))
+        return refuse(problem, fit_before=fit_before, n_points=len(S))
     top = max(r[0] for r in runs)
     fit_after, Rc, tc, rmse = min((r for r in runs if r[0] >= top - fit_tie),
                                   key=lambda r: Rotation.from_matrix(r[1] @ R0.T).magnitude())
-    moved_m = float(np.linalg.norm(tc - t0))
+    own_support = depth_support(Rc, tc, P, depth, region, fit_threshold_m)
+    kw = dict(fit_before=fit_before, fit_after=fit_after, rmse_m=rmse, n_points=len(S), own_support=own_support)
     turned_deg = float(np.degrees(Rotation.from_matrix(Rc @ R0.T).magnitude()))
-    kw = dict(fit_before=fit_before, fit_after=fit_after, rmse_m=rmse, n_points=len(S))
-    if moved_m > max_translation_m:
-        return refuse(f"ICP moved the object {moved_m * 100:.1f} cm > {max_translation_m * 100:.1f} cm", **kw)
-    if turned_deg > max_rotation_deg:
-        return refuse(f"ICP turned the object {turned_deg:.0f} deg > {max_rotation_deg:.0f} deg", **kw)
-    if fit_after < fit_before - fit_tie:
-        return refuse(f"ICP fits the depth worse (fit {fit_after:.3f} < {fit_before:.3f})", **kw)
+    if reason := _refusal(float(np.linalg.norm(tc - t0)), turned_deg, fit_after, fit_before, own_support,
+                          max_translation_m, max_rotation_deg, fit_tie, min_own_support):
+        return refuse(reason, **kw)
     return IcpResult(R=Rc, t=tc, applied=True, reason="ok", **kw)
