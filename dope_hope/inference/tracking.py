@@ -8,6 +8,11 @@
   detections by :func:`scipy.optimize.linear_sum_assignment` on the cost
   ``|t_det - t_pred| / gate_m + (1 - IoU of their 2D boxes) + rotation_weight * angle / 180``
   (angle after the symmetries); a pair is allowed when the translations are within ``gate_m``.
+  A detection farther than ``gate_m`` still matches a confirmed track when it lies on the
+  track's ray: moved along its own ray to the predicted depth it is within ``gate_m``
+  (``reseed_depth``; a depth line search fooled by an occluder in front, say); the filter then
+  takes its translation at that depth, refined against the depth image within
+  ``coast_search`` (the frame's own estimate is still reported as ``t_detected``).
   An unmatched detection starts a track; while that track is tentative its detection is not
   published when its 2D box overlaps the predicted box of a confirmed track published in
   this frame (detected or coasted) by ``min_iou`` or more
@@ -66,7 +71,9 @@ class TrackingSettings:
     acceleration_m / angular_acceleration_deg: change of velocity per frame the motion model
     allows (std). rotation_gate_deg / rotation_reset / manoeuvre_gate / outlier_gate: see
     :class:`~dope_hope.inference.pose_filter.PoseFilter`. coast_refine: refine coasted poses
-    against the depth; coast_search: the line search's scale range for them.
+    against the depth; coast_search: the line search's scale range for them (and for
+    reseeded detections). reseed_depth: match detections on a confirmed track's ray (module
+    docstring).
     """
 
     confirm_hits: int = 3
@@ -75,21 +82,22 @@ class TrackingSettings:
     gate_m: float = 0.05
     min_iou: float = 0.3
     rotation_weight: float = 0.5
-    translation_std_m: float = 0.003
-    acceleration_m: float = 0.0002
+    translation_std_m: float = 0.002
+    acceleration_m: float = 0.0001
     rotation_std_deg: float = 2.0
-    angular_acceleration_deg: float = 0.1
+    angular_acceleration_deg: float = 0.02
     rotation_gate_deg: float = 45.0
     rotation_reset: int = 3
     manoeuvre_gate: float = 2.0
     outlier_gate: float = 6.0
     coast_refine: bool = True
     coast_search: tuple[float, float] = (0.95, 1.05)
+    reseed_depth: bool = True
 
     def __post_init__(self) -> None:
         for f in fields(self):
             v = getattr(self, f.name)
-            if f.name == "coast_refine":
+            if f.name in ("coast_refine", "reseed_depth"):
                 if not isinstance(v, bool):
                     raise ConfigError(f"tracking.{f.name} must be true or false, got {v!r}")
             elif f.name == "coast_search":
@@ -292,10 +300,10 @@ class PoseTracker:
                                              image_hw)
                 tr.last_frame = frame
             pairs = self._associate(class_name, tracks, dets)
-            matched = {ti for ti, _ in pairs}
-            for ti, di in pairs:
-                out.append(self._correct(class_name, tracks[ti], dets[di], K, image_hw))
-            taken = {di for _, di in pairs}
+            matched = {ti for ti, _, _ in pairs}
+            for ti, di, reseed in pairs:
+                out.append(self._correct(class_name, tracks[ti], dets[di], K, depth, image_hw, reseed))
+            taken = {di for _, di, _ in pairs}
             confirmed_boxes = [t.box_pred for t in tracks  # confirmed tracks published this frame
                                if t.hits >= self.settings.confirm_hits and t.misses < self.settings.max_coast]
             for di, det in enumerate(dets):
@@ -329,23 +337,32 @@ class PoseTracker:
             by[d.class_name].append(d)
         return by
 
-    def _associate(self, class_name: str, tracks: list[_Track], dets: list[Detection]) -> list[tuple[int, int]]:
-        """(track index, detection index) pairs of least total cost among the allowed ones."""
+    def _associate(self, class_name: str, tracks: list[_Track], dets: list[Detection]
+                   ) -> list[tuple[int, int, bool]]:
+        """(track index, detection index, depth reseeded) of least total cost among the allowed
+        pairs; a pair matched only on the track's ray (module docstring) costs 1 more."""
         if not tracks or not dets:
             return []
         s = self.settings
         big = 1e6
         C = np.full((len(tracks), len(dets)), big)
+        reseed = np.zeros(C.shape, dtype=bool)
         for i, tr in enumerate(tracks):
             for j, d in enumerate(dets):
-                dist = float(np.linalg.norm(np.asarray(d.t) - tr.t_pred))
-                if dist > s.gate_m:
-                    continue
+                t = np.asarray(d.t, dtype=np.float64)
+                dist = float(np.linalg.norm(t - tr.t_pred))
+                if dist > s.gate_m:  # on its track's ray at the predicted depth?
+                    if not s.reseed_depth or tr.hits < s.confirm_hits or t[2] <= 0:
+                        continue
+                    dist = float(np.linalg.norm(t * (tr.t_pred[2] / t[2]) - tr.t_pred))
+                    if dist > s.gate_m:
+                        continue
+                    reseed[i, j] = True
                 iou = box_iou(tr.box_pred, d.bbox_2d)
-                angle = closest_equivalent(np.asarray(d.R), np.asarray(d.t), tr.R_pred, self.symmetries[class_name])[2]
-                C[i, j] = dist / s.gate_m + (1.0 - iou) + s.rotation_weight * angle / 180.0
+                angle = closest_equivalent(np.asarray(d.R), t, tr.R_pred, self.symmetries[class_name])[2]
+                C[i, j] = dist / s.gate_m + (1.0 - iou) + s.rotation_weight * angle / 180.0 + float(reseed[i, j])
         rows, cols = linear_sum_assignment(C)
-        return [(int(r), int(c)) for r, c in zip(rows, cols) if C[r, c] < big]
+        return [(int(r), int(c), bool(reseed[r, c])) for r, c in zip(rows, cols) if C[r, c] < big]
 
     def _new_filter(self, class_name: str, det: Detection) -> PoseFilter:
         s = self.settings
@@ -360,8 +377,17 @@ class PoseTracker:
         started.append(tr)
         return self._published(class_name, tr, det, tr.filter.R, tr.filter.t, K, image_hw)
 
-    def _correct(self, class_name: str, tr: _Track, det: Detection, K: np.ndarray, image_hw) -> TrackedObject:
-        R, t = tr.filter.update(det.R, det.t)
+    def _correct(self, class_name: str, tr: _Track, det: Detection, K: np.ndarray, depth: DepthImage | None,
+                 image_hw, reseed: bool) -> TrackedObject:
+        t = np.asarray(det.t, dtype=np.float64)
+        if reseed:  # the detection's direction at the track's depth, refined against the depth
+            t = t * (tr.t_pred[2] / t[2])
+            if depth is not None:
+                p = self.predictors[class_name]
+                res = depth_line_search(det.R, t, p.model_points, depth,
+                                        **{**p.options.line_search, "search": self.settings.coast_search})
+                t = res.t if res.applied else t
+        R, t = tr.filter.update(det.R, t)
         tr.hits, tr.misses, tr.score = tr.hits + 1, 0, float(det.score)
         return self._published(class_name, tr, det, R, t, K, image_hw)
 
