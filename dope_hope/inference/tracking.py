@@ -272,13 +272,14 @@ class PoseTracker:
         """Forget every track (a new stream); ids start again at 1."""
         self.__init__(list(self.predictors.values()), self.settings, self.symmetries)
 
-    def update(self, detections: Sequence[Detection], K: np.ndarray, depth: DepthImage | None = None,
+    def update(self, detections: Sequence[Detection], K: np.ndarray, depth: DepthImage | np.ndarray | None = None,
                frame: int | None = None, image_hw: tuple[int, int] | None = None) -> list[TrackedObject]:
         """One frame: associate, filter, coast (module docstring).
 
         Args:
             detections: the frame's detections (mesh-frame poses, original-image px).
-            K: (3, 3) intrinsics of the frame. depth: its depth (metres), for coasting.
+            K: (3, 3) intrinsics of the frame. depth: its depth, for coasting: a
+                :class:`DepthImage`, or (H, W) metres (float) / millimetres (integers).
             frame: the frame's index in the stream (default: the previous one + 1); a gap
                 (dropped frames) is predicted over. image_hw: (H, W) of the frame, to clip the
                 2D boxes as the detections' are (default: the depth's).
@@ -287,6 +288,8 @@ class PoseTracker:
             The published objects, detected ones first (by decreasing score), then coasted.
         """
         frame = self._frame + 1 if frame is None else int(frame)
+        if depth is not None and not isinstance(depth, DepthImage):
+            depth = DepthImage.from_raw(depth, K, 0.001, 1.0, image_hw)
         if image_hw is None and depth is not None:
             image_hw = depth.hw
         out: list[TrackedObject] = []
