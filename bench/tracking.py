@@ -38,7 +38,8 @@ predictor (`--track`), alternating. Reported, raw vs tracked:
   box moves faster than 0.25 m/s, in frames of motion (positive: behind);
 * identity switches: changes of the track id matched to each ground-truth box (within 5 cm)
   between the frames it is matched in (raw detections carry no ids);
-* frames/s end to end over all clips (run_stream's count).
+* frames/s end to end over all clips (run_stream's count), and the tracker's own time per
+  frame (PoseTracker.update: association, filter, the coasted poses' line search).
 
 ``--quick``: 24 frames per clip. Targets: jitter >= 3x lower, recall >= 10 points higher on
 moving and occluded, no identity switch on crossing, >= 15 frames/s tracked.
@@ -93,6 +94,7 @@ class Played:
     fps: float = 0.0
     frames: int = 0
     seconds: float = 0.0
+    tracker_seconds: float = 0.0
 
 
 class VideoWithDepth(VideoFile):
@@ -270,7 +272,9 @@ def play(predictor, clip: Clip, tracked: bool, out: Path, max_frames: int | None
         depth = as_depth_image(frame.depth, frame.K, 0.001, 1.0, frame.rgb.shape[:2])
         objs = predict_many([predictor], frame.rgb, frame.K, depth=depth)
         if tracker is not None:
+            t1 = time.perf_counter()
             objs = tracker.update(objs, frame.K, depth, frame=frame.index, image_hw=frame.rgb.shape[:2])
+            played.tracker_seconds += time.perf_counter() - t1
         extra = {"time": round(time.perf_counter() - t0, 4), "frame": frame.index,
                  "timestamp_s": round(frame.timestamp_s, 4)}
         lines.extend(json.dumps(o.to_json(frame.name, **extra)) for o in objs)
@@ -396,6 +400,7 @@ def measure(clips: list[Clip], predictor, tmp: Path, model) -> dict[str, dict]:
             r[f"recall_{clip.name}"] = recall(clip, p, model)
             r["frames"] = r.get("frames", 0) + p.frames
             r["seconds"] = r.get("seconds", 0.0) + p.seconds
+            r["tracker_seconds"] = r.get("tracker_seconds", 0.0) + p.tracker_seconds
             if clip.name == "resting":
                 r["jitter"] = jitter(clip, p, model)
             if clip.name == "moving":
@@ -427,6 +432,9 @@ def report(res: dict[str, dict], clips: list[Clip]) -> None:
         print(f"identity switches {clip.name:9s}   no ids     {sw:5d}      ({n} box-frames tracked)")
     print(f"frames/s end to end            {raw['fps']:8.1f}   {trk['fps']:8.1f}    "
           f"{trk['fps'] / raw['fps']:.2f}x")
+    ms = 1000.0 * trk["tracker_seconds"] / max(trk["frames"], 1)
+    print(f"tracker (PoseTracker.update)   {'':8s}   {ms:8.2f} ms per frame, "
+          f"{100.0 * trk['tracker_seconds'] / trk['seconds']:.1f} % of the tracked loop's time")
     ok = []
     if "jitter" in raw:
         for key in ("t_step", "R_step"):

@@ -176,8 +176,7 @@ class TrackedObject:
                 "quaternion_xyzw": [float(v) for v in self.quaternion_xyzw], "bbox_2d": box}
         if self.detection is not None:
             rec = self.detection.to_json(image, **extra)
-            rec.update(pose, R_detected=rec["R"], t_detected=rec["t"])
-            rec.update(pose)
+            rec.update(pose, R_detected=rec["R"], t_detected=rec["t"])  # the kwargs hold the detection's
         else:
             rec = prediction_record("" if image is None else image, self.class_name, self.score, self.R, self.t,
                                     ls_applied=self.ls_applied, ls_reason=self.ls_reason,
