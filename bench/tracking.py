@@ -1,6 +1,6 @@
 """Tracking on video: raw per-frame poses against tracked ones (`dope-hope infer CLIP --track`).
 
-    nice -n 10 python bench/tracking.py [--frames 60] [--threads 2] [--quick]
+    nice -n 10 python bench/tracking.py [--frames 60] [--threads 2] [--quick] [--tracking JSON]
 
 Renders four clips of the demo box (dope_hope/demo_object.py) at 640x480 and 30 frames/s with
 the demo scenes' camera, lights, background and distractors (configs/demo.yaml; distractors
@@ -254,7 +254,8 @@ def motion_blur(color: np.ndarray, alpha: np.ndarray, step_px: np.ndarray) -> tu
 
 
 # ----------------------------------------------------------------------------- playing
-def play(predictor, clip: Clip, tracked: bool, out: Path, max_frames: int | None = None) -> Played:
+def play(predictor, clip: Clip, tracked: bool, out: Path, max_frames: int | None = None,
+         settings: dict | None = None) -> Played:
     """The `dope-hope infer clip.mp4 [--track]` loop over a clip (records, overlay video)."""
     from dope_hope.inference.predictor import as_depth_image, predict_many
     from dope_hope.inference.tracking import PoseTracker
@@ -264,7 +265,7 @@ def play(predictor, clip: Clip, tracked: bool, out: Path, max_frames: int | None
     camera = ImageCamera(K=clip.K, width=SIZE[0], height=SIZE[1], source=Path("bench"))
     source = VideoWithDepth(clip.video, camera, clip.depths)
     overlay = OverlayVideo(out / f"{clip.name}_{'tracked' if tracked else 'raw'}.overlay", FPS)
-    tracker = PoseTracker(predictor) if tracked else None
+    tracker = PoseTracker(predictor, settings={**predictor.options.tracking, **(settings or {})}) if tracked else None
     played, lines = Played(), []
 
     def process(frame):
@@ -389,13 +390,13 @@ def open_predictor(weights: Path, threads: int, tmp: Path):
     return DopePredictor(open_backend(onnx_path, "onnx", threads=threads), mesh=mesh), input_hw
 
 
-def measure(clips: list[Clip], predictor, tmp: Path, model) -> dict[str, dict]:
+def measure(clips: list[Clip], predictor, tmp: Path, model, settings: dict | None = None) -> dict[str, dict]:
     """Play every clip raw and tracked (alternating); the figures of each."""
     res: dict[str, dict] = {"raw": {}, "tracked": {}}
     play(predictor, clips[0], False, tmp, max_frames=5)  # warm-up: first runs, caches
     for clip in clips:
         for mode in ("raw", "tracked"):
-            p = play(predictor, clip, mode == "tracked", tmp)
+            p = play(predictor, clip, mode == "tracked", tmp, settings=settings)
             r = res[mode]
             r[f"recall_{clip.name}"] = recall(clip, p, model)
             r["frames"] = r.get("frames", 0) + p.frames
@@ -458,6 +459,8 @@ def main() -> int:
     ap.add_argument("--clips", nargs="+", choices=CLIPS, default=list(CLIPS))
     ap.add_argument("--quick", action="store_true", help="24 frames per clip")
     ap.add_argument("--keep", type=Path, help="keep the clips and overlay videos in this folder")
+    ap.add_argument("--tracking", type=json.loads, default={}, metavar="JSON",
+                    help='tracker settings over configs/infer.yaml\'s, e.g. \'{"max_coast": 10}\'')
     args = ap.parse_args()
     n = 24 if args.quick else args.frames
 
@@ -480,7 +483,9 @@ def main() -> int:
         print(f"{cpu_name()}, {os.cpu_count()} CPUs, {args.threads} threads; {len(clips)} clips x {n} frames "
               f"{SIZE[0]}x{SIZE[1]} rendered in {time.perf_counter() - t0:.1f} s; {args.weights.name} through "
               f"onnxruntime at {input_hw[1]}x{input_hw[0]}; load average {os.getloadavg()[0]:.2f}", flush=True)
-        res = measure(clips, predictor, tmp, model)
+        if args.tracking:
+            print(f"tracking settings: {json.dumps(args.tracking)}", flush=True)
+        res = measure(clips, predictor, tmp, model, args.tracking)
     report(res, clips)
     return 0
 

@@ -119,6 +119,20 @@ def test_an_outlying_translation_is_ignored_and_a_real_jump_restarts():
     np.testing.assert_allclose(t, [0.03, 0.0, 0.6], atol=3e-3)
 
 
+def test_a_poorly_fitting_detection_moves_the_track_less():
+    """reprojection_px: a detection with a large reprojection error counts as noisier."""
+    moved = {}
+    for ref in (0.0, 1.0):
+        tracker = PoseTracker(fake_predictor(), settings={"reprojection_px": ref, "reprojection_power": 2.0})
+        for k in range(5):
+            tracker.update([detection(R0, [0.0, 0.0, 0.6])], K, frame=k, image_hw=HW)
+        det = detection(R0, [0.004, 0.0, 0.6])
+        det.reprojection_error_px = 4.0
+        (o,) = tracker.update([det], K, frame=5, image_hw=HW)
+        moved[ref] = o.t[0]
+    assert 0 < moved[1.0] < moved[0.0] / 3
+
+
 # ----------------------------------------------------------------------------- tracker
 def test_two_crossing_boxes_keep_their_ids():
     tracker = PoseTracker(fake_predictor())

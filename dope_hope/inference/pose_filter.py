@@ -68,15 +68,17 @@ class _ConstantVelocity:
         self.x = self.x + self.v * dt
         self.P = F @ self.P @ F.T + Q
 
-    def correct(self, residual: np.ndarray) -> bool:
-        """Apply a measurement residual (measurement - prediction); False when it is an outlier."""
-        s = self.P[0, 0] + self.r
+    def correct(self, residual: np.ndarray, noise_scale: float = 1.0) -> bool:
+        """Apply a measurement residual (measurement - prediction) whose noise is
+        ``noise_scale`` times the usual; False when it is an outlier."""
+        r = self.r * noise_scale ** 2
+        s = self.P[0, 0] + r
         d2 = float(residual @ residual) / (3.0 * s)
         if d2 > self.outlier2:
             return False
         if d2 > self.gate2:
             self.P = self.P * (d2 / self.gate2)
-            s = self.P[0, 0] + self.r
+            s = self.P[0, 0] + r
         gain = self.P[:, 0] / s
         self.x = self.x + gain[0] * residual
         self.v = self.v + gain[1] * residual
@@ -145,21 +147,22 @@ class PoseFilter:
         self._w.predict(dt)
         return self.R, self.t
 
-    def update(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def update(self, R: np.ndarray, t: np.ndarray, noise_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """Correct the prediction with a measured pose; returns the filtered (R, t).
 
         The measurement is first replaced by its symmetry-equivalent pose nearest the
-        prediction (:func:`closest_equivalent`)."""
+        prediction (:func:`closest_equivalent`). ``noise_scale``: its noise relative to the
+        configured measurement noise (a less certain detection moves the filter less)."""
         R_pred = self.R
         R_m, t_m, angle = closest_equivalent(np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64),
                                              R_pred, self.symmetries)
-        if self._t.correct(t_m - self._t.x):
+        if self._t.correct(t_m - self._t.x, noise_scale):
             self.translation_outliers = []
         else:
             self._translation_outlier(t_m)
         if angle <= self.rotation_gate_deg:
             self.rotation_outliers = 0
-            self._w.correct(Rotation.from_matrix(R_m @ R_pred.T).as_rotvec())
+            self._w.correct(Rotation.from_matrix(R_m @ R_pred.T).as_rotvec(), noise_scale)
         else:
             self.rotation_outliers += 1
             if self.rotation_outliers >= self.rotation_reset:

@@ -73,7 +73,10 @@ class TrackingSettings:
     :class:`~dope_hope.inference.pose_filter.PoseFilter`. coast_refine: refine coasted poses
     against the depth; coast_search: the line search's scale range for them (and for
     reseeded detections). reseed_depth: match detections on a confirmed track's ray (module
-    docstring).
+    docstring). reprojection_px / reprojection_power: with reprojection_px > 0 a detection
+    whose mean reprojection error e exceeds reprojection_px counts as
+    ``(e / reprojection_px) ** reprojection_power`` times noisier (a partly hidden object's
+    fit is worse; 0 = off).
     """
 
     confirm_hits: int = 3
@@ -93,6 +96,8 @@ class TrackingSettings:
     coast_refine: bool = True
     coast_search: tuple[float, float] = (0.95, 1.05)
     reseed_depth: bool = True
+    reprojection_px: float = 0.0
+    reprojection_power: float = 1.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -111,7 +116,7 @@ class TrackingSettings:
                     raise ConfigError(f"tracking.{f.name} must be a whole number >= "
                                       f"{0 if f.name == 'max_coast' else 1}, got {v!r}")
             elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0 \
-                    or (v == 0 and f.name not in ("rotation_weight", "min_iou")):
+                    or (v == 0 and f.name not in ("rotation_weight", "min_iou", "reprojection_px")):
                 raise ConfigError(f"tracking.{f.name} must be a positive number, got {v!r}")
         if self.max_coast > self.max_misses:
             raise ConfigError(f"tracking.max_coast ({self.max_coast}) must not exceed tracking.max_misses "
@@ -389,9 +394,16 @@ class PoseTracker:
                 res = depth_line_search(det.R, t, p.model_points, depth,
                                         **{**p.options.line_search, "search": self.settings.coast_search})
                 t = res.t if res.applied else t
-        R, t = tr.filter.update(det.R, t)
+        R, t = tr.filter.update(det.R, t, self._noise_scale(det))
         tr.hits, tr.misses, tr.score = tr.hits + 1, 0, float(det.score)
         return self._published(class_name, tr, det, R, t, K, image_hw)
+
+    def _noise_scale(self, det: Detection) -> float:
+        """How much noisier than usual a detection counts (TrackingSettings.reprojection_px)."""
+        ref, e = self.settings.reprojection_px, float(det.reprojection_error_px)
+        if ref <= 0 or not math.isfinite(e) or e <= ref:
+            return 1.0
+        return (e / ref) ** self.settings.reprojection_power
 
     def _published(self, class_name: str, tr: _Track, det: Detection | None, R: np.ndarray, t: np.ndarray,
                    K: np.ndarray, image_hw, ls: tuple[bool, str] | None = None) -> TrackedObject:
