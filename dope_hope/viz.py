@@ -168,7 +168,9 @@ def overlay_detections(image: np.ndarray, detections: Sequence, K: np.ndarray,
         detections: objects with ``class_name``, ``score``, ``R`` (3, 3), ``t`` (3,) metres and
             either ``projected_2d`` (9, 2) px or ``cuboid_size_m`` (3,) (+ optional
             ``cuboid_center_m``), e.g. :class:`dope_hope.inference.predictor.Detection`; an optional
-            ``ls_applied`` adds "LS" to the label.
+            ``ls_applied`` adds "LS" to the label, a ``track_id`` (tracked objects,
+            :class:`dope_hope.inference.tracking.TrackedObject`) "#ID" after the class, and
+            ``tracked == "coasted"`` the word "coasted".
         K: (3, 3) intrinsics of ``image``.
         axis_length: axis length in metres (default: half the largest cuboid extent, else 5 cm).
         show_empty: write "no detections" when the list is empty.
@@ -192,7 +194,10 @@ def overlay_detections(image: np.ndarray, detections: Sequence, K: np.ndarray,
         length = axis_length if axis_length is not None else (
             0.5 * float(np.max(size)) if size is not None else 0.05)
         out = draw_axes(out, K, det.R, det.t, length=length, origin=center)
-        text = f"{det.class_name} {det.score:.2f}" + (" LS" if getattr(det, "ls_applied", False) else "")
+        track_id = getattr(det, "track_id", None)
+        text = f"{det.class_name}" + (f" #{track_id}" if track_id is not None else "") + f" {det.score:.2f}" \
+            + (" LS" if getattr(det, "ls_applied", False) else "") \
+            + (" coasted" if getattr(det, "tracked", "detected") == "coasted" else "")
         anchor = np.array([4.0, 4.0])
         if kp is not None and np.isfinite(kp).all(axis=1).any():
             finite = np.asarray(kp)[np.isfinite(kp).all(axis=1)]

@@ -294,6 +294,8 @@ def test_video_section(tmp_path, monkeypatch):
     records = [json.loads(line) for line in (work / "res" / "clip" / "predictions.jsonl").read_text().splitlines()]
     assert records and all({"frame", "timestamp_s", "bbox_2d"} <= set(r) for r in records)
     assert {r["frame"] for r in records} <= set(range(8)) and len({r["frame"] for r in records}) >= 4
+    tracked = [json.loads(line) for line in (work / "res" / "clip_tracked" / "predictions.jsonl").read_text().splitlines()]
+    assert tracked and all({"track_id", "tracked", "R_detected", "t_detected"} <= set(r) for r in tracked)
     for out, n in (("res/clip/clip.overlay.mp4", 8), ("res/clip_live/clip.overlay.mp4", None),
                    ("res/webcam/camera0.overlay.mp4", None), ("res/rs/realsense.overlay.mp4", None)):
         count = len(read_video(work / out))

@@ -40,6 +40,13 @@ end prints frames read / processed / dropped and the end-to-end frames/s. --show
 window where a display exists. Ctrl-C (or q in the window) ends a stream; what was processed
 is written.
 
+Tracking (--track, streams): each object gets a track_id (per class, stable while it stays
+in view); R, t and quaternion_xyzw become the tracked pose (a constant-velocity filter on
+SE(3) aware of the object's symmetries: smoother, no lag on steady motion), R_detected /
+t_detected hold the frame's own estimate, and "tracked" says "detected" or, for a missed
+object whose track is confirmed, "coasted" (its predicted pose, refined against the depth
+where there is one; R_detected null) for a few frames. The overlay shows "#ID" per box.
+
 Camera (never guessed): --camera K.json or a ROS camera_info YAML (camera_calibration's
 ost.yaml or a CameraInfo message; non-zero distortion is removed from every frame, as
 image_proc does), or --fx --fy --cx --cy, else each image's sibling annotation: DOPE
@@ -70,7 +77,7 @@ from dope_hope.commands.argtypes import fixed_device, finite_float, positive_flo
 #: Frame rate of an overlay video when the source reports none.
 FALLBACK_FPS = 30.0
 #: Options of video and camera inputs only.
-STREAM_OPTIONS = ("realtime", "max_frames", "show", "capture_size", "capture_fps")
+STREAM_OPTIONS = ("realtime", "max_frames", "show", "capture_size", "capture_fps", "track")
 
 
 def default_weights() -> Path | None:
@@ -135,6 +142,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "device's; RealSense 640x480)")
     stream.add_argument("--capture-fps", type=positive_float, metavar="FPS",
                         help="frame rate asked of a camera (RealSense default 30)")
+    stream.add_argument("--track", action="store_true",
+                        help="track the objects: stable track ids, smoothed poses (R, t) with the "
+                             "frame's own in R_detected / t_detected, a missed object's predicted pose "
+                             "(tracked: coasted) for a few frames; settings: the tracking section of "
+                             "configs/infer.yaml")
     parser.add_argument("--mesh", action="append", type=Path, metavar="PATH",
                         help="object mesh per --weights (same order; one-object models), or one models "
                              "folder (any models) holding "
@@ -248,6 +260,24 @@ def build_predictors(args: argparse.Namespace, weights: list[Path]):
             print(f"dope-hope infer: {', '.join(reported)}: min score {predictors[-1].options.min_score:g}, "
                   "the model's own (recorded with its weights; --min-score overrides)", file=sys.stderr)
     return predictors
+
+
+def _tracker(args: argparse.Namespace, predictors: list):
+    """The stream's PoseTracker; each class's symmetries from the declaration beside its --mesh."""
+    from dope_hope.inference.tracking import PoseTracker, object_symmetries
+    from dope_hope.io.models_dir import find_object_mesh
+
+    meshes = list(args.mesh or [])
+    symmetries = {}
+    for i, p in enumerate(predictors):
+        for name in p.class_names:
+            path = None
+            if len(meshes) == 1 and meshes[0].is_dir():
+                path = find_object_mesh(name, meshes[0])
+            elif meshes and len(p.class_names) == 1:
+                path = meshes[i]
+            symmetries[name] = object_symmetries(name, path, args.mesh_units)
+    return PoseTracker(predictors, symmetries=symmetries)
 
 
 def _depth_for(args: argparse.Namespace, camera):
@@ -433,7 +463,7 @@ def _run_stream(args: argparse.Namespace) -> int:
     video = window = None
     try:
         passive_openmp()  # before torch is imported: its idle threads must not spin
-        from dope_hope.inference.predictor import predict_many
+        from dope_hope.inference.predictor import as_depth_image, predict_many
 
         predictors = build_predictors(args, _resolve_weights(args))
         if not args.no_overlay:
@@ -449,11 +479,15 @@ def _run_stream(args: argparse.Namespace) -> int:
         bar = tqdm(total=source.length, desc="infer", unit="frame",
                    disable=args.no_progress or source.live or (source.length or 0) < 2, file=sys.stderr)
 
+        tracker = _tracker(args, predictors) if args.track else None
+
         def process(frame) -> bool:
             nonlocal last_index
             t0 = time.perf_counter()
-            dets = predict_many(predictors, frame.rgb, frame.K, depth=frame.depth,
-                                calibration=args.depth_calibration)
+            depth = as_depth_image(frame.depth, frame.K, 0.001, args.depth_calibration, frame.rgb.shape[:2])
+            dets = predict_many(predictors, frame.rgb, frame.K, depth=depth)
+            if tracker is not None:
+                dets = tracker.update(dets, frame.K, depth, frame=frame.index, image_hw=frame.rgb.shape[:2])
             extra = {"time": round(time.perf_counter() - t0, 4), "frame": frame.index,
                      "timestamp_s": round(frame.timestamp_s, 4)}
             for d in dets:

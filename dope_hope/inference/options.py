@@ -18,13 +18,14 @@ POSE_SEARCHES = ("hypotheses", "groups")
 def _stage_functions() -> dict[str, list[Callable[..., Any]]]:
     """Section name -> the functions whose keyword arguments the section may hold."""
     from dope_hope.inference.pnp import solve_pnp, solve_pnp_candidates
+    from dope_hope.inference.tracking import TrackingSettings
     from dope_hope.maps.decode import corner_candidates, decode_maps
     from dope_hope.refine.icp import icp_refine
     from dope_hope.refine.line_search import depth_line_search
 
     return {"decode": [corner_candidates, decode_maps], "pnp": [solve_pnp],
             "hypotheses": [solve_pnp_candidates], "line_search": [depth_line_search],
-            "icp_refine": [icp_refine]}
+            "icp_refine": [icp_refine], "tracking": [TrackingSettings]}
 
 
 #: Arguments the predictor passes itself (maps, points, camera, depth, the pose search's
@@ -51,6 +52,8 @@ class InferenceOptions:
     :data:`POSE_SEARCHES`. min_score: detections below are dropped. ls_points / icp_points:
     model points for -LS / ICP. icp: ICP after -LS when depth is given. decode, pnp,
     hypotheses, line_search, icp_refine: keyword arguments of each stage's function.
+    tracking: settings of the stream tracker
+    (:class:`~dope_hope.inference.tracking.TrackingSettings`, checked here).
     """
 
     height: int | None
@@ -64,6 +67,7 @@ class InferenceOptions:
     hypotheses: Mapping[str, Any]
     line_search: Mapping[str, Any]
     icp_refine: Mapping[str, Any]
+    tracking: Mapping[str, Any]
 
     def __post_init__(self) -> None:
         from dope_hope.config import finite_float, whole_number
@@ -87,6 +91,9 @@ class InferenceOptions:
             if unknown:
                 raise ConfigError(f"unknown {section} option(s) {', '.join(unknown)}; known: "
                                   f"{', '.join(sorted(allowed))}")
+        from dope_hope.inference.tracking import TrackingSettings
+
+        TrackingSettings.from_mapping(self.tracking)  # values checked as well as names
         object.__setattr__(self, "height", None if h is None else int(h))
         object.__setattr__(self, "min_score", min_score)
         for name, value in points.items():

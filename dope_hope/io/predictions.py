@@ -19,7 +19,10 @@ One detection per line (UTF-8, one JSON object per line; blank lines and lines s
 * ``t`` — (3,) translation in **metres**, OpenCV camera frame: ``x_c = R x + t``.
 * optional: ``ls_applied`` (bool, the depth line search refined ``t``), ``time`` (seconds for
   the whole image), ``scene_id`` / ``im_id`` (BOP ids, an alternative to ``image``); any
-  other key (keypoints, reprojection error, ...) is ignored.
+  other key (keypoints, reprojection error, ...) is ignored. Tracked streams (``dope-hope
+  infer --track``) write the tracked pose as ``R`` / ``t`` (what is scored) and add
+  ``R_detected`` / ``t_detected`` (the frame's own estimate, null when coasted),
+  ``track_id`` and ``tracked`` ("detected" | "coasted").
 
 An optional first line ``{"format": "dope-hope-predictions", "method": "NAME", ...}`` carries
 metadata. A BOP19 submission CSV (:mod:`dope_hope.io.bop_csv`) is read as well.

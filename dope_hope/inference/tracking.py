@@ -1,0 +1,433 @@
+"""Tracks of detected objects across the frames of a stream: ids, smoothed poses, coasting.
+
+:class:`PoseTracker` takes each frame's detections (:meth:`DopePredictor.predict` /
+:func:`predict_many`) and returns :class:`TrackedObject` s:
+
+* **Association**, per class: each track's pose is predicted for the frame
+  (:class:`~dope_hope.inference.pose_filter.PoseFilter`) and matched one-to-one to the
+  detections by :func:`scipy.optimize.linear_sum_assignment` on the cost
+  ``|t_det - t_pred| / gate_m + (1 - IoU of their 2D boxes) + rotation_weight * angle / 180``
+  (angle after the symmetries); a pair is allowed when the translations are within ``gate_m``.
+  A detection farther than ``gate_m`` still matches a confirmed track when it lies on the
+  track's ray: moved along its own ray to the predicted depth it is within ``gate_m``
+  (``reseed_depth``; a depth line search fooled by an occluder in front, say); the filter then
+  takes its translation at that depth, refined against the depth image within
+  ``coast_search`` (the frame's own estimate is still reported as ``t_detected``).
+  An unmatched detection starts a track; while that track is tentative its detection is not
+  published when its 2D box overlaps the predicted box of a confirmed track published in
+  this frame (detected or coasted) by ``min_iou`` or more
+  (the same object seen at a wrong depth, e.g. a line search fooled by an occluder); should it
+  be a real object, it is published once confirmed.
+* **Tracks**: a track is *confirmed* after ``confirm_hits`` detections; a tentative track
+  ends at its first miss, a confirmed one after ``max_misses`` frames in a row without one.
+  ``track_id`` counts up per class from 1 and is never reused.
+* **Smoothed poses**: every detection corrects its track's filter; the published pose is the
+  filter's (symmetry-aware, constant velocity: no lag on steady motion).
+* **Coasting**: a confirmed track without a detection publishes its predicted pose, marked
+  ``tracked="coasted"``, for at most ``max_coast`` frames; with a depth image the prediction
+  is refined like a detection: the depth line search ("-LS") within ``coast_search`` and, when
+  the predictor runs ICP, ICP.
+
+Settings: the ``tracking`` section of the inference options (``dope_hope/configs/infer.yaml``),
+checked by :class:`TrackingSettings`.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field, fields
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from dope_hope.errors import ConfigError
+from dope_hope.geometry import NUM_KEYPOINTS, matrix_to_quaternion_xyzw, project_points, projected_bbox
+from dope_hope.inference.detection import Detection
+from dope_hope.inference.pose_filter import PoseFilter, closest_equivalent
+from dope_hope.refine.depth import DepthImage
+from dope_hope.refine.line_search import depth_line_search
+
+if TYPE_CHECKING:
+    from dope_hope.inference.predictor import DopePredictor
+
+#: Values of ``TrackedObject.tracked``.
+TRACKED_STATES = ("detected", "coasted")
+#: Step of the sampled continuous symmetries (cylinders) used for the pose distance, degrees.
+SYMMETRY_STEP_DEG = 5.0
+
+
+@dataclass(frozen=True)
+class TrackingSettings:
+    """The tracker's settings (``tracking:`` in ``dope_hope/configs/infer.yaml``).
+
+    confirm_hits: detections that confirm a track. max_misses: frames without a detection
+    that end a confirmed track. max_coast: frames a confirmed track is published without a
+    detection (at most ``max_misses``). gate_m: largest distance between a track's predicted
+    and a detection's translation for a match (metres; also the largest step between the
+    measurements that restart a filter). min_iou: 2D box overlap with a confirmed track's
+    prediction that keeps a new track's detection unpublished. rotation_weight: weight of the rotation difference (per 180 deg) in the
+    matching cost. translation_std_m / rotation_std_deg: measurement noise of a detection.
+    acceleration_m / angular_acceleration_deg: change of velocity per frame the motion model
+    allows (std). rotation_gate_deg / rotation_reset / manoeuvre_gate / outlier_gate: see
+    :class:`~dope_hope.inference.pose_filter.PoseFilter`. coast_refine: refine coasted poses
+    against the depth; coast_search: the line search's scale range for them (and for
+    reseeded detections). reseed_depth: match detections on a confirmed track's ray (module
+    docstring). reprojection_px / reprojection_power: with reprojection_px > 0 a detection
+    whose mean reprojection error e exceeds reprojection_px counts as
+    ``(e / reprojection_px) ** reprojection_power`` times noisier (a partly hidden object's
+    fit is worse; 0 = off).
+    """
+
+    confirm_hits: int = 3
+    max_misses: int = 15
+    max_coast: int = 5
+    gate_m: float = 0.05
+    min_iou: float = 0.3
+    rotation_weight: float = 0.5
+    translation_std_m: float = 0.002
+    acceleration_m: float = 0.0001
+    rotation_std_deg: float = 2.0
+    angular_acceleration_deg: float = 0.02
+    rotation_gate_deg: float = 45.0
+    rotation_reset: int = 3
+    manoeuvre_gate: float = 2.0
+    outlier_gate: float = 6.0
+    coast_refine: bool = True
+    coast_search: tuple[float, float] = (0.95, 1.05)
+    reseed_depth: bool = True
+    reprojection_px: float = 0.0
+    reprojection_power: float = 1.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name in ("coast_refine", "reseed_depth"):
+                if not isinstance(v, bool):
+                    raise ConfigError(f"tracking.{f.name} must be true or false, got {v!r}")
+            elif f.name == "coast_search":
+                ok = isinstance(v, (list, tuple)) and len(v) == 2 and all(
+                    isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+                if not ok or not 0 < v[0] <= 1 <= v[1]:
+                    raise ConfigError(f"tracking.coast_search must be [lo, hi] with 0 < lo <= 1 <= hi, got {v!r}")
+                object.__setattr__(self, f.name, (float(v[0]), float(v[1])))
+            elif f.type == "int":
+                if isinstance(v, bool) or not isinstance(v, int) or v < (0 if f.name == "max_coast" else 1):
+                    raise ConfigError(f"tracking.{f.name} must be a whole number >= "
+                                      f"{0 if f.name == 'max_coast' else 1}, got {v!r}")
+            elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0 \
+                    or (v == 0 and f.name not in ("rotation_weight", "min_iou", "reprojection_px")):
+                raise ConfigError(f"tracking.{f.name} must be a positive number, got {v!r}")
+        if self.max_coast > self.max_misses:
+            raise ConfigError(f"tracking.max_coast ({self.max_coast}) must not exceed tracking.max_misses "
+                              f"({self.max_misses})")
+        if self.min_iou > 1:
+            raise ConfigError(f"tracking.min_iou must be in [0, 1], got {self.min_iou!r}")
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any] | None) -> TrackingSettings:
+        """Settings from a mapping (the ``tracking`` section); unknown keys refused."""
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(values or {}) - names)
+        if unknown:
+            raise ConfigError(f"unknown tracking option(s) {', '.join(unknown)}; known: {', '.join(sorted(names))}")
+        return cls(**dict(values or {}))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+
+@dataclass
+class TrackedObject:
+    """One published object of one frame.
+
+    class_name, track_id (per class, from 1), tracked ("detected" | "coasted"), confirmed
+    (the track had ``confirm_hits`` detections). score: the detection's, or for a coasted
+    object its track's last detection score. R (3, 3), t (3,) metres: the published (tracked)
+    pose. detection: the frame's own :class:`Detection` (None when coasted).
+    projected_2d (9, 2) / bbox_2d (4,) or None: the published pose's cuboid keypoints and 2D
+    box, px. ls_applied / ls_reason: the depth line search on a coasted pose (the detection's
+    own otherwise). cuboid_size_m, cuboid_center_m: the model's box.
+    """
+
+    class_name: str
+    track_id: int
+    tracked: str
+    confirmed: bool
+    score: float
+    R: np.ndarray
+    t: np.ndarray
+    detection: Detection | None
+    cuboid_size_m: np.ndarray
+    cuboid_center_m: np.ndarray
+    projected_2d: np.ndarray | None = None
+    bbox_2d: np.ndarray | None = None
+    ls_applied: bool = False
+    ls_reason: str = "no depth image"
+
+    @property
+    def quaternion_xyzw(self) -> np.ndarray:
+        return matrix_to_quaternion_xyzw(self.R)
+
+    def to_json(self, image: str | None = None, **extra: Any) -> dict[str, Any]:
+        """A predictions record (:mod:`dope_hope.io.predictions`): ``R`` / ``t`` /
+        ``quaternion_xyzw`` the published pose, ``R_detected`` / ``t_detected`` the frame's own
+        estimate (null when coasted), ``track_id``, ``tracked``; the detection's other fields
+        (keypoints, -LS, ...) when detected."""
+        from dope_hope.io.predictions import prediction_record
+
+        box = None if self.bbox_2d is None else [round(float(v), 2) for v in self.bbox_2d]
+        pose = {"R": np.asarray(self.R, dtype=np.float64).tolist(), "t": [float(v) for v in self.t],
+                "quaternion_xyzw": [float(v) for v in self.quaternion_xyzw], "bbox_2d": box}
+        if self.detection is not None:
+            rec = self.detection.to_json(image, **extra)
+            rec.update(pose, R_detected=rec["R"], t_detected=rec["t"])  # the kwargs hold the detection's
+        else:
+            rec = prediction_record("" if image is None else image, self.class_name, self.score, self.R, self.t,
+                                    ls_applied=self.ls_applied, ls_reason=self.ls_reason,
+                                    cuboid_size_m=[float(v) for v in self.cuboid_size_m], **extra)
+            rec.update(pose, R_detected=None, t_detected=None)
+            if image is None:
+                del rec["image"]
+        rec.update(track_id=int(self.track_id), tracked=self.tracked)
+        return rec
+
+
+@dataclass
+class _Track:
+    track_id: int
+    filter: PoseFilter
+    score: float
+    hits: int = 1
+    misses: int = 0
+    last_frame: int = 0
+    R_pred: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t_pred: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    box_pred: np.ndarray | None = None
+
+
+def object_symmetries(class_name: str, mesh_path: Any = None, units: str | None = None) -> np.ndarray:
+    """(S, 4, 4) model-frame symmetries of an object, metres, identity first, in the one
+    resolution order (:func:`dope_hope.symmetry.resolve.resolve_symmetries`: declarations beside
+    its mesh file, the demo box's own, the HOPE category), else the identity only. Continuous
+    symmetries are sampled every :data:`SYMMETRY_STEP_DEG`."""
+    from dope_hope.symmetry.resolve import resolve_symmetries
+    from dope_hope.symmetry.transforms import category_symmetries, declaration_transforms
+
+    path = mesh_path if mesh_path is not None and not hasattr(mesh_path, "vertices") else None
+    found = resolve_symmetries(class_name, path, units=units)
+    if found.declaration is not None:
+        return declaration_transforms(found.declaration, SYMMETRY_STEP_DEG)
+    if found.category is not None:
+        return category_symmetries(found.category, SYMMETRY_STEP_DEG)
+    return np.eye(4)[None]
+
+
+def box_iou(a: np.ndarray | None, b: np.ndarray | None) -> float:
+    """Intersection over union of two [u_min, v_min, u_max, v_max] boxes (0 when one is None)."""
+    if a is None or b is None:
+        return 0.0
+    w = min(a[2], b[2]) - max(a[0], b[0])
+    h = min(a[3], b[3]) - max(a[1], b[1])
+    if w <= 0 or h <= 0:
+        return 0.0
+    inter = w * h
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return float(inter / union) if union > 0 else 0.0
+
+
+class PoseTracker:
+    """Tracks of the detections of one or more predictors' objects (module docstring).
+
+    Args:
+        predictors: the :class:`DopePredictor` (or several) whose detections are tracked; they
+            give each class's box, surface points and depth-refinement options.
+        settings: :class:`TrackingSettings`, a mapping of overrides, or None for the
+            predictors' own (``predictor.options.tracking``).
+        symmetries: class name -> (S, 4, 4) model-frame symmetries (metres); default
+            :func:`object_symmetries` of the class.
+
+    Use: ``tracked = tracker.update(detections, K, depth, frame=index)`` once per frame.
+    """
+
+    def __init__(self, predictors: DopePredictor | Sequence[DopePredictor],
+                 settings: TrackingSettings | Mapping[str, Any] | None = None,
+                 symmetries: Mapping[str, np.ndarray] | None = None):
+        predictors = list(predictors) if isinstance(predictors, Sequence) else [predictors]
+        self.predictors = {c: p for p in predictors for c in p.class_names}
+        self.geometry = {o.class_name: o for p in predictors for o in p.objects}
+        if settings is None:
+            settings = getattr(predictors[0].options, "tracking", None) if predictors else None
+        self.settings = settings if isinstance(settings, TrackingSettings) else TrackingSettings.from_mapping(settings)
+        given = dict(symmetries or {})
+        self.symmetries = {c: np.asarray(given[c] if given.get(c) is not None else object_symmetries(c),
+                                         dtype=np.float64).reshape(-1, 4, 4) for c in self.predictors}
+        self.tracks: dict[str, list[_Track]] = {c: [] for c in self.predictors}
+        self._next_id = {c: 1 for c in self.predictors}
+        self._frame = -1
+
+    def reset(self) -> None:
+        """Forget every track (a new stream); ids start again at 1."""
+        self.__init__(list({id(p): p for p in self.predictors.values()}.values()), self.settings, self.symmetries)
+
+    def update(self, detections: Sequence[Detection], K: np.ndarray, depth: DepthImage | np.ndarray | None = None,
+               frame: int | None = None, image_hw: tuple[int, int] | None = None) -> list[TrackedObject]:
+        """One frame: associate, filter, coast (module docstring).
+
+        Args:
+            detections: the frame's detections (mesh-frame poses, original-image px).
+            K: (3, 3) intrinsics of the frame. depth: its depth, for coasting: a
+                :class:`DepthImage`, or (H, W) metres (float) / millimetres (integers).
+            frame: the frame's index in the stream (default: the previous one + 1); a gap
+                (dropped frames) is predicted over. image_hw: (H, W) of the frame, to clip the
+                2D boxes as the detections' are (default: the depth's).
+
+        Returns:
+            The published objects, detected ones first (by decreasing score), then coasted.
+        """
+        frame = self._frame + 1 if frame is None else int(frame)
+        if depth is not None and not isinstance(depth, DepthImage):
+            depth = DepthImage.from_raw(depth, K, 0.001, 1.0, image_hw)
+        if image_hw is None and depth is not None:
+            image_hw = depth.hw
+        out: list[TrackedObject] = []
+        coasted: list[TrackedObject] = []
+        for class_name, dets in self._by_class(detections).items():
+            tracks = self.tracks[class_name]
+            started: list[_Track] = []
+            for tr in tracks:
+                tr.R_pred, tr.t_pred = tr.filter.predict(max(1, frame - tr.last_frame))
+                tr.box_pred = projected_bbox(self.geometry[class_name].bbox_points, K, tr.R_pred, tr.t_pred,
+                                             image_hw)
+                tr.last_frame = frame
+            pairs = self._associate(class_name, tracks, dets)
+            matched = {ti for ti, _, _ in pairs}
+            for ti, di, reseed in pairs:
+                out.append(self._correct(class_name, tracks[ti], dets[di], K, depth, image_hw, reseed))
+            taken = {di for _, di, _ in pairs}
+            confirmed_boxes = [t.box_pred for t in tracks  # confirmed tracks published this frame
+                               if t.hits >= self.settings.confirm_hits and t.misses < self.settings.max_coast]
+            for di, det in enumerate(dets):
+                if di not in taken:
+                    obj = self._start(class_name, det, frame, K, image_hw, started)
+                    if not any(box_iou(b, det.bbox_2d) >= self.settings.min_iou for b in confirmed_boxes):
+                        out.append(obj)
+            kept = []
+            for ti, tr in enumerate(tracks):
+                if ti in matched:
+                    kept.append(tr)
+                    continue
+                tr.misses += 1
+                if tr.hits < self.settings.confirm_hits or tr.misses > self.settings.max_misses:
+                    continue  # tentative tracks end at their first miss
+                kept.append(tr)
+                if tr.misses <= self.settings.max_coast:
+                    coasted.append(self._coast(class_name, tr, K, depth, image_hw))
+            self.tracks[class_name] = kept + started
+        self._frame = frame
+        out.sort(key=lambda o: -o.score)
+        return out + coasted
+
+    # ------------------------------------------------------------------ steps
+    def _by_class(self, detections: Sequence[Detection]) -> dict[str, list[Detection]]:
+        by: dict[str, list[Detection]] = {c: [] for c in self.predictors}
+        for d in detections:
+            if d.class_name not in by:
+                raise ConfigError(f"detection of {d.class_name!r}: the tracker has no predictor of that class "
+                                  f"(known: {', '.join(sorted(by))})")
+            by[d.class_name].append(d)
+        return by
+
+    def _associate(self, class_name: str, tracks: list[_Track], dets: list[Detection]
+                   ) -> list[tuple[int, int, bool]]:
+        """(track index, detection index, depth reseeded) of least total cost among the allowed
+        pairs; a pair matched only on the track's ray (module docstring) costs 1 more."""
+        if not tracks or not dets:
+            return []
+        s = self.settings
+        big = 1e6
+        C = np.full((len(tracks), len(dets)), big)
+        reseed = np.zeros(C.shape, dtype=bool)
+        for i, tr in enumerate(tracks):
+            for j, d in enumerate(dets):
+                t = np.asarray(d.t, dtype=np.float64)
+                dist = float(np.linalg.norm(t - tr.t_pred))
+                if dist > s.gate_m:  # on its track's ray at the predicted depth?
+                    if not s.reseed_depth or tr.hits < s.confirm_hits or t[2] <= 0:
+                        continue
+                    dist = float(np.linalg.norm(t * (tr.t_pred[2] / t[2]) - tr.t_pred))
+                    if dist > s.gate_m:
+                        continue
+                    reseed[i, j] = True
+                iou = box_iou(tr.box_pred, d.bbox_2d)
+                angle = closest_equivalent(np.asarray(d.R), t, tr.R_pred, self.symmetries[class_name])[2]
+                C[i, j] = dist / s.gate_m + (1.0 - iou) + s.rotation_weight * angle / 180.0 + float(reseed[i, j])
+        rows, cols = linear_sum_assignment(C)
+        return [(int(r), int(c), bool(reseed[r, c])) for r, c in zip(rows, cols) if C[r, c] < big]
+
+    def _new_filter(self, class_name: str, det: Detection) -> PoseFilter:
+        s = self.settings
+        return PoseFilter(det.R, det.t, self.symmetries[class_name], s.translation_std_m, s.acceleration_m,
+                          s.rotation_std_deg, s.angular_acceleration_deg, s.rotation_gate_deg, s.rotation_reset,
+                          s.manoeuvre_gate, s.outlier_gate, s.gate_m)
+
+    def _start(self, class_name: str, det: Detection, frame: int, K: np.ndarray, image_hw,
+               started: list[_Track]) -> TrackedObject:
+        tr = _Track(self._next_id[class_name], self._new_filter(class_name, det), float(det.score), last_frame=frame)
+        self._next_id[class_name] += 1
+        started.append(tr)
+        return self._published(class_name, tr, det, tr.filter.R, tr.filter.t, K, image_hw)
+
+    def _correct(self, class_name: str, tr: _Track, det: Detection, K: np.ndarray, depth: DepthImage | None,
+                 image_hw, reseed: bool) -> TrackedObject:
+        t = np.asarray(det.t, dtype=np.float64)
+        if reseed:  # the detection's direction at the track's depth, refined against the depth
+            t = t * (tr.t_pred[2] / t[2])
+            if depth is not None:
+                p = self.predictors[class_name]
+                res = depth_line_search(det.R, t, self.geometry[class_name].model_points, depth,
+                                        **{**p.options.line_search, "search": self.settings.coast_search})
+                t = res.t if res.applied else t
+        R, t = tr.filter.update(det.R, t, self._noise_scale(det))
+        tr.hits, tr.misses, tr.score = tr.hits + 1, 0, float(det.score)
+        return self._published(class_name, tr, det, R, t, K, image_hw)
+
+    def _noise_scale(self, det: Detection) -> float:
+        """How much noisier than usual a detection counts (TrackingSettings.reprojection_px)."""
+        ref, e = self.settings.reprojection_px, float(det.reprojection_error_px)
+        if ref <= 0 or not math.isfinite(e) or e <= ref:
+            return 1.0
+        return (e / ref) ** self.settings.reprojection_power
+
+    def _published(self, class_name: str, tr: _Track, det: Detection | None, R: np.ndarray, t: np.ndarray,
+                   K: np.ndarray, image_hw, ls: tuple[bool, str] | None = None) -> TrackedObject:
+        p = self.geometry[class_name]
+        applied, reason = ls if ls is not None else (det.ls_applied, det.ls_reason)
+        return TrackedObject(
+            class_name=class_name, track_id=tr.track_id, tracked="detected" if det is not None else "coasted",
+            confirmed=tr.hits >= self.settings.confirm_hits,
+            score=float(det.score) if det is not None else tr.score, R=R, t=t, detection=det,
+            cuboid_size_m=p.cuboid_size_m.copy(), cuboid_center_m=p.cuboid_center_m.copy(),
+            projected_2d=project_points(p.cuboid_mesh, K, R, t),
+            bbox_2d=projected_bbox(p.bbox_points, K, R, t, image_hw), ls_applied=applied, ls_reason=reason)
+
+    def _coast(self, class_name: str, tr: _Track, K: np.ndarray, depth: DepthImage | None,
+               image_hw) -> TrackedObject:
+        """The predicted pose of a confirmed track without a detection, refined against the depth."""
+        R, t = tr.R_pred, tr.t_pred
+        ls = (False, "no depth image")
+        if depth is not None and self.settings.coast_refine:
+            p = self.predictors[class_name]
+            options = {**p.options.line_search, "search": self.settings.coast_search}
+            res = depth_line_search(R, t, self.geometry[class_name].model_points, depth, **options)
+            ls = (bool(res.applied), f"coasted: {res.reason}")
+            if res.applied:
+                t = res.t
+                if p.options.icp:
+                    probe = Detection(class_name, tr.score, R, t, np.full((NUM_KEYPOINTS, 2), np.nan),
+                                      np.zeros(NUM_KEYPOINTS), np.zeros(NUM_KEYPOINTS, bool),
+                                      np.zeros((NUM_KEYPOINTS, 2)), float("nan"), self.geometry[class_name].cuboid_size_m,
+                                      ls_applied=True)
+                    refined = p.refine_icp(probe, depth)
+                    R, t = refined.R, refined.t
+        return self._published(class_name, tr, None, R, t, K, image_hw, ls=ls)
