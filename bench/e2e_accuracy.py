@@ -71,8 +71,8 @@ def _set_args(overrides: dict, prefix: str = "") -> list[str]:
 
 
 #: Scene ranges of both sets (`dope-hope synth --set`), over configs/synth.yaml, without the
-#: clutter backgrounds, hard negatives and sensor artefacts synth.yaml gained in session 8: the
-#: frames of every figure in bench/RESULTS.md (same seeds, same frames).
+#: clutter backgrounds, hard negatives and sensor artefacts of synth.yaml: the frames of every
+#: figure in bench/RESULTS.md "End-to-end accuracy (HOPE Ketchup)" (same seeds, same frames).
 SCENE = ["target.count=[1,2]", "target.distance_m=[0.45,1.0]", *_set_args(PLAIN_OVERRIDES)]
 #: Training overrides: symmetry-aware labels for the bottle (6x the recall at 2 cm ADD-H of the
 #: official labels in the same 20 minutes; bench/RESULTS.md).
@@ -110,8 +110,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--init", metavar="pretrained|demo|none|PATH",
                    help="the weights training starts from (`dope-hope train --init`): 'pretrained' the "
                         "shipped pretrained lite start, 'demo' the shipped demo model, a checkpoint PATH; "
-                        "default none (a random start, as the figures of bench/RESULTS.md before "
-                        "session 8)")
+                        "default none (a random start, as the script-default row of bench/RESULTS.md "
+                        "'End-to-end accuracy')")
     p.add_argument("--quick", action="store_true",
                    help="tiny sizes and budget: checks that every stage runs (numbers meaningless)")
     args = p.parse_args(argv)

@@ -64,7 +64,7 @@ def test_every_command_option_is_documented_on_its_page():
 def test_results_sections_named_in_the_repository_exist():
     headings = {line.lstrip("#").strip() for line in (REPO / "bench" / "RESULTS.md").read_text(
         encoding="utf-8").splitlines() if line.startswith("## ")}
-    pointer = re.compile(r'RESULTS(?:\.md)?,? "([^"]+)"')
+    pointer = re.compile(r'RESULTS(?:\.md)?,? "([^"\n]+)"')
     files = [*(REPO / "dope_hope").rglob("*.py"), *(REPO / "dope_hope" / "configs").glob("*.yaml"),
              *(REPO / "bench").glob("*.py"), *DOCS]
     for path in files:

@@ -12,7 +12,7 @@ Writes OUT/NNNNNN.png (RGB), NNNNNN.depth.png (uint16 mm, 0 = no depth), NNNNNN.
 NNNNNN.json (project DOPE format: intrinsics, class, pose, projected cuboid, visibility,
 bounding box; extra keys "cuboid" and "synth") and OUT/_synth_info.json (settings).
 --procedural renders a new box, can or bottle of HOPE size with a packaging-like texture in
-every frame (class "Object", each frame's JSON records its cuboid; README "Pretraining").
+every frame (class "Object", each frame's JSON records its cuboid; docs/commands/train.md, "Pretraining").
 Frame i depends only on (--seed, i): reruns, --workers and --shard give identical frames.
 Resumable: frames whose JSON exists are skipped (the JSON is written last).
 """
