@@ -83,7 +83,7 @@ def _set_args(overrides: dict, prefix: str = "") -> list[str]:
 TARGET = ["target.count=[1,2]", "target.distance_m=[0.45,1.0]"]
 #: The test set's scene, and the training set's with ``--recipe plain``: without the clutter
 #: backgrounds, hard negatives and sensor artefacts of configs/synth.yaml (the frames of the
-#: earlier figures in bench/RESULTS.md: same seeds, same frames).
+#: "plain" row of bench/RESULTS.md "End-to-end accuracy (HOPE Ketchup)": same seeds, same frames).
 SCENE = [*TARGET, *_set_args(PLAIN_OVERRIDES)]
 #: The training set's scene per ``--recipe``.
 RECIPES = {"defaults": TARGET, "plain": SCENE}
@@ -125,8 +125,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--init", metavar="pretrained|demo|none|PATH",
                    help="the weights training starts from (`dope-hope train --init`): 'pretrained' the "
                         "shipped pretrained lite start, 'demo' the shipped demo model, a checkpoint PATH; "
-                        "default none (a random start, as the figures of bench/RESULTS.md before "
-                        "session 8)")
+                        "default none (a random start, as the script-default row of bench/RESULTS.md "
+                        "'End-to-end accuracy')")
     p.add_argument("--recipe", choices=sorted(RECIPES), default="defaults",
                    help="training frames: 'defaults' the packaged configs/synth.yaml (clutter, look-alikes, "
                         "sensor artefacts, empty frames; what a user trains on), 'plain' those switched off "

@@ -1,4 +1,4 @@
-"""A user's mistakes through the CLI (issue 18): each ends in one line and exit 2, a refusal, or
+"""A user's mistakes through the CLI: each ends in one line and exit 2, a refusal, or
 the right result - never a traceback, a silently wrong number or a half-written folder.
 
 In-process through ``dope_hope.cli.main`` (capfd also sees what C libraries print on file

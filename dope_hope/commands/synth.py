@@ -20,7 +20,7 @@ while the count allows; a count of 0 is a negative frame) and each JSON object n
 a mesh's class is the object its file names (HOPE name, obj_NNNNNN), else the folder of a
 generic file name (Can/textured.obj -> Can), else the file stem; --class-name sets them.
 --procedural renders a new box, can or bottle of HOPE size with a packaging-like texture in
-every frame (class "Object", each frame's JSON records its cuboid; README "Pretraining").
+every frame (class "Object", each frame's JSON records its cuboid; docs/commands/train.md, "Pretraining").
 Frame i depends only on (--seed, i): reruns, --workers and --shard give identical frames.
 Resumable: frames whose JSON exists are skipped (the JSON is written last).
 """

@@ -1,0 +1,73 @@
+"""The documents hold together: links resolve, every command option has its page, and the
+bench/RESULTS.md sections that code and configs point to exist."""
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+import pytest
+
+from dope_hope import cli
+
+REPO = Path(__file__).resolve().parent.parent
+DOCS = [REPO / "README.md", REPO / "bench" / "RESULTS.md", *sorted((REPO / "docs").rglob("*.md"))]
+LINK = re.compile(r"\]\(([^)\s]+)\)")
+
+
+def slug(heading: str) -> str:
+    """GitHub's anchor of a Markdown heading: lower case, punctuation dropped, spaces to hyphens."""
+    text = re.sub(r"[^\w\- ]", "", heading.strip().lower())
+    return text.replace(" ", "-")
+
+
+def anchors(path: Path) -> set[str]:
+    """The anchors of every heading of a Markdown file (outside code blocks)."""
+    found, inside = set(), False
+    for line in path.read_text(encoding="utf-8").splitlines():
+        if line.startswith("```"):
+            inside = not inside
+        elif not inside and line.startswith("#"):
+            found.add(slug(line.lstrip("#")))
+    return found
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: str(p.relative_to(REPO)))
+def test_relative_links_resolve(doc):
+    for target in LINK.findall(doc.read_text(encoding="utf-8")):
+        if re.match(r"[a-z]+:", target):
+            continue  # http(s):, mailto:
+        file, _, anchor = target.partition("#")
+        path = (doc.parent / file).resolve() if file else doc
+        assert path.exists(), f"{doc.name}: link to a missing file: {target}"
+        if anchor and path.suffix == ".md":
+            assert anchor in anchors(path), f"{doc.name}: no heading for #{anchor} in {path.name}"
+
+
+def subcommands() -> dict[str, argparse.ArgumentParser]:
+    (sub,) = [a for a in cli.build_parser()._actions if isinstance(a, argparse._SubParsersAction)]
+    return dict(sub.choices)
+
+
+def test_every_command_option_is_documented_on_its_page():
+    for name, parser in subcommands().items():
+        page = REPO / "docs" / "commands" / f"{name}.md"
+        assert page.is_file(), f"no docs page for `dope-hope {name}`"
+        text = page.read_text(encoding="utf-8")
+        for action in parser._actions:
+            for option in action.option_strings:
+                if option not in ("-h", "--help"):
+                    assert re.search(rf"(?<![\w-]){re.escape(option)}(?![\w-])", text), \
+                        f"{page.name}: option {option} is not documented"
+
+
+def test_results_sections_named_in_the_repository_exist():
+    headings = {line.lstrip("#").strip() for line in (REPO / "bench" / "RESULTS.md").read_text(
+        encoding="utf-8").splitlines() if line.startswith("## ")}
+    pointer = re.compile(r'RESULTS(?:\.md)?,? "([^"\n]+)"')
+    files = [*(REPO / "dope_hope").rglob("*.py"), *(REPO / "dope_hope" / "configs").glob("*.yaml"),
+             *(REPO / "bench").glob("*.py"), *DOCS]
+    for path in files:
+        for name in pointer.findall(path.read_text(encoding="utf-8")):
+            assert any(h == name or h.startswith(name) for h in headings), \
+                f"{path.relative_to(REPO)} points to a RESULTS section that does not exist: {name!r}"
