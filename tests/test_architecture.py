@@ -12,28 +12,10 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 PACKAGE = "dope_hope"
 
-# Known violations that work in progress elsewhere removes; each entry names its fix. Empty
-# it as they land: a listed violation that no longer occurs fails the test too.
-ALLOWED_CIRCLES = {
-    # the ONNX backend moves under the model's ONNX contract (inference/backends.open_backend
-    # and onnx_backend.OnnxBackend import each other today)
-    frozenset({"dope_hope.inference.backends", "dope_hope.inference.onnx_backend"}),
-    # the Trainer split: training/settings names Trainer for type hints, trainer imports settings
-    frozenset({"dope_hope.training.settings", "dope_hope.training.trainer"}),
-}
-ALLOWED_EXPORT_TO_INFERENCE = {
-    # the ONNX file contract moves beside model/info.py
-    ("dope_hope.export.int8", "dope_hope.inference.onnx_backend"),
-    ("dope_hope.export.to_onnx", "dope_hope.inference.onnx_backend"),
-}
-ALLOWED_BENCH = {
-    # the demo's configuration (DEMO_CONFIG, IMAGE_SIZE, ensure_onnx) moves into the library
-    ("demo_pose_search.py", "dope_hope.commands.demo"),
-    ("isaac_ros_lite.py", "dope_hope.commands.demo"),
-    ("min_score.py", "dope_hope.commands.demo"),
-    ("photo_composite.py", "dope_hope.commands.demo"),
-    ("stream.py", "dope_hope.commands.demo"),
-}
+# No violation is allowed: each set stays empty (a new entry needs a reason beside it).
+ALLOWED_CIRCLES: set[frozenset[str]] = set()
+ALLOWED_EXPORT_TO_INFERENCE: set[tuple[str, str]] = set()
+ALLOWED_BENCH: set[tuple[str, str]] = set()
 ENTRY_POINTS = ("dope_hope.commands", "dope_hope.cli", "dope_hope.__main__")
 
 

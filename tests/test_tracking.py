@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from dope_hope.symmetry.transforms import declaration_transforms
 from dope_hope.demo_object import DEMO_SIZE_M, demo_symmetries
 from dope_hope.errors import ConfigError
 from dope_hope.geometry import cuboid_keypoints, project_points, projected_bbox, rotation_error_deg
@@ -26,9 +27,11 @@ FLIP_Y = Rotation.from_euler("y", 180, degrees=True).as_matrix()
 
 
 def fake_predictor(**tracking):
-    """What the tracker reads of a DopePredictor: class, box, surface points, options."""
-    return SimpleNamespace(class_name="DemoBox", cuboid_size_m=DEMO_SIZE_M, cuboid_center_m=np.zeros(3),
-                           cuboid_mesh=CUBOID, bbox_points=CUBOID[:8], model_points=CUBOID,
+    """What the tracker reads of a DopePredictor: its classes, each object's box and surface
+    points (``objects``), options."""
+    box = SimpleNamespace(class_name="DemoBox", cuboid_size_m=DEMO_SIZE_M, cuboid_center_m=np.zeros(3),
+                          cuboid_mesh=CUBOID, bbox_points=CUBOID[:8], model_points=CUBOID)
+    return SimpleNamespace(class_names=("DemoBox",), objects=[box],
                            options=SimpleNamespace(line_search={}, icp=False, tracking=tracking))
 
 
@@ -41,7 +44,7 @@ def detection(R, t, score=0.9) -> Detection:
 
 def make_filter(R=R0, t=(0.0, 0.0, 0.6), **kw) -> PoseFilter:
     s = TrackingSettings(**kw)
-    return PoseFilter(R, np.asarray(t), demo_symmetries().transforms(), s.translation_std_m, s.acceleration_m,
+    return PoseFilter(R, np.asarray(t), declaration_transforms(demo_symmetries()), s.translation_std_m, s.acceleration_m,
                       s.rotation_std_deg, s.angular_acceleration_deg, s.rotation_gate_deg, s.rotation_reset,
                       s.manoeuvre_gate, s.outlier_gate, s.gate_m)
 
@@ -56,7 +59,7 @@ def test_a_flip_between_symmetric_poses_is_no_motion():
     R, t = f.update(R0 @ FLIP_Y, [0.0, 0.0, 0.6])  # the box turned 180 deg: the same box
     assert rotation_error_deg(R, R0) < 1e-3
     np.testing.assert_allclose(t, [0.0, 0.0, 0.6], atol=1e-9)
-    R_eq, _, angle = closest_equivalent(R0 @ FLIP_Y, np.zeros(3), R0, demo_symmetries().transforms())
+    R_eq, _, angle = closest_equivalent(R0 @ FLIP_Y, np.zeros(3), R0, declaration_transforms(demo_symmetries()))
     assert angle < 1e-3 and rotation_error_deg(R_eq, R0) < 1e-3
 
 
@@ -179,7 +182,7 @@ def test_coasting_refines_the_prediction_against_the_depth():
     from box_depth import box_surface_points, render_box_depth
 
     pred = fake_predictor()
-    pred.model_points = box_surface_points(DEMO_SIZE_M, spacing=0.01)
+    pred.objects[0].model_points = box_surface_points(DEMO_SIZE_M, spacing=0.01)
     tracker = PoseTracker(pred)
     for k in range(4):
         tracker.update([detection(R0, [0.0, 0.0, 0.6])], K, frame=k, image_hw=HW)

@@ -432,19 +432,10 @@ def _infer_image(args: argparse.Namespace, predictors: list, path: Path, name: s
     return records, not args.no_overlay
 
 
-def _run_stream(args: argparse.Namespace) -> int:
-    """`run` for a video file, a camera or a RealSense (module docstring, "Streams")."""
-    import json
-
-    from tqdm import tqdm
-
+def _check_stream_flags(args: argparse.Namespace) -> None:
+    """ConfigError for a flag that a stream of this kind cannot honour."""
     from dope_hope.errors import ConfigError
-    from dope_hope.inference.stream import passive_openmp, run_stream
-    from dope_hope.io.paths import output_dir
-    from dope_hope.io.predictions import write_predictions_jsonl
-    from dope_hope.io.sources import open_stream, stream_kind
-    from dope_hope.io.video import LiveWindow, OverlayVideo, display_problem
-    from dope_hope.viz import overlay_detections
+    from dope_hope.io.sources import stream_kind
 
     kind = stream_kind(args.inputs[0]) if len(args.inputs) == 1 else None
     if args.icp and kind != "realsense":
@@ -454,6 +445,37 @@ def _run_stream(args: argparse.Namespace) -> int:
         raise ConfigError("--realtime plays a video file at its frame rate (cameras are live already)")
     if args.belief:
         raise ConfigError("--belief writes one montage per image; not for video or camera inputs")
+
+
+def _stream_outputs(args: argparse.Namespace, out: Path, source, warn):
+    """(overlay video or None, live window or None) of a stream."""
+    from dope_hope.io.video import LiveWindow, OverlayVideo, display_problem
+
+    video = window = None
+    if not args.no_overlay:
+        video = OverlayVideo(out / f"{_output_name(source.name)}.overlay", source.fps or FALLBACK_FPS)
+    if args.show:
+        problem = display_problem()
+        if problem is None:
+            window = LiveWindow(f"dope-hope infer: {source.name}")
+        else:
+            warn(f"--show ignored: {problem}")
+    return video, window
+
+
+def _run_stream(args: argparse.Namespace) -> int:
+    """`run` for a video file, a camera or a RealSense (module docstring, "Streams")."""
+    import json
+
+    from tqdm import tqdm
+
+    from dope_hope.inference.stream import passive_openmp, run_stream
+    from dope_hope.io.paths import output_dir
+    from dope_hope.io.predictions import write_predictions_jsonl
+    from dope_hope.io.sources import open_stream
+    from dope_hope.viz import overlay_detections
+
+    _check_stream_flags(args)
 
     def warn(message: str) -> None:
         print(f"dope-hope infer: warning: {message}", file=sys.stderr, flush=True)
@@ -466,14 +488,7 @@ def _run_stream(args: argparse.Namespace) -> int:
         from dope_hope.inference.predictor import as_depth_image, predict_many
 
         predictors = build_predictors(args, _resolve_weights(args))
-        if not args.no_overlay:
-            video = OverlayVideo(out / f"{_output_name(source.name)}.overlay", source.fps or FALLBACK_FPS)
-        if args.show:
-            problem = display_problem()
-            if problem is None:
-                window = LiveWindow(f"dope-hope infer: {source.name}")
-            else:
-                warn(f"--show ignored: {problem}")
+        video, window = _stream_outputs(args, out, source, warn)
         records: list[dict] = []
         last_index = None
         bar = tqdm(total=source.length, desc="infer", unit="frame",

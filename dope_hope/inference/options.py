@@ -18,7 +18,7 @@ POSE_SEARCHES = ("hypotheses", "groups")
 def _stage_functions() -> dict[str, list[Callable[..., Any]]]:
     """Section name -> the functions whose keyword arguments the section may hold."""
     from dope_hope.inference.pnp import solve_pnp, solve_pnp_candidates
-    from dope_hope.inference.tracking import TrackingSettings
+    from dope_hope.inference.tracking_settings import TrackingSettings
     from dope_hope.maps.decode import corner_candidates, decode_maps
     from dope_hope.refine.icp import icp_refine
     from dope_hope.refine.line_search import depth_line_search
@@ -91,7 +91,7 @@ class InferenceOptions:
             if unknown:
                 raise ConfigError(f"unknown {section} option(s) {', '.join(unknown)}; known: "
                                   f"{', '.join(sorted(allowed))}")
-        from dope_hope.inference.tracking import TrackingSettings
+        from dope_hope.inference.tracking_settings import TrackingSettings
 
         TrackingSettings.from_mapping(self.tracking)  # values checked as well as names
         object.__setattr__(self, "height", None if h is None else int(h))

@@ -255,6 +255,40 @@ def noise_floor(raw: np.ndarray, noise_sigmas: float) -> np.ndarray:
     return median + float(noise_sigmas) * 1.4826 * mad
 
 
+def _peak_cells(raw: np.ndarray, smooth: np.ndarray, raw_near: np.ndarray, local_max: np.ndarray,
+                floor: float | np.ndarray, refine_on: str) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(channel, row, column) of every peak cell: a local maximum of the smoothed map whose raw
+    3x3 maximum passes ``floor``, one cell per plateau, moved to the raw maximum beside it when
+    fitting the raw map; None when there is none."""
+    idx = np.flatnonzero(local_max & (raw_near > floor))
+    if idx.size == 0:
+        return None
+    C, h, w = raw.shape
+    c, y, x = np.unravel_index(idx, raw.shape)
+    padded = np.zeros((C, h + 2, w + 2), dtype=bool)  # peak cells, one empty cell around
+    padded[c, y + 1, x + 1] = True
+    if any(padded[c, y + 1 + dy, x + 1 + dx].any() for dy, dx in ((0, 1), (1, -1), (1, 0), (1, 1))):
+        # Touching peak cells (a plateau): label connected peak cells within each channel,
+        # keep the first cell of each.
+        structure = np.zeros((3, 3, 3), dtype=bool)
+        structure[1] = True
+        labels, _ = label(padded[:, 1:-1, 1:-1], structure=structure)
+        _, first = np.unique(labels.ravel()[idx], return_index=True)
+        c, y, x = np.unravel_index(idx[first], labels.shape)
+
+    if refine_on == "raw" and smooth is not raw:
+        # Smoothing finds the peaks (and keeps close instances apart) but shifts a skewed
+        # peak's cell; fit the raw map around its own maximum next to the detected cell.
+        climb = np.flatnonzero(raw_near[c, y, x] > raw[c, y, x])   # not the raw maximum of their 3x3
+        if climb.size:
+            y, x = y.copy(), x.copy()
+            y[climb], x[climb] = _snap_to_raw_max(raw, c[climb], y[climb], x[climb])
+            _, keep = np.unique(np.ravel_multi_index((c, y, x), raw.shape), return_index=True)  # climbed together
+            keep.sort()
+            c, y, x = c[keep], y[keep], x[keep]
+    return c, y, x
+
+
 def find_peaks(
     belief,
     threshold: float = DEFAULT_THRESHOLD,
@@ -293,32 +327,11 @@ def find_peaks(
     floor = threshold
     if noise_sigmas > 0:
         floor = np.maximum(threshold, noise_floor(raw, noise_sigmas))[:, None, None]
-    idx = np.flatnonzero(local_max & (raw_near > floor))
-    if idx.size == 0:
+    cells = _peak_cells(raw, smooth, raw_near, local_max, floor, refine_on)
+    if cells is None:
         empty = np.zeros((0, 2))
         return Peaks(np.zeros(0, int), empty.astype(int), empty, np.zeros(0))
-    c, y, x = np.unravel_index(idx, raw.shape)
-    padded = np.zeros((C, h + 2, w + 2), dtype=bool)  # peak cells, one empty cell around
-    padded[c, y + 1, x + 1] = True
-    if any(padded[c, y + 1 + dy, x + 1 + dx].any() for dy, dx in ((0, 1), (1, -1), (1, 0), (1, 1))):
-        # Touching peak cells (a plateau): label connected peak cells within each channel,
-        # keep the first cell of each.
-        structure = np.zeros((3, 3, 3), dtype=bool)
-        structure[1] = True
-        labels, _ = label(padded[:, 1:-1, 1:-1], structure=structure)
-        _, first = np.unique(labels.ravel()[idx], return_index=True)
-        c, y, x = np.unravel_index(idx[first], labels.shape)
-
-    if refine_on == "raw" and smooth is not raw:
-        # Smoothing finds the peaks (and keeps close instances apart) but shifts a skewed
-        # peak's cell; fit the raw map around its own maximum next to the detected cell.
-        climb = np.flatnonzero(raw_near[c, y, x] > raw[c, y, x])   # not the raw maximum of their 3x3
-        if climb.size:
-            y, x = y.copy(), x.copy()
-            y[climb], x[climb] = _snap_to_raw_max(raw, c[climb], y[climb], x[climb])
-            _, keep = np.unique(np.ravel_multi_index((c, y, x), raw.shape), return_index=True)  # climbed together
-            keep.sort()
-            c, y, x = c[keep], y[keep], x[keep]
+    c, y, x = cells
     primary, secondary = (raw, smooth) if refine_on == "raw" else (smooth, raw)
     coords, heights, raw_ok = [], [], []
     inside = np.ones(len(c), dtype=bool)

@@ -6,10 +6,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 
 from dope_hope.assets import DEMO_WEIGHTS, PRETRAINED_WEIGHTS
 from dope_hope.errors import ConfigError, UnknownObjectError
-from dope_hope.symmetry.resolve import label_symmetries  # noqa: F401 (the trainer's import)
 
 
 #: ``--init`` choices besides a checkpoint path.

@@ -77,10 +77,7 @@ class Trainer:
 
     def __init__(self, job: TrainJob, config: dict[str, Any]):
         from dope_hope.model.network import build_model
-        from dope_hope.training.augment import AugmentParams
-        from dope_hope.training.dataset import DopeDataset, EpochSampler, split_records
         from dope_hope.training.objects import check_class_names, with_num_objects
-        from dope_hope.training.sources import scan_training_data
 
         self.job = job
         self.clock: Callable[[], float] = job.clock or time.monotonic
@@ -92,26 +89,7 @@ class Trainer:
         self.stop_reason: str | None = None
         self._signal_count = 0
 
-        ck = None
-        saved_config: dict[str, Any] = {}
-        if job.resume is not None:
-            ck = load_checkpoint(job.resume)
-            config = saved_config = ck.get("config") or config
-            saved_job = _extra(ck).get("job") or {}
-            if not job.data:
-                job.data = [Path(p) for p in saved_job.get("data", [])]
-                job.val = job.val or [Path(p) for p in saved_job.get("val", [])]
-            if not job.object_name:
-                job.object_name = str(saved_job.get("object", ""))
-                job.objects = job.objects or list(saved_job.get("objects") or [])
-                job.meshes = job.meshes or {k: Path(v) for k, v in (saved_job.get("meshes") or {}).items() if v}
-                job.units = job.units or dict(saved_job.get("units") or {})
-            if job.mesh is None and saved_job.get("mesh"):
-                job.mesh = Path(saved_job["mesh"])
-            if job.symmetries is None and saved_job.get("symmetries"):
-                job.symmetries = Path(saved_job["symmetries"])
-            if not job.data or not job.object_name:
-                raise ConfigError(f"{job.resume} does not record its data folders / object; pass --data and --object")
+        ck, config, saved_config = _resumed(job, config)
         config = merge(config, job.overrides)
         check_config_keys(config)
         check_class_names(job.class_names)
@@ -127,13 +105,30 @@ class Trainer:
             np.random.seed(self.seed % (2**32))
             torch.manual_seed(self.seed)
 
-        # ---- data
-        hw = input_hw(config)
-        tcfg = config.get("targets") or {}
         self.model = build_model(config)  # before the data: stride comes from the model
         if job.backbone_weights is not None:
             from dope_hope.model.network import load_backbone_weights
             load_backbone_weights(self.model, job.backbone_weights)
+        self._build_data(job, ck is None)
+        self._build_optimizer(ts)
+        self._reset_state()
+        if ck is not None:
+            self._restore(ck, train_settings(saved_config) if saved_config else ts)
+        self.ddp_model: nn.Module = self.model
+        if self.dist.active:
+            self.ddp_model = nn.parallel.DistributedDataParallel(
+                self.model, device_ids=[self.device.index] if self.cuda else None)
+
+    def _build_data(self, job: TrainJob, new_run: bool) -> None:
+        """The training and validation sets, samplers and the run's objects (and, for a new
+        run, the starting weights once the data checks passed)."""
+        from dope_hope.training.augment import AugmentParams
+        from dope_hope.training.dataset import DopeDataset, EpochSampler, split_records
+        from dope_hope.training.sources import scan_training_data
+
+        config, ts = self.config, self.ts
+        hw = input_hw(config)
+        tcfg = config.get("targets") or {}
         stride = int(self.model.stride)
         scan = dict(min_visibility=float(ts["min_visibility"]), include_empty=bool(ts["include_empty_frames"]),
                     progress=job.progress and self.dist.main)
@@ -147,7 +142,7 @@ class Trainer:
                 raise InputFileError(", ".join(str(p) for p in job.val), "no readable validation frames")
         else:
             records, val_records = split_records(records, float(ts["val_fraction"]), self.seed)
-        if ck is None:  # after the data checks: a bad folder or class is the only line printed
+        if new_run:  # after the data checks: a bad folder or class is the only line printed
             if job.init_weights is not None:
                 load_init_weights(self.model, job.init_weights)
             if job.init_reason:
@@ -170,7 +165,8 @@ class Trainer:
         self.val_sampler = EpochSampler(len(self.val_set), self.seed, False, self.dist.rank, self.dist.world_size)
         self.steps_per_epoch = len(self.sampler) // self.batch_size
 
-        # ---- model, optimizer, schedule
+    def _build_optimizer(self, ts: dict[str, Any]) -> None:
+        """Device placement, precision, optimizer, run length, time budget and LR schedule."""
         self.model.to(self.device)
         self.cuda = self.device.type == "cuda"
         self.channels_last = bool(ts["channels_last"])
@@ -196,6 +192,8 @@ class Trainer:
                                   int(ts["step_epochs"]) * self.steps_per_epoch, float(ts["step_gamma"]))
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, self.lr_lambda)
 
+    def _reset_state(self) -> None:
+        """Counters and bookkeeping of a run at its start (a resume then restores them)."""
         self.step = 0
         self.epoch = 0
         self.batch_in_epoch = 0
@@ -213,12 +211,6 @@ class Trainer:
         self._window: tuple[float, float, int] | None = None  # first plan's window: (clock, val time, steps)
         self.loss_window = [0.0, 0]  # the loss sum and steps of the next train row
         self.metrics: MetricsLog | None = None
-        if ck is not None:
-            self._restore(ck, train_settings(saved_config) if saved_config else ts)
-        self.ddp_model: nn.Module = self.model
-        if self.dist.active:
-            self.ddp_model = nn.parallel.DistributedDataParallel(
-                self.model, device_ids=[self.device.index] if self.cuda else None)
 
     def _set_objects(self, records: list[Any]) -> None:
         """The run's objects (:mod:`dope_hope.training.objects`): ``objects``, the checkpoint's
@@ -741,6 +733,33 @@ class Trainer:
         finally:
             bar.close()
         self.save("last.pt")
+
+
+def _resumed(job: TrainJob, config: dict[str, Any]) -> tuple[dict[str, Any] | None, dict[str, Any], dict[str, Any]]:
+    """(checkpoint or None, the config to build from, the checkpoint's own config or {}): with
+    ``job.resume`` the checkpoint's config and the data, objects and meshes it records fill
+    what the job leaves out."""
+    ck = None
+    saved_config: dict[str, Any] = {}
+    if job.resume is not None:
+        ck = load_checkpoint(job.resume)
+        config = saved_config = ck.get("config") or config
+        saved_job = _extra(ck).get("job") or {}
+        if not job.data:
+            job.data = [Path(p) for p in saved_job.get("data", [])]
+            job.val = job.val or [Path(p) for p in saved_job.get("val", [])]
+        if not job.object_name:
+            job.object_name = str(saved_job.get("object", ""))
+            job.objects = job.objects or list(saved_job.get("objects") or [])
+            job.meshes = job.meshes or {k: Path(v) for k, v in (saved_job.get("meshes") or {}).items() if v}
+            job.units = job.units or dict(saved_job.get("units") or {})
+        if job.mesh is None and saved_job.get("mesh"):
+            job.mesh = Path(saved_job["mesh"])
+        if job.symmetries is None and saved_job.get("symmetries"):
+            job.symmetries = Path(saved_job["symmetries"])
+        if not job.data or not job.object_name:
+            raise ConfigError(f"{job.resume} does not record its data folders / object; pass --data and --object")
+    return ck, config, saved_config
 
 
 def load_init_weights(model: nn.Module, path: str | Path) -> None:
