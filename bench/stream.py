@@ -26,8 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -35,37 +33,16 @@ from pathlib import Path
 import numpy as np
 
 from dope_hope.assets import DEMO_WEIGHTS
+from dope_hope.devices import cpu_line
 from dope_hope.demo.onnx_cache import ensure_onnx
 from dope_hope.demo.scenes import DEMO_CONFIG, IMAGE_SIZE
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
 from dope_hope.inference.stream import passive_openmp, run_stream
 from dope_hope.io.camera import ImageCamera
-from dope_hope.io.sources import Grabbed, VideoFile
+from dope_hope.io.sources import VideoWithDepth
 
 TARGET_FPS = 15.0
 SEED = 5000  # never used for training (demo_lite: seeds 1, 2) or the demo figures
-
-
-class VideoWithDepth(VideoFile):
-    """A video file whose frame i carries ``depths[i]`` (the rendered depth, metres)."""
-
-    def __init__(self, path: Path, camera: ImageCamera, depths: list[np.ndarray]):
-        super().__init__(path, camera)
-        self.depths = depths
-
-    def grab(self):
-        for g in super().grab():
-            frame = g.load()
-            frame.depth = self.depths[g.index]
-            yield Grabbed(g.index, g.timestamp_s, lambda frame=frame: frame)
-
-
-def cpu_name() -> str:
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        return next(line.split(":", 1)[1].strip() for line in out.splitlines() if line.startswith("Model name"))
-    except (OSError, subprocess.CalledProcessError, StopIteration):
-        return platform.processor() or "unknown CPU"
 
 
 def render(tmp: Path, n: int):
@@ -148,7 +125,7 @@ def main() -> int:
                                               spinning=True), mesh=mesh)
         t0 = time.perf_counter()
         video, K, depths = render(tmp, args.frames)
-        print(f"{cpu_name()}, {os.cpu_count()} CPUs, {args.threads} threads; {args.frames} frames "
+        print(f"{cpu_line()}, {os.cpu_count()} CPUs, {args.threads} threads; {args.frames} frames "
               f"{IMAGE_SIZE[0]}x{IMAGE_SIZE[1]} rendered in {time.perf_counter() - t0:.1f} s -> {video.name}; "
               f"{args.weights.name} at network input {input_hw[1]}x{input_hw[0]}; "
               f"load average {os.getloadavg()[0]:.2f}", flush=True)

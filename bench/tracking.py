@@ -49,8 +49,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import subprocess
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -60,10 +58,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dope_hope.assets import DEMO_WEIGHTS
+from dope_hope.devices import cpu_line
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
 from dope_hope.inference.stream import passive_openmp, run_stream
 from dope_hope.io.camera import ImageCamera
-from dope_hope.io.sources import Grabbed, VideoFile
+from dope_hope.io.sources import VideoWithDepth
 
 FPS = 30.0
 SIZE = (640, 480)
@@ -95,28 +94,6 @@ class Played:
     frames: int = 0
     seconds: float = 0.0
     tracker_seconds: float = 0.0
-
-
-class VideoWithDepth(VideoFile):
-    """A video file whose frame i carries ``depths[i]`` (metres)."""
-
-    def __init__(self, path: Path, camera: ImageCamera, depths: list[np.ndarray]):
-        super().__init__(path, camera)
-        self.depths = depths
-
-    def grab(self):
-        for g in super().grab():
-            frame = g.load()
-            frame.depth = self.depths[g.index]
-            yield Grabbed(g.index, g.timestamp_s, lambda frame=frame: frame)
-
-
-def cpu_name() -> str:
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        return next(line.split(":", 1)[1].strip() for line in out.splitlines() if line.startswith("Model name"))
-    except (OSError, subprocess.CalledProcessError, StopIteration):
-        return platform.processor() or "unknown CPU"
 
 
 # ----------------------------------------------------------------------------- motions
@@ -480,7 +457,7 @@ def main() -> int:
         t0 = time.perf_counter()
         with FrameGenerator(mesh_path, size=SIZE, config=cfg, class_name=DEMO_CLASS_NAME, seed=SEED) as gen:
             clips = [render_clip(gen, name, n, tmp) for name in args.clips]
-        print(f"{cpu_name()}, {os.cpu_count()} CPUs, {args.threads} threads; {len(clips)} clips x {n} frames "
+        print(f"{cpu_line()}, {os.cpu_count()} CPUs, {args.threads} threads; {len(clips)} clips x {n} frames "
               f"{SIZE[0]}x{SIZE[1]} rendered in {time.perf_counter() - t0:.1f} s; {args.weights.name} through "
               f"onnxruntime at {input_hw[1]}x{input_hw[0]}; load average {os.getloadavg()[0]:.2f}", flush=True)
         if args.tracking:
