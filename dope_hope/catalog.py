@@ -136,10 +136,11 @@ def get_object(name_or_id: str | int) -> HopeObject:
         f"unknown HOPE object {name_or_id!r}; known: {', '.join(o.name for o in HOPE_OBJECTS)}")
 
 
-def object_names(names: Sequence[str]) -> list[str]:
+def object_names(names: Sequence[str], all_objects: Sequence[str] | None = None) -> list[str]:
     """The objects a command names (``--object A B ...``): HOPE names in their catalog spelling
-    (any case), other names (custom objects, ``obj_NNNNNN``) as given, "all" for the 28 HOPE
-    objects; in the order given.
+    (any case), other names (custom objects, ``obj_NNNNNN``) as given, "all" for
+    ``all_objects`` (the objects of a models folder) or, when None, the 28 HOPE objects; in
+    the order given.
 
     Raises:
         ConfigError: no name, or one object twice (names compare case-insensitively).
@@ -147,7 +148,7 @@ def object_names(names: Sequence[str]) -> list[str]:
     out: list[str] = []
     for name in names:
         if str(name).lower() == "all":
-            out += [o.name for o in HOPE_OBJECTS]
+            out += list(all_objects) if all_objects is not None else [o.name for o in HOPE_OBJECTS]
             continue
         try:
             out.append(get_object(name).name)

@@ -99,6 +99,30 @@ def test_models_dir_with_several_objects(tmp_path, shared_data, grocery):
     assert classes <= {"Lemon", "Can"} and classes
 
 
+def test_object_all_with_a_models_dir_is_every_object_it_holds(tmp_path, shared_data, capsys):
+    from dope_hope.io.models_dir import objects_in_folder
+
+    grocery = shared_data / "grocery_objects"
+    assert objects_in_folder(grocery) == ["Bread", "Can", "Cereal", "Lemon", "Milk"]
+    bop = tmp_path / "models"
+    bop.mkdir()
+    for name in ("obj_000011.ply", "widget.obj"):
+        (bop / name).write_text("")
+    (bop / "models_info.json").write_text("{}")
+    assert objects_in_folder(bop) == ["Ketchup", "widget"]  # obj_000011: the HOPE catalog's Ketchup
+    out = tmp_path / "all"
+    assert main(["synth", "--models-dir", str(grocery), "--object", "all", "--units", "m", "--out", str(out),
+                 "--count", "1", "--size", "64x48", "--no-progress", "--set", "distractors.count=[0,0]"]) == 0
+    assert json.loads((out / "_synth_info.json").read_text())["class"] == ["Bread", "Can", "Cereal", "Lemon", "Milk"]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["synth", "--models-dir", str(empty), "--object", "all", "--out", str(tmp_path / "x"),
+                 "--count", "1", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(empty) in err[0] and "no mesh" in err[0]
+    assert not (tmp_path / "x").exists()
+
+
 def test_class_name_rule_and_errors(tmp_path, grocery, capsys):
     assert mesh_class_name(grocery["Can"]) == "Can"                       # generic stem: folder
     assert mesh_class_name(tmp_path / "my_widget.obj") == "my_widget"     # else the stem
@@ -239,7 +263,7 @@ def test_two_object_training_writes_the_object_list_and_grouped_targets(tmp_path
     _dope_frames(data, grocery)
     job = TrainJob(data=[data], object_name="Can", out=tmp_path / "run", objects=["Can", "Lemon"],
                    meshes=dict(grocery), units={"Can": "m", "Lemon": "m"}, device="cpu", progress=False,
-                   overrides={**TINY, "train": {**TINY["train"], "steps": 2}})
+                   overrides={**TINY, "train": {**TINY["train"], "steps": 2, "plots": True}})
     trainer = Trainer(job, load_config("lite"))
     one_class = [i for i, r in enumerate(trainer.train_set.records) if len(r.keypoints) == 1]
     two_class = [i for i, r in enumerate(trainer.train_set.records) if len(r.keypoints) == 2]
@@ -254,6 +278,7 @@ def test_two_object_training_writes_the_object_list_and_grouped_targets(tmp_path
     summary = trainer.run()
     assert summary["status"] == "completed" and summary["objects"] == ["Can", "Lemon"]
     assert {"val_kp_acc/Can", "val_kp_acc_decoded/Lemon"} <= set(summary)
+    assert (tmp_path / "run" / "val_snapshot.png").is_file()  # each object's group decoded on its own
     ck = load_checkpoint(tmp_path / "run" / "last.pt")
     assert ck["config"]["model"]["num_objects"] == 2
     assert [o["class_name"] for o in ck["objects"]] == ["Can", "Lemon"] and "object" not in ck
@@ -317,3 +342,21 @@ def test_train_meshes_pair_in_order_by_name_or_from_a_models_dir(shared_data, gr
         train_meshes(["Can"], [can], shared_data / "grocery_objects")
     with pytest.raises(ConfigError, match="--units"):
         train_meshes(["Can", "Lemon"], [can, lemon], None, ["m", "m", "m"])
+
+
+def test_evaluate_takes_a_unit_per_object_mesh(shared_data, grocery):
+    from dope_hope.commands.evaluate import mesh_units
+    from dope_hope.evaluation.models import load_models
+
+    assert mesh_units([]) is None and mesh_units(["mm"]) == "mm"
+    assert mesh_units(["cm", "can=m"]) == {"": "cm", "can": "m"}
+    assert mesh_units(["ketchup=cm"]) == {"Ketchup": "cm"}  # catalog names in their spelling
+    for bad in (["km"], ["Can=m", "Can=cm"], ["m", "cm"]):
+        with pytest.raises(ConfigError, match="--mesh-units"):
+            mesh_units(bad)
+    ketchup = shared_data / "hope_ketchup" / "textured.obj"
+    models = load_models(["Can", "Ketchup"], [f"Can={grocery['Can']}", f"Ketchup={ketchup}"],
+                         mesh_units={"Can": "m"})  # Ketchup's .obj: cm by its suffix
+    assert 0.08 < models["Can"].diameter < 0.12 and 0.1 < models["Ketchup"].diameter < 0.3
+    with pytest.raises(ConfigError, match="mesh units"):  # one unit for both: Ketchup's box is refused
+        load_models(["Can", "Ketchup"], [f"Can={grocery['Can']}", f"Ketchup={ketchup}"], mesh_units="m")

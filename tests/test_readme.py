@@ -13,7 +13,7 @@ dropped) and its commands run in README order in a sandbox folder, shrunk for sp
 
 The sandbox holds what a user downloads: ``hope/meshes/full/Ketchup/`` (links to the shared
 HOPE Ketchup files), a BOP folder ``bop/hope`` (the mesh as ``obj_000011.ply`` in mm, in
-``models/`` and ``models_eval/``, and a two-image test split rendered here), ``photos/`` (the shared backgrounds), ``realsense/``
+``models/`` and ``models_eval/``, and a two-image test split rendered here), ``photos/`` (the shared backgrounds), ``grocery/`` (the shared grocery meshes, metres), ``realsense/``
 (colour, aligned depth and K.json of a rendered frame) and ``weights/Ketchup.pth`` (a stand-in
 for NVIDIA's weights: the importer's DR-50 architecture is swapped for a tiny lite network,
 as in tests/test_import_official.py). The demo runs the shipped model when the installation
@@ -41,6 +41,7 @@ import pytest
 import torch
 
 from dope_hope import cli
+from dope_hope.model.checkpoint import load_checkpoint
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parent.parent
@@ -49,11 +50,11 @@ TINY = {"model": {"arch": "lite", "head": 50, "stages": 1,
                   "lite": {"width": 8, "feature_channels": 16, "stage_channels": 16}},
         "input": {"size": [64, 64]}}
 TASKS = ["See it work: `dope-hope demo`", "Generate training data for a HOPE object", "Train on your own mesh",
-         "Infer on a RealSense image with depth", "Infer on a video, a webcam or a live RealSense",
+         "Many objects in one network", "Infer on a RealSense image with depth", "Infer on a video, a webcam or a live RealSense",
          "Use NVIDIA's published DOPE weights for the HOPE objects",
          "Export to ONNX for CPU inference or Isaac ROS", "Evaluate, and submit to the BOP challenge",
          "Train on many GPUs with torchrun"]
-VIDEO_TASK = TASKS[4]
+VIDEO_TASK = TASKS[5]
 
 
 # ----------------------------------------------------------------------------- parsing
@@ -191,6 +192,7 @@ def sandbox(shared_data, tmp_path, monkeypatch) -> Path:
         (ketchup / f.name).symlink_to(f)
     write_demo_object(box / "hope" / "meshes" / "full" / "DemoBox")  # another object (distractor)
     (box / "photos").symlink_to(shared_data / "backgrounds")
+    (box / "grocery").symlink_to(shared_data / "grocery_objects")
     models = box / "bop" / "hope" / "models"
     models.mkdir(parents=True)
     mesh_mm = load_mesh(ketchup / "textured.obj")
@@ -239,6 +241,12 @@ def test_task_sections_run_in_order(sandbox):
     assert (sandbox / "data" / "ketchup" / "preview.png").is_file()
     assert sorted(p.name for p in (sandbox / "data" / "ketchup_bop").glob("0*.json")) == ["000000.json", "000002.json"]
     assert (sandbox / "runs" / "ketchup" / "last.pt").is_file()
+    shelf = load_checkpoint(sandbox / "runs" / "shelf" / "last.pt")
+    assert [o["class_name"] for o in shelf["objects"]] == ["Bread", "Can", "Cereal", "Lemon", "Milk"]
+    assert {json.loads(line)["class"] for line in (sandbox / "res" / "shelf" / "predictions.jsonl").read_text()
+            .splitlines()} <= {"Can", "Lemon"}
+    assert (sandbox / "shelf.onnx").is_file() and (sandbox / "can_isaac.onnx").is_file()
+    assert json.loads((sandbox / "eval" / "shelf" / "summary.json").read_text())["gt_instances"] >= 1
     assert (sandbox / "res" / "realsense" / "color.overlay.png").is_file()
     assert (sandbox / "res" / "realsense" / "predictions.jsonl").is_file()
     assert (sandbox / "imported" / "Ketchup.pt").is_file()

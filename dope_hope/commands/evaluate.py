@@ -45,8 +45,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="folder of meshes: BOP models (obj_000001.ply + models_info.json) or "
                              "HOPE (<Name>/textured.obj, <Name>.obj); it must hold every evaluated object's mesh "
                              "not given by --mesh")
-    parser.add_argument("--mesh-units", choices=("m", "cm", "mm"),
-                        help="unit of the mesh files (default: .obj cm, .ply mm)")
+    parser.add_argument("--mesh-units", action="append", default=[], metavar="[NAME=]UNIT",
+                        help="unit of the mesh files, m, cm or mm (default: .obj cm, .ply mm); NAME=UNIT "
+                             "for one object's mesh (repeat; objects of mixed units)")
     parser.add_argument("--out", type=Path, default=Path("out/eval"), metavar="DIR",
                         help="output folder (default: out/eval)")
     parser.add_argument("--method", nargs="+", metavar="NAME",
@@ -59,6 +60,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
+def mesh_units(values: list[str]) -> str | dict[str, str] | None:
+    """``--mesh-units`` values -> one unit for every mesh, or {class: unit} ("" = the others).
+
+    Raises:
+        ConfigError: an unknown unit, or two units for the same object (or for all).
+    """
+    from dope_hope.catalog import object_names
+    from dope_hope.errors import ConfigError
+
+    units: dict[str, str] = {}
+    for value in values:
+        name, _, unit = value.rpartition("=")
+        if unit not in ("m", "cm", "mm"):
+            raise ConfigError(f"--mesh-units {value}: the unit must be m, cm or mm")
+        key = object_names([name])[0] if name else ""
+        if key in units:
+            raise ConfigError(f"--mesh-units {value}: {'every mesh' if not key else key} already has a unit")
+        units[key] = unit
+    if not units:
+        return None
+    return units[""] if list(units) == [""] else units
+
+
 def run(args: argparse.Namespace) -> int:
     from dope_hope.evaluation.evaluate import EvalConfig, run_evaluation
     from dope_hope.io.paths import output_dir
@@ -66,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     output_dir(args.out)
     cfg = EvalConfig(predictions=list(args.predictions), dataset=args.dataset, fmt=args.format,
                      metrics=[m.strip().lower() for m in args.metric.split(",") if m.strip()],
-                     mesh=list(args.mesh), models_dir=args.models_dir, mesh_units=args.mesh_units,
+                     mesh=list(args.mesh), models_dir=args.models_dir, mesh_units=mesh_units(args.mesh_units),
                      out=args.out, methods=args.method, bop_ar=args.bop_ar,
                      progress=not args.no_progress, symmetries=list(args.symmetries),
                      official_frame=args.official_frame)

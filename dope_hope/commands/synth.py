@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.catalog import object_names
     from dope_hope.config import apply_overrides
     from dope_hope.errors import ConfigError
-    from dope_hope.io.models_dir import find_object_mesh
+    from dope_hope.io.models_dir import find_object_mesh, objects_in_folder
     from dope_hope.io.paths import output_dir
     from dope_hope.synth.generate import generate_dataset
     from dope_hope.synth.settings import load_synth_config, packaged_synth_config
@@ -92,7 +92,8 @@ def run(args: argparse.Namespace) -> int:
     elif args.mesh is not None:
         mesh = args.mesh
     elif args.models_dir is not None and args.object_name is not None:
-        names = object_names(args.object_name)
+        names = object_names(args.object_name, all_objects=objects_in_folder(args.models_dir)
+                             if any(n.lower() == "all" for n in args.object_name) else None)
         mesh = [find_object_mesh(name, args.models_dir) for name in names]
     else:
         raise ConfigError("no target: give --mesh PATH, --models-dir DIR --object NAME or --procedural")

@@ -146,9 +146,12 @@ def run(args: argparse.Namespace) -> int:
 
         init_weights, why = resolve_init(args.init_weights, merge(config, overrides))
     from dope_hope.catalog import object_names
+    from dope_hope.io.models_dir import objects_in_folder
     from dope_hope.training.settings import train_meshes
 
-    objects = object_names(args.object_name) if args.object_name else []
+    every = args.models_dir is not None and any(n.lower() == "all" for n in args.object_name or [])
+    objects = object_names(args.object_name, all_objects=objects_in_folder(args.models_dir) if every else None) \
+        if args.object_name else []
     meshes, units = train_meshes(objects, args.mesh, args.models_dir, args.units)
     one = len(objects) <= 1
     job = TrainJob(data=list(args.data or []), object_name=objects[0] if objects else "", out=args.out,

@@ -11,7 +11,7 @@ uses it (every vertex of the file, millimetres).
 from __future__ import annotations
 
 import os
-from collections.abc import Collection, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -160,11 +160,17 @@ def _bop_model(loaded: _LoadedMesh, path: Path | None, found: ObjectSymmetries, 
 class _ModelArgs:
     """What :func:`load_models` was asked, shared by every class."""
 
-    mesh_units: str | None
+    mesh_units: str | Mapping[str, str] | None
     n_points: int
     cyl_step_deg: float
     declared: dict[str, Any]
     recorded_sizes: dict[str, tuple[np.ndarray, Path]] | None
+
+    def units_of(self, name: str) -> str | None:
+        """The unit given for ``name``'s mesh file (None: by its suffix)."""
+        if isinstance(self.mesh_units, Mapping):
+            return self.mesh_units.get(name, self.mesh_units.get(""))
+        return self.mesh_units
 
 
 def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectModel:
@@ -182,7 +188,7 @@ def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectMod
     category, obj_id = (obj.category if obj else "other"), bop_obj_id(name)
     explicit = models.declared.get(name)
     if path is not None:
-        loaded = _load_mesh_file(path, models.mesh_units)
+        loaded = _load_mesh_file(path, models.units_of(name))
         found = resolve_symmetries(name, path, explicit, loaded.units, obj_id)
         if not found.from_bop_table:  # a BOP entry describes the dataset's own model
             _check_box(name, loaded, path, obj, models.recorded_sizes)
@@ -190,7 +196,7 @@ def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectMod
         raise UnknownObjectError(f"class {name!r} is not a HOPE object and no mesh was "
                                  f"given for it (--mesh {name}=PATH)")
     else:
-        loaded = _LoadedMesh(trimesh.creation.box(extents=obj.size_array), None, models.mesh_units or "mm",
+        loaded = _LoadedMesh(trimesh.creation.box(extents=obj.size_array), None, models.units_of(name) or "mm",
                              "procedural cuboid (catalog size; no mesh given)")
         found = resolve_symmetries(name, None, explicit, loaded.units, obj_id)
     points = sample_surface_points(loaded.mesh, models.n_points)
@@ -208,7 +214,8 @@ def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectMod
 
 
 def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
-                models_dir: str | os.PathLike | None = None, mesh_units: str | None = None,
+                models_dir: str | os.PathLike | None = None,
+                mesh_units: str | Mapping[str, str] | None = None,
                 n_points: int = NUM_MODEL_POINTS, cyl_step_deg: float = 1.0,
                 symmetry_args: Sequence[str] = (),
                 recorded_sizes: dict[str, tuple[np.ndarray, Path]] | None = None,
@@ -219,7 +226,9 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
     :mod:`dope_hope.io.models_dir`; a given folder without the mesh of a class in
     ``mesh_required``, default every class, is an error: evaluate requires the classes of
     the ground truth); else a **procedural** stand-in: points on the surface of
-    the catalog cuboid (reported as such). Symmetries and diameter: the object's declaration
+    the catalog cuboid (reported as such). ``mesh_units``: the unit of every mesh file, or
+    {class: unit} (a class not in it: the unit of key "" if any, else by the file's suffix),
+    or None (by suffix). Symmetries and diameter: the object's declaration
     (:func:`dope_hope.symmetry.resolve.resolve_symmetries`: a BOP ``models_info.json`` entry
     beside the mesh, else ``--symmetries [NAME=]FILE``, else ``model_info.json`` beside the
     mesh; lengths in the mesh's unit), discretized as the toolkit does from the numbers as

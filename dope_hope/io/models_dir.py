@@ -177,3 +177,27 @@ def find_object_mesh(class_name: str, models_dir: str | os.PathLike | None = Non
     if required:
         raise ConfigError(f"no mesh for {class_name}: give --mesh or a models folder")
     return None
+
+
+def objects_in_folder(models_dir: str | os.PathLike) -> list[str]:
+    """Every object a models folder holds (what ``--object all`` means with ``--models-dir``):
+    the class of each BOP ``obj_NNNNNN.ply`` (:func:`class_of_mesh`), of each loose
+    ``<Name>.obj|ply`` and of each sub-folder holding a mesh (HOPE ``<Name>/textured.obj``);
+    sorted by name (case-insensitive; the HOPE release's names sort in catalog order).
+
+    Raises:
+        InputFileError: ``models_dir`` is not a folder, or holds no mesh.
+    """
+    folder = Path(models_dir)
+    if not folder.is_dir():
+        raise InputFileError(folder, "models folder not found")
+    names: set[str] = set()
+    for p in folder.iterdir():
+        if p.is_file() and p.suffix.lower() in (".obj", ".ply"):
+            names.add(class_of_mesh(p) or p.stem)
+        elif p.is_dir() and any(f.is_file() and f.suffix.lower() in (".obj", ".ply") for f in p.iterdir()):
+            names.add(_catalog_name(p.name) or p.name)
+    if not names:
+        raise InputFileError(folder, "no mesh in this models folder (looked for obj_NNNNNN.ply, "
+                                     "<Name>.obj|ply and <Name>/*.obj|ply)")
+    return sorted(names, key=str.lower)

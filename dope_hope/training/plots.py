@@ -104,9 +104,11 @@ class SnapshotItem:
     """One validation image and what the network predicted for it.
 
     rgb: (H, W, 3) uint8 network input (after the validation fit).
-    belief: (9, h, w) and affinity: (16, h, w) maps of the last stage, h = H / stride.
+    belief: (9N, h, w) and affinity: (16N, h, w) maps of the last stage of a model of N
+    objects, h = H / stride.
     gt_keypoints: (I, 9, 2) input pixels, NaN = absent (the dataset item's ``keypoints``).
     title: label drawn on the image (e.g. the frame's file name).
+    object_names: the N objects' classes (empty for a one-object model).
     """
 
     rgb: np.ndarray
@@ -114,12 +116,14 @@ class SnapshotItem:
     affinity: np.ndarray
     gt_keypoints: np.ndarray
     title: str = ""
+    object_names: tuple[str, ...] = ()
 
 
 def snapshot_panel(items: Sequence[SnapshotItem], stride: int, threshold: float,
                    tile: int = SNAPSHOT_TILE) -> np.ndarray:
-    """One row per item: image + ground-truth (white) and decoded cuboids (two tiles high), then
-    the 9 belief maps (two rows of tiles).
+    """One row per item: image + ground-truth (white) and decoded cuboids (two tiles high; with
+    several objects one colour per object), then the 9 belief maps (two rows of tiles; with
+    several objects each keypoint's maximum over the objects).
 
     Args:
         items: the validation images and their predicted maps.
@@ -133,6 +137,7 @@ def snapshot_panel(items: Sequence[SnapshotItem], stride: int, threshold: float,
     import cv2
 
     from dope_hope.maps.decode import decode_maps
+    from dope_hope.model.info import GROUP_BELIEF, group_channels
     from dope_hope.viz import PALETTE, belief_montage, draw_cuboid, draw_label, montage
 
     if not items:
@@ -143,14 +148,23 @@ def snapshot_panel(items: Sequence[SnapshotItem], stride: int, threshold: float,
         for kp in np.asarray(item.gt_keypoints, dtype=np.float64).reshape(-1, 9, 2):
             if np.isfinite(kp).any():
                 img = draw_cuboid(img, kp, (255, 255, 255), draw_points=False)
-        instances = decode_maps(item.belief, item.affinity, stride, threshold=threshold)
-        for n, inst in enumerate(instances):
-            img = draw_cuboid(img, inst.keypoints, PALETTE[n % len(PALETTE)])
-        maps = belief_montage(item.belief, item.rgb, cols=5, max_side=tile)  # 2 rows: 5 + 4 maps
+        n_obj = max(1, len(item.object_names))
+        maps_all = np.concatenate([item.belief, item.affinity], axis=0)
+        counts = []
+        for k in range(n_obj):
+            group = maps_all[group_channels(k, n_obj)]
+            instances = decode_maps(group[:GROUP_BELIEF], group[GROUP_BELIEF:], stride, threshold=threshold)
+            for n, inst in enumerate(instances):
+                img = draw_cuboid(img, inst.keypoints, PALETTE[(k if n_obj > 1 else n) % len(PALETTE)])
+            counts.append(len(instances))
+        belief = item.belief.reshape(n_obj, GROUP_BELIEF, *item.belief.shape[1:]).max(axis=0)
+        maps = belief_montage(belief, item.rgb, cols=5, max_side=tile)  # 2 rows: 5 + 4 maps
         th = maps.shape[0]
         tw = max(1, round(img.shape[1] * th / img.shape[0]))
         img = cv2.resize(img, (tw, th), interpolation=cv2.INTER_AREA)
-        img = draw_label(img, f"{item.title} {len(instances)} decoded".strip())
+        found = (", ".join(f"{name} {c}" for name, c in zip(item.object_names, counts) if c) or "0"
+                 if n_obj > 1 else str(counts[0]))
+        img = draw_label(img, f"{item.title} {found} decoded".strip())
         gap = np.full((th, 2, 3), 32, np.uint8)
         rows.append(np.concatenate([img, gap, maps], axis=1))
     width = max(r.shape[1] for r in rows)

@@ -594,7 +594,8 @@ class Trainer:
         belief, affinity = (o.float().cpu().numpy() for o in self.model(images)[-1])
         panel = snapshot_panel(
             [SnapshotItem(denormalize_rgb(it["image"].numpy()), belief[i], affinity[i], it["keypoints"].numpy(),
-                          f"step {self.step}  {self.val_set.records[i].image_path.name}")
+                          f"step {self.step}  {self.val_set.records[i].image_path.name}",
+                          tuple(o.name for o in self.objects) if len(self.objects) > 1 else ())
              for i, it in enumerate(items)],
             int(self.model.stride), float(self.ts["val_peak_threshold"]))
         write_rgb(self.out / "val_snapshot.png", panel)

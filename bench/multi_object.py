@@ -1,0 +1,229 @@
+"""One network for six objects against six one-object networks, at the same CPU budget.
+
+The six objects are real textured meshes: the HOPE Ketchup (cm) and the five grocery objects
+of the shared data (``grocery_objects/``: Bread, Can, Cereal, Lemon, Milk; metres). Stages
+(each a `dope-hope` command run as a subprocess, as a user types it; logged to OUT/logs/):
+
+1. ``synth-train``: one training set of the six objects (seed 1, at the lite input size
+   256x192, the packaged configs/synth.yaml with :data:`TRAIN_TARGETS`: zero to four of the
+   six per frame, so frames without any target are negatives). No photograph.
+2. ``train-all``: one six-object lite network (`dope-hope train --object ... --mesh ...`)
+   for T minutes from the shipped pretrained start; ``train-<Name>``: six one-object lite
+   networks, T/6 minutes each, on the same frames (the other five objects are clutter to
+   them), also from the pretrained start. Same frames, same total wall-clock budget.
+3. ``synth-test``: held-out 640x480 frames (seed 1001) with two to four of the objects each
+   (:data:`TEST_SCENE`), a real photo background (the shared ``backgrounds/``, which no
+   training frame uses) and RealSense-like depth noise.
+4. ``infer-all`` / ``infer-six``: `dope-hope infer --depth auto` (the depth line search,
+   "-LS") with the one model, and with the six models (one ``--weights`` each).
+5. ``eval-all`` / ``eval-six``: `dope-hope evaluate --metric meanssd`: recall at 2 cm
+   MeanSSD per object and their mean.
+6. ``export-*`` and, in this process, the time per frame with onnxruntime (2 threads): the
+   whole pipeline of `DopePredictor` on each test image (forward pass, decoding, PnP; no
+   depth), the one model against a one-object model and against the six one-object models
+   in turn, frame by frame (side by side), and the frames per second of the one model.
+
+Targets (issue "Many objects, one network"): the one model's mean recall >= the six models'
+at the same budget; its time per frame <= 1.3x a one-object model's; >= 15 frames/s.
+
+Prints the CPU line, the table and the ratios; writes OUT/results.md and OUT/results.json.
+Resumable at stage granularity (OUT/stages/<stage>.json markers; training resumes with
+--resume); OUT/e2e_settings.json refuses a rerun with other settings in the same folder.
+
+    python bench/multi_object.py                                  # T = 60 min on 2 CPU cores
+    python bench/multi_object.py --minutes 20 --out bench/out/multi_object_20
+    python bench/multi_object.py --quick --out /tmp/mo_quick       # every stage, tiny: numbers meaningless
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from e2e_accuracy import (REPO, TEST_SEED, TRAIN_SEED, Pipeline, _pct, _set_args, check_settings,  # noqa: E402
+                          checkpoint_of, shared_data_dir)
+
+from dope_hope.devices import cpu_description, cpu_line  # noqa: E402
+from dope_hope.synth.settings import PLAIN_OVERRIDES  # noqa: E402
+
+#: The objects: class -> (mesh path relative to the shared data folder, its unit).
+OBJECTS = {"Bread": ("grocery_objects/Bread/textured.obj", "m"), "Can": ("grocery_objects/Can/textured.obj", "m"),
+           "Cereal": ("grocery_objects/Cereal/textured.obj", "m"), "Ketchup": ("hope_ketchup/textured.obj", "cm"),
+           "Lemon": ("grocery_objects/Lemon/textured.obj", "m"), "Milk": ("grocery_objects/Milk/textured.obj", "m")}
+#: Targets of the training frames: zero to four of the six (a frame draws which), at table-top range.
+TRAIN_TARGETS = ["target.count=[0,4]", "target.distance_m=[0.35,0.8]"]
+#: The held-out scenes: two to four of the objects, plain (no clutter backgrounds, look-alikes or
+#: sensor artefacts), over a photo background given by --backgrounds.
+TEST_SCENE = ["target.count=[2,4]", "target.distance_m=[0.35,0.8]", *_set_args(PLAIN_OVERRIDES)]
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, help="work folder (default bench/out/multi_object, --quick: ..._quick)")
+    p.add_argument("--minutes", type=float, help="T: the one model's training budget, and the six models' "
+                                                 "together (default 60; --quick 0.6)")
+    p.add_argument("--train-count", type=int, help="training frames (default 12000; --quick 12)")
+    p.add_argument("--test-count", type=int, help="held-out frames (default 200; --quick 3)")
+    p.add_argument("--size", help="held-out frame size WxH (default 640x480; --quick 160x120)")
+    p.add_argument("--workers", type=int, default=2, help="synth render processes (default 2)")
+    p.add_argument("--threads", type=int, default=2, help="onnxruntime threads of the timing (default 2)")
+    p.add_argument("--quick", action="store_true", help="tiny sizes and budget: checks every stage runs")
+    args = p.parse_args(argv)
+    q = args.quick
+    defaults = {"minutes": 0.6 if q else 60.0, "train_count": 12 if q else 12000, "test_count": 3 if q else 200,
+                "size": "160x120" if q else "640x480",
+                "out": REPO / "bench" / "out" / ("multi_object_quick" if q else "multi_object")}
+    for key, value in defaults.items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+    args.shared = shared_data_dir()
+    if args.shared is None or not (args.shared / "grocery_objects").is_dir():
+        p.error("the shared data (hope_ketchup/, grocery_objects/) is not found: set DOPE_HOPE_SHARED_DATA")
+    return args
+
+
+def per_object_recall(eval_dir: Path, method: str) -> dict[str, float]:
+    """{object: recall at 2 cm} from `evaluate`'s per-object CSV of ``method``."""
+    import csv
+
+    with open(eval_dir / f"per_object_{method}.csv", newline="") as f:
+        return {row["object"]: float(row["recall_2cm"]) for row in csv.DictReader(f) if row["row"] == "object"}
+
+
+def test_frames(folder: Path, limit: int) -> list[tuple]:
+    """(rgb (H, W, 3) uint8, K (3, 3)) of the first ``limit`` held-out frames."""
+    from dope_hope.io.dope_json import find_image, list_dope_frames, read_dope_json
+    from dope_hope.io.images import read_rgb
+
+    frames = []
+    for path in list_dope_frames(folder)[:limit]:
+        frames.append((read_rgb(find_image(path)), read_dope_json(path).K))
+    return frames
+
+
+def time_per_frame(one: Path, singles: dict[str, Path], frames: list[tuple], threads: int,
+                   warmup: int = 2) -> dict[str, float]:
+    """Mean seconds per frame of the whole predictor (forward, decoding, PnP): the one
+    multi-object ONNX model, the six one-object ONNX models in turn, and one of them alone
+    (the mean of the six); run frame by frame, alternating, in this process."""
+    from dope_hope.inference.predictor import DopePredictor
+
+    all_six = DopePredictor(one, threads=threads)
+    each = {name: DopePredictor(path, threads=threads) for name, path in singles.items()}
+    t_one, t_six, t_each = [], [], {name: [] for name in each}
+    for i, (rgb, K) in enumerate(frames):
+        t0 = time.perf_counter()
+        all_six.predict(rgb, K)
+        t1 = time.perf_counter()
+        per = []
+        for name, predictor in each.items():
+            s = time.perf_counter()
+            predictor.predict(rgb, K)
+            per.append(time.perf_counter() - s)
+            if i >= warmup:
+                t_each[name].append(per[-1])
+        if i >= warmup:
+            t_one.append(t1 - t0)
+            t_six.append(sum(per))
+    one_object = statistics.mean(statistics.mean(v) for v in t_each.values())
+    return {"one_model_s": statistics.mean(t_one), "six_models_s": statistics.mean(t_six),
+            "one_object_model_s": one_object, "frames": len(t_one)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    out: Path = args.out.resolve()
+    meshes = {name: (args.shared / rel).resolve() for name, (rel, _) in OBJECTS.items()}
+    units = {name: u for name, (_, u) in OBJECTS.items()}
+    settings = {"objects": {n: str(p) for n, p in meshes.items()}, "minutes": args.minutes,
+                "train_count": args.train_count, "test_count": args.test_count, "size": args.size,
+                "train_targets": TRAIN_TARGETS, "test_scene": TEST_SCENE, "quick": args.quick,
+                "train_seed": TRAIN_SEED, "test_seed": TEST_SEED}
+    check_settings(out, settings)
+    print(cpu_line(), flush=True)
+    print(f"multi-object: {', '.join(OBJECTS)}; {args.train_count} training frames; one lite model "
+          f"{args.minutes:g} min vs six {args.minutes / 6:g} min each; {args.test_count} test frames at "
+          f"{args.size}; {os.cpu_count()} CPU core(s){' [--quick: numbers are meaningless]' if args.quick else ''}; "
+          f"work folder {out}", flush=True)
+    pipe = Pipeline(out)
+    names = list(OBJECTS)
+    mesh_args = [str(meshes[n]) for n in names]
+    unit_args = [units[n] for n in names]
+    train_dir, test_dir = out / "train", out / "test"
+    pipe.stage("synth-train", ["synth", "--mesh", *mesh_args, "--units", *unit_args, "--out", train_dir,
+                               "--count", args.train_count, "--size", "64x64" if args.quick else "256x192",
+                               "--seed", TRAIN_SEED, "--workers", args.workers, "--no-progress",
+                               "--set", *TRAIN_TARGETS])
+    small = ["--batch-size", "2", "--workers", "0", "--set", "input.size=[64,64]", "train.threads=1"] \
+        if args.quick else []
+    common = ["train", "--config", "lite", "--data", train_dir, "--init", "pretrained", "--resume", "--no-progress"]
+    pipe.stage("train-all", [*common, "--object", *names, "--mesh", *mesh_args, "--units", *unit_args,
+                             "--out", out / "run_all", "--time-budget", args.minutes, *small])
+    for n in names:
+        pipe.stage(f"train-{n}", [*common, "--object", n, "--mesh", meshes[n], "--units", units[n],
+                                  "--out", out / f"run_{n}", "--time-budget", args.minutes / 6, *small])
+    steps = {run: json.loads((out / run / "summary.json").read_text())["step"]
+             for run in ["run_all", *(f"run_{n}" for n in names)]}
+    test = ["synth", "--mesh", *mesh_args, "--units", *unit_args, "--out", test_dir, "--count", args.test_count,
+            "--size", args.size, "--seed", TEST_SEED, "--workers", args.workers, "--depth-noise", "--no-progress",
+            "--backgrounds", args.shared / "backgrounds", "--set", *TEST_SCENE]
+    pipe.stage("synth-test", test)
+    one_ckpt = checkpoint_of(out / "run_all")
+    single_ckpts = {n: checkpoint_of(out / f"run_{n}") for n in names}
+    infer = ["infer", test_dir, "--depth", "auto", "--min-score", "0", "--no-overlay", "--no-progress"]
+    pipe.stage("infer-all", [*infer, "--weights", one_ckpt, "--out", out / "infer_all"])
+    six = [a for n in names for a in ("--weights", single_ckpts[n])]
+    pipe.stage("infer-six", [*infer, *six, "--out", out / "infer_six"])
+    evaluate = ["evaluate", "-d", test_dir, "--metric", "meanssd", "--no-bop-ar", "--no-progress",
+                *(a for n in names for a in ("--mesh", f"{n}={meshes[n]}", "--mesh-units", f"{n}={units[n]}"))]
+    pipe.stage("eval-all", [*evaluate, "-p", out / "infer_all" / "predictions.jsonl", "--method", "one-model-LS",
+                            "--out", out / "eval_all"])
+    pipe.stage("eval-six", [*evaluate, "-p", out / "infer_six" / "predictions.jsonl", "--method", "six-models-LS",
+                            "--out", out / "eval_six"])
+    pipe.stage("export-all", ["export", "--weights", one_ckpt, "--out", out / "onnx" / "all.onnx"])
+    for n in names:
+        pipe.stage(f"export-{n}", ["export", "--weights", single_ckpts[n], "--out", out / "onnx" / f"{n}.onnx"])
+
+    recall_one = per_object_recall(out / "eval_all", "one-model-LS")
+    recall_six = per_object_recall(out / "eval_six", "six-models-LS")
+    mean_one = statistics.mean(recall_one.get(n, 0.0) for n in names)
+    mean_six = statistics.mean(recall_six.get(n, 0.0) for n in names)
+    timing = time_per_frame(out / "onnx" / "all.onnx", {n: out / "onnx" / f"{n}.onnx" for n in names},
+                            test_frames(test_dir, args.test_count if args.quick else min(args.test_count, 52)),
+                            args.threads)
+    rows = ["| object | one six-object model | six one-object models |", "|---|---|---|"]
+    rows += [f"| {n} | {_pct(recall_one.get(n))} | {_pct(recall_six.get(n))} |" for n in names]
+    rows.append(f"| **mean** | **{_pct(mean_one)}** | **{_pct(mean_six)}** |")
+    table = "\n".join(rows)
+    ratio_single = timing["one_model_s"] / timing["one_object_model_s"]
+    ratio_six = timing["six_models_s"] / timing["one_model_s"]
+    speed = (f"time per {args.size} frame (onnxruntime, {args.threads} threads; forward, decoding, PnP; "
+             f"{timing['frames']} frames): one model {1000 * timing['one_model_s']:.1f} ms "
+             f"({1 / timing['one_model_s']:.1f} frames/s), a one-object model {1000 * timing['one_object_model_s']:.1f} ms, "
+             f"the six {1000 * timing['six_models_s']:.1f} ms; one model / one-object model = {ratio_single:.2f}x, "
+             f"six models / one model = {ratio_six:.2f}x")
+    trained = (f"steps: one model {steps['run_all']} in {args.minutes:g} min; one-object models "
+               + ", ".join(f"{n} {steps[f'run_{n}']}" for n in names) + f" in {args.minutes / 6:g} min each")
+    times = ", ".join(f"{k} {v:.0f} s" for k, v in pipe.timings.items())
+    text = (f"# Multi-object benchmark: T = {args.minutes:g} min\n\n{cpu_line()}\n\n"
+            f"Recall at 2 cm MeanSSD with -LS ({args.test_count} held-out frames at {args.size}, two to four "
+            f"objects each, photo background; every detection, ranked by score):\n\n{table}\n\n{trained}\n\n"
+            f"{speed}\n\nStage times: {times}\n")
+    (out / "results.md").write_text(text)
+    (out / "results.json").write_text(json.dumps(
+        {"settings": settings, "cpu": cpu_description(), "recall_2cm_one_model": recall_one,
+         "recall_2cm_six_models": recall_six, "mean_one_model": mean_one, "mean_six_models": mean_six,
+         "steps": steps, "timing": timing, "stage_seconds": pipe.timings}, indent=1) + "\n")
+    print(f"\n{table}\n\n{trained}\n{speed}\nstage times: {times}\nwritten: {out / 'results.md'}, "
+          f"{out / 'results.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
