@@ -68,12 +68,12 @@ REPO = Path(__file__).resolve().parent.parent
 TRAIN_SEED, TEST_SEED = 1, 1001
 
 
-def _set_args(overrides: dict, prefix: str = "") -> list[str]:
+def set_args(overrides: dict, prefix: str = "") -> list[str]:
     """Nested overrides -> `--set` arguments ("section.key=value")."""
     out = []
     for key, value in overrides.items():
         if isinstance(value, dict):
-            out += _set_args(value, f"{prefix}{key}.")
+            out += set_args(value, f"{prefix}{key}.")
         else:
             out.append(f"{prefix}{key}={json.dumps(value)}")
     return out
@@ -84,7 +84,7 @@ TARGET = ["target.count=[1,2]", "target.distance_m=[0.45,1.0]"]
 #: The test set's scene, and the training set's with ``--recipe plain``: without the clutter
 #: backgrounds, hard negatives and sensor artefacts of configs/synth.yaml (the frames of the
 #: "plain" row of bench/RESULTS.md "End-to-end accuracy (HOPE Ketchup)": same seeds, same frames).
-SCENE = [*TARGET, *_set_args(PLAIN_OVERRIDES)]
+SCENE = [*TARGET, *set_args(PLAIN_OVERRIDES)]
 #: The training set's scene per ``--recipe``.
 RECIPES = {"defaults": TARGET, "plain": SCENE}
 #: The loss classes of a held-out instance (:func:`loss_breakdown`).
@@ -212,11 +212,11 @@ def checkpoint_of(run_dir: Path) -> Path:
     raise SystemExit(f"{run_dir}: no checkpoint (best.pt / last.pt) after training")
 
 
-def _pct(v) -> str:
+def percent_text(v) -> str:
     return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{100 * v:.1f} %"
 
 
-def _num(v, digits: int = 2) -> str:
+def number_text(v, digits: int = 2) -> str:
     return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
 
 
@@ -242,10 +242,10 @@ def results_table(out: Path, methods: dict[str, str]) -> tuple[str, dict]:
                "detections": m["detections"]}
         data[label] = rec
         method, ls = label.rsplit(" ", 1)
-        rows.append(f"| {method} | {ls} | {_pct(rec['recall_2cm_meanssd'])} | {_pct(rec['recall_10cm_meanssd'])} | "
-                    f"{_num(rec['median_meanssd_cm'])} | {_pct(rec['recall_2cm_addh'])} | "
-                    f"{_pct(rec['recall_10cm_addh'])} | {_num(rec['median_addh_cm'])} | "
-                    f"{_num(rec['ar_mssd'], 3)} | {_num(rec['ar_mspd'], 3)} | {_num(rec['ar_vsd'], 3)} |")
+        rows.append(f"| {method} | {ls} | {percent_text(rec['recall_2cm_meanssd'])} | {percent_text(rec['recall_10cm_meanssd'])} | "
+                    f"{number_text(rec['median_meanssd_cm'])} | {percent_text(rec['recall_2cm_addh'])} | "
+                    f"{percent_text(rec['recall_10cm_addh'])} | {number_text(rec['median_addh_cm'])} | "
+                    f"{number_text(rec['ar_mssd'], 3)} | {number_text(rec['ar_mspd'], 3)} | {number_text(rec['ar_vsd'], 3)} |")
     return "\n".join(rows), data
 
 

@@ -45,7 +45,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from e2e_accuracy import (REPO, TEST_SEED, TRAIN_SEED, Pipeline, _pct, _set_args, check_settings,  # noqa: E402
+from e2e_accuracy import (REPO, TEST_SEED, TRAIN_SEED, Pipeline, percent_text, set_args, check_settings,  # noqa: E402
                           checkpoint_of, shared_data_dir)
 
 from dope_hope.devices import cpu_description, cpu_line  # noqa: E402
@@ -59,7 +59,7 @@ OBJECTS = {"Bread": ("grocery_objects/Bread/textured.obj", "m"), "Can": ("grocer
 TRAIN_TARGETS = ["target.count=[0,4]", "target.distance_m=[0.35,0.8]"]
 #: The held-out scenes: two to four of the objects, plain (no clutter backgrounds, look-alikes or
 #: sensor artefacts), over a photo background given by --backgrounds.
-TEST_SCENE = ["target.count=[2,4]", "target.distance_m=[0.35,0.8]", *_set_args(PLAIN_OVERRIDES)]
+TEST_SCENE = ["target.count=[2,4]", "target.distance_m=[0.35,0.8]", *set_args(PLAIN_OVERRIDES)]
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -136,21 +136,8 @@ def time_per_frame(one: Path, singles: dict[str, Path], frames: list[tuple], thr
             "one_object_model_s": one_object, "frames": len(t_one)}
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    out: Path = args.out.resolve()
-    meshes = {name: (args.shared / rel).resolve() for name, (rel, _) in OBJECTS.items()}
-    units = {name: u for name, (_, u) in OBJECTS.items()}
-    settings = {"objects": {n: str(p) for n, p in meshes.items()}, "minutes": args.minutes,
-                "train_count": args.train_count, "test_count": args.test_count, "size": args.size,
-                "train_targets": TRAIN_TARGETS, "test_scene": TEST_SCENE, "quick": args.quick,
-                "train_seed": TRAIN_SEED, "test_seed": TEST_SEED}
-    check_settings(out, settings)
-    print(cpu_line(), flush=True)
-    print(f"multi-object: {', '.join(OBJECTS)}; {args.train_count} training frames; one lite model "
-          f"{args.minutes:g} min vs six {args.minutes / 6:g} min each; {args.test_count} test frames at "
-          f"{args.size}; {os.cpu_count()} CPU core(s){' [--quick: numbers are meaningless]' if args.quick else ''}; "
-          f"work folder {out}", flush=True)
+def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], units: dict[str, str]) -> Pipeline:
+    """Stages 1-6 of the module docstring (each skipped when done earlier)."""
     pipe = Pipeline(out)
     names = list(OBJECTS)
     mesh_args = [str(meshes[n]) for n in names]
@@ -168,12 +155,10 @@ def main(argv: list[str] | None = None) -> int:
     for n in names:
         pipe.stage(f"train-{n}", [*common, "--object", n, "--mesh", meshes[n], "--units", units[n],
                                   "--out", out / f"run_{n}", "--time-budget", args.minutes / 6, *small])
-    steps = {run: json.loads((out / run / "summary.json").read_text())["step"]
-             for run in ["run_all", *(f"run_{n}" for n in names)]}
-    test = ["synth", "--mesh", *mesh_args, "--units", *unit_args, "--out", test_dir, "--count", args.test_count,
-            "--size", args.size, "--seed", TEST_SEED, "--workers", args.workers, "--depth-noise", "--no-progress",
-            "--backgrounds", args.shared / "backgrounds", "--set", *TEST_SCENE]
-    pipe.stage("synth-test", test)
+    pipe.stage("synth-test", ["synth", "--mesh", *mesh_args, "--units", *unit_args, "--out", test_dir,
+                              "--count", args.test_count, "--size", args.size, "--seed", TEST_SEED,
+                              "--workers", args.workers, "--depth-noise", "--no-progress",
+                              "--backgrounds", args.shared / "backgrounds", "--set", *TEST_SCENE])
     one_ckpt = checkpoint_of(out / "run_all")
     single_ckpts = {n: checkpoint_of(out / f"run_{n}") for n in names}
     infer = ["infer", test_dir, "--depth", "auto", "--min-score", "0", "--no-overlay", "--no-progress"]
@@ -182,46 +167,73 @@ def main(argv: list[str] | None = None) -> int:
     pipe.stage("infer-six", [*infer, *six, "--out", out / "infer_six"])
     evaluate = ["evaluate", "-d", test_dir, "--metric", "meanssd", "--no-bop-ar", "--no-progress",
                 *(a for n in names for a in ("--mesh", f"{n}={meshes[n]}", "--mesh-units", f"{n}={units[n]}"))]
-    pipe.stage("eval-all", [*evaluate, "-p", out / "infer_all" / "predictions.jsonl", "--method", "one-model-LS",
-                            "--out", out / "eval_all"])
-    pipe.stage("eval-six", [*evaluate, "-p", out / "infer_six" / "predictions.jsonl", "--method", "six-models-LS",
-                            "--out", out / "eval_six"])
+    for arm, method in (("all", "one-model-LS"), ("six", "six-models-LS")):
+        pipe.stage(f"eval-{arm}", [*evaluate, "-p", out / f"infer_{arm}" / "predictions.jsonl", "--method", method,
+                                   "--out", out / f"eval_{arm}"])
     pipe.stage("export-all", ["export", "--weights", one_ckpt, "--out", out / "onnx" / "all.onnx"])
     for n in names:
         pipe.stage(f"export-{n}", ["export", "--weights", single_ckpts[n], "--out", out / "onnx" / f"{n}.onnx"])
+    return pipe
 
+
+def report(args: argparse.Namespace, out: Path, pipe: Pipeline) -> dict:
+    """The recall table, the steps trained and the timing (text printed and written to
+    OUT/results.md); returns the figures for OUT/results.json."""
+    names = list(OBJECTS)
     recall_one = per_object_recall(out / "eval_all", "one-model-LS")
     recall_six = per_object_recall(out / "eval_six", "six-models-LS")
     mean_one = statistics.mean(recall_one.get(n, 0.0) for n in names)
     mean_six = statistics.mean(recall_six.get(n, 0.0) for n in names)
+    steps = {run: json.loads((out / run / "summary.json").read_text())["step"]
+             for run in ["run_all", *(f"run_{n}" for n in names)]}
     timing = time_per_frame(out / "onnx" / "all.onnx", {n: out / "onnx" / f"{n}.onnx" for n in names},
-                            test_frames(test_dir, args.test_count if args.quick else min(args.test_count, 52)),
+                            test_frames(out / "test", args.test_count if args.quick else min(args.test_count, 52)),
                             args.threads)
     rows = ["| object | one six-object model | six one-object models |", "|---|---|---|"]
-    rows += [f"| {n} | {_pct(recall_one.get(n))} | {_pct(recall_six.get(n))} |" for n in names]
-    rows.append(f"| **mean** | **{_pct(mean_one)}** | **{_pct(mean_six)}** |")
+    rows += [f"| {n} | {percent_text(recall_one.get(n))} | {percent_text(recall_six.get(n))} |" for n in names]
+    rows.append(f"| **mean** | **{percent_text(mean_one)}** | **{percent_text(mean_six)}** |")
     table = "\n".join(rows)
     ratio_single = timing["one_model_s"] / timing["one_object_model_s"]
     ratio_six = timing["six_models_s"] / timing["one_model_s"]
     speed = (f"time per {args.size} frame (onnxruntime, {args.threads} threads; forward, decoding, PnP; "
              f"{timing['frames']} frames): one model {1000 * timing['one_model_s']:.1f} ms "
-             f"({1 / timing['one_model_s']:.1f} frames/s), a one-object model {1000 * timing['one_object_model_s']:.1f} ms, "
+             f"({1 / timing['one_model_s']:.1f} frames/s), a one-object model "
+             f"{1000 * timing['one_object_model_s']:.1f} ms, "
              f"the six {1000 * timing['six_models_s']:.1f} ms; one model / one-object model = {ratio_single:.2f}x, "
              f"six models / one model = {ratio_six:.2f}x")
     trained = (f"steps: one model {steps['run_all']} in {args.minutes:g} min; one-object models "
                + ", ".join(f"{n} {steps[f'run_{n}']}" for n in names) + f" in {args.minutes / 6:g} min each")
     times = ", ".join(f"{k} {v:.0f} s" for k, v in pipe.timings.items())
-    text = (f"# Multi-object benchmark: T = {args.minutes:g} min\n\n{cpu_line()}\n\n"
-            f"Recall at 2 cm MeanSSD with -LS ({args.test_count} held-out frames at {args.size}, two to four "
-            f"objects each, photo background; every detection, ranked by score):\n\n{table}\n\n{trained}\n\n"
-            f"{speed}\n\nStage times: {times}\n")
-    (out / "results.md").write_text(text)
-    (out / "results.json").write_text(json.dumps(
-        {"settings": settings, "cpu": cpu_description(), "recall_2cm_one_model": recall_one,
-         "recall_2cm_six_models": recall_six, "mean_one_model": mean_one, "mean_six_models": mean_six,
-         "steps": steps, "timing": timing, "stage_seconds": pipe.timings}, indent=1) + "\n")
+    (out / "results.md").write_text(
+        f"# Multi-object benchmark: T = {args.minutes:g} min\n\n{cpu_line()}\n\n"
+        f"Recall at 2 cm MeanSSD with -LS ({args.test_count} held-out frames at {args.size}, two to four "
+        f"objects each, photo background; every detection, ranked by score):\n\n{table}\n\n{trained}\n\n"
+        f"{speed}\n\nStage times: {times}\n")
     print(f"\n{table}\n\n{trained}\n{speed}\nstage times: {times}\nwritten: {out / 'results.md'}, "
           f"{out / 'results.json'}")
+    return {"recall_2cm_one_model": recall_one, "recall_2cm_six_models": recall_six, "mean_one_model": mean_one,
+            "mean_six_models": mean_six, "steps": steps, "timing": timing, "stage_seconds": pipe.timings}
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    out: Path = args.out.resolve()
+    meshes = {name: (args.shared / rel).resolve() for name, (rel, _) in OBJECTS.items()}
+    units = {name: u for name, (_, u) in OBJECTS.items()}
+    settings = {"objects": {n: str(p) for n, p in meshes.items()}, "minutes": args.minutes,
+                "train_count": args.train_count, "test_count": args.test_count, "size": args.size,
+                "train_targets": TRAIN_TARGETS, "test_scene": TEST_SCENE, "quick": args.quick,
+                "train_seed": TRAIN_SEED, "test_seed": TEST_SEED}
+    check_settings(out, settings)
+    print(cpu_line(), flush=True)
+    print(f"multi-object: {', '.join(OBJECTS)}; {args.train_count} training frames; one lite model "
+          f"{args.minutes:g} min vs six {args.minutes / 6:g} min each; {args.test_count} test frames at "
+          f"{args.size}; {os.cpu_count()} CPU core(s){' [--quick: numbers are meaningless]' if args.quick else ''}; "
+          f"work folder {out}", flush=True)
+    pipe = run_stages(args, out, meshes, units)
+    figures = report(args, out, pipe)
+    (out / "results.json").write_text(json.dumps({"settings": settings, "cpu": cpu_description(), **figures},
+                                                 indent=1) + "\n")
     return 0
 
 

@@ -6,7 +6,7 @@ Renders ``--frames`` scenes of `dope-hope demo` (configs/demo.yaml: one demo box
 distractors, 640x480, RealSense-like depth noise) with one fixed camera (no intrinsics
 jitter), writes them as an mp4v video (MJPG .avi where mp4v is missing) and keeps each
 frame's depth. Then, for each backend in turn, in this process, the loop of `dope-hope infer
-clip.mp4` runs over the file: :func:`dope_hope.inference.stream.run_stream` on an
+clip.mp4` runs over the file: :func:`dope_hope.inference.video.predict_stream` on an
 :class:`~dope_hope.io.sources.VideoFile` (decoded by OpenCV in the reader thread, every
 frame processed), each frame's depth attached so that -LS runs, and per frame what the
 command does: ``predict_many`` (network, decode + PnP, -LS), the JSON record, the overlay,
@@ -37,7 +37,7 @@ from dope_hope.devices import cpu_line
 from dope_hope.demo.onnx_cache import ensure_onnx
 from dope_hope.demo.scenes import DEMO_CONFIG, IMAGE_SIZE
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
-from dope_hope.inference.stream import passive_openmp, run_stream
+from dope_hope.inference.stream import passive_openmp
 from dope_hope.io.camera import ImageCamera
 from dope_hope.io.sources import VideoWithDepth
 
@@ -76,27 +76,19 @@ def render(tmp: Path, n: int):
 
 def run_loop(predictor, video: Path, K: np.ndarray, depths: list, out: Path,
              max_frames: int | None = None):
-    """The `dope-hope infer clip.mp4` loop over the file; (StreamStats, detections)."""
-    from dope_hope.inference.predictor import predict_many
+    """The `dope-hope infer clip.mp4` loop over the file (its JSON lines and overlay video);
+    (StreamStats, detections, detections refined by -LS)."""
+    from dope_hope.inference.video import StreamSinks, predict_stream
     from dope_hope.io.video import OverlayVideo
-    from dope_hope.viz import overlay_detections
 
     camera = ImageCamera(K=K, width=IMAGE_SIZE[0], height=IMAGE_SIZE[1], source=Path("bench"))
     source = VideoWithDepth(video, camera, depths)
     overlay = OverlayVideo(out, source.fps or 30.0)
-    lines = []
-
-    def process(frame):
-        t0 = time.perf_counter()
-        dets = predict_many([predictor], frame.rgb, frame.K, depth=frame.depth)
-        extra = {"time": round(time.perf_counter() - t0, 4), "frame": frame.index,
-                 "timestamp_s": round(frame.timestamp_s, 4)}
-        lines.extend(json.dumps(d.to_json(frame.name, **extra)) for d in dets)
-        overlay.write(overlay_detections(frame.rgb, dets, frame.K))
-
-    stats = run_stream(source, process, max_frames=max_frames)
+    lines: list[str] = []
+    result = predict_stream(source, [predictor], StreamSinks(on_record=lambda rec: lines.append(json.dumps(rec)),
+                                                             video=overlay), max_frames=max_frames)
     overlay.close()
-    return stats, len(lines), sum('"ls_applied": true' in line for line in lines)
+    return result.stats, len(lines), sum(r["ls_applied"] for r in result.records)
 
 
 def main() -> int:

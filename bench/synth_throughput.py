@@ -25,7 +25,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from dope_hope.synth.generate import generate_dataset  # noqa: E402
+from dope_hope.synth.generate import SynthJob, generate_dataset  # noqa: E402
 from dope_hope.synth.settings import PLAIN_OVERRIDES as PLAIN  # noqa: E402
 
 
@@ -35,8 +35,8 @@ def measure(mesh: Path, size: str, workers: int, frames: int, seed: int, config:
     stamps: list[float] = []
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
-        generate_dataset(Path(tmp) / "out", mesh, frames, seed=seed, size=size, workers=workers,
-                         config=config, backgrounds=backgrounds, progress=False,
+        job = SynthJob(mesh, seed=seed, size=size, config=config, backgrounds=backgrounds)
+        generate_dataset(Path(tmp) / "out", job, frames, workers=workers, progress=False,
                          on_frame=lambda i: stamps.append(time.perf_counter()))
         end = time.perf_counter()
     warm = workers  # frames completed before the steady-state window starts

@@ -60,7 +60,7 @@ from scipy.spatial.transform import Rotation
 from dope_hope.assets import DEMO_WEIGHTS
 from dope_hope.devices import cpu_line
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
-from dope_hope.inference.stream import passive_openmp, run_stream
+from dope_hope.inference.stream import passive_openmp
 from dope_hope.io.camera import ImageCamera
 from dope_hope.io.sources import VideoWithDepth
 
@@ -234,32 +234,30 @@ def motion_blur(color: np.ndarray, alpha: np.ndarray, step_px: np.ndarray) -> tu
 def play(predictor, clip: Clip, tracked: bool, out: Path, max_frames: int | None = None,
          settings: dict | None = None) -> Played:
     """The `dope-hope infer clip.mp4 [--track]` loop over a clip (records, overlay video)."""
-    from dope_hope.inference.predictor import as_depth_image, predict_many
     from dope_hope.inference.tracking import PoseTracker
+    from dope_hope.inference.video import StreamSinks, predict_stream
     from dope_hope.io.video import OverlayVideo
-    from dope_hope.viz import overlay_detections
 
     camera = ImageCamera(K=clip.K, width=SIZE[0], height=SIZE[1], source=Path("bench"))
     source = VideoWithDepth(clip.video, camera, clip.depths)
     overlay = OverlayVideo(out / f"{clip.name}_{'tracked' if tracked else 'raw'}.overlay", FPS)
-    tracker = PoseTracker(predictor, settings={**predictor.options.tracking, **(settings or {})}) if tracked else None
     played, lines = Played(), []
+    tracker = None
+    if tracked:
+        tracker = PoseTracker(predictor, settings={**predictor.options.tracking, **(settings or {})})
+        update = tracker.update
 
-    def process(frame):
-        t0 = time.perf_counter()
-        depth = as_depth_image(frame.depth, frame.K, 0.001, 1.0, frame.rgb.shape[:2])
-        objs = predict_many([predictor], frame.rgb, frame.K, depth=depth)
-        if tracker is not None:
-            t1 = time.perf_counter()
-            objs = tracker.update(objs, frame.K, depth, frame=frame.index, image_hw=frame.rgb.shape[:2])
-            played.tracker_seconds += time.perf_counter() - t1
-        extra = {"time": round(time.perf_counter() - t0, 4), "frame": frame.index,
-                 "timestamp_s": round(frame.timestamp_s, 4)}
-        lines.extend(json.dumps(o.to_json(frame.name, **extra)) for o in objs)
-        overlay.write(overlay_detections(frame.rgb, objs, frame.K))
-        played.objects.append(objs)
+        def timed_update(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return update(*args, **kwargs)
+            finally:
+                played.tracker_seconds += time.perf_counter() - t0
 
-    stats = run_stream(source, process, max_frames=max_frames)
+        tracker.update = timed_update  # the tracker's own share of the loop's time
+    sinks = StreamSinks(on_record=lambda rec: lines.append(json.dumps(rec)),
+                        on_frame=lambda frame, objs: played.objects.append(objs), video=overlay)
+    stats = predict_stream(source, [predictor], sinks, tracker=tracker, max_frames=max_frames).stats
     overlay.close()
     played.fps, played.frames, played.seconds = stats.fps, stats.processed, stats.seconds
     return played

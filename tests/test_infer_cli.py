@@ -39,13 +39,13 @@ SIZE = (160, 120)  # W, H of the generated frames
 def frames(tmp_path_factory) -> Path:
     """Two 160x120 synthetic frames of the demo box (one instance, no occluders), with depth."""
     from dope_hope.demo_object import write_demo_object
-    from dope_hope.synth.generate import generate_dataset
+    from dope_hope.synth.generate import SynthJob, generate_dataset
 
     root = tmp_path_factory.mktemp("infer")
     mesh = write_demo_object(root / "mesh")
     cfg = {"target": {"count": [1, 1], "truncation_prob": 0.0, "distance_m": [0.45, 0.55]},
            "distractors": {"count": [0, 0], "occluder_prob": 0.0}}
-    generate_dataset(root / "data", mesh, count=2, size=SIZE, config=cfg, progress=False)
+    generate_dataset(root / "data", SynthJob(mesh, size=SIZE, config=cfg), 2, progress=False)
     return root / "data"
 
 

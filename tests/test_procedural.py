@@ -85,12 +85,12 @@ def test_symmetric_views_get_one_label(category, size):
 
 def test_procedural_dataset_on_disk_trains_as_one_class(tmp_path):
     from dope_hope.io.dope_json import recorded_cuboid_size
-    from dope_hope.synth.generate import generate_dataset
+    from dope_hope.synth.generate import SynthJob, generate_dataset
     from dope_hope.training.dataset import scan_frames
 
     cfg = {"distractors": {"count": [1, 2]}, "procedural": {"texture_px": 64}}
     for out in (tmp_path / "a", tmp_path / "b"):
-        generate_dataset(out, None, 3, seed=5, size=(96, 72), config=cfg, procedural=True, progress=False)
+        generate_dataset(out, SynthJob(None, seed=5, size=(96, 72), config=cfg, procedural=True), 3, progress=False)
     sizes = set()
     for i in range(3):
         a = json.loads((tmp_path / "a" / f"{i:06d}.json").read_text())

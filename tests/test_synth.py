@@ -22,7 +22,7 @@ from dope_hope.synth.assets import (
 )
 from dope_hope.synth.background import BackgroundSource
 from dope_hope.synth.camera import reference_intrinsics
-from dope_hope.synth.generate import FrameGenerator, generate_dataset
+from dope_hope.synth.generate import FrameGenerator, SynthJob, generate_dataset
 from dope_hope.synth.scene import frame_streams
 from dope_hope.synth.settings import load_synth_config, parse_shard, parse_size
 
@@ -51,7 +51,7 @@ def frames(gen):
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory, simple_obj: Path) -> Path:
     out = tmp_path_factory.mktemp("ds") / "a"
-    generate_dataset(out, simple_obj, 10, seed=5, size=SIZE, config=CFG, progress=False)
+    generate_dataset(out, SynthJob(simple_obj, seed=5, size=SIZE, config=CFG), 10, progress=False)
     return out
 
 
@@ -179,7 +179,7 @@ def test_frames_without_a_target_are_negatives_the_trainer_reads(simple_obj: Pat
     from dope_hope.training.dataset import scan_frames
 
     cfg = {"target": {"count": [0, 0]}, "distractors": {"count": [3, 3]}, "hard_negatives": {"count": [1, 1]}}
-    generate_dataset(tmp_path / "neg", simple_obj, 2, seed=4, size=SIZE, config=cfg, progress=False)
+    generate_dataset(tmp_path / "neg", SynthJob(simple_obj, seed=4, size=SIZE, config=cfg), 2, progress=False)
     for i in range(2):
         assert read_dope_json(tmp_path / "neg" / f"{i:06d}.json").objects == []
         seg = read_image_raw(tmp_path / "neg" / f"{i:06d}.seg.png")
@@ -193,24 +193,24 @@ def test_frames_without_a_target_are_negatives_the_trainer_reads(simple_obj: Pat
 # --------------------------------------------------------------------------- determinism
 def test_same_seed_gives_identical_files(dataset: Path, simple_obj: Path, tmp_path: Path):
     out = tmp_path / "b"
-    generate_dataset(out, simple_obj, 3, seed=5, size=SIZE, config=CFG, progress=False)
+    generate_dataset(out, SynthJob(simple_obj, seed=5, size=SIZE, config=CFG), 3, progress=False)
     for i in range(3):
         for suffix in (".json", ".png", ".seg.png", ".depth.png"):
             name = f"{i:06d}{suffix}"
             assert (out / name).read_bytes() == (dataset / name).read_bytes(), name
     other = tmp_path / "c"
-    generate_dataset(other, simple_obj, 1, seed=6, size=SIZE, config=CFG, progress=False)
+    generate_dataset(other, SynthJob(simple_obj, seed=6, size=SIZE, config=CFG), 1, progress=False)
     assert (other / "000000.json").read_bytes() != (dataset / "000000.json").read_bytes()
 
 
 def test_resume_after_interruption_matches_uninterrupted(dataset: Path, simple_obj: Path, tmp_path: Path):
     out = tmp_path / "r"
-    generate_dataset(out, simple_obj, 6, seed=5, size=SIZE, config=CFG, progress=False)
+    generate_dataset(out, SynthJob(simple_obj, seed=5, size=SIZE, config=CFG), 6, progress=False)
     # simulate a crash while frame 3 was written: its images exist, its JSON does not, and a
     # temporary file is left behind
     (out / "000003.json").unlink()
     (out / ".000003.abc123.tmp.json").write_text("{")
-    summary = generate_dataset(out, simple_obj, 10, seed=5, size=SIZE, config=CFG, progress=False)
+    summary = generate_dataset(out, SynthJob(simple_obj, seed=5, size=SIZE, config=CFG), 10, progress=False)
     assert summary.written == 5 and summary.skipped == 5
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted(p.name for p in dataset.iterdir())
@@ -220,7 +220,7 @@ def test_resume_after_interruption_matches_uninterrupted(dataset: Path, simple_o
 
 def test_other_settings_in_same_folder_are_refused(dataset: Path, simple_obj: Path):
     with pytest.raises(ConfigError, match="seed"):
-        generate_dataset(dataset, simple_obj, 10, seed=6, size=SIZE, config=CFG, progress=False)
+        generate_dataset(dataset, SynthJob(simple_obj, seed=6, size=SIZE, config=CFG), 10, progress=False)
 
 
 def test_folder_made_before_a_setting_existed_names_that_setting(dataset: Path, simple_obj: Path,
@@ -233,21 +233,20 @@ def test_folder_made_before_a_setting_existed_names_that_setting(dataset: Path, 
     info_path.write_text(json.dumps(info))
     with pytest.raises(ConfigError, match=r"other settings \(config\.background\.clutter_prob: absent "
                                           r"\(made before this setting existed\) -> 0\.\d+\)"):
-        generate_dataset(out, simple_obj, 12, seed=5, size=SIZE, config=CFG, progress=False)
+        generate_dataset(out, SynthJob(simple_obj, seed=5, size=SIZE, config=CFG), 12, progress=False)
     assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in dataset.iterdir())
 
 
 def test_two_workers_and_shards_give_the_same_frames(dataset: Path, simple_obj: Path, tmp_path: Path):
     out = tmp_path / "w"
-    summary = generate_dataset(out, simple_obj, 4, seed=5, size=SIZE, config=CFG, workers=2,
-                               progress=False)
+    summary = generate_dataset(out, SynthJob(simple_obj, seed=5, size=SIZE, config=CFG), 4, workers=2, progress=False)
     assert summary.written == 4
     for i in range(4):
         for suffix in (".json", ".png", ".seg.png", ".depth.png"):
             name = f"{i:06d}{suffix}"
             assert (out / name).read_bytes() == (dataset / name).read_bytes(), name
     sh = tmp_path / "s"
-    generate_dataset(sh, simple_obj, 10, seed=5, size=SIZE, config=CFG, shard="1/4", progress=False)
+    generate_dataset(sh, SynthJob(simple_obj, seed=5, size=SIZE, config=CFG), 10, shard="1/4", progress=False)
     assert [p.stem for p in list_dope_frames(sh)] == ["000001", "000005", "000009"]
     assert (sh / "000005.json").read_bytes() == (dataset / "000005.json").read_bytes()
 
@@ -268,7 +267,7 @@ def test_ply_in_millimetres_with_vertex_colours(tmp_path: Path):
     cfg = {"target": {"count": [1, 1]}, "distractors": {"count": [0, 0], "occluder_prob": 0.0},
            "post": {"jitter_prob": 0.0, "noise_prob": 0.0, "blur_prob": 0.0}}
     out = tmp_path / "ply"
-    generate_dataset(out, ply, 3, seed=0, size=SIZE, config=cfg, class_name="RedBox", progress=False)
+    generate_dataset(out, SynthJob(ply, seed=0, size=SIZE, config=cfg, class_name="RedBox"), 3, progress=False)
     for p in list_dope_frames(out):
         doc = json.loads(p.read_text())
         np.testing.assert_allclose(doc["cuboid"]["size_m"], [0.06, 0.10, 0.04], atol=1e-9)

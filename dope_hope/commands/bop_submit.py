@@ -57,36 +57,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def obj_id_of(class_name: str) -> int:
-    """BOP obj_id of a model's class (:func:`dope_hope.io.models_dir.bop_obj_id`); an error when
-    it has none."""
-    from dope_hope.errors import UnknownObjectError
-    from dope_hope.io.models_dir import bop_obj_id
-
-    obj_id = bop_obj_id(class_name)
-    if obj_id is None:
-        raise UnknownObjectError(f"model class {class_name!r} has no BOP obj_id (not a HOPE object, "
-                                 "not named obj_NNNNNN)")
-    return obj_id
-
-
 def run(args: argparse.Namespace) -> int:
-    import sys
-    import time
-
-    from tqdm import tqdm
-
     from dope_hope.errors import ConfigError, InputFileError
-    from dope_hope.inference.backends import backend_objects, open_backend
-    from dope_hope.inference.predictor import DopePredictor, predict_many
+    from dope_hope.inference.bop_estimates import estimate_frames, load_bop_models
     from dope_hope.io.bop import TEST_TARGETS_NAME, find_split_folder, targeted_frames
-    from dope_hope.io.bop_csv import (
-        BopEstimate,
-        parse_bop_result_filename,
-        write_bop_csv,
-    )
-    from dope_hope.io.images import read_depth_m, read_rgb
-    from dope_hope.io.models_dir import find_object_mesh
+    from dope_hope.io.bop_csv import parse_bop_result_filename, write_bop_csv
     from dope_hope.io.paths import output_file
 
     parse_bop_result_filename(args.out)  # fail before any work
@@ -105,52 +80,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputFileError(models_dir, "models folder not found")
     if not models_dir.is_dir():
         models_dir = None  # no DATASET/models: the line search uses each model's cuboid
-
-    predictors: dict[int, object] = {}  # obj_id -> the predictor of the model detecting it
-    class_of: dict[int, str] = {}
-    for w in args.weights:
-        backend = open_backend(w, args.backend, args.device, args.threads)
-        names = [o.class_name for o in backend_objects(backend)]
-        ids = [obj_id_of(name) for name in names]
-        for obj_id, name in zip(ids, names):
-            if obj_id in predictors or ids.count(obj_id) > 1:
-                raise ConfigError(f"{w}: a second model for obj_id {obj_id} ({name})")
-        # a --models-dir given must hold each object's mesh; DATASET/models may lack it (cuboid)
-        meshes = {name: find_object_mesh(name, models_dir, required=args.models_dir is not None) for name in names}
-        pred = DopePredictor(backend, height=args.height, min_score=args.min_score, icp=args.icp,
-                             mesh={k: v for k, v in meshes.items() if v is not None})
-        for obj_id, name in zip(ids, names):
-            predictors[obj_id], class_of[obj_id] = pred, name
-
+    models = load_bop_models(args.weights, models_dir, args.models_dir is not None,
+                             {"height": args.height, "min_score": args.min_score, "icp": args.icp},
+                             args.backend, args.device, args.threads)
     frames, wanted = targeted_frames(split_dir, targets_path)
-    no_model = sorted({o for objs in (wanted or {}).values() for o in objs} - set(predictors))
-
-    estimates: list[BopEstimate] = []
-    seconds = 0.0
-    for bf in tqdm(frames, desc="bop-submit", unit="img", disable=args.no_progress, file=sys.stderr):
-        frame = bf.annotation
-        objs = sorted(predictors) if wanted is None else sorted(set(wanted[(bf.scene_id, bf.im_id)]) & set(predictors))
-        if not objs:
-            continue
-        if frame.image_path is None:
-            raise InputFileError(split_dir / f"{bf.scene_id:06d}", f"no image for im_id {bf.im_id}")
-        t0 = time.perf_counter()
-        rgb = read_rgb(frame.image_path)
-        depth = None
-        if not args.no_depth and frame.depth_path is not None:
-            depth = read_depth_m(frame.depth_path, frame.depth_scale_m)
-        models = list({id(predictors[o]): predictors[o] for o in objs}.values())
-        dets = predict_many(models, rgb, frame.K, depth=depth, calibration=args.depth_calibration,
-                            classes={class_of[o] for o in objs})
-        elapsed = time.perf_counter() - t0
-        seconds += elapsed
-        by_class = {class_of[o]: o for o in objs}
-        estimates += [BopEstimate(bf.scene_id, bf.im_id, by_class[d.class_name], float(d.score), d.R, d.t,
-                                  round(elapsed, 4)) for d in dets]
-    write_bop_csv(args.out, estimates, overwrite=args.overwrite)
-    n = sum(1 for bf in frames if wanted is None or set(wanted[(bf.scene_id, bf.im_id)]) & set(predictors))
-    print(f"{len(estimates)} estimate(s) for {n} image(s) of {split_dir} -> {args.out}"
-          + (f" ({seconds / n:.2f} s per image)" if n else ""))
+    no_model = sorted({o for objs in (wanted or {}).values() for o in objs} - set(models.predictors))
+    done = estimate_frames(split_dir, frames, wanted, models, use_depth=not args.no_depth,
+                           depth_calibration=args.depth_calibration, progress=not args.no_progress)
+    write_bop_csv(args.out, done.estimates, overwrite=args.overwrite)
+    print(f"{len(done.estimates)} estimate(s) for {done.images} image(s) of {split_dir} -> {args.out}"
+          + (f" ({done.seconds / done.images:.2f} s per image)" if done.images else ""))
     if no_model:
         print(f"note: no model for targeted obj_id(s) {', '.join(map(str, no_model))}: those targets get no estimate")
     return 0

@@ -467,13 +467,10 @@ def _run_stream(args: argparse.Namespace) -> int:
     """`run` for a video file, a camera or a RealSense (module docstring, "Streams")."""
     import json
 
-    from tqdm import tqdm
-
-    from dope_hope.inference.stream import passive_openmp, run_stream
+    from dope_hope.inference.stream import passive_openmp
     from dope_hope.io.paths import output_dir
     from dope_hope.io.predictions import write_predictions_jsonl
     from dope_hope.io.sources import open_stream
-    from dope_hope.viz import overlay_detections
 
     _check_stream_flags(args)
 
@@ -485,56 +482,15 @@ def _run_stream(args: argparse.Namespace) -> int:
     video = window = None
     try:
         passive_openmp()  # before torch is imported: its idle threads must not spin
-        from dope_hope.inference.predictor import as_depth_image, predict_many
+        from dope_hope.inference.video import StreamSinks, predict_stream
 
         predictors = build_predictors(args, _resolve_weights(args))
         video, window = _stream_outputs(args, out, source, warn)
-        records: list[dict] = []
-        last_index = None
-        bar = tqdm(total=source.length, desc="infer", unit="frame",
-                   disable=args.no_progress or source.live or (source.length or 0) < 2, file=sys.stderr)
-
-        tracker = _tracker(args, predictors) if args.track else None
-
-        def process(frame) -> bool:
-            nonlocal last_index
-            t0 = time.perf_counter()
-            depth = as_depth_image(frame.depth, frame.K, 0.001, args.depth_calibration, frame.rgb.shape[:2])
-            dets = predict_many(predictors, frame.rgb, frame.K, depth=depth)
-            if tracker is not None:
-                dets = tracker.update(dets, frame.K, depth, frame=frame.index, image_hw=frame.rgb.shape[:2])
-            extra = {"time": round(time.perf_counter() - t0, 4), "frame": frame.index,
-                     "timestamp_s": round(frame.timestamp_s, 4)}
-            for d in dets:
-                rec = d.to_json(frame.name, **extra)
-                records.append(rec)
-                print(json.dumps(rec), flush=True)
-            bar.update(frame.index + 1 - bar.n)  # the position in the source (dropped frames too)
-            keep_going = True
-            if video is not None or window is not None:
-                overlay = overlay_detections(frame.rgb, dets, frame.K)
-                if video is not None:  # dropped frames: the last overlay stands in for them
-                    video.repeat_last(0 if last_index is None else frame.index - last_index - 1)
-                    video.write(overlay)
-                if window is not None:
-                    keep_going = window.show(overlay)
-            last_index = frame.index
-            return keep_going
-
-        def source_failed(exc: BaseException) -> bool:
-            """A camera that stops after delivering frames ends the stream (outputs kept)."""
-            if source.live and last_index is not None:
-                warn(f"stream ended: {exc}")
-                return True
-            return False
-
-        stats = run_stream(source, process, pace=args.realtime, max_frames=args.max_frames,
-                           on_source_error=source_failed)
-        bar.close()
-        if stats.expected is not None:
-            warn(f"{source.name}: the stream ended early: {stats.read} of the {stats.expected} frames the "
-                 "file states could be decoded (corrupt or truncated file); the outputs hold those")
-        write_predictions_jsonl(out / "predictions.jsonl", records)
+        sinks = StreamSinks(on_record=lambda rec: print(json.dumps(rec), flush=True), video=video, window=window)
+        result = predict_stream(source, predictors, sinks, tracker=_tracker(args, predictors) if args.track else None,
+                                depth_calibration=args.depth_calibration, pace=args.realtime,
+                                max_frames=args.max_frames, progress=not args.no_progress, warn=warn)
+        write_predictions_jsonl(out / "predictions.jsonl", result.records)
         video_path = None if video is None else video.close()
     except BaseException:
         if video is not None:
@@ -544,7 +500,7 @@ def _run_stream(args: argparse.Namespace) -> int:
         source.close()
         if window is not None:
             window.close()
-    summary = (f"{source.name}: {stats.summary()}; {len(records)} detection(s); predictions in "
+    summary = (f"{source.name}: {result.stats.summary()}; {len(result.records)} detection(s); predictions in "
                f"{out / 'predictions.jsonl'}" + (f", overlay video {video_path}" if video_path else ""))
     print(f"dope-hope infer: {summary}", file=sys.stderr)
     return 0

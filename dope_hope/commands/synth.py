@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.errors import ConfigError
     from dope_hope.io.models_dir import find_object_mesh, objects_in_folder
     from dope_hope.io.paths import output_dir
-    from dope_hope.synth.generate import generate_dataset
+    from dope_hope.synth.generate import SynthJob, generate_dataset
     from dope_hope.synth.settings import load_synth_config, packaged_synth_config
 
     if args.mesh is not None and (args.models_dir is not None or args.object_name is not None):
@@ -106,11 +106,11 @@ def run(args: argparse.Namespace) -> int:
         config = apply_overrides(load_synth_config(args.config), args.overrides,
                                  defaults=packaged_synth_config())
     output_dir(args.out)
-    summary = generate_dataset(
-        args.out, mesh, args.count, seed=args.seed, size=args.size, config=config,
-        workers=args.workers, shard=args.shard, backgrounds=args.backgrounds,
-        distractors=args.distractors, depth_noise=args.depth_noise, preview=args.preview,
-        class_name=class_name, units=units, progress=not args.no_progress, procedural=args.procedural)
+    job = SynthJob(mesh, seed=args.seed, size=args.size, config=config, class_name=class_name, units=units,
+                   backgrounds=args.backgrounds, distractors=args.distractors, depth_noise=args.depth_noise,
+                   procedural=args.procedural)
+    summary = generate_dataset(args.out, job, args.count, workers=args.workers, shard=args.shard,
+                               preview=args.preview, progress=not args.no_progress)
     print(f"{summary.written} frames written, {summary.skipped} already there, "
           f"{summary.frames_per_s:.2f} frames/s -> {summary.out_dir}")
     if summary.preview is not None:

@@ -10,6 +10,7 @@ stored (file units, file order), which is what the BOP toolkit computes its erro
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -137,7 +138,6 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
     names = [n for n, _ in vprops]
     if not {"x", "y", "z"} <= set(names) or any(isinstance(k, tuple) for _, k in vprops):
         raise InputFileError(path, "vertex element needs x, y, z and no list properties")
-    cols = [names.index(a) for a in "xyz"]
     face = elements[1] if len(elements) > 1 and elements[1][0] == "face" else None
     fprops = face[2] if face else []
     if face and not any(n in ("vertex_indices", "vertex_index") for n, _ in fprops):
@@ -145,53 +145,76 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
     for n, k in fprops:
         if isinstance(k, tuple) and n not in _PLY_FACE_LISTS:
             raise InputFileError(path, f"unsupported face list property {n!r}")
+    layout = _PlyLayout(body, n_vert, vprops, [names.index(a) for a in "xyz"], face[1] if face else 0, fprops)
     if fmt == "ascii":
-        lines = data[body:].decode("ascii", errors="replace").splitlines()
-        rows = [ln.split() for ln in lines[:n_vert]]
-        if len(rows) < n_vert or any(len(r) < len(vprops) for r in rows):
-            raise InputFileError(path, f"expected {n_vert} vertex lines of {len(vprops)} values")
-        try:
-            verts = np.array([[float(r[c]) for c in cols] for r in rows], dtype=np.float64)
-            faces = None
-            if face:
-                frows = [ln.split() for ln in lines[n_vert:n_vert + face[1]]]
-                if len(frows) < face[1]:
-                    raise InputFileError(path, f"expected {face[1]} face lines")
-                idx = next(i for i, (n, _) in enumerate(fprops) if n in ("vertex_indices", "vertex_index"))
-                offset = sum(1 + _PLY_FACE_LISTS[n] if isinstance(k, tuple) else 1
-                             for n, k in fprops[:idx])
-                if any(len(r) < offset + 4 or int(r[offset]) != 3 for r in frows):
-                    raise InputFileError(path, "only triangular faces are supported")
-                faces = np.array([[int(v) for v in r[offset + 1:offset + 4]] for r in frows],
-                                 dtype=np.int64)
-        except ValueError as exc:
-            raise InputFileError(path, f"not a number ({exc})") from None
-        return verts.reshape(n_vert, 3), faces
-    order = "<" if fmt == "binary_little_endian" else ">"
-    vdtype = np.dtype([(f"p{k}", order + t) for k, (_, t) in enumerate(vprops)])
-    if len(data) - body < n_vert * vdtype.itemsize:
-        raise InputFileError(path, f"file ends before its {n_vert} vertices")
-    v = np.frombuffer(data, dtype=vdtype, count=n_vert, offset=body)
-    verts = np.stack([v[f"p{c}"].astype(np.float64) for c in cols], axis=1).reshape(n_vert, 3)
-    if not face:
+        return _read_ply_ascii(path, data, layout)
+    return _read_ply_binary(path, data, layout, "<" if fmt == "binary_little_endian" else ">")
+
+
+@dataclass(frozen=True)
+class _PlyLayout:
+    """What a PLY header announces: body offset, vertex count and properties, the x/y/z
+    columns, face count (0: no faces) and face properties."""
+
+    body: int
+    n_vert: int
+    vprops: list
+    cols: list[int]
+    n_face: int
+    fprops: list
+
+    def face_index_property(self) -> int:
+        return next(i for i, (n, _) in enumerate(self.fprops) if n in ("vertex_indices", "vertex_index"))
+
+
+def _read_ply_ascii(path: Path, data: bytes, ply: _PlyLayout) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`read_ply` of an ascii body: coordinates parsed as float64 from the text."""
+    lines = data[ply.body:].decode("ascii", errors="replace").splitlines()
+    rows = [ln.split() for ln in lines[:ply.n_vert]]
+    if len(rows) < ply.n_vert or any(len(r) < len(ply.vprops) for r in rows):
+        raise InputFileError(path, f"expected {ply.n_vert} vertex lines of {len(ply.vprops)} values")
+    try:
+        verts = np.array([[float(r[c]) for c in ply.cols] for r in rows], dtype=np.float64)
+        faces = None
+        if ply.n_face:
+            frows = [ln.split() for ln in lines[ply.n_vert:ply.n_vert + ply.n_face]]
+            if len(frows) < ply.n_face:
+                raise InputFileError(path, f"expected {ply.n_face} face lines")
+            idx = ply.face_index_property()
+            offset = sum(1 + _PLY_FACE_LISTS[n] if isinstance(k, tuple) else 1 for n, k in ply.fprops[:idx])
+            if any(len(r) < offset + 4 or int(r[offset]) != 3 for r in frows):
+                raise InputFileError(path, "only triangular faces are supported")
+            faces = np.array([[int(v) for v in r[offset + 1:offset + 4]] for r in frows], dtype=np.int64)
+    except ValueError as exc:
+        raise InputFileError(path, f"not a number ({exc})") from None
+    return verts.reshape(ply.n_vert, 3), faces
+
+
+def _read_ply_binary(path: Path, data: bytes, ply: _PlyLayout, order: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`read_ply` of a binary body (``order``: "<" or ">"): coordinates widened exactly."""
+    vdtype = np.dtype([(f"p{k}", order + t) for k, (_, t) in enumerate(ply.vprops)])
+    if len(data) - ply.body < ply.n_vert * vdtype.itemsize:
+        raise InputFileError(path, f"file ends before its {ply.n_vert} vertices")
+    v = np.frombuffer(data, dtype=vdtype, count=ply.n_vert, offset=ply.body)
+    verts = np.stack([v[f"p{c}"].astype(np.float64) for c in ply.cols], axis=1).reshape(ply.n_vert, 3)
+    if not ply.n_face:
         return verts, None
     fields = []
-    for k, (n, kind) in enumerate(fprops):
+    for k, (n, kind) in enumerate(ply.fprops):
         if isinstance(kind, tuple):
             fields += [(f"n{k}", order + kind[0]), (f"l{k}", order + kind[1], (_PLY_FACE_LISTS[n],))]
         else:
             fields.append((f"s{k}", order + kind))
     fdtype = np.dtype(fields)
-    start = body + n_vert * vdtype.itemsize
-    if len(data) - start < face[1] * fdtype.itemsize:
-        raise InputFileError(path, f"file ends before its {face[1]} triangles (or a face is "
+    start = ply.body + ply.n_vert * vdtype.itemsize
+    if len(data) - start < ply.n_face * fdtype.itemsize:
+        raise InputFileError(path, f"file ends before its {ply.n_face} triangles (or a face is "
                                    f"not a triangle)")
-    f = np.frombuffer(data, dtype=fdtype, count=face[1], offset=start)
-    for k, (n, kind) in enumerate(fprops):
+    f = np.frombuffer(data, dtype=fdtype, count=ply.n_face, offset=start)
+    for k, (n, kind) in enumerate(ply.fprops):
         if isinstance(kind, tuple) and np.any(f[f"n{k}"] != _PLY_FACE_LISTS[n]):
             raise InputFileError(path, "only triangular faces are supported")
-    k = next(i for i, (n, _) in enumerate(fprops) if n in ("vertex_indices", "vertex_index"))
-    return verts, f[f"l{k}"].astype(np.int64)
+    return verts, f[f"l{ply.face_index_property()}"].astype(np.int64)
 
 
 def _farthest_point_indices(points: np.ndarray, n: int) -> np.ndarray:

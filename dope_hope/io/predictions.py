@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 
 from dope_hope.errors import DopeHopeError, InputFileError
-from dope_hope.geometry import ROTATION_TOLERANCE, checked_rotation, nearest_rotation, quaternion_xyzw_to_matrix
+from dope_hope.geometry import ROTATION_TOLERANCE, checked_rotation, quaternion_xyzw_to_matrix
 from dope_hope.io.atomic import atomic_write_text
 from dope_hope.io.jsonfields import read_text_file
 

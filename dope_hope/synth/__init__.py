@@ -17,7 +17,7 @@ Modules, one job each:
 - ``depth_noise``: RealSense-like depth corruption (:func:`add_realsense_noise`).
 - ``annotate``: projected cuboids, visibility, boxes -> FrameAnnotation.
 - ``writer``: frame files (JSON last, atomic) and the dataset info file.
-- ``generate``: FrameGenerator / render_frame (in memory), generate_dataset (to disk).
+- ``generate``: FrameGenerator / render_frame (in memory), generate_dataset (to disk, the frames' settings in a SynthJob).
 
 Importing this package does not import OpenGL; rendering starts it on first use.
 """
@@ -26,9 +26,10 @@ from dope_hope.synth.generate import (
            FrameGenerator,
            GenerateSummary,
            SynthFrame,
+           SynthJob,
            generate_dataset,
            render_frame,
 )
 
-__all__ = ["FrameGenerator", "GenerateSummary", "SynthFrame", "add_realsense_noise", "generate_dataset",
+__all__ = ["FrameGenerator", "GenerateSummary", "SynthFrame", "SynthJob", "add_realsense_noise", "generate_dataset",
            "render_frame"]

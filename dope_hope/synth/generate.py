@@ -456,19 +456,38 @@ def dataset_info(gen_kwargs: dict[str, Any], cfg: dict[str, Any], class_name: st
             "config": cfg}
 
 
-def generate_dataset(out_dir: str | os.PathLike,
-                     mesh_path: str | os.PathLike | Sequence[str | os.PathLike] | None, count: int,
-                     seed: int = 0, size: tuple[int, int] | str = (640, 480),
-                     config: str | os.PathLike | dict | None = None, workers: int = 1,
-                     shard: tuple[int, int] | str | None = None,
-                     backgrounds: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
-                     distractors: str | os.PathLike | None = None, depth_noise: bool = False,
-                     preview: bool = False, class_name: str | Sequence[str] | None = None,
-                     units: str | Sequence[str | None] | None = None,
+@dataclass(frozen=True)
+class SynthJob:
+    """What a dataset's frames are made of: the :class:`FrameGenerator` arguments (see there),
+    one object as training's ``TrainJob``. Frame ``i`` depends only on these and ``i``."""
+
+    mesh_path: str | os.PathLike | Sequence[str | os.PathLike] | None
+    seed: int = 0
+    size: tuple[int, int] | str = (640, 480)
+    config: str | os.PathLike | dict | None = None
+    class_name: str | Sequence[str] | None = None
+    units: str | Sequence[str | None] | None = None
+    backgrounds: str | os.PathLike | Sequence[str | os.PathLike] | None = None
+    distractors: str | os.PathLike | None = None
+    depth_noise: bool = False
+    procedural: bool = False
+
+    def generator_kwargs(self) -> dict[str, Any]:
+        """The FrameGenerator's keyword arguments as plain values (picklable for the worker
+        processes; one mesh / photo folder / class stays a single value, as a one-object
+        dataset's settings always were)."""
+        return dict(mesh_path=photo_paths(self.mesh_path), size=parse_size(self.size), config=self.config,
+                    class_name=_one_or_list(self.class_name), units=_one_or_list(self.units),
+                    backgrounds=photo_paths(self.backgrounds),
+                    distractors=None if self.distractors is None else str(self.distractors),
+                    depth_noise=bool(self.depth_noise), seed=int(self.seed), procedural=bool(self.procedural))
+
+
+def generate_dataset(out_dir: str | os.PathLike, job: SynthJob, count: int, workers: int = 1,
+                     shard: tuple[int, int] | str | None = None, preview: bool = False,
                      progress: bool = True, indices: list[int] | None = None,
-                     on_frame: Callable[[int], None] | None = None,
-                     procedural: bool = False) -> GenerateSummary:
-    """Generate frames 0..count-1 (those of this shard) into ``out_dir``.
+                     on_frame: Callable[[int], None] | None = None) -> GenerateSummary:
+    """Generate frames 0..count-1 (those of this shard) of ``job`` into ``out_dir``.
 
     Frames whose JSON exists are skipped (resume). With ``workers`` > 1, frames are rendered
     by that many spawned processes, each with its own renderer; the frames are identical to
@@ -477,8 +496,7 @@ def generate_dataset(out_dir: str | os.PathLike,
     Args:
         indices: explicit frame indices instead of range(count) (still filtered by shard).
         on_frame: called with each frame index once it is written (in this process).
-        procedural: a new procedural object per frame instead of ``mesh_path`` (None).
-        mesh_path, class_name, units: one target object, or several (see FrameGenerator).
+        preview: also write ``preview.png`` (:func:`write_preview`).
 
     Returns:
         A GenerateSummary (frames written / skipped, seconds, preview path).
@@ -492,11 +510,7 @@ def generate_dataset(out_dir: str | os.PathLike,
     i_shard, n_shard = parse_shard(shard)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    gen_kwargs = dict(mesh_path=photo_paths(mesh_path), size=parse_size(size), config=config,
-                      class_name=_one_or_list(class_name), units=_one_or_list(units),
-                      backgrounds=photo_paths(backgrounds),
-                      distractors=None if distractors is None else str(distractors),
-                      depth_noise=depth_noise, seed=int(seed), procedural=bool(procedural))
+    gen_kwargs = job.generator_kwargs()
     # Validate inputs in this process (clear errors before any worker starts).
     local = FrameGenerator(**gen_kwargs)
     check_or_write_info(out, local.dataset_info(gen_kwargs))
@@ -505,43 +519,51 @@ def generate_dataset(out_dir: str | os.PathLike,
     remove_stale_temporaries(out, set(todo))
     start = time.perf_counter()
     bar = tqdm(total=len(todo), unit="frame", desc="synth", disable=not progress, dynamic_ncols=True)
+
+    def done(i: int) -> None:
+        bar.update(1)
+        if on_frame is not None:
+            on_frame(i)
+
     try:
         if workers == 1 or len(todo) <= 1:
             for i in todo:
                 local.write_frame(out, i)
-                bar.update(1)
-                if on_frame is not None:
-                    on_frame(i)
+                done(i)
         else:
-            ctx = mp.get_context("spawn")
-            n_proc = min(workers, len(todo))
-            threads = max(1, (os.cpu_count() or 1) // n_proc)
-            # A Ctrl-C reaches the parent alone, which terminates the workers with the pool;
-            # one that comes while they start is acted on once the pool stands (_CtrlCHeld).
-            held = _CtrlCHeld()
-            try:
-                pool = ctx.Pool(n_proc, initializer=_init_worker, initargs=(gen_kwargs, str(out), threads))
-            except BaseException:
-                held.release()
-                raise
-            try:
-                with pool:
-                    held.release()
-                    for i in pool.imap_unordered(_work, todo, chunksize=1):
-                        bar.update(1)
-                        if on_frame is not None:
-                            on_frame(i)
-            except BaseException:
-                # Leaving the pool terminated and joined its workers: the temporary files of
-                # the frames they were writing (Ctrl-C, SIGTERM, a failed frame) are nobody's now.
-                remove_stale_temporaries(out, set(todo))
-                raise
+            _render_in_pool(gen_kwargs, out, todo, workers, done)
     finally:
         bar.close()
         local.close()
     seconds = time.perf_counter() - start
     preview_path = write_preview(out, wanted, int(local.cfg["output"]["preview_frames"])) if preview else None
     return GenerateSummary(out, len(todo), len(wanted) - len(todo), seconds, preview_path)
+
+
+def _render_in_pool(gen_kwargs: dict[str, Any], out: Path, todo: list[int], workers: int,
+                    done: Callable[[int], None]) -> None:
+    """Write frames ``todo`` with ``workers`` spawned processes; ``done(i)`` once frame i is written."""
+    ctx = mp.get_context("spawn")
+    n_proc = min(workers, len(todo))
+    threads = max(1, (os.cpu_count() or 1) // n_proc)
+    # A Ctrl-C reaches the parent alone, which terminates the workers with the pool;
+    # one that comes while they start is acted on once the pool stands (_CtrlCHeld).
+    held = _CtrlCHeld()
+    try:
+        pool = ctx.Pool(n_proc, initializer=_init_worker, initargs=(gen_kwargs, str(out), threads))
+    except BaseException:
+        held.release()
+        raise
+    try:
+        with pool:
+            held.release()
+            for i in pool.imap_unordered(_work, todo, chunksize=1):
+                done(i)
+    except BaseException:
+        # Leaving the pool terminated and joined its workers: the temporary files of
+        # the frames they were writing (Ctrl-C, SIGTERM, a failed frame) are nobody's now.
+        remove_stale_temporaries(out, set(todo))
+        raise
 
 
 def write_preview(out_dir: str | os.PathLike, indices: list[int], max_frames: int = 16) -> Path | None:

@@ -649,78 +649,23 @@ class Trainer:
         return summary
 
     def _loop(self) -> None:
-        from tqdm import tqdm
-
+        """Epochs of steps until the step count, the epochs or the time budget end, or a stop;
+        validation at epoch ends; ``last.pt`` at the end."""
         ts = self.ts
-        log_every = max(1, int(ts["log_every"]))
-        ck_steps = int(ts["checkpoint_every_steps"] or 0)
         ck_epochs = int(ts["checkpoint_every"] or 0)
-        bar = tqdm(total=self.total_steps, initial=self.step, disable=not (self.job.progress and self.dist.main),
-                   unit="step", dynamic_ncols=True, desc="train")
-        t_log, n_log = time.monotonic(), 0  # images/s: this process's steps since the last row
-
-        def log_train() -> None:
-            """One train row: the mean loss of the steps since the last row (every log_every
-            steps, before each validation and at the end, so that short runs have rows; the
-            partial sum of a stopped run is in its checkpoint, so a resumed run logs the row
-            an uninterrupted one does)."""
-            nonlocal t_log, n_log
-            loss_sum, n = self.loss_window
-            if n == 0:
-                return
-            if self.dist.main:
-                ips = n_log * self.batch_size * self.dist.world_size / max(time.monotonic() - t_log, 1e-9)
-                lr = self.optimizer.param_groups[0]["lr"]
-                self.metrics.write("train", step=self.step, epoch=self.epoch, lr=lr,
-                                   loss=loss_sum / n, images_per_s=round(ips, 2),
-                                   time_s=round(self._time_used_before + self.elapsed(), 2))
-                bar.set_postfix(loss=f"{loss_sum / n:.4f}", lr=f"{lr:.2e}", img_s=f"{ips:.1f}")
-            self.loss_window = [0.0, 0]
-            t_log, n_log = time.monotonic(), 0
-
+        log = _TrainRows(self)
         self._startup_s = self.elapsed()  # (the time budget's step speed leaves it out)
         try:
             while self.epoch < self.epochs and self.step < self.total_steps and self.stop_reason is None:
                 if self.batch_in_epoch < self.steps_per_epoch:
-                    self.sampler.set_epoch(self.epoch, skip=self.batch_in_epoch * self.batch_size)
-                    loader = self._loader(self.train_set, self.sampler, self.batch_size, drop_last=True)
-                    it = iter(loader)
-                    while self.batch_in_epoch < self.steps_per_epoch and self.step < self.total_steps:
-                        try:
-                            batch = next(it)
-                        except StopIteration:
-                            break
-                        except RuntimeError:
-                            if self.stop_reason is not None:  # a worker died of the same Ctrl-C
-                                break
-                            raise
-                        self._report_bad(batch["bad_files"])
-                        loss = self.train_step(batch)
-                        self.step += 1
-                        self.batch_in_epoch += 1
-                        self._steps_this_run += 1
-                        self.loss_window = [self.loss_window[0] + loss, self.loss_window[1] + 1]
-                        n_log += 1
-                        bar.update(1)
-                        if self.job.on_step is not None:
-                            self.job.on_step(self, self.step)
-                        self._budget_step()
-                        if bar.total != self.total_steps:
-                            bar.total = self.total_steps
-                        if self.step % log_every == 0:
-                            log_train()
-                        if ck_steps and self.step % ck_steps == 0:
-                            self.save("last.pt")
-                        if self._agree_stop():
-                            break
-                    del it, loader
+                    self._epoch_steps(log)
                 if self.stop_reason in ("interrupted", "terminated"):
                     break
                 # the epoch's batches are done (or the step / time budget ran out inside it)
                 if self.val_done_epoch != self.epoch:
-                    log_train()  # the curves in results.png reach the validated step
+                    log.row()  # the curves in results.png reach the validated step
                     if self._end_of_epoch():
-                        t_log = time.monotonic()  # images/s counts training time only
+                        log.restart_clock()  # images/s counts training time only
                         self._budget_step(validated=True)
                 if self.step >= self.total_steps or self.stop_reason is not None:
                     break
@@ -730,10 +675,91 @@ class Trainer:
                     self.save("last.pt")
                 self._agree_stop()
             if self.stop_reason not in ("interrupted", "terminated"):
-                log_train()  # (a stopped run keeps its partial window in last.pt)
+                log.row()  # (a stopped run keeps its partial window in last.pt)
         finally:
-            bar.close()
+            log.close()
         self.save("last.pt")
+
+    def _epoch_steps(self, log: _TrainRows) -> None:
+        """The remaining steps of this epoch (resumed mid-epoch: from its next batch), until
+        the step count or the time budget ends or a stop is agreed."""
+        log_every = max(1, int(self.ts["log_every"]))
+        ck_steps = int(self.ts["checkpoint_every_steps"] or 0)
+        self.sampler.set_epoch(self.epoch, skip=self.batch_in_epoch * self.batch_size)
+        loader = self._loader(self.train_set, self.sampler, self.batch_size, drop_last=True)
+        it = iter(loader)
+        while self.batch_in_epoch < self.steps_per_epoch and self.step < self.total_steps:
+            try:
+                batch = next(it)
+            except StopIteration:
+                break
+            except RuntimeError:
+                if self.stop_reason is not None:  # a worker died of the same Ctrl-C
+                    break
+                raise
+            self._report_bad(batch["bad_files"])
+            loss = self.train_step(batch)
+            self.step += 1
+            self.batch_in_epoch += 1
+            self._steps_this_run += 1
+            self.loss_window = [self.loss_window[0] + loss, self.loss_window[1] + 1]
+            log.stepped()
+            if self.job.on_step is not None:
+                self.job.on_step(self, self.step)
+            self._budget_step()
+            log.follow_total()
+            if self.step % log_every == 0:
+                log.row()
+            if ck_steps and self.step % ck_steps == 0:
+                self.save("last.pt")
+            if self._agree_stop():
+                break
+
+
+class _TrainRows:
+    """The progress bar and the train rows of metrics.csv: one row is the mean loss of the
+    steps since the previous row (every log_every steps, before each validation and at the
+    end, so that short runs have rows; the partial sum of a stopped run is in its checkpoint,
+    so a resumed run logs the row an uninterrupted one does)."""
+
+    def __init__(self, trainer: Trainer):
+        from tqdm import tqdm
+
+        self.trainer = trainer
+        self.bar = tqdm(total=trainer.total_steps, initial=trainer.step,
+                        disable=not (trainer.job.progress and trainer.dist.main),
+                        unit="step", dynamic_ncols=True, desc="train")
+        self.restart_clock()
+
+    def restart_clock(self) -> None:
+        """images/s counts this process's steps from here."""
+        self.t0, self.steps = time.monotonic(), 0
+
+    def stepped(self) -> None:
+        self.steps += 1
+        self.bar.update(1)
+
+    def follow_total(self) -> None:
+        """The bar's total follows a re-planned step count."""
+        if self.bar.total != self.trainer.total_steps:
+            self.bar.total = self.trainer.total_steps
+
+    def row(self) -> None:
+        t = self.trainer
+        loss_sum, n = t.loss_window
+        if n == 0:
+            return
+        if t.dist.main:
+            ips = self.steps * t.batch_size * t.dist.world_size / max(time.monotonic() - self.t0, 1e-9)
+            lr = t.optimizer.param_groups[0]["lr"]
+            t.metrics.write("train", step=t.step, epoch=t.epoch, lr=lr, loss=loss_sum / n,
+                            images_per_s=round(ips, 2), time_s=round(t._time_used_before + t.elapsed(), 2))
+            self.bar.set_postfix(loss=f"{loss_sum / n:.4f}", lr=f"{lr:.2e}", img_s=f"{ips:.1f}")
+        t.loss_window = [0.0, 0]
+        self.restart_clock()
+
+    def close(self) -> None:
+        self.bar.close()
 
 
 def _resumed(job: TrainJob, config: dict[str, Any]) -> tuple[dict[str, Any] | None, dict[str, Any], dict[str, Any]]:
