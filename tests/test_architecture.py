@@ -200,3 +200,30 @@ def test_the_bench_check_catches_each_kind(tmp_path, source, expected):
     path = tmp_path / "x.py"
     path.write_text(source)
     assert _bench_violations(path) == expected
+
+
+#: Tests of the repository as a whole or of a capability across packages (named for it).
+WHOLE_REPOSITORY_TESTS = {"architecture", "docs", "readme", "packaging", "e2e_quick", "multi_object_data",
+                          "multi_object_model"}
+
+
+def _module_names() -> set[str]:
+    """``package_module`` names of every module and package of dope_hope (``io_meshes``,
+    ``inference``, ``catalog``, ...)."""
+    names = set()
+    for path in (REPO / "dope_hope").rglob("*.py"):
+        parts = list(path.relative_to(REPO / "dope_hope").with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        names.update("_".join(parts[:i]) for i in range(1, len(parts) + 1))
+    return names
+
+
+def test_test_files_follow_the_package_layout():
+    """tests/test_<package>_<module>[_<aspect>].py: each test file is named for the module (or
+    package) it tests, so a newcomer finds a module's tests by its path (cli: the commands)."""
+    modules = _module_names()
+    stray = [p.name for p in sorted((REPO / "tests").glob("test_*.py"))
+             if p.stem[5:] not in WHOLE_REPOSITORY_TESTS
+             and not any(p.stem[5:] == m or p.stem[5:].startswith(m + "_") for m in modules)]
+    assert not stray, f"test files named for no module of dope_hope: {stray}"

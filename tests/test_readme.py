@@ -7,7 +7,7 @@ dropped) and its commands run in README order in a sandbox folder, shrunk for sp
   (a resumed run: ``--steps 2``);
 * ``dope-hope demo``: ``--scenes 2``; ``dope-hope export --int8``: ``--calibration-images 2``;
 * ``torchrun``: ``--nproc_per_node 1`` plus the train shrinking, as a subprocess
-  (tests/test_train.py runs two processes);
+  (tests/test_training_trainer.py runs two processes);
 * ``dope-hope infer ... --max-frames N``: ``--max-frames 6``;
 * every other command exactly as written. ``dope-hope`` commands run in-process (cli.main).
 
@@ -16,7 +16,7 @@ HOPE Ketchup files), a BOP folder ``bop/hope`` (the mesh as ``obj_000011.ply`` i
 ``models/`` and ``models_eval/``, and a two-image test split rendered here), ``photos/`` (the shared backgrounds), ``grocery/`` (the shared grocery meshes, metres), ``realsense/``
 (colour, aligned depth and K.json of a rendered frame) and ``weights/Ketchup.pth`` (a stand-in
 for NVIDIA's weights: the importer's DR-50 architecture is swapped for a tiny lite network,
-as in tests/test_import_official.py). The demo runs the shipped model when the installation
+as in tests/test_cli_import_official.py). The demo runs the shipped model when the installation
 has it, else a checkpoint fitted in seconds (tests/fitted_model.py).
 
 The video section runs in its own sandbox (:func:`test_video_section`): ``clip.mp4`` and

@@ -2,7 +2,7 @@
 
 To keep the test fast the importer's architecture is a tiny lite network instead of the 50 M
 parameter DOPE-DR-50 (``load_config`` patched in dope_hope.model.checkpoint); the real
-DR-50 import is covered by tests/test_checkpoint.py and tests/test_predictor.py.
+DR-50 import is covered by tests/test_model_checkpoint.py and tests/test_inference_predictor.py.
 """
 from __future__ import annotations
 
