@@ -112,12 +112,19 @@ def rz(deg: float) -> np.ndarray:
 # ----------------------------------------------------------------------------- dataset
 def build(root: Path, seed: int) -> tuple[Path, str]:
     """Write ``root/hope`` and ``root/results/<RESULT>.csv``; returns (csv path, notes)."""
-    from dope_hope.io.images import write_rgb
-    from dope_hope.render.depth import default_renderer
-
     rng = np.random.default_rng(seed)
     ds = root / "hope"
-    models_dir = ds / "models_eval"
+    meshes, k_name = write_models(ds / "models_eval")
+    scenes, targets = scene_poses(rng)
+    write_scenes(ds, scenes, targets, meshes)
+    csv, n = write_estimates(root, rng, scenes)
+    return csv, f"{n} estimates, {len(targets)} targets, ketchup: {k_name}"
+
+
+def write_models(models_dir: Path) -> tuple[dict, str]:
+    """The BOP models (mm) and models_info.json: a cube, a cylinder-like prism, a hexagonal
+    prism, the Ketchup (or its stand-in) and small boxes for the other HOPE ids; returns
+    ({obj_id: (vertices, faces)}, the Ketchup's source)."""
     models_dir.mkdir(parents=True)
     k_v, k_f, k_name = ketchup_or_stand_in()
     hex60 = [[0.5, -0.866, 0, 0, 0.866, 0.5, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1],
@@ -140,6 +147,12 @@ def build(root: Path, seed: int) -> tuple[Path, str]:
         write_ply(models_dir / f"obj_{oid:06d}.ply", v, f, binary=oid == 3)
     (models_dir / "models_info.json").write_text(json.dumps({str(k): v for k, v in info.items()}))
 
+    return meshes, k_name
+
+
+def scene_poses(rng: np.random.Generator) -> tuple[dict, list]:
+    """(scenes: scene_id -> (K, depth_scale, {im_id: [(obj_id, R, t, visib_fract)]}),
+    targets: [(scene_id, im_id, obj_id, inst_count)])."""
     def pose(R, t):
         return np.asarray(R, float), np.asarray(t, float)
 
@@ -147,7 +160,6 @@ def build(root: Path, seed: int) -> tuple[Path, str]:
         return pose(Rotation.random(rng=rng).as_matrix(),
                     [rng.uniform(-250, 250), rng.uniform(-150, 150), z])
 
-    # scenes: scene_id -> (K, depth_scale, {im_id: [(obj_id, R, t, visib_fract)]})
     scenes = {
         1: (K_TIES, 1.0, {
             0: [(1, *pose(np.eye(3), [0, 0, 1000]), 1.0)],
@@ -167,6 +179,15 @@ def build(root: Path, seed: int) -> tuple[Path, str]:
     }
     targets = [(1, 0, 1, 1), (1, 1, 1, 2), (1, 1, 2, 1), (1, 3, 1, 2), (1, 4, 1, 1), (1, 5, 1, 2),
                (2, 0, 11, 2), (2, 0, 3, 1), (2, 0, 2, 1), (2, 5, 11, 1), (2, 7, 2, 2), (2, 7, 3, 1)]
+    return scenes, targets
+
+
+def write_scenes(ds: Path, scenes: dict, targets: list, meshes: dict) -> None:
+    """scene_camera / scene_gt / scene_gt_info and rendered depth (with a stripe without
+    depth, a surface 15 mm in front of the cube and an occluder) of each scene, and the targets."""
+    from dope_hope.io.images import write_rgb
+    from dope_hope.render.depth import default_renderer
+
     ren = default_renderer()
     for sid, (K, scale, ims) in scenes.items():
         sd = ds / "test" / f"{sid:06d}"
@@ -192,6 +213,10 @@ def build(root: Path, seed: int) -> tuple[Path, str]:
     (ds / "test_targets_bop19.json").write_text(json.dumps(
         [{"scene_id": s, "im_id": i, "obj_id": o, "inst_count": n} for s, i, o, n in targets]))
 
+
+def write_estimates(root: Path, rng: np.random.Generator, scenes: dict) -> tuple[Path, int]:
+    """``root/results/<RESULT>.csv``: the tie cases of scene 1 and noisy estimates of scene 2;
+    returns (its path, the number of estimates)."""
     rows = []
 
     def est(sid, im, oid, score, R, t, time=-1):
@@ -234,7 +259,9 @@ def build(root: Path, seed: int) -> tuple[Path, str]:
     results.mkdir()
     csv = results / f"{RESULT}.csv"
     csv.write_text("scene_id,im_id,obj_id,score,R,t,time\n" + "\n".join(rows) + "\n")
-    return csv, f"{len(rows)} estimates, {len(targets)} targets, ketchup: {k_name}"
+    return csv, len(rows)
+
+
 
 
 # ----------------------------------------------------------------------------- toolkit
