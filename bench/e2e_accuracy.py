@@ -285,25 +285,10 @@ def breakdown_text(counts: dict[str, int], min_score: float) -> str:
             + ", ".join(f"{k} {v} ({100 * v / total:.1f} %)" for k, v in counts.items()))
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    out: Path = args.out.resolve()
-    settings = {"mesh": str(args.mesh.resolve()), "object": args.object, "config": args.config,
-                "train_minutes": args.train_minutes, "train_count": args.train_count,
-                "train_size": args.train_size, "train_set": list(args.train_set), "scene": SCENE,
-                "test_count": args.test_count, "size": args.size, "device": args.device,
-                "backgrounds": None if args.backgrounds is None else str(args.backgrounds.resolve()),
-                "quick": args.quick, "train_seed": TRAIN_SEED, "test_seed": TEST_SEED}
-    if args.recipe != "plain":  # only when not plain: earlier runs' settings stay valid
-        settings["recipe"] = args.recipe
-    if args.init is not None and args.init != "none":  # only when given: earlier runs' settings stay valid
-        settings["init"] = args.init if args.init in ("pretrained", "demo") else str(Path(args.init).resolve())
-    check_settings(out, settings)
-    print(cpu_line(), flush=True)
-    print(f"e2e accuracy: {args.object} ({args.mesh}), {args.train_count} training frames ({args.recipe} recipe), "
-          f"{args.config} for {args.train_minutes:g} min, {args.test_count} test frames at {args.size}, "
-          f"{os.cpu_count()} CPU core(s){' [--quick: numbers are meaningless]' if args.quick else ''}; "
-          f"work folder {out}", flush=True)
+def run_stages(args: argparse.Namespace, out: Path, settings: dict) -> tuple[Pipeline, Path, dict, str, dict]:
+    """Stages 1-5 of the module docstring (each skipped when done earlier); returns the
+    pipeline, the checkpoint, the run's summary, its steps-and-budget line and the methods
+    ("MODEL REFINEMENT" label -> evaluate method name)."""
     pipe = Pipeline(out)
     mesh = args.mesh.resolve()
     train_dir, test_dir, run_dir = out / "train", out / "test", out / "run"
@@ -350,7 +335,31 @@ def main(argv: list[str] | None = None) -> int:
                 "--mesh", f"{args.object}={mesh}", "--no-progress"]
     pipe.stage("eval-meanssd", evaluate + ["--metric", "meanssd,addh", "--bop-ar", "--out", out / "eval_meanssd"])
     pipe.stage("eval-addh", evaluate + ["--metric", "addh,meanssd", "--no-bop-ar", "--out", out / "eval_addh"])
+    return pipe, ckpt, trained, trained_text, methods
 
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    out: Path = args.out.resolve()
+    settings = {"mesh": str(args.mesh.resolve()), "object": args.object, "config": args.config,
+                "train_minutes": args.train_minutes, "train_count": args.train_count,
+                "train_size": args.train_size, "train_set": list(args.train_set), "scene": SCENE,
+                "test_count": args.test_count, "size": args.size, "device": args.device,
+                "backgrounds": None if args.backgrounds is None else str(args.backgrounds.resolve()),
+                "quick": args.quick, "train_seed": TRAIN_SEED, "test_seed": TEST_SEED}
+    if args.recipe != "plain":  # only when not plain: earlier runs' settings stay valid
+        settings["recipe"] = args.recipe
+    if args.init is not None and args.init != "none":  # only when given: earlier runs' settings stay valid
+        settings["init"] = args.init if args.init in ("pretrained", "demo") else str(Path(args.init).resolve())
+    check_settings(out, settings)
+    print(cpu_line(), flush=True)
+    print(f"e2e accuracy: {args.object} ({args.mesh}), {args.train_count} training frames ({args.recipe} recipe), "
+          f"{args.config} for {args.train_minutes:g} min, {args.test_count} test frames at {args.size}, "
+          f"{os.cpu_count()} CPU core(s){' [--quick: numbers are meaningless]' if args.quick else ''}; "
+          f"work folder {out}", flush=True)
+    pipe, ckpt, trained, trained_text, methods = run_stages(args, out, settings)
+    mesh, test_dir = args.mesh.resolve(), out / "test"
+    share = trained["budget_used_s"] / (60.0 * args.train_minutes)
     table, data = results_table(out, methods)
     min_score = float(load_config("infer")["min_score"])
     lost = loss_breakdown(test_dir, out / "infer_ls" / "predictions.jsonl", args.object, mesh, min_score)

@@ -44,6 +44,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from e2e_accuracy import (REPO, TEST_SEED, TRAIN_SEED, Pipeline, percent_text, set_args, check_settings,  # noqa: E402
                           checkpoint_of, shared_data_dir)
@@ -107,33 +109,39 @@ def test_frames(folder: Path, limit: int) -> list[tuple]:
     return frames
 
 
+def _timed_predict(predictor, rgb, K) -> tuple[float, float]:
+    """(network seconds: input preparation + forward pass, decoding + PnP seconds) of
+    ``predictor.predict(rgb, K)``, done in its two halves."""
+    t0 = time.perf_counter()
+    belief, affinity, net_in = predictor.infer_maps(rgb)
+    t1 = time.perf_counter()
+    predictor.detections_from_maps(belief, affinity, net_in, K)
+    return t1 - t0, time.perf_counter() - t1
+
+
 def time_per_frame(one: Path, singles: dict[str, Path], frames: list[tuple], threads: int,
                    warmup: int = 2) -> dict[str, float]:
-    """Mean seconds per frame of the whole predictor (forward, decoding, PnP): the one
-    multi-object ONNX model, the six one-object ONNX models in turn, and one of them alone
-    (the mean of the six); run frame by frame, alternating, in this process."""
+    """Mean seconds per frame of the whole predictor (network, then decoding + PnP; no depth)
+    of the one multi-object ONNX model, of the six one-object ONNX models in turn, and of one
+    of them alone (the mean of the six), each also split into its two halves; run frame by
+    frame, alternating, in this process."""
     from dope_hope.inference.predictor import DopePredictor
 
     all_six = DopePredictor(one, threads=threads)
     each = {name: DopePredictor(path, threads=threads) for name, path in singles.items()}
-    t_one, t_six, t_each = [], [], {name: [] for name in each}
+    one_times, six_times, single_times = [], [], []
     for i, (rgb, K) in enumerate(frames):
-        t0 = time.perf_counter()
-        all_six.predict(rgb, K)
-        t1 = time.perf_counter()
-        per = []
-        for name, predictor in each.items():
-            s = time.perf_counter()
-            predictor.predict(rgb, K)
-            per.append(time.perf_counter() - s)
-            if i >= warmup:
-                t_each[name].append(per[-1])
+        one_t = _timed_predict(all_six, rgb, K)
+        per = [_timed_predict(predictor, rgb, K) for predictor in each.values()]
         if i >= warmup:
-            t_one.append(t1 - t0)
-            t_six.append(sum(per))
-    one_object = statistics.mean(statistics.mean(v) for v in t_each.values())
-    return {"one_model_s": statistics.mean(t_one), "six_models_s": statistics.mean(t_six),
-            "one_object_model_s": one_object, "frames": len(t_one)}
+            one_times.append(one_t)
+            six_times.append(np.sum(per, axis=0))
+            single_times += per
+    one_m, six_m, single_m = (np.mean(t, axis=0) for t in (one_times, six_times, single_times))
+    return {"one_model_s": float(one_m.sum()), "six_models_s": float(six_m.sum()),
+            "one_object_model_s": float(single_m.sum()), "one_model_network_s": float(one_m[0]),
+            "one_model_decode_s": float(one_m[1]), "one_object_network_s": float(single_m[0]),
+            "one_object_decode_s": float(single_m[1]), "frames": len(one_times)}
 
 
 def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], units: dict[str, str]) -> Pipeline:
@@ -195,12 +203,14 @@ def report(args: argparse.Namespace, out: Path, pipe: Pipeline) -> dict:
     table = "\n".join(rows)
     ratio_single = timing["one_model_s"] / timing["one_object_model_s"]
     ratio_six = timing["six_models_s"] / timing["one_model_s"]
-    speed = (f"time per {args.size} frame (onnxruntime, {args.threads} threads; forward, decoding, PnP; "
-             f"{timing['frames']} frames): one model {1000 * timing['one_model_s']:.1f} ms "
-             f"({1 / timing['one_model_s']:.1f} frames/s), a one-object model "
-             f"{1000 * timing['one_object_model_s']:.1f} ms, "
-             f"the six {1000 * timing['six_models_s']:.1f} ms; one model / one-object model = {ratio_single:.2f}x, "
-             f"six models / one model = {ratio_six:.2f}x")
+    ms = {k: 1000 * v for k, v in timing.items() if k.endswith("_s")}
+    speed = (f"time per {args.size} frame (onnxruntime, {args.threads} threads; network, then decoding + PnP; "
+             f"{timing['frames']} frames): one model {ms['one_model_s']:.1f} ms ({ms['one_model_network_s']:.1f} + "
+             f"{ms['one_model_decode_s']:.1f}; {1 / timing['one_model_s']:.1f} frames/s), a one-object model "
+             f"{ms['one_object_model_s']:.1f} ms ({ms['one_object_network_s']:.1f} + {ms['one_object_decode_s']:.1f}), "
+             f"the six {ms['six_models_s']:.1f} ms; one model / one-object model = {ratio_single:.2f}x (network "
+             f"{timing['one_model_network_s'] / timing['one_object_network_s']:.2f}x), six models / one model = "
+             f"{ratio_six:.2f}x")
     trained = (f"steps: one model {steps['run_all']} in {args.minutes:g} min; one-object models "
                + ", ".join(f"{n} {steps[f'run_{n}']}" for n in names) + f" in {args.minutes / 6:g} min each")
     times = ", ".join(f"{k} {v:.0f} s" for k, v in pipe.timings.items())
