@@ -173,8 +173,8 @@ def render_clip(gen, clip: str, n: int, out: Path) -> Clip:
     from dope_hope.synth.render import SceneRenderer
     from dope_hope.synth.scene import MaterialSpec, ObjectSpec
 
-    spec, streams, target, _ = gen.sample_scene(0, seed=SEED + CLIPS.index(clip))
-    (target_spec,) = spec.targets
+    spec, streams, targets, _ = gen.sample_scene(0, seed=SEED + CLIPS.index(clip))
+    (target,), (target_spec,) = targets, spec.targets  # the demo box, once
     K = spec.K
     paths = box_paths(clip, n, target_spec.R)
     base = _kept_distractors(spec, target_spec, paths, K)
