@@ -137,7 +137,7 @@ def test_sigkill_and_resume_follow_the_recorded_plans_bit_identically(data, tmp_
     and resumed ends with the uninterrupted run's weights, plans and metrics (injected clock)."""
     full = clocked_run(str(data), str(tmp_path / "full"))
     part = tmp_path / "part"
-    code = f"import sys; sys.path.insert(0, {str(TESTS)!r}); import test_train_faults as t; " \
+    code = f"import sys; sys.path.insert(0, {str(TESTS)!r}); import test_training_faults as t; " \
            f"t.clocked_run({str(data)!r}, {str(part)!r})"
     env = dict(os.environ, PYTHONPATH=str(REPO))
     proc = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.DEVNULL,
