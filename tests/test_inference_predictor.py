@@ -501,3 +501,44 @@ def test_a_second_peak_on_the_wrong_corner_does_not_cost_the_detection():
     assert DopePredictor(backend_, pose_search="groups").predict(white((480, 640)), K640) == []
     with pytest.raises(ConfigError, match="pose_search"):
         DopePredictor(backend_, pose_search="ransac")
+
+
+class _FadedBackend(TargetsBackend):
+    """The perfect maps at ``gain`` times their height, plus seeded uniform noise on the belief
+    (a weakly trained net: peaks of every height, some spurious)."""
+
+    def __init__(self, *args, gain: float = 1.0, noise: float = 0.0, **kw):
+        super().__init__(*args, **kw)
+        self.gain, self.noise = gain, noise
+
+    def run(self, batch):
+        belief, affinity = super().run(batch)
+        rng = np.random.default_rng(len(self.calls))
+        return (self.gain * belief + self.noise * rng.random(belief.shape)).astype(np.float32), affinity
+
+
+@pytest.mark.parametrize("pose_search", ["hypotheses", "groups"])
+def test_skipping_objects_that_cannot_reach_min_score_changes_no_detection(pose_search):
+    """An object's decoding is skipped when no pose of its maps can score min_score; the
+    detections are those of min_score 0 that score at least min_score, at every threshold."""
+    def backend(gain, noise=0.0):
+        return _FadedBackend(OBJ.name, OBJ.size_array, POSES, K640, (480, 640), gain=gain, noise=noise)
+
+    for gain, noise in ((1.0, 0.0), (0.6, 0.15), (0.35, 0.3)):
+        everything = DopePredictor(backend(gain=gain, noise=noise), min_score=0.0, pose_search=pose_search)
+        all_dets = everything.predict(white((480, 640)), K640)
+        for min_score in (0.2, 0.3, 0.45, 0.6, 0.9):
+            pred = DopePredictor(backend(gain=gain, noise=noise), min_score=min_score, pose_search=pose_search)
+            kept = [(d.score, d.t.tolist()) for d in all_dets if d.score >= min_score]
+            assert [(d.score, d.t.tolist()) for d in pred.predict(white((480, 640)), K640)] == kept
+
+
+def test_maps_too_weak_for_min_score_are_not_decoded(monkeypatch):
+    calls = []
+    original = DopePredictor._poses
+    monkeypatch.setattr(DopePredictor, "_poses", lambda self, *a: calls.append(1) or original(self, *a))
+    def weak():  # peaks of 0.3 at most: no pose scores above 0.3
+        return _FadedBackend(OBJ.name, OBJ.size_array, POSES, K640, (480, 640), gain=0.3)
+
+    assert DopePredictor(weak(), min_score=0.5).predict(white((480, 640)), K640) == [] and calls == []
+    assert DopePredictor(weak(), min_score=0.1).predict(white((480, 640)), K640) and calls

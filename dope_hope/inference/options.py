@@ -32,7 +32,7 @@ def _stage_functions() -> dict[str, list[Callable[..., Any]]]:
 #: consensus pose): not options.
 _PASSED_BY_PREDICTOR = {"belief", "affinity", "stride", "keypoints", "scores", "keypoint_ids", "xy",
                         "cuboid", "cuboid_3d", "K", "R", "t", "model_points", "model_normals", "depth",
-                        "dist_coeffs", "initial_pose"}
+                        "dist_coeffs", "initial_pose", "peaks"}
 
 
 def _stage_keywords(functions: list[Callable[..., Any]]) -> set[str]:

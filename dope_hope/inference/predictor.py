@@ -70,7 +70,14 @@ from dope_hope.inference.detection import Detection
 from dope_hope.inference.object_geometry import ObjectGeometry
 from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_instances
-from dope_hope.maps.decode import DEFAULT_THRESHOLD, corner_candidates, decode_maps
+from dope_hope.maps.decode import (
+    DEFAULT_THRESHOLD,
+    Peaks,
+    corner_candidates,
+    decode_maps,
+    decoder_peaks,
+    pose_score_bound,
+)
 from dope_hope.model.info import ObjectInfo
 from dope_hope.preprocess import (
     NetworkInput,
@@ -86,6 +93,11 @@ from dope_hope.refine.line_search import depth_line_search
 
 #: Scale range of the line search the ICP stage repeats when the default one refused.
 ICP_LS_SEARCH = (0.5, 2.0)
+
+
+#: A pose's score and its bound are sums of the same clipped peak heights in other orders:
+#: the skip leaves this much for rounding, so it never drops a pose the threshold keeps.
+SCORE_BOUND_SLACK = 1e-9
 
 
 # ----------------------------------------------------------------------------- predictor
@@ -238,11 +250,14 @@ class DopePredictor:
                              classes: Collection[str] | None = None) -> list[Detection]:
         """Decode + PnP (+ line search, ICP) the maps of :meth:`infer_maps` (see :meth:`predict`),
         object by object; an object whose belief maps peak nowhere above the decode threshold
-        is skipped before any decoding (one max over its maps). ``classes``: decode only those
+        is skipped before any decoding (one max over its maps), and so is one whose peaks could
+        give no pose the score ``min_score`` asks (:func:`~dope_hope.maps.decode.pose_score_bound`:
+        the weak maps of an absent object cost one peak search, not a pose search). ``classes``: decode only those
         of the predictor's objects this time (exact class names; None: all)."""
         K = check_intrinsics(K)
         K_net = net_in.network_K(K)
         threshold = float(self.options.decode.get("threshold", DEFAULT_THRESHOLD))
+        min_score = float(self.options.min_score)
         out: list[Detection] = []
         for obj in self.objects:
             if classes is not None and obj.class_name not in classes:
@@ -250,17 +265,20 @@ class DopePredictor:
             b, a = obj.channels(belief, affinity)
             if not b.max() > threshold:  # find_peaks keeps no cell whose belief is <= threshold
                 continue
-            out += self._object_detections(obj, b, a, net_in, K, K_net, depth)
+            peaks = decoder_peaks(b, **self.options.decode)
+            if min_score > 0 and pose_score_bound(peaks) < min_score - SCORE_BOUND_SLACK:
+                continue  # no pose of these maps could reach min_score: nothing to decode
+            out += self._object_detections(obj, b, a, peaks, net_in, K, K_net, depth)
         out.sort(key=lambda d: -d.score)
         return out
 
-    def _object_detections(self, obj: ObjectGeometry, belief: np.ndarray, affinity: np.ndarray,
+    def _object_detections(self, obj: ObjectGeometry, belief: np.ndarray, affinity: np.ndarray, peaks: Peaks,
                            net_in: NetworkInput, K: np.ndarray, K_net: np.ndarray,
                            depth: DepthImage | None) -> list[Detection]:
-        """One object's detections from its own (9, h, w) / (16, h, w) maps."""
+        """One object's detections from its own (9, h, w) / (16, h, w) maps and their peaks."""
         mean_scale = math.sqrt(net_in.scale[0] * net_in.scale[1])
         out: list[Detection] = []
-        for est in self._poses(belief, affinity, K_net, obj.cuboid_pnp):
+        for est in self._poses(belief, affinity, K_net, obj.cuboid_pnp, peaks):
             if est.score < self.options.min_score:
                 continue
             R, t = est.R, est.t
@@ -337,14 +355,15 @@ class DopePredictor:
             det.R, det.t = res.R, res.t
 
     def _poses(self, belief: np.ndarray, affinity: np.ndarray, K_net: np.ndarray,
-               cuboid: np.ndarray) -> list[PoseEstimate]:
+               cuboid: np.ndarray, peaks: Peaks | None = None) -> list[PoseEstimate]:
         """Network-image poses of the instances in one object's maps (step 3 of the module
-        docstring), best first; keypoints in the network's own order; ``cuboid`` (9, 3)."""
+        docstring), best first; keypoints in the network's own order; ``cuboid`` (9, 3);
+        ``peaks``: the maps' :func:`~dope_hope.maps.decode.decoder_peaks` when already found."""
         if self.options.pose_search == "groups":
             found = [solve_pnp(inst.keypoints, inst.scores, cuboid, K_net, **self.options.pnp)
-                     for inst in decode_maps(belief, affinity, self.stride, **self.options.decode)]
+                     for inst in decode_maps(belief, affinity, self.stride, **self.options.decode, peaks=peaks)]
             return [e for e in found if e is not None]
-        candidates = corner_candidates(belief, affinity, self.stride, **self.options.decode)
+        candidates = corner_candidates(belief, affinity, self.stride, **self.options.decode, peaks=peaks)
         return solve_pnp_instances([(c.keypoint_ids, c.xy, c.scores) for c in candidates], cuboid,
                                    K_net, **self.options.hypotheses, **self.options.pnp)
 

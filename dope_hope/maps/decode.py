@@ -57,6 +57,7 @@ nine, missing keypoints count 0).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -454,6 +455,29 @@ def corner_centroid_costs(corner_cells: np.ndarray, corner_xy: np.ndarray, vecto
     return feasible, cost, angle_dist, dist
 
 
+#: The decode options that choose the peaks (the rest shape the grouping).
+PEAK_OPTIONS = ("threshold", "smooth_sigma", "nms_radius", "refine_on", "noise_sigmas")
+
+
+def decoder_peaks(belief, **decode_options: Any) -> Peaks:
+    """The peaks :func:`decode_maps` and :func:`corner_candidates` start from, given their
+    options (the peak ones, :data:`PEAK_OPTIONS`, with the decoders' defaults): computed once,
+    they can be handed to either decoder (``peaks=``) and to :func:`pose_score_bound`."""
+    options = {"noise_sigmas": DEFAULT_NOISE_SIGMAS,
+               **{k: v for k, v in decode_options.items() if k in PEAK_OPTIONS}}
+    return find_peaks(belief, **options)
+
+
+def pose_score_bound(peaks: Peaks) -> float:
+    """The highest pose score ``peaks`` allow: the mean over the nine keypoint types of each
+    type's highest peak, clipped to [0, 1]. A pose scores the mean of its inlier keypoints'
+    peak heights, one peak per type, clipped (:mod:`dope_hope.inference.pnp`), so no pose
+    decoded from these peaks scores more; below a score threshold the decoding can be skipped."""
+    best = np.zeros(NUM_KEYPOINTS)
+    np.maximum.at(best, peaks.channel, np.clip(peaks.score, 0.0, 1.0))
+    return float(best.sum() / NUM_KEYPOINTS)
+
+
 def decode_maps(
     belief,
     affinity,
@@ -466,6 +490,7 @@ def decode_maps(
     refine_on: str = "raw",
     min_keypoints: int = 1,
     noise_sigmas: float = DEFAULT_NOISE_SIGMAS,
+    peaks: Peaks | None = None,
 ) -> list[Instance2D]:
     """Decode one image's maps into instances.
 
@@ -482,10 +507,12 @@ def decode_maps(
         min_keypoints: drop instances with fewer keypoints (the centroid counts).
         noise_sigmas: a peak stands this many robust standard deviations above its map's
             background (:func:`noise_floor`; 0: only ``threshold``).
+        peaks: the :func:`decoder_peaks` of these maps and options, when already found.
     Returns:
         Instances sorted by decreasing score; keypoints in image px via mapgrid.
     """
-    peaks, aff = _peaks_and_field(belief, affinity, threshold, smooth_sigma, nms_radius, refine_on, noise_sigmas)
+    peaks, aff = _peaks_and_field(belief, affinity, threshold, smooth_sigma, nms_radius, refine_on, noise_sigmas,
+                                  peaks)
     is_c = peaks.channel == CENTROID_INDEX
     centroids_xy = peaks.xy[is_c]
     m = len(centroids_xy)
@@ -511,14 +538,17 @@ def decode_maps(
 
 
 def _peaks_and_field(belief, affinity, threshold: float, smooth_sigma: float, nms_radius: int,
-                     refine_on: str, noise_sigmas: float) -> tuple[Peaks, np.ndarray]:
-    """Checked maps -> (peaks of all nine channels, (16, h, w) affinity)."""
+                     refine_on: str, noise_sigmas: float, peaks: Peaks | None = None) -> tuple[Peaks, np.ndarray]:
+    """Checked maps -> (peaks of all nine channels (``peaks`` when given: :func:`decoder_peaks`
+    of the same maps and options), (16, h, w) affinity)."""
     bel = _to_numpy(belief)
     aff = _to_numpy(affinity)
     if bel.ndim != 3 or bel.shape[0] != NUM_KEYPOINTS:
         raise ValueError(f"belief must be ({NUM_KEYPOINTS}, h, w), got {bel.shape}")
     if aff.shape != (2 * CENTROID_INDEX,) + bel.shape[1:]:
         raise ValueError(f"affinity must be ({2 * CENTROID_INDEX}, h, w) like belief, got {aff.shape}")
+    if peaks is not None:
+        return peaks, aff
     return find_peaks(bel, threshold, smooth_sigma, nms_radius, refine_on, noise_sigmas), aff
 
 
@@ -572,12 +602,13 @@ def corner_candidates(
     angle_margin: float = DEFAULT_ANGLE_MARGIN,
     size_factor: float = DEFAULT_SIZE_FACTOR,
     noise_sigmas: float = DEFAULT_NOISE_SIGMAS,
+    peaks: Peaks | None = None,
 ) -> list[CornerCandidates]:
     """Per centroid peak, the corner peaks whose affinity points at it (module docstring, 4).
 
     Args:
         belief, affinity, stride, threshold, angle_threshold, smooth_sigma, nms_radius,
-            min_affinity, refine_on, noise_sigmas: as in :func:`decode_maps`.
+            min_affinity, refine_on, noise_sigmas, peaks: as in :func:`decode_maps`.
         max_per_type: keep at most this many peaks of each corner type per centroid: the one
             :func:`decode_maps` would give it, then the others by its grouping cost (strongest
             first, nearest among equals).
@@ -596,7 +627,8 @@ def corner_candidates(
         raise ValueError(f"max_per_type must be >= 1, got {max_per_type}")
     if not (angle_margin >= 0.0 and size_factor > 0.0):
         raise ValueError(f"angle_margin must be >= 0 and size_factor > 0, got {angle_margin}, {size_factor}")
-    peaks, aff = _peaks_and_field(belief, affinity, threshold, smooth_sigma, nms_radius, refine_on, noise_sigmas)
+    peaks, aff = _peaks_and_field(belief, affinity, threshold, smooth_sigma, nms_radius, refine_on, noise_sigmas,
+                                  peaks)
     is_c = peaks.channel == CENTROID_INDEX
     centroids_xy = peaks.xy[is_c]
     m = len(centroids_xy)
