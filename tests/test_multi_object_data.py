@@ -351,6 +351,7 @@ def test_evaluate_takes_a_unit_per_object_mesh(shared_data, grocery):
     assert mesh_units([]) is None and mesh_units(["mm"]) == "mm"
     assert mesh_units(["cm", "can=m"]) == {"": "cm", "can": "m"}
     assert mesh_units(["ketchup=cm"]) == {"Ketchup": "cm"}  # catalog names in their spelling
+    assert mesh_units(["all=m"]) == "m"
     for bad in (["km"], ["Can=m", "Can=cm"], ["m", "cm"]):
         with pytest.raises(ConfigError, match="--mesh-units"):
             mesh_units(bad)

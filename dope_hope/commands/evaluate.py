@@ -74,7 +74,7 @@ def mesh_units(values: list[str]) -> str | dict[str, str] | None:
         name, _, unit = value.rpartition("=")
         if unit not in ("m", "cm", "mm"):
             raise ConfigError(f"--mesh-units {value}: the unit must be m, cm or mm")
-        key = object_names([name])[0] if name else ""
+        key = object_names([name])[0] if name and name.lower() != "all" else ""
         if key in units:
             raise ConfigError(f"--mesh-units {value}: {'every mesh' if not key else key} already has a unit")
         units[key] = unit
