@@ -224,7 +224,7 @@ def lite_keypoints(tmp: Path, n_eval: int) -> tuple:
     from dope_hope.training.fit_one import box_scene as scene
 
     from dope_hope.config import load_config
-    from dope_hope.export.pipeline import export_checkpoint
+    from dope_hope.export.pipeline import Int8Calibration, export_checkpoint
     from dope_hope.io.images import write_rgb
 
     rgb, _ = scene()
@@ -239,7 +239,7 @@ def lite_keypoints(tmp: Path, n_eval: int) -> tuple:
     for name, ckpt in (("fitted", fit_lite_checkpoint(tmp / "lite_fitted.pt")),
                        ("untrained", random_checkpoint(tmp / "lite_random.pt", cfg))):
         fp32 = export_checkpoint(ckpt, tmp / f"lite_{name}.onnx")
-        export_checkpoint(ckpt, tmp / f"lite_{name}_int8.onnx", int8=True, calibration=calib)
+        export_checkpoint(ckpt, tmp / f"lite_{name}_int8.onnx", int8=Int8Calibration(calib))
         dev, _ = int8_deviation(fp32.path, tmp / f"lite_{name}_int8.onnx",
                                 [(p, None) for p in sorted(evald.iterdir())])
         out.append(dev)
@@ -256,7 +256,7 @@ def demo_keypoints(tmp: Path, n_calib: int, n_eval: int):
     if not demo.is_file():
         return None
     from dope_hope.demo_object import write_demo_object
-    from dope_hope.export.pipeline import export_checkpoint
+    from dope_hope.export.pipeline import Int8Calibration, export_checkpoint
 
     mesh = write_demo_object(tmp / "demo_mesh")
     folders = {}
@@ -268,7 +268,7 @@ def demo_keypoints(tmp: Path, n_calib: int, n_eval: int):
                         "target.count=[1,2]", "target.distance_m=[0.4,1.0]"],
                        check=True, capture_output=True)
     fp32 = export_checkpoint(demo, tmp / "demo_fp32.onnx")
-    export_checkpoint(demo, tmp / "demo_int8.onnx", int8=True, calibration=folders["calib"])
+    export_checkpoint(demo, tmp / "demo_int8.onnx", int8=Int8Calibration(folders["calib"]))
     frames = sorted(p for p in folders["eval"].glob("*.png") if p.name.count(".") == 1)
     dev, _ = int8_deviation(fp32.path, tmp / "demo_int8.onnx", [(p, None) for p in frames])
     return fp32.info.fixed_input_hw, dev
@@ -298,6 +298,7 @@ def main() -> None:
     from dope_hope.config import load_config
     from dope_hope.export.int8 import quantize_int8
     from dope_hope.export.pipeline import export_checkpoint
+    from dope_hope.export.to_onnx import ExportSettings
 
     from dope_hope.export.int8 import cpu_int8_support
 
@@ -318,7 +319,7 @@ def main() -> None:
         for size in args.sizes:
             h, w = (int(v) for v in size.split("x"))
             t0 = time.perf_counter()
-            fp32 = export_checkpoint(ckpt, tmp / f"dr50_{size}.onnx", height=h, width=w)
+            fp32 = export_checkpoint(ckpt, tmp / f"dr50_{size}.onnx", ExportSettings(input_hw=(h, w)))
             t_export = time.perf_counter() - t0
             t0 = time.perf_counter()
             int8_path = tmp / f"dr50_{size}_int8.onnx"

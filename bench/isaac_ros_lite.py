@@ -47,6 +47,7 @@ from dope_hope.evaluation.models import load_models
 from dope_hope.export.isaac_ros import ISAAC_ROS_CURRENT, isaac_ros_release
 from dope_hope.export.isaac_ros import decode as isaac_decode
 from dope_hope.export.pipeline import export_checkpoint
+from dope_hope.export.to_onnx import ExportSettings
 from dope_hope.geometry import scale_intrinsics
 from dope_hope.inference.backends import open_backend
 from dope_hope.inference.onnx_backend import OnnxBackend
@@ -120,8 +121,9 @@ def main() -> int:
     scale = IMAGE_SIZE[0] / resized[1]  # 640x480 px per network px
     release = isaac_ros_release(args.isaac_ros_version)
     onnx_path = tmp / "isaac.onnx"
-    res = export_checkpoint(args.weights, onnx_path, height=padded[0], width=padded[1], layout="isaac-ros",
-                            isaac_ros_version=args.isaac_ros_version)
+    res = export_checkpoint(args.weights, onnx_path,
+                            ExportSettings(layout="isaac-ros", isaac_ros_version=args.isaac_ros_version,
+                                           input_hw=(padded[0], padded[1])))
     isaac_backend = OnnxBackend(onnx_path, threads=args.threads, providers=["CPUExecutionProvider"])
     dims_cm = json.loads(res.info.extra["isaac_ros.object_dimensions_cm"])
     print(f"{args.weights}: stride {pred.stride}, network input {padded[1]}x{padded[0]} (content "

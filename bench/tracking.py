@@ -354,6 +354,7 @@ def open_predictor(weights: Path, threads: int, tmp: Path):
     """The demo model through onnxruntime (exported at the clips' working size) with the
     demo mesh; before any rendering (torch after the GL context crashes here)."""
     from dope_hope.export.pipeline import export_checkpoint
+    from dope_hope.export.to_onnx import ExportSettings
     from dope_hope.inference.backends import open_backend
     from dope_hope.inference.predictor import DopePredictor
 
@@ -361,7 +362,7 @@ def open_predictor(weights: Path, threads: int, tmp: Path):
     torch_pred = DopePredictor(open_backend(weights, "torch", threads=threads), mesh=mesh)
     _, input_hw = torch_pred.working_size((SIZE[1], SIZE[0]))
     onnx_path = tmp / f"{weights.stem}.onnx"
-    export_checkpoint(weights, onnx_path, height=int(input_hw[0]), width=int(input_hw[1]))
+    export_checkpoint(weights, onnx_path, ExportSettings(input_hw=(int(input_hw[0]), int(input_hw[1]))))
     return DopePredictor(open_backend(onnx_path, "onnx", threads=threads), mesh=mesh), input_hw
 
 

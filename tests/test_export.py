@@ -24,8 +24,8 @@ from dope_hope.export.isaac_ros import (
     dope_config_entry,
     isaac_ros_release,
 )
-from dope_hope.export.pipeline import export_checkpoint
-from dope_hope.export.to_onnx import export_model
+from dope_hope.export.pipeline import Int8Calibration, export_checkpoint
+from dope_hope.export.to_onnx import ExportSettings, export_model
 from dope_hope.geometry import (
     CUBOID_CORNER_SIGNS,
     LEGACY_TO_MESH,
@@ -97,7 +97,7 @@ def test_lite_static_and_dynamic_exports_match_pytorch(lite, tmp_path):
         assert got.shape == ref.shape and np.abs(got - ref).max() < TOL
     assert np.abs(_torch_maps(model, x)[0]).max() > 0.05  # the maps are not trivially ~0
 
-    export_model(model, ckpt, tmp_path / "dyn.onnx", dynamic=True)
+    export_model(model, ckpt, tmp_path / "dyn.onnx", ExportSettings(dynamic=True))
     dyn = OnnxBackend(tmp_path / "dyn.onnx", threads=1)
     assert dyn.fixed_input_hw is None
     for hw in [(64, 64), (96, 160), (40, 56)]:
@@ -111,7 +111,7 @@ def test_lite_static_and_dynamic_exports_match_pytorch(lite, tmp_path):
 def test_metadata_makes_the_file_self_describing(lite, tmp_path):
     model, ckpt = lite
     path = tmp_path / "m.onnx"
-    export_model(model, ckpt, path, input_hw=(48, 72), opset=17, source="lite.pt")
+    export_model(model, ckpt, path, ExportSettings(input_hw=(48, 72), opset=17), source="lite.pt")
     proto = onnx.load(str(path))
     onnx.checker.check_model(proto)
     meta = {p.key: p.value for p in proto.metadata_props}
@@ -135,7 +135,7 @@ def test_metadata_makes_the_file_self_describing(lite, tmp_path):
 def test_isaac_ros_layout_names_shapes_and_normalization(lite, tmp_path):
     model, ckpt = lite
     path = tmp_path / "isaac.onnx"
-    info, _ = export_model(model, ckpt, path, layout="isaac-ros", isaac_ros_version="3.1")
+    info, _ = export_model(model, ckpt, path, ExportSettings(layout="isaac-ros", isaac_ros_version="3.1"))
     assert info.fixed_input_hw == (480, 640)  # dope_converter.py's default network size
     proto = onnx.load(str(path))
     dims = lambda v: [d.dim_value for d in v.type.tensor_type.shape.dim]  # noqa: E731
@@ -158,7 +158,8 @@ def test_isaac_ros_layout_names_shapes_and_normalization(lite, tmp_path):
     assert np.abs(out[:, :9] - b).max() < TOL and np.abs(out[:, 9:] - a).max() < TOL
 
     # The current release: ImageNet encoder (an identity conversion) and Isaac's vertex order.
-    info, _ = export_model(model, ckpt, tmp_path / "isaac_in.onnx", layout="isaac-ros", input_hw=(64, 64))
+    info, _ = export_model(model, ckpt, tmp_path / "isaac_in.onnx",
+                           ExportSettings(layout="isaac-ros", input_hw=(64, 64)))
     assert info.input_mean == ISAAC_ENCODERS["imagenet"][0]
     assert info.extra["isaac_ros.version"] == ISAAC_ROS_CURRENT
     x = ((rgb[:, :, :64, :64] - mean[:, None, None]) / std[:, None, None]).astype(np.float32)
@@ -210,7 +211,7 @@ def _isaac_output(tmp_path, frame: str, stride: int, version: str):
     belief, affinity = make_targets(_model_keypoints(frame)[None], ISAAC_HW, stride)
     path = tmp_path / f"{frame}_{stride}_{version}.onnx"
     info, _ = export_model(ConstantMaps(belief, affinity, stride), _ckpt({}, frame=frame), path,
-                           layout="isaac-ros", isaac_ros_version=version)
+                           ExportSettings(layout="isaac-ros", isaac_ros_version=version))
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     return info, sess.run(None, {"input": np.zeros((1, 3) + ISAAC_HW, np.float32)})[0]
 
@@ -255,7 +256,7 @@ def test_isaac_ros_lite_head_100_is_pooled_to_stride_8(tmp_path):
     for block in model.lite.stages:
         torch.nn.init.normal_(block[-1].weight, std=0.1)
     path = tmp_path / "lite100.onnx"
-    info, verify = export_model(model, _ckpt(cfg), path, layout="isaac-ros", input_hw=(64, 64))
+    info, verify = export_model(model, _ckpt(cfg), path, ExportSettings(layout="isaac-ros", input_hw=(64, 64)))
     assert verify < TOL and info.stride == 8 and info.head == 100
     assert info.extra["isaac_ros.resampled_from_stride"] == "4"
     x = np.random.default_rng(4).standard_normal((1, 3, 64, 64)).astype(np.float32)
@@ -268,15 +269,15 @@ def test_isaac_ros_lite_head_100_is_pooled_to_stride_8(tmp_path):
 def test_isaac_ros_refuses_stride_1_dynamic_and_unknown_versions(tmp_path):
     belief, affinity = np.zeros((9, 64, 64), np.float32), np.zeros((16, 64, 64), np.float32)
     with pytest.raises(ConfigError, match="stride 1"):  # DOPE-DR-400: Isaac ROS's decoder scales by 8
-        export_model(ConstantMaps(belief, affinity, 1), _ckpt({}), tmp_path / "x.onnx", layout="isaac-ros",
-                     input_hw=(64, 64))
+        export_model(ConstantMaps(belief, affinity, 1), _ckpt({}), tmp_path / "x.onnx",
+                     ExportSettings(layout="isaac-ros", input_hw=(64, 64)))
     lite = build_model(_lite_config()).eval()
     with pytest.raises(ConfigError, match="fixed input size"):
-        export_model(lite, _ckpt(_lite_config()), tmp_path / "y.onnx", layout="isaac-ros", dynamic=True)
+        export_model(lite, _ckpt(_lite_config()), tmp_path / "y.onnx", ExportSettings(layout="isaac-ros", dynamic=True))
     for bad in ("three", "1.0", "3"):
         with pytest.raises(ConfigError, match="isaac-ros-version"):
-            export_model(lite, _ckpt(_lite_config()), tmp_path / "z.onnx", layout="isaac-ros",
-                         isaac_ros_version=bad)
+            export_model(lite, _ckpt(_lite_config()), tmp_path / "z.onnx",
+                         ExportSettings(layout="isaac-ros", isaac_ros_version=bad))
     assert not list(tmp_path.iterdir())  # nothing written
 
 
@@ -285,7 +286,7 @@ def test_dope_dr_50_export_matches_pytorch(tmp_path):
     cfg = load_config("dope_dr_50")
     model = build_model(cfg).eval()
     info, verify = export_model(model, _ckpt(cfg, frame="legacy"), tmp_path / "dr50.onnx",
-                                input_hw=(64, 64))
+                                ExportSettings(input_hw=(64, 64)))
     assert info.arch == "dope" and info.stride == 8 and info.keypoint_order == "dope-legacy"
     backend = OnnxBackend(tmp_path / "dr50.onnx", threads=1)
     x = np.random.default_rng(3).standard_normal((1, 3, 64, 64)).astype(np.float32)
@@ -305,7 +306,7 @@ def test_int8_export_stays_close_to_fp32(fitted, tmp_path):
     assert len(list_images(calib)) == 4
 
     fp32 = export_checkpoint(fitted, tmp_path / "fp32.onnx")
-    res = export_checkpoint(fitted, tmp_path / "int8.onnx", int8=True, calibration=calib)
+    res = export_checkpoint(fitted, tmp_path / "int8.onnx", int8=Int8Calibration(calib))
     assert res.info.precision == "int8" and res.int8 is not None
     dev = res.int8
     assert dev.images == 4 and dev.instances_ref >= 2
@@ -328,8 +329,9 @@ def test_int8_export_stays_close_to_fp32(fitted, tmp_path):
     # The maps come out of a float conv (no 1/255-of-range output quantization step).
     assert _ops_to_last_conv(proto, "belief") == ["Slice", "Conv"]
     # isaac-ros too: concat + channel gather stay float.
-    isaac = export_checkpoint(fitted, tmp_path / "isaac8.onnx", layout="isaac-ros", height=IMAGE_HW[0],
-                              width=IMAGE_HW[1], int8=True, calibration=calib, calibration_images=2)
+    isaac = export_checkpoint(fitted, tmp_path / "isaac8.onnx",
+                              ExportSettings(layout="isaac-ros", input_hw=(IMAGE_HW[0], IMAGE_HW[1])),
+                              Int8Calibration(calib, count=2))
     assert isaac.int8.median_px < 1.0
     assert _ops_to_last_conv(onnx.load(str(tmp_path / "isaac8.onnx")), "output") == ["Gather", "Concat", "Slice", "Conv"]
 
@@ -409,7 +411,7 @@ def test_checkpoint_round_trip_through_export(tmp_path):
     cfg = _lite_config()
     model = build_model(cfg)
     save_checkpoint(tmp_path / "c.pt", model, cfg, {"class_name": "Mustard"})
-    res = export_checkpoint(tmp_path / "c.pt", tmp_path / "c.onnx", dynamic=True)
+    res = export_checkpoint(tmp_path / "c.pt", tmp_path / "c.onnx", ExportSettings(dynamic=True))
     assert res.info.class_name == "Mustard" and res.info.source == "c.pt" and res.verify_max_abs < TOL
 
 

@@ -15,6 +15,7 @@ from onnx import TensorProto, helper
 from dope_hope.cli import main
 from dope_hope.errors import ConfigError, ModelFileError
 from dope_hope.export.pipeline import export_checkpoint
+from dope_hope.export.to_onnx import ExportSettings
 from dope_hope.inference.backends import TorchBackend
 from dope_hope.inference.onnx_backend import OnnxBackend, OnnxModelInfo
 from dope_hope.inference.predictor import DopePredictor
@@ -29,10 +30,10 @@ def models(tmp_path_factory):
     d = tmp_path_factory.mktemp("onnx")
     ckpt = fit_lite_checkpoint(d / "fitted.pt")
     export_checkpoint(ckpt, d / "native.onnx")
-    export_checkpoint(ckpt, d / "dynamic.onnx", dynamic=True)
+    export_checkpoint(ckpt, d / "dynamic.onnx", ExportSettings(dynamic=True))
     # The current Isaac ROS release (channels in its vertex order) with the 0.5/0.5 encoder.
-    export_checkpoint(ckpt, d / "isaac.onnx", layout="isaac-ros", height=IMAGE_HW[0], width=IMAGE_HW[1],
-                      isaac_encoder="half")
+    export_checkpoint(ckpt, d / "isaac.onnx",
+                      ExportSettings(layout="isaac-ros", isaac_encoder="half", input_hw=(IMAGE_HW[0], IMAGE_HW[1])))
     return ckpt, d / "native.onnx", d / "dynamic.onnx", d / "isaac.onnx"
 
 

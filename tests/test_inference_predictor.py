@@ -377,14 +377,14 @@ def test_bad_weights_files(tmp_path):
 
 
 def test_auto_backend_runs_exported_onnx_like_torch(tmp_path):
-    from dope_hope.export.to_onnx import export_model
+    from dope_hope.export.to_onnx import ExportSettings, export_model
     from dope_hope.inference.onnx_backend import OnnxBackend
     from dope_hope.model.checkpoint import load_model
 
     path = tmp_path / "lite.pt"
     save_checkpoint(path, build_model(LITE), LITE, make_object_info("Ketchup"))
     model, ckpt = load_model(path)
-    export_model(model, ckpt, tmp_path / "lite.onnx", dynamic=True)
+    export_model(model, ckpt, tmp_path / "lite.onnx", ExportSettings(dynamic=True))
     torch_p = DopePredictor(path)
     onnx_p = DopePredictor(tmp_path / "lite.onnx", threads=1)  # auto: onnxruntime for .onnx
     assert isinstance(onnx_p.backend, OnnxBackend)

@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 from dope_hope import cli
 from dope_hope.catalog import get_object
 from dope_hope.errors import ConfigError, ModelFileError
-from dope_hope.export.pipeline import export_checkpoint
+from dope_hope.export.pipeline import Int8Calibration, export_checkpoint
 from dope_hope.geometry import intrinsics_matrix, rotation_error_deg
 from dope_hope.inference.onnx_backend import OnnxBackend
 from dope_hope.inference.predictor import DopePredictor
@@ -209,8 +209,7 @@ def test_onnx_holds_every_object_and_old_files_still_load(two_object_checkpoint,
     calib.mkdir()
     for i in range(2):
         cv2.imwrite(str(calib / f"{i}.png"), np.random.default_rng(i).integers(0, 255, (64, 64, 3), np.uint8))
-    q = export_checkpoint(two_object_checkpoint, tmp_path / "two_int8.onnx", int8=True, calibration=calib,
-                          calibration_images=2)
+    q = export_checkpoint(two_object_checkpoint, tmp_path / "two_int8.onnx", int8=Int8Calibration(calib, count=2))
     int8 = OnnxBackend(tmp_path / "two_int8.onnx")
     assert int8.info.precision == "int8" and int8.info.class_names == ("Ketchup", "Mustard")
     assert q.int8 is not None and q.int8.images == 2

@@ -66,7 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dope_hope.export.pipeline import export_checkpoint
+    from dope_hope.export.pipeline import Int8Calibration, export_checkpoint
+    from dope_hope.export.to_onnx import ExportSettings
     from dope_hope.io.paths import output_file
 
     from dope_hope.errors import ConfigError
@@ -76,15 +77,18 @@ def run(args: argparse.Namespace) -> int:
                             ("--isaac-normalization", args.isaac_normalization)):
             if value is not None:
                 raise ConfigError(f"{flag} applies only to --layout isaac-ros (this export: --layout {args.layout})")
+    if (args.height is None) != (args.width is None):
+        raise ConfigError("give both --height and --width (or neither)")
+    if args.int8 and args.calibration is None:
+        raise ConfigError("--int8 needs --calibration DIR (a folder of representative images)")
+    if args.calibration is not None and not args.int8:
+        raise ConfigError("--calibration is only used with --int8")
     output_file(args.out)
-    res = export_checkpoint(args.weights, args.out, height=args.height, width=args.width,
-                            dynamic=args.dynamic, layout=args.layout, int8=args.int8,
-                            calibration=args.calibration, opset=args.opset,
-                            isaac_encoder=args.isaac_normalization,
-                            calibration_images=args.calibration_images,
-                            calibration_method=args.calibration_method,
-                            isaac_ros_version=args.isaac_ros_version or ISAAC_ROS_CURRENT,
-                            object_name=args.object)
+    settings = ExportSettings(layout=args.layout, input_hw=None if args.height is None else (args.height, args.width),
+                              dynamic=args.dynamic, opset=args.opset, isaac_encoder=args.isaac_normalization,
+                              isaac_ros_version=args.isaac_ros_version or ISAAC_ROS_CURRENT, object_name=args.object)
+    int8 = Int8Calibration(args.calibration, args.calibration_images, args.calibration_method) if args.int8 else None
+    res = export_checkpoint(args.weights, args.out, settings, int8)
     info = res.info
     size = "dynamic" if info.fixed_input_hw is None else f"{info.fixed_input_hw[0]}x{info.fixed_input_hw[1]}"
     isaac = isaac_ros_deployment(info, res.path) if info.layout == "isaac-ros" else None

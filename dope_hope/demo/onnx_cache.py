@@ -20,6 +20,7 @@ def ensure_onnx(weights: Path, out_dir: Path, input_hw: tuple[int, int]) -> tupl
     """Export ``weights`` to ``out_dir/<stem>.onnx`` at the fixed input (H, W) unless an export
     of the same weights (SHA-256) at that size is already there. Returns (path, exported)."""
     from dope_hope.export.pipeline import export_checkpoint
+    from dope_hope.export.to_onnx import ExportSettings
     from dope_hope.io.atomic import atomic_write_text
     from dope_hope.version import __version__
 
@@ -33,6 +34,6 @@ def ensure_onnx(weights: Path, out_dir: Path, input_hw: tuple[int, int]) -> tupl
                 return onnx_path, False
         except (OSError, json.JSONDecodeError):
             pass
-    export_checkpoint(weights, onnx_path, height=int(input_hw[0]), width=int(input_hw[1]))
+    export_checkpoint(weights, onnx_path, ExportSettings(input_hw=(int(input_hw[0]), int(input_hw[1]))))
     atomic_write_text(stamp_path, json.dumps(stamp, indent=1) + "\n")
     return onnx_path, True

@@ -109,6 +109,30 @@ INT8_MIN_OPSET = 13
 ISAAC_ROS_INPUT_HW = (480, 640)
 
 
+@dataclass(frozen=True)
+class ExportSettings:
+    """What an ONNX file is built as (the options of `dope-hope export`).
+
+    layout: "native" or "isaac-ros" (module docstring). input_hw: (H, W), multiples of 8;
+    None: the training input size (native) or 480x640 (isaac-ros); with ``dynamic`` it only
+    sizes the tracing input. dynamic: native only, H and W dynamic (the batch axis always is).
+    opset: ONNX opset (11..20). isaac_encoder: "half" (mean = std = 0.5) or "imagenet", the
+    Isaac ROS encoder's normalization (None: the launch default of ``isaac_ros_version``).
+    isaac_ros_version: the Isaac ROS release ("3.1", "4.0", ...) whose decoder the output
+    channels are ordered for (:mod:`dope_hope.export.isaac_ros`). object_name: export only
+    this object's channel group (required for a multi-object model in the isaac-ros layout);
+    None: every object of the model.
+    """
+
+    layout: str = "native"
+    input_hw: tuple[int, int] | None = None
+    dynamic: bool = False
+    opset: int = OPSET
+    isaac_encoder: str | None = None
+    isaac_ros_version: str = ISAAC_ROS_CURRENT
+    object_name: str | None = None
+
+
 #: The map stride the Isaac ROS decoder assumes, and the strides resampled to it in-graph.
 ISAAC_ROS_STRIDE = 8
 ISAAC_ROS_RESAMPLED_STRIDES = (4,)
@@ -255,16 +279,16 @@ def select_object(meta: ModelInfo, layout: str, object_name: str | None) -> tupl
     return meta.select(object_name), k
 
 
-def model_info(checkpoint: dict[str, Any], model: nn.Module, layout: str,
-               fixed_input_hw: tuple[int, int] | None, opset: int, isaac_encoder: str | None = None,
-               source: str = "", isaac_ros_version: str = ISAAC_ROS_CURRENT,
-               object_name: str | None = None) -> OnnxModelInfo:
-    """The :class:`OnnxModelInfo` of a checkpoint exported in ``layout`` (all its objects, or
-    ``object_name`` only: :func:`select_object`).
+def model_info(checkpoint: dict[str, Any], model: nn.Module, settings: ExportSettings,
+               fixed_input_hw: tuple[int, int] | None, source: str = "") -> OnnxModelInfo:
+    """The :class:`OnnxModelInfo` of a checkpoint exported as ``settings`` say (all its
+    objects, or ``settings.object_name`` only: :func:`select_object`).
 
     isaac-ros: ``stride`` is the graph output's (8, after any resampling); ``isaac_encoder``
     None = the release's launch default.
     """
+    layout, opset, isaac_encoder = settings.layout, settings.opset, settings.isaac_encoder
+    isaac_ros_version, object_name = settings.isaac_ros_version, settings.object_name
     meta, _ = select_object(ModelInfo.from_checkpoint(checkpoint, source or "<checkpoint>"), layout, object_name)
     mean, std = meta.mean, meta.std
     stride = int(model.stride)
@@ -300,31 +324,21 @@ def model_info(checkpoint: dict[str, Any], model: nn.Module, layout: str,
 
 
 def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.PathLike,
-                 layout: str = "native", input_hw: Sequence[int] | None = None,
-                 dynamic: bool = False, opset: int = OPSET, isaac_encoder: str | None = None,
-                 source: str = "", seed: int = 0,
-                 isaac_ros_version: str = ISAAC_ROS_CURRENT,
-                 object_name: str | None = None) -> tuple[OnnxModelInfo, float]:
-    """Export ``model`` (fp32) to ``out`` atomically; returns (metadata, verify max |d|).
+                 settings: ExportSettings = ExportSettings(), source: str = "",
+                 seed: int = 0) -> tuple[OnnxModelInfo, float]:
+    """Export ``model`` (fp32) to ``out`` atomically as ``settings`` say; returns (metadata,
+    verify max |d|).
 
     Args:
         model: a DopeNetwork (any module with ``stride`` returning per-stage map pairs).
         checkpoint: its checkpoint dict (object, keypoint order, normalization, config).
-        layout: "native" or "isaac-ros" (see the module docstring).
-        input_hw: (H, W), multiples of 8. Default: the training input size (native) or
-            480x640 (isaac-ros). With ``dynamic`` it only sizes the tracing input.
-        dynamic: native only: H and W dynamic (the batch axis always is).
-        opset: ONNX opset (11..20).
-        isaac_encoder: "half" (mean = std = 0.5) or "imagenet": the Isaac ROS encoder's
-            (None: the launch default of ``isaac_ros_version``).
-        isaac_ros_version: the Isaac ROS release ("3.1", "4.0", ...) whose decoder the output
-            channels are ordered for (:mod:`dope_hope.export.isaac_ros`).
-        object_name: export only this object's channel group (required for a multi-object
-            model in the isaac-ros layout); None: every object of the model.
+        source: the checkpoint's file name (metadata). seed: the tracing input's.
     Raises ConfigError for impossible options, ExportError if the graph does not reproduce
     the model.
     """
     import onnx
+
+    layout, input_hw, dynamic, opset = settings.layout, settings.input_hw, settings.dynamic, settings.opset
 
     if layout not in LAYOUTS:
         raise ConfigError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
@@ -347,9 +361,8 @@ def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.Pat
     h, w = _check_hw(input_hw, "export input size")
     fixed = None if dynamic else (h, w)
     full = ModelInfo.from_checkpoint(checkpoint, source or "<checkpoint>")
-    _, group = select_object(full, layout, object_name)
-    info = model_info(checkpoint, model, layout, fixed, int(opset), isaac_encoder, source, isaac_ros_version,
-                      object_name)
+    _, group = select_object(full, layout, settings.object_name)
+    info = model_info(checkpoint, model, settings, fixed, source)
 
     was_training = model.training
     model.eval()  # the wrapper must be in eval mode too: BatchNorm with running statistics
