@@ -12,6 +12,7 @@ better than wall time does, above all with one thread. Each model runs as the tr
 lite on the CPU in plain float32 NCHW (the baseline) and prints the recipe's ratio to it.
 
     python bench/train_throughput.py [--batch 2] [--steps-lite 10] [--steps-dr50 3] [--threads 2] [--precision]
+    python bench/train_throughput.py --device cuda --batch 32     # the GPU alone
 """
 from __future__ import annotations
 
@@ -92,11 +93,16 @@ def main() -> None:
     ap.add_argument("--steps-dr50", type=int, default=3, help="0: lite only")
     ap.add_argument("--warmup", type=int, default=1)
     ap.add_argument("--threads", type=int, default=2, help="torch threads on CPU")
+    ap.add_argument("--device", choices=("all", "cpu", "cuda"), default="all",
+                    help="where to time: the CPU, CUDA, or both (all: CUDA when available)")
     ap.add_argument("--precision", action="store_true",
                     help="also time lite on the CPU in plain float32 NCHW, and the recipe's ratio to it")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("--device cuda: no CUDA device available")
+    devices = [torch.device(name) for name in ("cpu", "cuda") if args.device in ("all", name)
+               and (name == "cpu" or torch.cuda.is_available())]
     for device in devices:
         label = f"CPU, {args.threads} thread(s)" if device.type == "cpu" else torch.cuda.get_device_name(0)
         print(f"{label}:")

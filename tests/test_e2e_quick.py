@@ -60,9 +60,11 @@ def test_quick_run_writes_the_table_and_resumes(shared_data, ketchup_obj, tmp_pa
     assert other.returncode != 0 and "other settings (test_count)" in (other.stdout + other.stderr)
 
 
-def test_cpu_description_reads_the_model_and_the_precision_flags(tmp_path):
+def test_cpu_description_reads_the_model_and_the_precision_flags(tmp_path, monkeypatch):
     from dope_hope.devices import cpu_description, cpu_line
 
+    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
+    monkeypatch.delenv("DNNL_MAX_CPU_ISA", raising=False)
     info = tmp_path / "cpuinfo"
     info.write_text("processor\t: 0\nmodel name\t: Intel(R) Xeon(R) Platinum 8480+\n"
                     "flags\t\t: fpu avx2 avx512f avx512_vnni avx512_bf16 amx_bf16 amx_tile amx_int8\n")
@@ -70,6 +72,14 @@ def test_cpu_description_reads_the_model_and_the_precision_flags(tmp_path):
     assert d["model"] == "Intel(R) Xeon(R) Platinum 8480+" and d["native_bf16"]
     assert d["flags"]["amx_bf16"] and d["flags"]["avx512_vnni"] and not d["flags"]["avx_vnni"]
     assert cpu_line(info).startswith("CPU Intel(R) Xeon(R) Platinum 8480+: amx_bf16, amx_int8, avx512_bf16")
+    # oneDNN capped below its bf16 kernels (how an AMX machine stands in for an AVX2 laptop):
+    # bf16 would be emulated, so the recipe is float32, and the line says why.
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "avx2")
+    assert not cpu_description(info)["native_bf16"]
+    assert cpu_line(info).endswith("; ONEDNN_MAX_CPU_ISA=AVX2; bf16 training emulated: float32 used")
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX512_CORE_BF16")  # the AMD EPYC stand-in keeps bf16
+    assert cpu_description(info)["native_bf16"]
+    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA")
     info.write_text("processor\t: 0\nmodel name\t: AMD EPYC\nflags\t\t: fpu avx2\n")
     assert cpu_line(info) == ("CPU AMD EPYC: avx2 of the precision flags (no amx_bf16, amx_int8, avx512_bf16, "
                               "avx512_vnni, avx_vnni, avx512f); bf16 training emulated: float32 used")

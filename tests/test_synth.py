@@ -432,3 +432,28 @@ def test_cli_reports_bad_input_in_one_line(tmp_path: Path, capsys):
     err = capsys.readouterr().err.strip()
     assert "nope.obj" in err and len(err.splitlines()) == 1
     assert main(["synth", "--out", str(tmp_path / "o"), "--count", "1"]) == 2
+
+
+def test_a_worker_error_that_cannot_be_pickled_reaches_the_parent_as_its_text():
+    """An OpenGL error holds ctypes arguments, which do not pickle: the pool would report only
+    "cannot pickle" (seen on a machine whose PyOpenGL failed in glGenTextures)."""
+    import ctypes
+    import pickle
+
+    from dope_hope.synth.generate import _picklable
+
+    def failing_gl_call():
+        raise OSError("glGenTextures failed", ctypes.byref(ctypes.c_int()))  # as PyOpenGL's errors
+
+    try:
+        failing_gl_call()
+    except OSError as error:
+        with pytest.raises(TypeError):
+            pickle.dumps(error)
+        sent = _picklable(error, 7)
+    received = pickle.loads(pickle.dumps(sent))
+    assert isinstance(received, RuntimeError)
+    assert str(received).startswith("frame 7: OSError: ") and "glGenTextures failed" in str(received)
+    assert "failing_gl_call" in str(received)  # the worker's traceback comes along
+    plain = ConfigError("bad setting")
+    assert _picklable(plain, 3) is plain  # picklable errors keep their type (exit status 2)

@@ -199,6 +199,23 @@ def test_native_bf16_reads_the_cpu_flags(tmp_path):
     assert not cpu_has_native_bf16(tmp_path / "missing")
 
 
+def test_a_onednn_cap_below_bf16_makes_the_recipe_float32(monkeypatch):
+    """ONEDNN_MAX_CPU_ISA=AVX2 on a bf16 CPU (an AMX machine standing in for an AVX2 laptop)
+    leaves oneDNN no bf16 kernel: autocast would be emulated, far slower than float32."""
+    from dope_hope import devices
+
+    monkeypatch.setattr(devices, "cpu_has_native_bf16", lambda: True)
+    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
+    monkeypatch.delenv("DNNL_MAX_CPU_ISA", raising=False)
+    assert devices.native_bf16("cpu")
+    for name, cap, native in [("ONEDNN_MAX_CPU_ISA", "AVX2", False), ("ONEDNN_MAX_CPU_ISA", "avx512_core_vnni", False),
+                              ("DNNL_MAX_CPU_ISA", "AVX512_CORE", False), ("ONEDNN_MAX_CPU_ISA", "AVX512_CORE_BF16", True),
+                              ("ONEDNN_MAX_CPU_ISA", "AVX512_CORE_AMX", True), ("ONEDNN_MAX_CPU_ISA", "ALL", True)]:
+        monkeypatch.setenv(name, cap)
+        assert devices.native_bf16("cpu") is native, (name, cap)
+        monkeypatch.delenv(name)
+
+
 # ----------------------------------------------------------------------------- watching a run
 class FakeSummaryWriter:
     """Stands in for torch.utils.tensorboard.SummaryWriter (tensorboard is an optional extra)."""

@@ -4,7 +4,11 @@ Import pyrender only through :func:`import_pyrender`. It
 
 1. selects Mesa EGL (``PYOPENGL_PLATFORM=egl``) unless the user set ``PYOPENGL_PLATFORM``
    already. EGL works on a fresh Debian machine without a display and without an apt step;
-   OSMesa does not work with the PyOpenGL 3.1.0 that pyrender 0.1.45 pins.
+   OSMesa does not work with the PyOpenGL 3.1.0 that pyrender 0.1.45 pins. It also puts
+   pyglet in its headless mode (``PYGLET_HEADLESS``, unless set): pyrender imports pyglet's
+   window module for its viewer, which otherwise loads X11 libraries, and fails where they
+   are missing (a GPU server or container with EGL and no X: "'NoneType' object has no
+   attribute 'XRenderFindVisualFormat'"). The frames rendered are the same.
 2. restores ``np.infty``, which numpy 2 removed and which pyrender 0.1.45 still uses for
    scene bounds and shadow maps (``pyrender/scene.py``, ``pyrender/renderer.py``). The alias
    is the same float as ``np.inf``; nothing else is patched.
@@ -13,9 +17,16 @@ Import pyrender only through :func:`import_pyrender`. It
    loading triton's own LLVM *after* it crashes the process (a segmentation fault when a
    process that rendered later imports torchvision: evaluation's VSD then a model, a test
    session), while the other order is fine.
+4. teaches PyOpenGL 3.1.0 the name Python 3.12 gives ctypes' ``byref`` type
+   (``_ctypes.CArgObject``; earlier Pythons: ``builtins.CArgObject``, the one name 3.1.0
+   knows). Without it every GL call that returns through ``byref`` (``glGenTextures`` in
+   pyrender's first render) fails on Python >= 3.12 with "No array-type handler for type
+   _ctypes.type". PyOpenGL 3.1.7 adds the same name to the same handler; pyrender 0.1.45
+   pins 3.1.0.
 """
 from __future__ import annotations
 
+import ctypes
 import importlib.util
 import os
 from types import ModuleType
@@ -26,10 +37,24 @@ import numpy as np
 def configure_headless_gl() -> None:
     """Choose EGL unless the user chose a platform; must run before OpenGL is imported."""
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    os.environ.setdefault("PYGLET_HEADLESS", "True")
     if importlib.util.find_spec("triton") is not None:
         import triton._C.libtriton  # noqa: F401, PLC0415  (before Mesa's LLVM: step 3 above)
     if not hasattr(np, "infty"):
         np.infty = np.inf  # type: ignore[attr-defined]  # pyrender 0.1.45 with numpy >= 2
+    _name_byref_type_for_pyopengl()
+
+
+def _name_byref_type_for_pyopengl() -> None:
+    """Step 4 of the module docstring: list this Python's name of ctypes' ``byref`` type
+    among the types PyOpenGL's ctypes-parameter handler takes (no change where it is listed)."""
+    from OpenGL import plugins  # noqa: PLC0415  (the package only: no platform is loaded)
+
+    handler = plugins.FormatHandler.by_name("ctypesparameter")
+    byref_type = type(ctypes.byref(ctypes.c_int()))
+    name = f"{byref_type.__module__}.{byref_type.__name__}"
+    if handler is not None and handler.check and name not in handler.check:
+        handler.check = [*handler.check, name]
 
 
 def import_pyrender() -> ModuleType:

@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import pickle
 import signal
 import time
+import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -386,8 +388,23 @@ def _init_worker(gen_kwargs: dict[str, Any], out_dir: str, threads: int) -> None
 
 def _work(index: int) -> int:
     assert _WORKER is not None and _WORKER_OUT is not None
-    _WORKER.write_frame(_WORKER_OUT, index)
+    try:
+        _WORKER.write_frame(_WORKER_OUT, index)
+    except Exception as error:
+        raise _picklable(error, index) from None
     return index
+
+
+def _picklable(error: Exception, index: int) -> Exception:
+    """``error`` if the pool can send it to the parent, else a RuntimeError with its text and
+    traceback (an OpenGL error holds ctypes arguments, which do not pickle: the parent would
+    see only "cannot pickle", not the error)."""
+    try:
+        pickle.loads(pickle.dumps(error))
+        return error
+    except Exception:
+        trace = "".join(traceback.format_exception(error)).rstrip()
+        return RuntimeError(f"frame {index}: {type(error).__name__}: {error}\n{trace}")
 
 
 @dataclass
