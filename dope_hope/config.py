@@ -7,9 +7,11 @@ argument is a path to a YAML file.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar, TypeVar
 
 import yaml
 
@@ -183,3 +185,85 @@ def whole_number(value: Any, name: str, minimum: int = 0) -> int:
     if v < minimum:
         raise ConfigError(f"{name} must be >= {minimum}, got {value!r}")
     return int(v)
+
+
+def fraction(value: Any, name: str) -> float:
+    """A finite number in [0, 1]."""
+    v = _number(value, name)
+    if not 0 <= v <= 1:
+        raise ConfigError(f"{name} must be in [0, 1], got {value!r}")
+    return v
+
+
+# ----------------------------------------------------------------------------- settings
+#: A value rule: ``rule(value, name)`` is the checked value (1.0 -> 1 for a whole number,
+#: a list -> a tuple), or a ConfigError naming ``name``.
+Rule = Callable[[Any, str], Any]
+
+
+def at_least(minimum: int) -> Rule:
+    """The rule of a whole number >= ``minimum`` (:func:`whole_number`)."""
+    return lambda value, name: whole_number(value, name, minimum)
+
+
+def or_none(rule: Rule) -> Rule:
+    """``rule``, or None (the setting is off)."""
+    return lambda value, name: None if value is None else rule(value, name)
+
+
+def or_inf(rule: Rule) -> Rule:
+    """``rule``, or +inf (no bound)."""
+    def checked(value: Any, name: str) -> Any:
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and value == math.inf:
+            return math.inf
+        return rule(value, name)
+    return checked
+
+
+def one_of(*choices: str) -> Rule:
+    """The rule of a value among ``choices``."""
+    def checked(value: Any, name: str) -> Any:
+        if not isinstance(value, str) or value not in choices:
+            raise ConfigError(f"{name} must be one of {', '.join(choices)}, got {value!r}")
+        return value
+    return checked
+
+
+def each(rule: Rule) -> Rule:
+    """The rule of a non-empty list of values, each checked by ``rule``; a tuple."""
+    def checked(value: Any, name: str) -> tuple:
+        if isinstance(value, (str, bytes, Mapping)) or not hasattr(value, "__len__") or not len(value):
+            raise ConfigError(f"{name} must be a non-empty list, got {value!r}")
+        return tuple(rule(v, name) for v in value)
+    return checked
+
+
+_Settings = TypeVar("_Settings", bound="SectionSettings")
+
+
+class SectionSettings:
+    """Base of the frozen dataclasses that hold one config section's settings (a stage's
+    section of ``configs/infer.yaml``, as ``icp_refine``): each field a key of the section,
+    its default the section's default.
+
+    Subclasses set ``SECTION`` (the section's name, in messages) and ``RULES`` (field -> a
+    :data:`Rule`); construction checks every field named there and keeps the checked value,
+    so a bad value is a ConfigError naming ``SECTION.field``.
+    """
+
+    SECTION: ClassVar[str] = "settings"
+    RULES: ClassVar[Mapping[str, Rule]] = {}
+
+    def __post_init__(self) -> None:
+        for name, rule in self.RULES.items():
+            object.__setattr__(self, name, rule(getattr(self, name), f"{self.SECTION}.{name}"))
+
+    @classmethod
+    def from_mapping(cls: type[_Settings], values: Mapping[str, Any] | None) -> _Settings:
+        """Settings from a section's mapping (None: the defaults); unknown keys refused."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values or {}) - names)
+        if unknown:
+            raise ConfigError(f"unknown {cls.SECTION} option(s) {', '.join(unknown)}; known: "
+                              f"{', '.join(sorted(names))}")
+        return cls(**dict(values or {}))
