@@ -67,7 +67,7 @@ from dope_hope.io.meshes import sample_surface_points
 from dope_hope.maps.targets import make_targets
 from dope_hope.preprocess import IMAGENET_MEAN, IMAGENET_STD
 from dope_hope.refine.depth import DepthImage
-from dope_hope.refine.icp import icp_refine
+from dope_hope.refine.icp import IcpSettings, icp_refine
 from dope_hope.refine.line_search import (
     auto_splat_px,
     depth_line_search,
@@ -348,7 +348,7 @@ def icp_section(repeats: int) -> int:
                              ("ten starts, all points", {"coarse_points": None}),
                              ("ten starts (default)", {})):
                 dt, res = timed(icp_refine, R0, ls.t, icp_pts, icp_nrm, DepthImage.from_raw(depth, K640),
-                                repeats=repeats, **kw)
+                                IcpSettings(**kw), repeats=repeats)
                 ok = res.applied and rotation_error_deg(res.R, R) < 1.0 and np.linalg.norm(res.t - t) < 0.002
                 rows[name].append((dt, ok))
         print(f"-LS + ICP per object (640x480 depth, 2000 model points; input {kind}, 10 % too far):")

@@ -14,11 +14,20 @@ from dope_hope.geometry import (
     rotation_error_deg,
     scale_intrinsics,
 )
-from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_candidates, solve_pnp_instances
+from dope_hope.errors import ConfigError
+from dope_hope.inference.pnp import (
+    HypothesisSettings,
+    PnpSettings,
+    PoseEstimate,
+    solve_pnp,
+    solve_pnp_candidates,
+    solve_pnp_instances,
+)
 from dope_hope.maps.decode import decode_maps
 from dope_hope.maps.targets import make_targets
 from dope_hope.refine.depth import HOPE_REALSENSE_DEPTH_CALIBRATION, DepthImage
 from dope_hope.refine.line_search import (
+    LineSearchSettings,
     auto_splat_px,
     depth_line_search,
     visible_points,
@@ -104,15 +113,15 @@ def test_min_points_is_honoured_down_to_four():
     R, t, kp = _exact_keypoints(1)
     kp[[0, 2, 5, 6, 7]] = np.nan  # 4 left (3 corners + centre)
     assert solve_pnp(kp, None, CUBOID, K640) is None  # default min_points = 5
-    p = solve_pnp(kp, None, CUBOID, K640, min_points=4)
+    p = solve_pnp(kp, None, CUBOID, K640, PnpSettings(min_points=4))
     assert p is not None and rotation_error_deg(p.R, R) < 0.1 and np.linalg.norm(p.t - t) < 1e-3
-    with pytest.raises(ValueError):
-        solve_pnp(kp, None, CUBOID, K640, min_points=3)
+    with pytest.raises(ConfigError, match="min_points must be >= 4"):
+        solve_pnp(kp, None, CUBOID, K640, PnpSettings(min_points=3))
     # Low-confidence keypoints count as missing.
     R, t, kp = _exact_keypoints(2)
     scores = np.array([1, 1, 1, 1, 0, 0, 0, 0, 1.0])
     assert solve_pnp(kp, scores, CUBOID, K640) is not None
-    assert solve_pnp(kp, scores, CUBOID, K640, min_score=0.5, min_points=6) is None
+    assert solve_pnp(kp, scores, CUBOID, K640, PnpSettings(min_score=0.5, min_points=6)) is None
 
 
 def test_inconsistent_keypoints_give_no_pose():
@@ -201,10 +210,11 @@ def test_the_search_solves_no_more_hypotheses_than_the_candidates_need(monkeypat
     assert solve_pnp_candidates(clutter_ids, partial, np.ones(25), CUBOID, K640) is None
     assert 1 + pose_mod._STALL_AFTER < len(calls) <= 1 + pose_mod._STALL_AFTER + 2 * pose_mod._HYPOTHESIS_CHUNK
     calls.clear()
-    assert solve_pnp_candidates(clutter_ids, partial, np.ones(25), CUBOID, K640, max_hypotheses=10) is None
+    assert solve_pnp_candidates(clutter_ids, partial, np.ones(25), CUBOID, K640,
+                                HypothesisSettings(max_hypotheses=10)) is None
     assert len(calls) == 1 + 10
-    with pytest.raises(ValueError, match="max_hypotheses"):
-        solve_pnp_candidates(ids, pts, scores, CUBOID, K640, max_hypotheses=0)
+    with pytest.raises(ConfigError, match="max_hypotheses"):
+        solve_pnp_candidates(ids, pts, scores, CUBOID, K640, HypothesisSettings(max_hypotheses=0))
 
 
 
@@ -380,7 +390,8 @@ def test_other_refusals():
     behind = depth_line_search(R, -t, POINTS, DepthImage.from_raw(depth, K320))
     assert not behind.applied and "behind" in behind.reason
     # min_valid is configurable
-    sparse = depth_line_search(R, 1.1 * t, POINTS, DepthImage.from_raw(depth, K320), min_valid=100000)
+    sparse = depth_line_search(R, 1.1 * t, POINTS, DepthImage.from_raw(depth, K320),
+                               LineSearchSettings(min_valid=100000))
     assert not sparse.applied and "too few" in sparse.reason
 
 

@@ -18,6 +18,7 @@ from dope_hope.inference.pose_filter import PoseFilter, closest_equivalent
 from dope_hope.inference.tracking import PoseTracker, TrackingSettings
 from dope_hope.io.predictions import read_predictions
 from dope_hope.refine.depth import DepthImage
+from dope_hope.refine.line_search import LineSearchSettings
 
 K = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]])
 HW = (480, 640)
@@ -32,7 +33,8 @@ def fake_predictor(**tracking):
     box = SimpleNamespace(class_name="DemoBox", cuboid_size_m=DEMO_SIZE_M, cuboid_center_m=np.zeros(3),
                           cuboid_mesh=CUBOID, bbox_points=CUBOID[:8], model_points=CUBOID)
     return SimpleNamespace(class_names=("DemoBox",), objects=[box],
-                           options=SimpleNamespace(line_search={}, icp=False, tracking=tracking))
+                           options=SimpleNamespace(stages=SimpleNamespace(line_search=LineSearchSettings()), icp=False,
+                                                   tracking=tracking))
 
 
 def detection(R, t, score=0.9) -> Detection:

@@ -14,7 +14,9 @@ from dope_hope.geometry import (
     project_points,
     scale_intrinsics,
 )
+from dope_hope.errors import ConfigError
 from dope_hope.maps.decode import (
+    DecodeSettings,
     Instance2D,
     assign_corners,
     corner_candidates,
@@ -94,8 +96,8 @@ def test_threshold_drops_weak_keypoints():
     kp = _scene()
     b, a = make_targets(kp, HW, 8)
     b[2] *= 0.3  # corner 2 only weakly believed
-    assert all(i.present[2] for i in decode_maps(b, a, 8, threshold=0.1))
-    assert not any(i.present[2] for i in decode_maps(b, a, 8, threshold=0.5))
+    assert all(i.present[2] for i in decode_maps(b, a, 8, DecodeSettings(threshold=0.1)))
+    assert not any(i.present[2] for i in decode_maps(b, a, 8, DecodeSettings(threshold=0.5)))
 
 
 def test_corners_whose_field_points_away_from_every_centroid_are_not_assigned():
@@ -105,7 +107,7 @@ def test_corners_whose_field_points_away_from_every_centroid_are_not_assigned():
     inst = decode_maps(b, -a, 8)  # every vector reversed
     assert len(inst) == 1
     assert inst[0].present.tolist() == [False] * 8 + [True]
-    assert decode_maps(b, -a, 8, min_keypoints=2) == []
+    assert decode_maps(b, -a, 8, DecodeSettings(min_keypoints=2)) == []
 
 
 def test_a_corner_nearer_to_another_centroid_follows_its_field():
@@ -145,19 +147,19 @@ def test_two_touching_instances_are_not_merged(stride):
         np.testing.assert_allclose(i.keypoints, kp[j], atol=0.05)
     if stride == 8:
         # DOPE's own smoothing (sigma 3 map px) merges them: why the default is smaller.
-        assert len(decode_maps(b, a, stride, smooth_sigma=3.0)) < 2
+        assert len(decode_maps(b, a, stride, DecodeSettings(smooth_sigma=3.0))) < 2
 
 
 def test_refinement_on_the_smoothed_map_stays_within_a_pixel():
     kp = _scene(2)
     _, radius = head_defaults(8)
     b, a = make_targets(kp, HW, 8, sigma=2.0, radius=radius)
-    inst = decode_maps(b, a, 8, refine_on="smoothed")
+    inst = decode_maps(b, a, 8, DecodeSettings(refine_on="smoothed"))
     assert len(inst) == 3
     for i, j in zip(inst, _match(inst, kp)):
         assert np.abs(i.keypoints - kp[j]).max() < 1.0
-    with pytest.raises(ValueError):
-        decode_maps(b, a, 8, refine_on="centroid")
+    with pytest.raises(ConfigError, match="refine_on"):
+        decode_maps(b, a, 8, DecodeSettings(refine_on="centroid"))
 
 
 def test_a_peak_with_a_shoulder_is_fitted_at_its_raw_maximum_not_the_smoothed_one():
@@ -228,7 +230,7 @@ def test_a_spurious_centroid_takes_the_true_corner_in_the_one_to_one_grouping_no
         belief[8, y, x] = 1.0 if x == 10 else 0.8
     for (x, y), v in zip(corners.astype(int), vectors):
         affinity[0:2, y, x] = v
-    cands = corner_candidates(belief, affinity, 1, smooth_sigma=0)
+    cands = corner_candidates(belief, affinity, 1, DecodeSettings(smooth_sigma=0))
     assert len(cands) == 2 and cands[0].score == pytest.approx(1.0)   # strongest centroid first
     true, spurious = cands
     assert true.keypoint_ids.tolist() == [8, 0, 0] and spurious.keypoint_ids.tolist() == [8, 0]
@@ -236,11 +238,11 @@ def test_a_spurious_centroid_takes_the_true_corner_in_the_one_to_one_grouping_no
     np.testing.assert_allclose(true.xy, [[10, 10], [10, 15], [20, 10]], atol=1e-6)
     np.testing.assert_allclose(spurious.xy[1], [20, 10], atol=1e-6)
     np.testing.assert_allclose(true.scores[1:], scores[::-1], atol=1e-6)
-    one = corner_candidates(belief, affinity, 1, smooth_sigma=0, max_per_type=1)
+    one = corner_candidates(belief, affinity, 1, DecodeSettings(smooth_sigma=0, max_per_type=1))
     assert one[0].keypoint_ids.tolist() == [8, 0]
     np.testing.assert_allclose(one[0].xy[1], [10, 15], atol=1e-6)
-    with pytest.raises(ValueError, match="max_per_type"):
-        corner_candidates(belief, affinity, 1, max_per_type=0)
+    with pytest.raises(ConfigError, match="max_per_type"):
+        corner_candidates(belief, affinity, 1, DecodeSettings(max_per_type=0))
 
 
 @pytest.mark.parametrize("stride", [8, 1])
@@ -280,15 +282,15 @@ def test_another_objects_corner_that_passes_the_angle_test_is_no_candidate():
     assert np.linalg.norm(affinity[8:10, 20, 42] - _unit(A - corners[4])) < 0.5   # feasible for A
 
     def candidates_of_a(**kw) -> list[int]:
-        cands = corner_candidates(belief, affinity, 1, smooth_sigma=0, **kw)
+        cands = corner_candidates(belief, affinity, 1, DecodeSettings(smooth_sigma=0, **kw))
         return sorted(next(c for c in cands if np.allclose(c.xy[0], A)).keypoint_ids.tolist())
 
     assert candidates_of_a() == [0, 1, 2, 8]
     assert candidates_of_a(angle_margin=np.inf, size_factor=np.inf) == [0, 1, 2, 3, 4, 8]
     assert candidates_of_a(angle_margin=np.inf) == [0, 1, 2, 8]          # the size bound alone
     assert candidates_of_a(size_factor=np.inf) == [0, 1, 2, 3, 8]        # the angle margin alone
-    with pytest.raises(ValueError, match="angle_margin"):
-        corner_candidates(belief, affinity, 1, angle_margin=-1.0)
+    with pytest.raises(ConfigError, match="angle_margin"):
+        corner_candidates(belief, affinity, 1, DecodeSettings(angle_margin=-1.0))
 
 
 # ----------------------------------------------------------------------------- noise floor
@@ -324,7 +326,7 @@ def test_heavy_noise_leaves_the_true_peaks_not_every_noise_blob():
         j = int(np.argmin(np.linalg.norm(kp[:, 8] - c.xy[0], axis=1)))
         near = np.linalg.norm(c.xy - kp[j, c.keypoint_ids], axis=1) < 8.0
         assert near.mean() > 0.8
-    assert len(corner_candidates(nb, na, 8, noise_sigmas=0.0)) > 30       # the floor is what drops them
+    assert len(corner_candidates(nb, na, 8, DecodeSettings(noise_sigmas=0.0))) > 30       # the floor is what drops them
     assert decode_maps(*_noisy(np.zeros_like(b), np.zeros_like(a), 0.1, 0.3, seed=1), 8) == []
 
 
@@ -333,32 +335,33 @@ def test_noise_floor_leaves_clean_and_lightly_noisy_maps_as_they_were():
     b, a = make_targets(kp, HW, 8)
     for maps in ((b, a), _noisy(b, a, 0.01, 0.05)):
         with_floor = corner_candidates(*maps, 8)
-        without = corner_candidates(*maps, 8, noise_sigmas=0.0)
+        without = corner_candidates(*maps, 8, DecodeSettings(noise_sigmas=0.0))
         assert len(with_floor) == len(without) == 3
         for c, d in zip(with_floor, without):
             assert c.keypoint_ids.tolist() == d.keypoint_ids.tolist()
             np.testing.assert_array_equal(c.xy, d.xy)
-    with pytest.raises(ValueError, match="noise_sigmas"):
-        corner_candidates(b, a, 8, noise_sigmas=-1.0)
+    with pytest.raises(ConfigError, match="noise_sigmas"):
+        corner_candidates(b, a, 8, DecodeSettings(noise_sigmas=-1.0))
 
 
 @pytest.mark.parametrize("options", [{}, {"noise_sigmas": 0.0, "threshold": 0.2},
                                      {"smooth_sigma": 0.0, "refine_on": "smoothed", "angle_threshold": 0.6}])
 def test_peaks_found_once_decode_as_the_decoders_find_them(options):
-    """decoder_peaks(maps, **options) are the peaks both decoders find themselves: handed in,
+    """decoder_peaks(maps, settings) are the peaks both decoders find themselves: handed in,
     they give the same instances and candidates; pose_score_bound is the best type's peaks' mean."""
     from dope_hope.maps.decode import decoder_peaks, pose_score_bound
 
     b, a = make_targets(_scene(), HW, 8)
     b, a = _noisy(b, a, 0.08, 0.2, seed=3)
-    peaks = decoder_peaks(b, **options)
+    settings = DecodeSettings(**options)
+    peaks = decoder_peaks(b, settings)
     for decode in (decode_maps, corner_candidates):
-        mine, theirs = decode(b, a, 8, **options, peaks=peaks), decode(b, a, 8, **options)
+        mine, theirs = decode(b, a, 8, settings, peaks=peaks), decode(b, a, 8, settings)
         assert len(mine) == len(theirs) > 0
         for x, y in zip(mine, theirs):
             for field in x.__dataclass_fields__:
                 np.testing.assert_array_equal(getattr(x, field), getattr(y, field))
     best = [np.clip(peaks.score[peaks.channel == k], 0, 1).max(initial=0.0) for k in range(9)]
     assert pose_score_bound(peaks) == pytest.approx(sum(best) / 9)
-    clipped = [np.clip(inst.scores, 0, 1).sum() / 9 for inst in decode_maps(b, a, 8, **options)]
+    clipped = [np.clip(inst.scores, 0, 1).sum() / 9 for inst in decode_maps(b, a, 8, settings)]
     assert max(clipped) <= pose_score_bound(peaks) + 1e-12

@@ -11,7 +11,8 @@ from scipy.spatial.transform import Rotation
 from dope_hope.geometry import intrinsics_matrix, rotation_error_deg
 from dope_hope.io.meshes import sample_surface_points
 from dope_hope.refine.depth import DepthImage
-from dope_hope.refine.icp import depth_support, icp_refine, scene_points_under, silhouette_mask
+from dope_hope.errors import ConfigError
+from dope_hope.refine.icp import IcpSettings, depth_support, icp_refine, scene_points_under, silhouette_mask
 
 K = intrinsics_matrix(600.0, 600.0, 319.5, 239.5)
 HW = (480, 640)
@@ -79,11 +80,11 @@ def test_object_outside_the_depth_is_refused():
 
 def test_a_move_beyond_the_bounds_is_refused():
     R0, t0 = perturbed(0.0, [1, 0, 0], [0.015, 0.0, 0.0])
-    res = icp_refine(R0, t0, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K), max_translation_m=0.005)
+    res = icp_refine(R0, t0, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K), IcpSettings(max_translation_m=0.005))
     assert not res.applied and "moved the object" in res.reason
     np.testing.assert_array_equal(res.t, t0)
     R0, _ = perturbed(30.0, [0, 1, 0], [0, 0, 0])
-    res = icp_refine(R0, T_GT, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K), max_rotation_deg=10.0)
+    res = icp_refine(R0, T_GT, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K), IcpSettings(max_rotation_deg=10.0))
     assert not res.applied and "turned the object" in res.reason
 
 
@@ -102,16 +103,17 @@ def test_scene_points_are_the_depth_under_the_dilated_silhouette():
 def test_bad_arguments_raise():
     with pytest.raises(ValueError, match="normals"):
         icp_refine(R_GT, T_GT, POINTS, NORMALS[:10], DepthImage.from_raw(depth_mm(), K))
-    with pytest.raises(ValueError, match="thresholds_m"):
-        icp_refine(R_GT, T_GT, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K), thresholds_m=())
+    with pytest.raises(ConfigError, match="thresholds_m"):
+        icp_refine(R_GT, T_GT, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K), IcpSettings(thresholds_m=()))
 
 
 def test_turned_starts_recover_a_quarter_turn_the_plain_start_cannot():
     R0, t0 = perturbed(80.0, [0, 1, 0], [0.004, 0.0, 0.0])  # 80 deg about the long axis
-    one = icp_refine(R0, t0, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K), start_rotations=())
+    one = icp_refine(R0, t0, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K), IcpSettings(start_rotations=()))
     assert not one.applied or rotation_error_deg(one.R, R_GT) > 10
     for coarse_points in (750, None):  # the default coarse phase, and every start on every point
-        res = icp_refine(R0, t0, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K), coarse_points=coarse_points)
+        res = icp_refine(R0, t0, POINTS, NORMALS, DepthImage.from_raw(depth_mm(), K),
+                         IcpSettings(coarse_points=coarse_points))
         assert res.applied and rotation_error_deg(res.R, R_GT) < 1.0 and np.linalg.norm(res.t - T_GT) < 0.002
 
 

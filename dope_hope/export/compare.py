@@ -3,9 +3,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from dope_hope.maps.decode import DecodeSettings
 
 
 # ----------------------------------------------------------------------------- results
@@ -103,21 +106,20 @@ def _object_groups(maps: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[tuple[
 
 def compare_maps(reference: Sequence[tuple[np.ndarray, np.ndarray]],
                  test: Sequence[tuple[np.ndarray, np.ndarray]], stride: int,
-                 match_px: float | None = None, **decode_options: Any) -> MapDeviation:
+                 match_px: float | None = None, decode: DecodeSettings | None = None) -> MapDeviation:
     """Map and keypoint deviation of ``test`` from ``reference`` (one (belief, affinity) per image).
 
     Maps: (9K, h, w) and (16K, h, w) per image for K objects (a leading batch of 1 is dropped;
     each object's channel group is compared as if it were an image of its own). Keypoints:
-    both are decoded with :func:`dope_hope.maps.decode.decode_maps` (``decode_options``),
+    both are decoded with :func:`dope_hope.maps.decode.decode_maps` (``decode``: its settings,
+    default :class:`~dope_hope.maps.decode.DecodeSettings`),
     instances are matched one-to-one by centroid (within ``match_px`` image px, default 4
     map cells), and the distance of every keypoint found in both is measured, image px.
     Belief peaks are also compared one by one, without grouping (:class:`MapDeviation`).
     """
-    from dope_hope.maps.decode import (
-        DEFAULT_SMOOTH_SIGMA,
-        DEFAULT_THRESHOLD,
-        decode_maps,
-    )
+    from dope_hope.maps.decode import DecodeSettings, decode_maps
+
+    decode = DecodeSettings() if decode is None else decode
 
     if len(reference) != len(test) or not reference:
         raise ValueError("compare_maps needs the same non-zero number of reference and test images")
@@ -136,8 +138,8 @@ def compare_maps(reference: Sequence[tuple[np.ndarray, np.ndarray]],
         max_abs = max(max_abs, belief_max, float(da.max()))
         abs_sum += float(db.sum(dtype=np.float64) + da.sum(dtype=np.float64))
         count += db.size + da.size
-        ri = decode_maps(rb, ra, stride, **decode_options)
-        ti = decode_maps(tb, ta, stride, **decode_options)
+        ri = decode_maps(rb, ra, stride, decode)
+        ti = decode_maps(tb, ta, stride, decode)
         n_ref, n_test = n_ref + len(ri), n_test + len(ti)
         for r, c in _match_instances(ri, ti, match_px):
             n_match += 1
@@ -146,8 +148,7 @@ def compare_maps(reference: Sequence[tuple[np.ndarray, np.ndarray]],
             lost += int((pr & ~pt).sum())
             added += int((pt & ~pr).sum())
             dists.append(np.linalg.norm(ri[r].keypoints[both] - ti[c].keypoints[both], axis=1))
-        n, pd = _peak_distances(rb, tb, stride, decode_options.get("threshold", DEFAULT_THRESHOLD),
-                                decode_options.get("smooth_sigma", DEFAULT_SMOOTH_SIGMA))
+        n, pd = _peak_distances(rb, tb, stride, decode.threshold, decode.smooth_sigma)
         n_peaks += n
         peak_d.append(pd)
     d = np.concatenate(dists) if dists else np.zeros(0)

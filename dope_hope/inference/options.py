@@ -1,47 +1,56 @@
 """Typed inference options: what a :class:`~dope_hope.inference.predictor.DopePredictor` does
 with a model's maps. The defaults live in the packaged ``dope_hope/configs/infer.yaml``;
-every key, top level and per stage, is checked (an unknown key is a ConfigError).
+every key, top level and per stage, is checked (an unknown key or a bad value is a
+ConfigError). Each stage's section is checked by that stage's settings dataclass, which sits
+beside the stage's function and owns the defaults (:class:`StageSettings`).
 """
 from __future__ import annotations
 
-import inspect
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dope_hope.errors import ConfigError
+
+if TYPE_CHECKING:
+    from dope_hope.config import SectionSettings
+    from dope_hope.inference.pnp import HypothesisSettings, PnpSettings
+    from dope_hope.inference.tracking_settings import TrackingSettings
+    from dope_hope.maps.decode import DecodeSettings
+    from dope_hope.refine.icp import IcpSettings
+    from dope_hope.refine.line_search import LineSearchSettings
 
 #: Pose searches: multi-hypothesis PnP over corner candidates, or DOPE's one-to-one grouping.
 POSE_SEARCHES = ("hypotheses", "groups")
 
 
-def _stage_functions() -> dict[str, list[Callable[..., Any]]]:
-    """Section name -> the functions whose keyword arguments the section may hold."""
-    from dope_hope.inference.pnp import solve_pnp, solve_pnp_candidates
+def _stage_settings() -> dict[str, type[SectionSettings]]:
+    """Section name -> the settings dataclass that checks it (its fields are the section's keys)."""
+    from dope_hope.inference.pnp import HypothesisSettings, PnpSettings
     from dope_hope.inference.tracking_settings import TrackingSettings
-    from dope_hope.maps.decode import corner_candidates, decode_maps
-    from dope_hope.refine.icp import icp_refine
-    from dope_hope.refine.line_search import depth_line_search
+    from dope_hope.maps.decode import DecodeSettings
+    from dope_hope.refine.icp import IcpSettings
+    from dope_hope.refine.line_search import LineSearchSettings
 
-    return {"decode": [corner_candidates, decode_maps], "pnp": [solve_pnp],
-            "hypotheses": [solve_pnp_candidates], "line_search": [depth_line_search],
-            "icp_refine": [icp_refine], "tracking": [TrackingSettings]}
-
-
-#: Arguments the predictor passes itself (maps, points, camera, depth, the pose search's
-#: consensus pose): not options.
-_PASSED_BY_PREDICTOR = {"belief", "affinity", "stride", "keypoints", "scores", "keypoint_ids", "xy",
-                        "cuboid", "cuboid_3d", "K", "R", "t", "model_points", "model_normals", "depth",
-                        "dist_coeffs", "initial_pose", "peaks"}
+    return {"decode": DecodeSettings, "pnp": PnpSettings, "hypotheses": HypothesisSettings,
+            "line_search": LineSearchSettings, "icp_refine": IcpSettings, "tracking": TrackingSettings}
 
 
-def _stage_keywords(functions: list[Callable[..., Any]]) -> set[str]:
-    names: set[str] = set()
-    for fn in functions:
-        for p in inspect.signature(fn).parameters.values():
-            if p.default is not inspect.Parameter.empty and p.name not in _PASSED_BY_PREDICTOR:
-                names.add(p.name)
-    return names
+@dataclass(frozen=True)
+class StageSettings:
+    """The stage sections of :class:`InferenceOptions` as their settings objects: decode
+    (:func:`~dope_hope.maps.decode.corner_candidates` / :func:`~dope_hope.maps.decode.decode_maps`),
+    pnp (:func:`~dope_hope.inference.pnp.solve_pnp`), hypotheses
+    (:func:`~dope_hope.inference.pnp.solve_pnp_candidates`), line_search
+    (:func:`~dope_hope.refine.line_search.depth_line_search`), icp_refine
+    (:func:`~dope_hope.refine.icp.icp_refine`), tracking (the stream tracker)."""
+
+    decode: DecodeSettings
+    pnp: PnpSettings
+    hypotheses: HypothesisSettings
+    line_search: LineSearchSettings
+    icp_refine: IcpSettings
+    tracking: TrackingSettings
 
 
 @dataclass(frozen=True)
@@ -51,9 +60,9 @@ class InferenceOptions:
     height: working height in px or None (the model's training scale). pose_search: one of
     :data:`POSE_SEARCHES`. min_score: detections below are dropped. ls_points / icp_points:
     model points for -LS / ICP. icp: ICP after -LS when depth is given. decode, pnp,
-    hypotheses, line_search, icp_refine: keyword arguments of each stage's function.
-    tracking: settings of the stream tracker
-    (:class:`~dope_hope.inference.tracking.TrackingSettings`, checked here).
+    hypotheses, line_search, icp_refine, tracking: each stage's section, a mapping of its
+    settings over their defaults; :attr:`stages` holds them as the settings objects the
+    stages take (checked here, names and values).
     """
 
     height: int | None
@@ -82,22 +91,22 @@ class InferenceOptions:
         points = {name: whole_number(getattr(self, name), name, 10) for name in ("ls_points", "icp_points")}
         if not isinstance(self.icp, bool):
             raise ConfigError(f"icp must be true or false, got {self.icp!r}")
-        for section, functions in _stage_functions().items():
+        stages = {}
+        for section, settings in _stage_settings().items():
             value = getattr(self, section)
             if not isinstance(value, Mapping):
-                raise ConfigError(f"{section} must be a mapping of keyword arguments, got {value!r}")
-            allowed = _stage_keywords(functions)
-            unknown = sorted(set(value) - allowed)
-            if unknown:
-                raise ConfigError(f"unknown {section} option(s) {', '.join(unknown)}; known: "
-                                  f"{', '.join(sorted(allowed))}")
-        from dope_hope.inference.tracking_settings import TrackingSettings
-
-        TrackingSettings.from_mapping(self.tracking)  # values checked as well as names
+                raise ConfigError(f"{section} must be a mapping of settings, got {value!r}")
+            stages[section] = settings.from_mapping(value)  # values checked as well as names
+        object.__setattr__(self, "_stages", StageSettings(**stages))
         object.__setattr__(self, "height", None if h is None else int(h))
         object.__setattr__(self, "min_score", min_score)
         for name, value in points.items():
             object.__setattr__(self, name, value)
+
+    @property
+    def stages(self) -> StageSettings:
+        """The stage sections as the settings objects their functions take."""
+        return self._stages
 
     @classmethod
     def from_mapping(cls, overrides: Mapping[str, Any] | None = None, base: str = "infer",

@@ -36,10 +36,20 @@ import functools
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
 
+from dope_hope.config import (
+    SectionSettings,
+    at_least,
+    finite_float,
+    fraction,
+    nonnegative_float,
+    positive_float,
+)
+from dope_hope.errors import ConfigError
 from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
 
 #: :func:`solve_pnp` defaults, also what :func:`solve_pnp_candidates` checks its best
@@ -74,6 +84,58 @@ def _chunk_ends(n: int) -> list[int]:
 #: noisy keypoints and bad starts; ~4x faster).
 _LM_CRITERIA = (cv2.TERM_CRITERIA_EPS, 0, float(np.finfo(np.float32).eps))
 
+
+def _open_fraction(value: Any, name: str) -> float:
+    """The rule of a number strictly between 0 and 1 (OpenCV's RANSAC confidence)."""
+    v = finite_float(value, name)
+    if not 0 < v < 1:
+        raise ConfigError(f"{name} must be in (0, 1), got {value!r}")
+    return v
+
+
+@dataclass(frozen=True)
+class PnpSettings(SectionSettings):
+    """:func:`solve_pnp`'s settings (``pnp:`` in ``dope_hope/configs/infer.yaml``; also those of
+    the final pose of :func:`solve_pnp_candidates`). Thresholds in pixels of the image the
+    keypoints and ``K`` refer to.
+
+    min_points: fewest present keypoints and inliers (>= 4: three points leave up to four
+    poses). reprojection_threshold_px: RANSAC / final inlier threshold. max_mean_error_px:
+    reject the pose when the mean inlier error is larger. min_score: a keypoint with score
+    <= ``min_score`` is treated as missing. min_inlier_ratio: reject when fewer than this
+    fraction of the present keypoints are inliers (5 of 9 random points can fit some pose;
+    see the module docstring). ransac_iterations, ransac_confidence: OpenCV's RANSAC.
+    """
+
+    SECTION = "pnp"
+    RULES = {"min_points": at_least(4), "reprojection_threshold_px": positive_float,
+             "max_mean_error_px": nonnegative_float, "min_score": finite_float, "min_inlier_ratio": fraction,
+             "ransac_iterations": at_least(1), "ransac_confidence": _open_fraction}
+
+    min_points: int = DEFAULT_MIN_POINTS
+    reprojection_threshold_px: float = DEFAULT_REPROJECTION_PX
+    max_mean_error_px: float = 4.0
+    min_score: float = 0.0
+    min_inlier_ratio: float = 0.75
+    ransac_iterations: int = 200
+    ransac_confidence: float = 0.999
+
+
+@dataclass(frozen=True)
+class HypothesisSettings(SectionSettings):
+    """The multi-hypothesis search's settings (``hypotheses:`` in
+    ``dope_hope/configs/infer.yaml``; :func:`solve_pnp_candidates`).
+
+    hypothesis_threshold_px: a candidate supports a hypothesis within this distance, px.
+    max_hypotheses: most AP3P minimal sets solved.
+    """
+
+    SECTION = "hypotheses"
+    RULES = {"hypothesis_threshold_px": positive_float, "max_hypotheses": at_least(1)}
+
+    hypothesis_threshold_px: float = DEFAULT_HYPOTHESIS_PX
+    max_hypotheses: int = DEFAULT_MAX_HYPOTHESES
+
 @dataclass
 class PoseEstimate:
     """A 6-DoF pose from 2D keypoints.
@@ -102,14 +164,8 @@ def solve_pnp(
     scores: np.ndarray | None,
     cuboid_points: np.ndarray,
     K: np.ndarray,
-    min_points: int = DEFAULT_MIN_POINTS,
-    reprojection_threshold_px: float = DEFAULT_REPROJECTION_PX,
-    max_mean_error_px: float = 4.0,
+    settings: PnpSettings = PnpSettings(),
     dist_coeffs: np.ndarray | None = None,
-    min_score: float = 0.0,
-    min_inlier_ratio: float = 0.75,
-    ransac_iterations: int = 200,
-    ransac_confidence: float = 0.999,
     initial_pose: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> PoseEstimate | None:
     """Pose of one cuboid from its (possibly partial) projected keypoints.
@@ -117,19 +173,15 @@ def solve_pnp(
     Args:
         keypoints: (9, 2) image px; NaN rows are missing.
         scores: (9,) keypoint confidences in [0, 1] (None = all 1); a keypoint with score
-            <= ``min_score`` is treated as missing.
+            <= ``settings.min_score`` is treated as missing.
         cuboid_points: (9, 3) model-frame cuboid keypoints, metres.
         K: (3, 3) intrinsics of the image the keypoints are in.
-        min_points: minimum number of present keypoints and of inliers (>= 4).
-        reprojection_threshold_px: RANSAC / final inlier threshold, pixels.
-        max_mean_error_px: reject the pose when the mean inlier error is larger, pixels.
+        settings: :class:`PnpSettings` (thresholds, RANSAC, rejections).
         dist_coeffs: OpenCV distortion coefficients (None = none).
-        min_inlier_ratio: reject when fewer than this fraction of the present keypoints
-            are inliers (5 of 9 random points can fit some pose; see the module docstring).
-        min_score, ransac_iterations, ransac_confidence: as named.
         initial_pose: (R (3, 3), t (3,)) a consensus pose found elsewhere (the search of
             :func:`solve_pnp_candidates`): it replaces RANSAC; the present keypoints within
-            ``reprojection_threshold_px`` of it are the inliers refined, every check follows.
+            ``settings.reprojection_threshold_px`` of it are the inliers refined, every check
+            follows.
 
     Returns:
         :class:`PoseEstimate`, or None when the keypoints do not support a pose.
@@ -138,8 +190,7 @@ def solve_pnp(
     return _solve_pnp_many(
         np.asarray(keypoints, dtype=np.float64).reshape(1, NUM_KEYPOINTS, 2),
         None if scores is None else np.asarray(scores, dtype=np.float64).reshape(1, NUM_KEYPOINTS),
-        cuboid_points, K, poses, min_points, reprojection_threshold_px, max_mean_error_px, dist_coeffs,
-        min_score, min_inlier_ratio, ransac_iterations, ransac_confidence)[0]
+        cuboid_points, K, poses, settings, dist_coeffs)[0]
 
 
 def _project(obj: np.ndarray, Rs: np.ndarray, ts: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -153,85 +204,124 @@ def _project(obj: np.ndarray, Rs: np.ndarray, ts: np.ndarray, K: np.ndarray, dis
                      for R, t in zip(Rs, ts)]).reshape(len(Rs), len(obj), 2)
 
 
+@dataclass
+class _KeypointSets:
+    """:func:`_solve_pnp_many`'s inputs, checked: kp (B, 9, 2) px, sc (B, 9) scores, present
+    (B, 9) bool (finite and scored above ``min_score``), n_present (B,), obj (9, 3) cuboid
+    keypoints, metres, K (3, 3), dist (n,) distortion coefficients."""
+
+    kp: np.ndarray
+    sc: np.ndarray
+    present: np.ndarray
+    n_present: np.ndarray
+    obj: np.ndarray
+    K: np.ndarray
+    dist: np.ndarray
+
+    @classmethod
+    def of(cls, keypoints, scores, cuboid_points, K, dist_coeffs, min_score: float) -> "_KeypointSets":
+        kp = np.asarray(keypoints, dtype=np.float64).reshape(-1, NUM_KEYPOINTS, 2)
+        B = len(kp)
+        sc = np.ones((B, NUM_KEYPOINTS)) if scores is None else np.asarray(scores, dtype=np.float64).reshape(B, -1)
+        present = np.all(np.isfinite(kp), axis=2) & np.isfinite(sc) & (sc > min_score)      # (B, 9)
+        return cls(kp, sc, present, present.sum(axis=1),
+                   np.asarray(cuboid_points, dtype=np.float64).reshape(NUM_KEYPOINTS, 3),
+                   np.asarray(K, dtype=np.float64),
+                   np.zeros(5) if dist_coeffs is None else np.asarray(dist_coeffs, dtype=np.float64))
+
+
 def _solve_pnp_many(keypoints: np.ndarray, scores: np.ndarray | None, cuboid_points: np.ndarray, K: np.ndarray,
-                    initial_poses: tuple | None, min_points: int = DEFAULT_MIN_POINTS,
-                    reprojection_threshold_px: float = DEFAULT_REPROJECTION_PX, max_mean_error_px: float = 4.0,
-                    dist_coeffs: np.ndarray | None = None, min_score: float = 0.0, min_inlier_ratio: float = 0.75,
-                    ransac_iterations: int = 200, ransac_confidence: float = 0.999,
-                    ) -> list[PoseEstimate | None]:
+                    initial_poses: tuple | None, settings: PnpSettings = PnpSettings(),
+                    dist_coeffs: np.ndarray | None = None) -> list[PoseEstimate | None]:
     """:func:`solve_pnp` of B keypoint sets at once (its steps and checks; the projections
     and checks of all sets in one pass, the solvers per set): keypoints (B, 9, 2) px, scores
     (B, 9) or None, initial_poses None or (B rotations (3, 3), B translations (3,))."""
-    if min_points < 4:
-        raise ValueError("min_points must be >= 4: three points leave up to four poses")
-    kp = np.asarray(keypoints, dtype=np.float64).reshape(-1, NUM_KEYPOINTS, 2)
-    B = len(kp)
-    sc = np.ones((B, NUM_KEYPOINTS)) if scores is None else np.asarray(scores, dtype=np.float64).reshape(B, -1)
-    obj_all = np.asarray(cuboid_points, dtype=np.float64).reshape(NUM_KEYPOINTS, 3)
-    K = np.asarray(K, dtype=np.float64)
-    dist = np.zeros(5) if dist_coeffs is None else np.asarray(dist_coeffs, dtype=np.float64)
-    thr = float(reprojection_threshold_px)
-    present = np.all(np.isfinite(kp), axis=2) & np.isfinite(sc) & (sc > min_score)      # (B, 9)
-    n_present = present.sum(axis=1)
-    out: list[PoseEstimate | None] = [None] * B
-    starts = []                              # (set, rvec, tvec, (9,) bool consensus)
+    sets = _KeypointSets.of(keypoints, scores, cuboid_points, K, dist_coeffs, settings.min_score)
     if initial_poses is None:
-        for b in np.flatnonzero(n_present >= min_points):
-            idx = np.flatnonzero(present[b])
-            try:
-                ok, rvec, tvec, inl = cv2.solvePnPRansac(
-                    obj_all[idx], kp[b, idx], K, dist,
-                    iterationsCount=ransac_iterations,
-                    reprojectionError=thr,
-                    confidence=ransac_confidence,
-                    flags=cv2.SOLVEPNP_SQPNP,
-                )
-            except cv2.error:
-                continue
-            if ok and inl is not None:
-                consensus = np.zeros(NUM_KEYPOINTS, dtype=bool)
-                consensus[idx[inl.ravel()]] = True
-                starts.append((b, rvec, tvec, consensus))
+        starts = _ransac_starts(sets, settings)
     else:
-        Rs = np.asarray(initial_poses[0], dtype=np.float64).reshape(B, 3, 3)
-        ts = np.asarray(initial_poses[1], dtype=np.float64).reshape(B, 3)
-        d = _project(obj_all, Rs, ts, K, dist) - kp
-        with np.errstate(invalid="ignore"):
-            consensus = present & (np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2) <= thr)
-        for b in np.flatnonzero(n_present >= min_points):
-            starts.append((b, cv2.Rodrigues(Rs[b])[0], ts[b].reshape(3, 1), consensus[b]))
+        starts = _consensus_starts(sets, initial_poses, settings)
+    return _accepted_poses(sets, _refined_starts(sets, starts, settings.min_points), settings)
+
+
+def _ransac_starts(sets: _KeypointSets, settings: PnpSettings) -> list[tuple]:
+    """Step 1 by RANSAC: (set, rvec, tvec, (9,) bool consensus) of each set with at least
+    ``min_points`` present keypoints whose RANSAC succeeds."""
+    starts = []
+    for b in np.flatnonzero(sets.n_present >= settings.min_points):
+        idx = np.flatnonzero(sets.present[b])
+        try:
+            ok, rvec, tvec, inl = cv2.solvePnPRansac(
+                sets.obj[idx], sets.kp[b, idx], sets.K, sets.dist,
+                iterationsCount=settings.ransac_iterations,
+                reprojectionError=settings.reprojection_threshold_px,
+                confidence=settings.ransac_confidence,
+                flags=cv2.SOLVEPNP_SQPNP,
+            )
+        except cv2.error:
+            continue
+        if ok and inl is not None:
+            consensus = np.zeros(NUM_KEYPOINTS, dtype=bool)
+            consensus[idx[inl.ravel()]] = True
+            starts.append((b, rvec, tvec, consensus))
+    return starts
+
+
+def _consensus_starts(sets: _KeypointSets, initial_poses: tuple, settings: PnpSettings) -> list[tuple]:
+    """Step 1 from given poses: (set, rvec, tvec, (9,) bool consensus: the present keypoints
+    within the threshold of the pose) of each set with at least ``min_points`` present."""
+    B = len(sets.kp)
+    Rs = np.asarray(initial_poses[0], dtype=np.float64).reshape(B, 3, 3)
+    ts = np.asarray(initial_poses[1], dtype=np.float64).reshape(B, 3)
+    d = _project(sets.obj, Rs, ts, sets.K, sets.dist) - sets.kp
+    with np.errstate(invalid="ignore"):
+        consensus = sets.present & (np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2) <= settings.reprojection_threshold_px)
+    return [(b, cv2.Rodrigues(Rs[b])[0], ts[b].reshape(3, 1), consensus[b])
+            for b in np.flatnonzero(sets.n_present >= settings.min_points)]
+
+
+def _refined_starts(sets: _KeypointSets, starts: list[tuple], min_points: int) -> list[tuple]:
+    """Step 2: Levenberg-Marquardt on each start's consensus of at least ``min_points``
+    keypoints: [(set, R (3, 3), t (3,))]."""
     refined = []
     for b, rvec, tvec, consensus in starts:
         if consensus.sum() < min_points:
             continue
         try:
-            rvec, tvec = cv2.solvePnPRefineLM(obj_all[consensus], np.ascontiguousarray(kp[b, consensus]), K, dist,
-                                              rvec, tvec, criteria=_LM_CRITERIA)
+            rvec, tvec = cv2.solvePnPRefineLM(sets.obj[consensus], np.ascontiguousarray(sets.kp[b, consensus]),
+                                              sets.K, sets.dist, rvec, tvec, criteria=_LM_CRITERIA)
         except cv2.error:
             continue
         refined.append((b, cv2.Rodrigues(rvec)[0], tvec.reshape(3)))
+    return refined
+
+
+def _accepted_poses(sets: _KeypointSets, refined: list[tuple], settings: PnpSettings) -> list[PoseEstimate | None]:
+    """Step 3 on the refined poses, all at once: inliers under each pose, the rejections,
+    the score; per set its :class:`PoseEstimate` or None."""
+    out: list[PoseEstimate | None] = [None] * len(sets.kp)
     if not refined:
         return out
-    sets = np.array([b for b, _, _ in refined])
+    which = np.array([b for b, _, _ in refined])
     Rs = np.stack([R for _, R, _ in refined])
     ts = np.stack([t for _, _, t in refined])
-    projected = _project(obj_all, Rs, ts, K, dist)                                     # (B', 9, 2)
-    d = projected - kp[sets]
+    projected = _project(sets.obj, Rs, ts, sets.K, sets.dist)                           # (B', 9, 2)
+    d = projected - sets.kp[which]
     with np.errstate(invalid="ignore"):
         err = np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
-        inliers = present[sets] & (err <= thr)
+        inliers = sets.present[which] & (err <= settings.reprojection_threshold_px)
     n_in = inliers.sum(axis=1)
-    centre_z = (Rs @ obj_all[CENTROID_INDEX] + ts)[:, 2]
+    centre_z = (Rs @ sets.obj[CENTROID_INDEX] + ts)[:, 2]
     mean_err = np.where(inliers, err, 0.0).sum(axis=1) / np.maximum(n_in, 1)
-    ok = ((n_in >= min_points) & (n_in >= min_inlier_ratio * n_present[sets]) & (ts[:, 2] > 0) & (centre_z > 0)
-          & (mean_err <= max_mean_error_px))
-    scores_out = np.where(inliers, np.clip(sc[sets], 0.0, 1.0), 0.0).sum(axis=1) / NUM_KEYPOINTS
+    ok = ((n_in >= settings.min_points) & (n_in >= settings.min_inlier_ratio * sets.n_present[which])
+          & (ts[:, 2] > 0) & (centre_z > 0) & (mean_err <= settings.max_mean_error_px))
+    scores_out = np.where(inliers, np.clip(sets.sc[which], 0.0, 1.0), 0.0).sum(axis=1) / NUM_KEYPOINTS
     for j in np.flatnonzero(ok):
-        b = sets[j]
+        b = which[j]
         out[b] = PoseEstimate(
             R=Rs[j], t=ts[j].copy(), score=float(scores_out[j]), inliers=inliers[j],
-            reprojection_error_px=float(mean_err[j]), keypoints=kp[b].copy(), projected=projected[j],
-            keypoint_scores=sc[b].copy(),
+            reprojection_error_px=float(mean_err[j]), keypoints=sets.kp[b].copy(), projected=projected[j],
+            keypoint_scores=sets.sc[b].copy(),
         )
     return out
 
@@ -319,9 +409,8 @@ def solve_pnp_candidates(
     scores: np.ndarray,
     cuboid_points: np.ndarray,
     K: np.ndarray,
-    hypothesis_threshold_px: float = DEFAULT_HYPOTHESIS_PX,
-    max_hypotheses: int = DEFAULT_MAX_HYPOTHESES,
-    **pnp_options,
+    settings: HypothesisSettings = HypothesisSettings(),
+    pnp_settings: PnpSettings = PnpSettings(),
 ) -> PoseEstimate | None:
     """Pose of one cuboid from several candidate peaks per keypoint (multi-hypothesis PnP).
 
@@ -367,21 +456,19 @@ def solve_pnp_candidates(
         scores: (n,) candidate confidences (peak heights).
         cuboid_points: (9, 3) model-frame cuboid keypoints, metres.
         K: (3, 3) intrinsics of the image the points are in (no distortion).
-        hypothesis_threshold_px: a candidate supports a hypothesis within this distance, px.
-        max_hypotheses: most AP3P minimal sets solved.
-        **pnp_options: keyword arguments of :func:`solve_pnp` for the final pose.
+        settings: :class:`HypothesisSettings` (``hypothesis_threshold_px``, ``max_hypotheses``).
+        pnp_settings: :class:`PnpSettings` of the final :func:`solve_pnp`.
 
     Returns:
         :class:`PoseEstimate` (``keypoints``: the chosen candidate per type), or None: no
         centroid, fewer keypoint types than :func:`solve_pnp`'s ``min_points`` (no minimal
         set is solved then), or the chosen assignment fails :func:`solve_pnp`.
     """
-    step1 = _first_choices([(keypoint_ids, points, scores)], cuboid_points, K, hypothesis_threshold_px,
-                           max_hypotheses, pnp_options)[0]
+    step1 = _first_choices([(keypoint_ids, points, scores)], cuboid_points, K, settings, pnp_settings)[0]
     if step1 is None or step1[0]:
         return None if step1 is None else step1[1]
-    prep = _Candidates.of(keypoint_ids, points, scores, cuboid_points, K, pnp_options)
-    return _search(prep, step1[2], hypothesis_threshold_px, max_hypotheses, pnp_options)
+    prep = _Candidates.of(keypoint_ids, points, scores, cuboid_points, K, pnp_settings)
+    return _search(prep, step1[2], settings, pnp_settings)
 
 
 
@@ -389,7 +476,8 @@ def solve_pnp_instances(
     candidates: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
     cuboid_points: np.ndarray,
     K: np.ndarray,
-    **options,
+    settings: HypothesisSettings = HypothesisSettings(),
+    pnp_settings: PnpSettings = PnpSettings(),
 ) -> list[PoseEstimate]:
     """Poses of the objects of one image: :func:`solve_pnp_candidates` per centroid, a peak
     belonging to one object only.
@@ -408,22 +496,18 @@ def solve_pnp_instances(
     Args:
         candidates: per centroid (keypoint_ids (n,), points (n, 2) px, scores (n,)) as
             :func:`solve_pnp_candidates` takes them.
-        cuboid_points, K: as in :func:`solve_pnp_candidates`.
-        **options: its keyword arguments (``hypothesis_threshold_px``, ``max_hypotheses``) and
-            :func:`solve_pnp`'s.
+        cuboid_points, K, settings, pnp_settings: as in :func:`solve_pnp_candidates`.
 
     Returns:
         The estimates kept, highest score first.
     """
-    threshold = float(options.pop("hypothesis_threshold_px", DEFAULT_HYPOTHESIS_PX))
-    max_hypotheses = int(options.pop("max_hypotheses", DEFAULT_MAX_HYPOTHESES))
     found: list[PoseEstimate | None] = [None] * len(candidates)
     pending = []
-    for i, step1 in enumerate(_first_choices(candidates, cuboid_points, K, threshold, max_hypotheses, options)):
+    for i, step1 in enumerate(_first_choices(candidates, cuboid_points, K, settings, pnp_settings)):
         if step1 is not None:                                                         # 1
             decided, found[i], first_pose = step1
             if not decided:
-                pending.append((i, _Candidates.of(*candidates[i], cuboid_points, K, options), first_pose))
+                pending.append((i, _Candidates.of(*candidates[i], cuboid_points, K, pnp_settings), first_pose))
     taken = [_inlier_peaks([e for e in found if e is not None])] if pending else []   # (k, 3) type, u, v
     for i, prep, first_pose in pending:                                               # 2
         peaks = np.concatenate(taken) if taken else np.zeros((0, 3))
@@ -431,12 +515,13 @@ def solve_pnp_instances(
         free = ~np.any(np.all(mine[:, None] == peaks[None], axis=2), axis=1)
         if not free.all() or first_pose is None:  # (None: left to this step, or no solution)
             if not free.all():
-                prep = _Candidates.of(prep.ids[free], prep.pts[free], prep.sc[free], prep.cuboid, prep.K, options)
+                prep = _Candidates.of(prep.ids[free], prep.pts[free], prep.sc[free], prep.cuboid, prep.K,
+                                      pnp_settings)
                 if prep is None:
                     continue
             first_pose = _least_squares_pose(prep.cuboid[prep.types], prep.pts[prep.first], prep.K)
             first_pose = None if first_pose[0] is None else first_pose
-        found[i] = _search(prep, first_pose, threshold, max_hypotheses, options)
+        found[i] = _search(prep, first_pose, settings, pnp_settings)
         if found[i] is not None:
             taken.append(_inlier_peaks([found[i]]))
     found = sorted((e for e in found if e is not None), key=lambda e: -e.score)       # 3
@@ -485,13 +570,13 @@ class _Candidates:
     first: np.ndarray
 
     @classmethod
-    def of(cls, keypoint_ids, points, scores, cuboid_points, K, pnp_options: dict) -> "_Candidates | None":
+    def of(cls, keypoint_ids, points, scores, cuboid_points, K, pnp_settings: PnpSettings) -> "_Candidates | None":
         """Checked inputs, or None when no pose can pass :func:`solve_pnp`
         (:func:`_pose_possible`)."""
         ids, pts, sc, _ = _checked([(keypoint_ids, points, scores)])
         usable = np.flatnonzero(np.isfinite(pts).all(axis=1) & np.isfinite(sc))
         counts = np.bincount(ids[usable], minlength=NUM_KEYPOINTS)
-        if not _pose_possible(counts, pnp_options):
+        if not _pose_possible(counts, pnp_settings.min_points):
             return None
         types = np.flatnonzero(counts)
         # Candidate indices per type present, each best first (the input order).
@@ -519,28 +604,21 @@ def _checked(candidates: Sequence[tuple]) -> tuple[np.ndarray, np.ndarray, np.nd
     return ids, pts, sc, owner
 
 
-def _pose_possible(counts: np.ndarray, pnp_options: dict) -> np.ndarray:
+def _pose_possible(counts: np.ndarray, min_points: int) -> np.ndarray:
     """(...,) bool from (..., 9) usable candidates per keypoint type: a centroid is present and
     at least :func:`solve_pnp`'s ``min_points`` types (one keypoint per type reaches it)."""
-    return (counts[..., CENTROID_INDEX] > 0) & (np.count_nonzero(counts, axis=-1) >= _min_points(pnp_options))
+    return (counts[..., CENTROID_INDEX] > 0) & (np.count_nonzero(counts, axis=-1) >= min_points)
 
 
-def _min_points(pnp_options: dict) -> int:
-    """:func:`solve_pnp`'s ``min_points`` under these options (at least 4)."""
-    return max(4, int(pnp_options.get("min_points", DEFAULT_MIN_POINTS)))
-
-
-def _first_choices(candidates: Sequence[tuple], cuboid_points: np.ndarray, K: np.ndarray, threshold_px: float,
-                   max_hypotheses: int, pnp_options: dict) -> list[tuple | None]:
+def _first_choices(candidates: Sequence[tuple], cuboid_points: np.ndarray, K: np.ndarray,
+                   settings: HypothesisSettings, pnp_settings: PnpSettings) -> list[tuple | None]:
     """Step 1 of :func:`solve_pnp_candidates` for every centroid of one image at once: the
     least-squares pose through each type's first candidate (one solve per centroid, the
     candidates of all projected and checked together). Per centroid None (no pose possible:
     :func:`_pose_possible`), else (decided, estimate, pose): decided when each first
-    candidate lies within ``threshold_px`` of that pose and is the nearest of its type (the
+    candidate lies within ``hypothesis_threshold_px`` of that pose and is the nearest of its type (the
     estimate is then :func:`solve_pnp`'s answer, maybe None, for all decided at once); pose:
     (R, t), or None where the solver failed."""
-    if max_hypotheses < 1:
-        raise ValueError(f"max_hypotheses must be >= 1, got {max_hypotheses}")
     m = len(candidates)
     out: list[tuple | None] = [None] * m
     if m == 0:
@@ -551,7 +629,8 @@ def _first_choices(candidates: Sequence[tuple], cuboid_points: np.ndarray, K: np
     usable = np.flatnonzero(np.isfinite(pts).all(axis=1) & np.isfinite(sc))
     order = usable[np.lexsort((usable, ids[usable], owner[usable]))]   # by centroid, type, input order
     key = owner[order] * NUM_KEYPOINTS + ids[order]
-    possible = _pose_possible(np.bincount(key, minlength=m * NUM_KEYPOINTS).reshape(m, NUM_KEYPOINTS), pnp_options)
+    min_points = pnp_settings.min_points
+    possible = _pose_possible(np.bincount(key, minlength=m * NUM_KEYPOINTS).reshape(m, NUM_KEYPOINTS), min_points)
     if not possible.any():
         return out
     new_type = np.r_[True, key[1:] != key[:-1]]
@@ -570,7 +649,7 @@ def _first_choices(candidates: Sequence[tuple], cuboid_points: np.ndarray, K: np
     Rs, ts = np.zeros((m, 3, 3)), np.zeros((m, 3))
     solved = np.zeros(m, dtype=bool)
     for c in np.flatnonzero(possible):
-        if own[c] < _min_points(pnp_options):
+        if own[c] < min_points:
             out[c] = (False, None, None)
             continue
         f = first[bounds[c]: bounds[c + 1]]
@@ -586,7 +665,7 @@ def _first_choices(candidates: Sequence[tuple], cuboid_points: np.ndarray, K: np
     err = np.full(len(order), np.inf)
     err[pos] = np.where(uvw[:, 2] > 0, d[:, 0] ** 2 + d[:, 1] ** 2, np.inf)                # squared, px^2
     ref = err[first_at[pos]]
-    bad = ~(ref <= threshold_px ** 2) | (err[pos] < ref)
+    bad = ~(ref <= settings.hypothesis_threshold_px ** 2) | (err[pos] < ref)
     decided = np.flatnonzero(solved & (np.bincount(owner[rows[bad]], minlength=m) == 0))
     if decided.size:
         slot = np.full(m, -1)
@@ -596,17 +675,18 @@ def _first_choices(candidates: Sequence[tuple], cuboid_points: np.ndarray, K: np
         kp_scores = np.zeros((decided.size, NUM_KEYPOINTS))
         kp[slot[owner[f]], ids[f]] = pts[f]
         kp_scores[slot[owner[f]], ids[f]] = sc[f]
-        ests = _solve_pnp_many(kp, kp_scores, cuboid, K, (Rs[decided], ts[decided]), **pnp_options)
+        ests = _solve_pnp_many(kp, kp_scores, cuboid, K, (Rs[decided], ts[decided]), pnp_settings)
         for c, est in zip(decided.tolist(), ests):
             out[c] = (True, est, (Rs[c], ts[c]))
     return out
 
 
-def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, hypothesis_threshold_px: float,
-            max_hypotheses: int, pnp_options: dict) -> PoseEstimate | None:
+def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, settings: HypothesisSettings,
+            pnp_settings: PnpSettings) -> PoseEstimate | None:
     """Step 2 of :func:`solve_pnp_candidates` (and its final :func:`solve_pnp`), after step 1's
     ``first_pose`` (scored first; None: the solver failed)."""
     ids, pts, sc, cuboid, K, types, order, starts = c.ids, c.pts, c.sc, c.cuboid, c.K, c.types, c.order, c.starts
+    hypothesis_threshold_px = settings.hypothesis_threshold_px
     anchor = c.first[-1]                                       # the centroid (type 8, last)
     groups = np.split(order, starts[1:])
     scorer = _HypothesisScorer(ids, pts, np.clip(sc, 0.0, 1.0), groups, anchor, cuboid, K,
@@ -630,7 +710,7 @@ def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, hy
     n_types = len(types)
     enough = n_types if n_types - 1 < _ENOUGH_TYPES else n_types - 1
     if scorer.most_explained < enough:                                         # step 2
-        sets = _minimal_sets(groups[:-1], int(max_hypotheses))
+        sets = _minimal_sets(groups[:-1], settings.max_hypotheses)
         quads = np.concatenate([sets, np.full((len(sets), 1), anchor)], axis=1)  # 3 corners + centroid
         objs, imgs = cuboid[ids[quads]], np.ascontiguousarray(pts[quads])       # (S, 4, 3), (S, 4, 2)
         start = last_better = 0
@@ -645,9 +725,7 @@ def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, hy
     if scorer.best_err is None:
         return None
     best_err, best_nearest = scorer.best_err, scorer.best_nearest
-    final_px = float(pnp_options.get("reprojection_threshold_px", DEFAULT_REPROJECTION_PX))
-    min_points = int(pnp_options.get("min_points", DEFAULT_MIN_POINTS))
-    if np.count_nonzero(best_err[best_nearest] <= final_px) < min_points:
+    if np.count_nonzero(best_err[best_nearest] <= pnp_settings.reprojection_threshold_px) < pnp_settings.min_points:
         return None  # fewer than min_points keypoints near the best pose
     kp = np.full((NUM_KEYPOINTS, 2), np.nan)
     kp_scores = np.zeros(NUM_KEYPOINTS)
@@ -655,10 +733,10 @@ def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, hy
         if best_err[j] > hypothesis_threshold_px:
             j = g[np.argmax(sc[g])]
         kp[k], kp_scores[k] = pts[j], sc[j]
-    est = solve_pnp(kp, kp_scores, cuboid, K, initial_pose=scorer.best_pose, **pnp_options)
+    est = solve_pnp(kp, kp_scores, cuboid, K, pnp_settings, initial_pose=scorer.best_pose)
     # A minimal set's pose is a few pixels off on noisy peaks: where its consensus does not
     # hold up, RANSAC on the assignment may still find one that does.
-    return est if est is not None else solve_pnp(kp, kp_scores, cuboid, K, **pnp_options)
+    return est if est is not None else solve_pnp(kp, kp_scores, cuboid, K, pnp_settings)
 
 
 class _HypothesisScorer:

@@ -71,7 +71,6 @@ from dope_hope.inference.object_geometry import ObjectGeometry
 from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_instances
 from dope_hope.maps.decode import (
-    DEFAULT_THRESHOLD,
     Peaks,
     corner_candidates,
     decode_maps,
@@ -256,7 +255,7 @@ class DopePredictor:
         of the predictor's objects this time (exact class names; None: all)."""
         K = check_intrinsics(K)
         K_net = net_in.network_K(K)
-        threshold = float(self.options.decode.get("threshold", DEFAULT_THRESHOLD))
+        threshold = self.options.stages.decode.threshold
         min_score = float(self.options.min_score)
         out: list[Detection] = []
         for obj in self.objects:
@@ -265,7 +264,7 @@ class DopePredictor:
             b, a = obj.channels(belief, affinity)
             if not b.max() > threshold:  # find_peaks keeps no cell whose belief is <= threshold
                 continue
-            peaks = decoder_peaks(b, **self.options.decode)
+            peaks = decoder_peaks(b, self.options.stages.decode)
             if min_score > 0 and pose_score_bound(peaks) < min_score - SCORE_BOUND_SLACK:
                 continue  # no pose of these maps could reach min_score: nothing to decode
             out += self._object_detections(obj, b, a, peaks, net_in, K, K_net, depth)
@@ -296,7 +295,7 @@ class DopePredictor:
                 cuboid_size_m=obj.cuboid_size_m.copy(), cuboid_center_m=obj.cuboid_center_m.copy(),
             )
             if depth is not None:
-                ls = depth_line_search(R, t, obj.model_points, depth, **self.options.line_search)
+                ls = depth_line_search(R, t, obj.model_points, depth, self.options.stages.line_search)
                 det.t, det.ls_applied, det.ls_reason, det.ls_scale = ls.t, ls.applied, ls.reason, ls.scale
                 if self.options.icp:
                     self._refine_icp(obj, det, depth)
@@ -333,13 +332,14 @@ class DopePredictor:
     def _refine_icp(self, obj: ObjectGeometry, det: Detection, depth: DepthImage) -> None:
         """The ICP step of the module docstring, in place on ``det`` (after the line search)."""
         points, normals = obj.icp_model
+        stages = self.options.stages
         res = None
         if not det.ls_applied:  # ICP needs the depth within a few cm: a wider line search first
-            options = {**self.options.line_search, "search": ICP_LS_SEARCH}
-            wide = depth_line_search(det.R, det.t, obj.model_points, depth, **options)
+            wide = depth_line_search(det.R, det.t, obj.model_points, depth,
+                                     replace(stages.line_search, search=ICP_LS_SEARCH))
             if wide.applied:  # kept only while the object's own depth support holds it
-                res = icp_refine(det.R, wide.t, points, normals, depth, initial_pose=(det.R, det.t),
-                                 **self.options.icp_refine)
+                res = icp_refine(det.R, wide.t, points, normals, depth, stages.icp_refine,
+                                 initial_pose=(det.R, det.t))
                 search = f"search {ICP_LS_SEARCH[0]:g}-{ICP_LS_SEARCH[1]:g}, for ICP"
                 if res.start_supported:
                     det.t, det.ls_applied, det.ls_scale = wide.t, True, wide.scale
@@ -348,7 +348,7 @@ class DopePredictor:
                     det.ls_reason += f"; s = {wide.scale:.3f} ({search}) {res.reason.removeprefix('the start pose ')}"
                     res = None
         if res is None:
-            res = icp_refine(det.R, det.t, points, normals, depth, **self.options.icp_refine)
+            res = icp_refine(det.R, det.t, points, normals, depth, stages.icp_refine)
         det.icp_applied, det.icp_reason = res.applied, res.reason
         det.icp_fit = res.fit_after if res.applied else res.fit_before
         if res.applied:
@@ -359,13 +359,14 @@ class DopePredictor:
         """Network-image poses of the instances in one object's maps (step 3 of the module
         docstring), best first; keypoints in the network's own order; ``cuboid`` (9, 3);
         ``peaks``: the maps' :func:`~dope_hope.maps.decode.decoder_peaks` when already found."""
+        stages = self.options.stages
         if self.options.pose_search == "groups":
-            found = [solve_pnp(inst.keypoints, inst.scores, cuboid, K_net, **self.options.pnp)
-                     for inst in decode_maps(belief, affinity, self.stride, **self.options.decode, peaks=peaks)]
+            found = [solve_pnp(inst.keypoints, inst.scores, cuboid, K_net, stages.pnp)
+                     for inst in decode_maps(belief, affinity, self.stride, stages.decode, peaks=peaks)]
             return [e for e in found if e is not None]
-        candidates = corner_candidates(belief, affinity, self.stride, **self.options.decode, peaks=peaks)
+        candidates = corner_candidates(belief, affinity, self.stride, stages.decode, peaks=peaks)
         return solve_pnp_instances([(c.keypoint_ids, c.xy, c.scores) for c in candidates], cuboid,
-                                   K_net, **self.options.hypotheses, **self.options.pnp)
+                                   K_net, stages.hypotheses, stages.pnp)
 
     def __repr__(self) -> str:
         return (f"DopePredictor(classes={list(self.class_names)!r}, stride={self.stride}, "

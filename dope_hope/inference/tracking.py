@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -307,7 +307,7 @@ class PoseTracker:
             if depth is not None:
                 p = self.predictors[class_name]
                 res = depth_line_search(det.R, t, self.geometry[class_name].model_points, depth,
-                                        **{**p.options.line_search, "search": self.settings.coast_search})
+                                        replace(p.options.stages.line_search, search=self.settings.coast_search))
                 t = res.t if res.applied else t
         R, t = tr.filter.update(det.R, t, self._noise_scale(det))
         tr.hits, tr.misses, tr.score = tr.hits + 1, 0, float(det.score)
@@ -339,8 +339,8 @@ class PoseTracker:
         ls = (False, "no depth image")
         if depth is not None and self.settings.coast_refine:
             p = self.predictors[class_name]
-            options = {**p.options.line_search, "search": self.settings.coast_search}
-            res = depth_line_search(R, t, self.geometry[class_name].model_points, depth, **options)
+            settings = replace(p.options.stages.line_search, search=self.settings.coast_search)
+            res = depth_line_search(R, t, self.geometry[class_name].model_points, depth, settings)
             ls = (bool(res.applied), f"coasted: {res.reason}")
             if res.applied:
                 t = res.t

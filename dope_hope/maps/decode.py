@@ -57,13 +57,21 @@ nine, missing keypoints count 0).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter, label
 from scipy.optimize import linear_sum_assignment
 
+from dope_hope.config import (
+    SectionSettings,
+    at_least,
+    finite_float,
+    nonnegative_float,
+    one_of,
+    or_inf,
+    positive_float,
+)
 from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
 from dope_hope.maps.grid import map_to_image
 
@@ -90,6 +98,51 @@ _NOISE_SAMPLE_CELLS = 512
 #: Grouping cost per unit of missing peak height, map px: a peak's height outranks any
 #: centroid distance (see :func:`assign_corners`).
 SCORE_PRIORITY = 1e4
+
+
+@dataclass(frozen=True)
+class DecodeSettings(SectionSettings):
+    """The decoders' settings (``decode:`` in ``dope_hope/configs/infer.yaml``), shared by
+    :func:`decode_maps` and :func:`corner_candidates`; the official DOPE values in brackets.
+
+    Peaks (:func:`find_peaks`, :data:`PEAK_OPTIONS`): threshold: minimum belief at a keypoint
+    peak (thresh_points 0.1). smooth_sigma: detection smoothing, map px (3; 0 = none).
+    nms_radius: local-maximum neighbourhood radius, map px. refine_on: "raw" or "smoothed",
+    the map the sub-pixel fit uses first. noise_sigmas: a peak stands this many robust
+    standard deviations above its map's background (:func:`noise_floor`; 0: only
+    ``threshold``).
+
+    Grouping: angle_threshold: corner-centroid direction test, unit-vector distance (0.5).
+    min_affinity: minimum affinity vector length at a corner peak. min_keypoints
+    (:func:`decode_maps`): drop instances with fewer keypoints (the centroid counts).
+
+    Candidates (:func:`corner_candidates`): max_per_type: keep at most this many peaks of each
+    corner type per centroid: the one :func:`decode_maps` would give it, then the others by its
+    grouping cost (strongest first, nearest among equals). angle_margin: a peak other than the
+    one-to-one choice is a candidate of a centroid only when its affinity points at it at most
+    this much worse (unit-vector distance) than at the centroid it points at best (inf: no
+    bound). size_factor: no peak, the one-to-one choice included, lies farther from a centroid
+    than this many times its object's size: the median distance of its one-to-one corners
+    (inf: no bound).
+    """
+
+    SECTION = "decode"
+    RULES = {"threshold": finite_float, "angle_threshold": nonnegative_float, "smooth_sigma": nonnegative_float,
+             "nms_radius": at_least(0), "min_affinity": finite_float, "refine_on": one_of("raw", "smoothed"),
+             "min_keypoints": at_least(0), "noise_sigmas": nonnegative_float, "max_per_type": at_least(1),
+             "angle_margin": or_inf(nonnegative_float), "size_factor": or_inf(positive_float)}
+
+    threshold: float = DEFAULT_THRESHOLD
+    angle_threshold: float = DEFAULT_ANGLE_THRESHOLD
+    smooth_sigma: float = DEFAULT_SMOOTH_SIGMA
+    nms_radius: int = 1
+    min_affinity: float = 0.0
+    refine_on: str = "raw"
+    min_keypoints: int = 1
+    noise_sigmas: float = DEFAULT_NOISE_SIGMAS
+    max_per_type: int = 3
+    angle_margin: float = DEFAULT_ANGLE_MARGIN
+    size_factor: float = DEFAULT_SIZE_FACTOR
 
 
 @dataclass
@@ -320,7 +373,6 @@ def find_peaks(
         raise ValueError(f"belief must be (C, h, w), got {raw.shape}")
     if not np.isfinite(raw).all():
         raw = np.nan_to_num(raw, nan=0.0, posinf=0.0, neginf=0.0)
-    C, h, w = raw.shape
     smooth = _smooth(raw, smooth_sigma) if smooth_sigma > 0 else raw
     local_max = (smooth >= _window_max(smooth, nms_radius)) & (smooth > 0)  # flat empty regions are not peaks
     # A peak: a local maximum of the smoothed map whose raw 3x3 maximum (cells inside the map) passes.
@@ -333,6 +385,21 @@ def find_peaks(
         empty = np.zeros((0, 2))
         return Peaks(np.zeros(0, int), empty.astype(int), empty, np.zeros(0))
     c, y, x = cells
+    xy, score, inside = _subpixel_fit(raw, smooth, raw_near, c, y, x, refine_on)
+    return Peaks(
+        channel=c[inside].astype(int),
+        cell=np.stack([x, y], axis=1)[inside].astype(int),
+        xy=xy[inside],
+        score=score[inside],
+    )
+
+
+def _subpixel_fit(raw: np.ndarray, smooth: np.ndarray, raw_near: np.ndarray, c: np.ndarray, y: np.ndarray,
+                  x: np.ndarray, refine_on: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2 of the module docstring and the scores, for the peak cells (c, y, x) ((P,) int
+    each) of the raw and smoothed (C, h, w) maps (``raw_near``: the raw 3x3 maxima): ((P, 2)
+    continuous map position (x, y), (P,) score, (P,) bool: the position lies inside the map)."""
+    h, w = raw.shape[1:]
     primary, secondary = (raw, smooth) if refine_on == "raw" else (smooth, raw)
     coords, heights, raw_ok = [], [], []
     inside = np.ones(len(c), dtype=bool)
@@ -365,12 +432,7 @@ def find_peaks(
     inside &= (
         (xy[:, 0] >= -0.5) & (xy[:, 0] <= w - 0.5) & (xy[:, 1] >= -0.5) & (xy[:, 1] <= h - 0.5)
     )
-    return Peaks(
-        channel=c[inside].astype(int),
-        cell=np.stack([x, y], axis=1)[inside].astype(int),
-        xy=xy[inside],
-        score=score[inside],
-    )
+    return xy, score, inside
 
 
 def assign_corners(
@@ -459,13 +521,12 @@ def corner_centroid_costs(corner_cells: np.ndarray, corner_xy: np.ndarray, vecto
 PEAK_OPTIONS = ("threshold", "smooth_sigma", "nms_radius", "refine_on", "noise_sigmas")
 
 
-def decoder_peaks(belief, **decode_options: Any) -> Peaks:
-    """The peaks :func:`decode_maps` and :func:`corner_candidates` start from, given their
-    options (the peak ones, :data:`PEAK_OPTIONS`, with the decoders' defaults): computed once,
-    they can be handed to either decoder (``peaks=``) and to :func:`pose_score_bound`."""
-    options = {"noise_sigmas": DEFAULT_NOISE_SIGMAS,
-               **{k: v for k, v in decode_options.items() if k in PEAK_OPTIONS}}
-    return find_peaks(belief, **options)
+def decoder_peaks(belief, settings: DecodeSettings = DecodeSettings()) -> Peaks:
+    """The peaks :func:`decode_maps` and :func:`corner_candidates` start from under
+    ``settings`` (its peak ones, :data:`PEAK_OPTIONS`): computed once, they can be handed to
+    either decoder (``peaks=``) and to :func:`pose_score_bound`."""
+    return find_peaks(belief, settings.threshold, settings.smooth_sigma, settings.nms_radius, settings.refine_on,
+                      settings.noise_sigmas)
 
 
 def pose_score_bound(peaks: Peaks) -> float:
@@ -482,37 +543,21 @@ def decode_maps(
     belief,
     affinity,
     stride: int,
-    threshold: float = DEFAULT_THRESHOLD,
-    angle_threshold: float = DEFAULT_ANGLE_THRESHOLD,
-    smooth_sigma: float = DEFAULT_SMOOTH_SIGMA,
-    nms_radius: int = 1,
-    min_affinity: float = 0.0,
-    refine_on: str = "raw",
-    min_keypoints: int = 1,
-    noise_sigmas: float = DEFAULT_NOISE_SIGMAS,
+    settings: DecodeSettings = DecodeSettings(),
     peaks: Peaks | None = None,
 ) -> list[Instance2D]:
-    """Decode one image's maps into instances.
+    """Decode one image's maps into instances (DOPE's grouping: one corner per type).
 
     Args:
         belief: (9, h, w) belief maps, numpy or torch (a leading batch of 1 is dropped).
         affinity: (16, h, w) affinity fields, same kind.
         stride: image pixels per map cell (8 for the 50-px head, 1 for the 400-px head).
-        threshold: minimum belief at a keypoint peak (DOPE's thresh_points).
-        angle_threshold: corner-centroid direction test, unit-vector distance (DOPE 0.5).
-        smooth_sigma: detection smoothing, map px (DOPE uses 3).
-        nms_radius: local-maximum neighbourhood radius, map px.
-        min_affinity: minimum affinity vector length at a corner peak.
-        refine_on: "raw" or "smoothed" (see :func:`find_peaks`).
-        min_keypoints: drop instances with fewer keypoints (the centroid counts).
-        noise_sigmas: a peak stands this many robust standard deviations above its map's
-            background (:func:`noise_floor`; 0: only ``threshold``).
-        peaks: the :func:`decoder_peaks` of these maps and options, when already found.
+        settings: :class:`DecodeSettings` (peaks, grouping, ``min_keypoints``).
+        peaks: the :func:`decoder_peaks` of these maps and settings, when already found.
     Returns:
         Instances sorted by decreasing score; keypoints in image px via mapgrid.
     """
-    peaks, aff = _peaks_and_field(belief, affinity, threshold, smooth_sigma, nms_radius, refine_on, noise_sigmas,
-                                  peaks)
+    peaks, aff = _peaks_and_field(belief, affinity, settings, peaks)
     is_c = peaks.channel == CENTROID_INDEX
     centroids_xy = peaks.xy[is_c]
     m = len(centroids_xy)
@@ -522,7 +567,7 @@ def decode_maps(
     scores = np.zeros((m, NUM_KEYPOINTS))
     kp_map[:, CENTROID_INDEX] = centroids_xy
     scores[:, CENTROID_INDEX] = peaks.score[is_c]
-    corner, *_, owner = _corner_groups(peaks, aff, centroids_xy, angle_threshold, min_affinity)
+    corner, *_, owner = _corner_groups(peaks, aff, centroids_xy, settings)
     got = owner >= 0
     kp_map[owner[got], peaks.channel[corner[got]]] = peaks.xy[corner[got]]
     scores[owner[got], peaks.channel[corner[got]]] = peaks.score[corner[got]]
@@ -531,16 +576,16 @@ def decode_maps(
     instances = [
         Instance2D(keypoints=kp_img[i], scores=scores[i], score=float(scores[i].sum() / NUM_KEYPOINTS))
         for i in range(m)
-        if np.isfinite(kp_img[i, :, 0]).sum() >= min_keypoints
+        if np.isfinite(kp_img[i, :, 0]).sum() >= settings.min_keypoints
     ]
     instances.sort(key=lambda inst: -inst.score)
     return instances
 
 
-def _peaks_and_field(belief, affinity, threshold: float, smooth_sigma: float, nms_radius: int,
-                     refine_on: str, noise_sigmas: float, peaks: Peaks | None = None) -> tuple[Peaks, np.ndarray]:
+def _peaks_and_field(belief, affinity, settings: DecodeSettings,
+                     peaks: Peaks | None = None) -> tuple[Peaks, np.ndarray]:
     """Checked maps -> (peaks of all nine channels (``peaks`` when given: :func:`decoder_peaks`
-    of the same maps and options), (16, h, w) affinity)."""
+    of the same maps and settings), (16, h, w) affinity)."""
     bel = _to_numpy(belief)
     aff = _to_numpy(affinity)
     if bel.ndim != 3 or bel.shape[0] != NUM_KEYPOINTS:
@@ -549,11 +594,11 @@ def _peaks_and_field(belief, affinity, threshold: float, smooth_sigma: float, nm
         raise ValueError(f"affinity must be ({2 * CENTROID_INDEX}, h, w) like belief, got {aff.shape}")
     if peaks is not None:
         return peaks, aff
-    return find_peaks(bel, threshold, smooth_sigma, nms_radius, refine_on, noise_sigmas), aff
+    return decoder_peaks(bel, settings), aff
 
 
-def _corner_groups(peaks: Peaks, aff: np.ndarray, centroids_xy: np.ndarray, angle_threshold: float,
-                   min_affinity: float) -> tuple[np.ndarray, ...]:
+def _corner_groups(peaks: Peaks, aff: np.ndarray, centroids_xy: np.ndarray,
+                   settings: DecodeSettings) -> tuple[np.ndarray, ...]:
     """The grouping step both :func:`decode_maps` and :func:`corner_candidates` build on, for
     every corner peak against the (m, 2) centroids at once: ((N,) peak indices of the corner
     peaks, (N, m) feasible, (N, m) cost, (N, m) direction disagreement, (N, m) distance, (N,)
@@ -565,7 +610,8 @@ def _corner_groups(peaks: Peaks, aff: np.ndarray, centroids_xy: np.ndarray, angl
     vectors = vectors.astype(np.float64)
     vectors[~np.isfinite(vectors)] = 0.0
     feasible, cost, angle, dist = corner_centroid_costs(cells, peaks.xy[corner], vectors, centroids_xy,
-                                                        angle_threshold, min_affinity, peaks.score[corner])
+                                                        settings.angle_threshold, settings.min_affinity,
+                                                        peaks.score[corner])
     return corner, feasible, cost, angle, dist, _one_to_one(feasible, cost, ch)
 
 
@@ -592,76 +638,37 @@ def corner_candidates(
     belief,
     affinity,
     stride: int,
-    threshold: float = DEFAULT_THRESHOLD,
-    angle_threshold: float = DEFAULT_ANGLE_THRESHOLD,
-    smooth_sigma: float = DEFAULT_SMOOTH_SIGMA,
-    nms_radius: int = 1,
-    min_affinity: float = 0.0,
-    refine_on: str = "raw",
-    max_per_type: int = 3,
-    angle_margin: float = DEFAULT_ANGLE_MARGIN,
-    size_factor: float = DEFAULT_SIZE_FACTOR,
-    noise_sigmas: float = DEFAULT_NOISE_SIGMAS,
+    settings: DecodeSettings = DecodeSettings(),
     peaks: Peaks | None = None,
 ) -> list[CornerCandidates]:
     """Per centroid peak, the corner peaks whose affinity points at it (module docstring, 4).
 
     Args:
-        belief, affinity, stride, threshold, angle_threshold, smooth_sigma, nms_radius,
-            min_affinity, refine_on, noise_sigmas, peaks: as in :func:`decode_maps`.
-        max_per_type: keep at most this many peaks of each corner type per centroid: the one
-            :func:`decode_maps` would give it, then the others by its grouping cost (strongest
-            first, nearest among equals).
-        angle_margin: a peak other than the one-to-one choice is a candidate of a centroid
-            only when its affinity points at it at most this much worse (unit-vector distance,
-            as ``angle_threshold``) than at the centroid it points at best (inf: no bound).
-        size_factor: no peak, the one-to-one choice included, lies farther from a centroid
-            than this many times its object's size: the median distance of its one-to-one
-            corners (inf: no bound).
+        belief, affinity, stride, peaks: as in :func:`decode_maps`.
+        settings: :class:`DecodeSettings` (peaks, grouping, and which peaks are candidates:
+            ``max_per_type``, ``angle_margin``, ``size_factor``).
 
     Returns:
         One :class:`CornerCandidates` per centroid peak, strongest centroid first. A corner
         peak may be a candidate of several centroids.
     """
-    if max_per_type < 1:
-        raise ValueError(f"max_per_type must be >= 1, got {max_per_type}")
-    if not (angle_margin >= 0.0 and size_factor > 0.0):
-        raise ValueError(f"angle_margin must be >= 0 and size_factor > 0, got {angle_margin}, {size_factor}")
-    peaks, aff = _peaks_and_field(belief, affinity, threshold, smooth_sigma, nms_radius, refine_on, noise_sigmas,
-                                  peaks)
+    peaks, aff = _peaks_and_field(belief, affinity, settings, peaks)
     is_c = peaks.channel == CENTROID_INDEX
     centroids_xy = peaks.xy[is_c]
     m = len(centroids_xy)
     if m == 0:
         return []
-    corner, feasible, cost, angle, dist, owner = _corner_groups(peaks, aff, centroids_xy, angle_threshold,
-                                                                min_affinity)
+    corner, feasible, cost, angle, dist, owner = _corner_groups(peaks, aff, centroids_xy, settings)
     ch = peaks.channel[corner]
-    # Size of each centroid's object: the median distance of its one-to-one corners.
-    own = np.flatnonzero(owner >= 0)
-    own_dist = np.full((m, CENTROID_INDEX), np.inf)
-    own_dist[owner[own], ch[own]] = dist[own, owner[own]]
-    own_dist.sort(axis=1)
-    n_own = np.isfinite(own_dist).sum(axis=1)
-    rows = np.arange(m)
-    lo, hi = own_dist[rows, np.maximum(n_own - 1, 0) // 2], own_dist[rows, np.maximum(n_own, 1) // 2]
-    size = np.where(n_own > 0, 0.5 * (lo + hi), np.inf)
+    size = _object_sizes(owner, ch, dist, m)
     # Who may be a candidate of whom, ranked: the one-to-one choice, then by the grouping cost.
+    rows = np.arange(m)
     best_angle = np.min(np.where(feasible, angle, np.inf), axis=1, keepdims=True)      # (N, 1)
-    near = dist <= size_factor * size[None]
-    keep = feasible & (angle <= best_angle + angle_margin) & near
+    near = dist <= settings.size_factor * size[None]
+    keep = feasible & (angle <= best_angle + settings.angle_margin) & near
     is_owner = (owner[:, None] == rows[None]) & near
     rank = np.where(is_owner, -np.inf, np.where(keep, cost, np.inf))
-    # Rows (centroid, type, rank, peak): each centroid itself (type -1: first), then its entries.
-    # Per centroid (column) the corner peaks by type, then rank (stable): the first
-    # max_per_type of each type, where ranked, are its entries.
-    by = np.lexsort((rank, np.broadcast_to(ch[:, None], rank.shape)), axis=0)          # (N, m)
-    kinds = np.sort(ch)
-    place = np.arange(len(ch)) - np.searchsorted(kinds, kinds)                          # rank within its type
-    r, c = np.nonzero((place[:, None] < max_per_type) & (np.take_along_axis(rank, by, axis=0) < np.inf))
-    table = np.concatenate([np.stack([rows, np.full(m, -1), np.zeros(m, dtype=int), np.flatnonzero(is_c)], axis=1),
-                            np.stack([c, kinds[r], place[r], corner[by[r, c]]], axis=1)])
-    table = table[np.lexsort((table[:, 2], table[:, 1], table[:, 0]))]
+    table = _candidate_table(rank, ch, corner, np.flatnonzero(is_c), settings.max_per_type)
     bounds = np.searchsorted(table[:, 0], np.arange(m + 1))
     ids = np.where(table[:, 1] < 0, CENTROID_INDEX, table[:, 1])
     xy = map_to_image(peaks.xy[table[:, 3]], stride)
@@ -670,3 +677,35 @@ def corner_candidates(
            for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist())]
     out.sort(key=lambda cand: -cand.score)
     return out
+
+
+def _object_sizes(owner: np.ndarray, ch: np.ndarray, dist: np.ndarray, m: int) -> np.ndarray:
+    """(m,) size of each centroid's object, map px: the median distance of its one-to-one
+    corners (inf where it has none). owner: (N,) one-to-one centroid of each corner peak or
+    -1; ch: (N,) their corner types; dist: (N, m) corner-centroid distances."""
+    own = np.flatnonzero(owner >= 0)
+    own_dist = np.full((m, CENTROID_INDEX), np.inf)
+    own_dist[owner[own], ch[own]] = dist[own, owner[own]]
+    own_dist.sort(axis=1)
+    n_own = np.isfinite(own_dist).sum(axis=1)
+    rows = np.arange(m)
+    lo, hi = own_dist[rows, np.maximum(n_own - 1, 0) // 2], own_dist[rows, np.maximum(n_own, 1) // 2]
+    return np.where(n_own > 0, 0.5 * (lo + hi), np.inf)
+
+
+def _candidate_table(rank: np.ndarray, ch: np.ndarray, corner: np.ndarray, centroids: np.ndarray,
+                     max_per_type: int) -> np.ndarray:
+    """(k, 4) int rows (centroid, type, rank, peak index), sorted: each centroid itself (type
+    -1: first), then its entries. rank: (N, m) of each corner peak for each centroid (-inf: its
+    one-to-one choice, inf: no candidate); ch, corner: (N,) the corner peaks' types and peak
+    indices; centroids: (m,) the centroid peaks' indices. Per centroid (column) the corner peaks
+    by type, then rank (stable): the first ``max_per_type`` of each type, where ranked, are its
+    entries."""
+    m = rank.shape[1]
+    by = np.lexsort((rank, np.broadcast_to(ch[:, None], rank.shape)), axis=0)          # (N, m)
+    kinds = np.sort(ch)
+    place = np.arange(len(ch)) - np.searchsorted(kinds, kinds)                          # rank within its type
+    r, c = np.nonzero((place[:, None] < max_per_type) & (np.take_along_axis(rank, by, axis=0) < np.inf))
+    table = np.concatenate([np.stack([np.arange(m), np.full(m, -1), np.zeros(m, dtype=int), centroids], axis=1),
+                            np.stack([c, kinds[r], place[r], corner[by[r, c]]], axis=1)])
+    return table[np.lexsort((table[:, 2], table[:, 1], table[:, 0]))]

@@ -60,12 +60,23 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from dope_hope.config import (
+    SectionSettings,
+    at_least,
+    each,
+    fraction,
+    nonnegative_float,
+    or_none,
+    positive_float,
+)
+from dope_hope.errors import ConfigError
 from dope_hope.refine.depth import DepthImage
 from dope_hope.refine.line_search import auto_splat_px, visible_points
 
@@ -75,6 +86,65 @@ TURN_STARTS: tuple[np.ndarray, ...] = tuple(
 #: Correspondence distance per iteration, metres (coarse to fine).
 DEFAULT_THRESHOLDS_M: tuple[float, ...] = (0.03, 0.03, 0.02, 0.02, 0.015, 0.015, 0.01, 0.01,
                                            0.0075, 0.0075, 0.005, 0.005, 0.005, 0.005)
+
+
+def _rotation_list(value: Any, name: str) -> tuple[tuple[tuple[float, ...], ...], ...]:
+    """The rule of a list (maybe empty) of (3, 3) matrices of finite numbers; nested tuples."""
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__"):
+        raise ConfigError(f"{name} must be a list of 3x3 matrices, got {value!r}")
+    out = []
+    for m in value:
+        try:
+            a = np.asarray(m, dtype=np.float64)
+        except (TypeError, ValueError):
+            a = np.zeros(0)
+        if a.shape != (3, 3) or not np.isfinite(a).all():
+            raise ConfigError(f"{name} must be a list of 3x3 matrices of finite numbers, got an entry {m!r}")
+        out.append(tuple(tuple(row) for row in a.tolist()))
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class IcpSettings(SectionSettings):
+    """ICP's settings (``icp_refine:`` in ``dope_hope/configs/infer.yaml``; the steps of the
+    module docstring).
+
+    thresholds_m: correspondence distance of each iteration, metres (step 2). mask_dilate:
+    silhouette dilation, fraction of its bounding-box size (steps 1, 6). max_scene_points:
+    most depth pixels used. min_points: fewest scene points and pairs. fit_threshold_m:
+    point-to-surface distance beyond which a scene point counts 0 in the fit (step 5), metres;
+    also the depth agreement of a supported point (step 6). max_translation_m,
+    max_rotation_deg: largest change accepted, metres and degrees (180 deg bounds nothing: lite
+    models' rotations are often 60-100 deg off about the long axis). start_rotations: (3, 3)
+    model-frame rotations S (kept as nested tuples); ICP also starts from ``R @ S``; () for the
+    input pose only (step 4; default :data:`TURN_STARTS`). fit_tie: runs whose fits differ by at most this are
+    equal; the one whose rotation is nearest the input's wins among them. coarse_points,
+    coarse_iterations, finalists: step 4's coarse phase (``coarse_points`` None: every start
+    runs every iteration on all points). min_own_support: least own depth support of a pose
+    (step 6), in [0, 1].
+    """
+
+    SECTION = "icp_refine"
+    RULES = {"thresholds_m": each(positive_float), "mask_dilate": nonnegative_float,
+             "max_scene_points": at_least(1), "min_points": at_least(1), "fit_threshold_m": positive_float,
+             "max_translation_m": nonnegative_float, "max_rotation_deg": nonnegative_float,
+             "start_rotations": _rotation_list, "fit_tie": nonnegative_float,
+             "coarse_points": or_none(at_least(0)), "coarse_iterations": at_least(0), "finalists": at_least(0),
+             "min_own_support": fraction}
+
+    thresholds_m: tuple[float, ...] = DEFAULT_THRESHOLDS_M
+    mask_dilate: float = 0.15
+    max_scene_points: int = 3000
+    min_points: int = 50
+    fit_threshold_m: float = 0.01
+    max_translation_m: float = 0.05
+    max_rotation_deg: float = 180.0
+    start_rotations: tuple = TURN_STARTS
+    fit_tie: float = 0.005
+    coarse_points: int | None = 750
+    coarse_iterations: int = 6
+    finalists: int = 3
+    min_own_support: float = 0.3
 
 
 @dataclass
@@ -271,10 +341,8 @@ class _Search:
         return runs, first_problem
 
 
-def _model_arrays(model_points, model_normals, thresholds_m: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+def _model_arrays(model_points, model_normals) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) points and normals as float64; ValueError for a programming mistake."""
-    if not thresholds_m:
-        raise ValueError("thresholds_m must name at least one iteration")
     P = np.asarray(model_points, dtype=np.float64).reshape(-1, 3)
     N = np.asarray(model_normals, dtype=np.float64).reshape(-1, 3)
     if len(P) != len(N):
@@ -283,15 +351,23 @@ def _model_arrays(model_points, model_normals, thresholds_m: Sequence[float]) ->
 
 
 def _refusal(moved_m: float, turned_deg: float, fit_after: float, fit_before: float, own_support: float,
-             max_translation_m: float, max_rotation_deg: float, fit_tie: float, min_own_support: float) -> str:
+             settings: IcpSettings) -> str:
     """Why the refined pose is refused (step 5), or "" when it is kept."""
-    if moved_m > max_translation_m:
-        return f"ICP moved the object {moved_m * 100:.1f} cm > {max_translation_m * 100:.1f} cm"
-    if turned_deg > max_rotation_deg:
-        return f"ICP turned the object {turned_deg:.0f} deg > {max_rotation_deg:.0f} deg"
-    if fit_after < fit_before - fit_tie:
+    if moved_m > settings.max_translation_m:
+        return f"ICP moved the object {moved_m * 100:.1f} cm > {settings.max_translation_m * 100:.1f} cm"
+    if turned_deg > settings.max_rotation_deg:
+        return f"ICP turned the object {turned_deg:.0f} deg > {settings.max_rotation_deg:.0f} deg"
+    if fit_after < fit_before - settings.fit_tie:
         return f"ICP fits the depth worse (fit {fit_after:.3f} < {fit_before:.3f})"
-    return support_problem("ICP", own_support, min_own_support)
+    return support_problem("ICP", own_support, settings.min_own_support)
+
+
+def _nearest_best_run(runs: list, R0: np.ndarray, fit_tie: float) -> tuple:
+    """Step 4's winner among runs [(fit, R, t, rmse_m)]: of those within ``fit_tie`` of the best
+    fit, the one whose rotation is nearest the input rotation ``R0``."""
+    top = max(r[0] for r in runs)
+    return min((r for r in runs if r[0] >= top - fit_tie),
+               key=lambda r: Rotation.from_matrix(r[1] @ R0.T).magnitude())
 
 
 def support_problem(what: str, own_support: float, min_own_support: float) -> str:
@@ -309,19 +385,7 @@ def icp_refine(
     model_points: np.ndarray,
     model_normals: np.ndarray,
     depth: DepthImage,
-    thresholds_m: Sequence[float] = DEFAULT_THRESHOLDS_M,
-    mask_dilate: float = 0.15,
-    max_scene_points: int = 3000,
-    min_points: int = 50,
-    fit_threshold_m: float = 0.01,
-    max_translation_m: float = 0.05,
-    max_rotation_deg: float = 180.0,
-    start_rotations: Sequence[np.ndarray] = TURN_STARTS,
-    fit_tie: float = 0.005,
-    coarse_points: int | None = 750,
-    coarse_iterations: int = 6,
-    finalists: int = 3,
-    min_own_support: float = 0.3,
+    settings: IcpSettings = IcpSettings(),
     initial_pose: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> IcpResult:
     """Refine a pose by point-to-plane ICP against a depth image (steps of the module docstring).
@@ -331,20 +395,7 @@ def icp_refine(
         model_points, model_normals: (N, 3) surface points, metres (a few thousand), and their
             unit normals (sign irrelevant).
         depth: the depth image in metres with its K (:class:`~dope_hope.refine.depth.DepthImage`).
-        thresholds_m: correspondence distance of each iteration, metres. mask_dilate:
-            silhouette dilation, fraction of its bounding-box size. max_scene_points,
-            min_points: most depth pixels used; fewest scene points and pairs.
-        fit_threshold_m: point-to-surface distance beyond which a scene point counts 0 in the
-            fit (step 5); also the depth agreement of a supported point (step 6).
-        max_translation_m, max_rotation_deg: largest change accepted (180 deg bounds nothing:
-            lite models' rotations are often 60-100 deg off about the long axis).
-        start_rotations: (3, 3) model-frame rotations S; ICP also starts from ``R @ S``; ()
-            for the input pose only (step 4).
-        fit_tie: runs whose fits differ by at most this are equal; the one whose rotation is
-            nearest the input's wins among them.
-        coarse_points, coarse_iterations, finalists: step 4's coarse phase (None: every start
-            runs every iteration on all points).
-        min_own_support: least own depth support of a pose (step 6).
+        settings: :class:`IcpSettings` (iterations, starts, acceptance).
         initial_pose: (R, t) of the estimate before any depth step (the keypoints' pose), whose
             dilated silhouette is the detected region (step 6; None: (R, t)); given, the input
             pose (moved there by a wider search) must keep to that region's support too.
@@ -352,36 +403,34 @@ def icp_refine(
     Returns:
         :class:`IcpResult`; the input pose with a reason when not applied.
     """
+    s = settings
     R0 = np.asarray(R, dtype=np.float64).reshape(3, 3)
     t0 = np.asarray(t, dtype=np.float64).reshape(3)
 
     def refuse(reason: str, **kw) -> IcpResult:
         return IcpResult(R=R0.copy(), t=t0.copy(), applied=False, reason=reason, **kw)
 
-    P, N = _model_arrays(model_points, model_normals, thresholds_m)
+    P, N = _model_arrays(model_points, model_normals)
     if problem := depth.problem_for(t0):
         return refuse(problem)
     Ri, ti = (R0, t0) if initial_pose is None else initial_pose
-    region = silhouette_mask(P @ np.asarray(Ri, float).T + np.asarray(ti, float), depth.K, depth.hw, mask_dilate)
-    start = float("inf") if initial_pose is None else depth_support(R0, t0, P, depth, region, fit_threshold_m)
-    if problem := support_problem("the start pose", start, min_own_support):  # a wider search's start
+    region = silhouette_mask(P @ np.asarray(Ri, float).T + np.asarray(ti, float), depth.K, depth.hw, s.mask_dilate)
+    start = float("inf") if initial_pose is None else depth_support(R0, t0, P, depth, region, s.fit_threshold_m)
+    if problem := support_problem("the start pose", start, s.min_own_support):  # a wider search's start
         return refuse(problem, own_support=start, start_supported=False)
-    S = scene_points_under(P @ R0.T + t0, depth.metres, depth.K, mask_dilate, max_scene_points)
-    if len(S) < min_points:
-        return refuse(f"too few depth pixels under the object ({len(S)} < {min_points})", n_points=len(S))
-    search = _Search(S, P, N, cKDTree(P), list(thresholds_m), min_points, fit_threshold_m)
+    S = scene_points_under(P @ R0.T + t0, depth.metres, depth.K, s.mask_dilate, s.max_scene_points)
+    if len(S) < s.min_points:
+        return refuse(f"too few depth pixels under the object ({len(S)} < {s.min_points})", n_points=len(S))
+    search = _Search(S, P, N, cKDTree(P), list(s.thresholds_m), s.min_points, s.fit_threshold_m)
     fit_before = search.fit(S, R0, t0)
-    starts = [(R0 @ np.asarray(s, float).reshape(3, 3), t0) for s in [np.eye(3), *start_rotations]]
-    runs, problem = search.runs(starts, coarse_points, coarse_iterations, finalists)
+    starts = [(R0 @ np.asarray(r, float).reshape(3, 3), t0) for r in [np.eye(3), *s.start_rotations]]
+    runs, problem = search.runs(starts, s.coarse_points, s.coarse_iterations, s.finalists)
     if not runs:
         return refuse(problem, fit_before=fit_before, n_points=len(S))
-    top = max(r[0] for r in runs)
-    fit_after, Rc, tc, rmse = min((r for r in runs if r[0] >= top - fit_tie),
-                                  key=lambda r: Rotation.from_matrix(r[1] @ R0.T).magnitude())
-    own_support = depth_support(Rc, tc, P, depth, region, fit_threshold_m)
+    fit_after, Rc, tc, rmse = _nearest_best_run(runs, R0, s.fit_tie)
+    own_support = depth_support(Rc, tc, P, depth, region, s.fit_threshold_m)
     kw = dict(fit_before=fit_before, fit_after=fit_after, rmse_m=rmse, n_points=len(S), own_support=own_support)
     turned_deg = float(np.degrees(Rotation.from_matrix(Rc @ R0.T).magnitude()))
-    if reason := _refusal(float(np.linalg.norm(tc - t0)), turned_deg, fit_after, fit_before, own_support,
-                          max_translation_m, max_rotation_deg, fit_tie, min_own_support):
+    if reason := _refusal(float(np.linalg.norm(tc - t0)), turned_deg, fit_after, fit_before, own_support, s):
         return refuse(reason, **kw)
     return IcpResult(R=Rc, t=tc, applied=True, reason="ok", **kw)

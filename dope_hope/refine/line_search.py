@@ -27,13 +27,60 @@ optimum sits on the search bound or its residual exceeds ``max_residual_m``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.ndimage import minimum_filter
 from scipy.optimize import minimize_scalar
 from scipy.spatial import cKDTree
 
+from dope_hope.config import (
+    SectionSettings,
+    at_least,
+    nonnegative_float,
+    one_of,
+    or_none,
+    positive_float,
+)
+from dope_hope.errors import ConfigError
 from dope_hope.refine.depth import DepthImage
+
+
+def _scale_range(value: Any, name: str) -> tuple[float, float]:
+    """The rule of a scale range ``[lo, hi]``: two finite numbers, 0 < lo <= hi."""
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 2:
+        raise ConfigError(f"{name} must be [lo, hi], got {value!r}")
+    lo, hi = positive_float(value[0], name), positive_float(value[1], name)
+    if lo > hi:
+        raise ConfigError(f"{name} must be [lo, hi] with lo <= hi, got {value!r}")
+    return lo, hi
+
+
+@dataclass(frozen=True)
+class LineSearchSettings(SectionSettings):
+    """The line search's settings (``line_search:`` in ``dope_hope/configs/infer.yaml``).
+
+    search: (lo, hi) bounds of the scale s. min_valid: fewest visible points with valid
+    depth. cost: "median" (median |D - z|) or "huber" (mean Huber loss, ``huber_delta_m``,
+    metres). visibility_margin_m, splat_px: the visibility test (:func:`visible_points`;
+    ``splat_px=None`` picks half the model points' spacing in pixels, :func:`auto_splat_px`).
+    grid_steps: coarse grid size over ``search`` (at least 3). max_residual_m: refuse the
+    result when the robust residual exceeds it, metres (None = off).
+    """
+
+    SECTION = "line_search"
+    RULES = {"search": _scale_range, "min_valid": at_least(1), "cost": one_of("median", "huber"),
+             "huber_delta_m": positive_float, "visibility_margin_m": nonnegative_float,
+             "splat_px": or_none(at_least(0)), "grid_steps": at_least(3), "max_residual_m": or_none(positive_float)}
+
+    search: tuple[float, float] = (0.8, 1.25)
+    min_valid: int = 50
+    cost: str = "median"
+    huber_delta_m: float = 0.01
+    visibility_margin_m: float = 0.005
+    splat_px: int | None = None
+    grid_steps: int = 41
+    max_residual_m: float | None = 0.02
 
 
 @dataclass
@@ -187,7 +234,7 @@ def _best_scale(objective: _ScaleCost, search: tuple[float, float],
     the grid's best. Returns (scale, whether it sits at a search bound), or None when no
     scale has valid depth."""
     lo, hi = float(search[0]), float(search[1])
-    grid = np.linspace(lo, hi, max(int(grid_steps), 3))
+    grid = np.linspace(lo, hi, grid_steps)
     costs = np.array([objective(s) for s in grid])
     if not np.isfinite(costs).any():
         return None
@@ -206,14 +253,7 @@ def depth_line_search(
     t: np.ndarray,
     model_points: np.ndarray,
     depth: DepthImage,
-    search: tuple[float, float] = (0.8, 1.25),
-    min_valid: int = 50,
-    cost: str = "median",
-    huber_delta_m: float = 0.01,
-    visibility_margin_m: float = 0.005,
-    splat_px: int | None = None,
-    grid_steps: int = 41,
-    max_residual_m: float | None = 0.02,
+    settings: LineSearchSettings = LineSearchSettings(),
     model_normals: np.ndarray | None = None,
 ) -> LineSearchResult:
     """Rescale the translation along its ray to agree with a depth image (HOPE "-LS").
@@ -222,14 +262,7 @@ def depth_line_search(
         R: (3, 3), t: (3,) metres: the pose to refine (``x_c = R x + t``).
         model_points: (N, 3) model surface points, metres (a few thousand is plenty).
         depth: the depth image in metres with its K (:class:`~dope_hope.refine.depth.DepthImage`).
-        search: (lo, hi) bounds of the scale s.
-        min_valid: minimum visible points with valid depth.
-        cost: "median" (median |D - z|) or "huber" (mean Huber loss, ``huber_delta_m``).
-        visibility_margin_m, splat_px: visibility test (see :func:`visible_points`);
-            ``splat_px=None`` picks half the model points' spacing in pixels
-            (:func:`auto_splat_px`).
-        grid_steps: coarse grid size over ``search``.
-        max_residual_m: refuse the result when the robust residual exceeds it (None = off).
+        settings: :class:`LineSearchSettings` (search range, cost, visibility, refusals).
         model_normals: optional (N, 3) outward normals of the model points (back-face culling).
 
     Returns:
@@ -242,8 +275,6 @@ def depth_line_search(
     def refuse(reason: str, **kw) -> LineSearchResult:
         return LineSearchResult(t=t.copy(), applied=False, reason=reason, **kw)
 
-    if cost not in ("median", "huber"):
-        raise ValueError(f"cost must be 'median' or 'huber', got {cost!r}")
     problem = depth.problem_for(t)
     D = depth.metres
     if problem:
@@ -251,19 +282,18 @@ def depth_line_search(
 
     P = np.asarray(model_points, dtype=np.float64).reshape(-1, 3)
     A = P @ R.T  # camera-frame points without translation
-    if splat_px is None:
-        splat_px = auto_splat_px(P, K, float(t[2]))
+    splat_px = auto_splat_px(P, K, float(t[2])) if settings.splat_px is None else settings.splat_px
     normals_c = None if model_normals is None else np.asarray(model_normals, float).reshape(-1, 3) @ R.T
-    vis = visible_points(A + t, K, D.shape, splat_px, visibility_margin_m, normals_c=normals_c)
+    vis = visible_points(A + t, K, D.shape, splat_px, settings.visibility_margin_m, normals_c=normals_c)
     if not vis.any():
         return refuse("object does not project into the depth image")
     A = A[vis]
 
-    f = _ScaleCost(A, t, K, D, min_valid, cost, huber_delta_m)
+    f = _ScaleCost(A, t, K, D, settings.min_valid, settings.cost, settings.huber_delta_m)
     n0 = f.residuals(1.0).size
-    if n0 < min_valid:
-        return refuse(f"too few visible points with valid depth ({n0} < {min_valid})", n_valid=n0)
-    found = _best_scale(f, search, grid_steps)
+    if n0 < settings.min_valid:
+        return refuse(f"too few visible points with valid depth ({n0} < {settings.min_valid})", n_valid=n0)
+    found = _best_scale(f, settings.search, settings.grid_steps)
     if found is None:
         return refuse("no valid depth along the search range", n_valid=n0)
     s_best, at_bound = found
@@ -272,6 +302,7 @@ def depth_line_search(
     if at_bound:
         return refuse(f"optimum at the search bound (s = {s_best:.3f})",
                       residual_m=residual, n_valid=n_valid)
+    max_residual_m = settings.max_residual_m
     if max_residual_m is not None and residual > max_residual_m:
         return refuse(f"depth residual {residual * 1000:.1f} mm > {max_residual_m * 1000:.1f} mm",
                       residual_m=residual, n_valid=n_valid)

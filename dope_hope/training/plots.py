@@ -136,12 +136,13 @@ def snapshot_panel(items: Sequence[SnapshotItem], stride: int, threshold: float,
     """
     import cv2
 
-    from dope_hope.maps.decode import decode_maps
+    from dope_hope.maps.decode import DecodeSettings, decode_maps
     from dope_hope.model.info import GROUP_BELIEF, group_channels
     from dope_hope.viz import PALETTE, belief_montage, draw_cuboid, draw_label, montage
 
     if not items:
         raise ValueError("a snapshot of no images")
+    settings = DecodeSettings(threshold=threshold)
     rows = []
     for item in items:
         img = item.rgb
@@ -153,7 +154,7 @@ def snapshot_panel(items: Sequence[SnapshotItem], stride: int, threshold: float,
         counts = []
         for k in range(n_obj):
             group = maps_all[group_channels(k, n_obj)]
-            instances = decode_maps(group[:GROUP_BELIEF], group[GROUP_BELIEF:], stride, threshold=threshold)
+            instances = decode_maps(group[:GROUP_BELIEF], group[GROUP_BELIEF:], stride, settings)
             for n, inst in enumerate(instances):
                 img = draw_cuboid(img, inst.keypoints, PALETTE[(k if n_obj > 1 else n) % len(PALETTE)])
             counts.append(len(instances))

@@ -59,7 +59,7 @@ def validation_hits(belief: np.ndarray, affinity: np.ndarray, gt: np.ndarray, st
         belief: (9, h, w); affinity: (16, h, w); gt: (I, 9, 2) input pixels, NaN = not visible.
         stride: map stride; radius_px: hit radius, input pixels; threshold: peak threshold.
     """
-    from dope_hope.maps.decode import decode_maps, find_peaks
+    from dope_hope.maps.decode import DecodeSettings, decode_maps, find_peaks
 
     n_inst = max(1, int(np.any(np.all(np.isfinite(gt), axis=2), axis=1).sum()))
     peaks = find_peaks(belief, threshold)
@@ -69,7 +69,7 @@ def validation_hits(belief: np.ndarray, affinity: np.ndarray, gt: np.ndarray, st
         sel = sel[np.argsort(-peaks.score[sel])[:n_inst]]
         pred.append(map_to_image(peaks.xy[sel], stride))
     found, visible = keypoint_hits(pred, gt, radius_px)
-    instances = decode_maps(belief, affinity, stride, threshold=threshold)[:n_inst]
+    instances = decode_maps(belief, affinity, stride, DecodeSettings(threshold=threshold))[:n_inst]
     pred_d = [np.array([inst.keypoints[k] for inst in instances]).reshape(-1, 2) for k in range(NUM_KEYPOINTS)]
     found_d, visible_d = keypoint_hits(pred_d, gt, radius_px)
     return found, visible, found_d, visible_d
