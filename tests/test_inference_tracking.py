@@ -45,10 +45,7 @@ def detection(R, t, score=0.9) -> Detection:
 
 
 def make_filter(R=R0, t=(0.0, 0.0, 0.6), **kw) -> PoseFilter:
-    s = TrackingSettings(**kw)
-    return PoseFilter(R, np.asarray(t), declaration_transforms(demo_symmetries()), s.translation_std_m, s.acceleration_m,
-                      s.rotation_std_deg, s.angular_acceleration_deg, s.rotation_gate_deg, s.rotation_reset,
-                      s.manoeuvre_gate, s.outlier_gate, s.gate_m)
+    return PoseFilter(R, np.asarray(t), declaration_transforms(demo_symmetries()), TrackingSettings(**kw))
 
 
 # ----------------------------------------------------------------------------- filter

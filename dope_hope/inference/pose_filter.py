@@ -20,6 +20,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from dope_hope.inference.tracking_settings import TrackingSettings
+
 
 def closest_equivalent(R: np.ndarray, t: np.ndarray, R_ref: np.ndarray,
                        symmetries: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -92,37 +94,36 @@ class PoseFilter:
     Args:
         R: (3, 3), t: (3,) metres: the first measurement.
         symmetries: (S, 4, 4) model-frame symmetries, metres, identity first.
-        translation_std_m: measurement noise of t, metres.
-        acceleration_m: change of velocity per frame the model allows (std), metres/frame².
-        rotation_std_deg: measurement noise of R, degrees.
-        angular_acceleration_deg: change of angular velocity per frame (std), degrees/frame².
-        rotation_gate_deg: a measured rotation farther than this from the prediction (after
+        settings: the tracker's :class:`TrackingSettings`; the filter uses
+            translation_std_m: measurement noise of t, metres.
+            acceleration_m: change of velocity per frame the model allows (std), metres/frame².
+            rotation_std_deg: measurement noise of R, degrees.
+            angular_acceleration_deg: change of angular velocity per frame (std), degrees/frame².
+            rotation_gate_deg: a measured rotation farther than this from the prediction (after
             the symmetries) is an outlier: the rotation is not corrected by it.
-        rotation_reset: after this many outliers in a row the measured rotation is taken as is.
-        manoeuvre_gate: residuals beyond this many standard deviations make the filter forget
+            rotation_reset: after this many outliers in a row the measured rotation is taken as is.
+            manoeuvre_gate: residuals beyond this many standard deviations make the filter forget
             faster (see the module docstring).
-        outlier_gate: a measured translation beyond this many standard deviations of the
+            outlier_gate: a measured translation beyond this many standard deviations of the
             prediction is an outlier (a depth line search fooled by an occluder, say): not
             applied. After ``rotation_reset`` outliers in a row whose successive translations
-            lie within ``jump_m`` of each other (the object did move there) the filter restarts
-            from the measurements.
-        jump_m: see ``outlier_gate``, metres.
+            lie within ``gate_m`` metres of each other (the object did move there) the filter
+            restarts from the measurements.
     """
 
-    def __init__(self, R: np.ndarray, t: np.ndarray, symmetries: np.ndarray, translation_std_m: float,
-                 acceleration_m: float, rotation_std_deg: float, angular_acceleration_deg: float,
-                 rotation_gate_deg: float = 45.0, rotation_reset: int = 3, manoeuvre_gate: float = 2.0,
-                 outlier_gate: float = 6.0, jump_m: float = 0.05):
+    def __init__(self, R: np.ndarray, t: np.ndarray, symmetries: np.ndarray,
+                 settings: TrackingSettings = TrackingSettings()):
+        s = settings
         self.symmetries = np.asarray(symmetries, dtype=np.float64).reshape(-1, 4, 4)
-        self._t_noise = (translation_std_m, acceleration_m, manoeuvre_gate, outlier_gate)
+        self._t_noise = (s.translation_std_m, s.acceleration_m, s.manoeuvre_gate, s.outlier_gate)
         self._t = _ConstantVelocity(t, *self._t_noise)
-        self.jump_m = float(jump_m)
+        self.jump_m = float(s.gate_m)
         self.translation_outliers: list[np.ndarray] = []
-        self._rot_noise = (np.radians(rotation_std_deg), np.radians(angular_acceleration_deg), manoeuvre_gate)
+        self._rot_noise = (np.radians(s.rotation_std_deg), np.radians(s.angular_acceleration_deg), s.manoeuvre_gate)
         self._R = np.asarray(R, dtype=np.float64).reshape(3, 3).copy()
         self._w = _ConstantVelocity(np.zeros(3), *self._rot_noise)
-        self.rotation_gate_deg = float(rotation_gate_deg)
-        self.rotation_reset = int(rotation_reset)
+        self.rotation_gate_deg = float(s.rotation_gate_deg)
+        self.rotation_reset = int(s.rotation_reset)
         self.rotation_outliers = 0
 
     @property

@@ -287,10 +287,7 @@ class PoseTracker:
         return [(int(r), int(c), bool(reseed[r, c])) for r, c in zip(rows, cols) if C[r, c] < big]
 
     def _new_filter(self, class_name: str, det: Detection) -> PoseFilter:
-        s = self.settings
-        return PoseFilter(det.R, det.t, self.symmetries[class_name], s.translation_std_m, s.acceleration_m,
-                          s.rotation_std_deg, s.angular_acceleration_deg, s.rotation_gate_deg, s.rotation_reset,
-                          s.manoeuvre_gate, s.outlier_gate, s.gate_m)
+        return PoseFilter(det.R, det.t, self.symmetries[class_name], self.settings)
 
     def _start(self, class_name: str, det: Detection, frame: int, K: np.ndarray, image_hw,
                started: list[_Track]) -> TrackedObject:

@@ -6,15 +6,15 @@ section without importing the tracker (which sits above the predictor).
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
+from dope_hope.config import SectionSettings
 from dope_hope.errors import ConfigError
 
 
 @dataclass(frozen=True)
-class TrackingSettings:
+class TrackingSettings(SectionSettings):
     """The tracker's settings (``tracking:`` in ``dope_hope/configs/infer.yaml``).
 
     confirm_hits: detections that confirm a track. max_misses: frames without a detection
@@ -34,6 +34,8 @@ class TrackingSettings:
     ``(e / reprojection_px) ** reprojection_power`` times noisier (a partly hidden object's
     fit is worse; 0 = off).
     """
+
+    SECTION = "tracking"
 
     confirm_hits: int = 3
     max_misses: int = 15
@@ -79,15 +81,6 @@ class TrackingSettings:
                               f"({self.max_misses})")
         if self.min_iou > 1:
             raise ConfigError(f"tracking.min_iou must be in [0, 1], got {self.min_iou!r}")
-
-    @classmethod
-    def from_mapping(cls, values: Mapping[str, Any] | None) -> TrackingSettings:
-        """Settings from a mapping (the ``tracking`` section); unknown keys refused."""
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(values or {}) - names)
-        if unknown:
-            raise ConfigError(f"unknown tracking option(s) {', '.join(unknown)}; known: {', '.join(sorted(names))}")
-        return cls(**dict(values or {}))
 
     def to_dict(self) -> dict[str, Any]:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
