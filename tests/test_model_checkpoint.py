@@ -13,6 +13,7 @@ from dope_hope.errors import ModelFileError, OutputPathError, UnknownObjectError
 from dope_hope.geometry import KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER
 from dope_hope.model import IMAGENET_MEAN, IMAGENET_STD, build_model
 from dope_hope.model.checkpoint import (
+    TrainingState,
     import_official,
     load_checkpoint,
     load_model,
@@ -50,8 +51,8 @@ def _trained_lite():
 def test_round_trip_restores_weights_optimizer_and_rng(tmp_path):
     model, opt, sched = _trained_lite()
     path = tmp_path / "run" / "last.pth"
-    save_checkpoint(path, model, LITE, make_object_info("Ketchup"), opt, sched, step=7, epoch=2,
-                    extra={"best_loss": np.float32(0.25)})
+    save_checkpoint(path, model, LITE, make_object_info("Ketchup"),
+                    TrainingState(opt, sched, step=7, epoch=2, extra={"best_loss": np.float32(0.25)}))
     expected_draws = (np.random.rand(), torch.rand(3))
     ckpt = load_checkpoint(path)
     restore_rng_state(ckpt["rng"])  # resume draws the same random numbers
@@ -79,7 +80,8 @@ def test_round_trip_restores_weights_optimizer_and_rng(tmp_path):
 
 def test_inference_checkpoint_drops_training_state_and_keeps_the_model(tmp_path):
     model, opt, sched = _trained_lite()
-    full = save_checkpoint(tmp_path / "last.pt", model, LITE, make_object_info("Ketchup"), opt, sched, step=3)
+    full = save_checkpoint(tmp_path / "last.pt", model, LITE, make_object_info("Ketchup"),
+                           TrainingState(opt, sched, step=3))
     slim = save_inference_checkpoint(full, tmp_path / "ship.pt")
     assert slim.stat().st_size < 0.6 * full.stat().st_size  # Adam's two moments are gone
     loaded, ckpt = load_model(slim)
@@ -92,7 +94,7 @@ def test_inference_checkpoint_drops_training_state_and_keeps_the_model(tmp_path)
 def test_failed_write_leaves_old_file_and_no_partial(tmp_path, monkeypatch):
     model = build_model(LITE)
     path = tmp_path / "ckpt.pth"
-    save_checkpoint(path, model, LITE, make_object_info("Ketchup"), step=1)
+    save_checkpoint(path, model, LITE, make_object_info("Ketchup"), TrainingState(step=1))
     before = path.read_bytes()
 
     def crashing_save(obj, f, *args, **kwargs):  # half a file, then the disk is full
@@ -101,7 +103,7 @@ def test_failed_write_leaves_old_file_and_no_partial(tmp_path, monkeypatch):
 
     monkeypatch.setattr(torch, "save", crashing_save)
     with pytest.raises(OutputPathError, match="ckpt.pth: cannot write .no space left on device"):
-        save_checkpoint(path, model, LITE, make_object_info("Ketchup"), step=2)
+        save_checkpoint(path, model, LITE, make_object_info("Ketchup"), TrainingState(step=2))
     assert path.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.pth"]
     with pytest.raises(OutputPathError):

@@ -27,6 +27,7 @@ import pickle
 import random
 import re
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -228,16 +229,28 @@ def object_entries(object_info: dict[str, Any] | list[dict[str, Any]] | tuple) -
     return out
 
 
+@dataclass
+class TrainingState:
+    """Where a training run stands, what a checkpoint keeps for ``--resume``.
+
+    optimizer, scheduler: their state dicts are written (None: none). step, epoch: the
+    counters (the next epoch is ``epoch + 1``). extra: free-form plain data (the trainer's
+    bookkeeping) or None.
+    """
+
+    optimizer: torch.optim.Optimizer | None = None
+    scheduler: Any = None
+    step: int = 0
+    epoch: int = 0
+    extra: dict[str, Any] | None = None
+
+
 def save_checkpoint(
     path: str | os.PathLike,
     model: nn.Module,
     config: dict[str, Any],
     object_info: dict[str, Any] | list[dict[str, Any]],
-    optimizer: torch.optim.Optimizer | None = None,
-    scheduler: Any = None,
-    step: int = 0,
-    epoch: int = 0,
-    extra: dict[str, Any] | None = None,
+    training: TrainingState | None = None,
     *,
     keypoint_order: str | None = None,
     normalization: dict[str, Any] | None = None,
@@ -250,11 +263,13 @@ def save_checkpoint(
         config: the full config that built it.
         object_info: ``{class_name, size_m, frame[, symmetries]}`` (see :func:`make_object_info`),
             or a list of them in channel-group order, one per ``model.num_objects``.
+        training: the run's :class:`TrainingState` (None: no optimizer, step and epoch 0).
         keypoint_order: default "dope-legacy" for frame "legacy", else "dope-current".
         normalization: default ImageNet mean/std.
     Returns the path written.
     """
     path = Path(path)
+    run = training or TrainingState()
     objects = object_entries(object_info)
     if len(objects) != num_objects_of(config):
         raise ConfigError(f"{len(objects)} object(s) given for a model of model.num_objects = "
@@ -274,13 +289,13 @@ def save_checkpoint(
         **({"object": info} if len(objects) == 1 else {}),
         "keypoint_order": keypoint_order,
         "normalization": _plain(norm),
-        "optimizer": optimizer.state_dict() if optimizer is not None else None,
-        "scheduler": scheduler.state_dict() if scheduler is not None else None,
-        "step": int(step),
-        "epoch": int(epoch),
+        "optimizer": run.optimizer.state_dict() if run.optimizer is not None else None,
+        "scheduler": run.scheduler.state_dict() if run.scheduler is not None else None,
+        "step": int(run.step),
+        "epoch": int(run.epoch),
         "rng": rng_state(),
         "source": source,
-        "extra": _plain(extra) if extra is not None else None,
+        "extra": _plain(run.extra) if run.extra is not None else None,
     }
     atomic_write_stream(path, lambda f: torch.save(ckpt, f))
     return path

@@ -46,6 +46,7 @@ from dope_hope.devices import native_bf16
 from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.geometry import KEYPOINT_ORDER
 from dope_hope.model.checkpoint import (
+    TrainingState,
     load_checkpoint,
     restore_rng_state,
     save_checkpoint,
@@ -313,8 +314,8 @@ class Trainer:
                     "symmetries": str(self.job.symmetries) if self.job.symmetries else None,
                     "init": str(self.job.init_weights) if self.job.init_weights else None},
         }
-        save_checkpoint(path, self.model, self.config, self.object, optimizer=self.optimizer,
-                        scheduler=self.scheduler, step=self.step, epoch=self.epoch, extra=extra)
+        save_checkpoint(path, self.model, self.config, self.object,
+                        TrainingState(self.optimizer, self.scheduler, self.step, self.epoch, extra))
         return path
 
     # ------------------------------------------------------------------ control
