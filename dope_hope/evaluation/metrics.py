@@ -356,24 +356,32 @@ def assignment_distance(a: np.ndarray, b: np.ndarray, upper: float | None = None
     C = _BUFFERS.get(n, 0)
     cdist(a, b, out=C)
 
-    v = _linear_potential(a, b, shift, ub)
+    perm, bound = _best_assignment(C, _linear_potential(a, b, shift, ub), upper)
+    return cut(bound) if perm is None else result(perm)
+
+
+def _best_assignment(C: np.ndarray, v: np.ndarray, upper: float | None) -> tuple[np.ndarray | None, float]:
+    """Steps 2 and 3 of :func:`assignment_distance` on the (n, n) distances ``C`` from the
+    (n,) column potential ``v``: (the optimal permutation (n,), NaN), or (None, the dual lower
+    bound of the mean distance) when that bound already reaches ``upper``."""
+    n = len(C)
     R = _BUFFERS.get(n, 1)
     optimal, arg, col, bound = _reduce(C, v, R)
     if optimal:
-        return result(arg)
+        return arg, float("nan")
     if n >= _WARM_START_MIN_N and _distinct(arg) < _WARM_START_MAX_UNIQUE * n:
         optimal, arg, col_sub, bound_sub = _reduce(C, _group_potentials(C, v), R)
         if optimal:
-            return result(arg)
+            return arg, float("nan")
         if bound_sub < bound:  # the linear potential was the better start after all
             _, _, col, _ = _reduce(C, v, R)
         else:
             col, bound = col_sub, bound_sub
     if upper is not None and bound >= upper * n:
-        return cut(bound / n)
+        return None, bound / n
     R -= col[None, :]
     _, perm = linear_sum_assignment(R)
-    return result(perm)
+    return perm, float("nan")
 
 
 # --------------------------------------------------------------------------- symmetry-aware
