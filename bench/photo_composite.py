@@ -1,6 +1,8 @@
-"""The demo box composited onto real photographs: recall and false detections, with -LS and without.
+"""An object composited onto real photographs: recall and false detections, with -LS and without.
 
-Renders the demo box (dope_hope/demo_object.py) alone, as `dope-hope demo` renders its scenes
+Renders the demo box (dope_hope/demo_object.py), or the object of ``--mesh`` (``--object``: its
+class in the model, e.g. the HOPE Ketchup for a model that `bench/e2e_accuracy.py` trained),
+alone, as `dope-hope demo` renders its scenes
 (configs/demo.yaml: one box at 0.45-0.9 m, random lights, the camera's post-processing, but
 no distractors; the RealSense D415 colour camera's field of view at every size), over random crops of the photographs in --photos (crop side 60-100 % of the
 largest crop of the frame's aspect ratio, rescaled to each --sizes, horizontal flip; the
@@ -23,7 +25,9 @@ hold for both.
 
     python bench/photo_composite.py --photos PHOTO_OR_FOLDER [...] [--weights W.pt] [--frames 30]
         [--empty 50] [--sizes 640x480 1920x1080] [--seed 0] [--sensor] [--min-scores 0.6 0.7]
-        [--preview composites.png]
+        [--preview composites.png] [--mesh MESH --object NAME]
+    python bench/photo_composite.py --photos ../shared/data/backgrounds --weights runs/e2e/run/best.pt \
+        --mesh ../shared/data/hope_ketchup/textured.obj --object Ketchup --frames 100 --empty 100
 
 The photographs are read in place (photos under a licence stay out of the repository).
 """
@@ -101,7 +105,7 @@ def wall_depth(depth_box: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def run_size(size: tuple[int, int], args: argparse.Namespace, predictor: DopePredictor, model,
-             mesh_path: Path, preview: list) -> dict:
+             mesh_path: Path, class_name: str, preview: list) -> dict:
     """Composites and empty photos at one (W, H); returns the tallies (per min score and depth
     step) and timings. The predictor keeps every detection (min score 0); each min score in
     ``args.min_scores`` keeps those scoring at least that."""
@@ -109,7 +113,7 @@ def run_size(size: tuple[int, int], args: argparse.Namespace, predictor: DopePre
     empty = {m: {"dets": 0, "frames": 0} for m in args.min_scores}
     t_render = t_model = 0.0
     with FrameGenerator(mesh_path, size=size, config=composite_config(size, args.sensor),
-                        class_name=DEMO_CLASS_NAME, backgrounds=args.photos, depth_noise=False,
+                        class_name=class_name, backgrounds=args.photos, depth_noise=False,
                         seed=args.seed) as gen:
         dn = noise_kwargs(gen.cfg["depth_noise"])
         for i in range(args.frames):
@@ -126,7 +130,7 @@ def run_size(size: tuple[int, int], args: argparse.Namespace, predictor: DopePre
             t2 = time.perf_counter()
             for name, ds in dets.items():
                 for m in args.min_scores:
-                    kept = [d for d in ds if d.score >= m]
+                    kept = [d for d in ds if d.score >= m and d.class_name == class_name]
                     errors = error_matrix("addh", kept, [gt], model, upper=FAR_THRESHOLD_M)
                     tallies[(m, name)].add(errors, np.array([d.score for d in kept]))
             t_render += t1 - t0
@@ -192,7 +196,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--photos", type=Path, nargs="+", required=True,
                     help="photographs: folders and/or image files (read in place)")
-    ap.add_argument("--weights", type=Path, default=DEMO_WEIGHTS, help="demo-box model (default: the shipped one)")
+    ap.add_argument("--weights", type=Path, default=DEMO_WEIGHTS,
+                    help="the model (default: the shipped demo-box model)")
+    ap.add_argument("--mesh", type=Path, help="the object's mesh (default: the demo box)")
+    ap.add_argument("--object", help="the object's class in the model (default: the demo box's; with "
+                    "--mesh, the model's one object)")
     ap.add_argument("--frames", type=int, default=30, help="composites per size (default 30)")
     ap.add_argument("--empty", type=int, default=50, help="photos without the box per size (default 50)")
     ap.add_argument("--sizes", nargs="+", default=["640x480", "1920x1080"])
@@ -206,25 +214,35 @@ def main() -> int:
     ap.add_argument("--preview", type=Path, help="write a montage of the first composites here")
     args = ap.parse_args()
 
-    mesh = demo_object_mesh()
+    if args.mesh is not None and not args.mesh.is_file():
+        ap.error(f"--mesh {args.mesh}: no such file")
+    if args.mesh is None:
+        mesh = demo_object_mesh()
+    else:  # a mapping names the object of a model of several
+        mesh = {args.object: args.mesh} if args.object else args.mesh
     predictor = DopePredictor(args.weights, threads=args.threads, mesh=mesh, min_score=0.0)
+    if args.mesh is not None and args.object is None and len(predictor.class_names) > 1:
+        ap.error(f"--mesh without --object: {args.weights} has several objects ({', '.join(predictor.class_names)})")
+    class_name = args.object or (predictor.class_name if args.mesh else DEMO_CLASS_NAME)
+    if class_name not in predictor.class_names:
+        ap.error(f"--object {class_name}: not an object of {args.weights} ({', '.join(predictor.class_names)})")
     # The model's default: its own threshold when its file records one, else the packaged one.
     default_min = InferenceOptions.from_mapping({}, model_min_score=model_min_score(predictor.backend)).min_score
     args.min_scores = sorted({0.0, float(default_min), *args.min_scores})
     photos = BackgroundSource(composite_config()["background"], args.photos).files
-    print(f"model {args.weights}; photos {' '.join(map(str, args.photos))}: {len(photos)} ({', '.join(p.name for p in photos)}); "
+    print(f"model {args.weights}, object {class_name}; photos {' '.join(map(str, args.photos))}: {len(photos)} ({', '.join(p.name for p in photos)}); "
           f"{args.frames} composites + {args.empty} empty crops per size, seed {args.seed}; "
           f"min scores {', '.join(f'{m:g}' for m in args.min_scores)} (default {default_min:g}); "
           f"sensor artefacts {'on' if args.sensor else 'off'}", flush=True)
     preview: list = []
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        mesh_path = write_demo_object(tmp)
-        model = load_models([DEMO_CLASS_NAME], [str(mesh_path)])[DEMO_CLASS_NAME]  # as evaluate loads it
+        mesh_path = args.mesh.resolve() if args.mesh else write_demo_object(tmp)
+        model = load_models([class_name], [f"{class_name}={mesh_path}"])[class_name]  # as evaluate loads it
         for s in args.sizes:
             size = parse_size(s)
             t0 = time.perf_counter()
-            r = run_size(size, args, predictor, model, mesh_path, preview)
+            r = run_size(size, args, predictor, model, mesh_path, class_name, preview)
             rows.append((s, r))
             print(f"{s}: done in {time.perf_counter() - t0:.0f} s (render {r['render_s']:.0f} s, "
                   f"model {r['model_s']:.0f} s)", flush=True)
