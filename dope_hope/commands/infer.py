@@ -73,6 +73,7 @@ from pathlib import Path
 
 from dope_hope.assets import DEMO_WEIGHTS  # used when --weights is not given
 from dope_hope.commands.argtypes import fixed_device, finite_float, positive_float, positive_int, working_side
+from dope_hope.commands.settings import add_settings_arguments, given_settings
 
 #: Frame rate of an overlay video when the source reports none.
 FALLBACK_FPS = 30.0
@@ -168,10 +169,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="drop detections whose pose score is lower (default: the model's own threshold "
                              "when its file records one, as the shipped demo model does, else "
                              f"{_default_min_score():g} from dope_hope/configs/infer.yaml; bench/RESULTS.md); "
-                             "0 keeps all")
-    parser.add_argument("--pose-search", choices=("hypotheses", "groups"), default="hypotheses",
+                             "0 keeps all; the option min_score")
+    parser.add_argument("--pose-search", choices=("hypotheses", "groups"),
                         help="hypotheses (default): candidate corner peaks + multi-hypothesis PnP; "
                              "groups: DOPE's one corner per type (faster, finds fewer)")
+    add_settings_arguments(parser, "infer")
     parser.add_argument("--device", type=fixed_device, default="cpu", help="torch device (cpu, cuda, cuda:1)")
     parser.add_argument("--threads", type=positive_int, help="CPU threads for the network")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -222,6 +224,17 @@ def _kept_classes(classes: list[str] | None, models: list[tuple[Path, list[str]]
     return [[n for n in names if n.lower() in wanted] for _, names in models]
 
 
+def inference_settings(args: argparse.Namespace) -> dict:
+    """The inference options the command line sets: --config and --set (checked: one line naming
+    the file or item and section.key), then the flags that name an option (--height,
+    --min-score, --pose-search, --icp)."""
+    given = given_settings("infer", args.config, args.overrides)
+    flags = {"height": args.height, "min_score": args.min_score, "pose_search": getattr(args, "pose_search", None),
+             "icp": True if args.icp else None}
+    given.update({k: v for k, v in flags.items() if v is not None})
+    return given
+
+
 def build_predictors(args: argparse.Namespace, weights: list[Path]):
     from dope_hope.errors import ConfigError
     from dope_hope.inference.backends import backend_objects, model_min_score, open_backend
@@ -253,10 +266,10 @@ def build_predictors(args: argparse.Namespace, weights: list[Path]):
                 raise ConfigError(f"--mesh {meshes[i]}: {w} detects {len(reported)} objects "
                                   f"({', '.join(reported)}); give a models folder as --mesh")
             mesh = meshes[i]
-        given = {} if args.min_score is None else {"min_score": args.min_score}
-        predictors.append(DopePredictor(backend, height=args.height, mesh=mesh, mesh_units=args.mesh_units,
-                                        pose_search=args.pose_search, icp=args.icp, classes=keep, **given))
-        if args.min_score is None and model_min_score(backend) is not None:
+        given = inference_settings(args)
+        predictors.append(DopePredictor(backend, mesh=mesh, mesh_units=args.mesh_units, classes=keep,
+                                        options=given))
+        if "min_score" not in given and model_min_score(backend) is not None:
             print(f"dope-hope infer: {', '.join(reported)}: min score {predictors[-1].options.min_score:g}, "
                   "the model's own (recorded with its weights; --min-score overrides)", file=sys.stderr)
     return predictors
@@ -323,6 +336,7 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.io.predictions import write_predictions_jsonl
     from dope_hope.io.sources import stream_kind
 
+    args.icp = bool(inference_settings(args).get("icp"))  # settings checked before any work
     if any(stream_kind(item) for item in args.inputs):
         return _run_stream(args)
     given = [f"--{o.replace('_', '-')}" for o in STREAM_OPTIONS if getattr(args, o) not in (None, False)]

@@ -7,6 +7,7 @@ import math
 import re
 import time
 from collections.abc import Callable
+from typing import Any
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,7 +21,9 @@ from dope_hope.demo.scenes import DEMO_CONFIG, IMAGE_SIZE, DemoScene, render_sce
 class DemoSettings:
     """One demo run: ``scenes`` scenes of ``seed`` (None: a fresh random seed) into ``out``
     with the model at ``weights``; ``onnx``: also through onnxruntime; ``threads``: CPU
-    threads of each backend (None: the backend's default)."""
+    threads of each backend (None: the backend's default); ``options``: inference options
+    over the defaults (:class:`~dope_hope.inference.options.InferenceOptions`; min_score: the
+    model's own unless given)."""
 
     weights: Path
     out: Path
@@ -28,6 +31,7 @@ class DemoSettings:
     seed: int | None = None
     onnx: bool = True
     threads: int | None = None
+    options: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -62,17 +66,17 @@ def _open_models(settings: DemoSettings, out: Path) -> _Models:
     mesh_path = write_demo_object(out / "mesh")
     mesh = demo_object_mesh()
     # The scenes hold the demo object only: a model of several objects reports that one.
-    torch_pred = DopePredictor(torch_backend, mesh=mesh, classes=[DEMO_CLASS_NAME])
+    torch_pred = DopePredictor(torch_backend, mesh=mesh, classes=[DEMO_CLASS_NAME], options=settings.options)
     _, input_hw = torch_pred.working_size((IMAGE_SIZE[1], IMAGE_SIZE[0]))
     onnx_pred, note = None, "ONNX off (--no-onnx)"
     if settings.onnx:
         t0 = time.perf_counter()
         onnx_path, exported = ensure_onnx(settings.weights, out, input_hw)
         onnx_pred = DopePredictor(open_backend(onnx_path, "onnx", threads=settings.threads), mesh=mesh,
-                                  classes=[DEMO_CLASS_NAME])
+                                  classes=[DEMO_CLASS_NAME], options=settings.options)
         note = f"ONNX {onnx_path} (" + (f"exported in {time.perf_counter() - t0:.1f} s" if exported else "cached") + ")"
     model = load_models([DEMO_CLASS_NAME], [str(mesh_path)])[DEMO_CLASS_NAME]
-    return _Models(torch_pred, onnx_pred, note, input_hw, model_min_score(torch_backend) is not None, mesh_path, model)
+    return _Models(torch_pred, onnx_pred, note, input_hw, model_min_score(torch_backend) is not None and "min_score" not in settings.options, mesh_path, model)
 
 
 def clear_old_outputs(out: Path) -> None:
