@@ -120,7 +120,8 @@ def test_symmetric_views_get_one_label(category, size):
 
 def test_procedural_dataset_on_disk_trains_as_one_class(tmp_path):
     from dope_hope.io.dope_json import recorded_cuboid_size
-    from dope_hope.synth.generate import SynthJob, generate_dataset
+    from dope_hope.synth.generate import SynthJob
+    from dope_hope.synth.to_disk import generate_dataset
     from dope_hope.training.dataset import scan_frames
 
     cfg = {"distractors": {"count": [1, 2]}, "procedural": {"texture_px": 64}}
