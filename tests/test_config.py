@@ -103,7 +103,7 @@ def test_loader_names_the_source_and_the_key_in_one_line(tmp_path, where, sets, 
 
 @pytest.mark.parametrize("name, cls", [("lite", TrainConfig), ("dope_dr_50", TrainConfig),
                                        ("dope_dr_400", TrainConfig), ("demo", SynthSettings),
-                                       ("procedural", SynthSettings)])
+                                       ("procedural", SynthSettings), ("pretrain", SynthSettings)])
 def test_a_recipe_holds_only_what_differs_from_the_defaults(name, cls):
     """Every key a packaged recipe states differs from its default (the defaults have one owner)."""
     def leaves(d, prefix=""):

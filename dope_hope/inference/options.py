@@ -14,7 +14,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from dope_hope.config import SectionSettings, at_least, boolean, finite_float, load_config, one_of, or_none, section
-from dope_hope.inference.pnp import HypothesisSettings, PnpSettings
+from dope_hope.inference.pnp import PnpSettings
+from dope_hope.inference.pose_search import HypothesisSettings
 from dope_hope.inference.tracking_settings import TrackingSettings
 from dope_hope.maps.decode import DecodeSettings
 from dope_hope.preprocess import check_working_side
@@ -34,7 +35,7 @@ class StageSettings:
     """The stage sections of :class:`InferenceOptions` as their settings objects: decode
     (:func:`~dope_hope.maps.decode.corner_candidates` / :func:`~dope_hope.maps.decode.decode_maps`),
     pnp (:func:`~dope_hope.inference.pnp.solve_pnp`), hypotheses
-    (:func:`~dope_hope.inference.pnp.solve_pnp_candidates`), line_search
+    (:func:`~dope_hope.inference.pose_search.solve_pnp_candidates`), line_search
     (:func:`~dope_hope.refine.line_search.depth_line_search`), icp_refine
     (:func:`~dope_hope.refine.icp.icp_refine`), tracking (the stream tracker)."""
 
