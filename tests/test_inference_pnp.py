@@ -7,6 +7,7 @@ from box_depth import box_surface_points, render_box_depth
 from scipy.spatial.transform import Rotation
 
 from dope_hope.catalog import get_object
+from dope_hope.errors import ConfigError
 from dope_hope.geometry import (
     cuboid_keypoints,
     intrinsics_matrix,
@@ -14,7 +15,6 @@ from dope_hope.geometry import (
     rotation_error_deg,
     scale_intrinsics,
 )
-from dope_hope.errors import ConfigError
 from dope_hope.inference.pnp import PnpSettings, PoseEstimate, solve_pnp
 from dope_hope.inference.pose_search import HypothesisSettings, solve_pnp_candidates, solve_pnp_instances
 from dope_hope.maps.decode import decode_maps

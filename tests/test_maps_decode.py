@@ -8,13 +8,13 @@ from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
 from dope_hope.catalog import get_object
+from dope_hope.errors import ConfigError
 from dope_hope.geometry import (
     cuboid_keypoints,
     intrinsics_matrix,
     project_points,
     scale_intrinsics,
 )
-from dope_hope.errors import ConfigError
 from dope_hope.maps.decode import (
     DecodeSettings,
     Instance2D,

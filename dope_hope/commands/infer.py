@@ -71,7 +71,8 @@ import sys
 from pathlib import Path
 
 from dope_hope.assets import DEMO_WEIGHTS  # used when --weights is not given
-from dope_hope.commands.argtypes import fixed_device, finite_float, positive_float, positive_int, working_side
+from dope_hope.commands.argtypes import finite_float, fixed_device, positive_float, positive_int, working_side
+from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, DopeHopeError
 
 # The library is imported inside the functions: cli.py imports every command to build --help,
@@ -91,8 +92,6 @@ def default_weights() -> Path | None:
 def _default_min_score() -> float:
     """The inference options' min_score (dope_hope/configs/infer.yaml), read without the
     heavy imports of InferenceOptions."""
-    from dope_hope.config import load_config
-
     return float(load_config("infer")["min_score"])
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 from typing import Any
 
+from dope_hope.catalog import CATEGORIES
 from dope_hope.config import check_known_keys, config_path, load_yaml, merge
 from dope_hope.errors import ConfigError
 from dope_hope.synth.sensor import EFFECT_PROBS
@@ -148,7 +149,6 @@ def validate_synth_config(cfg: dict[str, Any]) -> None:
         weights = _lookup(cfg, path)
         if not isinstance(weights, dict) or not any(float(v) > 0 for v in weights.values()):
             raise ConfigError(f"synth config: {'.'.join(path)} needs at least one positive weight")
-    from dope_hope.catalog import CATEGORIES
 
     unknown = sorted(set(cfg["procedural"]["categories"]) - set(CATEGORIES))
     if unknown:
