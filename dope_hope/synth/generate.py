@@ -215,7 +215,8 @@ class FrameGenerator:
 
             p = self.cfg["procedural"]
             obj = sample_object(streams["object"], p["categories"], float(p["size_jitter"]),
-                                int(p["texture_px"]), name=self.class_name)
+                                int(p["texture_px"]), name=self.class_name,
+                                scale=(float(p["scale"][0]), float(p["scale"][1])))
             targets, category = [obj.asset], obj.category
         n_lib = len(self.library) if self.library is not None else 0
         shapes = targets[0].shape if len(targets) == 1 else [t.shape for t in targets]
