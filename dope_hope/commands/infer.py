@@ -104,14 +104,13 @@ def _size(text: str) -> tuple[int, int]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    demo = "present" if default_weights() is not None else "absent"
     parser.add_argument("inputs", nargs="+", metavar="SOURCE",
                         help="image file(s), a folder of images, a quoted glob, a video file, a camera "
                              "index (0) or realsense[:SERIAL]")
     parser.add_argument("--weights", action="append", type=Path, metavar="W",
                         help="checkpoint (.pt/.pth) or exported .onnx of one or more objects; repeat "
-                             f"for several models (default: the demo model dope_hope/assets/demo_lite.pt when it "
-                             f"exists; {demo} in this installation)")
+                             "for several models (default: the demo model dope_hope/assets/demo_lite.pt when "
+                             "this installation has it)")
     parser.add_argument("--classes", nargs="+", metavar="CLASS",
                         help="report only these objects of the model(s) (default: all)")
     cam = parser.add_argument_group("camera (default: the image's sibling annotation)")

@@ -46,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--models-dir", type=Path, metavar="DIR",
                      help="models folder (HOPE <Name>/textured.obj or BOP obj_NNNNNN.ply); with --object")
     src.add_argument("--object", dest="object_name", nargs="+", metavar="NAME",
-                     help="object name(s) in --models-dir, e.g. Ketchup Mustard; 'all': the 28 HOPE objects")
+                     help="object name(s) in --models-dir, e.g. Ketchup Mustard; 'all': every object the folder holds")
     src.add_argument("--procedural", action="store_true",
                      help="a new procedural box / can / bottle per frame (pretraining data; config "
                           "section 'procedural')")

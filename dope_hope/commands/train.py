@@ -60,8 +60,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "the checkpoint's)")
     parser.add_argument("--object", dest="object_name", nargs="+", metavar="NAME",
                         help="object class(es) to train (case-insensitive), e.g. Ketchup, or Can Lemon "
-                             "for one network of several objects; 'all': the 28 HOPE objects (with "
-                             "--resume: default the checkpoint's)")
+                             "for one network of several objects; 'all': every object of --models-dir (without "
+                             "it: the 28 HOPE objects) (with --resume: default the checkpoint's)")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     parser.add_argument("--val", nargs="+", type=Path, default=[], metavar="DIR",
                         help="validation folder(s) (default: a seeded train.val_fraction split of --data)")
