@@ -334,6 +334,7 @@ def test_camera_index_keeps_the_newest_frame(frames, tmp_path, monkeypatch, caps
 
 def test_realsense_stream_refines_with_its_aligned_depth(frames, tmp_path, monkeypatch, capsys):
     import fake_realsense
+
     from dope_hope.io.images import read_depth_m, read_rgb
 
     gt_backends(monkeypatch, frames / "000000.json", distance_factor=1.06)

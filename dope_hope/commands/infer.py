@@ -71,8 +71,9 @@ import sys
 from pathlib import Path
 
 from dope_hope.assets import DEMO_WEIGHTS  # used when --weights is not given
-from dope_hope.commands.argtypes import fixed_device, finite_float, positive_float, positive_int, working_side
+from dope_hope.commands.argtypes import finite_float, fixed_device, positive_float, positive_int, working_side
 from dope_hope.commands.settings import add_settings_arguments, given_settings
+from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, DopeHopeError
 
 # The library is imported inside the functions: cli.py imports every command to build --help,
@@ -92,8 +93,6 @@ def default_weights() -> Path | None:
 def _default_min_score() -> float:
     """The inference options' min_score (dope_hope/configs/infer.yaml), read without the
     heavy imports of InferenceOptions."""
-    from dope_hope.config import load_config
-
     return float(load_config("infer")["min_score"])
 
 
@@ -106,14 +105,13 @@ def _size(text: str) -> tuple[int, int]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    demo = "present" if default_weights() is not None else "absent"
     parser.add_argument("inputs", nargs="+", metavar="SOURCE",
                         help="image file(s), a folder of images, a quoted glob, a video file, a camera "
                              "index (0) or realsense[:SERIAL]")
     parser.add_argument("--weights", action="append", type=Path, metavar="W",
                         help="checkpoint (.pt/.pth) or exported .onnx of one or more objects; repeat "
-                             f"for several models (default: the demo model dope_hope/assets/demo_lite.pt when it "
-                             f"exists; {demo} in this installation)")
+                             "for several models (default: the demo model dope_hope/assets/demo_lite.pt when "
+                             "this installation has it)")
     parser.add_argument("--classes", nargs="+", metavar="CLASS",
                         help="report only these objects of the model(s) (default: all)")
     cam = parser.add_argument_group("camera (default: the image's sibling annotation)")
@@ -149,8 +147,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     stream.add_argument("--track", action="store_true",
                         help="track the objects: stable track ids, smoothed poses (R, t) with the "
                              "frame's own in R_detected / t_detected, a missed object's predicted pose "
-                             "(tracked: coasted) for a few frames; settings: the tracking section of "
-                             "configs/infer.yaml")
+                             "(tracked: coasted) for a few frames; settings: the tracking section, e.g. "
+                             "--set tracking.reprojection_px=2.0")
     parser.add_argument("--mesh", action="append", type=Path, metavar="PATH",
                         help="object mesh per --weights (same order; one-object models), or one models "
                              "folder (any models) holding "

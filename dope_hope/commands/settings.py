@@ -21,6 +21,8 @@ import argparse
 import importlib
 from typing import Any
 
+from dope_hope.config import config_path, load_settings, load_yaml, merge, parse_assignment, settings_yaml
+
 #: The commands that have settings: command -> (module, settings class, default --config).
 SETTINGS_OF: dict[str, tuple[str, str, str | None]] = {
     "synth": ("dope_hope.synth.settings", "SynthSettings", "synth"),
@@ -55,16 +57,12 @@ def settings_class(command: str) -> Any:
 
 def command_settings(command: str, config: Any, overrides: list[str]) -> Any:
     """``command``'s effective settings (:func:`dope_hope.config.load_settings`)."""
-    from dope_hope.config import load_settings
-
     return load_settings(settings_class(command), config, overrides)
 
 
 def given_settings(command: str, config: Any, overrides: list[str]) -> dict[str, Any]:
     """What ``config`` and ``overrides`` set, nested as a file writes it (checked first: one
     line naming the file or --set item and section.key for a bad one)."""
-    from dope_hope.config import config_path, load_yaml, merge, parse_assignment
-
     command_settings(command, config, overrides)
     given: dict[str, Any] = {}
     if config is not None and config != SETTINGS_OF[command][2]:
@@ -85,8 +83,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dope_hope.config import settings_yaml
-
     config = args.config if args.config is not None else SETTINGS_OF[args.command_name][2]
     print(settings_yaml(command_settings(args.command_name, config, args.overrides)), end="")
     return 0

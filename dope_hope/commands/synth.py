@@ -31,6 +31,10 @@ from pathlib import Path
 
 from dope_hope.commands.argtypes import nonnegative_int, positive_int
 from dope_hope.commands.settings import add_settings_arguments
+from dope_hope.errors import ConfigError
+
+# The library is imported inside the functions: cli.py imports every command to build --help,
+# which must not pay for numpy, OpenCV or torch.
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -42,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--models-dir", type=Path, metavar="DIR",
                      help="models folder (HOPE <Name>/textured.obj or BOP obj_NNNNNN.ply); with --object")
     src.add_argument("--object", dest="object_name", nargs="+", metavar="NAME",
-                     help="object name(s) in --models-dir, e.g. Ketchup Mustard; 'all': the 28 HOPE objects")
+                     help="object name(s) in --models-dir, e.g. Ketchup Mustard; 'all': every object the folder holds")
     src.add_argument("--procedural", action="store_true",
                      help="a new procedural box / can / bottle per frame (pretraining data; config "
                           "section 'procedural')")
@@ -76,7 +80,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from dope_hope.catalog import object_names
-    from dope_hope.errors import ConfigError
     from dope_hope.io.models_dir import find_object_mesh, objects_in_folder
     from dope_hope.io.paths import output_dir
     from dope_hope.synth.generate import SynthJob

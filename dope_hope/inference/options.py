@@ -13,7 +13,16 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from dope_hope.config import SectionSettings, at_least, boolean, finite_float, load_config, one_of, or_none, section
+from dope_hope.config import (
+    SectionSettings,
+    at_least,
+    boolean,
+    finite_float,
+    load_config,
+    one_of,
+    or_none,
+    section,
+)
 from dope_hope.inference.pnp import PnpSettings
 from dope_hope.inference.pose_search import HypothesisSettings
 from dope_hope.inference.tracking_settings import TrackingSettings

@@ -3,6 +3,7 @@ defaults and checks), the object's info."""
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -11,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from dope_hope.assets import DEMO_WEIGHTS, PRETRAINED_WEIGHTS
+from dope_hope.catalog import CATEGORIES, get_object
 from dope_hope.config import (
     SectionSettings,
     at_least,
@@ -20,12 +22,14 @@ from dope_hope.config import (
     or_none,
     positive_float,
     section,
-    whole_number,
 )
-from dope_hope.errors import ConfigError, UnknownObjectError
+from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
+from dope_hope.io.bop_scenes import recorded_box_size
+from dope_hope.io.dope_json import recorded_cuboid_size
+from dope_hope.io.models_dir import find_object_mesh, parse_mesh_args
+from dope_hope.io.paths import require_file
 from dope_hope.model.settings import InputSettings, ModelSettings
 from dope_hope.training.augment import AugmentParams
-
 
 #: ``--init`` choices besides a checkpoint path.
 INIT_CHOICES = ("auto", "pretrained", "demo", "none")
@@ -205,8 +209,6 @@ class TrainSettings(SectionSettings):
 
 
 def _symmetry(value: Any, name: str) -> Any:
-    from dope_hope.catalog import CATEGORIES
-
     if value in (None, False) or (isinstance(value, str) and value.lower() in ("none", "auto", *CATEGORIES)):
         return value
     raise ConfigError(f"{name} must be none, auto or one of {', '.join(CATEGORIES)}, got {value!r}")
@@ -271,7 +273,7 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None, units: str
     size the dataset records (a synth frame's JSON, an NDDS settings file, a BOP dataset's
     models_info.json) > the catalog. ``object_index``: the object's index in the records'
     ``classes``."""
-    from dope_hope.catalog import get_object
+    # torch and trimesh only for the checkpoint's object entry
     from dope_hope.model.checkpoint import make_object_info
 
     try:
@@ -283,8 +285,6 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None, units: str
         from dope_hope.io.meshes import load_mesh, mesh_cuboid
         size, _ = mesh_cuboid(load_mesh(mesh, units=units))
         return make_object_info(name, size, "mesh"), f"mesh {Path(mesh).name}"
-    from dope_hope.io.bop_scenes import recorded_box_size
-    from dope_hope.io.dope_json import recorded_cuboid_size
 
     for r in [r for r in records if np.any(r.object_indices() == object_index)][:5]:
         if r.json_path.name == "scene_gt.json":
@@ -312,8 +312,6 @@ def resolve_init(choice: str | None, config: dict[str, Any]) -> tuple[Path | Non
         InputFileError: "pretrained" / "demo" where this installation does not ship the file.
         ModelFileError: "pretrained" for another architecture (its shapes differ).
     """
-    from dope_hope.errors import InputFileError
-
     value = "auto" if choice is None else str(choice)
     if value == "none":
         return None, "random start (--init none)"
@@ -351,10 +349,6 @@ def resolve_resume(choice: str | None, out: Path, init: str | None) -> tuple[Pat
         ConfigError: a checkpoint path together with ``--init``.
         InputFileError: a checkpoint path that is not a readable file.
     """
-    import logging
-
-    from dope_hope.io.paths import require_file
-
     log = logging.getLogger(__name__)
     if choice is None:
         return None, init
@@ -376,6 +370,7 @@ def same_architecture(config: dict[str, Any], checkpoint: Path) -> bool:
     """True when ``config`` builds the network ``checkpoint`` holds (same ``model`` section and
     input normalization), up to ``model.num_objects``: a one-object start is widened to the
     run's objects (:func:`dope_hope.model.network.widen_to_objects`)."""
+    # torch only to read the checkpoint
     from dope_hope.model.checkpoint import load_checkpoint
 
     saved = load_checkpoint(checkpoint)["config"]
@@ -403,8 +398,6 @@ def train_meshes(objects: Sequence[str], mesh_args: Sequence[str] | None, models
         ConfigError: both --mesh and --models-dir; a mesh of no object of the run; units not
             one or one per mesh.
     """
-    from dope_hope.io.models_dir import find_object_mesh, parse_mesh_args
-
     names = list(objects)
     if mesh_args and models_dir is not None:
         raise ConfigError("give either --mesh or --models-dir, not both")
