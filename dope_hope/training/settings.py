@@ -335,7 +335,8 @@ def train_meshes(objects: Sequence[str], mesh_args: Sequence[str] | None, models
     ({class: mesh}, {class: unit}).
 
     ``--mesh`` values pair with the objects in order when there is one per object (else
-    ``NAME=PATH`` or a file that names its object: :func:`dope_hope.io.models_dir.parse_mesh_args`);
+    ``NAME=PATH`` or a file that names its object; a NAME that is not an object of the run is
+    refused: :func:`dope_hope.io.models_dir.parse_mesh_args`);
     ``--models-dir`` is searched for every object (:func:`~dope_hope.io.models_dir.find_object_mesh`).
     Without objects (a resumed run) one mesh is the run's object's, keyed "".
 
@@ -351,19 +352,13 @@ def train_meshes(objects: Sequence[str], mesh_args: Sequence[str] | None, models
     meshes: dict[str, Path] = {}
     if models_dir is not None:
         meshes = {n: find_object_mesh(n, models_dir) for n in names}
+    elif mesh_args and not names:  # a resumed run's one object, named by its checkpoint
+        if len(mesh_args) != 1:
+            raise ConfigError(f"--mesh: {len(mesh_args)} meshes for a resumed run; name its objects with --object")
+        text = str(mesh_args[0])
+        meshes = {"": Path(text.split("=", 1)[1] if "=" in text and not Path(text).exists() else text)}
     elif mesh_args:
-        if len(names) <= 1 and len(mesh_args) == 1:
-            text = str(mesh_args[0])
-            named = "=" in text and not Path(text).exists()
-            meshes = {names[0] if names else "": Path(text.split("=", 1)[1] if named else text)}
-        elif len(mesh_args) == len(names) and not any("=" in str(m) and not Path(m).exists() for m in mesh_args):
-            meshes = {n: Path(m) for n, m in zip(names, mesh_args)}
-        else:
-            lower = {n.lower(): n for n in names}
-            for key, path in parse_mesh_args(mesh_args, names).items():
-                if key.lower() not in lower:
-                    raise ConfigError(f"--mesh {path}: {key} is not one of the objects ({', '.join(names)})")
-                meshes[lower[key.lower()]] = path
+        meshes = parse_mesh_args(mesh_args, names, in_order=True)
     if not units:
         return meshes, {}
     if not meshes:
