@@ -207,24 +207,10 @@ def _global_camera(args: argparse.Namespace):
     return None
 
 
-def _kept_classes(classes: list[str] | None, models: list[tuple[Path, list[str]]]) -> list[list[str] | None]:
-    """Per model, the --classes it detects (None: all its objects; []: none, not run).
-    ConfigError naming --classes and the models' objects for a class no model detects."""
-    from dope_hope.errors import ConfigError
-
-    if not classes:
-        return [None] * len(models)
-    known = [n for _, names in models for n in names]
-    for c in classes:
-        if c.lower() not in {n.lower() for n in known}:
-            raise ConfigError(f"--classes: {c!r} is not an object of the model(s) (known: {', '.join(known)})")
-    wanted = {c.lower() for c in classes}
-    return [[n for n in names if n.lower() in wanted] for _, names in models]
-
-
 def build_predictors(args: argparse.Namespace, weights: list[Path]):
     from dope_hope.errors import ConfigError
     from dope_hope.inference.backends import backend_objects, model_min_score, open_backend
+    from dope_hope.inference.model_classes import classes_per_model
     from dope_hope.inference.predictor import DopePredictor
     from dope_hope.io.models_dir import find_object_mesh
 
@@ -237,7 +223,9 @@ def build_predictors(args: argparse.Namespace, weights: list[Path]):
                           f"got {len(meshes)} meshes")
     backends = [open_backend(w, args.backend, args.device, args.threads) for w in weights]
     models = [(w, [o.class_name for o in backend_objects(b)]) for w, b in zip(weights, backends)]
-    kept = _kept_classes(getattr(args, "classes", None), models)
+    kept, notes = classes_per_model(models, getattr(args, "classes", None))
+    for note in notes:
+        print(f"dope-hope infer: warning: {note}", file=sys.stderr)
     predictors = []
     for i, (backend, (w, names), keep) in enumerate(zip(backends, models, kept)):
         if keep == []:

@@ -204,13 +204,73 @@ def input_hw(config: dict[str, Any]) -> tuple[int, int]:
     return h, w
 
 
+#: An annotation's projected cuboid implies its box when the fitted box reprojects within
+#: this many pixels (RMS) of it (else its pose is in another frame: no size is read from it).
+FIT_RMS_PX = 2.0
+
+
+def annotated_size(name: str, records: Sequence[Any], object_index: int = 0) -> tuple[np.ndarray, str] | None:
+    """(size (3,) m, where from) of ``name``'s box as the data says, or None: the size the
+    dataset records (a synth frame's JSON, an NDDS settings file, a BOP dataset's
+    models_info.json), else the one box the instances' projected cuboids imply with their
+    poses (:func:`dope_hope.geometry.fit_cuboid`; None when they do not fit one box within
+    :data:`FIT_RMS_PX`, e.g. poses in another frame). Looks at the first five records holding
+    object ``object_index``."""
+    holding = [r for r in records if np.any(r.object_indices() == object_index)][:5]
+    recorded = _recorded_size(name, holding)
+    if recorded is not None:
+        return recorded[0], f"the size {recorded[1].name} records"
+    from dope_hope.errors import DopeHopeError
+    from dope_hope.geometry import fit_cuboid
+    from dope_hope.io.dope_json import read_dope_json
+
+    views = []
+    for r in holding:
+        if r.json_path.name == "scene_gt.json":
+            continue
+        try:
+            frame = read_dope_json(r.json_path)
+        except (DopeHopeError, ValueError, KeyError, TypeError, OSError):
+            continue
+        views += [(obj.projected_cuboid, frame.K, obj.R, obj.t) for obj in frame.objects
+                  if obj.class_name.lower() == name.lower() and obj.projected_cuboid is not None]
+    fitted = fit_cuboid(views)
+    if fitted is None or fitted[2] > FIT_RMS_PX:
+        return None
+    return fitted[0], (f"the box the annotated projected cuboids imply ({len(views)} instances, e.g. in "
+                       f"{holding[0].json_path.name})")
+
+
+def _recorded_size(name: str, records: Sequence[Any]) -> tuple[np.ndarray, Path] | None:
+    """(size (3,) m, the annotation file) of the first of ``records`` whose dataset records
+    ``name``'s box, or None."""
+    from dope_hope.io.bop_scenes import recorded_box_size
+    from dope_hope.io.dope_json import recorded_cuboid_size
+
+    for r in records:
+        if r.json_path.name == "scene_gt.json":
+            size = recorded_box_size(r.json_path, name)
+        else:
+            size = recorded_cuboid_size(r.json_path, name)
+        if size is not None:
+            return size, r.json_path
+    return None
+
+
 def object_info(name: str, records: Sequence[Any], mesh: Path | None, units: str | None = None,
                 object_index: int = 0) -> tuple[dict[str, Any], str]:
     """Checkpoint ``object`` entry (class_name, size_m in the mesh frame, frame "mesh") and
     where the size came from: a mesh's AABB (file in ``units``, default its suffix's) > the
     size the dataset records (a synth frame's JSON, an NDDS settings file, a BOP dataset's
     models_info.json) > the catalog. ``object_index``: the object's index in the records'
-    ``classes``."""
+    ``classes``.
+
+    Raises:
+        ConfigError: a mesh whose box does not match the box the data says
+        (:func:`annotated_size`, extents in any order, within
+        :data:`dope_hope.io.meshes.MESH_SIZE_TOLERANCE`): every pose the model gives would
+        be off by the ratio.
+    """
     from dope_hope.catalog import get_object
     from dope_hope.model.checkpoint import make_object_info
 
@@ -220,19 +280,18 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None, units: str
     except UnknownObjectError:
         hope = None
     if mesh is not None:
-        from dope_hope.io.meshes import load_mesh, mesh_cuboid
-        size, _ = mesh_cuboid(load_mesh(mesh, units=units))
-        return make_object_info(name, size, "mesh"), f"mesh {Path(mesh).name}"
-    from dope_hope.io.bop_scenes import recorded_box_size
-    from dope_hope.io.dope_json import recorded_cuboid_size
+        from dope_hope.io.meshes import check_mesh_box, load_mesh, mesh_cuboid
 
-    for r in [r for r in records if np.any(r.object_indices() == object_index)][:5]:
-        if r.json_path.name == "scene_gt.json":
-            size = recorded_box_size(r.json_path, name)
-        else:
-            size = recorded_cuboid_size(r.json_path, name)
-        if size is not None:
-            return make_object_info(name, size, "mesh"), f"dataset {r.json_path.name}"
+        loaded = load_mesh(mesh, units=units)
+        size, _ = mesh_cuboid(loaded)
+        implied = annotated_size(name, records, object_index)
+        if implied is not None:
+            check_mesh_box(size, implied[0], f"--mesh {mesh}", name, implied[1], any_axis_order=True,
+                           units=loaded.metadata["source_units"])
+        return make_object_info(name, size, "mesh"), f"mesh {Path(mesh).name}"
+    recorded = _recorded_size(name, [r for r in records if np.any(r.object_indices() == object_index)][:5])
+    if recorded is not None:
+        return make_object_info(name, recorded[0], "mesh"), f"dataset {recorded[1].name}"
     if hope is None:
         raise ConfigError(f"cannot tell the cuboid size of {name!r}: the dataset records none and it is "
                           "not a HOPE object; pass --mesh")
@@ -310,6 +369,22 @@ def resolve_resume(choice: str | None, out: Path, init: str | None) -> tuple[Pat
     if init is not None:
         log.warning("--init %s ignored: --resume continues %s with its own weights", init, candidate)
     return candidate, None
+
+
+def check_resume_flags(job: TrainJob, saved_job: dict[str, Any]) -> None:
+    """ConfigError naming the flag for what a run continued from ``job.resume`` cannot honour
+    (``saved_job``: the job its checkpoint records): other objects than its own (``--object``:
+    the network's map groups are the checkpoint's objects, in its order) and
+    ``--backbone-weights`` (the checkpoint's weights replace them)."""
+    saved = [str(n) for n in saved_job.get("objects") or ([saved_job["object"]] if saved_job.get("object") else [])]
+    given = job.class_names if job.object_name else []
+    if given and saved and [n.lower() for n in given] != [n.lower() for n in saved]:
+        raise ConfigError(f"--object {' '.join(given)}: --resume continues {job.resume}, a run of "
+                          f"{', '.join(saved)}, whose objects it cannot change; drop --object, or start a new "
+                          "run (another --out)")
+    if job.backbone_weights is not None:
+        raise ConfigError(f"--backbone-weights {job.backbone_weights}: --resume continues {job.resume} with its "
+                          "own weights; give one of them")
 
 
 def same_architecture(config: dict[str, Any], checkpoint: Path) -> bool:

@@ -61,6 +61,7 @@ from dope_hope.training.settings import (
     TrainJob,
     input_hw,
     check_config_keys,
+    check_resume_flags,
     train_settings,
 )
 from dope_hope.training.validation import object_hits
@@ -125,7 +126,7 @@ class Trainer:
         run, the starting weights once the data checks passed)."""
         from dope_hope.training.augment import AugmentParams
         from dope_hope.training.dataset import DopeDataset, EpochSampler, split_records
-        from dope_hope.training.sources import scan_training_data
+        from dope_hope.training.sources import check_instances, scan_training_data
 
         config, ts = self.config, self.ts
         hw = input_hw(config)
@@ -134,9 +135,7 @@ class Trainer:
         scan = dict(min_visibility=float(ts["min_visibility"]), include_empty=bool(ts["include_empty_frames"]),
                     progress=job.progress and self.dist.main)
         records, _ = scan_training_data(job.data, job.class_names, KEYPOINT_ORDER, **scan)
-        if not any(len(r.keypoints) for r in records):
-            folders = ", ".join(str(p) for p in job.data)
-            raise InputFileError(folders, f"no annotated instance of class {' / '.join(job.class_names)!r}")
+        check_instances(records, job.class_names, job.data)
         if job.val:
             val_records, _ = scan_training_data(job.val, job.class_names, KEYPOINT_ORDER, **scan)
             if not val_records:
@@ -773,6 +772,7 @@ def _resumed(job: TrainJob, config: dict[str, Any]) -> tuple[dict[str, Any] | No
         ck = load_checkpoint(job.resume)
         config = saved_config = ck.get("config") or config
         saved_job = _extra(ck).get("job") or {}
+        check_resume_flags(job, saved_job)
         if not job.data:
             job.data = [Path(p) for p in saved_job.get("data", [])]
             job.val = job.val or [Path(p) for p in saved_job.get("val", [])]
