@@ -102,6 +102,26 @@ def test_a_metres_mesh_read_as_centimetres_is_refused_with_the_likely_unit(comma
     assert not out.exists()
 
 
+def test_bop_submit_refuses_a_models_folder_read_in_the_wrong_unit(tmp_path, monkeypatch):
+    """bop-submit reads BOP models in millimetres: a model exported in metres is refused."""
+    from test_cli_bop_submit import KETCHUP, _patch_backend, _run
+
+    _patch_backend(monkeypatch)
+    models = tmp_path / "models"
+    models.mkdir()
+    model = models / f"obj_{KETCHUP.obj_id:06d}.ply"
+    trimesh.creation.box(extents=KETCHUP.size_array).export(model)  # metres, not BOP's mm
+    root = tmp_path / "bop"
+    (root / "hope" / "test" / "000001" / "rgb").mkdir(parents=True)
+    out = tmp_path / "m_hope-test.csv"
+    code, _, err = _run(["bop-submit", "--bop-root", root, "--weights", "k.pt", "--models-dir", models,
+                         "--out", out, "--no-progress"])
+    line = one_line_error(code, err, "bop-submit")
+    assert f"{model}: mesh box " in line and "(read in mm) is too small for an object (largest side under 5 mm); " \
+        "the file is likely in m: give its unit as m" in line
+    assert not out.exists()
+
+
 # ============================================================================= 2. mesh vs annotations
 def test_train_mesh_off_by_a_unit_from_the_recorded_size_is_refused(grocery, shelf, tmp_path, capsys):
     """A Can in millimetres read as centimetres is a plausible 50 cm can, but the frames record
