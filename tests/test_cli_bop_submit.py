@@ -24,6 +24,9 @@ from dope_hope.catalog import get_object
 from dope_hope.geometry import rotation_error_deg
 from dope_hope.io.bop_csv import read_bop_csv
 
+# imported before any test patches backends.open_backend: the predictor binds the name at import
+import dope_hope.inference.predictor  # noqa: F401
+
 torch.set_num_threads(1)
 W, H = 160, 120
 K = np.array([[150.0, 0.0, 79.5], [0.0, 150.0, 59.5], [0.0, 0.0, 1.0]])
