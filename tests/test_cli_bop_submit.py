@@ -19,13 +19,12 @@ import trimesh
 from _targets_backend import TargetsBackend
 from scipy.spatial.transform import Rotation
 
+# imported before any test patches backends.open_backend: the predictor binds the name at import
+import dope_hope.inference.predictor  # noqa: F401
 from dope_hope import cli
 from dope_hope.catalog import get_object
 from dope_hope.geometry import rotation_error_deg
 from dope_hope.io.bop_csv import read_bop_csv
-
-# imported before any test patches backends.open_backend: the predictor binds the name at import
-import dope_hope.inference.predictor  # noqa: F401
 
 torch.set_num_threads(1)
 W, H = 160, 120

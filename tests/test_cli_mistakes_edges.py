@@ -15,12 +15,6 @@ import numpy as np
 import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
-
-from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
-from dope_hope.geometry import cuboid_keypoints, intrinsics_matrix, project_points
-from dope_hope.io.dope_json import write_dope_json
-from dope_hope.io.images import write_rgb
-from dope_hope.io.meshes import load_mesh, mesh_cuboid
 from test_cli_mistakes import (  # noqa: F401 - fixtures
     TINY_SET,
     frames,
@@ -31,6 +25,12 @@ from test_cli_mistakes import (  # noqa: F401 - fixtures
     run_cli,
     weights,
 )
+
+from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
+from dope_hope.geometry import cuboid_keypoints, intrinsics_matrix, project_points
+from dope_hope.io.dope_json import write_dope_json
+from dope_hope.io.images import write_rgb
+from dope_hope.io.meshes import load_mesh, mesh_cuboid
 
 FW, FH = 80, 64
 TRAIN = ["--init", "none", "--steps", 1, "--no-progress", "--set", *TINY_SET, "train.plots=false",

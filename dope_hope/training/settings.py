@@ -1,6 +1,7 @@
 """Training settings: the job, the ``train`` section's defaults and checks, the object's info."""
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -9,8 +10,14 @@ from typing import Any
 import numpy as np
 
 from dope_hope.assets import DEMO_WEIGHTS, PRETRAINED_WEIGHTS
-from dope_hope.errors import ConfigError, UnknownObjectError
-
+from dope_hope.catalog import get_object
+from dope_hope.config import nonnegative_float, positive_float, whole_number
+from dope_hope.errors import ConfigError, DopeHopeError, InputFileError, UnknownObjectError
+from dope_hope.geometry import fit_cuboid
+from dope_hope.io.bop_scenes import recorded_box_size
+from dope_hope.io.dope_json import read_dope_json, recorded_cuboid_size
+from dope_hope.io.models_dir import find_object_mesh, parse_mesh_args
+from dope_hope.io.paths import require_file
 
 #: ``--init`` choices besides a checkpoint path.
 INIT_CHOICES = ("auto", "pretrained", "demo", "none")
@@ -125,8 +132,6 @@ MAX_TIME_LIMIT_MIN = 525_600.0
 def check_time_limit(value: Any, name: str = "train.time_limit_min") -> float:
     """A time budget in minutes: a finite number > 0 and at most :data:`MAX_TIME_LIMIT_MIN`;
     ConfigError naming ``name`` otherwise."""
-    from dope_hope.config import positive_float
-
     minutes = positive_float(value, name)
     if minutes > MAX_TIME_LIMIT_MIN:
         raise ConfigError(f"{name} must be at most {MAX_TIME_LIMIT_MIN:g} minutes (a year; leave it out for "
@@ -154,8 +159,6 @@ def check_config_keys(config: dict[str, Any]) -> None:
 def train_settings(config: dict[str, Any]) -> dict[str, Any]:
     """The ``train`` section over :data:`TRAIN_DEFAULTS`; unknown keys and values of the wrong
     kind (``lr: abc``, ``steps: 0``, ``workers: -1``) raise ConfigError naming the key."""
-    from dope_hope.config import nonnegative_float, positive_float, whole_number
-
     section = dict(config.get("train") or {})
     unknown = sorted(set(section) - set(TRAIN_DEFAULTS))
     if unknown:
@@ -220,10 +223,6 @@ def annotated_size(name: str, records: Sequence[Any], object_index: int = 0) -> 
     recorded = _recorded_size(name, holding)
     if recorded is not None:
         return recorded[0], f"the size {recorded[1].name} records"
-    from dope_hope.errors import DopeHopeError
-    from dope_hope.geometry import fit_cuboid
-    from dope_hope.io.dope_json import read_dope_json
-
     views = []
     for r in holding:
         if r.json_path.name == "scene_gt.json":
@@ -244,9 +243,6 @@ def annotated_size(name: str, records: Sequence[Any], object_index: int = 0) -> 
 def _recorded_size(name: str, records: Sequence[Any]) -> tuple[np.ndarray, Path] | None:
     """(size (3,) m, the annotation file) of the first of ``records`` whose dataset records
     ``name``'s box, or None."""
-    from dope_hope.io.bop_scenes import recorded_box_size
-    from dope_hope.io.dope_json import recorded_cuboid_size
-
     for r in records:
         if r.json_path.name == "scene_gt.json":
             size = recorded_box_size(r.json_path, name)
@@ -271,7 +267,7 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None, units: str
         :data:`dope_hope.io.meshes.MESH_SIZE_TOLERANCE`): every pose the model gives would
         be off by the ratio.
     """
-    from dope_hope.catalog import get_object
+    # torch and trimesh only for the checkpoint's object entry
     from dope_hope.model.checkpoint import make_object_info
 
     try:
@@ -311,8 +307,6 @@ def resolve_init(choice: str | None, config: dict[str, Any]) -> tuple[Path | Non
         InputFileError: "pretrained" / "demo" where this installation does not ship the file.
         ModelFileError: "pretrained" for another architecture (its shapes differ).
     """
-    from dope_hope.errors import InputFileError
-
     value = "auto" if choice is None else str(choice)
     if value == "none":
         return None, "random start (--init none)"
@@ -350,10 +344,6 @@ def resolve_resume(choice: str | None, out: Path, init: str | None) -> tuple[Pat
         ConfigError: a checkpoint path together with ``--init``.
         InputFileError: a checkpoint path that is not a readable file.
     """
-    import logging
-
-    from dope_hope.io.paths import require_file
-
     log = logging.getLogger(__name__)
     if choice is None:
         return None, init
@@ -371,26 +361,11 @@ def resolve_resume(choice: str | None, out: Path, init: str | None) -> tuple[Pat
     return candidate, None
 
 
-def check_resume_flags(job: TrainJob, saved_job: dict[str, Any]) -> None:
-    """ConfigError naming the flag for what a run continued from ``job.resume`` cannot honour
-    (``saved_job``: the job its checkpoint records): other objects than its own (``--object``:
-    the network's map groups are the checkpoint's objects, in its order) and
-    ``--backbone-weights`` (the checkpoint's weights replace them)."""
-    saved = [str(n) for n in saved_job.get("objects") or ([saved_job["object"]] if saved_job.get("object") else [])]
-    given = job.class_names if job.object_name else []
-    if given and saved and [n.lower() for n in given] != [n.lower() for n in saved]:
-        raise ConfigError(f"--object {' '.join(given)}: --resume continues {job.resume}, a run of "
-                          f"{', '.join(saved)}, whose objects it cannot change; drop --object, or start a new "
-                          "run (another --out)")
-    if job.backbone_weights is not None:
-        raise ConfigError(f"--backbone-weights {job.backbone_weights}: --resume continues {job.resume} with its "
-                          "own weights; give one of them")
-
-
 def same_architecture(config: dict[str, Any], checkpoint: Path) -> bool:
     """True when ``config`` builds the network ``checkpoint`` holds (same ``model`` section and
     input normalization), up to ``model.num_objects``: a one-object start is widened to the
     run's objects (:func:`dope_hope.model.network.widen_to_objects`)."""
+    # torch only to read the checkpoint
     from dope_hope.model.checkpoint import load_checkpoint
 
     saved = load_checkpoint(checkpoint)["config"]
@@ -419,8 +394,6 @@ def train_meshes(objects: Sequence[str], mesh_args: Sequence[str] | None, models
         ConfigError: both --mesh and --models-dir; a mesh of no object of the run; units not
             one or one per mesh.
     """
-    from dope_hope.io.models_dir import find_object_mesh, parse_mesh_args
-
     names = list(objects)
     if mesh_args and models_dir is not None:
         raise ConfigError("give either --mesh or --models-dir, not both")
