@@ -263,7 +263,8 @@ def build_predictors(args: argparse.Namespace, weights: list[Path]):
 
 
 def _tracker(args: argparse.Namespace, predictors: list):
-    """The stream's PoseTracker; each class's symmetries from the declaration beside its --mesh."""
+    """The stream's PoseTracker; each class's symmetries from its --mesh (a declaration beside it,
+    else found on it), else those the model records, else the catalog category's."""
     from dope_hope.inference.tracking import PoseTracker, object_symmetries
     from dope_hope.io.models_dir import find_object_mesh
 
@@ -276,7 +277,8 @@ def _tracker(args: argparse.Namespace, predictors: list):
                 path = find_object_mesh(name, meshes[0])
             elif meshes and len(p.class_names) == 1:
                 path = meshes[i]
-            symmetries[name] = object_symmetries(name, path, args.mesh_units)
+            if path is not None:  # else the model's recorded symmetries, else the catalog's
+                symmetries[name] = object_symmetries(name, path, args.mesh_units)
     return PoseTracker(predictors, symmetries=symmetries)
 
 

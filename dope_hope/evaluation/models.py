@@ -5,7 +5,8 @@
 without one, from the catalog's cuboid. Symmetries: the object's declaration
 (:func:`dope_hope.symmetry.resolve.resolve_symmetries`: a BOP ``models_info.json`` entry
 beside the mesh, ``--symmetries``, ``model_info.json`` beside the mesh (the one
-``dope-hope demo`` writes for its box)), else the catalog category's. Each also carries a :class:`BopModel`: the model as BOP19 scoring
+``dope-hope demo`` writes for its box)), else the catalog category's, else those found on
+the mesh (:mod:`dope_hope.symmetry.detect`). Each also carries a :class:`BopModel`: the model as BOP19 scoring
 uses it (every vertex of the file, millimetres).
 """
 from __future__ import annotations
@@ -203,11 +204,13 @@ def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectMod
     source = loaded.source
     if found.declaration is not None:
         syms, diameter = _declared_model_symmetries(found.declaration, loaded.mesh)
-        source += f" + symmetries {found.declaration.source}"
+        source += f" + symmetries {found.describe() if found.detected else found.declaration.source}"
     else:
         syms = (category_symmetries(category, step_deg=models.cyl_step_deg) if obj else np.eye(4)[None])
         syms = centred_symmetries(syms, mesh_cuboid(loaded.mesh)[1])
         diameter = mesh_diameter(loaded.mesh)
+        if found.detected is not None:
+            source += f" + symmetries {found.describe()}"
     return ObjectModel(name=name, obj_id=obj_id, category=category, points=points, diameter=diameter,
                        symmetries=syms, mesh=loaded.mesh, source=source, procedural=path is None,
                        bop=_bop_model(loaded, path, found, syms, diameter))
@@ -234,7 +237,8 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
     mesh; lengths in the mesh's unit), discretized as the toolkit does from the numbers as
     written (:func:`dope_hope.symmetry.transforms.symmetries_from_models_info`); else the
     catalog category's (cylinders in ``cyl_step_deg`` steps) about the mesh's box centre; a
-    class outside the catalog without a declaration has only the identity. The tables use
+    class outside the catalog without a declaration has those found on its mesh
+    (:mod:`dope_hope.symmetry.detect`, discretized as a declaration), else only the identity. The tables use
     ``n_points`` surface samples; BOP19 scoring (``ObjectModel.bop``) every vertex of the
     file, as the toolkit (a PLY is read as stored: :func:`io.meshes.read_ply`); a BOP PLY in
     mm with its ``models_info.json`` entry (diameter included) is the toolkit's exact input.

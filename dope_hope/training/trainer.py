@@ -219,6 +219,8 @@ class Trainer:
         from dope_hope.training.objects import checkpoint_objects, run_objects
 
         self.objects = run_objects(self.job, records)
+        for obj in self.objects:
+            log.info("symmetries: %s: %s", obj.name, obj.symmetry_source)
         self.object = checkpoint_objects(self.objects)
         self.size_source = self.objects[0].size_source if len(self.objects) == 1 else \
             {o.name: o.size_source for o in self.objects}
