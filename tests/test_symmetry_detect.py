@@ -10,6 +10,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from dope_hope.catalog import get_object
 from dope_hope.errors import ConfigError
 from dope_hope.io.symmetries import read_declaration
 from dope_hope.symmetry.detect import (SymmetryTolerance, axis_name, detect_mesh_file_symmetries,
@@ -163,9 +164,14 @@ def test_resolution_detects_for_a_mesh_outside_the_catalog_after_every_declarati
     named = tmp_path / "named.json"
     named.write_text(json.dumps({"symmetries_continuous": [{"axis": [0, 1, 0], "offset": [0, 0, 0]}]}))
     assert resolve_symmetries("Widget", cyl, named, units="m").declaration.source == str(named)
-    # a HOPE object keeps its category (the paper's convention) whatever its mesh shows
-    bare = _write_mesh(tmp_path / "c", trimesh.creation.cylinder(radius=0.03, height=0.1, sections=64))
-    assert resolve_symmetries("Ketchup", bare, units="m").describe() == "bottle category"
+    # a HOPE object keeps its category (the paper's convention) whatever its mesh shows...
+    ketchup_box = _write_mesh(tmp_path / "c", trimesh.creation.box(extents=get_object("Ketchup").size_array))
+    assert resolve_symmetries("Ketchup", ketchup_box, units="m").describe() == "bottle category"
+    # ...but a mesh whose box is not the catalog's is another object of that name
+    carton = _write_mesh(tmp_path / "d", trimesh.creation.box(extents=(0.044, 0.044, 0.16)))
+    other = resolve_symmetries("Milk", carton, units="m")
+    assert other.category is None and other.describe().startswith("detected on the mesh: flip about x")
+    assert resolve_symmetries("Milk", carton, units="m", detect=False).describe() == "cuboid category"
     # an asymmetric mesh: found none, and said so
     odd = _write_mesh(tmp_path / "b", _asymmetric())
     none = resolve_symmetries("Widget", odd, units="m")

@@ -351,7 +351,15 @@ def _axis_symmetries(axis: np.ndarray, center: np.ndarray, surface: _Surface, to
                                    max(w[0] for _, w in passed), max(w[1] for _, w in passed)))
 
 
-_CACHE: dict[tuple[str, str, SymmetryTolerance], DetectedSymmetries] = {}
+_CACHE: dict[tuple[str, str, SymmetryTolerance | None], Any] = {}
+
+
+def _file_key(path: Path) -> str:
+    """The SHA-256 of a file's bytes ("" when it cannot be read: then nothing is cached)."""
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError:
+        return ""
 
 
 def detect_mesh_file_symmetries(path: str | os.PathLike, units: str | None = None,
@@ -364,15 +372,22 @@ def detect_mesh_file_symmetries(path: str | os.PathLike, units: str | None = Non
     """
     path = Path(path)
     tol = tolerance or SymmetryTolerance()
-    unit = units or DEFAULT_UNITS.get(path.suffix.lower(), "")
-    try:
-        digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    except OSError:
-        digest = ""
-    key = (digest, unit, tol)
-    if digest and key in _CACHE:
+    key = (_file_key(path), units or DEFAULT_UNITS.get(path.suffix.lower(), ""), tol)
+    if key[0] and key in _CACHE:
         return _CACHE[key]
     found = detect_symmetries(load_mesh(path, units=units), tol, source=str(path))
-    if digest:
+    if key[0]:
         _CACHE[key] = found
     return found
+
+
+def mesh_file_size(path: str | os.PathLike, units: str | None = None) -> np.ndarray:
+    """(3,) extents of a mesh file's axis-aligned box, metres (cached as above)."""
+    path = Path(path)
+    key = (_file_key(path), units or DEFAULT_UNITS.get(path.suffix.lower(), ""), None)
+    if key[0] and key in _CACHE:
+        return _CACHE[key]
+    size = mesh_cuboid(load_mesh(path, units=units))[0]
+    if key[0]:
+        _CACHE[key] = size
+    return size

@@ -8,7 +8,8 @@ Training labels (``targets.symmetry auto``), ``dope-hope demo`` and the evaluati
 2. a declaration named by the user (``--symmetries``);
 3. ``model_info.json`` beside the mesh;
 4. the built-in declaration of the demo box (:mod:`dope_hope.demo_object`);
-5. the HOPE catalog's category of the object;
+5. the HOPE catalog's category of the object (unless its mesh's box is not the catalog's
+   cuboid: another object of the same name, such as a milk carton called "Milk");
 6. the symmetries found on its mesh (:func:`dope_hope.symmetry.detect.detect_mesh_file_symmetries`:
    geometry only, within its stated tolerance), for any other object with a mesh file.
 
@@ -35,7 +36,8 @@ from dope_hope.io.symmetries import (
     model_info_declaration,
     read_declaration,
 )
-from dope_hope.symmetry.detect import DetectedSymmetries, detect_mesh_file_symmetries
+from dope_hope.io.meshes import MESH_SIZE_TOLERANCE
+from dope_hope.symmetry.detect import DetectedSymmetries, detect_mesh_file_symmetries, mesh_file_size
 from dope_hope.symmetry.transforms import category_symmetries, declaration_transforms
 
 
@@ -102,17 +104,27 @@ def resolve_symmetries(name: str, mesh_path: str | os.PathLike | None = None,
         return ObjectSymmetries(beside, None)
     if name.lower() == DEMO_CLASS_NAME.lower():
         return ObjectSymmetries(demo_symmetries(), None)
+    has_mesh = mesh_path is not None and os.path.isfile(mesh_path)
     try:
-        return ObjectSymmetries(None, get_object(name).category)
+        obj = get_object(name)
     except UnknownObjectError:
-        pass
-    if mesh_path is None or not detect or not os.path.isfile(mesh_path):
+        obj = None
+    if obj is not None and not (has_mesh and detect and _another_object(obj.size_array, mesh_path, units)):
+        return ObjectSymmetries(None, obj.category)
+    if not has_mesh or not detect:
         return ObjectSymmetries(None, None)
     try:
         found = detect_mesh_file_symmetries(mesh_path, units)
     except ValueError:  # a point cloud: no surface to test
         return ObjectSymmetries(None, None)
     return ObjectSymmetries(found.declaration("mm") if found.any else None, None, detected=found)
+
+
+def _another_object(catalog_size: np.ndarray, mesh_path: str | os.PathLike, units: str | None) -> bool:
+    """True when a mesh's box is not the catalog cuboid of the object it is named after (extents
+    in any order, beyond ``io.meshes.MESH_SIZE_TOLERANCE``): another object of that name."""
+    ratio = np.sort(mesh_file_size(mesh_path, units)) / np.sort(catalog_size)
+    return bool(np.any(ratio > MESH_SIZE_TOLERANCE) or np.any(ratio < 1.0 / MESH_SIZE_TOLERANCE))
 
 
 def label_symmetries(setting: Any, object_name: str, declaration_file: str | os.PathLike | None = None,
