@@ -590,6 +590,7 @@ def test_declared_symmetries_of_a_custom_object_are_used(tmp_path):
     flip = np.diag([1.0, -1.0, -1.0, 1.0]).ravel().tolist()
     found = load_models(["Widget"], [f"Widget={mesh_path}"])["Widget"]
     assert "+ symmetries detected on the mesh: continuous about z" in found.source
+    assert found.found_symmetries.startswith("detected on the mesh: continuous about z")
     assert len(found.symmetries) == 2 * math.ceil(math.pi / 0.01)
     (folder / "model_info.json").write_text(json.dumps(
         {"symmetries_discrete": [flip], "symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]}))

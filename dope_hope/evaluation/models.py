@@ -68,6 +68,8 @@ class ObjectModel:
         source: where points / mesh come from, for the report.
         procedural: True when the points are sampled on the catalog cuboid (no mesh given).
         bop: the model for BOP19 scoring (all vertices, millimetres).
+        found_symmetries: what was found on the mesh when its symmetries come from it (one
+            line: ``detected on the mesh: ...``), else "".
     """
 
     name: str
@@ -80,6 +82,7 @@ class ObjectModel:
     source: str = ""
     procedural: bool = False
     bop: BopModel | None = None
+    found_symmetries: str = ""
 
 
 @dataclass
@@ -213,7 +216,8 @@ def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectMod
             source += f" + symmetries {found.describe()}"
     return ObjectModel(name=name, obj_id=obj_id, category=category, points=points, diameter=diameter,
                        symmetries=syms, mesh=loaded.mesh, source=source, procedural=path is None,
-                       bop=_bop_model(loaded, path, found, syms, diameter))
+                       bop=_bop_model(loaded, path, found, syms, diameter),
+                       found_symmetries=found.describe() if found.detected is not None else "")
 
 
 def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
