@@ -307,7 +307,10 @@ def test_train_command_pairs_meshes_with_objects_and_reads_bop(tmp_path, grocery
 
     objects = load_checkpoint(run / "last.pt")["objects"]  # symmetries from the BOP models_info.json
     assert objects[0]["symmetries"] == {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]}
-    assert objects[1].get("symmetries") is None
+    # the lemon declares none: those found on its mesh (mm), continuous about its long axis x
+    lemon = objects[1]["symmetries"]
+    assert len(lemon["symmetries_continuous"]) == 1 and len(lemon["symmetries_discrete"]) == 1
+    np.testing.assert_allclose(lemon["symmetries_continuous"][0]["axis"], [1, 0, 0], atol=1e-9)
 
 
 def test_a_one_object_start_is_widened_to_the_run_objects():

@@ -5,7 +5,8 @@
 without one, from the catalog's cuboid. Symmetries: the object's declaration
 (:func:`dope_hope.symmetry.resolve.resolve_symmetries`: a BOP ``models_info.json`` entry
 beside the mesh, ``--symmetries``, ``model_info.json`` beside the mesh (the one
-``dope-hope demo`` writes for its box)), else the catalog category's. Each also carries a :class:`BopModel`: the model as BOP19 scoring
+``dope-hope demo`` writes for its box)), else the catalog category's, else those found on
+the mesh (:mod:`dope_hope.symmetry.detect`). Each also carries a :class:`BopModel`: the model as BOP19 scoring
 uses it (every vertex of the file, millimetres).
 """
 from __future__ import annotations
@@ -80,6 +81,8 @@ class ObjectModel:
         source: where points / mesh come from, for the report.
         procedural: True when the points are sampled on the catalog cuboid (no mesh given).
         bop: the model for BOP19 scoring (all vertices, millimetres).
+        found_symmetries: what was found on the mesh when its symmetries come from it (one
+            line: ``detected on the mesh: ...``), else "".
     """
 
     name: str
@@ -92,6 +95,7 @@ class ObjectModel:
     source: str = ""
     procedural: bool = False
     bop: BopModel | None = None
+    found_symmetries: str = ""
 
 
 @dataclass
@@ -202,14 +206,17 @@ def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectMod
     source = loaded.source
     if found.declaration is not None:
         syms, diameter = _declared_model_symmetries(found.declaration, loaded.mesh)
-        source += f" + symmetries {found.declaration.source}"
+        source += f" + symmetries {found.describe() if found.detected else found.declaration.source}"
     else:
         syms = (category_symmetries(category, step_deg=models.cyl_step_deg) if obj else np.eye(4)[None])
         syms = centred_symmetries(syms, mesh_cuboid(loaded.mesh)[1])
         diameter = mesh_diameter(loaded.mesh)
+        if found.detected is not None:
+            source += f" + symmetries {found.describe()}"
     return ObjectModel(name=name, obj_id=obj_id, category=category, points=points, diameter=diameter,
                        symmetries=syms, mesh=loaded.mesh, source=source, procedural=path is None,
-                       bop=_bop_model(loaded, path, found, syms, diameter))
+                       bop=_bop_model(loaded, path, found, syms, diameter),
+                       found_symmetries=found.describe() if found.detected is not None else "")
 
 
 def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
@@ -233,7 +240,8 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
     mesh; lengths in the mesh's unit), discretized as the toolkit does from the numbers as
     written (:func:`dope_hope.symmetry.transforms.symmetries_from_models_info`); else the
     catalog category's (cylinders in ``cyl_step_deg`` steps) about the mesh's box centre; a
-    class outside the catalog without a declaration has only the identity. The tables use
+    class outside the catalog without a declaration has those found on its mesh
+    (:mod:`dope_hope.symmetry.detect`, discretized as a declaration), else only the identity. The tables use
     ``n_points`` surface samples; BOP19 scoring (``ObjectModel.bop``) every vertex of the
     file, as the toolkit (a PLY is read as stored: :func:`io.meshes.read_ply`); a BOP PLY in
     mm with its ``models_info.json`` entry (diameter included) is the toolkit's exact input.

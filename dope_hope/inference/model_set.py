@@ -118,8 +118,9 @@ def build_predictors(weights: Sequence[Path], meshes: Sequence[Path] = (), *, me
 
 def stream_tracker(predictors: Sequence[DopePredictor], meshes: Sequence[Path] = (),
                    mesh_units: str | None = None) -> PoseTracker:
-    """The PoseTracker over ``predictors``; each class's symmetries from the declaration beside
-    its mesh (``meshes`` as :func:`build_predictors` takes them)."""
+    """The PoseTracker over ``predictors``; each class's symmetries from its mesh (``meshes`` as
+    :func:`build_predictors` takes them: a declaration beside it, else found on it), else those
+    the model records, else the catalog category's."""
     meshes = list(meshes)
     symmetries = {}
     for i, p in enumerate(predictors):
@@ -129,5 +130,6 @@ def stream_tracker(predictors: Sequence[DopePredictor], meshes: Sequence[Path] =
                 path = find_object_mesh(name, meshes[0])
             elif meshes and len(p.class_names) == 1:
                 path = meshes[i]
-            symmetries[name] = object_symmetries(name, path, mesh_units)
+            if path is not None:  # else the model's recorded symmetries, else the catalog's
+                symmetries[name] = object_symmetries(name, path, mesh_units)
     return PoseTracker(predictors, symmetries=symmetries)

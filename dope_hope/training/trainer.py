@@ -220,6 +220,8 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
         """The run's objects (:mod:`dope_hope.training.objects`): ``objects``, the checkpoint's
         ``object`` (one entry, or the list of several) and where the sizes came from."""
         self.objects = run_objects(self.job, records)
+        for obj in self.objects:
+            log.info("symmetries: %s: %s", obj.name, obj.symmetry_source)
         self.object = checkpoint_objects(self.objects)
         self.size_source = self.objects[0].size_source if len(self.objects) == 1 else \
             {o.name: o.size_source for o in self.objects}
