@@ -125,8 +125,9 @@ def _input_hw(value: Any, name: str) -> tuple[int, int]:
 
 
 def _text(value: Any, name: str) -> str:
-    if not isinstance(value, str) or not value:
-        raise ConfigError(f"{name} must be a name, got {value!r}")
+    """A string (what it must look like is checked where it is used, e.g. the Isaac ROS release)."""
+    if not isinstance(value, str):
+        raise ConfigError(f"{name} must be a string, got {value!r}")
     return value
 
 
