@@ -220,11 +220,12 @@ def lite_keypoints(tmp: Path, n_eval: int) -> tuple:
     Both calibrate and evaluate on the same jittered copies of the fitted scene (held out from
     calibration). Returns (input (H, W), fitted deviation, untrained deviation).
     """
-    from dope_hope.config import load_config
+    from dope_hope.config import load_settings
     from dope_hope.export.pipeline import Int8Calibration, export_checkpoint
     from dope_hope.io.images import write_rgb
     from dope_hope.training.fit_one import IMAGE_HW, fit_lite_checkpoint
     from dope_hope.training.fit_one import box_scene as scene
+    from dope_hope.training.settings import TrainConfig
 
     rgb, _ = scene()
     rng = np.random.default_rng(123)
@@ -232,7 +233,7 @@ def lite_keypoints(tmp: Path, n_eval: int) -> tuple:
     for i in range(8 + n_eval):
         img = np.clip(rgb.astype(int) + rng.integers(-25, 25, rgb.shape), 0, 255).astype(np.uint8)
         write_rgb((calib if i < 8 else evald) / f"{i:06d}.png", img)
-    cfg = load_config("lite")
+    cfg = load_settings(TrainConfig, "lite").to_dict()  # every section, over the defaults
     cfg["input"]["size"] = list(IMAGE_HW)
     out = []
     for name, ckpt in (("fitted", fit_lite_checkpoint(tmp / "lite_fitted.pt")),
@@ -294,10 +295,11 @@ def main() -> None:
     import onnxruntime
     import torch
 
-    from dope_hope.config import load_config
+    from dope_hope.config import load_settings
     from dope_hope.export.int8 import cpu_int8_support, quantize_int8
     from dope_hope.export.pipeline import export_checkpoint
     from dope_hope.export.to_onnx import ExportSettings
+    from dope_hope.training.settings import TrainConfig
 
     print(f"torch {torch.__version__}, onnxruntime {onnxruntime.__version__}, {args.threads} threads, "
           f"{os.cpu_count()} CPUs ({cpu_int8_support()[1]}); load average at start "
@@ -306,7 +308,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench-cpu-inference-") as tmpdir:
         tmp = Path(tmpdir)
         t0 = time.perf_counter()
-        cfg = load_config("dope_dr_50")
+        cfg = load_settings(TrainConfig, "dope_dr_50").to_dict()  # every section, over the defaults
         cfg["input"]["size"] = [200, 200]  # the LSUV image; the exports set their own size
         ckpt = random_checkpoint(tmp / "dr50.pt", cfg)
         sigma = float(cfg["targets"]["sigma"])  # training target blob, map px

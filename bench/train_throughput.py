@@ -28,7 +28,7 @@ from dope_hope.maps.targets import make_targets
 from dope_hope.model import build_model
 from dope_hope.training.augment import AugmentParams, crop_size
 from dope_hope.training.loss import optimizer_step
-from dope_hope.training.settings import input_hw, train_settings
+from dope_hope.training.settings import input_hw, targets_settings, train_settings
 
 
 def item_hw(config: dict) -> tuple[int, int]:
@@ -39,11 +39,11 @@ def item_hw(config: dict) -> tuple[int, int]:
 def batch_for(config: dict, stride: int, batch: int, device: torch.device):
     H, W = item_hw(config)
     rng = np.random.default_rng(0)
-    tc = config.get("targets") or {}
+    tc = targets_settings(config)
     beliefs, affinities = [], []
     for _ in range(batch):
         kp = np.stack([rng.uniform(0.2 * W, 0.8 * W, 9), rng.uniform(0.2 * H, 0.8 * H, 9)], 1)[None]
-        b, a = make_targets(kp, (H, W), stride, float(tc.get("sigma", 2.0)), float(tc.get("radius", 1.0)))
+        b, a = make_targets(kp, (H, W), stride, float(tc.sigma), float(tc.radius))
         beliefs.append(b)
         affinities.append(a)
     images = torch.randn(batch, 3, H, W)

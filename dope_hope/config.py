@@ -1,6 +1,8 @@
-"""YAML configs: find them by name, load them, apply command-line overrides.
+"""YAML configs and settings: find configs by name, load them; the settings classes of their
+sections (:class:`SectionSettings`), the value rules they use, and the one loader of a
+command's settings (:func:`load_settings`: defaults, a --config file, --set items).
 
-A config is a plain nested dict. ``load_config("lite")`` reads ``dope_hope/configs/lite.yaml``,
+A config file is a plain nested dict. ``load_config("lite")`` reads ``dope_hope/configs/lite.yaml``,
 which ships inside the package (the repository's top-level ``configs`` links to it); any other
 argument is a path to a YAML file.
 """
@@ -70,18 +72,6 @@ def merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def unknown_keys(config: dict[str, Any], defaults: dict[str, Any], prefix: str = "") -> list[str]:
-    """Dotted keys of ``config`` that ``defaults`` does not have (sections compared recursively)."""
-    out = []
-    for key, value in config.items():
-        name = f"{prefix}{key}"
-        if key not in defaults:
-            out.append(name)
-        elif isinstance(value, dict) and isinstance(defaults[key], dict):
-            out += unknown_keys(value, defaults[key], name + ".")
-    return out
-
-
 def differing_keys(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:
     """Sorted dotted keys whose values differ between ``a`` and ``b``, sections compared
     recursively (a key present in only one of them differs)."""
@@ -93,55 +83,6 @@ def differing_keys(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> li
             out += differing_keys(left, right, name + ".")
         elif key not in a or key not in b or left != right:
             out.append(name)
-    return out
-
-
-def check_known_keys(config: dict[str, Any], defaults: dict[str, Any], what: str) -> None:
-    """ConfigError naming the keys of ``config`` that ``defaults`` lacks (typos: ``target.cuont``)."""
-    unknown = unknown_keys(config, defaults)
-    if unknown:
-        first = unknown[0]
-        section = first.rsplit(".", 1)[0] if "." in first else None
-        node = defaults
-        for part in (section.split(".") if section else []):
-            node = node.get(part, {}) if isinstance(node, dict) else {}
-        known = ", ".join(sorted(node)) if isinstance(node, dict) else ""
-        raise ConfigError(f"{what}: unknown key(s) {', '.join(unknown)}"
-                          + (f" (known{' in ' + section if section else ''}: {known})" if known else ""))
-
-
-def apply_overrides(config: dict[str, Any], assignments: list[str],
-                    defaults: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Apply ``section.key=value`` strings (values parsed as YAML) to a copy of ``config``.
-
-    With ``defaults`` (the packaged config), a key it does not have is refused (ConfigError).
-    """
-    out = copy.deepcopy(config)
-    for item in assignments:
-        if "=" not in item:
-            raise ConfigError(f"override {item!r} must look like section.key=value")
-        dotted, raw = item.split("=", 1)
-        keys = dotted.split(".")
-        if not all(keys):
-            raise ConfigError(f"override {item!r}: empty key")
-        if defaults is not None:
-            node: Any = defaults
-            for depth, key in enumerate(keys):
-                if not isinstance(node, dict) or key not in node:
-                    where = ".".join(keys[:depth]) or "the config"
-                    known = ", ".join(sorted(node)) if isinstance(node, dict) else ""
-                    raise ConfigError(f"--set {item}: unknown key {'.'.join(keys[:depth + 1])!r}"
-                                      + (f" (known in {where}: {known})" if known else ""))
-                node = node[key]
-        node = out
-        for key in keys[:-1]:
-            node = node.setdefault(key, {})
-            if not isinstance(node, dict):
-                raise ConfigError(f"override {item!r}: {key!r} is not a section")
-        try:
-            node[keys[-1]] = yaml.safe_load(raw)
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"--set {item}: malformed value ({str(exc).splitlines()[0]})") from None
     return out
 
 

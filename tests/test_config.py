@@ -165,3 +165,21 @@ def test_every_command_with_settings_takes_config_and_set(command):
     r = _cli("settings", command, "--set", "nosuch.key=1")
     assert r.returncode == 2 and r.stderr.count("\n") == 1
     assert "--set nosuch.key=1: unknown setting nosuch" in r.stderr
+
+
+@pytest.mark.parametrize("weights", ["demo_lite.pt", "pretrained_lite.pt"])
+def test_the_shipped_checkpoints_recipes_read_as_settings(weights):
+    """The recipes the shipped checkpoints recorded (full, as the recipes were when they were
+    trained) read as TrainConfig, and lite.yaml (now only what differs) still builds the
+    architecture they hold: --init auto starts from the pretrained one."""
+    from dope_hope.assets import PRETRAINED_WEIGHTS
+    from dope_hope.model.checkpoint import load_checkpoint
+    from dope_hope.training.settings import same_architecture
+
+    path = PRETRAINED_WEIGHTS.parent / weights
+    if not path.is_file():
+        pytest.skip(f"this installation ships no {weights}")
+    recorded = load_checkpoint(path)["config"]
+    settings = TrainConfig.from_mapping(recorded)
+    assert settings.model.arch == "lite" and settings.input.size == (192, 256)
+    assert same_architecture(load_config("lite"), path)
