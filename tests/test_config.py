@@ -183,3 +183,20 @@ def test_the_shipped_checkpoints_recipes_read_as_settings(weights):
     settings = TrainConfig.from_mapping(recorded)
     assert settings.model.arch == "lite" and settings.input.size == (192, 256)
     assert same_architecture(load_config("lite"), path)
+
+
+def test_a_set_tracking_key_reaches_the_tracker():
+    """`dope-hope infer --track --set tracking.reprojection_px=2.0`: the inference options the
+    command builds carry it to each predictor and from there to the stream's tracker."""
+    from dope_hope.assets import DEMO_WEIGHTS
+    from dope_hope.commands.settings import given_settings
+    from dope_hope.inference.model_set import build_predictors
+    from dope_hope.inference.tracking import PoseTracker
+
+    if not DEMO_WEIGHTS.is_file():
+        pytest.skip("this installation ships no demo model")
+    options = given_settings("infer", None, ["tracking.reprojection_px=2.0"])
+    (predictor,) = build_predictors([DEMO_WEIGHTS], options=options)
+    assert predictor.options.tracking.reprojection_px == 2.0
+    assert PoseTracker(predictor).settings.reprojection_px == 2.0
+    assert predictor.options.min_score == 0.55  # no min_score given: the model's own
