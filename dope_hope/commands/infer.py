@@ -76,6 +76,8 @@ from dope_hope.commands.argtypes import fixed_device, finite_float, positive_flo
 
 #: Frame rate of an overlay video when the source reports none.
 FALLBACK_FPS = 30.0
+#: --up-axis values (dope_hope.inference.mesh_start.UP_AXES, named here without its imports).
+UP_AXIS_NAMES = ("x", "y", "z", "-x", "-y", "-z")
 #: Options of video and camera inputs only.
 STREAM_OPTIONS = ("realtime", "max_frames", "show", "capture_size", "capture_fps", "track")
 
@@ -154,6 +156,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "surface replace the cuboid (default: the checkpoint's cuboid)")
     parser.add_argument("--mesh-units", choices=("m", "cm", "mm"),
                         help="mesh units (default: OBJ cm, PLY mm)")
+    start = parser.add_argument_group("a new object with no training (--mesh FILE, no --weights)")
+    start.add_argument("--up-axis", choices=UP_AXIS_NAMES, metavar="AXIS",
+                       help="the mesh axis that is the object's vertical axis, as the pretrained start "
+                            "learned y for cans and bottles: x, y (default), z, or =-x, =-y, =-z "
+                            "(--up-axis=-z)")
+    start.add_argument("--start", type=Path, metavar="W",
+                       help="the start to run (default: the shipped dope_hope/assets/pretrained_lite.pt)")
     parser.add_argument("--out", type=Path, default=Path("infer_out"), metavar="DIR",
                         help="folder for overlays and predictions.jsonl (default ./infer_out)")
     parser.add_argument("--no-overlay", action="store_true", help="do not write overlay images / video")
@@ -178,6 +187,39 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 # ----------------------------------------------------------------------------- setup
+def _start_mesh(args: argparse.Namespace) -> Path | None:
+    """The mesh the pretrained start detects (no --weights, one --mesh FILE that is not the
+    demo model's object), else None; ConfigError for --up-axis / --start without that case."""
+    from dope_hope.demo_object import DEMO_CLASS_NAME
+    from dope_hope.errors import ConfigError
+    from dope_hope.io.models_dir import mesh_class_name
+
+    meshes = list(args.mesh or [])
+    mesh = meshes[0] if len(meshes) == 1 and not meshes[0].is_dir() else None
+    if mesh is not None and not args.weights and (
+            default_weights() is None or mesh_class_name(mesh).lower() != DEMO_CLASS_NAME.lower()):
+        return mesh
+    flags = [f for f, v in (("--up-axis", args.up_axis), ("--start", args.start)) if v is not None]
+    if flags and args.weights:
+        raise ConfigError(f"{', '.join(flags)}: for a new object detected by the pretrained start "
+                          "(--mesh FILE, no --weights); a trained model knows its object")
+    if flags:
+        raise ConfigError(f"{', '.join(flags)}: give the new object's mesh file (--mesh FILE) and no --weights")
+    return None
+
+
+def _start_predictor(args: argparse.Namespace, mesh: Path):
+    """The MeshStartPredictor of ``mesh``; its description printed (its warnings: by the CLI)."""
+    from dope_hope.inference.mesh_start import MeshStartPredictor
+
+    overrides = {} if args.min_score is None else {"min_score": args.min_score}
+    p = MeshStartPredictor(mesh, up_axis=args.up_axis or "y", mesh_units=args.mesh_units, start=args.start,
+                           device=args.device, threads=args.threads, height=args.height,
+                           pose_search=args.pose_search, icp=args.icp, **overrides)
+    print(f"dope-hope infer: {p.describe()}", file=sys.stderr)
+    return p
+
+
 def _resolve_weights(args: argparse.Namespace) -> list[Path]:
     from dope_hope.errors import ConfigError
 
@@ -222,12 +264,18 @@ def _kept_classes(classes: list[str] | None, models: list[tuple[Path, list[str]]
     return [[n for n in names if n.lower() in wanted] for _, names in models]
 
 
-def build_predictors(args: argparse.Namespace, weights: list[Path]):
+def build_predictors(args: argparse.Namespace, weights: list[Path] | None = None):
+    """The predictors of --weights (default: :func:`_resolve_weights`), or the pretrained
+    start's of a new object's --mesh (:func:`_start_mesh`)."""
     from dope_hope.errors import ConfigError
     from dope_hope.inference.backends import backend_objects, model_min_score, open_backend
     from dope_hope.inference.predictor import DopePredictor
     from dope_hope.io.models_dir import find_object_mesh
 
+    start_mesh = _start_mesh(args)
+    if start_mesh is not None:
+        return [_start_predictor(args, start_mesh)]
+    weights = _resolve_weights(args) if weights is None else weights
     meshes = list(args.mesh or [])
     mesh_dir = None
     if len(meshes) == 1 and meshes[0].is_dir():
@@ -337,7 +385,7 @@ def run(args: argparse.Namespace) -> int:
         _check_output_names(images)
     global_cam = _global_camera(args)
     out = output_dir(args.out)
-    predictors = build_predictors(args, _resolve_weights(args))
+    predictors = build_predictors(args)
     records: list[dict] = []
     skipped: list[tuple[Path, DopeHopeError]] = []
     n_done = n_written = 0
@@ -484,7 +532,7 @@ def _run_stream(args: argparse.Namespace) -> int:
         passive_openmp()  # before torch is imported: its idle threads must not spin
         from dope_hope.inference.video import StreamSinks, predict_stream
 
-        predictors = build_predictors(args, _resolve_weights(args))
+        predictors = build_predictors(args)
         video, window = _stream_outputs(args, out, source, warn)
         sinks = StreamSinks(on_record=lambda rec: print(json.dumps(rec), flush=True), video=video, window=window)
         result = predict_stream(source, predictors, sinks, tracker=_tracker(args, predictors) if args.track else None,
