@@ -47,8 +47,17 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from e2e_accuracy import (REPO, TEST_SEED, TRAIN_SEED, Pipeline, percent_text, set_args, check_settings,  # noqa: E402
-                          checkpoint_of, shared_data_dir)
+from e2e_accuracy import (  # noqa: E402
+    REPO,
+    TEST_SEED,
+    TRAIN_SEED,
+    Pipeline,
+    check_settings,
+    checkpoint_of,
+    percent_text,
+    set_args,
+    shared_data_dir,
+)
 
 from dope_hope.devices import cpu_description, cpu_line  # noqa: E402
 from dope_hope.synth.settings import PLAIN_OVERRIDES  # noqa: E402

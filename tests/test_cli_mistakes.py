@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from test_training_trainer import write_frames as write_train_frames
 
 from dope_hope import cli
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
@@ -36,7 +37,6 @@ from dope_hope.io.dope_json import write_dope_json
 from dope_hope.io.images import write_rgb
 from dope_hope.model import build_model
 from dope_hope.model.checkpoint import make_object_info, save_checkpoint
-from test_training_trainer import write_frames as write_train_frames
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parent.parent

@@ -32,7 +32,8 @@ torch.set_num_threads(1)
 def scene(tmp_path_factory):
     """A 160x120 synthetic frame of the demo box saved as MyBox.obj (not the demo model's
     object): (folder with 000000.png/.json/.depth.png, mesh path, GT R, GT t)."""
-    from dope_hope.synth.generate import SynthJob, generate_dataset
+    from dope_hope.synth.generate import SynthJob
+    from dope_hope.synth.to_disk import generate_dataset
     from dope_hope.io.dope_json import read_dope_json
 
     root = tmp_path_factory.mktemp("start")

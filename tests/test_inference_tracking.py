@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dope_hope.symmetry.transforms import declaration_transforms
 from dope_hope.demo_object import DEMO_SIZE_M, demo_symmetries
 from dope_hope.errors import ConfigError
 from dope_hope.geometry import cuboid_keypoints, project_points, projected_bbox, rotation_error_deg
@@ -19,6 +18,7 @@ from dope_hope.inference.tracking import PoseTracker, TrackingSettings
 from dope_hope.io.predictions import read_predictions
 from dope_hope.refine.depth import DepthImage
 from dope_hope.refine.line_search import LineSearchSettings
+from dope_hope.symmetry.transforms import declaration_transforms
 
 K = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]])
 HW = (480, 640)

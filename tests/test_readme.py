@@ -266,12 +266,12 @@ def test_task_sections_run_in_order(sandbox):
 def test_video_section(tmp_path, monkeypatch):
     """The video / webcam / RealSense block on rendered demo scenes (module docstring)."""
     import cv2
-
     import fake_realsense
-    from dope_hope.commands import infer as infer_cmd
-    from dope_hope.demo_object import DEMO_CLASS_NAME, write_demo_object
     from fitted_model import fit_demo_checkpoint
     from video_files import read_video, write_video
+
+    from dope_hope.commands import infer as infer_cmd
+    from dope_hope.demo_object import DEMO_CLASS_NAME, write_demo_object
 
     if not infer_cmd.DEMO_WEIGHTS.is_file():  # not shipped yet: a quickly fitted stand-in
         monkeypatch.setattr(infer_cmd, "DEMO_WEIGHTS", fit_demo_checkpoint(tmp_path / "fit" / "demo_lite.pt", seed=7))
@@ -296,7 +296,7 @@ def test_video_section(tmp_path, monkeypatch):
         f"image_width: 320\nimage_height: 240\ncamera_name: webcam\ncamera_matrix:\n  rows: 3\n  cols: 3\n"
         f"  data: {K.ravel().tolist()}\ndistortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n"
         "  cols: 5\n  data: [0, 0, 0, 0, 0]\n")
-    monkeypatch.setattr("dope_hope.io.sources.open_capture",
+    monkeypatch.setattr("dope_hope.io.streams.open_capture",
                         lambda target: cv2.VideoCapture(str(work / "clip.mp4") if target == 0 else target))
     rs = fake_realsense.install(monkeypatch, [(f.rgb, f.depth) for f in frames], K)
     monkeypatch.chdir(work)

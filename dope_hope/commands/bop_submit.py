@@ -26,6 +26,10 @@ import argparse
 from pathlib import Path
 
 from dope_hope.commands.argtypes import finite_float, fixed_device, positive_float, positive_int, working_side
+from dope_hope.errors import ConfigError, InputFileError
+
+# The library is imported inside the functions: cli.py imports every command to build --help,
+# which must not pay for numpy, OpenCV or torch.
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -58,7 +62,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dope_hope.errors import ConfigError, InputFileError
     from dope_hope.inference.bop_estimates import estimate_frames, load_bop_models
     from dope_hope.io.bop import TEST_TARGETS_NAME, find_split_folder, targeted_frames
     from dope_hope.io.bop_csv import parse_bop_result_filename, write_bop_csv

@@ -33,6 +33,10 @@ from pathlib import Path
 
 from dope_hope.assets import DEMO_WEIGHTS
 from dope_hope.commands.argtypes import positive_int
+from dope_hope.errors import ModelFileError
+
+# The library is imported inside the functions: cli.py imports every command to build --help,
+# which must not pay for numpy, OpenCV or torch.
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -52,7 +56,6 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.demo.report import missing_weights_problem
     from dope_hope.demo.run import DemoSettings, run_demo
     from dope_hope.demo_object import write_demo_object
-    from dope_hope.errors import ModelFileError
     from dope_hope.io.paths import output_dir
 
     out = output_dir(args.out)

@@ -19,6 +19,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dope_hope.errors import ConfigError
+
+# The library is imported inside the functions: cli.py imports every command to build --help,
+# which must not pay for numpy, OpenCV or torch.
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--predictions", "-p", nargs="+", required=True, type=Path, metavar="FILE",
@@ -67,7 +72,6 @@ def mesh_units(values: list[str]) -> str | dict[str, str] | None:
         ConfigError: an unknown unit, or two units for the same object (or for all).
     """
     from dope_hope.catalog import object_names
-    from dope_hope.errors import ConfigError
 
     units: dict[str, str] = {}
     for value in values:

@@ -27,10 +27,21 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 from pathlib import Path
 
 from dope_hope.commands.argtypes import positive_int, working_side
-from dope_hope.export.isaac_ros import ISAAC_ROS_CURRENT
+from dope_hope.errors import ConfigError
+from dope_hope.export.isaac_ros import (
+    ISAAC_ROS_CURRENT,
+    dope_config_entry,
+    isaac_ros_release,
+    launch_arguments,
+)
+
+# The library is imported inside the functions: cli.py imports every command to build --help,
+# which must not pay for numpy, OpenCV or torch.
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
@@ -69,8 +80,6 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.export.pipeline import Int8Calibration, export_checkpoint
     from dope_hope.export.to_onnx import ExportSettings
     from dope_hope.io.paths import output_file
-
-    from dope_hope.errors import ConfigError
 
     if args.layout != "isaac-ros":
         for flag, value in (("--isaac-ros-version", args.isaac_ros_version),
@@ -136,12 +145,6 @@ def run(args: argparse.Namespace) -> int:
 
 def isaac_ros_deployment(info, path: Path) -> dict:
     """What Isaac ROS needs for an isaac-ros file: launch arguments, config entry, channel order."""
-    from dope_hope.export.isaac_ros import (
-        dope_config_entry,
-        isaac_ros_release,
-        launch_arguments,
-    )
-
     release = isaac_ros_release(info.extra["isaac_ros.version"])
     args = launch_arguments(release, path, info.fixed_input_hw, info.extra["isaac_ros.encoder"], info.class_name)
     return {"version": release.version, "launch_file": release.launch_file, "launch_arguments": args,
@@ -158,6 +161,4 @@ def _is_hope_object(name: str) -> bool:
 
 def _shell_word(value: str) -> str:
     """A launch argument value as one shell word ('...' when it holds spaces or brackets)."""
-    import shlex
-
     return shlex.quote(value) if value else "''"

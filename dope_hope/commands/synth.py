@@ -30,6 +30,11 @@ import argparse
 from pathlib import Path
 
 from dope_hope.commands.argtypes import nonnegative_int, positive_int
+from dope_hope.config import apply_overrides
+from dope_hope.errors import ConfigError
+
+# The library is imported inside the functions: cli.py imports every command to build --help,
+# which must not pay for numpy, OpenCV or torch.
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--models-dir", type=Path, metavar="DIR",
                      help="models folder (HOPE <Name>/textured.obj or BOP obj_NNNNNN.ply); with --object")
     src.add_argument("--object", dest="object_name", nargs="+", metavar="NAME",
-                     help="object name(s) in --models-dir, e.g. Ketchup Mustard; 'all': the 28 HOPE objects")
+                     help="object name(s) in --models-dir, e.g. Ketchup Mustard; 'all': every object the folder holds")
     src.add_argument("--procedural", action="store_true",
                      help="a new procedural box / can / bottle per frame (pretraining data; config "
                           "section 'procedural')")
@@ -76,12 +81,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from dope_hope.catalog import object_names
-    from dope_hope.config import apply_overrides
-    from dope_hope.errors import ConfigError
     from dope_hope.io.models_dir import find_object_mesh, objects_in_folder
     from dope_hope.io.paths import output_dir
-    from dope_hope.synth.generate import SynthJob, generate_dataset
+    from dope_hope.synth.generate import SynthJob
     from dope_hope.synth.settings import load_synth_config, packaged_synth_config
+    from dope_hope.synth.to_disk import generate_dataset
 
     if args.mesh is not None and (args.models_dir is not None or args.object_name is not None):
         raise ConfigError("give either --mesh or --models-dir with --object, not both")

@@ -28,14 +28,19 @@ from __future__ import annotations
 
 import argparse
 import logging
+import time
 from pathlib import Path
 
 from dope_hope.commands.argtypes import device, nonnegative_float, nonnegative_int, positive_float, positive_int
+from dope_hope.config import apply_overrides, load_config
+from dope_hope.errors import ConfigError, InputFileError
+
+# The library is imported inside the functions: cli.py imports every command to build --help,
+# which must not pay for numpy, OpenCV or torch.
 
 
 def _time_budget(text: str) -> float:
     """argparse type of --time-budget: a finite number of minutes > 0, at most a year."""
-    from dope_hope.errors import ConfigError
     from dope_hope.training.settings import check_time_limit
 
     value = positive_float(text)
@@ -55,8 +60,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "the checkpoint's)")
     parser.add_argument("--object", dest="object_name", nargs="+", metavar="NAME",
                         help="object class(es) to train (case-insensitive), e.g. Ketchup, or Can Lemon "
-                             "for one network of several objects; 'all': the 28 HOPE objects (with "
-                             "--resume: default the checkpoint's)")
+                             "for one network of several objects; 'all': every object of --models-dir (without "
+                             "it: the 28 HOPE objects) (with --resume: default the checkpoint's)")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     parser.add_argument("--val", nargs="+", type=Path, default=[], metavar="DIR",
                         help="validation folder(s) (default: a seeded train.val_fraction split of --data)")
@@ -101,11 +106,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import time
-
     started = time.monotonic()  # a time budget counts the command's own checks too
-    from dope_hope.config import apply_overrides, load_config
-    from dope_hope.errors import ConfigError, InputFileError
     from dope_hope.io.bop_scenes import is_bop_dataset
     from dope_hope.io.dope_json import list_dope_frames
     from dope_hope.io.paths import output_dir

@@ -76,7 +76,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from dope_hope.version import __version__
 from dope_hope.errors import ConfigError, DopeHopeError
 from dope_hope.export.compare import MapDeviation
 from dope_hope.export.isaac_ros import ENCODERS as ISAAC_ENCODERS
@@ -94,6 +93,7 @@ from dope_hope.model.onnx_contract import (
     OnnxModelInfo,
     output_order,
 )
+from dope_hope.version import __version__
 
 #: Default ONNX opset and the range the TorchScript exporter handles here.
 OPSET = 17
@@ -336,6 +336,7 @@ def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.Pat
     Raises ConfigError for impossible options, ExportError if the graph does not reproduce
     the model.
     """
+    # onnx (slow to import) only when a file is exported
     import onnx
 
     layout, input_hw, dynamic, opset = settings.layout, settings.input_hw, settings.dynamic, settings.opset
@@ -397,6 +398,7 @@ def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.Pat
 
 def _verify(wrapper: nn.Module, path: Path, x: torch.Tensor, layout: str) -> float:
     """max |onnxruntime - torch| on ``x`` (graph-normalized input); ExportError if too large."""
+    # onnxruntime (slow to import) only to verify an export
     import onnxruntime as ort
 
     with torch.inference_mode():

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from dope_hope.catalog import get_object
 from dope_hope.errors import ConfigError, UnknownObjectError
 from dope_hope.geometry import LEGACY_TO_MESH, NUM_KEYPOINTS, cuboid_keypoints
 from dope_hope.model.info import ObjectInfo
@@ -86,6 +87,7 @@ class ObjectGeometry:
         return belief[9 * k:9 * k + 9], affinity[16 * k:16 * k + 16]
 
     def _load_mesh(self, mesh: Any, units: str | None, model_size: np.ndarray):
+        # meshes (trimesh) only for an object given a mesh
         from dope_hope.io.meshes import check_mesh_box, load_mesh, mesh_cuboid
 
         source = "<mesh>"
@@ -101,6 +103,7 @@ class ObjectGeometry:
         in front of the real surface: pass the mesh for non-box objects), metres."""
         if self.mesh is not None:
             return self.mesh
+        # trimesh only for an object given a mesh
         import trimesh
 
         box = trimesh.creation.box(extents=self.cuboid_size_m)
@@ -111,7 +114,6 @@ class ObjectGeometry:
         """Without a mesh ICP fits the cuboid's surface to the depth: right for a box only."""
         if self.mesh is not None:
             return
-        from dope_hope.catalog import get_object
 
         try:
             category = get_object(self.class_name).category
@@ -125,6 +127,7 @@ class ObjectGeometry:
     def model_points(self) -> np.ndarray:
         """(ls_points, 3) mesh-frame surface points for the line search, metres (cached)."""
         if self._model_points is None:
+            # meshes (trimesh) only for an object given a mesh
             from dope_hope.io.meshes import sample_surface_points
 
             self._model_points = sample_surface_points(self.surface(), self.ls_points, seed=0)
@@ -146,6 +149,7 @@ class ObjectGeometry:
         """((icp_points, 3) mesh-frame surface points, metres; their (icp_points, 3) unit
         normals) for ICP (cached)."""
         if self._icp_model is None:
+            # meshes (trimesh) only for an object given a mesh
             from dope_hope.io.meshes import sample_surface_points
 
             self.check_icp_surface()

@@ -10,11 +10,20 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
 from typing import TYPE_CHECKING, Any
 
+from dope_hope.config import finite_float, load_config, whole_number
 from dope_hope.errors import ConfigError
+from dope_hope.inference.pnp import PnpSettings
+from dope_hope.inference.pose_search import HypothesisSettings
+from dope_hope.inference.tracking_settings import TrackingSettings
+from dope_hope.maps.decode import DecodeSettings
+from dope_hope.preprocess import check_working_side
+from dope_hope.refine.icp import IcpSettings
+from dope_hope.refine.line_search import LineSearchSettings
 
 if TYPE_CHECKING:
     from dope_hope.config import SectionSettings
-    from dope_hope.inference.pnp import HypothesisSettings, PnpSettings
+    from dope_hope.inference.pnp import PnpSettings
+    from dope_hope.inference.pose_search import HypothesisSettings
     from dope_hope.inference.tracking_settings import TrackingSettings
     from dope_hope.maps.decode import DecodeSettings
     from dope_hope.refine.icp import IcpSettings
@@ -26,12 +35,6 @@ POSE_SEARCHES = ("hypotheses", "groups")
 
 def _stage_settings() -> dict[str, type[SectionSettings]]:
     """Section name -> the settings dataclass that checks it (its fields are the section's keys)."""
-    from dope_hope.inference.pnp import HypothesisSettings, PnpSettings
-    from dope_hope.inference.tracking_settings import TrackingSettings
-    from dope_hope.maps.decode import DecodeSettings
-    from dope_hope.refine.icp import IcpSettings
-    from dope_hope.refine.line_search import LineSearchSettings
-
     return {"decode": DecodeSettings, "pnp": PnpSettings, "hypotheses": HypothesisSettings,
             "line_search": LineSearchSettings, "icp_refine": IcpSettings, "tracking": TrackingSettings}
 
@@ -41,7 +44,7 @@ class StageSettings:
     """The stage sections of :class:`InferenceOptions` as their settings objects: decode
     (:func:`~dope_hope.maps.decode.corner_candidates` / :func:`~dope_hope.maps.decode.decode_maps`),
     pnp (:func:`~dope_hope.inference.pnp.solve_pnp`), hypotheses
-    (:func:`~dope_hope.inference.pnp.solve_pnp_candidates`), line_search
+    (:func:`~dope_hope.inference.pose_search.solve_pnp_candidates`), line_search
     (:func:`~dope_hope.refine.line_search.depth_line_search`), icp_refine
     (:func:`~dope_hope.refine.icp.icp_refine`), tracking (the stream tracker)."""
 
@@ -79,9 +82,6 @@ class InferenceOptions:
     tracking: Mapping[str, Any]
 
     def __post_init__(self) -> None:
-        from dope_hope.config import finite_float, whole_number
-        from dope_hope.preprocess import check_working_side
-
         h = self.height
         if h is not None:
             check_working_side(h)
@@ -117,8 +117,6 @@ class InferenceOptions:
         :attr:`dope_hope.model.info.ModelInfo.min_score`); it replaces the packaged
         ``min_score`` unless ``overrides`` gives one.
         """
-        from dope_hope.config import load_config
-
         values = dict(load_config(base))
         if model_min_score is not None:
             values["min_score"] = model_min_score

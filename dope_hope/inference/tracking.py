@@ -46,6 +46,7 @@ from dope_hope.geometry import NUM_KEYPOINTS, matrix_to_quaternion_xyzw, project
 from dope_hope.inference.detection import Detection
 from dope_hope.inference.pose_filter import PoseFilter, closest_equivalent
 from dope_hope.inference.tracking_settings import TrackingSettings
+from dope_hope.io.predictions import prediction_record
 from dope_hope.refine.depth import DepthImage
 from dope_hope.refine.line_search import depth_line_search
 
@@ -95,8 +96,6 @@ class TrackedObject:
         ``quaternion_xyzw`` the published pose, ``R_detected`` / ``t_detected`` the frame's own
         estimate (null when coasted), ``track_id``, ``tracked``; the detection's other fields
         (keypoints, -LS, ...) when detected."""
-        from dope_hope.io.predictions import prediction_record
-
         box = None if self.bbox_2d is None else [round(float(v), 2) for v in self.bbox_2d]
         pose = {"R": np.asarray(self.R, dtype=np.float64).tolist(), "t": [float(v) for v in self.t],
                 "quaternion_xyzw": [float(v) for v in self.quaternion_xyzw], "bbox_2d": box}
@@ -132,6 +131,7 @@ def object_symmetries(class_name: str, mesh_path: Any = None, units: str | None 
     resolution order (:func:`dope_hope.symmetry.resolve.resolve_symmetries`: declarations beside
     its mesh file, the demo box's own, the HOPE category), else the identity only. Continuous
     symmetries are sampled every :data:`SYMMETRY_STEP_DEG`."""
+    # meshes (trimesh) only for a class's declared symmetries
     from dope_hope.symmetry.resolve import resolve_symmetries
     from dope_hope.symmetry.transforms import category_symmetries, declaration_transforms
 

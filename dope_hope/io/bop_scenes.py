@@ -29,7 +29,9 @@ from dope_hope.annotation import FrameAnnotation
 from dope_hope.errors import InputFileError
 from dope_hope.geometry import KEYPOINT_ORDER, cuboid_keypoints, project_points
 from dope_hope.io.bop import iter_bop_split, list_bop_scenes, parse_symmetries, read_models_info
+from dope_hope.io.images import read_image_raw
 from dope_hope.io.jsonfields import JsonFields, load_json_object
+from dope_hope.io.models_dir import bop_obj_id
 
 #: Where models_info.json is looked for, relative to a split folder.
 MODELS_INFO_PLACES = ("../models/models_info.json", "models/models_info.json",
@@ -83,8 +85,6 @@ def bop_class_name(obj_id: int, class_names: Sequence[str] = ()) -> str:
     """The class of BOP ``obj_id`` in a run of ``class_names``: the run's object whose BOP id it
     is (a class named ``obj_NNNNNN``, or a HOPE object named as in the catalog, which has
     the HOPE dataset's ids), else ``obj_NNNNNN``."""
-    from dope_hope.io.models_dir import bop_obj_id
-
     for name in class_names:
         if bop_obj_id(name) == obj_id:
             return name
@@ -94,8 +94,6 @@ def bop_class_name(obj_id: int, class_names: Sequence[str] = ()) -> str:
 def recorded_box_size(scene_gt: str | os.PathLike, class_name: str) -> np.ndarray | None:
     """(3,) box size in metres of ``class_name``'s model (its BOP id: ``obj_NNNNNN`` or the HOPE
     catalog's) in the ``models_info.json`` of the BOP dataset holding ``scene_gt``, or None."""
-    from dope_hope.io.models_dir import bop_obj_id
-
     obj_id = bop_obj_id(class_name)
     info = find_models_info(Path(scene_gt).parent)
     if obj_id is None or info is None:
@@ -108,8 +106,6 @@ def recorded_symmetries(scene_gt: str | os.PathLike, class_name: str) -> dict | 
     """The BOP symmetry fields (``symmetries_discrete`` / ``symmetries_continuous``, as stored:
     mm) of ``class_name``'s model in the ``models_info.json`` of the BOP dataset holding
     ``scene_gt``, or None when it declares none."""
-    from dope_hope.io.models_dir import bop_obj_id
-
     obj_id = bop_obj_id(class_name)
     path = find_models_info(Path(scene_gt).parent)
     if obj_id is None or path is None:
@@ -123,8 +119,6 @@ def recorded_symmetries(scene_gt: str | os.PathLike, class_name: str) -> dict | 
 
 
 def _mask_pixels(path: Path) -> int | None:
-    from dope_hope.io.images import read_image_raw
-
     if not path.is_file():
         return None
     return int(np.count_nonzero(read_image_raw(path)))

@@ -18,11 +18,10 @@ import trimesh
 from scipy.spatial import ConvexHull, QhullError
 from scipy.spatial.distance import pdist
 
-from dope_hope.errors import InputFileError
+from dope_hope.errors import ConfigError, InputFileError
+from dope_hope.geometry import UNIT_SCALE
 from dope_hope.io.paths import require_file
 
-#: Metres per file unit.
-UNIT_SCALE: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 #: File unit assumed when ``units`` is not given (HOPE OBJ: cm; BOP PLY: mm).
 DEFAULT_UNITS: dict[str, str] = {".obj": "cm", ".ply": "mm"}
 
@@ -295,8 +294,6 @@ def check_mesh_box(mesh_size: np.ndarray, expected_size: np.ndarray, source: str
         any_axis_order: compare the sorted extents (a reference whose axes may be another
             frame's, e.g. the catalog's against a BOP model).
     """
-    from dope_hope.errors import ConfigError
-
     size = np.asarray(mesh_size, dtype=np.float64)
     expected = np.asarray(expected_size, dtype=np.float64)
     ratio = np.sort(size) / np.sort(expected) if any_axis_order else size / expected

@@ -22,6 +22,7 @@ import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from dope_hope.catalog import get_object
 from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
 
 _BOP_NAME = re.compile(r"obj_?(\d+)")
@@ -29,8 +30,6 @@ _BOP_NAME = re.compile(r"obj_?(\d+)")
 
 def bop_obj_id(class_name: str) -> int | None:
     """BOP obj_id of a class: the HOPE catalog's, or NNNNNN of ``obj_NNNNNN``; else None."""
-    from dope_hope.catalog import get_object
-
     m = _BOP_NAME.fullmatch(class_name)
     if m:
         return int(m.group(1))
@@ -41,8 +40,6 @@ def bop_obj_id(class_name: str) -> int | None:
 
 
 def _catalog_name(name: str) -> str | None:
-    from dope_hope.catalog import get_object
-
     try:
         return get_object(name).name
     except UnknownObjectError:

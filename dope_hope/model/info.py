@@ -13,13 +13,15 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from dope_hope.errors import DopeHopeError, ModelFileError
 from dope_hope.geometry import KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER
+from dope_hope.io.bop import parse_symmetries
+from dope_hope.io.jsonfields import JsonFields
 
 #: Object frames a model may be trained in (see docs/ARCHITECTURE.md, "legacy frame").
 OBJECT_FRAMES = ("mesh", "legacy")
@@ -145,9 +147,6 @@ class ModelInfo:
         self._validate_objects(path, bad)
 
     def _validate_objects(self, path: str | os.PathLike, bad) -> None:
-        from dope_hope.io.bop import parse_symmetries
-        from dope_hope.io.jsonfields import JsonFields
-
         first = self.objects[0]
         if first.class_name != self.class_name or tuple(first.size_m) != tuple(self.size_m):
             bad(f"class_name {self.class_name!r} / size_m {list(self.size_m)} differ from the first "
@@ -207,8 +206,6 @@ class ModelInfo:
 
     def select(self, class_name: str) -> ModelInfo:
         """This info narrowed to one object (its own class_name and size_m); KeyError."""
-        from dataclasses import replace
-
         obj = self.objects[self.object_index(class_name)]
         return replace(self, class_name=obj.class_name, size_m=tuple(obj.size_m), objects=(obj,))
 

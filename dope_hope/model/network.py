@@ -39,7 +39,10 @@ from torch import nn
 from torchvision.models.vgg import cfgs as _vgg_cfgs
 from torchvision.models.vgg import make_layers as _vgg_make_layers
 
+from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, DopeHopeError, ModelFileError
+from dope_hope.io.paths import require_file
+from dope_hope.model.lite import LiteTrunk
 from dope_hope.preprocess import IMAGENET_MEAN, IMAGENET_STD, normalize_rgb
 
 NUM_BELIEF = 9
@@ -210,7 +213,6 @@ class DopeNetwork(nn.Module):
                 if opts:
                     raise ConfigError(f"unknown model.decoder options: {', '.join(sorted(opts))}")
         elif arch == "lite":
-            from dope_hope.model.lite import LiteTrunk
             known = set(inspect.signature(LiteTrunk).parameters) - {"head", "stages", "num_objects"}
             unknown = sorted(set(lite or {}) - known)
             if unknown:
@@ -258,7 +260,6 @@ def build_model(config: dict[str, Any] | str, load_backbone: bool = True) -> Dop
     (nothing is ever downloaded; checkpoint loading passes False, its weights win).
     """
     if isinstance(config, str):
-        from dope_hope.config import load_config
         config = load_config(config)
     m = dict(model_section(config))
     backbone = m.pop("backbone_weights", None)
@@ -283,7 +284,6 @@ def load_backbone_weights(model: DopeNetwork, path: str | os.PathLike) -> list[s
     """
     if getattr(model, "arch", None) != "dope":
         raise ConfigError("backbone_weights applies to arch dope only (the VGG19 trunk)")
-    from dope_hope.io.paths import require_file
 
     try:
         require_file(path, "backbone weights file")

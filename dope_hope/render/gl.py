@@ -82,6 +82,7 @@ def close_offscreen(renderer) -> None:
     if display is None or context is None:  # not EGL: pyrender's own cleanup is safe
         renderer.delete()
         return
+    # EGL only where a context is released
     from OpenGL.EGL import (  # noqa: PLC0415  (after the platform is chosen)
         EGL_NO_CONTEXT,
         EGL_NO_SURFACE,

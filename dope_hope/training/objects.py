@@ -14,8 +14,10 @@ from typing import Any
 import numpy as np
 
 from dope_hope.errors import ConfigError
-from dope_hope.training.dataset import FrameRecord, relabel_symmetric
+from dope_hope.io.bop_scenes import recorded_symmetries
+from dope_hope.symmetry.labels import corner_permutations
 from dope_hope.symmetry.resolve import label_symmetries, resolve_symmetries
+from dope_hope.training.dataset import FrameRecord, relabel_symmetric
 from dope_hope.training.settings import TrainJob, object_info
 
 
@@ -84,8 +86,6 @@ def declared_entry_mm(job: TrainJob, name: str) -> dict[str, Any] | None:
 def bop_symmetries(records: list[FrameRecord], object_index: int, name: str) -> dict[str, Any] | None:
     """The symmetry fields the ``models_info.json`` of a BOP dataset among the records declares
     for the object (:func:`dope_hope.io.bop_scenes.recorded_symmetries`), or None."""
-    from dope_hope.io.bop_scenes import recorded_symmetries
-
     for r in records:
         if r.json_path.name == "scene_gt.json" and np.any(r.object_indices() == object_index):
             return recorded_symmetries(r.json_path, name)
@@ -118,8 +118,6 @@ def relabel_objects(setting: Any, job: TrainJob, objects: list[RunObject],
     Returns:
         (record sets, the largest number of corner-permuting symmetries, log lines).
     """
-    from dope_hope.symmetry.labels import corner_permutations
-
     if len(objects) > 1 and job.symmetries is not None:
         raise ConfigError(f"--symmetries {job.symmetries}: one file for {len(objects)} objects; put each "
                           "object's model_info.json beside its mesh")

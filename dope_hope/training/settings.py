@@ -1,6 +1,7 @@
 """Training settings: the job, the ``train`` section's defaults and checks, the object's info."""
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -9,8 +10,13 @@ from typing import Any
 import numpy as np
 
 from dope_hope.assets import DEMO_WEIGHTS, PRETRAINED_WEIGHTS
-from dope_hope.errors import ConfigError, UnknownObjectError
-
+from dope_hope.catalog import get_object
+from dope_hope.config import nonnegative_float, positive_float, whole_number
+from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
+from dope_hope.io.bop_scenes import recorded_box_size
+from dope_hope.io.dope_json import recorded_cuboid_size
+from dope_hope.io.models_dir import find_object_mesh, parse_mesh_args
+from dope_hope.io.paths import require_file
 
 #: ``--init`` choices besides a checkpoint path.
 INIT_CHOICES = ("auto", "pretrained", "demo", "none")
@@ -125,8 +131,6 @@ MAX_TIME_LIMIT_MIN = 525_600.0
 def check_time_limit(value: Any, name: str = "train.time_limit_min") -> float:
     """A time budget in minutes: a finite number > 0 and at most :data:`MAX_TIME_LIMIT_MIN`;
     ConfigError naming ``name`` otherwise."""
-    from dope_hope.config import positive_float
-
     minutes = positive_float(value, name)
     if minutes > MAX_TIME_LIMIT_MIN:
         raise ConfigError(f"{name} must be at most {MAX_TIME_LIMIT_MIN:g} minutes (a year; leave it out for "
@@ -154,8 +158,6 @@ def check_config_keys(config: dict[str, Any]) -> None:
 def train_settings(config: dict[str, Any]) -> dict[str, Any]:
     """The ``train`` section over :data:`TRAIN_DEFAULTS`; unknown keys and values of the wrong
     kind (``lr: abc``, ``steps: 0``, ``workers: -1``) raise ConfigError naming the key."""
-    from dope_hope.config import nonnegative_float, positive_float, whole_number
-
     section = dict(config.get("train") or {})
     unknown = sorted(set(section) - set(TRAIN_DEFAULTS))
     if unknown:
@@ -211,7 +213,7 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None, units: str
     size the dataset records (a synth frame's JSON, an NDDS settings file, a BOP dataset's
     models_info.json) > the catalog. ``object_index``: the object's index in the records'
     ``classes``."""
-    from dope_hope.catalog import get_object
+    # torch and trimesh only for the checkpoint's object entry
     from dope_hope.model.checkpoint import make_object_info
 
     try:
@@ -223,8 +225,6 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None, units: str
         from dope_hope.io.meshes import load_mesh, mesh_cuboid
         size, _ = mesh_cuboid(load_mesh(mesh, units=units))
         return make_object_info(name, size, "mesh"), f"mesh {Path(mesh).name}"
-    from dope_hope.io.bop_scenes import recorded_box_size
-    from dope_hope.io.dope_json import recorded_cuboid_size
 
     for r in [r for r in records if np.any(r.object_indices() == object_index)][:5]:
         if r.json_path.name == "scene_gt.json":
@@ -252,8 +252,6 @@ def resolve_init(choice: str | None, config: dict[str, Any]) -> tuple[Path | Non
         InputFileError: "pretrained" / "demo" where this installation does not ship the file.
         ModelFileError: "pretrained" for another architecture (its shapes differ).
     """
-    from dope_hope.errors import InputFileError
-
     value = "auto" if choice is None else str(choice)
     if value == "none":
         return None, "random start (--init none)"
@@ -291,10 +289,6 @@ def resolve_resume(choice: str | None, out: Path, init: str | None) -> tuple[Pat
         ConfigError: a checkpoint path together with ``--init``.
         InputFileError: a checkpoint path that is not a readable file.
     """
-    import logging
-
-    from dope_hope.io.paths import require_file
-
     log = logging.getLogger(__name__)
     if choice is None:
         return None, init
@@ -316,6 +310,7 @@ def same_architecture(config: dict[str, Any], checkpoint: Path) -> bool:
     """True when ``config`` builds the network ``checkpoint`` holds (same ``model`` section and
     input normalization), up to ``model.num_objects``: a one-object start is widened to the
     run's objects (:func:`dope_hope.model.network.widen_to_objects`)."""
+    # torch only to read the checkpoint
     from dope_hope.model.checkpoint import load_checkpoint
 
     saved = load_checkpoint(checkpoint)["config"]
@@ -343,8 +338,6 @@ def train_meshes(objects: Sequence[str], mesh_args: Sequence[str] | None, models
         ConfigError: both --mesh and --models-dir; a mesh of no object of the run; units not
             one or one per mesh.
     """
-    from dope_hope.io.models_dir import find_object_mesh, parse_mesh_args
-
     names = list(objects)
     if mesh_args and models_dir is not None:
         raise ConfigError("give either --mesh or --models-dir, not both")

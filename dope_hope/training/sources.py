@@ -11,6 +11,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from dope_hope.geometry import KEYPOINT_ORDER
+from dope_hope.io.bop_scenes import bop_class_name, is_bop_dataset, iter_bop_frames
 from dope_hope.training.dataset import FrameRecord, class_index, frame_record, scan_frames
 
 
@@ -18,8 +19,6 @@ def scan_bop(folder: str | Path, class_names: Sequence[str], keypoint_order: str
              min_visibility: float = 0.0, include_empty: bool = True) -> list[FrameRecord]:
     """The records of a BOP split or scene folder: each obj_id is the class
     :func:`dope_hope.io.bop_scenes.bop_class_name` gives among ``class_names``."""
-    from dope_hope.io.bop_scenes import bop_class_name, iter_bop_frames
-
     names = list(class_names)
     want = class_index(names)
     records = []
@@ -40,8 +39,6 @@ def scan_training_data(folders: Sequence[str | Path], class_names: str | Sequenc
         (records, bad): bad lists DOPE annotation files that could not be parsed
         (:func:`~dope_hope.training.dataset.scan_frames`).
     """
-    from dope_hope.io.bop_scenes import is_bop_dataset
-
     names = [class_names] if isinstance(class_names, str) else list(class_names)
     records: list[FrameRecord] = []
     bad: list[tuple[Path, str]] = []

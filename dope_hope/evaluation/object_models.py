@@ -17,8 +17,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import trimesh
 
+from dope_hope.catalog import get_object
 from dope_hope.errors import InputFileError, UnknownObjectError
+from dope_hope.geometry import UNIT_SCALE
+from dope_hope.io.meshes import check_mesh_box, load_mesh, mesh_cuboid, mesh_diameter, read_ply, sample_surface_points
+from dope_hope.io.models_dir import bop_obj_id, find_object_mesh, parse_mesh_args
 from dope_hope.io.symmetries import SymmetryDeclaration
 from dope_hope.symmetry.resolve import ObjectSymmetries, resolve_symmetries
 from dope_hope.symmetry.transforms import category_symmetries, centred_symmetries, symmetries_from_models_info
@@ -94,10 +99,6 @@ class _LoadedMesh:
 
 def _load_mesh_file(path: Path, mesh_units: str | None) -> _LoadedMesh:
     """Read one mesh for the metrics (a PLY without faces becomes a point cloud: no VSD)."""
-    import trimesh
-
-    from dope_hope.io.meshes import UNIT_SCALE, load_mesh, read_ply
-
     ply, units, source = None, mesh_units or "mm", f"mesh {path}"
     if path.suffix.lower() == ".ply":
         ply = read_ply(path)  # as stored (BOP19 scoring); faces may be absent
@@ -112,8 +113,6 @@ def _check_box(name: str, loaded: _LoadedMesh, path: Path, obj: Any,
                recorded_sizes: dict[str, tuple[np.ndarray, Path]] | None) -> None:
     """A mesh without a BOP entry must match the box recorded for its object (the dataset's,
     else the catalog's; extents in any axis order)."""
-    from dope_hope.io.meshes import check_mesh_box, mesh_cuboid
-
     if recorded_sizes and name in recorded_sizes:
         size, where = recorded_sizes[name]
         check_mesh_box(mesh_cuboid(loaded.mesh)[0], size, str(path), name,
@@ -126,8 +125,6 @@ def _check_box(name: str, loaded: _LoadedMesh, path: Path, obj: Any,
 def _declared_model_symmetries(decl: SymmetryDeclaration, mesh: Any) -> tuple[np.ndarray, float]:
     """A declaration's symmetries discretized as the BOP toolkit does ((S, 4, 4) metres) and
     the diameter (the declaration's, else the mesh's), metres."""
-    from dope_hope.io.meshes import mesh_diameter
-
     syms = symmetries_from_models_info(decl.entry, BOP19_MAX_SYM_DISC_STEP, unit=decl.unit_m, source=decl.source)
     return syms, decl.diameter_m or mesh_diameter(mesh)
 
@@ -136,8 +133,6 @@ def _bop_model(loaded: _LoadedMesh, path: Path | None, found: ObjectSymmetries, 
                diameter: float) -> BopModel:
     """The model for BOP19 scoring: the file's vertices (to mm unless in mm), the declaration's
     numbers in mm (as stored for a BOP one), else the metre symmetries and diameter x 1000."""
-    from dope_hope.io.meshes import UNIT_SCALE
-
     if loaded.ply is not None:  # the file's vertices as stored; to mm unless in mm (BOP)
         to_mm = UNIT_SCALE[loaded.units] / UNIT_SCALE["mm"]
         verts, faces = (loaded.ply[0] if to_mm == 1.0 else loaded.ply[0] * to_mm), loaded.ply[1]
@@ -175,12 +170,6 @@ class _ModelArgs:
 
 def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectModel:
     """One class's :class:`ObjectModel` (see :func:`load_models`)."""
-    import trimesh
-
-    from dope_hope.catalog import get_object
-    from dope_hope.io.meshes import mesh_cuboid, mesh_diameter, sample_surface_points
-    from dope_hope.io.models_dir import bop_obj_id
-
     try:
         obj = get_object(name)
     except UnknownObjectError:
@@ -251,8 +240,6 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
         whose ``models_info.json`` entry declares them; a class neither in the catalog nor
         given a mesh. ConfigError: a mesh whose box does not match.
     """
-    from dope_hope.io.models_dir import find_object_mesh, parse_mesh_args
-
     meshes = parse_mesh_args(mesh_args, class_names)
     args = _ModelArgs(mesh_units, n_points, cyl_step_deg,
                       parse_mesh_args(symmetry_args, class_names, flag="--symmetries"), recorded_sizes)
