@@ -263,3 +263,17 @@ def test_track_is_for_streams_only(tmp_path, capsys):
                      "--cy", "16", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "--track" in err[0]
+
+
+def test_tracker_takes_the_symmetries_the_model_records():
+    """Without a mesh the tracker uses the model's object list (a multi-object checkpoint records
+    each object's symmetries, e.g. found on its mesh); given ones win; else the catalog's."""
+    predictor = fake_predictor()
+    predictor.objects[0].symmetries = {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]}
+    tracker = PoseTracker(predictor)
+    assert len(tracker.symmetries["DemoBox"]) == 360 // 5  # continuous about z every 5 degrees
+    turn = Rotation.from_euler("z", 40, degrees=True).as_matrix()
+    assert closest_equivalent(R0 @ turn, np.zeros(3), R0, tracker.symmetries["DemoBox"])[2] < 1e-3
+    given = PoseTracker(predictor, symmetries={"DemoBox": np.eye(4)[None]})
+    assert len(given.symmetries["DemoBox"]) == 1
+    assert len(PoseTracker(fake_predictor()).symmetries["DemoBox"]) == 4  # the demo box's own flips

@@ -98,7 +98,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="mesh file units, one for all meshes or one per mesh (default: .obj cm, .ply mm)")
     parser.add_argument("--symmetries", type=Path, metavar="FILE",
                         help="the object's symmetries, BOP models_info style (default: model_info.json "
-                             "beside --mesh); used by --set targets.symmetry=auto")
+                             "beside --mesh, else the HOPE category, else those found on --mesh); used by "
+                             "--set targets.symmetry=auto")
     parser.add_argument("--set", nargs="+", default=[], dest="overrides", metavar="KEY=VALUE",
                         help="config overrides, e.g. --set train.lr=1e-3 augment.rotation_deg=30")
     parser.add_argument("--device", type=device, default="auto", help="auto (CUDA if available), cpu, cuda")

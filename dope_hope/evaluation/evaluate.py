@@ -205,6 +205,9 @@ def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[
     bop_ar = cfg.bop_ar if cfg.bop_ar is not None else dataset.fmt == "bop"
     models = load_models(classes, cfg.mesh, cfg.models_dir, cfg.mesh_units, symmetry_args=cfg.symmetries,
                          recorded_sizes=dataset.cuboid_sizes, mesh_required=gt_classes)
+    for name, model in models.items():
+        if model.found_symmetries:
+            log(f"symmetries: {name}: {model.found_symmetries}")
     for _, _, preds, _ in loaded:
         cuboid_centres_to_origins(preds, models)
     out_dir = Path(cfg.out)

@@ -144,6 +144,16 @@ def object_symmetries(class_name: str, mesh_path: Any = None, units: str | None 
     return np.eye(4)[None]
 
 
+def recorded_symmetries(fields: Any) -> np.ndarray:
+    """(S, 4, 4) model-frame symmetries, metres, of the BOP fields (mm) a model records for an
+    object (``ObjectInfo.symmetries``); continuous ones every :data:`SYMMETRY_STEP_DEG`."""
+    from dope_hope.io.symmetries import SymmetryDeclaration
+    from dope_hope.symmetry.transforms import declaration_transforms
+
+    return declaration_transforms(SymmetryDeclaration(dict(fields), "mm", "the model's object list"),
+                                  SYMMETRY_STEP_DEG)
+
+
 def box_iou(a: np.ndarray | None, b: np.ndarray | None) -> float:
     """Intersection over union of two [u_min, v_min, u_max, v_max] boxes (0 when one is None)."""
     if a is None or b is None:
@@ -165,7 +175,8 @@ class PoseTracker:
             give each class's box, surface points and depth-refinement options.
         settings: :class:`TrackingSettings`, a mapping of overrides, or None for the
             predictors' own (``predictor.options.tracking``).
-        symmetries: class name -> (S, 4, 4) model-frame symmetries (metres); default
+        symmetries: class name -> (S, 4, 4) model-frame symmetries (metres); default those
+            the model records for the class (:func:`recorded_symmetries`), else
             :func:`object_symmetries` of the class.
 
     Use: ``tracked = tracker.update(detections, K, depth, frame=index)`` once per frame.
@@ -181,6 +192,10 @@ class PoseTracker:
             settings = getattr(predictors[0].options, "tracking", None) if predictors else None
         self.settings = settings if isinstance(settings, TrackingSettings) else TrackingSettings.from_mapping(settings)
         given = dict(symmetries or {})
+        for c, geometry in self.geometry.items():  # else those the model records (its checkpoint's)
+            recorded = getattr(geometry, "symmetries", None)
+            if given.get(c) is None and recorded is not None:
+                given[c] = recorded_symmetries(recorded)
         self.symmetries = {c: np.asarray(given[c] if given.get(c) is not None else object_symmetries(c),
                                          dtype=np.float64).reshape(-1, 4, 4) for c in self.predictors}
         self.tracks: dict[str, list[_Track]] = {c: [] for c in self.predictors}
