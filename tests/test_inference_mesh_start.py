@@ -77,7 +77,7 @@ def test_pnp_frame_round_trip():
 
     R = Rotation.from_euler("xyz", [30, -20, 60], degrees=True).as_matrix()
     t = np.array([0.03, -0.02, 0.7])
-    obj = ObjectGeometry(ObjectInfo("Tube", tuple(size)), 0, legacy=False)
+    obj = ObjectGeometry(ObjectInfo("Tube", tuple(size)), 0, False, None, None, 100, 100)
     A = up_axis_rotation("z")
     obj.set_pnp_frame(A)
     np.testing.assert_allclose(np.ptp(obj.cuboid_pnp, axis=0), [0.05, 0.16, 0.04])  # z up is the start's y
