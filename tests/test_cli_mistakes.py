@@ -338,7 +338,12 @@ def test_evaluate_refuses_a_mesh_that_is_not_the_datasets_object(mesh_flags, fra
         flags = ["--mesh", f"DemoBox={mesh}", *mesh_flags]
     argv = ["evaluate", "-p", predictions, "-d", frames, *flags, "--out", tmp_path / "e", "--no-progress"]
     line = one_line_error(*run_cli(argv, capsys)[::2], "evaluate")
-    assert "does not match the cuboid 000000.json records [12.27, 16.72, 4.02] cm for DemoBox" in line
+    if mesh_flags == ["--mesh-units", "m"]:  # a 17 m box: no object's size in metres
+        assert "DemoBox.obj: mesh box 12.27 x 16.72 x 4.02 m (read in m) is too large for an object" in line
+    else:
+        assert "does not match the cuboid 000000.json records [12.27, 16.72, 4.02] cm for DemoBox" in line
+    if mesh_flags == ["--mesh-units", "mm"]:
+        assert line.endswith("(the file is likely in cm, not mm: give its unit as cm)")
     assert not (tmp_path / "e").exists()  # nothing scored, no empty folder left
 
 

@@ -95,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
     output_file(args.out)
     settings = ExportSettings(layout=args.layout, input_hw=None if args.height is None else (args.height, args.width),
                               dynamic=args.dynamic, opset=args.opset, isaac_encoder=args.isaac_normalization,
-                              isaac_ros_version=args.isaac_ros_version or ISAAC_ROS_CURRENT, object_name=args.object)
+                              isaac_ros_version=ISAAC_ROS_CURRENT if args.isaac_ros_version is None
+                              else args.isaac_ros_version, object_name=args.object)
     int8 = Int8Calibration(args.calibration, args.calibration_images, args.calibration_method) if args.int8 else None
     res = export_checkpoint(args.weights, args.out, settings, int8)
     info = res.info

@@ -23,8 +23,16 @@ import trimesh
 from dope_hope.catalog import get_object
 from dope_hope.errors import InputFileError, UnknownObjectError
 from dope_hope.geometry import UNIT_SCALE
-from dope_hope.io.meshes import check_mesh_box, load_mesh, mesh_cuboid, mesh_diameter, read_ply, sample_surface_points
-from dope_hope.io.models_dir import bop_obj_id, find_object_mesh, parse_mesh_args
+from dope_hope.io.meshes import (
+    check_mesh_box,
+    check_plausible_size,
+    load_mesh,
+    mesh_cuboid,
+    mesh_diameter,
+    read_ply,
+    sample_surface_points,
+)
+from dope_hope.io.models_dir import bop_obj_id, check_run_object, find_object_mesh, parse_mesh_args
 from dope_hope.io.symmetries import SymmetryDeclaration
 from dope_hope.symmetry.resolve import ObjectSymmetries, resolve_symmetries
 from dope_hope.symmetry.transforms import category_symmetries, centred_symmetries, symmetries_from_models_info
@@ -107,7 +115,9 @@ def _load_mesh_file(path: Path, mesh_units: str | None) -> _LoadedMesh:
     if path.suffix.lower() == ".ply":
         ply = read_ply(path)  # as stored (BOP19 scoring); faces may be absent
     if ply is not None and ply[1] is None:
-        return _LoadedMesh(trimesh.PointCloud(ply[0] * UNIT_SCALE[units]), ply, units,
+        cloud = trimesh.PointCloud(ply[0] * UNIT_SCALE[units])
+        check_plausible_size(np.ptp(cloud.vertices, axis=0), units, path)
+        return _LoadedMesh(cloud, ply, units,
                            source + " (point cloud: no VSD)")
     mesh = load_mesh(path, units=mesh_units)
     return _LoadedMesh(mesh, ply, mesh.metadata["source_units"], source)
@@ -120,10 +130,10 @@ def _check_box(name: str, loaded: _LoadedMesh, path: Path, obj: Any,
     if recorded_sizes and name in recorded_sizes:
         size, where = recorded_sizes[name]
         check_mesh_box(mesh_cuboid(loaded.mesh)[0], size, str(path), name,
-                       f"the cuboid {Path(where).name} records", any_axis_order=True)
+                       f"the cuboid {Path(where).name} records", any_axis_order=True, units=loaded.units)
     elif obj is not None:
         check_mesh_box(mesh_cuboid(loaded.mesh)[0], obj.size_array, str(path), name,
-                       "the HOPE catalog's cuboid", any_axis_order=True)
+                       "the HOPE catalog's cuboid", any_axis_order=True, units=loaded.units)
 
 
 def _declared_model_symmetries(decl: SymmetryDeclaration, mesh: Any) -> tuple[np.ndarray, float]:
@@ -243,12 +253,16 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
 
     Raises:
         InputFileError / ConfigError / UnknownObjectError: unreadable mesh or declaration;
+        a NAME in ``--mesh`` / ``--symmetries`` NAME=... or ``mesh_units`` that is not a class;
         ``models_dir`` without the mesh of a required class (and no ``--mesh`` for it); a
         bare ``--mesh PATH`` of an unknown class among several; ``--symmetries`` for an object
         whose ``models_info.json`` entry declares them; a class neither in the catalog nor
         given a mesh. ConfigError: a mesh whose box does not match.
     """
     meshes = parse_mesh_args(mesh_args, class_names)
+    if isinstance(mesh_units, Mapping):  # NAME=UNIT: NAME must be an object scored
+        mesh_units = {(check_run_object(k, class_names, "--mesh-units", f"{k}={u}") if k else ""): u
+                      for k, u in mesh_units.items()}
     args = _ModelArgs(mesh_units, n_points, cyl_step_deg,
                       parse_mesh_args(symmetry_args, class_names, flag="--symmetries"), recorded_sizes)
     if models_dir is not None and not os.path.isdir(models_dir):

@@ -2,6 +2,9 @@
 per model file (its objects, its meshes, the classes it reports) and, on a stream, the
 :class:`~dope_hope.inference.tracking.PoseTracker` over them.
 
+An object that several model files hold is reported by the first of them only
+(:func:`kept_classes`), never twice.
+
 Meshes: one per model file (same order; one-object models), or one models folder for all
 (each object's mesh by :func:`dope_hope.io.models_dir.find_object_mesh`).
 """
@@ -17,18 +20,44 @@ from dope_hope.inference.tracking import PoseTracker, object_symmetries
 from dope_hope.io.models_dir import find_object_mesh
 
 
-def kept_classes(classes: Sequence[str] | None, models: list[tuple[Path, list[str]]]) -> list[list[str] | None]:
-    """Per model (path, its object names), the ``classes`` it detects (None: all its objects;
-    []: none, not run). ConfigError naming --classes and the models' objects for a class no
-    model detects."""
-    if not classes:
-        return [None] * len(models)
+def kept_classes(classes: Sequence[str] | None, models: list[tuple[Path, list[str]]],
+                 ) -> tuple[list[list[str] | None], list[str]]:
+    """Per model (path, its object names), the objects it reports, and the warnings to give.
+
+    An object is reported by the first model, in the order given, that holds it: a later
+    model holding it too skips it (one warning naming both files and the object), so that no
+    object is reported twice. ``classes`` (``--classes``) keeps a subset of the objects.
+
+    Returns:
+        (kept, warnings): kept[i] is None (all of model i's objects), a subset of them, or []
+        (none: the model is not run).
+
+    Raises:
+        ConfigError: a ``classes`` name no model holds (naming --classes and the models' objects).
+    """
     known = [n for _, names in models for n in names]
-    for c in classes:
-        if c.lower() not in {n.lower() for n in known}:
-            raise ConfigError(f"--classes: {c!r} is not an object of the model(s) (known: {', '.join(known)})")
-    wanted = {c.lower() for c in classes}
-    return [[n for n in names if n.lower() in wanted] for _, names in models]
+    wanted = None
+    if classes:
+        for c in classes:
+            if c.lower() not in {n.lower() for n in known}:
+                raise ConfigError(f"--classes: {c!r} is not an object of the model(s) (known: {', '.join(known)})")
+        wanted = {c.lower() for c in classes}
+    first: dict[str, Path] = {}
+    kept: list[list[str] | None] = []
+    warnings: list[str] = []
+    for weights, names in models:
+        mine = []
+        for name in names:
+            if wanted is not None and name.lower() not in wanted:
+                continue
+            if name.lower() in first:
+                warnings.append(f"{name} is in both {first[name.lower()]} and {weights}: reported from "
+                                f"{first[name.lower()]} only (the first --weights holding it)")
+                continue
+            first[name.lower()] = Path(weights)
+            mine.append(name)
+        kept.append(None if mine == list(names) else mine)
+    return kept, warnings
 
 
 def build_predictors(weights: Sequence[Path], meshes: Sequence[Path] = (), *, mesh_units: str | None = None,
@@ -45,8 +74,9 @@ def build_predictors(weights: Sequence[Path], meshes: Sequence[Path] = (), *, me
             :class:`~dope_hope.inference.predictor.DopePredictor` takes them.
         min_score: the score threshold of every model (None: each model's own, else the
             inference options').
-        note: told what each model runs as (an ONNX file: fp32 or INT8) and which threshold
-            a model brings along.
+        note: told what each model runs as (an ONNX file: fp32 or INT8), which threshold
+            a model brings along and (starting "warning: ") which model reports an object that
+            several hold (:func:`kept_classes`).
 
     Raises ConfigError for meshes that do not fit the models, a class no model detects.
     """
@@ -59,7 +89,9 @@ def build_predictors(weights: Sequence[Path], meshes: Sequence[Path] = (), *, me
                           f"got {len(meshes)} meshes")
     opened = [backends.open_backend(w, backend, device, threads) for w in weights]
     models = [(w, [o.class_name for o in backends.backend_objects(b)]) for w, b in zip(weights, opened)]
-    kept = kept_classes(classes, models)
+    kept, warnings = kept_classes(classes, models)
+    for warning in warnings:
+        note(f"warning: {warning}")
     predictors = []
     for i, (model, (w, names), keep) in enumerate(zip(opened, models, kept)):
         if keep == []:

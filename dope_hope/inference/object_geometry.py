@@ -74,7 +74,8 @@ class ObjectGeometry:
             source = str(mesh)
             mesh = load_mesh(mesh, units=units)
         size, center = mesh_cuboid(mesh)
-        check_mesh_box(size, model_size, source, self.class_name, "the model's cuboid")
+        check_mesh_box(size, model_size, source, self.class_name, "the model's cuboid",
+                       units=mesh.metadata.get("source_units"))
         return mesh, size, center
 
     def surface(self):

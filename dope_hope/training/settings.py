@@ -12,9 +12,10 @@ import numpy as np
 from dope_hope.assets import DEMO_WEIGHTS, PRETRAINED_WEIGHTS
 from dope_hope.catalog import get_object
 from dope_hope.config import nonnegative_float, positive_float, whole_number
-from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
+from dope_hope.errors import ConfigError, DopeHopeError, InputFileError, UnknownObjectError
+from dope_hope.geometry import fit_cuboid
 from dope_hope.io.bop_scenes import recorded_box_size
-from dope_hope.io.dope_json import recorded_cuboid_size
+from dope_hope.io.dope_json import read_dope_json, recorded_cuboid_size
 from dope_hope.io.models_dir import find_object_mesh, parse_mesh_args
 from dope_hope.io.paths import require_file
 
@@ -206,13 +207,66 @@ def input_hw(config: dict[str, Any]) -> tuple[int, int]:
     return h, w
 
 
+#: An annotation's projected cuboid implies its box when the fitted box reprojects within
+#: this many pixels (RMS) of it (else its pose is in another frame: no size is read from it).
+FIT_RMS_PX = 2.0
+
+
+def annotated_size(name: str, records: Sequence[Any], object_index: int = 0) -> tuple[np.ndarray, str] | None:
+    """(size (3,) m, where from) of ``name``'s box as the data says, or None: the size the
+    dataset records (a synth frame's JSON, an NDDS settings file, a BOP dataset's
+    models_info.json), else the one box the instances' projected cuboids imply with their
+    poses (:func:`dope_hope.geometry.fit_cuboid`; None when they do not fit one box within
+    :data:`FIT_RMS_PX`, e.g. poses in another frame). Looks at the first five records holding
+    object ``object_index``."""
+    holding = [r for r in records if np.any(r.object_indices() == object_index)][:5]
+    recorded = _recorded_size(name, holding)
+    if recorded is not None:
+        return recorded[0], f"the size {recorded[1].name} records"
+    views = []
+    for r in holding:
+        if r.json_path.name == "scene_gt.json":
+            continue
+        try:
+            frame = read_dope_json(r.json_path)
+        except (DopeHopeError, ValueError, KeyError, TypeError, OSError):
+            continue
+        views += [(obj.projected_cuboid, frame.K, obj.R, obj.t) for obj in frame.objects
+                  if obj.class_name.lower() == name.lower() and obj.projected_cuboid is not None]
+    fitted = fit_cuboid(views)
+    if fitted is None or fitted[2] > FIT_RMS_PX:
+        return None
+    return fitted[0], (f"the box the annotated projected cuboids imply ({len(views)} instances, e.g. in "
+                       f"{holding[0].json_path.name})")
+
+
+def _recorded_size(name: str, records: Sequence[Any]) -> tuple[np.ndarray, Path] | None:
+    """(size (3,) m, the annotation file) of the first of ``records`` whose dataset records
+    ``name``'s box, or None."""
+    for r in records:
+        if r.json_path.name == "scene_gt.json":
+            size = recorded_box_size(r.json_path, name)
+        else:
+            size = recorded_cuboid_size(r.json_path, name)
+        if size is not None:
+            return size, r.json_path
+    return None
+
+
 def object_info(name: str, records: Sequence[Any], mesh: Path | None, units: str | None = None,
                 object_index: int = 0) -> tuple[dict[str, Any], str]:
     """Checkpoint ``object`` entry (class_name, size_m in the mesh frame, frame "mesh") and
     where the size came from: a mesh's AABB (file in ``units``, default its suffix's) > the
     size the dataset records (a synth frame's JSON, an NDDS settings file, a BOP dataset's
     models_info.json) > the catalog. ``object_index``: the object's index in the records'
-    ``classes``."""
+    ``classes``.
+
+    Raises:
+        ConfigError: a mesh whose box does not match the box the data says
+        (:func:`annotated_size`, extents in any order, within
+        :data:`dope_hope.io.meshes.MESH_SIZE_TOLERANCE`): every pose the model gives would
+        be off by the ratio.
+    """
     # torch and trimesh only for the checkpoint's object entry
     from dope_hope.model.checkpoint import make_object_info
 
@@ -222,17 +276,18 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None, units: str
     except UnknownObjectError:
         hope = None
     if mesh is not None:
-        from dope_hope.io.meshes import load_mesh, mesh_cuboid
-        size, _ = mesh_cuboid(load_mesh(mesh, units=units))
-        return make_object_info(name, size, "mesh"), f"mesh {Path(mesh).name}"
+        from dope_hope.io.meshes import check_mesh_box, load_mesh, mesh_cuboid
 
-    for r in [r for r in records if np.any(r.object_indices() == object_index)][:5]:
-        if r.json_path.name == "scene_gt.json":
-            size = recorded_box_size(r.json_path, name)
-        else:
-            size = recorded_cuboid_size(r.json_path, name)
-        if size is not None:
-            return make_object_info(name, size, "mesh"), f"dataset {r.json_path.name}"
+        loaded = load_mesh(mesh, units=units)
+        size, _ = mesh_cuboid(loaded)
+        implied = annotated_size(name, records, object_index)
+        if implied is not None:
+            check_mesh_box(size, implied[0], f"--mesh {mesh}", name, implied[1], any_axis_order=True,
+                           units=loaded.metadata["source_units"])
+        return make_object_info(name, size, "mesh"), f"mesh {Path(mesh).name}"
+    recorded = _recorded_size(name, [r for r in records if np.any(r.object_indices() == object_index)][:5])
+    if recorded is not None:
+        return make_object_info(name, recorded[0], "mesh"), f"dataset {recorded[1].name}"
     if hope is None:
         raise ConfigError(f"cannot tell the cuboid size of {name!r}: the dataset records none and it is "
                           "not a HOPE object; pass --mesh")
@@ -330,7 +385,8 @@ def train_meshes(objects: Sequence[str], mesh_args: Sequence[str] | None, models
     ({class: mesh}, {class: unit}).
 
     ``--mesh`` values pair with the objects in order when there is one per object (else
-    ``NAME=PATH`` or a file that names its object: :func:`dope_hope.io.models_dir.parse_mesh_args`);
+    ``NAME=PATH`` or a file that names its object; a NAME that is not an object of the run is
+    refused: :func:`dope_hope.io.models_dir.parse_mesh_args`);
     ``--models-dir`` is searched for every object (:func:`~dope_hope.io.models_dir.find_object_mesh`).
     Without objects (a resumed run) one mesh is the run's object's, keyed "".
 
@@ -344,19 +400,13 @@ def train_meshes(objects: Sequence[str], mesh_args: Sequence[str] | None, models
     meshes: dict[str, Path] = {}
     if models_dir is not None:
         meshes = {n: find_object_mesh(n, models_dir) for n in names}
+    elif mesh_args and not names:  # a resumed run's one object, named by its checkpoint
+        if len(mesh_args) != 1:
+            raise ConfigError(f"--mesh: {len(mesh_args)} meshes for a resumed run; name its objects with --object")
+        text = str(mesh_args[0])
+        meshes = {"": Path(text.split("=", 1)[1] if "=" in text and not Path(text).exists() else text)}
     elif mesh_args:
-        if len(names) <= 1 and len(mesh_args) == 1:
-            text = str(mesh_args[0])
-            named = "=" in text and not Path(text).exists()
-            meshes = {names[0] if names else "": Path(text.split("=", 1)[1] if named else text)}
-        elif len(mesh_args) == len(names) and not any("=" in str(m) and not Path(m).exists() for m in mesh_args):
-            meshes = {n: Path(m) for n, m in zip(names, mesh_args)}
-        else:
-            lower = {n.lower(): n for n in names}
-            for key, path in parse_mesh_args(mesh_args, names).items():
-                if key.lower() not in lower:
-                    raise ConfigError(f"--mesh {path}: {key} is not one of the objects ({', '.join(names)})")
-                meshes[lower[key.lower()]] = path
+        meshes = parse_mesh_args(mesh_args, names, in_order=True)
     if not units:
         return meshes, {}
     if not meshes:

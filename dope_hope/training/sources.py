@@ -10,6 +10,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
+from dope_hope.errors import InputFileError
 from dope_hope.geometry import KEYPOINT_ORDER
 from dope_hope.io.bop_scenes import bop_class_name, is_bop_dataset, iter_bop_frames
 from dope_hope.training.dataset import FrameRecord, class_index, frame_record, scan_frames
@@ -59,3 +62,20 @@ def scan_training_data(folders: Sequence[str | Path], class_names: str | Sequenc
             dope.append(Path(folder))
     flush()
     return records, bad
+
+
+def check_instances(records: Sequence[FrameRecord], class_names: Sequence[str], folders: Sequence[str | Path]) -> None:
+    """InputFileError naming the folders unless every object of the run has an annotated
+    instance among ``records``: an object without one would train a map group that only ever
+    learns "absent" (a misspelt or missing object, or data of other objects)."""
+    names = list(class_names)
+    indices = [r.object_indices() for r in records if len(r.keypoints)]
+    counts = np.bincount(np.concatenate(indices), minlength=len(names)) if indices else np.zeros(len(names), int)
+    where = ", ".join(str(p) for p in folders)
+    if not counts.any():
+        raise InputFileError(where, f"no annotated instance of class {' / '.join(names)!r}")
+    missing = [n for n, c in zip(names, counts) if c == 0]
+    if missing:
+        found = ", ".join(f"{n} {c}" for n, c in zip(names, counts) if c)
+        raise InputFileError(where, f"no annotated instance of {', '.join(missing)} (--object), whose maps would "
+                                    f"only learn 'absent'; instances found: {found}")

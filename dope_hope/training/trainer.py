@@ -77,7 +77,7 @@ from dope_hope.training.settings import (
     input_hw,
     train_settings,
 )
-from dope_hope.training.sources import scan_training_data
+from dope_hope.training.sources import check_instances, scan_training_data
 from dope_hope.training.stopping import StopControl
 from dope_hope.training.time_budget import LOADER_PREFETCH, TimeBudgetControl
 from dope_hope.training.validation import object_hits
@@ -139,9 +139,7 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
         scan = dict(min_visibility=float(ts["min_visibility"]), include_empty=bool(ts["include_empty_frames"]),
                     progress=job.progress and self.dist.main)
         records, _ = scan_training_data(job.data, job.class_names, KEYPOINT_ORDER, **scan)
-        if not any(len(r.keypoints) for r in records):
-            folders = ", ".join(str(p) for p in job.data)
-            raise InputFileError(folders, f"no annotated instance of class {' / '.join(job.class_names)!r}")
+        check_instances(records, job.class_names, job.data)
         if job.val:
             val_records, _ = scan_training_data(job.val, job.class_names, KEYPOINT_ORDER, **scan)
             if not val_records:
