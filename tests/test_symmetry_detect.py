@@ -13,8 +13,7 @@ from scipy.spatial.transform import Rotation
 from dope_hope.catalog import get_object
 from dope_hope.errors import ConfigError
 from dope_hope.io.symmetries import read_declaration
-from dope_hope.symmetry.detect import (SymmetryTolerance, axis_name, detect_mesh_file_symmetries,
-                                       detect_symmetries)
+from dope_hope.symmetry.detect import SymmetryTolerance, axis_name, detect_mesh_file_symmetries, detect_symmetries
 from dope_hope.symmetry.resolve import label_symmetries, resolve_symmetries
 from dope_hope.symmetry.transforms import category_symmetries, declaration_transforms, symmetries_from_models_info
 
