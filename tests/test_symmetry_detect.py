@@ -13,8 +13,7 @@ from scipy.spatial.transform import Rotation
 from dope_hope.catalog import get_object
 from dope_hope.errors import ConfigError
 from dope_hope.io.symmetries import read_declaration
-from dope_hope.symmetry.detect import (SymmetryTolerance, axis_name, detect_mesh_file_symmetries,
-                                       detect_symmetries)
+from dope_hope.symmetry.detect import SymmetryTolerance, axis_name, detect_mesh_file_symmetries, detect_symmetries
 from dope_hope.symmetry.resolve import label_symmetries, resolve_symmetries
 from dope_hope.symmetry.transforms import category_symmetries, declaration_transforms, symmetries_from_models_info
 
@@ -191,13 +190,14 @@ def test_auto_labels_use_what_the_mesh_shows(tmp_path):
 
 
 def test_file_results_are_cached_by_content(tmp_path):
-    path = _write_mesh(tmp_path, trimesh.creation.box(extents=(0.10, 0.06, 0.03)))
+    path = _write_mesh(tmp_path, trimesh.creation.box(extents=(1.0, 0.6, 0.3)))  # an object in m and in cm
     first = detect_mesh_file_symmetries(path, "m")
     t0 = time.perf_counter()
     again = detect_mesh_file_symmetries(path, "m")
     assert again is first and time.perf_counter() - t0 < 0.05
     assert detect_mesh_file_symmetries(path, "cm") is not first  # another unit, another mesh
-    path.write_bytes(path.read_bytes().replace(b"0.05", b"0.07", 1))  # new content, new answer
+    assert b"0.15" in path.read_bytes()
+    path.write_bytes(path.read_bytes().replace(b"0.15", b"0.17", 1))  # new content, new answer
     assert detect_mesh_file_symmetries(path, "m") is not first
 
 

@@ -28,6 +28,7 @@ import numpy as np
 from dope_hope.catalog import CATEGORIES, get_object
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_symmetries
 from dope_hope.errors import ConfigError, UnknownObjectError
+from dope_hope.io.meshes import MESH_SIZE_TOLERANCE
 from dope_hope.io.models_dir import bop_obj_id
 from dope_hope.io.symmetries import (
     SymmetryDeclaration,
@@ -36,7 +37,6 @@ from dope_hope.io.symmetries import (
     model_info_declaration,
     read_declaration,
 )
-from dope_hope.io.meshes import MESH_SIZE_TOLERANCE
 from dope_hope.symmetry.detect import DetectedSymmetries, detect_mesh_file_symmetries, mesh_file_size
 from dope_hope.symmetry.transforms import category_symmetries, declaration_transforms
 
