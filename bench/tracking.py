@@ -244,7 +244,7 @@ def play(predictor, clip: Clip, tracked: bool, out: Path, max_frames: int | None
     played, lines = Played(), []
     tracker = None
     if tracked:
-        tracker = PoseTracker(predictor, settings={**predictor.options.tracking, **(settings or {})})
+        tracker = PoseTracker(predictor, settings={**predictor.options.tracking.to_dict(), **(settings or {})})
         update = tracker.update
 
         def timed_update(*args, **kwargs):

@@ -286,7 +286,7 @@ def test_infer_bad_values_are_refused_before_loading(flags, named, frames, tmp_p
     (["--time-budget", "-1"], "argument --time-budget"),
     (["--set", "train.lr=abc"], "train.lr must be a number"),
     (["--set", "train.epochs=0"], "train.epochs must be >= 1"),
-    (["--set", "targets.sigam=2"], "targets: unknown key(s) sigam"),
+    (["--set", "targets.sigam=2"], "--set targets.sigam=2: unknown setting targets.sigam (known in targets: "),
 ])
 def test_train_bad_values_are_refused(flags, named, train_data, tmp_path, capsys):
     argv = ["train", "--data", train_data, "--object", "Ketchup", "--out", tmp_path / "run", "--no-progress",
@@ -301,12 +301,12 @@ def test_train_bad_values_are_refused(flags, named, train_data, tmp_path, capsys
 def test_synth_refuses_an_unknown_set_key(mesh, tmp_path, capsys):
     argv = ["synth", "--mesh", mesh, "--out", tmp_path / "s", "--count", 1, "--set", "target.cuont=[1,1]"]
     line = one_line_error(*run_cli(argv, capsys)[::2], "synth")
-    assert "unknown key 'target.cuont'" in line and "count" in line
+    assert "unknown setting target.cuont" in line and "count" in line
     cfg = tmp_path / "typo.yaml"
     cfg.write_text("target:\n  cuont: [1, 1]\n")
     line = one_line_error(*run_cli(["synth", "--mesh", mesh, "--out", tmp_path / "s", "--count", 1,
                                     "--config", cfg], capsys)[::2], "synth")
-    assert "unknown key(s) target.cuont" in line
+    assert "unknown setting target.cuont" in line
 
 
 def test_onnx_whose_size_metadata_disagrees_with_its_graph(weights, frames, tmp_path, capsys):

@@ -26,6 +26,7 @@ import argparse
 from pathlib import Path
 
 from dope_hope.commands.argtypes import finite_float, fixed_device, positive_float, positive_int, working_side
+from dope_hope.commands.settings import add_settings_arguments, given_settings
 from dope_hope.errors import ConfigError, InputFileError
 
 # The library is imported inside the functions: cli.py imports every command to build --help,
@@ -54,7 +55,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--depth-calibration", type=positive_float, default=1.0, metavar="F",
                         help="multiply depth by F (default 1)")
     parser.add_argument("--height", type=working_side, metavar="H", help="network working height (default: the model's)")
-    parser.add_argument("--min-score", type=finite_float, default=0.0, help="drop estimates scoring lower")
+    parser.add_argument("--min-score", type=finite_float,
+                        help="drop estimates scoring lower (default 0: BOP ranks every estimate by its score)")
+    add_settings_arguments(parser, "bop-submit")
     parser.add_argument("--backend", choices=("auto", "torch", "onnx"), default="auto")
     parser.add_argument("--device", type=fixed_device, default="cpu", help="torch device (cpu, cuda)")
     parser.add_argument("--threads", type=positive_int, help="CPU threads for the network")
@@ -68,6 +71,10 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.io.paths import output_file
 
     parse_bop_result_filename(args.out)  # fail before any work
+    options = {"min_score": 0.0, **given_settings("bop-submit", args.config, args.overrides)}
+    flags = {"height": args.height, "min_score": args.min_score, "icp": True if args.icp else None}
+    options.update({k: v for k, v in flags.items() if v is not None})
+    args.icp = bool(options.get("icp"))
     if args.icp and args.no_depth:
         raise ConfigError("--icp refines against the depth: it cannot go with --no-depth")
     output_file(args.out)
@@ -83,8 +90,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputFileError(models_dir, "models folder not found")
     if not models_dir.is_dir():
         models_dir = None  # no DATASET/models: the line search uses each model's cuboid
-    models = load_bop_models(args.weights, models_dir, args.models_dir is not None,
-                             {"height": args.height, "min_score": args.min_score, "icp": args.icp},
+    models = load_bop_models(args.weights, models_dir, args.models_dir is not None, options,
                              args.backend, args.device, args.threads)
     frames, wanted = targeted_frames(split_dir, targets_path)
     no_model = sorted({o for objs in (wanted or {}).values() for o in objs} - set(models.predictors))

@@ -72,6 +72,7 @@ from pathlib import Path
 
 from dope_hope.assets import DEMO_WEIGHTS  # used when --weights is not given
 from dope_hope.commands.argtypes import finite_float, fixed_device, positive_float, positive_int, working_side
+from dope_hope.commands.settings import add_settings_arguments, given_settings
 from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, DopeHopeError
 
@@ -146,8 +147,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     stream.add_argument("--track", action="store_true",
                         help="track the objects: stable track ids, smoothed poses (R, t) with the "
                              "frame's own in R_detected / t_detected, a missed object's predicted pose "
-                             "(tracked: coasted) for a few frames; settings: the tracking section of "
-                             "configs/infer.yaml")
+                             "(tracked: coasted) for a few frames; settings: the tracking section, e.g. "
+                             "--set tracking.reprojection_px=2.0")
     parser.add_argument("--mesh", action="append", type=Path, metavar="PATH",
                         help="object mesh per --weights (same order; one-object models), or one models "
                              "folder (any models) holding "
@@ -169,10 +170,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="drop detections whose pose score is lower (default: the model's own threshold "
                              "when its file records one, as the shipped demo model does, else "
                              f"{_default_min_score():g} from dope_hope/configs/infer.yaml; bench/RESULTS.md); "
-                             "0 keeps all")
-    parser.add_argument("--pose-search", choices=("hypotheses", "groups"), default="hypotheses",
+                             "0 keeps all; the option min_score")
+    parser.add_argument("--pose-search", choices=("hypotheses", "groups"),
                         help="hypotheses (default): candidate corner peaks + multi-hypothesis PnP; "
                              "groups: DOPE's one corner per type (faster, finds fewer)")
+    add_settings_arguments(parser, "infer")
     parser.add_argument("--device", type=fixed_device, default="cpu", help="torch device (cpu, cuda, cuda:1)")
     parser.add_argument("--threads", type=positive_int, help="CPU threads for the network")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -214,13 +216,23 @@ def _warn(message: str) -> None:
     print(f"dope-hope infer: warning: {message}", file=sys.stderr, flush=True)
 
 
+def inference_settings(args: argparse.Namespace) -> dict:
+    """The inference options the command line sets: --config and --set (checked: one line naming
+    the file or item and section.key), then the flags that name an option (--height,
+    --min-score, --pose-search, --icp)."""
+    given = given_settings("infer", args.config, args.overrides)
+    flags = {"height": args.height, "min_score": args.min_score, "pose_search": args.pose_search,
+             "icp": True if args.icp else None}
+    given.update({k: v for k, v in flags.items() if v is not None})
+    return given
+
+
 def _predictors(args: argparse.Namespace) -> list:
     from dope_hope.inference.model_set import build_predictors
 
     return build_predictors(_resolve_weights(args), args.mesh or [], mesh_units=args.mesh_units,
-                            backend=args.backend, device=args.device, threads=args.threads, height=args.height,
-                            min_score=args.min_score, pose_search=args.pose_search, icp=args.icp,
-                            classes=args.classes, note=_note)
+                            backend=args.backend, device=args.device, threads=args.threads,
+                            options=inference_settings(args), classes=args.classes, note=_note)
 
 
 # ----------------------------------------------------------------------------- run
@@ -229,6 +241,7 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.io.paths import output_dir
     from dope_hope.io.streams import stream_kind
 
+    args.icp = bool(inference_settings(args).get("icp"))  # settings checked before any work
     if any(stream_kind(item) for item in args.inputs):
         return _run_stream(args)
     given = [f"--{o.replace('_', '-')}" for o in STREAM_OPTIONS if getattr(args, o) not in (None, False)]

@@ -32,7 +32,8 @@ import time
 from pathlib import Path
 
 from dope_hope.commands.argtypes import device, nonnegative_float, nonnegative_int, positive_float, positive_int
-from dope_hope.config import apply_overrides, load_config
+from dope_hope.commands.settings import add_settings_arguments, command_settings, given_settings
+from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, InputFileError
 
 # The library is imported inside the functions: cli.py imports every command to build --help,
@@ -52,9 +53,10 @@ def _time_budget(text: str) -> float:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("--config", default="lite",
-                        help="config name (lite, dope_dr_50, dope_dr_400) or YAML path (default lite); "
-                             "ignored with --resume, which continues with the checkpoint's config")
+    add_settings_arguments(parser, "train", config_help=(
+        "training recipe: a packaged one's name (lite, dope_dr_50, dope_dr_400) or a YAML file holding "
+        "what it changes from the defaults (default lite); ignored with --resume, which continues with "
+        "the checkpoint's recipe; `dope-hope settings train` prints every value"))
     parser.add_argument("--data", nargs="+", type=Path, metavar="DIR",
                         help="training folder(s), DOPE format or BOP datasets (with --resume: default "
                              "the checkpoint's)")
@@ -100,8 +102,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the object's symmetries, BOP models_info style (default: model_info.json "
                              "beside --mesh, else the HOPE category, else those found on --mesh); used by "
                              "--set targets.symmetry=auto")
-    parser.add_argument("--set", nargs="+", default=[], dest="overrides", metavar="KEY=VALUE",
-                        help="config overrides, e.g. --set train.lr=1e-3 augment.rotation_deg=30")
     parser.add_argument("--device", type=device, default="auto", help="auto (CUDA if available), cpu, cuda")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -129,7 +129,10 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     resume, args.init_weights = resolve_resume(args.resume, args.out, args.init_weights)
 
-    overrides = apply_overrides({}, list(args.overrides))
+    # checked over the recipe (a new run) or the defaults (a resumed run's recipe is its checkpoint's)
+    overrides = given_settings("train", None, list(args.overrides))
+    if resume is None:
+        command_settings("train", args.config, list(args.overrides))
     cli = {"epochs": args.epochs, "steps": args.steps, "batch_size": args.batch_size, "workers": args.workers,
            "lr": args.lr, "time_limit_min": args.time_budget, "seed": args.seed}
     for key, value in cli.items():

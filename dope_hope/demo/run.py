@@ -9,6 +9,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -34,7 +35,9 @@ from dope_hope.viz import draw_cuboid, draw_label, montage, overlay_detections
 class DemoSettings:
     """One demo run: ``scenes`` scenes of ``seed`` (None: a fresh random seed) into ``out``
     with the model at ``weights``; ``onnx``: also through onnxruntime; ``threads``: CPU
-    threads of each backend (None: the backend's default)."""
+    threads of each backend (None: the backend's default); ``options``: inference options
+    over the defaults (:class:`~dope_hope.inference.options.InferenceOptions`; min_score: the
+    model's own unless given)."""
 
     weights: Path
     out: Path
@@ -42,6 +45,7 @@ class DemoSettings:
     seed: int | None = None
     onnx: bool = True
     threads: int | None = None
+    options: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -69,17 +73,17 @@ def _open_models(settings: DemoSettings, out: Path) -> _Models:
     mesh_path = write_demo_object(out / "mesh")
     mesh = demo_object_mesh()
     # The scenes hold the demo object only: a model of several objects reports that one.
-    torch_pred = DopePredictor(torch_backend, mesh=mesh, classes=[DEMO_CLASS_NAME])
+    torch_pred = DopePredictor(torch_backend, mesh=mesh, classes=[DEMO_CLASS_NAME], options=settings.options)
     _, input_hw = torch_pred.working_size((IMAGE_SIZE[1], IMAGE_SIZE[0]))
     onnx_pred, note = None, "ONNX off (--no-onnx)"
     if settings.onnx:
         t0 = time.perf_counter()
         onnx_path, exported = ensure_onnx(settings.weights, out, input_hw)
         onnx_pred = DopePredictor(backends.open_backend(onnx_path, "onnx", threads=settings.threads), mesh=mesh,
-                                  classes=[DEMO_CLASS_NAME])
+                                  classes=[DEMO_CLASS_NAME], options=settings.options)
         note = f"ONNX {onnx_path} (" + (f"exported in {time.perf_counter() - t0:.1f} s" if exported else "cached") + ")"
     model = load_models([DEMO_CLASS_NAME], [str(mesh_path)])[DEMO_CLASS_NAME]
-    own_min_score = backends.model_min_score(torch_backend) is not None
+    own_min_score = backends.model_min_score(torch_backend) is not None and "min_score" not in settings.options
     return _Models(torch_pred, onnx_pred, note, input_hw, own_min_score, mesh_path, model)
 
 

@@ -10,8 +10,9 @@ Meshes: one per model file (same order; one-object models), or one models folder
 """
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 from dope_hope.errors import ConfigError
 from dope_hope.inference import backends  # looked up at each call: a substituted open_backend counts
@@ -62,18 +63,18 @@ def kept_classes(classes: Sequence[str] | None, models: list[tuple[Path, list[st
 
 def build_predictors(weights: Sequence[Path], meshes: Sequence[Path] = (), *, mesh_units: str | None = None,
                      backend: str = "auto", device: str = "cpu", threads: int | None = None,
-                     height: int | None = None, min_score: float | None = None, pose_search: str = "hypotheses",
-                     icp: bool = False, classes: Sequence[str] | None = None,
+                     options: Mapping[str, Any] | None = None, classes: Sequence[str] | None = None,
                      note: Callable[[str], None] = lambda message: None) -> list[DopePredictor]:
     """A predictor per model file in ``weights`` that detects one of ``classes`` (all: None).
 
     Args:
         meshes: one mesh per model file (one-object models), or one models folder, or none
             (the models' cuboids).
-        mesh_units, backend, device, threads, height, pose_search, icp: as
+        mesh_units, backend, device, threads: as
             :class:`~dope_hope.inference.predictor.DopePredictor` takes them.
-        min_score: the score threshold of every model (None: each model's own, else the
-            inference options').
+        options: the inference options set (a mapping over the defaults,
+            :class:`~dope_hope.inference.options.InferenceOptions`); without ``min_score`` each
+            model's own threshold, else the default.
         note: told what each model runs as (an ONNX file: fp32 or INT8), which threshold
             a model brings along and (starting "warning: ") which model reports an object that
             several hold (:func:`kept_classes`).
@@ -107,10 +108,9 @@ def build_predictors(weights: Sequence[Path], meshes: Sequence[Path] = (), *, me
                 raise ConfigError(f"--mesh {meshes[i]}: {w} detects {len(reported)} objects "
                                   f"({', '.join(reported)}); give a models folder as --mesh")
             mesh = meshes[i]
-        given = {} if min_score is None else {"min_score": min_score}
-        predictors.append(DopePredictor(model, height=height, mesh=mesh, mesh_units=mesh_units,
-                                        pose_search=pose_search, icp=icp, classes=keep, **given))
-        if min_score is None and backends.model_min_score(model) is not None:
+        predictors.append(DopePredictor(model, mesh=mesh, mesh_units=mesh_units, classes=keep,
+                                        options=dict(options or {})))
+        if "min_score" not in (options or {}) and backends.model_min_score(model) is not None:
             note(f"{', '.join(reported)}: min score {predictors[-1].options.min_score:g}, "
                  "the model's own (recorded with its weights; --min-score overrides)")
     return predictors

@@ -28,15 +28,16 @@ class ObjectGeometry:
             model's cuboid (refused when it differs by more than 25 %) and its surface feeds
             the depth steps.
         mesh_units: units of a mesh file ("m", "cm", "mm"; default by suffix).
-        ls_points, icp_points: surface points sampled for the line search / ICP.
+        ls_points, icp_points: surface points sampled for the line search / ICP (the
+            inference options' ``ls_points`` / ``icp_points``).
 
     Attributes: class_name, group, symmetries (BOP fields, mm, or None), mesh,
     cuboid_size_m / cuboid_center_m (mesh frame, m), cuboid_mesh ((9, 3) mesh-frame keypoints,
     current order), cuboid_pnp (the keypoints PnP fits: legacy frame and order for a legacy model).
     """
 
-    def __init__(self, info: ObjectInfo, group: int, legacy: bool, mesh: Any = None,
-                 mesh_units: str | None = None, ls_points: int = 1000, icp_points: int = 2000):
+    def __init__(self, info: ObjectInfo, group: int, legacy: bool, mesh: Any,
+                 mesh_units: str | None, ls_points: int, icp_points: int):
         self.class_name = str(info.class_name)
         self.group = int(group)
         self.symmetries = info.symmetries

@@ -75,6 +75,7 @@ from dope_hope.training.settings import (
     TrainJob,
     check_config_keys,
     input_hw,
+    targets_settings,
     train_settings,
 )
 from dope_hope.training.sources import check_instances, scan_training_data
@@ -134,7 +135,7 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
         run, the starting weights once the data checks passed)."""
         config, ts = self.config, self.ts
         hw = input_hw(config)
-        tcfg = config.get("targets") or {}
+        tcfg = targets_settings(config)
         stride = int(self.model.stride)
         scan = dict(min_visibility=float(ts["min_visibility"]), include_empty=bool(ts["include_empty_frames"]),
                     progress=job.progress and self.dist.main)
@@ -153,11 +154,11 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
                 log.info("start: %s", job.init_reason)
         self._set_objects(records)
         (records, val_records), self.symmetry_permutations, lines = relabel_objects(
-            tcfg.get("symmetry", "none"), job, self.objects, [records, val_records])
+            tcfg.symmetry, job, self.objects, [records, val_records])
         for line in lines:
             log.info("symmetry-aware labels: %s", line)
-        common = dict(input_hw=hw, stride=stride, sigma=float(tcfg.get("sigma", 2.0)),
-                      radius=float(tcfg.get("radius", 1.0)), seed=self.seed, max_instances=int(ts["max_instances"]),
+        common = dict(input_hw=hw, stride=stride, sigma=float(tcfg.sigma),
+                      radius=float(tcfg.radius), seed=self.seed, max_instances=int(ts["max_instances"]),
                       num_objects=len(self.objects))
         self.train_set = DopeDataset(records, augment=AugmentParams.from_config(config.get("augment")), **common)
         self.val_set = DopeDataset(val_records, augment=AugmentParams(enabled=False), **common)
