@@ -190,14 +190,14 @@ def test_auto_labels_use_what_the_mesh_shows(tmp_path):
 
 
 def test_file_results_are_cached_by_content(tmp_path):
-    path = _write_mesh(tmp_path, trimesh.creation.box(extents=(0.10, 0.06, 0.03)))
-    first = detect_mesh_file_symmetries(path, "m")
+    path = _write_mesh(tmp_path, trimesh.creation.box(extents=(60.0, 40.0, 20.0)))
+    first = detect_mesh_file_symmetries(path, "mm")
     t0 = time.perf_counter()
-    again = detect_mesh_file_symmetries(path, "m")
+    again = detect_mesh_file_symmetries(path, "mm")
     assert again is first and time.perf_counter() - t0 < 0.05
     assert detect_mesh_file_symmetries(path, "cm") is not first  # another unit, another mesh
-    path.write_bytes(path.read_bytes().replace(b"0.05", b"0.07", 1))  # new content, new answer
-    assert detect_mesh_file_symmetries(path, "m") is not first
+    path.write_bytes(path.read_bytes().replace(b"30", b"32", 1))  # new content, new answer
+    assert detect_mesh_file_symmetries(path, "mm") is not first
 
 
 # ----------------------------------------------------------------- the shared meshes
