@@ -7,6 +7,7 @@ Examples:
   dope-hope infer clip.mp4 --camera camera_info.yaml --out res/clip
   dope-hope infer 0 --camera camera_info.yaml --show            (camera 0; Ctrl-C or q stops)
   dope-hope infer realsense --icp --mesh meshes/                (pip install "dope-hope[realsense]")
+  dope-hope infer robot.bag --track --foxglove --out res/robot  (pip install "dope-hope[ros]")
   dope-hope infer scene/ --weights shelf.pt --classes Ketchup Mustard --camera K.json
 
 Output: one JSON line per detection on stdout, in the predictions format that
@@ -39,6 +40,21 @@ processed frame by frame unless --realtime plays it at its frame rate like a cam
 end prints frames read / processed / dropped and the end-to-end frames/s. --show opens a live
 window where a display exists. Ctrl-C (or q in the window) ends a stream; what was processed
 is written.
+
+Recordings (pip install "dope-hope[ros]"; no ROS installation needed): a ROS 1 .bag, a ROS 2
+bag folder (sqlite3 or MCAP storage) or a ROS 2 .mcap / .db3 file is a stream too: its colour
+image topic (Image rgb8/bgr8/mono8, CompressedImage jpeg/png), a registered depth topic (16UC1
+mm, 32FC1 m, compressedDepth) paired by header stamp within --sync-tolerance, and the colour
+CameraInfo (a distorted camera is undistorted, never taken as pinhole), chosen automatically
+when unambiguous (RealSense names) or named with --image-topic / --depth-topic /
+--camera-info-topic; --list-topics prints them and stops. Records add "stamp_ns" and
+"frame_id" (the image header's); "image" is NAME#FRAME. OUT/NAME_poses/ is a ROS 2 bag (MCAP
+storage; Foxglove opens NAME_poses.mcap, `ros2 bag play` the folder) holding per frame
+vision_msgs/Detection3DArray, geometry_msgs/PoseArray, visualization_msgs/MarkerArray,
+foxglove_msgs/ImageAnnotations, tf (camera -> CLASS_ID) and the overlay as a CompressedImage
+(not with --no-overlay), on the image's stamp and frame_id (docs/formats/recordings.md).
+--foxglove [PORT] (any stream) serves the same messages live to the Foxglove app
+(ws://127.0.0.1:PORT, default 8765); a file waits for the app to subscribe before it plays.
 
 Tracking (--track, streams): each object gets a track_id (per class, stable while it stays
 in view); R, t and quaternion_xyzw become the tracked pose (a constant-velocity filter on
@@ -77,7 +93,13 @@ from dope_hope.commands.argtypes import fixed_device, finite_float, positive_flo
 #: Frame rate of an overlay video when the source reports none.
 FALLBACK_FPS = 30.0
 #: Options of video and camera inputs only.
-STREAM_OPTIONS = ("realtime", "max_frames", "show", "capture_size", "capture_fps", "track")
+STREAM_OPTIONS = ("realtime", "max_frames", "show", "capture_size", "capture_fps", "track", "foxglove")
+#: Options of recordings only.
+RECORDING_OPTIONS = ("image_topic", "depth_topic", "camera_info_topic", "sync_tolerance", "list_topics")
+#: Colour-to-depth stamp tolerance of a recording, ms (dope_hope.io.recordings.DEFAULT_SYNC_TOLERANCE_S).
+DEFAULT_SYNC_TOLERANCE_MS = 15.0
+#: Port of --foxglove without a value (dope_hope.io.foxglove_live.DEFAULT_PORT).
+DEFAULT_FOXGLOVE_PORT = 8765
 
 
 def default_weights() -> Path | None:
@@ -100,12 +122,18 @@ def _size(text: str) -> tuple[int, int]:
     return int(w), int(h)
 
 
+def _port(text: str) -> int:
+    if not text.isdigit() or int(text) > 65535:
+        raise argparse.ArgumentTypeError(f"expected a port number 0-65535 (0: any free port), got {text!r}")
+    return int(text)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     demo = "present" if default_weights() is not None else "absent"
     parser.add_argument("inputs", nargs="+", metavar="SOURCE",
                         help="image file(s), a folder of images, a quoted glob, a video file, a camera "
-                             "index (0) or realsense[:SERIAL]")
+                             "index (0), realsense[:SERIAL] or a recording (.bag, .mcap, .db3, ROS 2 bag folder)")
     parser.add_argument("--weights", action="append", type=Path, metavar="W",
                         help="checkpoint (.pt/.pth) or exported .onnx of one or more objects; repeat "
                              f"for several models (default: the demo model dope_hope/assets/demo_lite.pt when it "
@@ -147,6 +175,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "frame's own in R_detected / t_detected, a missed object's predicted pose "
                              "(tracked: coasted) for a few frames; settings: the tracking section of "
                              "configs/infer.yaml")
+    stream.add_argument("--foxglove", nargs="?", const=DEFAULT_FOXGLOVE_PORT, type=_port, metavar="PORT",
+                        help="serve the results live to the Foxglove app on ws://127.0.0.1:PORT (default "
+                             f"{DEFAULT_FOXGLOVE_PORT}; a file waits for the app to subscribe)")
+    rec = parser.add_argument_group("robot recordings: ROS 1 .bag, ROS 2 bag folder, .mcap, .db3")
+    rec.add_argument("--image-topic", metavar="TOPIC", help="colour image topic (default: the only one)")
+    rec.add_argument("--depth-topic", metavar="TOPIC|none",
+                     help="depth topic registered to colour (default: the only one, aligned_depth_to_color "
+                          "preferred; none: no depth)")
+    rec.add_argument("--camera-info-topic", metavar="TOPIC",
+                     help="colour CameraInfo topic (default: the image topic's sibling camera_info)")
+    rec.add_argument("--sync-tolerance", type=positive_float, metavar="MS",
+                     help=f"largest colour-to-depth header stamp difference (default {DEFAULT_SYNC_TOLERANCE_MS:g} ms)")
+    rec.add_argument("--list-topics", action="store_true", help="print the recording's topics and the chosen ones, then stop")
     parser.add_argument("--mesh", action="append", type=Path, metavar="PATH",
                         help="object mesh per --weights (same order; one-object models), or one models "
                              "folder (any models) holding "
@@ -325,7 +366,8 @@ def run(args: argparse.Namespace) -> int:
 
     if any(stream_kind(item) for item in args.inputs):
         return _run_stream(args)
-    given = [f"--{o.replace('_', '-')}" for o in STREAM_OPTIONS if getattr(args, o) not in (None, False)]
+    given = [f"--{o.replace('_', '-')}" for o in STREAM_OPTIONS + RECORDING_OPTIONS
+             if getattr(args, o) not in (None, False)]
     if given:
         raise ConfigError(f"{', '.join(given)}: for a video or camera input, not images")
     if args.icp and args.depth is None:
@@ -438,21 +480,25 @@ def _check_stream_flags(args: argparse.Namespace) -> None:
     from dope_hope.io.sources import stream_kind
 
     kind = stream_kind(args.inputs[0]) if len(args.inputs) == 1 else None
-    if args.icp and kind != "realsense":
+    if args.icp and kind not in ("realsense", "recording"):
         raise ConfigError("--icp refines against a depth image: a video or an OpenCV camera has none "
-                          "(a RealSense has)")
-    if args.realtime and kind != "video":
-        raise ConfigError("--realtime plays a video file at its frame rate (cameras are live already)")
+                          "(a RealSense or a recording with depth has)")
+    if args.realtime and kind not in ("video", "recording"):
+        raise ConfigError("--realtime plays a file at its frame rate (cameras are live already)")
+    given = [f"--{o.replace('_', '-')}" for o in RECORDING_OPTIONS if getattr(args, o) not in (None, False)]
+    if given and kind != "recording":
+        raise ConfigError(f"{', '.join(given)}: for a recording input (.bag, .mcap, .db3, ROS 2 bag folder)")
     if args.belief:
         raise ConfigError("--belief writes one montage per image; not for video or camera inputs")
 
 
 def _stream_outputs(args: argparse.Namespace, out: Path, source, warn):
     """(overlay video or None, live window or None) of a stream."""
+    from dope_hope.io.sources import stream_kind
     from dope_hope.io.video import LiveWindow, OverlayVideo, display_problem
 
     video = window = None
-    if not args.no_overlay:
+    if not args.no_overlay and stream_kind(args.inputs[0]) != "recording":  # a recording's go to its MCAP
         video = OverlayVideo(out / f"{_output_name(source.name)}.overlay", source.fps or FALLBACK_FPS)
     if args.show:
         problem = display_problem()
@@ -477,33 +523,57 @@ def _run_stream(args: argparse.Namespace) -> int:
     def warn(message: str) -> None:
         print(f"dope-hope infer: warning: {message}", file=sys.stderr, flush=True)
 
+    source = _open_source(args, warn)
+    if args.list_topics:
+        print(source.topic_table())
+        source.close()
+        return 0
     out = output_dir(args.out)
-    source = open_stream(args.inputs, _global_camera(args), args.depth, args.capture_size, args.capture_fps, warn)
-    video = window = None
+    video = window = ros = None
     try:
         passive_openmp()  # before torch is imported: its idle threads must not spin
+        from dope_hope.inference.ros_outputs import open_ros_outputs
         from dope_hope.inference.video import StreamSinks, predict_stream
 
         predictors = build_predictors(args, _resolve_weights(args))
         video, window = _stream_outputs(args, out, source, warn)
-        sinks = StreamSinks(on_record=lambda rec: print(json.dumps(rec), flush=True), video=video, window=window)
+        ros = open_ros_outputs(out, source, args.foxglove, not args.no_overlay,
+                               lambda line: print(f"dope-hope infer: {line}", file=sys.stderr, flush=True))
+        sinks = StreamSinks(on_record=lambda rec: print(json.dumps(rec), flush=True), video=video, window=window,
+                            on_frame=None if ros is None else ros.on_frame)
         result = predict_stream(source, predictors, sinks, tracker=_tracker(args, predictors) if args.track else None,
                                 depth_calibration=args.depth_calibration, pace=args.realtime,
                                 max_frames=args.max_frames, progress=not args.no_progress, warn=warn)
+        mcap = None if ros is None else ros.close()
         write_predictions_jsonl(out / "predictions.jsonl", result.records)
         video_path = None if video is None else video.close()
     except BaseException:
-        if video is not None:
-            video.discard()
+        for output in (video, ros):
+            if output is not None:
+                output.discard()
         raise
     finally:
         source.close()
         if window is not None:
             window.close()
     summary = (f"{source.name}: {result.stats.summary()}; {len(result.records)} detection(s); predictions in "
-               f"{out / 'predictions.jsonl'}" + (f", overlay video {video_path}" if video_path else ""))
+               f"{out / 'predictions.jsonl'}" + (f", overlay video {video_path}" if video_path else "")
+               + (f", poses MCAP {mcap}" if mcap else ""))
     print(f"dope-hope infer: {summary}", file=sys.stderr)
     return 0
+
+
+def _open_source(args: argparse.Namespace, warn):
+    """The stream's FrameSource: a recording (its topics, the --camera override) or open_stream's."""
+    from dope_hope.io.sources import open_stream, stream_kind
+
+    if stream_kind(args.inputs[0]) != "recording":
+        return open_stream(args.inputs, _global_camera(args), args.depth, args.capture_size, args.capture_fps, warn)
+    from dope_hope.io.recordings import open_recording
+
+    tolerance = DEFAULT_SYNC_TOLERANCE_MS if args.sync_tolerance is None else args.sync_tolerance
+    return open_recording(args.inputs, args.image_topic, args.depth_topic, args.camera_info_topic,
+                          _global_camera(args), args.depth, tolerance / 1000.0, args.icp, warn)
 
 
 def _resize(rgb, hw: tuple[int, int]):
