@@ -39,7 +39,7 @@ def colour_message(T, ros1: bool, rgb: np.ndarray, stamp_ns: int, seq: int = 0, 
     """An Image (``encoding``: rgb8, bgr8, mono8) or CompressedImage (``compressed``: jpeg/png)."""
     header = _header(T, ros1, stamp_ns, seq)
     if compressed is not None:
-        ok, buf = cv2.imencode(".jpg" if compressed == "jpeg" else ".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        _, buf = cv2.imencode(".jpg" if compressed == "jpeg" else ".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         return T["sensor_msgs/msg/CompressedImage"](header=header, format=compressed, data=buf.ravel())
     img = {"rgb8": rgb, "bgr8": rgb[..., ::-1], "mono8": cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)}.get(encoding, rgb)
     img = np.ascontiguousarray(img)
@@ -54,7 +54,7 @@ def depth_message(T, ros1: bool, depth_m: np.ndarray, stamp_ns: int, seq: int = 
     header = _header(T, ros1, stamp_ns, seq)
     mm = np.round(np.nan_to_num(depth_m) * 1000).astype(np.uint16)
     if compressed:
-        ok, buf = cv2.imencode(".png", mm)
+        _, buf = cv2.imencode(".png", mm)
         data = np.concatenate([np.zeros(12, np.uint8), buf.ravel()])
         return T["sensor_msgs/msg/CompressedImage"](header=header, format="16UC1; compressedDepth png", data=data)
     img = mm if encoding == "16UC1" else depth_m.astype(np.float32)

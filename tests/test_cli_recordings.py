@@ -19,7 +19,15 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from ros_recordings import COLOUR, DEPTH, FRAME_ID, PERIOD_NS, T0_NS, colour_message, write_recording
+from ros_recordings import (
+    COLOUR,
+    DEPTH,
+    FRAME_ID,
+    PERIOD_NS,
+    T0_NS,
+    colour_message,
+    write_recording,
+)
 
 from dope_hope import cli
 from dope_hope.assets import DEMO_WEIGHTS
@@ -53,7 +61,7 @@ def scenes(tmp_path_factory):
     for i, (rgb, d) in enumerate(frames):
         write_rgb(images / f"{i:06d}.png", rgb)
         write_depth_mm(images / f"{i:06d}.depth.png", d)
-        ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))  # the bytes a jpeg recording holds
+        _, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))  # the bytes a jpeg recording holds
         (images / f"{i:06d}.jpg").write_bytes(buf.tobytes())
     (images / "K.json").write_text(json.dumps({"K": K.tolist()}))
     return {"frames": frames, "K": K, "images": images, "mesh": mesh}

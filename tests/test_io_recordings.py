@@ -10,14 +10,30 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from ros_recordings import COLOUR, DEPTH, FRAME_ID, INFO, PERIOD_NS, T0_NS, colour_message, depth_message, \
-    info_message, write_recording
+from ros_recordings import (
+    COLOUR,
+    DEPTH,
+    FRAME_ID,
+    INFO,
+    PERIOD_NS,
+    T0_NS,
+    colour_message,
+    depth_message,
+    info_message,
+    write_recording,
+)
 
 from dope_hope.errors import CameraError, ConfigError, InputFileError
 from dope_hope.io.pose_messages import TOPICS, PosedObject, PoseMessages
 from dope_hope.io.recording_writer import RecordingWriter
-from dope_hope.io.recordings import RecordingSource, TopicInfo, camera_from_info, choose_topics, decode_depth, \
-    decode_image
+from dope_hope.io.recordings import (
+    RecordingSource,
+    TopicInfo,
+    camera_from_info,
+    choose_topics,
+    decode_depth,
+    decode_image,
+)
 from dope_hope.io.ros_types import ros1_typestore, ros2_typestore
 from dope_hope.io.sources import is_recording, stream_kind
 
@@ -223,9 +239,8 @@ def test_corrupt_and_truncated_recordings_are_named(tmp_path):
 
 
 def test_missing_extra_says_which_to_install(monkeypatch):
-    from dope_hope.io.ros_types import require_rosbags
-
     from dope_hope.io.foxglove_live import FoxgloveLive
+    from dope_hope.io.ros_types import require_rosbags
 
     monkeypatch.setitem(sys.modules, "rosbags", None)
     with pytest.raises(ConfigError, match=r'rosbags package: pip install "dope-hope\[ros\]"'):

@@ -510,13 +510,12 @@ def _stream_outputs(args: argparse.Namespace, out: Path, source, warn):
 
 
 def _run_stream(args: argparse.Namespace) -> int:
-    """`run` for a video file, a camera or a RealSense (module docstring, "Streams")."""
+    """`run` for a video file, a camera, a RealSense or a recording (module docstring, "Streams")."""
     import json
 
     from dope_hope.inference.stream import passive_openmp
     from dope_hope.io.paths import output_dir
     from dope_hope.io.predictions import write_predictions_jsonl
-    from dope_hope.io.sources import open_stream
 
     _check_stream_flags(args)
 

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from dope_hope.io.pose_messages import DEFAULT_FRAME_ID, PoseMessages, PosedObject
+from dope_hope.io.pose_messages import DEFAULT_FRAME_ID, PosedObject, PoseMessages
 from dope_hope.io.sources import Frame, FrameSource
 
 #: JPEG quality of the overlay images.

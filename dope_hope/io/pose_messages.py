@@ -26,7 +26,12 @@ from typing import Any
 
 import numpy as np
 
-from dope_hope.geometry import CUBOID_EDGES, cuboid_keypoints, matrix_to_quaternion_xyzw, project_points
+from dope_hope.geometry import (
+    CUBOID_EDGES,
+    cuboid_keypoints,
+    matrix_to_quaternion_xyzw,
+    project_points,
+)
 from dope_hope.io.ros_types import ros2_typestore
 
 DETECTIONS = "/dope_hope/detections"
