@@ -333,7 +333,7 @@ def read_toolkit(root: Path, vsd: bool) -> dict:
 def run_package(root: Path, csv: Path, vsd: bool) -> dict:
     from dope_hope.evaluation.bop19 import bop19_average_recall
     from dope_hope.evaluation.datasets import assign_predictions, load_dataset
-    from dope_hope.evaluation.models import load_models
+    from dope_hope.evaluation.object_models import load_models
     from dope_hope.io.predictions import read_predictions
 
     dataset = load_dataset(root / "hope", "bop")

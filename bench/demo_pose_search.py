@@ -4,7 +4,7 @@ Renders the scenes of `dope-hope demo` (configs/demo.yaml, 640x480, RealSense-li
 noise; frame i of seed S, the frame `dope-hope demo --seed S` shows as scene i unless its box
 is less than half visible, which the demo draws again and this bench keeps), runs one demo model through
 both pose searches of ``DopePredictor`` on the same network maps - the default
-``pose_search="hypotheses"`` (maps.decode.corner_candidates + inference.pnp.solve_pnp_candidates)
+``pose_search="hypotheses"`` (maps.decode.corner_candidates + inference.pose_search.solve_pnp_candidates)
 and ``"groups"`` (maps.decode.decode_maps + inference.pnp.solve_pnp) - with -LS, and scores each
 scene as the demo and `dope-hope evaluate` do (dope_hope/evaluation/matching.match_frame):
 detections in descending score take the box when their ADD-H is below 2 cm, a scene is found
@@ -27,7 +27,7 @@ from dope_hope.assets import DEMO_WEIGHTS
 from dope_hope.demo.scenes import DEMO_CONFIG, IMAGE_SIZE
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
 from dope_hope.evaluation.matching import TABLE_THRESHOLDS_M, match_frame
-from dope_hope.evaluation.models import load_models
+from dope_hope.evaluation.object_models import load_models
 from dope_hope.inference.backends import open_backend
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.refine.depth import DepthImage

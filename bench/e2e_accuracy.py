@@ -258,7 +258,7 @@ def loss_breakdown(test_dir: Path, predictions: Path, object_name: str, mesh: Pa
     from dope_hope.evaluation.datasets import assign_predictions, load_dataset
     from dope_hope.evaluation.evaluate import cuboid_centres_to_origins
     from dope_hope.evaluation.matching import match_frame
-    from dope_hope.evaluation.models import load_models
+    from dope_hope.evaluation.object_models import load_models
     from dope_hope.io.predictions import read_predictions
 
     dataset = load_dataset(test_dir)

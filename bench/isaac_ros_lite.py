@@ -43,7 +43,7 @@ from dope_hope.demo_object import (
     write_demo_object,
 )
 from dope_hope.evaluation.matching import TABLE_THRESHOLDS_M, match_frame, pose_errors
-from dope_hope.evaluation.models import load_models
+from dope_hope.evaluation.object_models import load_models
 from dope_hope.export.isaac_ros import ISAAC_ROS_CURRENT, isaac_ros_release
 from dope_hope.export.isaac_ros import decode as isaac_decode
 from dope_hope.export.pipeline import export_checkpoint
@@ -52,7 +52,8 @@ from dope_hope.geometry import scale_intrinsics
 from dope_hope.inference.backends import open_backend
 from dope_hope.inference.onnx_backend import OnnxBackend
 from dope_hope.inference.predictor import DopePredictor
-from dope_hope.maps.decode import decode_maps, find_peaks
+from dope_hope.maps.decode import decode_maps
+from dope_hope.maps.peaks import find_peaks
 from dope_hope.maps.grid import map_to_image
 from dope_hope.synth import FrameGenerator
 

@@ -27,7 +27,7 @@ from dope_hope.inference.backends import model_min_score, open_backend
 from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.evaluation.matching import TABLE_THRESHOLDS_M, match_frame
-from dope_hope.evaluation.models import load_models
+from dope_hope.evaluation.object_models import load_models
 
 #: ADD-H (cm) under which a detection matched to the box counts as a true detection.
 TRUE_CM = 10.0

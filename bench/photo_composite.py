@@ -45,7 +45,7 @@ from dope_hope.assets import DEMO_WEIGHTS
 from dope_hope.demo.scenes import DEMO_CONFIG
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
 from dope_hope.evaluation.matching import TABLE_THRESHOLDS_M, error_matrix, greedy_match
-from dope_hope.evaluation.models import load_models
+from dope_hope.evaluation.object_models import load_models
 from dope_hope.inference.backends import model_min_score
 from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.predictor import DopePredictor

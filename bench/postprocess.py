@@ -10,7 +10,7 @@ on one thread, so other jobs on a shared machine do not count):
   sigma 3, 11x11 weighted means, greedy grouping, complete 9-point objects only,
   ``cv2.solvePnP`` ITERATIVE), fed torch tensors as the network returns them;
 * **default**: ``DopePredictor.detections_from_maps`` with ``pose_search="hypotheses"``
-  (``maps.decode.corner_candidates`` + ``inference.pnp.solve_pnp_candidates``);
+  (``maps.decode.corner_candidates`` + ``inference.pose_search.solve_pnp_candidates``);
 * **no floor**: the default without the peaks' noise floor (``decode: {noise_sigmas: 0}``:
   every peak above the threshold, as before the floor);
 * **groups**: the same with ``pose_search="groups"`` (``maps.decode.decode_maps`` +

@@ -43,7 +43,7 @@ from dope_hope.assets import DEMO_WEIGHTS
 from dope_hope.demo.scenes import IMAGE_SIZE
 from dope_hope.demo_object import demo_object_mesh
 from dope_hope.devices import cpu_line
-from dope_hope.inference.stream import passive_openmp
+from dope_hope.inference.frame_loop import passive_openmp
 
 FRAME_ID = "camera_color_optical_frame"
 PERIOD_NS = 33_333_333
@@ -87,7 +87,7 @@ def write_bag(path: Path, video: Path, K: np.ndarray, depths: list) -> Path:
 def run_recording(predictor, bag: Path, out: Path, max_frames: int | None = None):
     """The `dope-hope infer robot_bag/` loop: (StreamStats, detections, detections refined by -LS)."""
     from dope_hope.inference.ros_outputs import RosOutputs
-    from dope_hope.inference.video import StreamSinks, predict_stream
+    from dope_hope.inference.stream_inference import StreamSinks, predict_stream
     from dope_hope.io.recording_writer import RecordingWriter
     from dope_hope.io.recordings import RecordingSource
 
@@ -106,7 +106,7 @@ def io_only(bag: Path, video: Path, K: np.ndarray, depths: list, out: Path) -> d
     from dope_hope.io.camera import ImageCamera
     from dope_hope.io.recording_writer import RecordingWriter
     from dope_hope.io.recordings import RecordingSource
-    from dope_hope.io.sources import VideoWithDepth
+    from dope_hope.io.streams import VideoWithDepth
     from dope_hope.io.video import OverlayVideo
     from dope_hope.viz import overlay_detections
 

@@ -6,12 +6,12 @@ Renders ``--frames`` scenes of `dope-hope demo` (configs/demo.yaml: one demo box
 distractors, 640x480, RealSense-like depth noise) with one fixed camera (no intrinsics
 jitter), writes them as an mp4v video (MJPG .avi where mp4v is missing) and keeps each
 frame's depth. Then, for each backend in turn, in this process, the loop of `dope-hope infer
-clip.mp4` runs over the file: :func:`dope_hope.inference.video.predict_stream` on an
-:class:`~dope_hope.io.sources.VideoFile` (decoded by OpenCV in the reader thread, every
+clip.mp4` runs over the file: :func:`dope_hope.inference.stream_inference.predict_stream` on an
+:class:`~dope_hope.io.streams.VideoFile` (decoded by OpenCV in the reader thread, every
 frame processed), each frame's depth attached so that -LS runs, and per frame what the
 command does: ``predict_many`` (network, decode + PnP, -LS), the JSON record, the overlay,
 and the overlay written to an mp4v video (OpenMP's idle threads set to sleep, as `dope-hope
-infer` does for streams: :func:`~dope_hope.inference.stream.passive_openmp`). The lite
+infer` does for streams: :func:`~dope_hope.inference.frame_loop.passive_openmp`). The lite
 model runs through onnxruntime (exported
 once at the video's working size, as `dope-hope export`) and through PyTorch; both with
 ``--threads`` threads; and, as the baseline of the ORT setting, through onnxruntime with its
@@ -37,9 +37,9 @@ from dope_hope.devices import cpu_line
 from dope_hope.demo.onnx_cache import ensure_onnx
 from dope_hope.demo.scenes import DEMO_CONFIG, IMAGE_SIZE
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
-from dope_hope.inference.stream import passive_openmp
+from dope_hope.inference.frame_loop import passive_openmp
 from dope_hope.io.camera import ImageCamera
-from dope_hope.io.sources import VideoWithDepth
+from dope_hope.io.streams import VideoWithDepth
 
 TARGET_FPS = 15.0
 SEED = 5000  # never used for training (demo_lite: seeds 1, 2) or the demo figures
@@ -78,7 +78,7 @@ def run_loop(predictor, video: Path, K: np.ndarray, depths: list, out: Path,
              max_frames: int | None = None):
     """The `dope-hope infer clip.mp4` loop over the file (its JSON lines and overlay video);
     (StreamStats, detections, detections refined by -LS)."""
-    from dope_hope.inference.video import StreamSinks, predict_stream
+    from dope_hope.inference.stream_inference import StreamSinks, predict_stream
     from dope_hope.io.video import OverlayVideo
 
     camera = ImageCamera(K=K, width=IMAGE_SIZE[0], height=IMAGE_SIZE[1], source=Path("bench"))

@@ -60,9 +60,9 @@ from scipy.spatial.transform import Rotation
 from dope_hope.assets import DEMO_WEIGHTS
 from dope_hope.devices import cpu_line
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
-from dope_hope.inference.stream import passive_openmp
+from dope_hope.inference.frame_loop import passive_openmp
 from dope_hope.io.camera import ImageCamera
-from dope_hope.io.sources import VideoWithDepth
+from dope_hope.io.streams import VideoWithDepth
 
 FPS = 30.0
 SIZE = (640, 480)
@@ -235,7 +235,7 @@ def play(predictor, clip: Clip, tracked: bool, out: Path, max_frames: int | None
          settings: dict | None = None) -> Played:
     """The `dope-hope infer clip.mp4 [--track]` loop over a clip (records, overlay video)."""
     from dope_hope.inference.tracking import PoseTracker
-    from dope_hope.inference.video import StreamSinks, predict_stream
+    from dope_hope.inference.stream_inference import StreamSinks, predict_stream
     from dope_hope.io.video import OverlayVideo
 
     camera = ImageCamera(K=clip.K, width=SIZE[0], height=SIZE[1], source=Path("bench"))
@@ -442,7 +442,7 @@ def main() -> int:
 
     passive_openmp()  # as `dope-hope infer` does for a stream, before torch is imported
     from dope_hope.config import config_path, load_yaml, merge
-    from dope_hope.evaluation.models import load_models
+    from dope_hope.evaluation.object_models import load_models
     from dope_hope.synth import FrameGenerator
 
     with tempfile.TemporaryDirectory(prefix="bench-tracking-") as tmpdir:

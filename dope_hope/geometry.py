@@ -25,6 +25,9 @@ CUBOID_CORNER_SIGNS = np.array(
     ],
     dtype=np.float64,
 )
+#: Metres per unit of a length in a file (meshes, BOP models, DOPE ``units``).
+UNIT_SCALE: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+
 NUM_KEYPOINTS = 9
 CENTROID_INDEX = 8
 #: Name recorded in checkpoints, datasets and ONNX metadata for the order above.

@@ -1,4 +1,4 @@
-"""A stand-in for Intel's ``pyrealsense2`` with the calls dope_hope.io.sources makes, checked
+"""A stand-in for Intel's ``pyrealsense2`` with the calls dope_hope.io.streams makes, checked
 against pyrealsense2 2.59 (names, signatures, units): ``pipeline`` (``start(config)``,
 ``wait_for_frames(timeout_ms)``, ``stop()``), ``config`` (``enable_device``,
 ``enable_stream(stream, w, h, format, fps)``), the profile's ``get_device().first_depth_sensor()

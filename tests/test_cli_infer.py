@@ -39,7 +39,8 @@ SIZE = (160, 120)  # W, H of the generated frames
 def frames(tmp_path_factory) -> Path:
     """Two 160x120 synthetic frames of the demo box (one instance, no occluders), with depth."""
     from dope_hope.demo_object import write_demo_object
-    from dope_hope.synth.generate import SynthJob, generate_dataset
+    from dope_hope.synth.generate import SynthJob
+    from dope_hope.synth.to_disk import generate_dataset
 
     root = tmp_path_factory.mktemp("infer")
     mesh = write_demo_object(root / "mesh")
@@ -311,7 +312,7 @@ def test_camera_index_keeps_the_newest_frame(frames, tmp_path, monkeypatch, caps
         opened.append(target)
         return cv2.VideoCapture(str(video))
 
-    monkeypatch.setattr("dope_hope.io.sources.open_capture", fake_camera)
+    monkeypatch.setattr("dope_hope.io.streams.open_capture", fake_camera)
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     (tmp_path / "K.json").write_text(json.dumps({"K": ann.K.tolist(), "width": SIZE[0], "height": SIZE[1]}))
@@ -366,7 +367,7 @@ def test_stream_errors_exit_2_with_one_line(frames, lite_weights, tmp_path, monk
     line = one_line_error(*run_cli([video, "--weights", lite_weights, "--fx", 100, "--fy", 100, "--cx", 50,
                                     "--cy", 50, "--depth", "auto"], capsys)[::2])
     assert "--depth applies to image inputs" in line
-    monkeypatch.setattr("dope_hope.io.sources.open_capture", lambda target: cv2.VideoCapture(str(tmp_path / "no.mp4")))
+    monkeypatch.setattr("dope_hope.io.streams.open_capture", lambda target: cv2.VideoCapture(str(tmp_path / "no.mp4")))
     line = one_line_error(*run_cli(["0", "--weights", lite_weights, "--fx", 100, "--fy", 100, "--cx", 50,
                                     "--cy", 50], capsys)[::2])
     assert "camera 0: cannot be opened" in line

@@ -29,7 +29,7 @@ from dope_hope.evaluation.evaluate import (
     run_evaluation,
 )
 from dope_hope.evaluation.matching import greedy_match
-from dope_hope.evaluation.models import ObjectModel, load_models
+from dope_hope.evaluation.object_models import ObjectModel, load_models
 from dope_hope.io.dope_json import write_dope_json
 from dope_hope.io.images import write_depth_mm, write_rgb
 from dope_hope.io.predictions import prediction_record, write_predictions_jsonl

@@ -15,14 +15,8 @@ from dope_hope.geometry import (
     scale_intrinsics,
 )
 from dope_hope.errors import ConfigError
-from dope_hope.inference.pnp import (
-    HypothesisSettings,
-    PnpSettings,
-    PoseEstimate,
-    solve_pnp,
-    solve_pnp_candidates,
-    solve_pnp_instances,
-)
+from dope_hope.inference.pnp import PnpSettings, PoseEstimate, solve_pnp
+from dope_hope.inference.pose_search import HypothesisSettings, solve_pnp_candidates, solve_pnp_instances
 from dope_hope.maps.decode import decode_maps
 from dope_hope.maps.targets import make_targets
 from dope_hope.refine.depth import HOPE_REALSENSE_DEPTH_CALIBRATION, DepthImage
@@ -161,7 +155,7 @@ def test_candidates_find_the_pose_that_the_strongest_peaks_hide():
 def test_the_search_solves_no_more_hypotheses_than_the_candidates_need(monkeypatch):
     import cv2
 
-    import dope_hope.inference.pnp as pose_mod
+    import dope_hope.inference.pose_search as pose_mod
 
     calls = []  # AP3P minimal-set hypotheses
     real = cv2.solvePnP
@@ -226,7 +220,7 @@ def test_instances_give_each_peak_to_one_object_and_drop_a_noise_centroid_before
     estimate."""
     import cv2
 
-    import dope_hope.inference.pnp as pose_mod
+    import dope_hope.inference.pose_search as pose_mod
 
     calls = []
     real = cv2.solvePnP

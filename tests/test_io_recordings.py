@@ -35,7 +35,7 @@ from dope_hope.io.recordings import (
     decode_image,
 )
 from dope_hope.io.ros_types import ros1_typestore, ros2_typestore
-from dope_hope.io.sources import is_recording, stream_kind
+from dope_hope.io.streams import is_recording, stream_kind
 
 W, H = 32, 24
 K = np.array([[40.0, 0, 15.5], [0, 40.0, 11.5], [0, 0, 1]])

@@ -166,7 +166,7 @@ def test_a_peak_with_a_shoulder_is_fitted_at_its_raw_maximum_not_the_smoothed_on
     """Smoothing (for detection) moves a skewed peak's cell towards its shoulder; the
     sub-cell fit must still happen around the raw maximum (a trained net's peaks are rarely
     symmetric: fitting at the smoothed cell put keypoints ~1 cell = 8 px off)."""
-    from dope_hope.maps.decode import find_peaks
+    from dope_hope.maps.peaks import find_peaks
 
     h, w = 16, 20
     ys, xs = np.mgrid[0:h, 0:w].astype(float)
@@ -187,7 +187,7 @@ def test_a_peak_that_climbed_and_cannot_be_fitted_scores_its_raw_height():
     """Where the log-parabola fit fails (here: an empty cell on one side of the raw maximum),
     the score is the raw 3x3 maximum at the cell the peak climbed to, not 0: a noisy net's
     true corner scored 0 ranked behind noise peaks of its type."""
-    from dope_hope.maps.decode import find_peaks
+    from dope_hope.maps.peaks import find_peaks
 
     raw = np.zeros((9, 12, 16), np.float32)
     raw[0, 6, 5:10] = [0.0, 1.0, 0.95, 0.95, 0.9]   # smoothing peaks right of the raw maximum
@@ -301,7 +301,7 @@ def _noisy(b: np.ndarray, a: np.ndarray, sb: float, sa: float, seed: int = 0):
 
 
 def test_noise_floor_is_the_background_plus_robust_standard_deviations():
-    from dope_hope.maps.decode import noise_floor
+    from dope_hope.maps.peaks import noise_floor
 
     rng = np.random.default_rng(0)
     maps = rng.normal(0.02, 0.1, (9, 60, 80)).astype(np.float32)
@@ -314,7 +314,7 @@ def test_heavy_noise_leaves_the_true_peaks_not_every_noise_blob():
     """Belief noise of std 0.1 (the peak threshold) and affinity noise 0.3 at stride 8: every
     noise blob passes the threshold alone (~150 peaks per channel on 50x38 maps); with the
     noise floor each centroid's candidates are its own box's, as on clean maps."""
-    from dope_hope.maps.decode import find_peaks
+    from dope_hope.maps.peaks import find_peaks
 
     kp = _scene(2)
     b, a = make_targets(kp, HW, 8)

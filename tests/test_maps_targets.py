@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dope_hope.maps.decode import find_peaks
+from dope_hope.maps.peaks import find_peaks
 from dope_hope.maps.grid import image_to_map, map_to_image
 from dope_hope.maps.targets import (
     affinity_fields,
@@ -105,7 +105,7 @@ def test_make_targets_sizes_and_per_head_defaults():
 @pytest.mark.parametrize("stride,sigma,hw", [(8, 2.0, (400, 400)), (8, 0.5, (400, 400)),
                                              (1, 4.0, (120, 160)), (1, 8.0, (120, 160))])
 def test_decoded_peaks_recover_every_keypoint_within_a_small_fraction_of_a_pixel(stride, sigma, hw):
-    """Encoding (targets) and decoding (decode.find_peaks) share one convention: no drift."""
+    """Encoding (targets) and decoding (peaks.find_peaks) share one convention: no drift."""
     rng = np.random.default_rng(stride * 100 + int(sigma * 10))
     # Same-type keypoints of different instances far enough apart not to merge.
     min_sep = 2.5 * np.sqrt(sigma**2 + 1.0) * stride + 2 * stride

@@ -298,7 +298,7 @@ def test_video_section(tmp_path, monkeypatch):
         f"image_width: 320\nimage_height: 240\ncamera_name: webcam\ncamera_matrix:\n  rows: 3\n  cols: 3\n"
         f"  data: {K.ravel().tolist()}\ndistortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n"
         "  cols: 5\n  data: [0, 0, 0, 0, 0]\n")
-    monkeypatch.setattr("dope_hope.io.sources.open_capture",
+    monkeypatch.setattr("dope_hope.io.streams.open_capture",
                         lambda target: cv2.VideoCapture(str(work / "clip.mp4") if target == 0 else target))
     rs = fake_realsense.install(monkeypatch, [(f.rgb, f.depth) for f in frames], K)
     monkeypatch.chdir(work)

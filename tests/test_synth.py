@@ -22,7 +22,8 @@ from dope_hope.synth.assets import (
 )
 from dope_hope.synth.background import BackgroundSource
 from dope_hope.synth.camera import reference_intrinsics
-from dope_hope.synth.generate import FrameGenerator, SynthJob, generate_dataset
+from dope_hope.synth.generate import FrameGenerator, SynthJob
+from dope_hope.synth.to_disk import generate_dataset
 from dope_hope.synth.scene import frame_streams
 from dope_hope.synth.settings import load_synth_config, parse_shard, parse_size
 
@@ -440,7 +441,7 @@ def test_a_worker_error_that_cannot_be_pickled_reaches_the_parent_as_its_text():
     import ctypes
     import pickle
 
-    from dope_hope.synth.generate import _picklable
+    from dope_hope.synth.pool import _picklable
 
     def failing_gl_call():
         raise OSError("glGenTextures failed", ctypes.byref(ctypes.c_int()))  # as PyOpenGL's errors

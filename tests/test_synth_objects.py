@@ -14,7 +14,7 @@ from dope_hope.catalog import HOPE_OBJECTS
 from dope_hope.symmetry.transforms import category_symmetries
 from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.geometry import cuboid_keypoints, project_points
-from dope_hope.synth.objects import sample_object
+from dope_hope.synth.objects import SHAPE_LABELS, SHAPE_SIZES, sample_object
 from dope_hope.synth.scene import MaterialSpec, ObjectSpec, SceneSpec
 
 ALL = {"cuboid": 1.0, "cylinder": 1.0, "bottle": 1.0}
@@ -43,6 +43,41 @@ def test_objects_are_deterministic_and_of_hope_sizes():
             assert size[1] > size[0]                                # standing along y
         assert not a.asset.cacheable
     assert seen == set(ALL)
+
+
+@pytest.mark.parametrize("shape", sorted(SHAPE_SIZES))
+def test_shapes_beyond_the_hope_categories(shape):
+    """Jars, tubes, pouches, rounded boxes and irregular bodies: deterministic, centred, of
+    their size ranges, labelled with their category's symmetries, and each one a new shape."""
+    lows = np.array([r[0] if r else 0.0 for r in SHAPE_SIZES[shape]])
+    highs = np.array([r[1] if r else np.inf for r in SHAPE_SIZES[shape]])
+    outlines = set()
+    for seed in range(6):
+        a = sample_object(np.random.default_rng(seed), {shape: 1.0}, texture_px=32)
+        b = sample_object(np.random.default_rng(seed), {shape: 1.0}, texture_px=32)
+        np.testing.assert_array_equal(a.asset.mesh.vertices, b.asset.mesh.vertices)
+        assert a.category == SHAPE_LABELS[shape] and a.asset.path.name == f"<procedural {shape}>"
+        size = a.asset.cuboid_size
+        assert np.all(size >= lows - 1e-9) and np.all(size <= highs + 1e-9)
+        np.testing.assert_allclose(a.asset.cuboid_center, 0.0, atol=1e-9)
+        uv = np.asarray(a.asset.mesh.visual.uv)
+        assert uv.shape == (len(a.asset.mesh.vertices), 2) and np.all((uv[:, 1] >= 0) & (uv[:, 1] <= 1))
+        if shape == "tube":                                         # elongated along y
+            assert size[1] > size[0] >= size[2]
+        outlines.add(tuple(np.round(size / size.max(), 4)))
+    assert len(outlines) == 6
+
+
+def test_whole_object_scale_spans_its_range_and_keeps_the_default_objects():
+    sizes = [sample_object(np.random.default_rng(s), {"cuboid": 1.0}, size_jitter=0.0, texture_px=32,
+                           scale=(0.5, 2.0)).asset.cuboid_size for s in range(40)]
+    base = [sample_object(np.random.default_rng(s), {"cuboid": 1.0}, size_jitter=0.0,
+                          texture_px=32).asset.cuboid_size for s in range(40)]
+    ratio = np.array([a.max() / b.max() for a, b in zip(sizes, base)])
+    assert ratio.min() >= 0.5 - 1e-9 and ratio.max() <= 2.0 + 1e-9
+    assert ratio.min() < 0.7 and ratio.max() > 1.4                  # the range is used
+    for a, b in zip(sizes, base):                                   # a factor on the whole object
+        np.testing.assert_allclose(a / a.max(), b / b.max(), atol=1e-9)
 
 
 def _scene_with(R: np.ndarray, t: np.ndarray) -> SceneSpec:
@@ -85,7 +120,8 @@ def test_symmetric_views_get_one_label(category, size):
 
 def test_procedural_dataset_on_disk_trains_as_one_class(tmp_path):
     from dope_hope.io.dope_json import recorded_cuboid_size
-    from dope_hope.synth.generate import SynthJob, generate_dataset
+    from dope_hope.synth.generate import SynthJob
+    from dope_hope.synth.to_disk import generate_dataset
     from dope_hope.training.dataset import scan_frames
 
     cfg = {"distractors": {"count": [1, 2]}, "procedural": {"texture_px": 64}}
@@ -115,6 +151,18 @@ def test_procedural_config_is_checked():
         load_synth_config({"procedural": {"categories": {"sphere": 1.0}}})
     with pytest.raises(ConfigError, match="procedural.size_jitter"):
         load_synth_config({"procedural": {"size_jitter": 1.5}})
+    with pytest.raises(ConfigError, match="procedural.scale"):
+        load_synth_config({"procedural": {"scale": [2.0, 1.0]}})
+    cfg = load_synth_config({"procedural": {"categories": {"jar": 1.0, "cuboid": 0.0}}})
+    assert cfg["procedural"]["categories"]["jar"] == 1.0
+
+
+def test_the_pretraining_config_draws_every_shape_and_empty_frames():
+    from dope_hope.synth.settings import load_synth_config
+
+    cfg = load_synth_config("pretrain")
+    assert set(k for k, w in cfg["procedural"]["categories"].items() if w > 0) == set(SHAPE_LABELS)
+    assert cfg["target"]["count"][0] == 0 and cfg["procedural"]["scale"][1] > 1.0
 
 
 def test_synth_cli_refuses_procedural_with_a_mesh(tmp_path):

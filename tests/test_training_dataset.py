@@ -123,7 +123,7 @@ def test_small_images_are_padded_not_rejected():
     assert out.shape == (64, 64, 3)
 
 
-def test_color_jitter_changes_colours_but_not_geometry():
+def test_photometric_jitter_changes_colours_but_not_geometry():
     img = dot_image((64, 64), [(32, 32)], [(200, 60, 60)], radius=6)
     params = AugmentParams(scale=(1, 1), rotation_deg=0, translate=0, brightness=0.4, hue=0.1, noise_std=0)
     out, kp2, _ = augment(img, np.array([[[32.0, 32.0]] * 9]), (64, 64), params, np.random.default_rng(5))

@@ -82,13 +82,16 @@ icp_reason).
 from __future__ import annotations
 
 import argparse
+import json
 import sys
-import time
-import warnings
 from pathlib import Path
 
 from dope_hope.assets import DEMO_WEIGHTS  # used when --weights is not given
 from dope_hope.commands.argtypes import fixed_device, finite_float, positive_float, positive_int, working_side
+from dope_hope.errors import ConfigError, DopeHopeError
+
+# The library is imported inside the functions: cli.py imports every command to build --help,
+# which must not pay for numpy, OpenCV or torch.
 
 #: Frame rate of an overlay video when the source reports none.
 FALLBACK_FPS = 30.0
@@ -220,8 +223,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 # ----------------------------------------------------------------------------- setup
 def _resolve_weights(args: argparse.Namespace) -> list[Path]:
-    from dope_hope.errors import ConfigError
-
     if args.weights:
         return list(args.weights)
     demo = default_weights()
@@ -232,7 +233,7 @@ def _resolve_weights(args: argparse.Namespace) -> list[Path]:
 
 
 def _global_camera(args: argparse.Namespace):
-    from dope_hope.errors import ConfigError
+    """The camera of every input from --camera or --fx --fy --cx --cy (None: each image's own)."""
     from dope_hope.geometry import intrinsics_matrix
     from dope_hope.io.camera import ImageCamera, read_camera_file
 
@@ -248,121 +249,28 @@ def _global_camera(args: argparse.Namespace):
     return None
 
 
-def _kept_classes(classes: list[str] | None, models: list[tuple[Path, list[str]]]) -> list[list[str] | None]:
-    """Per model, the --classes it detects (None: all its objects; []: none, not run).
-    ConfigError naming --classes and the models' objects for a class no model detects."""
-    from dope_hope.errors import ConfigError
-
-    if not classes:
-        return [None] * len(models)
-    known = [n for _, names in models for n in names]
-    for c in classes:
-        if c.lower() not in {n.lower() for n in known}:
-            raise ConfigError(f"--classes: {c!r} is not an object of the model(s) (known: {', '.join(known)})")
-    wanted = {c.lower() for c in classes}
-    return [[n for n in names if n.lower() in wanted] for _, names in models]
+def _note(message: str) -> None:
+    print(f"dope-hope infer: {message}", file=sys.stderr)
 
 
-def build_predictors(args: argparse.Namespace, weights: list[Path]):
-    from dope_hope.errors import ConfigError
-    from dope_hope.inference.backends import backend_objects, model_min_score, open_backend
-    from dope_hope.inference.predictor import DopePredictor
-    from dope_hope.io.models_dir import find_object_mesh
-
-    meshes = list(args.mesh or [])
-    mesh_dir = None
-    if len(meshes) == 1 and meshes[0].is_dir():
-        mesh_dir = meshes[0]
-    elif meshes and len(meshes) != len(weights):
-        raise ConfigError(f"give one --mesh per --weights ({len(weights)}), or one mesh folder; "
-                          f"got {len(meshes)} meshes")
-    backends = [open_backend(w, args.backend, args.device, args.threads) for w in weights]
-    models = [(w, [o.class_name for o in backend_objects(b)]) for w, b in zip(weights, backends)]
-    kept = _kept_classes(getattr(args, "classes", None), models)
-    predictors = []
-    for i, (backend, (w, names), keep) in enumerate(zip(backends, models, kept)):
-        if keep == []:
-            continue  # none of --classes: this model is not run
-        if hasattr(backend, "describe"):  # ONNX: fp32 or INT8, and what INT8 costs
-            print(f"dope-hope infer: model {backend.describe()}", file=sys.stderr)
-        reported = names if keep is None else keep
-        mesh = None
-        if mesh_dir is not None:
-            mesh = {name: find_object_mesh(name, mesh_dir) for name in reported}
-        elif meshes:
-            if len(reported) > 1:
-                raise ConfigError(f"--mesh {meshes[i]}: {w} detects {len(reported)} objects "
-                                  f"({', '.join(reported)}); give a models folder as --mesh")
-            mesh = meshes[i]
-        given = {} if args.min_score is None else {"min_score": args.min_score}
-        predictors.append(DopePredictor(backend, height=args.height, mesh=mesh, mesh_units=args.mesh_units,
-                                        pose_search=args.pose_search, icp=args.icp, classes=keep, **given))
-        if args.min_score is None and model_min_score(backend) is not None:
-            print(f"dope-hope infer: {', '.join(reported)}: min score {predictors[-1].options.min_score:g}, "
-                  "the model's own (recorded with its weights; --min-score overrides)", file=sys.stderr)
-    return predictors
+def _warn(message: str) -> None:
+    print(f"dope-hope infer: warning: {message}", file=sys.stderr, flush=True)
 
 
-def _tracker(args: argparse.Namespace, predictors: list):
-    """The stream's PoseTracker; each class's symmetries from the declaration beside its --mesh."""
-    from dope_hope.inference.tracking import PoseTracker, object_symmetries
-    from dope_hope.io.models_dir import find_object_mesh
+def _predictors(args: argparse.Namespace) -> list:
+    from dope_hope.inference.model_set import build_predictors
 
-    meshes = list(args.mesh or [])
-    symmetries = {}
-    for i, p in enumerate(predictors):
-        for name in p.class_names:
-            path = None
-            if len(meshes) == 1 and meshes[0].is_dir():
-                path = find_object_mesh(name, meshes[0])
-            elif meshes and len(p.class_names) == 1:
-                path = meshes[i]
-            symmetries[name] = object_symmetries(name, path, args.mesh_units)
-    return PoseTracker(predictors, symmetries=symmetries)
-
-
-def _depth_for(args: argparse.Namespace, camera):
-    """(depth path or None, metres per unit) for one image."""
-    scale_m = None if args.depth_scale is None else args.depth_scale * 0.001
-    if args.depth is None:
-        return None, 0.001
-    if args.depth == "auto":
-        path = None if camera is None else camera.depth_path
-        recorded = None if camera is None else camera.depth_scale_m
-        return path, scale_m if scale_m is not None else (recorded if recorded is not None else 0.001)
-    return Path(args.depth), scale_m if scale_m is not None else 0.001
-
-
-def _output_name(name: str) -> str:
-    """A flat file-name stem from a record name (folders joined with '__', suffix dropped)."""
-    stem = name.rsplit(".", 1)[0] if "." in Path(name).name else name
-    return stem.replace("/", "__").replace("\\", "__")
-
-
-def _check_output_names(images: list[tuple[Path, str]]) -> None:
-    """ConfigError when two images would write the same overlay (x.png and x.jpg)."""
-    from dope_hope.errors import ConfigError
-
-    seen: dict[str, str] = {}
-    for _, name in images:
-        stem = _output_name(name)
-        if stem in seen:
-            raise ConfigError(f"{seen[stem]} and {name} would write the same {stem}.overlay.png; "
-                              "process them in separate runs (or pass --no-overlay)")
-        seen[stem] = name
+    return build_predictors(_resolve_weights(args), args.mesh or [], mesh_units=args.mesh_units,
+                            backend=args.backend, device=args.device, threads=args.threads, height=args.height,
+                            min_score=args.min_score, pose_search=args.pose_search, icp=args.icp,
+                            classes=args.classes, note=_note)
 
 
 # ----------------------------------------------------------------------------- run
 def run(args: argparse.Namespace) -> int:
-    import json
-
-    from tqdm import tqdm
-
-    from dope_hope.errors import ConfigError, DopeHopeError, OutputPathError
     from dope_hope.io.images import collect_images
     from dope_hope.io.paths import output_dir
-    from dope_hope.io.predictions import write_predictions_jsonl
-    from dope_hope.io.sources import stream_kind
+    from dope_hope.io.streams import stream_kind
 
     if any(stream_kind(item) for item in args.inputs):
         return _run_stream(args)
@@ -375,109 +283,30 @@ def run(args: argparse.Namespace) -> int:
     images = collect_images(args.inputs)
     if args.depth not in (None, "auto") and len(images) != 1:
         raise ConfigError("--depth PATH applies to a single image; use --depth auto for several")
+    from dope_hope.inference.image_inference import ImageOptions, check_output_names, predict_images
+
     if not args.no_overlay or args.belief:
-        _check_output_names(images)
+        check_output_names(images)
     global_cam = _global_camera(args)
     out = output_dir(args.out)
-    predictors = build_predictors(args, _resolve_weights(args))
-    records: list[dict] = []
-    skipped: list[tuple[Path, DopeHopeError]] = []
-    n_done = n_written = 0
-    bar = tqdm(images, desc="infer", unit="img", disable=args.no_progress or len(images) < 2,
-               file=sys.stderr)
-    try:
-        for path, name in bar:
-            try:
-                recs, wrote = _infer_image(args, predictors, path, name, global_cam, out)
-            except OutputPathError:
-                raise
-            except DopeHopeError as exc:  # this image's problem: the others still run
-                if len(images) == 1:
-                    raise
-                skipped.append((path, exc))
-                bar.clear()
-                print(f"dope-hope infer: warning: {exc}; image skipped", file=sys.stderr)
-                continue
-            for rec in recs:
-                print(json.dumps(rec), flush=True)
-            records += recs
-            n_done += 1
-            n_written += wrote
-    finally:
-        bar.close()
-        # predictions.jsonl always lists what the overlays show (interrupted runs included)
-        if n_done:
-            write_predictions_jsonl(out / "predictions.jsonl", records)
-    summary = (f"{len(images)} image(s), {len(records)} detection(s); predictions in "
-               f"{out / 'predictions.jsonl'}" + (f", overlays in {out}" if n_written else ""))
-    if skipped:
-        path, exc = skipped[0]
-        raise DopeHopeError(f"{len(skipped)} of {len(images)} image(s) skipped (first: {exc}); "
-                            + (summary if n_done else "nothing written"))
+    predictors = _predictors(args)
+    options = ImageOptions(depth=args.depth, depth_scale_mm=args.depth_scale, depth_calibration=args.depth_calibration,
+                           overlay=not args.no_overlay, belief=args.belief)
+    result = predict_images(images, predictors, out, global_cam, options, progress=not args.no_progress,
+                            on_record=lambda rec: print(json.dumps(rec), flush=True), warn=_warn)
+    summary = (f"{len(images)} image(s), {len(result.records)} detection(s); predictions in "
+               f"{out / 'predictions.jsonl'}" + (f", overlays in {out}" if result.overlays else ""))
+    if result.skipped:
+        path, exc = result.skipped[0]
+        raise DopeHopeError(f"{len(result.skipped)} of {len(images)} image(s) skipped (first: {exc}); "
+                            + (summary if result.done else "nothing written"))
     print(f"dope-hope infer: {summary}", file=sys.stderr)
     return 0
 
 
-def _infer_image(args: argparse.Namespace, predictors: list, path: Path, name: str, global_cam,
-                 out: Path) -> tuple[list[dict], bool]:
-    """Detections of one image (records) and whether an overlay was written; DopeHopeError
-    for a problem of this image (unreadable, no camera, depth of another size...)."""
-    from dope_hope.errors import CameraError, InputFileError
-    from dope_hope.io.camera import camera_search_description, find_image_camera
-    from dope_hope.inference.predictor import predict_many
-    from dope_hope.io.images import read_depth_m, read_image_raw, write_rgb
-    from dope_hope.preprocess import to_rgb8
-    from dope_hope.viz import belief_montage, overlay_detections
-
-    raw = read_image_raw(path)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            rgb = to_rgb8(raw)
-        except ValueError as exc:
-            raise InputFileError(path, str(exc)) from None
-    for w in caught:
-        print(f"dope-hope infer: warning: {path}: {w.message}", file=sys.stderr)
-    H, W = rgb.shape[:2]
-    found = find_image_camera(path) if (global_cam is None or args.depth == "auto") else None
-    camera = global_cam or found
-    if camera is None:
-        raise CameraError(f"{path}: no camera intrinsics (looked for {camera_search_description(path)}); "
-                          "give --camera K.json or --fx --fy --cx --cy")
-    camera.check_size(path, W, H)
-    depth_path, depth_scale_m = _depth_for(args, found if args.depth == "auto" else camera)
-    depth = None
-    if depth_path is not None:
-        depth = read_depth_m(depth_path, depth_scale_m)
-        if depth.shape != (H, W):
-            raise InputFileError(depth_path, f"depth is {depth.shape[1]}x{depth.shape[0]}, "
-                                             f"the image {path.name} is {W}x{H}")
-    maps = []
-
-    def keep_maps(p, belief, affinity, net_in):
-        if args.belief:
-            for obj in p.objects:
-                maps.append((obj.class_name, net_in.maps_on_image(obj.channels(belief, affinity)[0], p.stride),
-                             net_in))
-
-    t0 = time.perf_counter()
-    dets = predict_many(predictors, rgb, camera.K, depth=depth, calibration=args.depth_calibration,
-                        on_maps=keep_maps)
-    elapsed = time.perf_counter() - t0
-    records = [d.to_json(name, time=round(elapsed, 4)) for d in dets]
-    out_stem = _output_name(name)
-    if not args.no_overlay:
-        write_rgb(out / f"{out_stem}.overlay.png", overlay_detections(rgb, dets, camera.K))
-    for class_name, m, net_in in maps:
-        write_rgb(out / f"{out_stem}.belief.{class_name}.png",
-                  belief_montage(m, _resize(rgb, net_in.resized_hw)))
-    return records, not args.no_overlay
-
-
 def _check_stream_flags(args: argparse.Namespace) -> None:
     """ConfigError for a flag that a stream of this kind cannot honour."""
-    from dope_hope.errors import ConfigError
-    from dope_hope.io.sources import stream_kind
+    from dope_hope.io.streams import stream_kind
 
     kind = stream_kind(args.inputs[0]) if len(args.inputs) == 1 else None
     if args.icp and kind not in ("realsense", "recording"):
@@ -494,12 +323,13 @@ def _check_stream_flags(args: argparse.Namespace) -> None:
 
 def _stream_outputs(args: argparse.Namespace, out: Path, source, warn):
     """(overlay video or None, live window or None) of a stream."""
-    from dope_hope.io.sources import stream_kind
+    from dope_hope.inference.image_inference import output_stem
+    from dope_hope.io.streams import stream_kind
     from dope_hope.io.video import LiveWindow, OverlayVideo, display_problem
 
     video = window = None
     if not args.no_overlay and stream_kind(args.inputs[0]) != "recording":  # a recording's go to its MCAP
-        video = OverlayVideo(out / f"{_output_name(source.name)}.overlay", source.fps or FALLBACK_FPS)
+        video = OverlayVideo(out / f"{output_stem(source.name)}.overlay", source.fps or FALLBACK_FPS)
     if args.show:
         problem = display_problem()
         if problem is None:
@@ -511,18 +341,12 @@ def _stream_outputs(args: argparse.Namespace, out: Path, source, warn):
 
 def _run_stream(args: argparse.Namespace) -> int:
     """`run` for a video file, a camera, a RealSense or a recording (module docstring, "Streams")."""
-    import json
-
-    from dope_hope.inference.stream import passive_openmp
+    from dope_hope.inference.frame_loop import passive_openmp
     from dope_hope.io.paths import output_dir
     from dope_hope.io.predictions import write_predictions_jsonl
 
     _check_stream_flags(args)
-
-    def warn(message: str) -> None:
-        print(f"dope-hope infer: warning: {message}", file=sys.stderr, flush=True)
-
-    source = _open_source(args, warn)
+    source = _open_source(args)
     if args.list_topics:
         print(source.topic_table())
         source.close()
@@ -531,18 +355,19 @@ def _run_stream(args: argparse.Namespace) -> int:
     video = window = ros = None
     try:
         passive_openmp()  # before torch is imported: its idle threads must not spin
+        from dope_hope.inference.model_set import stream_tracker
         from dope_hope.inference.ros_outputs import open_ros_outputs
-        from dope_hope.inference.video import StreamSinks, predict_stream
+        from dope_hope.inference.stream_inference import StreamSinks, predict_stream
 
-        predictors = build_predictors(args, _resolve_weights(args))
-        video, window = _stream_outputs(args, out, source, warn)
-        ros = open_ros_outputs(out, source, args.foxglove, not args.no_overlay,
-                               lambda line: print(f"dope-hope infer: {line}", file=sys.stderr, flush=True))
+        predictors = _predictors(args)
+        video, window = _stream_outputs(args, out, source, _warn)
+        ros = open_ros_outputs(out, source, args.foxglove, not args.no_overlay, _note)
         sinks = StreamSinks(on_record=lambda rec: print(json.dumps(rec), flush=True), video=video, window=window,
                             on_frame=None if ros is None else ros.on_frame)
-        result = predict_stream(source, predictors, sinks, tracker=_tracker(args, predictors) if args.track else None,
+        tracker = stream_tracker(predictors, args.mesh or [], args.mesh_units) if args.track else None
+        result = predict_stream(source, predictors, sinks, tracker=tracker,
                                 depth_calibration=args.depth_calibration, pace=args.realtime,
-                                max_frames=args.max_frames, progress=not args.no_progress, warn=warn)
+                                max_frames=args.max_frames, progress=not args.no_progress, warn=_warn)
         mcap = None if ros is None else ros.close()
         write_predictions_jsonl(out / "predictions.jsonl", result.records)
         video_path = None if video is None else video.close()
@@ -562,23 +387,14 @@ def _run_stream(args: argparse.Namespace) -> int:
     return 0
 
 
-def _open_source(args: argparse.Namespace, warn):
+def _open_source(args: argparse.Namespace):
     """The stream's FrameSource: a recording (its topics, the --camera override) or open_stream's."""
-    from dope_hope.io.sources import open_stream, stream_kind
+    from dope_hope.io.streams import open_stream, stream_kind
 
     if stream_kind(args.inputs[0]) != "recording":
-        return open_stream(args.inputs, _global_camera(args), args.depth, args.capture_size, args.capture_fps, warn)
+        return open_stream(args.inputs, _global_camera(args), args.depth, args.capture_size, args.capture_fps, _warn)
     from dope_hope.io.recordings import open_recording
 
     tolerance = DEFAULT_SYNC_TOLERANCE_MS if args.sync_tolerance is None else args.sync_tolerance
     return open_recording(args.inputs, args.image_topic, args.depth_topic, args.camera_info_topic,
-                          _global_camera(args), args.depth, tolerance / 1000.0, args.icp, warn)
-
-
-def _resize(rgb, hw: tuple[int, int]):
-    """(H, W, 3) uint8 -> (hw[0], hw[1], 3); unchanged when already that size."""
-    import cv2
-
-    if rgb.shape[:2] == tuple(hw):
-        return rgb
-    return cv2.resize(rgb, (hw[1], hw[0]), interpolation=cv2.INTER_AREA)
+                          _global_camera(args), args.depth, tolerance / 1000.0, args.icp, _warn)

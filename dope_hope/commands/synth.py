@@ -80,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.errors import ConfigError
     from dope_hope.io.models_dir import find_object_mesh, objects_in_folder
     from dope_hope.io.paths import output_dir
-    from dope_hope.synth.generate import SynthJob, generate_dataset
+    from dope_hope.synth.generate import SynthJob
+    from dope_hope.synth.to_disk import generate_dataset
     from dope_hope.synth.settings import load_synth_config, packaged_synth_config
 
     if args.mesh is not None and (args.models_dir is not None or args.object_name is not None):

@@ -50,7 +50,7 @@ def _open_models(settings: DemoSettings, out: Path) -> _Models:
     from dope_hope.demo.onnx_cache import ensure_onnx
     from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
     from dope_hope.errors import ModelFileError
-    from dope_hope.evaluation.models import load_models
+    from dope_hope.evaluation.object_models import load_models
     from dope_hope.inference.backends import backend_objects, model_min_score, open_backend
     from dope_hope.inference.predictor import DopePredictor
 

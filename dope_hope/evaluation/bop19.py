@@ -30,7 +30,7 @@ from dope_hope.errors import InputFileError
 from dope_hope.evaluation import metrics
 from dope_hope.evaluation.datasets import VISIB_GT_MIN, Dataset, EvalFrame
 from dope_hope.evaluation.matching import greedy_match
-from dope_hope.evaluation.models import BopModel, ObjectModel
+from dope_hope.evaluation.object_models import BopModel, ObjectModel
 from dope_hope.io.predictions import Prediction
 
 # Thresholds exactly as the toolkit's eval_bop19_pose.py builds them (np.arange: the third is

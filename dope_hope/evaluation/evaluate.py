@@ -41,7 +41,7 @@ from dope_hope.evaluation.matching import (
     METRICS,
     compute_errors,
 )
-from dope_hope.evaluation.models import NUM_MODEL_POINTS, ObjectModel, load_models
+from dope_hope.evaluation.object_models import NUM_MODEL_POINTS, ObjectModel, load_models
 from dope_hope.evaluation.reports import (
     _f,
     _th_label,

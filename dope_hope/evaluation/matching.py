@@ -20,7 +20,7 @@ from dope_hope.annotation import ObjectAnnotation
 from dope_hope.errors import ConfigError
 from dope_hope.evaluation import metrics
 from dope_hope.evaluation.datasets import Dataset
-from dope_hope.evaluation.models import ObjectModel
+from dope_hope.evaluation.object_models import ObjectModel
 from dope_hope.io.predictions import Prediction
 
 #: Table metrics (all in metres). "addh" is the HOPE paper's.
@@ -39,7 +39,7 @@ METRIC_LABELS = {"addh": "ADD-H", "add": "ADD", "adds": "ADD-S", "meanssd": "Mea
 DEFAULT_METRIC = "addh"
 
 
-class PoseEstimate(Protocol):
+class ScoredPose(Protocol):
     """What matching needs of an estimate (a :class:`~dope_hope.io.predictions.Prediction` or
     an inference ``Detection``): ``R`` (3, 3), ``t`` (3,) metres, ``score``."""
 
@@ -66,7 +66,7 @@ def pose_error(metric: str, pred_R: np.ndarray, pred_t: np.ndarray, gt: ObjectAn
     raise ConfigError(f"unknown metric {metric!r}; use one of {', '.join(METRICS)}")
 
 
-def error_matrix(metric: str, estimates: Sequence[PoseEstimate], gts: Sequence[ObjectAnnotation],
+def error_matrix(metric: str, estimates: Sequence[ScoredPose], gts: Sequence[ObjectAnnotation],
                  model: ObjectModel, upper: float | None = None) -> np.ndarray:
     """(P, G) errors (metres) of every estimate against every GT instance of one class."""
     E = np.empty((len(estimates), len(gts)))
@@ -171,7 +171,7 @@ class FrameMatch:
         return len(self.errors) - int(np.count_nonzero(self.estimate_of_gt >= 0))
 
 
-def match_frame(estimates: Sequence[PoseEstimate], gts: Sequence[ObjectAnnotation], model: ObjectModel,
+def match_frame(estimates: Sequence[ScoredPose], gts: Sequence[ObjectAnnotation], model: ObjectModel,
                 metric: str = DEFAULT_METRIC, threshold: float = TABLE_THRESHOLDS_M[0]) -> FrameMatch:
     """Match one frame's estimates of one class to its GT instances as ``evaluate`` does.
 

@@ -27,7 +27,7 @@ from dope_hope.evaluation.matching import (
     GroupErrors,
     greedy_match,
 )
-from dope_hope.evaluation.models import ObjectModel
+from dope_hope.evaluation.object_models import ObjectModel
 
 CATEGORY_ORDER = ("cylinder", "cuboid", "bottle")
 

@@ -77,7 +77,7 @@ def _peak_distances(ref_belief: np.ndarray, test_belief: np.ndarray, stride: int
     """(number of reference peaks, distances of the matched ones in image px)."""
     from scipy.optimize import linear_sum_assignment
 
-    from dope_hope.maps.decode import find_peaks
+    from dope_hope.maps.peaks import find_peaks
 
     pr = find_peaks(ref_belief, threshold=threshold, smooth_sigma=smooth_sigma)
     pt = find_peaks(test_belief, threshold=threshold, smooth_sigma=smooth_sigma)

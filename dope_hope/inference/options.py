@@ -14,7 +14,8 @@ from dope_hope.errors import ConfigError
 
 if TYPE_CHECKING:
     from dope_hope.config import SectionSettings
-    from dope_hope.inference.pnp import HypothesisSettings, PnpSettings
+    from dope_hope.inference.pnp import PnpSettings
+    from dope_hope.inference.pose_search import HypothesisSettings
     from dope_hope.inference.tracking_settings import TrackingSettings
     from dope_hope.maps.decode import DecodeSettings
     from dope_hope.refine.icp import IcpSettings
@@ -26,7 +27,8 @@ POSE_SEARCHES = ("hypotheses", "groups")
 
 def _stage_settings() -> dict[str, type[SectionSettings]]:
     """Section name -> the settings dataclass that checks it (its fields are the section's keys)."""
-    from dope_hope.inference.pnp import HypothesisSettings, PnpSettings
+    from dope_hope.inference.pnp import PnpSettings
+    from dope_hope.inference.pose_search import HypothesisSettings
     from dope_hope.inference.tracking_settings import TrackingSettings
     from dope_hope.maps.decode import DecodeSettings
     from dope_hope.refine.icp import IcpSettings
@@ -41,7 +43,7 @@ class StageSettings:
     """The stage sections of :class:`InferenceOptions` as their settings objects: decode
     (:func:`~dope_hope.maps.decode.corner_candidates` / :func:`~dope_hope.maps.decode.decode_maps`),
     pnp (:func:`~dope_hope.inference.pnp.solve_pnp`), hypotheses
-    (:func:`~dope_hope.inference.pnp.solve_pnp_candidates`), line_search
+    (:func:`~dope_hope.inference.pose_search.solve_pnp_candidates`), line_search
     (:func:`~dope_hope.refine.line_search.depth_line_search`), icp_refine
     (:func:`~dope_hope.refine.icp.icp_refine`), tracking (the stream tracker)."""
 

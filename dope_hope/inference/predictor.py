@@ -17,8 +17,8 @@ run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.pr
    the same whatever the original resolution. ``pose_search="hypotheses"`` (default): each
    centroid keeps every corner peak whose affinity points at it
    (:func:`dope_hope.maps.decode.corner_candidates`) and
-   :func:`dope_hope.inference.pnp.solve_pnp_candidates` finds the pose that explains most of
-   them (:func:`dope_hope.inference.pnp.solve_pnp_instances`: the peaks an accepted pose holds
+   :func:`dope_hope.inference.pose_search.solve_pnp_candidates` finds the pose that explains most of
+   them (:func:`dope_hope.inference.pose_search.solve_pnp_instances`: the peaks an accepted pose holds
    are no candidates of the centroids searched after it); two centroids explaining the same
    peaks give one detection, the higher-scoring.
    ``pose_search="groups"``: DOPE's decoding, one corner per type and centroid
@@ -69,14 +69,15 @@ from dope_hope.inference.backends import MapBackend, backend_objects, model_min_
 from dope_hope.inference.detection import Detection
 from dope_hope.inference.object_geometry import ObjectGeometry
 from dope_hope.inference.options import InferenceOptions
-from dope_hope.inference.pnp import PoseEstimate, solve_pnp, solve_pnp_instances
+from dope_hope.inference.pnp import PoseEstimate, solve_pnp
+from dope_hope.inference.pose_search import solve_pnp_instances
 from dope_hope.maps.decode import (
-    Peaks,
     corner_candidates,
     decode_maps,
     decoder_peaks,
     pose_score_bound,
 )
+from dope_hope.maps.peaks import Peaks
 from dope_hope.model.info import ObjectInfo
 from dope_hope.preprocess import (
     NetworkInput,

@@ -1,6 +1,6 @@
 """A stream's poses as ROS 2 messages: the output MCAP and the live Foxglove view of ``infer``.
 
-:class:`RosOutputs` is the stream loop's ``on_frame`` sink (:class:`~dope_hope.inference.video.StreamSinks`):
+:class:`RosOutputs` is the stream loop's ``on_frame`` sink (:class:`~dope_hope.inference.stream_inference.StreamSinks`):
 each frame's detections (or tracked objects) become the messages of
 :mod:`dope_hope.io.pose_messages`, stamped with the frame's recorded stamp and frame_id (a
 video or camera frame: its timestamp and ``camera``), and go to a
@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from dope_hope.io.pose_messages import DEFAULT_FRAME_ID, PosedObject, PoseMessages
-from dope_hope.io.sources import Frame, FrameSource
+from dope_hope.io.streams import Frame, FrameSource
 
 #: JPEG quality of the overlay images.
 JPEG_QUALITY = 90
@@ -88,12 +88,12 @@ class RosOutputs:
 def open_ros_outputs(out: Path, source: FrameSource, foxglove_port: int | None, overlays: bool = True,
                      tell: Callable[[str], None] | None = None) -> RosOutputs | None:
     """``infer``'s ROS outputs of a stream: the poses MCAP ``out/<name>_poses`` for a recording
-    (:func:`~dope_hope.io.sources.is_recording`), the Foxglove server when ``foxglove_port`` is
+    (:func:`~dope_hope.io.streams.is_recording`), the Foxglove server when ``foxglove_port`` is
     given (``tell`` says where to connect; a file source then waits for the app to subscribe);
     None when neither."""
     from dope_hope.io.foxglove_live import FoxgloveLive
     from dope_hope.io.recording_writer import RecordingWriter
-    from dope_hope.io.sources import is_recording
+    from dope_hope.io.streams import is_recording
 
     recorded = is_recording(str(getattr(source, "path", "")))
     if not recorded and foxglove_port is None:

@@ -27,12 +27,11 @@ import numpy as np
 
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
 from dope_hope.errors import InputFileError
-from dope_hope.geometry import nearest_rotation
+from dope_hope.geometry import UNIT_SCALE, nearest_rotation
 from dope_hope.io.images import image_size
 from dope_hope.io.jsonfields import JsonFields, load_json, load_json_object
 
 MM = 0.001  # metres per millimetre
-_UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 #: Largest accepted deviation of a stored 3x3 rotation from orthonormal (Frobenius norm);
 #: BOP files store rounded numbers (e.g. 0.866 for cos 30°).
 _ROTATION_TOLERANCE = 1e-2
@@ -197,7 +196,7 @@ def parse_model_info(f: JsonFields, info: Any, where: str, units: str = "mm") ->
     metres (R the nearest rotation), symmetries_continuous [(axis (3,) unit, offset (3,) m)],
     size_m / min_m (3,) when given, align_axes as stored}."""
     discrete, continuous = parse_symmetries(f, info, where)
-    scale = _UNIT_SCALE[units]
+    scale = UNIT_SCALE[units]
     pre = f"{where}." if where else ""
     out: dict[str, Any] = {"diameter_m": None}
     if info.get("diameter") is not None:
@@ -231,8 +230,8 @@ def read_models_info(path: str | os.PathLike, units: str = "mm") -> dict[int, di
         {obj_id: info} (see :func:`parse_model_info`); a single-model file (no integer keys)
         comes back as ``{0: info}`` — 0 is never a BOP obj_id.
     """
-    if units not in _UNIT_SCALE:
-        raise InputFileError(path, f"unknown unit {units!r}; use one of {sorted(_UNIT_SCALE)}")
+    if units not in UNIT_SCALE:
+        raise InputFileError(path, f"unknown unit {units!r}; use one of {sorted(UNIT_SCALE)}")
     f = JsonFields(path)
     data = load_json_object(path, "models info file")
     if data and all(str(k).isdigit() for k in data):

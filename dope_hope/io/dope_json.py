@@ -74,6 +74,7 @@ import numpy as np
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
 from dope_hope.errors import InputFileError
 from dope_hope.geometry import (
+    UNIT_SCALE,
     CUBOID_CORNER_SIGNS,
     KEYPOINT_ORDER,
     LEGACY_KEYPOINT_ORDER,
@@ -91,7 +92,6 @@ from dope_hope.io.jsonfields import JsonFields as _Fields
 from dope_hope.io.jsonfields import load_json_object as _load_json
 
 FORMAT_NAME = "dope-hope"
-_UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 _KEYPOINT_ORDERS = (KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER)
 #: Corner sign patterns, in the object's own frame, of each keypoint order.
 ORDER_CORNER_SIGNS: dict[str, np.ndarray] = {
@@ -267,14 +267,14 @@ def _pose_from_location_quaternion(f: _Fields, o: dict, where: str, scale: float
 
 def _read_project_objects(f: _Fields, data: dict) -> list[ObjectAnnotation]:
     units = data.get("units", "cm")
-    if units not in _UNIT_SCALE:
-        raise f.fail("units", f"expected one of {sorted(_UNIT_SCALE)}, got {units!r}")
+    if units not in UNIT_SCALE:
+        raise f.fail("units", f"expected one of {sorted(UNIT_SCALE)}, got {units!r}")
     default_order = data.get("keypoint_order", KEYPOINT_ORDER)
     out = []
     for i, o in enumerate(_objects_list(f, data)):
         where = f"objects[{i}]"
         common = _common_fields(f, o, where)
-        R, t = _pose_from_location_quaternion(f, o, where, _UNIT_SCALE[units])
+        R, t = _pose_from_location_quaternion(f, o, where, UNIT_SCALE[units])
         order = o.get("keypoint_order", default_order)
         if order not in _KEYPOINT_ORDERS:
             raise f.fail(f"{where}.keypoint_order", f"expected one of {_KEYPOINT_ORDERS}, got {order!r}")

@@ -19,10 +19,9 @@ from scipy.spatial import ConvexHull, QhullError
 from scipy.spatial.distance import pdist
 
 from dope_hope.errors import InputFileError
+from dope_hope.geometry import UNIT_SCALE
 from dope_hope.io.paths import require_file
 
-#: Metres per file unit.
-UNIT_SCALE: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 #: File unit assumed when ``units`` is not given (HOPE OBJ: cm; BOP PLY: mm).
 DEFAULT_UNITS: dict[str, str] = {".obj": "cm", ".ply": "mm"}
 

@@ -1,9 +1,9 @@
 """Robot recordings as a frame source: ROS 1 bags, ROS 2 bags (sqlite3 or MCAP storage) and
 plain ROS 2 MCAP files, read with ``rosbags`` (pure Python; no ROS installation).
 
-:func:`~dope_hope.io.sources.is_recording` tells a recording input (``NAME.bag``, ``NAME.mcap``, ``NAME.db3``, or a
+:func:`~dope_hope.io.streams.is_recording` tells a recording input (``NAME.bag``, ``NAME.mcap``, ``NAME.db3``, or a
 ROS 2 bag folder holding ``metadata.yaml``); :class:`RecordingSource` plays one as a
-:class:`~dope_hope.io.sources.FrameSource`, so ``infer`` runs it through the same stream loop
+:class:`~dope_hope.io.streams.FrameSource`, so ``infer`` runs it through the same stream loop
 as a video.
 
 **Topics** (:func:`choose_topics`): the colour image (``sensor_msgs/Image`` or
@@ -32,7 +32,7 @@ depth stream's span without one is an error (the recording's streams are out of 
 frames before the first depth message or after the last are processed without depth and
 counted in one warning.
 
-Each :class:`~dope_hope.io.sources.Frame` carries the colour header's stamp (``stamp_ns``) and
+Each :class:`~dope_hope.io.streams.Frame` carries the colour header's stamp (``stamp_ns``) and
 ``frame_id``; ``timestamp_s`` is the stamp minus the first frame's.
 """
 from __future__ import annotations
@@ -49,7 +49,7 @@ import numpy as np
 from dope_hope.errors import CameraError, ConfigError, InputFileError
 from dope_hope.io.camera import ImageCamera, Rectification, parse_ros_camera_info
 from dope_hope.io.ros_types import require_rosbags, ros1_typestore, ros2_typestore
-from dope_hope.io.sources import Frame, FrameSource, Grabbed
+from dope_hope.io.streams import Frame, FrameSource, Grabbed
 
 #: Largest colour-to-depth stamp difference of a pair, seconds (half a 30 fps frame is 16.7 ms).
 DEFAULT_SYNC_TOLERANCE_S = 0.015

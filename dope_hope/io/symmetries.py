@@ -26,7 +26,8 @@ from typing import Any
 from dope_hope.errors import InputFileError
 from dope_hope.io.bop import parse_model_info
 from dope_hope.io.jsonfields import JsonFields, load_json_object
-from dope_hope.io.meshes import DEFAULT_UNITS, UNIT_SCALE
+from dope_hope.geometry import UNIT_SCALE
+from dope_hope.io.meshes import DEFAULT_UNITS
 
 #: File names looked for beside a mesh: a single model's declaration, then BOP's table.
 DECLARATION_NAMES = ("model_info.json", "models_info.json")

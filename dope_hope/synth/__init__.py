@@ -17,19 +17,15 @@ Modules, one job each:
 - ``depth_noise``: RealSense-like depth corruption (:func:`add_realsense_noise`).
 - ``annotate``: projected cuboids, visibility, boxes -> FrameAnnotation.
 - ``writer``: frame files (JSON last, atomic) and the dataset info file.
-- ``generate``: FrameGenerator / render_frame (in memory), generate_dataset (to disk, the frames' settings in a SynthJob).
+- ``generate``: FrameGenerator / render_frame (in memory), SynthJob (a dataset's frame settings).
+- ``to_disk``: generate_dataset (to disk: resumable, sharded); ``pool``: its worker processes;
+  ``preview``: preview.png of the written frames.
 
 Importing this package does not import OpenGL; rendering starts it on first use.
 """
 from dope_hope.synth.depth_noise import add_realsense_noise
-from dope_hope.synth.generate import (
-           FrameGenerator,
-           GenerateSummary,
-           SynthFrame,
-           SynthJob,
-           generate_dataset,
-           render_frame,
-)
+from dope_hope.synth.generate import FrameGenerator, SynthFrame, SynthJob, render_frame
+from dope_hope.synth.to_disk import GenerateSummary, generate_dataset
 
 __all__ = ["FrameGenerator", "GenerateSummary", "SynthFrame", "SynthJob", "add_realsense_noise", "generate_dataset",
            "render_frame"]

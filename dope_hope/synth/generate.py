@@ -1,18 +1,14 @@
-"""Frame generation: in memory (:class:`FrameGenerator`, :func:`render_frame`) and to disk
-(:func:`generate_dataset`: resumable, deterministic, multi-process, sharded).
+"""Frame generation in memory: :class:`FrameGenerator` (one renderer, frame after frame),
+:func:`render_frame` (one frame), and :class:`SynthJob` (what a dataset's frames are made of).
+A dataset on disk is :func:`dope_hope.synth.to_disk.generate_dataset`.
 
 Frame ``i`` of a dataset with seed ``S`` depends only on (S, i), the inputs and the config:
 its random streams come from ``np.random.SeedSequence([S, i])`` (see scene.frame_streams).
 """
 from __future__ import annotations
 
-import multiprocessing as mp
 import os
-import pickle
-import signal
-import time
-import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,14 +30,8 @@ from dope_hope.synth.depth_noise import add_realsense_noise, noise_kwargs
 from dope_hope.synth.hard_negatives import TargetLook
 from dope_hope.synth.postprocess import composite, post_process
 from dope_hope.synth.scene import ObjectSpec, SceneSpec, frame_streams, sample_scene
-from dope_hope.synth.settings import load_synth_config, parse_shard, parse_size
-from dope_hope.synth.writer import (
-    check_or_write_info,
-    frame_paths,
-    is_complete,
-    remove_stale_temporaries,
-    write_frame,
-)
+from dope_hope.synth.settings import load_synth_config, parse_size
+from dope_hope.synth.writer import write_frame
 
 GENERATOR_NAME = "dope-hope synth"
 
@@ -223,7 +213,8 @@ class FrameGenerator:
 
             p = self.cfg["procedural"]
             obj = sample_object(streams["object"], p["categories"], float(p["size_jitter"]),
-                                int(p["texture_px"]), name=self.class_name)
+                                int(p["texture_px"]), name=self.class_name,
+                                scale=(float(p["scale"][0]), float(p["scale"][1])))
             targets, category = [obj.asset], obj.category
         n_lib = len(self.library) if self.library is not None else 0
         shapes = targets[0].shape if len(targets) == 1 else [t.shape for t in targets]
@@ -320,108 +311,6 @@ def render_frame(mesh_path: str | os.PathLike, index: int = 0, seed: int = 0,
         return gen.render_frame(index, force_occluder=force_occluder)
 
 
-# --------------------------------------------------------------------------- datasets
-_WORKER: FrameGenerator | None = None
-
-
-def _main_thread() -> bool:
-    import threading
-
-    return threading.current_thread() is threading.main_thread()
-_WORKER_OUT: Path | None = None
-
-
-class _CtrlCHeld:
-    """Ctrl-C held back while worker processes start, and acted on once they have.
-
-    The workers must never see SIGINT (the parent terminates them), including while their
-    interpreter starts, before :func:`_init_worker` ignores it: a process started from a
-    thread that blocks SIGINT inherits the block, and a Ctrl-C stays pending in it until the
-    worker ignores the signal (which discards it). The parent's handler meanwhile only
-    records a Ctrl-C (a KeyboardInterrupt inside ``Pool()`` would orphan half a pool);
-    :meth:`release` restores the handler and raises the recorded interrupt, which the caller
-    does inside the pool's ``with`` so that the started workers are terminated.
-    """
-
-    def __init__(self) -> None:
-        self.active = _main_thread()
-        self.caught = False
-        self.previous: Any = None
-        if self.active:
-            self.previous = signal.getsignal(signal.SIGINT)
-            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-            if self.previous is not signal.SIG_IGN:
-                signal.signal(signal.SIGINT, self._record)
-
-    def _record(self, signum: int, frame: Any) -> None:
-        self.caught = True
-
-    def release(self) -> None:
-        """Restore Ctrl-C; one that came while held is acted on now (KeyboardInterrupt)."""
-        if not self.active:
-            return
-        self.active = False
-        signal.signal(signal.SIGINT, self.previous)
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # a pending one is handled here
-        if self.caught:
-            if callable(self.previous):
-                self.previous(signal.SIGINT, None)
-            elif self.previous == signal.SIG_DFL:
-                raise KeyboardInterrupt
-
-
-def _init_worker(gen_kwargs: dict[str, Any], out_dir: str, threads: int) -> None:
-    global _WORKER, _WORKER_OUT
-    # The parent alone handles Ctrl-C and SIGTERM (it terminates the pool): a worker ignores
-    # SIGINT (blocked since it started, see _CtrlCHeld; ignoring discards a pending one) and
-    # dies quietly on SIGTERM.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    # Share the cores between the workers' software rasterizers (Mesa llvmpipe) instead of
-    # each one starting a thread per core (unless the user set these).
-    os.environ.setdefault("LP_NUM_THREADS", str(threads))
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    _WORKER = FrameGenerator(**gen_kwargs)
-    _WORKER_OUT = Path(out_dir)
-
-
-def _work(index: int) -> int:
-    assert _WORKER is not None and _WORKER_OUT is not None
-    try:
-        _WORKER.write_frame(_WORKER_OUT, index)
-    except Exception as error:
-        raise _picklable(error, index) from None
-    return index
-
-
-def _picklable(error: Exception, index: int) -> Exception:
-    """``error`` if the pool can send it to the parent, else a RuntimeError with its text and
-    traceback (an OpenGL error holds ctypes arguments, which do not pickle: the parent would
-    see only "cannot pickle", not the error)."""
-    try:
-        pickle.loads(pickle.dumps(error))
-        return error
-    except Exception:
-        trace = "".join(traceback.format_exception(error)).rstrip()
-        return RuntimeError(f"frame {index}: {type(error).__name__}: {error}\n{trace}")
-
-
-@dataclass
-class GenerateSummary:
-    """What :func:`generate_dataset` did."""
-
-    out_dir: Path
-    written: int
-    skipped: int
-    seconds: float
-    preview: Path | None = None
-
-    @property
-    def frames_per_s(self) -> float:
-        return self.written / self.seconds if self.seconds > 0 else 0.0
-
-
 def _one_or_list(value: Any) -> Any:
     """A string or None as it is; a sequence of one value as that value; else a list (the
     settings of a one-object dataset keep their single values)."""
@@ -498,112 +387,3 @@ class SynthJob:
                     backgrounds=photo_paths(self.backgrounds),
                     distractors=None if self.distractors is None else str(self.distractors),
                     depth_noise=bool(self.depth_noise), seed=int(self.seed), procedural=bool(self.procedural))
-
-
-def generate_dataset(out_dir: str | os.PathLike, job: SynthJob, count: int, workers: int = 1,
-                     shard: tuple[int, int] | str | None = None, preview: bool = False,
-                     progress: bool = True, indices: list[int] | None = None,
-                     on_frame: Callable[[int], None] | None = None) -> GenerateSummary:
-    """Generate frames 0..count-1 (those of this shard) of ``job`` into ``out_dir``.
-
-    Frames whose JSON exists are skipped (resume). With ``workers`` > 1, frames are rendered
-    by that many spawned processes, each with its own renderer; the frames are identical to
-    a single-process run. ``shard`` = (i, n) renders the frames with ``index % n == i``.
-
-    Args:
-        indices: explicit frame indices instead of range(count) (still filtered by shard).
-        on_frame: called with each frame index once it is written (in this process).
-        preview: also write ``preview.png`` (:func:`write_preview`).
-
-    Returns:
-        A GenerateSummary (frames written / skipped, seconds, preview path).
-    """
-    from tqdm import tqdm
-
-    if count < 0:
-        raise ConfigError(f"--count must be >= 0, got {count}")
-    if workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {workers}")
-    i_shard, n_shard = parse_shard(shard)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    gen_kwargs = job.generator_kwargs()
-    # Validate inputs in this process (clear errors before any worker starts).
-    local = FrameGenerator(**gen_kwargs)
-    check_or_write_info(out, local.dataset_info(gen_kwargs))
-    wanted = [i for i in (range(count) if indices is None else indices) if i % n_shard == i_shard]
-    todo = [i for i in wanted if not is_complete(out, i)]
-    remove_stale_temporaries(out, set(todo))
-    start = time.perf_counter()
-    bar = tqdm(total=len(todo), unit="frame", desc="synth", disable=not progress, dynamic_ncols=True)
-
-    def done(i: int) -> None:
-        bar.update(1)
-        if on_frame is not None:
-            on_frame(i)
-
-    try:
-        if workers == 1 or len(todo) <= 1:
-            for i in todo:
-                local.write_frame(out, i)
-                done(i)
-        else:
-            _render_in_pool(gen_kwargs, out, todo, workers, done)
-    finally:
-        bar.close()
-        local.close()
-    seconds = time.perf_counter() - start
-    preview_path = write_preview(out, wanted, int(local.cfg["output"]["preview_frames"])) if preview else None
-    return GenerateSummary(out, len(todo), len(wanted) - len(todo), seconds, preview_path)
-
-
-def _render_in_pool(gen_kwargs: dict[str, Any], out: Path, todo: list[int], workers: int,
-                    done: Callable[[int], None]) -> None:
-    """Write frames ``todo`` with ``workers`` spawned processes; ``done(i)`` once frame i is written."""
-    ctx = mp.get_context("spawn")
-    n_proc = min(workers, len(todo))
-    threads = max(1, (os.cpu_count() or 1) // n_proc)
-    # A Ctrl-C reaches the parent alone, which terminates the workers with the pool;
-    # one that comes while they start is acted on once the pool stands (_CtrlCHeld).
-    held = _CtrlCHeld()
-    try:
-        pool = ctx.Pool(n_proc, initializer=_init_worker, initargs=(gen_kwargs, str(out), threads))
-    except BaseException:
-        held.release()
-        raise
-    try:
-        with pool:
-            held.release()
-            for i in pool.imap_unordered(_work, todo, chunksize=1):
-                done(i)
-    except BaseException:
-        # Leaving the pool terminated and joined its workers: the temporary files of
-        # the frames they were writing (Ctrl-C, SIGTERM, a failed frame) are nobody's now.
-        remove_stale_temporaries(out, set(todo))
-        raise
-
-
-def write_preview(out_dir: str | os.PathLike, indices: list[int], max_frames: int = 16) -> Path | None:
-    """``preview.png``: a montage of up to ``max_frames`` written frames with their projected
-    cuboids (read back from disk, so it also checks what was written)."""
-    from dope_hope.io.dope_json import read_dope_json
-    from dope_hope.io.images import read_rgb, write_rgb
-    from dope_hope.viz import PALETTE, draw_cuboid, draw_label, montage
-
-    tiles = []
-    for i in sorted(indices)[:max_frames]:
-        paths = frame_paths(out_dir, i)
-        if not paths["json"].is_file():
-            continue
-        frame = read_dope_json(paths["json"])
-        img = read_rgb(paths["rgb"])
-        for k, obj in enumerate(frame.objects):
-            if obj.projected_cuboid is not None:
-                img = draw_cuboid(img, obj.projected_cuboid, PALETTE[k % len(PALETTE)])
-        vis = " ".join(f"{o.visibility:.2f}" for o in frame.objects if o.visibility is not None)
-        tiles.append(draw_label(img, f"{i:06d} vis {vis}"))
-    if not tiles:
-        return None
-    path = Path(out_dir) / "preview.png"
-    write_rgb(path, montage(tiles, cols=min(4, len(tiles))))
-    return path

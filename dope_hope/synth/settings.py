@@ -148,12 +148,17 @@ def validate_synth_config(cfg: dict[str, Any]) -> None:
         weights = _lookup(cfg, path)
         if not isinstance(weights, dict) or not any(float(v) > 0 for v in weights.values()):
             raise ConfigError(f"synth config: {'.'.join(path)} needs at least one positive weight")
-    from dope_hope.catalog import CATEGORIES
+    from dope_hope.synth.objects import SHAPE_LABELS
 
-    unknown = sorted(set(cfg["procedural"]["categories"]) - set(CATEGORIES))
+    unknown = sorted(set(cfg["procedural"]["categories"]) - set(SHAPE_LABELS))
     if unknown:
         raise ConfigError(f"synth config: procedural.categories: unknown {', '.join(unknown)}; "
-                          f"known: {', '.join(CATEGORIES)}")
+                          f"known: {', '.join(SHAPE_LABELS)}")
+    scale = cfg["procedural"]["scale"]
+    if not (isinstance(scale, list) and len(scale) == 2 and all(isinstance(v, (int, float)) and
+            not isinstance(v, bool) for v in scale) and 0.05 <= scale[0] <= scale[1] <= 20):
+        raise ConfigError(f"synth config: procedural.scale must be [low, high] with 0.05 <= low <= "
+                          f"high <= 20, got {scale!r}")
     jitter = cfg["procedural"]["size_jitter"]
     if not isinstance(jitter, (int, float)) or not 0 <= jitter < 1:
         raise ConfigError(f"synth config: procedural.size_jitter must be a number in [0, 1), got {jitter!r}")

@@ -198,7 +198,7 @@ def sample_affine(
     return M
 
 
-def color_jitter(rgb: np.ndarray, params: AugmentParams, rng: np.random.Generator) -> np.ndarray:
+def photometric_jitter(rgb: np.ndarray, params: AugmentParams, rng: np.random.Generator) -> np.ndarray:
     """Brightness, contrast, saturation, hue, noise and blur on (H, W, 3) uint8 -> uint8."""
     img = rgb.astype(np.float32)
     if params.brightness > 0:
@@ -249,5 +249,5 @@ def augment(
         dst_hw = crop_size(params, dst_hw)
     out = warp_image(rgb, M, dst_hw)
     if rng is not None and params.enabled:
-        out = color_jitter(out, params, rng)
+        out = photometric_jitter(out, params, rng)
     return out, apply_affine(M, keypoints), M

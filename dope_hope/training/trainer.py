@@ -1,4 +1,8 @@
-"""The training loop: data, loss, optimizer + schedule, validation, checkpoints, resume, DDP.
+"""The training loop: data, loss, optimizer + schedule, validation, steps and epochs, DDP.
+
+Parts of :class:`Trainer` with a module each: the time budget
+(:mod:`~dope_hope.training.time_budget`), checkpoints and resume
+(:mod:`~dope_hope.training.resume`), Ctrl-C / SIGTERM (:mod:`~dope_hope.training.stopping`).
 
 :func:`train` runs one job described by :class:`~dope_hope.training.settings.TrainJob` and a
 full config (sections ``model``, ``input``, ``targets``, ``train``, ``augment``; see
@@ -31,7 +35,6 @@ import logging
 import math
 import os
 import random
-import signal
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -45,35 +48,28 @@ from dope_hope.config import merge
 from dope_hope.devices import native_bf16
 from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.geometry import KEYPOINT_ORDER
-from dope_hope.model.checkpoint import (
-    TrainingState,
-    load_checkpoint,
-    restore_rng_state,
-    save_checkpoint,
-)
-from dope_hope.training.budget import MIN_WINDOW_STEPS, BudgetPlan, make_plan
+from dope_hope.training.budget import BudgetPlan
 from dope_hope.training.distributed import init_distributed
 from dope_hope.training.loss import optimizer_step, stage_loss
 from dope_hope.training.metrics_log import MetricsLog
-from dope_hope.training.objects import object_mesh_paths, relabel_objects
+from dope_hope.training.objects import relabel_objects
+from dope_hope.training.resume import RunCheckpoints, resumed_job
 from dope_hope.training.schedule import LrLambda
+from dope_hope.training.stopping import StopControl
 from dope_hope.training.settings import (
     TrainJob,
     input_hw,
     check_config_keys,
     train_settings,
 )
+from dope_hope.training.time_budget import LOADER_PREFETCH, TimeBudgetControl
 from dope_hope.training.validation import object_hits
 
 log = logging.getLogger(__name__)
 
-#: Batches each DataLoader worker fetches ahead (PyTorch's default, passed explicitly because the
-#: time-budget plan starts its clock once those are used up).
-LOADER_PREFETCH = 2
-
 
 # =============================================================================== trainer
-class Trainer:
+class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
     """One training job; :meth:`run` returns a summary dict (see :func:`train`)."""
 
     def __init__(self, job: TrainJob, config: dict[str, Any]):
@@ -90,7 +86,7 @@ class Trainer:
         self.stop_reason: str | None = None
         self._signal_count = 0
 
-        ck, config, saved_config = _resumed(job, config)
+        ck, config, saved_config = resumed_job(job, config)
         config = merge(config, job.overrides)
         check_config_keys(config)
         check_class_names(job.class_names)
@@ -222,252 +218,6 @@ class Trainer:
         self.object = checkpoint_objects(self.objects)
         self.size_source = self.objects[0].size_source if len(self.objects) == 1 else \
             {o.name: o.size_source for o in self.objects}
-
-    # ------------------------------------------------------------------ checkpoints
-    def _restore(self, ck: dict[str, Any], saved_ts: dict[str, Any]) -> None:
-        """Continue from checkpoint ``ck``; ``saved_ts``: its ``train`` settings (a length or
-        budget given now that differs wins, said in one line)."""
-        self.model.load_state_dict(ck["model"])
-        if ck.get("optimizer") is not None:
-            self.optimizer.load_state_dict(ck["optimizer"])
-        if ck.get("scheduler") is not None:
-            self.scheduler.load_state_dict(ck["scheduler"])
-        self.step = int(ck.get("step", 0))
-        self.epoch = int(ck.get("epoch", 0))
-        extra = _extra(ck)
-        self.batch_in_epoch = int(extra.get("batch_in_epoch", 0))
-        self.best_acc = float(extra.get("best_acc", -1.0))
-        self.val_done_epoch = int(extra.get("val_done_epoch", -1))
-        if self.batch_in_epoch < self.steps_per_epoch and self.val_done_epoch == self.epoch:
-            self.val_done_epoch = -1  # stopped mid-epoch: validate again when the epoch ends
-        self._time_used_before = float(extra.get("time_used_s", 0.0))
-        self._other_before = float(extra.get("other_s", 0.0))
-        self._val_seconds = float(extra.get("last_val_s", 0.0))
-        self._val_steps = [float(v) for v in extra.get("val_steps") or []]
-        self._metrics_rows = int(extra.get("metrics_rows", 0))
-        self.last_val = dict(extra.get("val") or {})
-        window = extra.get("loss_window")
-        if isinstance(window, (list, tuple)) and len(window) == 2:
-            self.loss_window = [float(window[0]), int(window[1])]
-        if ck.get("rng"):
-            restore_rng_state(ck["rng"])
-        if self.dist.main:
-            log.info("resumed from %s at step %d (epoch %d, batch %d)", self.job.resume, self.step, self.epoch, self.batch_in_epoch)
-        self._restore_length(extra, saved_ts)
-
-    def _restore_length(self, extra: dict[str, Any], saved_ts: dict[str, Any]) -> None:
-        """The resumed run's end: the checkpoint's plans when its length and budget are kept;
-        a length (``steps``, ``epochs``) or budget given now that differs wins, at once (one
-        line says so) and the learning rate falls from where it is to the new end."""
-        plans = extra.get("plans")
-        if plans is None and extra.get("planned_steps") is not None and self.budget is not None:
-            self.total_steps = min(self._nominal_total, int(extra["planned_steps"]))  # one fixed plan: measured again
-        keys = ("steps", "epochs", "time_limit_min")
-        changed = [k for k in keys if self.ts[k] != saved_ts.get(k)]
-        if self.budget is not None and plans and "time_limit_min" not in changed:
-            self.budget.plans = [dict(p) for p in plans]
-            self.total_steps = min(self._nominal_total, int(plans[-1]["budget_end"]))
-        if self.budget is not None and plans and changed:  # planned again at once, at the last plan's speed
-            self.budget.plans = [dict(p) for p in plans]
-            end = self._plan_now("length or budget changed at resume") if self.dist.main else None
-            self._set_end(self._broadcast_end(end))
-        elif changed and self.budget is None:
-            self.total_steps = self._nominal_total
-        if changed and self.ts["schedule"] == "cosine" and not self.budget_sets_horizon:
-            self.lr_lambda.replan(self.step, max(self.step + 1, self.total_steps))
-        if changed and self.dist.main:
-            now = ", ".join(f"train.{k} {self.ts[k]}" for k in changed)
-            before = ", ".join(f"{saved_ts.get(k)}" for k in changed)
-            tail = (f", or earlier when the {self.ts['time_limit_min']:g}-min time budget is spent"
-                    if self.budget is not None and self.total_steps >= self._nominal_total else "")
-            log.warning("resume: %s given now win(s) over the checkpoint's %s: the run ends at step %d%s",
-                        now, before, self.total_steps, tail)
-
-    @property
-    def budget_sets_horizon(self) -> bool:
-        """Whether the time budget's plans set the cosine's end (a time limit without steps)."""
-        return self.budget is not None and not self.ts["steps"]
-
-    @property
-    def planned_steps(self) -> int | None:
-        """The step the time budget's last plan ends the run at (None before a plan / without)."""
-        return None if self.budget is None or self.budget.last is None else int(self.budget.last["end"])
-
-    def save(self, name: str) -> Path:
-        """Write ``out/name`` atomically (rank 0 only); returns its path."""
-        path = self.out / name
-        if not self.dist.main:
-            return path
-        extra = {
-            "batch_in_epoch": self.batch_in_epoch, "best_acc": self.best_acc, "val_done_epoch": self.val_done_epoch,
-            "time_used_s": self.budget_used(), "other_s": self.other_time(),
-            "last_val_s": self._val_seconds, "val_steps": self._val_steps[-3:], "size_source": self.size_source,
-            "planned_steps": self.planned_steps, "plans": self.budget.plans if self.budget is not None else None,
-            "loss_window": list(self.loss_window),
-            "metrics_rows": self.metrics.rows if self.metrics is not None else self._metrics_rows,
-            "val": {k: v for k, v in self.last_val.items() if isinstance(v, (int, float))},
-            "world_size": self.dist.world_size,
-            "job": {"data": [str(p) for p in self.job.data], "val": [str(p) for p in self.job.val],
-                    "object": self.job.object_name, "mesh": str(self.job.mesh) if self.job.mesh else None,
-                    **({"objects": self.job.class_names, "meshes": object_mesh_paths(self.job),
-                        "units": dict(self.job.units)} if len(self.objects) > 1 else {}),
-                    "symmetries": str(self.job.symmetries) if self.job.symmetries else None,
-                    "init": str(self.job.init_weights) if self.job.init_weights else None},
-        }
-        save_checkpoint(path, self.model, self.config, self.object,
-                        TrainingState(self.optimizer, self.scheduler, self.step, self.epoch, extra))
-        return path
-
-    # ------------------------------------------------------------------ control
-    def elapsed(self) -> float:
-        """Seconds since this process's trainer started (by its clock)."""
-        return self.clock() - self._t0
-
-    def budget_used(self) -> float:
-        """Seconds of the time budget used: earlier processes' (up to their last checkpoint)
-        plus this one's."""
-        return self._time_used_before + self.elapsed()
-
-    def request_stop(self, reason: str = "interrupted") -> None:
-        """Stop after the current step (what Ctrl-C / SIGTERM do)."""
-        self.stop_reason = self.stop_reason or reason
-
-    def _on_signal(self, signum: int, frame: Any) -> None:
-        self._signal_count += 1
-        if self._signal_count > 1:
-            raise KeyboardInterrupt
-        self.request_stop("interrupted" if signum == signal.SIGINT else "terminated")
-
-    def _agree_stop(self) -> bool:
-        """True on every rank when any rank wants to stop (signal)."""
-        if not self.dist.active:
-            return self.stop_reason is not None
-        reasons = (None, "time_limit", "terminated", "interrupted")
-        t = torch.tensor([reasons.index(self.stop_reason)], dtype=torch.int32, device=self.device if self.cuda else "cpu")
-        dist.all_reduce(t, op=dist.ReduceOp.MAX)
-        self.stop_reason = reasons[int(t.item())]
-        return self.stop_reason is not None
-
-    # ------------------------------------------------------------------ time budget
-    def _budget_step(self, validated: bool = False) -> None:
-        """Time-limited run, after each step (``validated``: after a validation): rank 0
-        measures the speed and plans when a plan is due (:meth:`_decide_end`); every rank
-        takes the end it planned."""
-        if self.budget is None or self.step >= self.total_steps:
-            return
-        end = self._broadcast_end(self._decide_end(validated) if self.dist.main else None)
-        if end is not None:
-            self._set_end(end)
-
-    def _broadcast_end(self, end: int | None) -> int | None:
-        """Rank 0's end step (or None) on every rank."""
-        if not self.dist.active:
-            return end
-        t = torch.tensor([-1 if end is None else end], dtype=torch.int64, device=self.device if self.cuda else "cpu")
-        dist.broadcast(t, 0)
-        return None if int(t.item()) < 0 else int(t.item())
-
-    def _set_end(self, end: int) -> None:
-        """End the run at step ``end``; the cosine (when the budget sets it) falls to it."""
-        if end != self.total_steps and self.budget_sets_horizon:
-            self.lr_lambda.replan(self.step, max(self.step + 1, end))
-        self.total_steps = end
-
-    def other_time(self) -> float:
-        """Seconds of the budget not spent on steps: validations and each process's start-up
-        (every process so far)."""
-        return self._other_before + self._startup_s + self._val_time_run
-
-    def _first_window_speed(self) -> tuple[float | None, int]:
-        """Seconds per step of this process's steps since its speed window started
-        (validation time left out) and the number of those steps; (None, 0) before."""
-        if self._window is None:
-            return None, 0
-        t, val, n = self._window
-        steps = self._steps_this_run - n
-        if steps <= 0:
-            return None, 0
-        return max(1e-9, (self.clock() - t - (self._val_time_run - val)) / steps), steps
-
-    def _recent_speed(self, last: dict[str, Any]) -> float:
-        """Seconds per step since the last plan (budget used minus validations and start-ups,
-        over the steps: the same figures whichever process made them, so a resumed run measures what an
-        uninterrupted one does); since an earlier plan when the last is fewer than
-        MIN_WINDOW_STEPS steps back, the first plan's figure when all are."""
-        since = next((p for p in reversed(self.budget.plans) if self.step - int(p["step"]) >= MIN_WINDOW_STEPS), None)
-        if since is None:
-            return float(self.budget.plans[0]["per_step_s"]) if self.budget.plans else float(last["per_step_s"])
-        train_s = (self.budget_used() - self.other_time()) - (float(since["used_s"]) - float(since.get("other_s", 0.0)))
-        return max(1e-9, train_s / (self.step - int(since["step"])))
-
-    def _val_cost(self, per_step: float) -> float:
-        """Seconds a validation (best.pt and plots included) costs at ``per_step`` seconds per
-        step: the median of the last three validations, in training steps of their time (a
-        load that slows the steps slows the validation too), else an estimate: a batch costs
-        about a training step per unit of image area (forward + decoding of whole frames vs
-        forward + backward of the training crops)."""
-        if self._val_steps:
-            return float(np.median(self._val_steps[-3:])) * per_step
-        if int(self.ts["val_every"]) <= 0:
-            return 0.0
-        val_batches = math.ceil(len(self.val_set) / max(1, int(self.ts["val_batch_size"] or self.batch_size)))
-        h, w = input_hw(self.config)
-        crop = self.train_set.augment.crop or (h, w)
-        return per_step * val_batches * max(1.0, h * w / (crop[0] * crop[1]))
-
-    def _decide_end(self, validated: bool) -> int | None:
-        """Rank 0: the new end step when a plan is due or the budget is spent, else None.
-
-        The first plan measures this process's steps from its first one, and again once the
-        batches the loader fetched ahead are used up (they come for free: counting them makes a
-        loader-bound run look faster than it is); re-plans measure the steps since the last plan.
-        """
-        last = self.budget.last
-        used = self.budget_used()
-        if last is None:
-            n = self._steps_this_run
-            steady = 1 + int(self.ts["workers"]) * LOADER_PREFETCH
-            if not validated and n in (1, steady):
-                self._window = (self.clock(), self._val_time_run, n)
-            measured, window_steps = self._first_window_speed()
-            if validated and measured:
-                self._val_steps.append(self._val_seconds / measured)
-            if used + self._val_seconds >= self.budget.limit_s:  # the final validation would not fit
-                return self._plan_now("budget spent before a plan", per_step=measured or 0.0, end=self.step)
-            if measured is None or (window_steps < int(self.ts["horizon_estimate_after"]) and not validated):
-                return None
-            return self._plan_now("first", per_step=measured)
-        per_step = self._recent_speed(last)
-        if validated:
-            self._val_steps.append(self._val_seconds / per_step)
-        every = int(self.ts["val_every"]) * self.steps_per_epoch
-        if not self.budget.one_more_fits(self.step, used, per_step, self._val_cost(per_step), every, validated):
-            return self._plan_now("budget spent", per_step=per_step, end=self.step)
-        if validated or self.budget.due(used, self.step):
-            return self._plan_now("validation" if validated else "re-plan", per_step=per_step, validated=validated)
-        return None
-
-    def _plan_now(self, why: str, per_step: float | None = None, end: int | None = None,
-                  validated: bool = False) -> int:
-        """Record a plan from ``per_step`` (default: the last plan's) or, given ``end``, the
-        end itself; return the end step."""
-        last = self.budget.last
-        per_step = float(last["per_step_s"]) if per_step is None and last is not None else float(per_step or 0.0)
-        val_cost = self._val_cost(per_step)
-        used = self.budget_used()
-        if end is None:
-            every = int(self.ts["val_every"]) * self.steps_per_epoch
-            plan = self.budget.plan(self.step, used, self.other_time(), per_step, val_cost, every, self._nominal_total, why,
-                                    validated)
-        else:
-            plan = make_plan(self.step, end, end, per_step, val_cost, used, self.other_time(), why)
-            self.budget.plans.append(plan)
-        if self.dist.main:
-            level = logging.DEBUG if why in ("re-plan", "validation") else logging.INFO
-            log.log(level, "time budget %.3g min (%s): the run ends at step %d (%.3f s per step, %.1f s of the "
-                    "budget used by step %d)", self.budget.limit_s / 60.0, why, plan["end"], per_step, used, self.step)
-        self._set_end(plan["end"])
-        return int(plan["end"])
 
     def _loader(self, dataset: Any, sampler: Any, batch_size: int, drop_last: bool) -> torch.utils.data.DataLoader:
         from dope_hope.training.dataset import collate
@@ -619,17 +369,10 @@ class Trainer:
         resumed = self.job.resume is not None
         self.metrics = MetricsLog(self.out, self.dist.main, keep_rows=self._metrics_rows if resumed else 0,
                                   purge_step=self.step + 1 if resumed else None)
-        handlers = {}
         try:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                handlers[sig] = signal.signal(sig, self._on_signal)
-        except ValueError:  # not the main thread: no signal handling
-            handlers = {}
-        try:
-            self._loop()
+            with self.stop_signals():
+                self._loop()
         finally:
-            for sig, h in handlers.items():
-                signal.signal(sig, h)
             self.metrics.close()
         status = self.stop_reason or "completed"
         if status == "completed" and self.planned_steps is not None and self.planned_steps < self._nominal_total:
@@ -763,33 +506,6 @@ class _TrainRows:
         self.bar.close()
 
 
-def _resumed(job: TrainJob, config: dict[str, Any]) -> tuple[dict[str, Any] | None, dict[str, Any], dict[str, Any]]:
-    """(checkpoint or None, the config to build from, the checkpoint's own config or {}): with
-    ``job.resume`` the checkpoint's config and the data, objects and meshes it records fill
-    what the job leaves out."""
-    ck = None
-    saved_config: dict[str, Any] = {}
-    if job.resume is not None:
-        ck = load_checkpoint(job.resume)
-        config = saved_config = ck.get("config") or config
-        saved_job = _extra(ck).get("job") or {}
-        if not job.data:
-            job.data = [Path(p) for p in saved_job.get("data", [])]
-            job.val = job.val or [Path(p) for p in saved_job.get("val", [])]
-        if not job.object_name:
-            job.object_name = str(saved_job.get("object", ""))
-            job.objects = job.objects or list(saved_job.get("objects") or [])
-            job.meshes = job.meshes or {k: Path(v) for k, v in (saved_job.get("meshes") or {}).items() if v}
-            job.units = job.units or dict(saved_job.get("units") or {})
-        if job.mesh is None and saved_job.get("mesh"):
-            job.mesh = Path(saved_job["mesh"])
-        if job.symmetries is None and saved_job.get("symmetries"):
-            job.symmetries = Path(saved_job["symmetries"])
-        if not job.data or not job.object_name:
-            raise ConfigError(f"{job.resume} does not record its data folders / object; pass --data and --object")
-    return ck, config, saved_config
-
-
 def load_init_weights(model: nn.Module, path: str | Path) -> None:
     """Copy a dope-hope checkpoint's network weights into ``model`` (``--init``); a one-object
     start of a model of N > 1 objects is widened first (every group a copy of its one group:
@@ -829,11 +545,6 @@ def per_object_accuracy(names: list[str], hits: torch.Tensor) -> dict[str, float
         out[f"val_kp_acc/{name}"] = f / v if v else float("nan")
         out[f"val_kp_acc_decoded/{name}"] = fd / vd if vd else float("nan")
     return out
-
-
-def _extra(ck: dict[str, Any]) -> dict[str, Any]:
-    extra = ck.get("extra")
-    return extra if isinstance(extra, dict) else {}
 
 
 def train(job: TrainJob, config: dict[str, Any]) -> dict[str, Any]:

@@ -59,7 +59,8 @@ def validation_hits(belief: np.ndarray, affinity: np.ndarray, gt: np.ndarray, st
         belief: (9, h, w); affinity: (16, h, w); gt: (I, 9, 2) input pixels, NaN = not visible.
         stride: map stride; radius_px: hit radius, input pixels; threshold: peak threshold.
     """
-    from dope_hope.maps.decode import DecodeSettings, decode_maps, find_peaks
+    from dope_hope.maps.decode import DecodeSettings, decode_maps
+    from dope_hope.maps.peaks import find_peaks
 
     n_inst = max(1, int(np.any(np.all(np.isfinite(gt), axis=2), axis=1).sum()))
     peaks = find_peaks(belief, threshold)

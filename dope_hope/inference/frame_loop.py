@@ -1,6 +1,6 @@
 """A frame loop that does not fall behind its source: frames it cannot process are dropped.
 
-:func:`run_stream` reads a :class:`~dope_hope.io.sources.FrameSource` in a background thread
+:func:`run_stream` reads a :class:`~dope_hope.io.streams.FrameSource` in a background thread
 (:class:`FrameFeed`) and hands frames to a callback (the predictors and the outputs):
 
 * ``latest=True`` (a live camera; a video file with ``--realtime``): one slot holding the
@@ -26,7 +26,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from dope_hope.io.sources import Frame, FrameSource, Grabbed
+from dope_hope.io.streams import Frame, FrameSource, Grabbed
 
 #: Frames the reader decodes ahead of the loop when every frame is processed.
 PREFETCH = 2

@@ -14,7 +14,7 @@ or folder of that name is given as ``./0`` or ``realsense/``.
 
 A source yields :class:`Grabbed` items (index, timestamp and a ``load()`` that makes the
 :class:`Frame`): grabbing runs in the stream loop's reader thread
-(:mod:`dope_hope.inference.stream`) and stays cheap; the costly part (RealSense alignment,
+(:mod:`dope_hope.inference.frame_loop`) and stays cheap; the costly part (RealSense alignment,
 colour conversion and undistortion of a camera frame) runs in ``load()``, only for the frames
 the loop processes (a video file's frames are decoded in the reader thread, ahead of the loop).
 """

@@ -1,5 +1,5 @@
 """Frame sources (video file, camera index, RealSense through a fake pyrealsense2) and the stream
-loop that drops the frames it cannot process (dope_hope.io.sources, dope_hope.inference.stream)."""
+loop that drops the frames it cannot process (dope_hope.io.streams, dope_hope.inference.frame_loop)."""
 from __future__ import annotations
 
 import threading
@@ -15,7 +15,7 @@ from video_files import write_video
 from dope_hope.errors import CameraError, ConfigError, DeviceError, InputFileError
 from dope_hope.geometry import intrinsics_matrix
 from dope_hope.io.camera import ImageCamera
-from dope_hope.io.sources import (
+from dope_hope.io.streams import (
     CameraDevice,
     FrameSource,
     Grabbed,
@@ -24,7 +24,7 @@ from dope_hope.io.sources import (
     open_stream,
     stream_kind,
 )
-from dope_hope.inference.stream import FrameFeed, run_stream
+from dope_hope.inference.frame_loop import FrameFeed, run_stream
 
 K = intrinsics_matrix(300.0, 301.0, 159.5, 119.5)
 W, H = 320, 240
@@ -97,7 +97,7 @@ def test_camera_index_reads_through_opencv(tmp_path, monkeypatch):
         opened.append(target)
         return cv2.VideoCapture(str(video)) if target == 3 else cv2.VideoCapture(str(tmp_path / "none.mp4"))
 
-    monkeypatch.setattr("dope_hope.io.sources.open_capture", fake_open)
+    monkeypatch.setattr("dope_hope.io.streams.open_capture", fake_open)
     src = CameraDevice(3, camera(W, H))
     assert src.live and src.name == "camera3" and opened == [3]
     items = []
@@ -265,7 +265,7 @@ def test_passive_openmp_only_before_torch_and_never_over_the_user(tmp_path):
     import subprocess
     import sys
 
-    code = ("import os\nfrom dope_hope.inference.stream import passive_openmp\n"
+    code = ("import os\nfrom dope_hope.inference.frame_loop import passive_openmp\n"
             "print(passive_openmp(), os.environ.get('OMP_WAIT_POLICY'))\nimport torch\nprint(passive_openmp())\n")
     env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
     repo = str(Path(__file__).resolve().parent.parent)

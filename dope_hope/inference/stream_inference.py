@@ -3,7 +3,7 @@
 infer` on a stream, which the benchmarks play too (bench/stream.py, bench/tracking.py).
 
 The frame loop itself (dropping what it cannot keep up with, pacing, Ctrl-C) is
-:func:`dope_hope.inference.stream.run_stream`.
+:func:`dope_hope.inference.frame_loop.run_stream`.
 """
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from dope_hope.inference.stream import StreamStats, run_stream
-from dope_hope.io.sources import Frame, FrameSource
+from dope_hope.inference.frame_loop import StreamStats, run_stream
+from dope_hope.io.streams import Frame, FrameSource
 
 
 @dataclass
@@ -53,7 +53,7 @@ def predict_stream(source: FrameSource, predictors: Sequence[Any], sinks: Stream
 
     Args:
         tracker: a :class:`~dope_hope.inference.tracking.PoseTracker`, or None (per-frame poses).
-        pace / max_frames: as :func:`~dope_hope.inference.stream.run_stream`.
+        pace / max_frames: as :func:`~dope_hope.inference.frame_loop.run_stream`.
         progress: a progress bar on stderr (files of two or more frames).
         warn: told when a live source fails after delivering frames (the stream then ends
             with what it has) and when a file ends before the frames it states.

@@ -96,7 +96,8 @@ def _load_mesh_file(path: Path, mesh_units: str | None) -> _LoadedMesh:
     """Read one mesh for the metrics (a PLY without faces becomes a point cloud: no VSD)."""
     import trimesh
 
-    from dope_hope.io.meshes import UNIT_SCALE, load_mesh, read_ply
+    from dope_hope.geometry import UNIT_SCALE
+    from dope_hope.io.meshes import load_mesh, read_ply
 
     ply, units, source = None, mesh_units or "mm", f"mesh {path}"
     if path.suffix.lower() == ".ply":
@@ -136,7 +137,7 @@ def _bop_model(loaded: _LoadedMesh, path: Path | None, found: ObjectSymmetries, 
                diameter: float) -> BopModel:
     """The model for BOP19 scoring: the file's vertices (to mm unless in mm), the declaration's
     numbers in mm (as stored for a BOP one), else the metre symmetries and diameter x 1000."""
-    from dope_hope.io.meshes import UNIT_SCALE
+    from dope_hope.geometry import UNIT_SCALE
 
     if loaded.ply is not None:  # the file's vertices as stored; to mm unless in mm (BOP)
         to_mm = UNIT_SCALE[loaded.units] / UNIT_SCALE["mm"]
