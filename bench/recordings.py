@@ -21,7 +21,7 @@ loop of `dope-hope infer` runs over each with the same PyTorch predictor (``--th
   video written).
 
 Prints frames/s end to end of every run (run_stream's count), the load average, and the best
-of each with the ratio recording / video. Because the network dominates both loops and the
+of each with the ratio recording / video (and the medians'). Because the network dominates both loops and the
 CPU may be shared, it also times the input/output alone, per frame, median of the repeats:
 reading a frame (recording: deserialise, pair, decode colour and depth; video: OpenCV decoding)
 and writing its outputs with no detection (recording: the overlay JPEG and the poses MCAP's
@@ -165,11 +165,13 @@ def main() -> int:
         for name, run in runs:  # warm-up
             run(tmp / f"warm_{name}", 3)
         best: dict[str, float] = {}
+        fps: dict[str, list] = {"recording": [], "video": []}
         io_times: dict[str, list] = {"recording": [], "video": []}
         for r in range(args.repeats):
             for name, run in runs:
                 stats, n_det, n_ls = run(tmp / f"{name}_{r}")
                 best[name] = max(best.get(name, 0.0), stats.fps)
+                fps[name].append(stats.fps)
                 print(f"{name:9s} run {r + 1}: {stats.summary()}; {n_det} detection(s), {n_ls} refined by -LS; "
                       f"load average {os.getloadavg()[0]:.2f}", flush=True)
             for name, times in io_only(bag, video, K, depths, tmp / f"io_{r}").items():
@@ -180,7 +182,9 @@ def main() -> int:
               f"outputs written {write_ms:.1f} ms/frame")
     rec, vid = best["recording"], best["video"]
     print(f"best of {args.repeats}: recording {rec:.1f} frames/s (reading + the poses MCAP), video {vid:.1f} frames/s "
-          f"(decoding + the overlay video); recording / video {rec / vid:.2f}x end to end")
+          f"(decoding + the overlay video); recording / video {rec / vid:.2f}x end to end; medians "
+          f"{np.median(fps['recording']):.1f} and {np.median(fps['video']):.1f} frames/s "
+          f"({np.median(fps['recording']) / np.median(fps['video']):.2f}x)")
     return 0
 
 

@@ -4,6 +4,7 @@ recording_writer.py, pose_messages.py, ros_types.py). Recordings are written her
 own writers (tests/ros_recordings.py) from small synthetic images."""
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 
@@ -33,6 +34,7 @@ from dope_hope.io.recordings import (
     choose_topics,
     decode_depth,
     decode_image,
+    topic_table,
 )
 from dope_hope.io.ros_types import ros1_typestore, ros2_typestore
 from dope_hope.io.streams import is_recording, stream_kind
@@ -145,6 +147,19 @@ def test_ambiguous_or_missing_topics_name_the_flag_and_the_topics():
         choose_topics("rec.bag", two, image="/left/image_raw", camera_info="/left/image_raw")
     with pytest.raises(ConfigError, match="no colour image topic"):
         choose_topics("rec.bag", _infos((INFO, CI)))
+
+
+def test_topic_table_lists_even_what_cannot_be_played(tmp_path):
+    def second(T, ros1, rgb, stamp):
+        return colour_message(T, ros1, rgb, stamp)
+
+    path = write_recording(tmp_path / "two.bag", "ros1", _frames(2), K, info=False, extra=[("/cam2/image_raw", second)])
+    lines = topic_table(path).splitlines()
+    assert lines[0] == f"{path}: 3 topic(s)" and "<-" not in "".join(lines)
+    assert lines[-1].startswith("  no choice: ") and "several colour image topics" in lines[-1]
+    marked = topic_table(path, image_topic="/cam2/image_raw")
+    assert re.search(r"/cam2/image_raw +sensor_msgs/msg/Image  2 message\(s\)  <- colour", marked)
+    assert "<- depth" in marked
 
 
 def test_recording_inputs_are_streams(tmp_path):

@@ -346,11 +346,12 @@ def _run_stream(args: argparse.Namespace) -> int:
     from dope_hope.io.predictions import write_predictions_jsonl
 
     _check_stream_flags(args)
-    source = _open_source(args)
     if args.list_topics:
-        print(source.topic_table())
-        source.close()
+        from dope_hope.io.recordings import topic_table
+
+        print(topic_table(args.inputs[0], args.image_topic, args.depth_topic, args.camera_info_topic))
         return 0
+    source = _open_source(args)
     out = output_dir(args.out)
     video = window = ros = None
     try:

@@ -252,6 +252,49 @@ def _corrupt(path: Path, exc: BaseException) -> InputFileError:
     return InputFileError(path, f"not a readable ROS bag / MCAP recording ({text})")
 
 
+def _open_reader(path: Path) -> Any:
+    """An open rosbags AnyReader of ``path``; InputFileError for a missing or unreadable one."""
+    require_rosbags()
+    from rosbags.highlevel import AnyReader
+
+    if not path.exists():
+        raise InputFileError(path, "recording not found")
+    try:
+        reader = AnyReader([path], default_typestore=ros1_typestore() if path.suffix == ".bag" else ros2_typestore())
+        reader.open()
+    except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds for a bad file
+        raise _corrupt(path, exc) from None
+    return reader
+
+
+def _topic_infos(reader: Any) -> dict[str, TopicInfo]:
+    return {name: TopicInfo(name, info.msgtype or "?", int(info.msgcount)) for name, info in reader.topics.items()}
+
+
+def topic_table(path: str | os.PathLike, image_topic: str | None = None, depth_topic: str | None = None,
+                camera_info_topic: str | None = None) -> str:
+    """The recording's topics (name, type, message count), the ones :func:`choose_topics` picks
+    marked; when it cannot pick, its reason on the last line (``infer --list-topics``)."""
+    path = Path(path)
+    reader = _open_reader(path)
+    try:
+        topics = _topic_infos(reader)
+    finally:
+        reader.close()
+    note = ""
+    try:
+        chosen = choose_topics(path, topics, image_topic, depth_topic, camera_info_topic)
+        roles = {chosen.image: "colour", chosen.depth: "depth", chosen.camera_info: "camera_info"}
+    except ConfigError as exc:
+        roles, note = {}, f"\n  no choice: {exc}"
+    width = max((len(n) for n in topics), default=0)
+    lines = [f"{path}: {len(topics)} topic(s)"]
+    for t in sorted(topics.values(), key=lambda t: t.name):
+        role = f"  <- {roles[t.name]}" if t.name in roles else ""
+        lines.append(f"  {t.name:<{width}}  {t.msgtype}  {t.count} message(s){role}")
+    return "\n".join(lines) + note
+
+
 class RecordingSource(FrameSource):
     """The colour frames of a recording, with their paired depth and the recording's camera.
 
@@ -266,16 +309,13 @@ class RecordingSource(FrameSource):
     def __init__(self, path: str | os.PathLike, image_topic: str | None = None, depth_topic: str | None = None,
                  camera_info_topic: str | None = None, camera: ImageCamera | None = None,
                  tolerance_s: float = DEFAULT_SYNC_TOLERANCE_S, warn: Callable[[str], None] | None = None):
-        require_rosbags()
         self.path = Path(path)
-        if not self.path.exists():
-            raise InputFileError(self.path, "recording not found")
         self.name = self.path.name
-        self.tolerance_ns = int(round(tolerance_s * 1e9))
+        self.tolerance_ns = round(tolerance_s * 1e9)
         self.warn = warn
-        self._reader = self._open()
+        self._reader = _open_reader(self.path)
         try:
-            self.topics = self._topic_infos()
+            self.topics = _topic_infos(self._reader)
             self.chosen = choose_topics(self.path, self.topics, image_topic, depth_topic, camera_info_topic)
             self.length = self.topics[self.chosen.image].count or None
             self.camera = camera if camera is not None else self._recorded_camera()
@@ -283,21 +323,6 @@ class RecordingSource(FrameSource):
         except BaseException:
             self.close()
             raise
-
-    def _open(self):
-        from rosbags.highlevel import AnyReader
-
-        try:
-            reader = AnyReader([self.path], default_typestore=ros1_typestore() if self.path.suffix == ".bag"
-                               else ros2_typestore())
-            reader.open()
-        except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds for a bad file
-            raise _corrupt(self.path, exc) from None
-        return reader
-
-    def _topic_infos(self) -> dict[str, TopicInfo]:
-        return {name: TopicInfo(name, info.msgtype or "?", int(info.msgcount))
-                for name, info in self._reader.topics.items()}
 
     def _messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
         """(topic, log time ns, message) of ``topics``, in log-time order."""
@@ -335,16 +360,6 @@ class RecordingSource(FrameSource):
                 raise InputFileError(self.path, f"{topic}: holds no message")
             image = decode(msg, self._where(topic))
             self.camera.check_size(self._where(topic), image.shape[1], image.shape[0])
-
-    def topic_table(self) -> str:
-        """The recording's topics (name, type, count), the chosen ones marked."""
-        roles = {self.chosen.image: "colour", self.chosen.depth: "depth", self.chosen.camera_info: "camera_info"}
-        width = max((len(n) for n in self.topics), default=0)
-        lines = [f"{self.path}: {len(self.topics)} topic(s)"]
-        for t in sorted(self.topics.values(), key=lambda t: t.name):
-            role = f"  <- {roles[t.name]}" if t.name in roles else ""
-            lines.append(f"  {t.name:<{width}}  {t.msgtype}  {t.count} message(s){role}")
-        return "\n".join(lines)
 
     def grab(self) -> Iterator[Grabbed]:
         chosen, tol = self.chosen, self.tolerance_ns
