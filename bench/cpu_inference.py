@@ -220,12 +220,11 @@ def lite_keypoints(tmp: Path, n_eval: int) -> tuple:
     Both calibrate and evaluate on the same jittered copies of the fitted scene (held out from
     calibration). Returns (input (H, W), fitted deviation, untrained deviation).
     """
-    from dope_hope.training.fit_one import IMAGE_HW, fit_lite_checkpoint
-    from dope_hope.training.fit_one import box_scene as scene
-
     from dope_hope.config import load_config
     from dope_hope.export.pipeline import Int8Calibration, export_checkpoint
     from dope_hope.io.images import write_rgb
+    from dope_hope.training.fit_one import IMAGE_HW, fit_lite_checkpoint
+    from dope_hope.training.fit_one import box_scene as scene
 
     rgb, _ = scene()
     rng = np.random.default_rng(123)
@@ -296,11 +295,9 @@ def main() -> None:
     import torch
 
     from dope_hope.config import load_config
-    from dope_hope.export.int8 import quantize_int8
+    from dope_hope.export.int8 import cpu_int8_support, quantize_int8
     from dope_hope.export.pipeline import export_checkpoint
     from dope_hope.export.to_onnx import ExportSettings
-
-    from dope_hope.export.int8 import cpu_int8_support
 
     print(f"torch {torch.__version__}, onnxruntime {onnxruntime.__version__}, {args.threads} threads, "
           f"{os.cpu_count()} CPUs ({cpu_int8_support()[1]}); load average at start "

@@ -53,8 +53,8 @@ from dope_hope.inference.backends import open_backend
 from dope_hope.inference.onnx_backend import OnnxBackend
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.maps.decode import decode_maps
-from dope_hope.maps.peaks import find_peaks
 from dope_hope.maps.grid import map_to_image
+from dope_hope.maps.peaks import find_peaks
 from dope_hope.synth import FrameGenerator
 
 

@@ -29,10 +29,10 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from dope_hope.catalog import CATEGORIES, HOPE_OBJECTS
-from dope_hope.symmetry.transforms import category_symmetries
 from dope_hope.evaluation import metrics
 from dope_hope.io.atomic import atomic_path, atomic_write_text
 from dope_hope.io.meshes import sample_surface_points
+from dope_hope.symmetry.transforms import category_symmetries
 
 METRIC_NAMES = ("ADD", "ADD-S", "ADD-H", "MeanSSD")
 TRANSLATIONS_M = tuple(0.01 * k for k in range(11))

@@ -23,11 +23,11 @@ import numpy as np
 from dope_hope.assets import DEMO_WEIGHTS
 from dope_hope.demo.scenes import DEMO_CONFIG, IMAGE_SIZE
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
+from dope_hope.evaluation.matching import TABLE_THRESHOLDS_M, match_frame
+from dope_hope.evaluation.object_models import load_models
 from dope_hope.inference.backends import model_min_score, open_backend
 from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.predictor import DopePredictor
-from dope_hope.evaluation.matching import TABLE_THRESHOLDS_M, match_frame
-from dope_hope.evaluation.object_models import load_models
 
 #: ADD-H (cm) under which a detection matched to the box counts as a true detection.
 TRUE_CM = 10.0

@@ -10,14 +10,19 @@ of the shared data (``grocery_objects/``: Bread, Can, Cereal, Lemon, Milk; metre
 2. ``train-all``: one six-object lite network (`dope-hope train --object ... --mesh ...`)
    for T minutes from the shipped pretrained start; ``train-<Name>``: six one-object lite
    networks, T/6 minutes each, on the same frames (the other five objects are clutter to
-   them), also from the pretrained start. Same frames, same total wall-clock budget.
+   them), also from the pretrained start. Same frames, same total wall-clock budget. Both
+   train symmetry-aware labels (:data:`TRAIN_SET`, ``targets.symmetry=auto``): the Ketchup
+   its catalog category's, the five grocery meshes the symmetries found on them
+   (``dope_hope.symmetry.detect``, printed at the start: the can and the lemon turn about
+   their axis, the cereal box flips about its three axes, the milk carton and the loaf
+   about their long one).
 3. ``synth-test``: held-out 640x480 frames (seed 1001) with two to four of the objects each
    (:data:`TEST_SCENE`), a real photo background (the shared ``backgrounds/``, which no
    training frame uses) and RealSense-like depth noise.
 4. ``infer-all`` / ``infer-six``: `dope-hope infer --depth auto` (the depth line search,
    "-LS") with the one model, and with the six models (one ``--weights`` each).
 5. ``eval-all`` / ``eval-six``: `dope-hope evaluate --metric meanssd`: recall at 2 cm
-   MeanSSD per object and their mean.
+   MeanSSD per object and their mean, with the same symmetries.
 6. ``export-*`` and, in this process, the time per frame with onnxruntime (2 threads): the
    whole pipeline of `DopePredictor` on each test image (forward pass, decoding, PnP; no
    depth), the one model against a one-object model and against the six one-object models
@@ -47,8 +52,17 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from e2e_accuracy import (REPO, TEST_SEED, TRAIN_SEED, Pipeline, percent_text, set_args, check_settings,  # noqa: E402
-                          checkpoint_of, shared_data_dir)
+from e2e_accuracy import (  # noqa: E402
+    REPO,
+    TEST_SEED,
+    TRAIN_SEED,
+    Pipeline,
+    check_settings,
+    checkpoint_of,
+    percent_text,
+    set_args,
+    shared_data_dir,
+)
 
 from dope_hope.devices import cpu_description, cpu_line  # noqa: E402
 from dope_hope.synth.settings import PLAIN_OVERRIDES  # noqa: E402
@@ -62,6 +76,9 @@ TRAIN_TARGETS = ["target.count=[0,4]", "target.distance_m=[0.35,0.8]"]
 #: The held-out scenes: two to four of the objects, plain (no clutter backgrounds, look-alikes or
 #: sensor artefacts), over a photo background given by --backgrounds.
 TEST_SCENE = ["target.count=[2,4]", "target.distance_m=[0.35,0.8]", *set_args(PLAIN_OVERRIDES)]
+#: Training overrides: symmetry-aware labels (each object's symmetries: the catalog category's,
+#: else those found on its mesh).
+TRAIN_SET = ["targets.symmetry=auto"]
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -144,6 +161,19 @@ def time_per_frame(one: Path, singles: dict[str, Path], frames: list[tuple], thr
             "one_object_decode_s": float(single_m[1]), "frames": len(one_times)}
 
 
+def object_symmetries(meshes: dict[str, Path], units: dict[str, str]) -> dict[str, str]:
+    """{object: its symmetries, where they come from and the seconds it took} as the training
+    labels and MeanSSD resolve them (``dope_hope.symmetry.resolve.resolve_symmetries``)."""
+    from dope_hope.symmetry.resolve import resolve_symmetries
+
+    out = {}
+    for name in OBJECTS:
+        t0 = time.perf_counter()
+        text = resolve_symmetries(name, meshes[name], units=units[name]).describe()
+        out[name] = f"{text} [{time.perf_counter() - t0:.2f} s]"
+    return out
+
+
 def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], units: dict[str, str]) -> Pipeline:
     """Stages 1-6 of the module docstring (each skipped when done earlier)."""
     pipe = Pipeline(out)
@@ -155,14 +185,14 @@ def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], uni
                                "--count", args.train_count, "--size", "64x64" if args.quick else "256x192",
                                "--seed", TRAIN_SEED, "--workers", args.workers, "--no-progress",
                                "--set", *TRAIN_TARGETS])
-    small = ["--batch-size", "2", "--workers", "0", "--set", "input.size=[64,64]", "train.threads=1"] \
-        if args.quick else []
+    options = ["--batch-size", "2", "--workers", "0"] if args.quick else []
+    options += ["--set", *TRAIN_SET, *(["input.size=[64,64]", "train.threads=1"] if args.quick else [])]
     common = ["train", "--config", "lite", "--data", train_dir, "--init", "pretrained", "--resume", "--no-progress"]
     pipe.stage("train-all", [*common, "--object", *names, "--mesh", *mesh_args, "--units", *unit_args,
-                             "--out", out / "run_all", "--time-budget", args.minutes, *small])
+                             "--out", out / "run_all", "--time-budget", args.minutes, *options])
     for n in names:
         pipe.stage(f"train-{n}", [*common, "--object", n, "--mesh", meshes[n], "--units", units[n],
-                                  "--out", out / f"run_{n}", "--time-budget", args.minutes / 6, *small])
+                                  "--out", out / f"run_{n}", "--time-budget", args.minutes / 6, *options])
     pipe.stage("synth-test", ["synth", "--mesh", *mesh_args, "--units", *unit_args, "--out", test_dir,
                               "--count", args.test_count, "--size", args.size, "--seed", TEST_SEED,
                               "--workers", args.workers, "--depth-noise", "--no-progress",
@@ -184,7 +214,7 @@ def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], uni
     return pipe
 
 
-def report(args: argparse.Namespace, out: Path, pipe: Pipeline) -> dict:
+def report(args: argparse.Namespace, out: Path, pipe: Pipeline, symmetries: dict[str, str]) -> dict:
     """The recall table, the steps trained and the timing (text printed and written to
     OUT/results.md); returns the figures for OUT/results.json."""
     names = list(OBJECTS)
@@ -217,12 +247,15 @@ def report(args: argparse.Namespace, out: Path, pipe: Pipeline) -> dict:
     (out / "results.md").write_text(
         f"# Multi-object benchmark: T = {args.minutes:g} min\n\n{cpu_line()}\n\n"
         f"Recall at 2 cm MeanSSD with -LS ({args.test_count} held-out frames at {args.size}, two to four "
-        f"objects each, photo background; every detection, ranked by score):\n\n{table}\n\n{trained}\n\n"
+        f"objects each, photo background; every detection, ranked by score):\n\n{table}\n\n"
+        "Symmetries (training labels and MeanSSD):\n\n" + "".join(f"- {n}: {t}\n" for n, t in symmetries.items())
+        + f"\n{trained}\n\n"
         f"{speed}\n\nStage times: {times}\n")
     print(f"\n{table}\n\n{trained}\n{speed}\nstage times: {times}\nwritten: {out / 'results.md'}, "
           f"{out / 'results.json'}")
     return {"recall_2cm_one_model": recall_one, "recall_2cm_six_models": recall_six, "mean_one_model": mean_one,
-            "mean_six_models": mean_six, "steps": steps, "timing": timing, "stage_seconds": pipe.timings}
+            "mean_six_models": mean_six, "steps": steps, "timing": timing, "stage_seconds": pipe.timings,
+            "symmetries": symmetries}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -232,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
     units = {name: u for name, (_, u) in OBJECTS.items()}
     settings = {"objects": {n: str(p) for n, p in meshes.items()}, "minutes": args.minutes,
                 "train_count": args.train_count, "test_count": args.test_count, "size": args.size,
-                "train_targets": TRAIN_TARGETS, "test_scene": TEST_SCENE, "quick": args.quick,
+                "train_targets": TRAIN_TARGETS, "train_set": TRAIN_SET, "test_scene": TEST_SCENE, "quick": args.quick,
                 "train_seed": TRAIN_SEED, "test_seed": TEST_SEED}
     check_settings(out, settings)
     print(cpu_line(), flush=True)
@@ -240,8 +273,11 @@ def main(argv: list[str] | None = None) -> int:
           f"{args.minutes:g} min vs six {args.minutes / 6:g} min each; {args.test_count} test frames at "
           f"{args.size}; {os.cpu_count()} CPU core(s){' [--quick: numbers are meaningless]' if args.quick else ''}; "
           f"work folder {out}", flush=True)
+    symmetries = object_symmetries(meshes, units)
+    for name, text in symmetries.items():
+        print(f"symmetries: {name}: {text}", flush=True)
     pipe = run_stages(args, out, meshes, units)
-    figures = report(args, out, pipe)
+    figures = report(args, out, pipe, symmetries)
     (out / "results.json").write_text(json.dumps({"settings": settings, "cpu": cpu_description(), **figures},
                                                  indent=1) + "\n")
     return 0

@@ -26,8 +26,8 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from dope_hope.synth.generate import SynthJob  # noqa: E402
-from dope_hope.synth.to_disk import generate_dataset  # noqa: E402
 from dope_hope.synth.settings import PLAIN_OVERRIDES as PLAIN  # noqa: E402
+from dope_hope.synth.to_disk import generate_dataset  # noqa: E402
 
 
 def measure(mesh: Path, size: str, workers: int, frames: int, seed: int, config: dict | None = None,

@@ -58,8 +58,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dope_hope.assets import DEMO_WEIGHTS
-from dope_hope.devices import cpu_line
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
+from dope_hope.devices import cpu_line
 from dope_hope.inference.frame_loop import passive_openmp
 from dope_hope.io.camera import ImageCamera
 from dope_hope.io.streams import VideoWithDepth
@@ -234,8 +234,8 @@ def motion_blur(color: np.ndarray, alpha: np.ndarray, step_px: np.ndarray) -> tu
 def play(predictor, clip: Clip, tracked: bool, out: Path, max_frames: int | None = None,
          settings: dict | None = None) -> Played:
     """The `dope-hope infer clip.mp4 [--track]` loop over a clip (records, overlay video)."""
-    from dope_hope.inference.tracking import PoseTracker
     from dope_hope.inference.stream_inference import StreamSinks, predict_stream
+    from dope_hope.inference.tracking import PoseTracker
     from dope_hope.io.video import OverlayVideo
 
     camera = ImageCamera(K=clip.K, width=SIZE[0], height=SIZE[1], source=Path("bench"))
@@ -244,7 +244,7 @@ def play(predictor, clip: Clip, tracked: bool, out: Path, max_frames: int | None
     played, lines = Played(), []
     tracker = None
     if tracked:
-        tracker = PoseTracker(predictor, settings={**predictor.options.tracking, **(settings or {})})
+        tracker = PoseTracker(predictor, settings={**predictor.options.tracking.to_dict(), **(settings or {})})
         update = tracker.update
 
         def timed_update(*args, **kwargs):

@@ -18,7 +18,6 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 from dope_hope.errors import DopeHopeError
-
 from dope_hope.version import __version__
 
 #: Public name -> module that defines it (imported lazily by :func:`__getattr__`).

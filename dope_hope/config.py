@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import re
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
@@ -238,32 +239,182 @@ def each(rule: Rule) -> Rule:
     return checked
 
 
+def boolean(value: Any, name: str) -> bool:
+    """True or false (1, 0 and "yes" are refused)."""
+    if not isinstance(value, bool):
+        raise ConfigError(f"{name} must be true or false, got {value!r}")
+    return value
+
+
+def pair(rule: Rule, ordered: bool = True) -> Rule:
+    """The rule of a [min, max] pair, each end checked by ``rule`` (``ordered``: min <= max); a tuple."""
+    def checked(value: Any, name: str) -> tuple:
+        if isinstance(value, (str, bytes, Mapping)) or not hasattr(value, "__len__") or len(value) != 2:
+            raise ConfigError(f"{name} must be a [min, max] pair, got {value!r}")
+        lo, hi = (rule(v, name) for v in value)
+        if ordered and lo > hi:
+            raise ConfigError(f"{name} has min > max, got {value!r}")
+        return lo, hi
+    return checked
+
+
 _Settings = TypeVar("_Settings", bound="SectionSettings")
+
+
+def _section_type(f: dataclasses.Field) -> type[SectionSettings] | None:
+    """The settings class of a field that holds a nested section (``section(Cls)``), else None."""
+    factory = f.default_factory
+    if isinstance(factory, type) and issubclass(factory, SectionSettings):
+        return factory
+    return None
+
+
+def section(cls: type[SectionSettings]) -> Any:
+    """A dataclass field holding the nested section ``cls`` (its defaults by default)."""
+    return dataclasses.field(default_factory=cls)
 
 
 class SectionSettings:
     """Base of the frozen dataclasses that hold one config section's settings (a stage's
-    section of ``configs/infer.yaml``, as ``icp_refine``): each field a key of the section,
-    its default the section's default.
+    section of ``configs/infer.yaml``, as ``icp_refine``; the ``train`` section of a training
+    recipe; a whole config, whose fields are its sections): each field a key of the
+    section, its default the section's default. A field made by :func:`section` holds a
+    nested section (its own settings class).
 
-    Subclasses set ``SECTION`` (the section's name, in messages) and ``RULES`` (field -> a
-    :data:`Rule`); construction checks every field named there and keeps the checked value,
-    so a bad value is a ConfigError naming ``SECTION.field``.
+    Subclasses set ``SECTION`` (the section's dotted name, in messages; "" for a whole
+    config) and ``RULES`` (field -> a :data:`Rule`); construction checks every field named
+    there and keeps the checked value, so a bad value is a ConfigError naming
+    ``SECTION.field``. :func:`load_settings` is the one loader of a command's settings.
     """
 
     SECTION: ClassVar[str] = "settings"
     RULES: ClassVar[Mapping[str, Rule]] = {}
 
     def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):  # a nested section given as a mapping
+            nested = _section_type(f)
+            if nested is not None and not isinstance(getattr(self, f.name), nested):
+                object.__setattr__(self, f.name, nested.from_mapping(getattr(self, f.name)))
         for name, rule in self.RULES.items():
-            object.__setattr__(self, name, rule(getattr(self, name), f"{self.SECTION}.{name}"))
+            object.__setattr__(self, name, rule(getattr(self, name), self.key(name)))
+
+    @classmethod
+    def key(cls, name: str) -> str:
+        """The dotted name of this section's key ``name`` ("train.lr"), as messages write it."""
+        return f"{cls.SECTION}.{name}" if cls.SECTION else name
 
     @classmethod
     def from_mapping(cls: type[_Settings], values: Mapping[str, Any] | None) -> _Settings:
-        """Settings from a section's mapping (None: the defaults); unknown keys refused."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values or {}) - names)
+        """Settings from a section's mapping (None: the defaults); nested sections from their
+        mappings; an unknown key is a ConfigError naming it (``section.key``) and the known ones."""
+        if values is None:
+            values = {}
+        if not isinstance(values, Mapping):
+            raise ConfigError(f"{cls.SECTION or 'the config'} must be a mapping of settings, got {values!r}")
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted((k for k in values if k not in fields), key=str)
         if unknown:
-            raise ConfigError(f"unknown {cls.SECTION} option(s) {', '.join(unknown)}; known: "
-                              f"{', '.join(sorted(names))}")
-        return cls(**dict(values or {}))
+            where = f" in {cls.SECTION}" if cls.SECTION else ""
+            raise ConfigError(f"unknown setting {cls.key(str(unknown[0]))} (known{where}: "
+                              f"{', '.join(sorted(fields))})")
+        given = {}
+        for name, value in values.items():
+            nested = _section_type(fields[name])
+            given[name] = nested.from_mapping(value) if nested is not None else value
+        return cls(**given)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The settings as plain data (nested sections as dicts, tuples as lists): what a
+        YAML file or a checkpoint holds, and :meth:`from_mapping` reads back."""
+        return {f.name: _plain(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, SectionSettings):
+        return value.to_dict()
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def changed_settings(settings: SectionSettings) -> dict[str, Any]:
+    """The keys of ``settings`` that differ from its class's defaults, nested as a config
+    file writes them (what a recipe holds)."""
+    return _differences(settings.to_dict(), type(settings)().to_dict())
+
+
+def _differences(values: dict[str, Any], defaults: dict[str, Any]) -> dict[str, Any]:
+    out = {}
+    for key, value in values.items():
+        default = defaults.get(key)
+        if isinstance(value, dict) and isinstance(default, dict):
+            inner = _differences(value, default)
+            if inner:
+                out[key] = inner
+        elif value != default:
+            out[key] = value
+    return out
+
+
+_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)[eE][+-]?\d+")
+
+
+def parse_assignment(item: str) -> dict[str, Any]:
+    """``section.key=value`` (the value parsed as YAML) as a nested mapping ``{section: {key: value}}``."""
+    if "=" not in item:
+        raise ConfigError(f"--set {item}: expected section.key=value")
+    dotted, raw = item.split("=", 1)
+    keys = dotted.strip().split(".")
+    if not all(keys):
+        raise ConfigError(f"--set {item}: empty key")
+    try:
+        value: Any = yaml.safe_load(raw)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"--set {item}: malformed value ({str(exc).splitlines()[0]})") from None
+    if isinstance(value, str) and _NUMBER.fullmatch(raw.strip()):
+        value = float(raw)  # 1e-3: a number (YAML 1.1 reads it as text)
+    for key in reversed(keys):
+        value = {key: value}
+    return value
+
+
+def load_settings(cls: type[_Settings], config: str | Path | Mapping[str, Any] | None = None,
+                  assignments: list[str] | tuple[str, ...] = (), base: Mapping[str, Any] | None = None,
+                  ) -> _Settings:
+    """The one loader of a command's settings: ``cls``'s defaults, then ``base`` (e.g. the
+    config a checkpoint recorded), then ``config`` (a packaged config's name, a YAML file or a
+    mapping) and last each ``section.key=value`` of ``assignments``, each deep-merged over the
+    ones before (a file or ``--set`` only holds what it changes).
+
+    Raises:
+        ConfigError: one line naming where the bad key or value came from (the file, or the
+            ``--set`` item) and ``section.key`` (unknown key, or the value's rule).
+        InputFileError: an unreadable or malformed file.
+    """
+    layers: list[tuple[str, Mapping[str, Any]]] = []
+    if base is not None:
+        layers.append(("recorded config", base))
+    if isinstance(config, Mapping):
+        layers.append(("config", config))
+    elif config is not None:
+        path = config_path(config)
+        layers.append((str(config) if path.parent == CONFIG_DIR and not str(config).endswith(".yaml")
+                       else str(path), load_yaml(path)))
+    for item in assignments:
+        layers.append((f"--set {item}", parse_assignment(item)))
+    values = cls().to_dict()
+    settings = cls()
+    for where, layer in layers:
+        values = merge(values, dict(layer))
+        try:
+            settings = cls.from_mapping(values)
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+    return settings
+
+
+def settings_yaml(settings: SectionSettings) -> str:
+    """The settings as YAML text, in field order (what ``dope-hope settings CMD`` prints)."""
+    return yaml.safe_dump(settings.to_dict(), sort_keys=False)

@@ -124,6 +124,7 @@ def demo_object_mesh() -> trimesh.Trimesh:
 
 
 def _to_pil(rgb: np.ndarray):
+    # Pillow only to write the texture
     from PIL import Image
 
     return Image.fromarray(rgb)

@@ -7,6 +7,8 @@ file boundaries and always as ``quaternion_xyzw``.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -64,6 +66,50 @@ def cuboid_keypoints(size: np.ndarray, center: np.ndarray | None = None) -> np.n
     center = np.zeros(3) if center is None else np.asarray(center, dtype=np.float64).reshape(3)
     corners = CUBOID_CORNER_SIGNS * (size / 2.0) + center
     return np.vstack([corners, center[None]])
+
+
+def fit_cuboid(views: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+               ) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """The one box whose nine keypoints, seen in each view's pose through its K, project to
+    the views' keypoints: the size and centre that annotated projected cuboids imply (linear
+    least squares: each keypoint's two projection equations are linear in size and centre).
+
+    One view cannot tell a box from a larger one farther along the same ray; views from
+    different directions can.
+
+    Args:
+        views: (keypoints (9, 2) pixels in the order of :data:`CUBOID_CORNER_SIGNS` (corners
+            0..7, centre 8) in the frame of R, K (3, 3), R (3, 3), t (3,) metres) per instance.
+
+    Returns:
+        (size (3,) m, centre (3,) m in the object frame, RMS reprojection error in pixels over
+        all views), or None when the views leave the box undetermined.
+    """
+    signs = np.vstack([CUBOID_CORNER_SIGNS, np.zeros((1, 3))])
+    rows, rhs = [], []
+    for keypoints, K, R, t in views:
+        kp = np.asarray(keypoints, dtype=np.float64).reshape(NUM_KEYPOINTS, 2)
+        K, R, t = (np.asarray(a, dtype=np.float64) for a in (K, R, t))
+        for (u, v), sign in zip(kp, signs):
+            # X = t + R c + R diag(sign / 2) s ; (K_i - p K_2) . X = 0 for (p, i) in ((u, 0), (v, 1))
+            for p, i in ((u, 0), (v, 1)):
+                a = K[i] - p * K[2]
+                rows.append(np.concatenate([(a @ R) * sign / 2.0, a @ R]))
+                rhs.append(-(a @ t))
+    if not rows:
+        return None
+    A = np.asarray(rows)
+    A_scaled = A / np.linalg.norm(A, axis=0).clip(1e-12)
+    singular = np.linalg.svd(A_scaled, compute_uv=False)
+    if singular[-1] < 1e-6 * singular[0]:
+        return None
+    x = np.linalg.lstsq(A, np.asarray(rhs), rcond=None)[0]
+    size, center = x[:3], x[3:]
+    if not np.all(size > 0):
+        return None
+    errors = [project_points(cuboid_keypoints(size, center), K, R, t) - np.asarray(kp, dtype=np.float64).reshape(-1, 2)
+              for kp, K, R, t in views]
+    return size, center, float(np.sqrt(np.mean(np.sum(np.concatenate(errors) ** 2, axis=1))))
 
 
 def transform_points(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -7,12 +7,13 @@ that are NaN (absent keypoints) are skipped. Drawing is anti-aliased and sub-pix
 """
 from __future__ import annotations
 
+import zlib
 from collections.abc import Sequence
 
 import cv2
 import numpy as np
 
-from dope_hope.geometry import CENTROID_INDEX, CUBOID_EDGES, project_points
+from dope_hope.geometry import CENTROID_INDEX, CUBOID_EDGES, cuboid_keypoints, project_points
 
 _SHIFT = 4                  # sub-pixel bits for OpenCV drawing
 _LIMIT = 1 << 20            # coordinates are clipped to +-this before fixed-point conversion
@@ -154,8 +155,6 @@ def montage(images: Sequence[np.ndarray], cols: int | None = None, tile_hw: tupl
 # ----------------------------------------------------------------------------- detections
 def class_color(class_name: str) -> tuple[int, int, int]:
     """A stable RGB colour per class name (same in every process: CRC32, not ``hash``)."""
-    import zlib
-
     return PALETTE[zlib.crc32(str(class_name).encode("utf-8")) % len(PALETTE)]
 
 
@@ -178,8 +177,6 @@ def overlay_detections(image: np.ndarray, detections: Sequence, K: np.ndarray,
     Returns:
         (H, W, 3) uint8 RGB; one colour per class (:func:`class_color`).
     """
-    from dope_hope.geometry import cuboid_keypoints
-
     out = np.ascontiguousarray(np.array(image, dtype=np.uint8, copy=True))
     H, W = out.shape[:2]
     for det in detections:
@@ -229,6 +226,7 @@ def belief_montage(belief: np.ndarray, image: np.ndarray | None = None,
     Returns:
         (rows * (th + 2) - 2, cols * (tw + 2) - 2, 3) uint8 RGB.
     """
+    # matplotlib (slow to import) only for the colour map
     from matplotlib import colormaps
 
     maps = np.clip(np.nan_to_num(np.asarray(belief, dtype=np.float32)), 0.0, 1.0)

@@ -204,7 +204,7 @@ def test_the_bench_check_catches_each_kind(tmp_path, source, expected):
 
 
 #: Tests of the repository as a whole or of a capability across packages (named for it).
-WHOLE_REPOSITORY_TESTS = {"architecture", "docs", "readme", "packaging", "e2e_quick", "multi_object_data",
+WHOLE_REPOSITORY_TESTS = {"architecture", "docs", "lint", "readme", "packaging", "e2e_quick", "multi_object_data",
                           "multi_object_model"}
 
 

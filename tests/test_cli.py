@@ -60,6 +60,29 @@ def test_objects_json(capsys):
     assert rows[10]["size_m"] == pytest.approx(list(HOPE_OBJECTS[10].size))
 
 
+def test_objects_mesh_prints_the_symmetries_training_and_evaluation_use(tmp_path, capsys):
+    """--mesh: each mesh's symmetries in the resolution order, found ones with their BOP fields in
+    the mesh's unit (a model_info.json to keep); a missing mesh or --units alone: one line, 2."""
+    import trimesh
+
+    cone = tmp_path / "Funnel" / "textured.obj"
+    cone.parent.mkdir()
+    trimesh.creation.cone(radius=3.0, height=8.0, sections=64).export(cone)  # cm
+    assert cli.main(["objects", "--mesh", str(cone)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("Funnel: detected on the mesh: continuous about z")
+    fields = json.loads(lines[1])
+    assert fields == {"symmetries_continuous": [{"axis": [0.0, 0.0, 1.0], "offset": pytest.approx([0, 0, 4.0])}]}
+    (cone.parent / "model_info.json").write_text(lines[1])  # kept beside the mesh: now declared
+    assert cli.main(["objects", "--mesh", str(cone), "--json"]) == 0
+    row = json.loads(capsys.readouterr().out)
+    assert row["class"] == "Funnel" and row["symmetries"] == f"declared in {cone.parent / 'model_info.json'}"
+    assert cli.main(["objects", "--mesh", str(tmp_path / "none.obj")]) == 2
+    assert cli.main(["objects", "--units", "m"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "mesh file not found" in err[0] and "--units" in err[1]
+
+
 def test_reader_error_exits_2_with_one_line(tmp_path, monkeypatch, capsys):
     """A DopeHopeError raised by a reader inside a command: one line on stderr, status 2."""
     bad = tmp_path / "000000.json"

@@ -19,6 +19,8 @@ import trimesh
 from _targets_backend import TargetsBackend
 from scipy.spatial.transform import Rotation
 
+# imported before any test patches backends.open_backend: the predictor binds the name at import
+import dope_hope.inference.predictor  # noqa: F401
 from dope_hope import cli
 from dope_hope.catalog import get_object
 from dope_hope.geometry import rotation_error_deg

@@ -113,19 +113,21 @@ def test_single_frame_prints_gt_poses_and_writes_overlay(frames, tmp_path, monke
 
 
 def test_pose_search_flag_reaches_the_predictor(frames, tmp_path, monkeypatch, capsys):
+    """--pose-search, and the same option through --set, reach the predictor's options."""
     from dope_hope.inference.predictor import DopePredictor
 
     searches = []
     init = DopePredictor.__init__
 
     def spy(self, *a, **kw):
-        searches.append(kw.get("pose_search"))
         init(self, *a, **kw)
+        searches.append(self.options.pose_search)
 
     monkeypatch.setattr(DopePredictor, "__init__", spy)
     gt_backends(monkeypatch, frames / "000000.json")
     (gt,) = read_dope_json(frames / "000000.json").objects
-    for flag, expected in (([], "hypotheses"), (["--pose-search", "groups"], "groups")):
+    for flag, expected in (([], "hypotheses"), (["--pose-search", "groups"], "groups"),
+                           (["--set", "pose_search=groups"], "groups")):
         code, (rec,), err = run_cli([frames / "000000.png", "--weights", "w.pt", "--out", tmp_path / "o",
                                      "--no-overlay", *flag], capsys)
         assert code == 0, err
@@ -332,6 +334,7 @@ def test_camera_index_keeps_the_newest_frame(frames, tmp_path, monkeypatch, caps
 
 def test_realsense_stream_refines_with_its_aligned_depth(frames, tmp_path, monkeypatch, capsys):
     import fake_realsense
+
     from dope_hope.io.images import read_depth_m, read_rgb
 
     gt_backends(monkeypatch, frames / "000000.json", distance_factor=1.06)

@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from test_training_trainer import write_frames as write_train_frames
 
 from dope_hope import cli
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
@@ -36,7 +37,6 @@ from dope_hope.io.dope_json import write_dope_json
 from dope_hope.io.images import write_rgb
 from dope_hope.model import build_model
 from dope_hope.model.checkpoint import make_object_info, save_checkpoint
-from test_training_trainer import write_frames as write_train_frames
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parent.parent
@@ -286,7 +286,7 @@ def test_infer_bad_values_are_refused_before_loading(flags, named, frames, tmp_p
     (["--time-budget", "-1"], "argument --time-budget"),
     (["--set", "train.lr=abc"], "train.lr must be a number"),
     (["--set", "train.epochs=0"], "train.epochs must be >= 1"),
-    (["--set", "targets.sigam=2"], "targets: unknown key(s) sigam"),
+    (["--set", "targets.sigam=2"], "--set targets.sigam=2: unknown setting targets.sigam (known in targets: "),
 ])
 def test_train_bad_values_are_refused(flags, named, train_data, tmp_path, capsys):
     argv = ["train", "--data", train_data, "--object", "Ketchup", "--out", tmp_path / "run", "--no-progress",
@@ -301,12 +301,12 @@ def test_train_bad_values_are_refused(flags, named, train_data, tmp_path, capsys
 def test_synth_refuses_an_unknown_set_key(mesh, tmp_path, capsys):
     argv = ["synth", "--mesh", mesh, "--out", tmp_path / "s", "--count", 1, "--set", "target.cuont=[1,1]"]
     line = one_line_error(*run_cli(argv, capsys)[::2], "synth")
-    assert "unknown key 'target.cuont'" in line and "count" in line
+    assert "unknown setting target.cuont" in line and "count" in line
     cfg = tmp_path / "typo.yaml"
     cfg.write_text("target:\n  cuont: [1, 1]\n")
     line = one_line_error(*run_cli(["synth", "--mesh", mesh, "--out", tmp_path / "s", "--count", 1,
                                     "--config", cfg], capsys)[::2], "synth")
-    assert "unknown key(s) target.cuont" in line
+    assert "unknown setting target.cuont" in line
 
 
 def test_onnx_whose_size_metadata_disagrees_with_its_graph(weights, frames, tmp_path, capsys):
@@ -338,7 +338,12 @@ def test_evaluate_refuses_a_mesh_that_is_not_the_datasets_object(mesh_flags, fra
         flags = ["--mesh", f"DemoBox={mesh}", *mesh_flags]
     argv = ["evaluate", "-p", predictions, "-d", frames, *flags, "--out", tmp_path / "e", "--no-progress"]
     line = one_line_error(*run_cli(argv, capsys)[::2], "evaluate")
-    assert "does not match the cuboid 000000.json records [12.27, 16.72, 4.02] cm for DemoBox" in line
+    if mesh_flags == ["--mesh-units", "m"]:  # a 17 m box: no object's size in metres
+        assert "DemoBox.obj: mesh box 12.27 x 16.72 x 4.02 m (read in m) is too large for an object" in line
+    else:
+        assert "does not match the cuboid 000000.json records [12.27, 16.72, 4.02] cm for DemoBox" in line
+    if mesh_flags == ["--mesh-units", "mm"]:
+        assert line.endswith("(the file is likely in cm, not mm: give its unit as cm)")
     assert not (tmp_path / "e").exists()  # nothing scored, no empty folder left
 
 

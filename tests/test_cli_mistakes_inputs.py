@@ -16,10 +16,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-
-from dope_hope.demo_object import demo_object_mesh
-from dope_hope.geometry import intrinsics_matrix
-from dope_hope.io.images import read_rgb
 from test_cli_mistakes import (  # noqa: F401 - fixtures
     H,
     W,
@@ -32,6 +28,10 @@ from test_cli_mistakes import (  # noqa: F401 - fixtures
     weights,
 )
 from video_files import read_video, write_video
+
+from dope_hope.demo_object import demo_object_mesh
+from dope_hope.geometry import intrinsics_matrix
+from dope_hope.io.images import read_rgb
 
 
 def k_json(path: Path) -> Path:

@@ -1,5 +1,6 @@
-"""The documents hold together: links resolve, every command option has its page, and the
-bench/RESULTS.md sections that code and configs point to exist."""
+"""The documents hold together: links resolve, every command option has its page with the
+description `--help` gives it, and the bench/RESULTS.md sections that code and configs point
+to exist."""
 from __future__ import annotations
 
 import argparse
@@ -59,6 +60,31 @@ def test_every_command_option_is_documented_on_its_page():
                 if option not in ("-h", "--help"):
                     assert re.search(rf"(?<![\w-]){re.escape(option)}(?![\w-])", text), \
                         f"{page.name}: option {option} is not documented"
+
+
+#: A row of a command page's options table: | `--option METAVAR` | description |
+OPTION_ROW = re.compile(r"^\| `(-[^`]+)` \| (.*) \|\s*$", re.M)
+
+
+def _plain(text: str) -> str:
+    """Text as a reader sees it: no Markdown code or emphasis marks, whitespace collapsed."""
+    return " ".join(re.sub(r"[`*]", "", text).split())
+
+
+def test_option_descriptions_match_help():
+    """Each row of a command page's options table says what `--help` says of the option (the
+    help text is the source: fix it there, then copy it here)."""
+    wrong = []
+    for name, parser in subcommands().items():
+        text = (REPO / "docs" / "commands" / f"{name}.md").read_text(encoding="utf-8")
+        for key, description in OPTION_ROW.findall(text):
+            actions = [a for a in parser._actions
+                       if any(re.search(rf"(^|, ){re.escape(o)}(?![\w-])", key) for o in a.option_strings)]
+            assert actions, f"{name}.md: the options table names {key}, which `dope-hope {name}` lacks"
+            expected = _plain((actions[0].help or "").replace("%%", "%"))
+            if _plain(description) != expected:
+                wrong.append(f"{name}.md {key}:\n  page: {_plain(description)}\n  help: {expected}")
+    assert not wrong, "option descriptions that differ from --help:\n" + "\n".join(wrong)
 
 
 def test_results_sections_named_in_the_repository_exist():

@@ -576,7 +576,8 @@ def test_cuboid_centre_poses_move_to_the_mesh_origin(tmp_path):
 
 def test_declared_symmetries_of_a_custom_object_are_used(tmp_path):
     """model_info.json beside a custom mesh (or --symmetries NAME=FILE) gives the evaluation's
-    symmetries, discretized as the BOP toolkit does; without one a custom object has none."""
+    symmetries, discretized as the BOP toolkit does; without one a custom object has those
+    found on its mesh (here: continuous about z and a flip)."""
     import trimesh
 
     from dope_hope.io.symmetries import read_declaration
@@ -587,8 +588,10 @@ def test_declared_symmetries_of_a_custom_object_are_used(tmp_path):
     mesh_path = folder / "widget.ply"
     trimesh.creation.cylinder(radius=20.0, height=80.0, sections=64).export(mesh_path)  # mm, axis z
     flip = np.diag([1.0, -1.0, -1.0, 1.0]).ravel().tolist()
-    plain = load_models(["Widget"], [f"Widget={mesh_path}"])["Widget"]
-    assert len(plain.symmetries) == 1
+    found = load_models(["Widget"], [f"Widget={mesh_path}"])["Widget"]
+    assert "+ symmetries detected on the mesh: continuous about z" in found.source
+    assert found.found_symmetries.startswith("detected on the mesh: continuous about z")
+    assert len(found.symmetries) == 2 * math.ceil(math.pi / 0.01)
     (folder / "model_info.json").write_text(json.dumps(
         {"symmetries_discrete": [flip], "symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]}))
     model = load_models(["Widget"], [f"Widget={mesh_path}"])["Widget"]

@@ -14,8 +14,8 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
-from dope_hope.symmetry.transforms import category_symmetries, symmetries_from_models_info
 from dope_hope.evaluation import metrics
+from dope_hope.symmetry.transforms import category_symmetries, symmetries_from_models_info
 
 I3 = np.eye(3)
 Z3 = np.zeros(3)

@@ -177,3 +177,24 @@ def test_projected_bbox_clips_like_bop_calc_2d_bbox():
     assert projected_bbox(pts, K, np.eye(3), np.array([0.0, 0.0, -0.05]), (80, 100)) is None  # behind
     np.testing.assert_allclose(projected_bbox(pts, K, np.eye(3), np.array([-0.5, 0.0, 1.0]), None),
                                [-10.0, 35.0, 10.0, 45.0])
+
+
+def test_fit_cuboid_recovers_the_box_that_views_imply_and_not_from_one_view():
+    from dope_hope.geometry import fit_cuboid
+
+    size, center = np.array([0.05, 0.05, 0.08]), np.array([0.004, -0.002, 0.01])
+    K = intrinsics_matrix(500.0, 500.0, 319.5, 239.5)
+    views = []
+    for seed in range(3):
+        R = Rotation.random(random_state=seed).as_matrix()
+        t = np.array([0.02 * seed, -0.01, 0.5])
+        views.append((project_points(cuboid_keypoints(size, center), K, R, t), K, R, t))
+    fitted_size, fitted_center, rms = fit_cuboid(views)
+    np.testing.assert_allclose(fitted_size, size, atol=1e-9)
+    np.testing.assert_allclose(fitted_center, center, atol=1e-9)
+    assert rms < 1e-6
+    # one view: a box twice the size twice as far projects the same, so nothing is implied
+    assert fit_cuboid(views[:1]) is None and fit_cuboid([]) is None
+    # poses in another frame than the keypoints': the one box fits badly, which rms says
+    R0 = views[0][2] @ Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    assert fit_cuboid([views[0][:2] + (R0, views[0][3])] + views[1:])[2] > 2.0

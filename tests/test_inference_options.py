@@ -3,27 +3,42 @@ from __future__ import annotations
 
 import pytest
 
+from dope_hope.config import load_config
 from dope_hope.errors import ConfigError
 from dope_hope.inference.options import InferenceOptions
+from dope_hope.refine.line_search import LineSearchSettings
 
 
 def test_packaged_defaults():
     o = InferenceOptions.from_mapping()
     assert o.height is None and o.pose_search == "hypotheses" and o.min_score == 0.5
-    assert o.icp is False and o.ls_points == 1000 and dict(o.line_search) == {}
+    assert o.icp is False and o.ls_points == 1000 and o.line_search == LineSearchSettings()
+
+
+def test_infer_yaml_gives_the_top_level_defaults_and_leaves_the_stages_to_their_classes():
+    """One owner per default: configs/infer.yaml's top-level keys are InferenceOptions' defaults
+    (read from it), its stage sections are empty (the stage classes own theirs)."""
+    packaged = load_config("infer")
+    defaults = InferenceOptions().to_dict()
+    for key, value in packaged.items():
+        if isinstance(value, dict):
+            assert value == {}, key
+        else:
+            assert defaults[key] == value, key
+    assert set(packaged) == set(defaults)
 
 
 def test_overrides_and_stage_keywords_are_accepted():
     o = InferenceOptions.from_mapping({"height": 240, "icp": True,
                                        "line_search": {"search": [0.7, 1.4]}, "pnp": {"min_points": 6},
                                        "hypotheses": {"max_hypotheses": 50}, "decode": {"threshold": 0.2}})
-    assert o.height == 240 and o.icp and o.line_search["search"] == [0.7, 1.4]
+    assert o.height == 240 and o.icp and o.line_search.search == (0.7, 1.4)
 
 
 @pytest.mark.parametrize("overrides, message", [
-    ({"hieght": 240}, "unknown inference option 'hieght'"),
-    ({"line_search": {"serach": [0.7, 1.4]}}, "unknown line_search option(s) serach"),
-    ({"pnp": {"K": 1}}, "unknown pnp option(s) K"),
+    ({"hieght": 240}, "unknown setting hieght (known: "),
+    ({"line_search": {"serach": [0.7, 1.4]}}, "unknown setting line_search.serach (known in line_search: "),
+    ({"pnp": {"K": 1}}, "unknown setting pnp.K"),
     ({"height": 5}, "height must be a whole number of pixels in 8..4096"),
     ({"min_score": float("nan")}, "min_score must be a finite number"),
     ({"pose_search": "brute"}, "pose_search must be one of hypotheses, groups"),

@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from dope_hope.catalog import get_object
 from dope_hope.config import load_config
-from dope_hope.errors import CameraError, ConfigError, ModelFileError
+from dope_hope.errors import CameraError, ConfigError, InputFileError, ModelFileError
 from dope_hope.geometry import (
     cuboid_keypoints,
     intrinsics_matrix,
@@ -227,8 +227,15 @@ def test_mesh_box_and_off_centre_origin(tmp_path, frame):
     mesh_cm.apply_scale(100.0)  # a mesh in the wrong units is refused, not used
     path = tmp_path / "cookies_cm_as_m.obj"
     mesh_cm.export(path)
-    with pytest.raises(ConfigError, match="wrong object or wrong mesh units"):
+    with pytest.raises(InputFileError, match="too large for an object .*likely in cm: give its unit as cm"):
         DopePredictor(backend(), mesh=path, mesh_units="m")
+    mesh_mm = mesh.copy()
+    mesh_mm.apply_scale(1000.0)  # millimetres read as centimetres: 1.7 m, a plausible size, yet not the model's
+    mesh_mm.export(path)
+    with pytest.raises(ConfigError, match=r"does not match the model's cuboid .*likely in mm, not cm"):
+        DopePredictor(backend(), mesh=path, mesh_units="cm")
+    with pytest.raises(ConfigError, match="wrong object or wrong mesh units"):
+        DopePredictor(backend(), mesh=trimesh.creation.box(extents=OBJ.size_array * [1, 2, 1]))
 
 
 def test_depth_line_search_fixes_the_distance():

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dope_hope.symmetry.transforms import declaration_transforms
 from dope_hope.demo_object import DEMO_SIZE_M, demo_symmetries
 from dope_hope.errors import ConfigError
 from dope_hope.geometry import cuboid_keypoints, project_points, projected_bbox, rotation_error_deg
@@ -19,6 +18,7 @@ from dope_hope.inference.tracking import PoseTracker, TrackingSettings
 from dope_hope.io.predictions import read_predictions
 from dope_hope.refine.depth import DepthImage
 from dope_hope.refine.line_search import LineSearchSettings
+from dope_hope.symmetry.transforms import declaration_transforms
 
 K = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]])
 HW = (480, 640)
@@ -263,3 +263,17 @@ def test_track_is_for_streams_only(tmp_path, capsys):
                      "--cy", "16", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "--track" in err[0]
+
+
+def test_tracker_takes_the_symmetries_the_model_records():
+    """Without a mesh the tracker uses the model's object list (a multi-object checkpoint records
+    each object's symmetries, e.g. found on its mesh); given ones win; else the catalog's."""
+    predictor = fake_predictor()
+    predictor.objects[0].symmetries = {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]}
+    tracker = PoseTracker(predictor)
+    assert len(tracker.symmetries["DemoBox"]) == 360 // 5  # continuous about z every 5 degrees
+    turn = Rotation.from_euler("z", 40, degrees=True).as_matrix()
+    assert closest_equivalent(R0 @ turn, np.zeros(3), R0, tracker.symmetries["DemoBox"])[2] < 1e-3
+    given = PoseTracker(predictor, symmetries={"DemoBox": np.eye(4)[None]})
+    assert len(given.symmetries["DemoBox"]) == 1
+    assert len(PoseTracker(fake_predictor()).symmetries["DemoBox"]) == 4  # the demo box's own flips

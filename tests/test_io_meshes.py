@@ -9,6 +9,7 @@ from scipy.spatial import cKDTree
 from dope_hope.catalog import get_object
 from dope_hope.errors import DopeHopeError, InputFileError
 from dope_hope.io.meshes import (
+    UNIT_SCALE,
     load_mesh,
     mesh_cuboid,
     mesh_diameter,
@@ -33,13 +34,39 @@ def test_ketchup_obj_loads_in_metres_with_texture(ketchup):
 
 
 def test_units_override_and_ply_default_mm(tmp_path, ketchup_obj):
-    in_m = load_mesh(ketchup_obj, units="m")
+    in_m = load_mesh(ketchup_obj, units="m", check_size=False)  # a 15 m bottle: see the next test
     in_cm = load_mesh(ketchup_obj)
     np.testing.assert_allclose(in_m.extents, in_cm.extents * 100.0, rtol=1e-9)
     box = trimesh.creation.box(extents=[10.0, 20.0, 30.0])  # "millimetres"
     box.export(tmp_path / "box.ply")
     np.testing.assert_allclose(load_mesh(tmp_path / "box.ply").extents, [0.01, 0.02, 0.03])
     np.testing.assert_allclose(load_mesh(tmp_path / "box.ply", units="cm").extents, [0.1, 0.2, 0.3])
+
+
+@pytest.mark.parametrize("extents, units, likely, what", [
+    ([0.05, 0.05, 0.08], "cm", "m", "too small for an object (largest side under 5 mm)"),  # metres read as cm
+    ([0.05, 0.05, 0.08], "mm", "m", "too small"),
+    ([50.0, 50.0, 80.0], "m", "mm", "too large for an object (largest side over 5 m)"),  # mm read as m
+    ([6.45, 14.86, 4.34], "m", "cm", "too large"),  # the HOPE Ketchup (cm) read as metres
+    ([1e-6, 1e-6, 1e-6], "m", None, "too small"),
+])
+def test_a_mesh_implausible_in_its_unit_is_refused_with_the_likely_unit(tmp_path, extents, units, likely, what):
+    path = tmp_path / "object.obj"
+    trimesh.creation.box(extents=extents).export(path)
+    with pytest.raises(InputFileError) as err:
+        load_mesh(path, units=units)
+    message = str(err.value)
+    assert message.startswith(f"{path}: mesh box ") and f"(read in {units}) is {what}" in message
+    if likely is None:
+        assert "no unit (m, cm, mm) makes it an object's size" in message
+    else:
+        assert message.endswith(f"the file is likely in {likely}: give its unit as {likely}")
+        assert load_mesh(path, units=likely).extents.max() == pytest.approx(0.08 if likely == "m" else
+                                                                           0.08 if likely == "mm" else 0.1486)
+    for unit in ("m", "cm", "mm"):  # the bounds: 5 mm and 5 m are plausible
+        edge = tmp_path / f"edge_{unit}.obj"
+        trimesh.creation.box(extents=[0.005 / UNIT_SCALE[unit]] * 3).export(edge)
+        assert load_mesh(edge, units=unit).extents.max() == pytest.approx(0.005)
 
 
 def test_multi_part_obj_is_one_mesh(tmp_path):

@@ -7,13 +7,14 @@ import time
 from pathlib import Path
 
 import cv2
+import fake_realsense
 import numpy as np
 import pytest
-
-import fake_realsense
 from video_files import write_video
+
 from dope_hope.errors import CameraError, ConfigError, DeviceError, InputFileError
 from dope_hope.geometry import intrinsics_matrix
+from dope_hope.inference.frame_loop import FrameFeed, run_stream
 from dope_hope.io.camera import ImageCamera
 from dope_hope.io.streams import (
     CameraDevice,
@@ -24,7 +25,6 @@ from dope_hope.io.streams import (
     open_stream,
     stream_kind,
 )
-from dope_hope.inference.frame_loop import FrameFeed, run_stream
 
 K = intrinsics_matrix(300.0, 301.0, 159.5, 119.5)
 W, H = 320, 240

@@ -4,10 +4,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from video_files import read_video
 
 from dope_hope.io import video as video_mod
 from dope_hope.io.video import LiveWindow, OverlayVideo, display_problem
-from video_files import read_video
 
 
 def frame(level: int) -> np.ndarray:

@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dope_hope.maps.peaks import find_peaks
 from dope_hope.maps.grid import image_to_map, map_to_image
+from dope_hope.maps.peaks import find_peaks
 from dope_hope.maps.targets import (
     affinity_fields,
     belief_maps,

@@ -22,6 +22,7 @@ from dope_hope.model.checkpoint import (
     save_checkpoint,
     save_inference_checkpoint,
 )
+from dope_hope.model.settings import ModelSettings
 
 torch.set_num_threads(1)
 
@@ -170,7 +171,7 @@ def test_import_official_records_legacy_frame(tmp_path):
     assert ckpt["object"]["frame"] == "legacy"
     assert ckpt["keypoint_order"] == LEGACY_KEYPOINT_ORDER
     assert ckpt["object"]["size_m"] == pytest.approx(list(get_object("BBQSauce").size))
-    assert ckpt["config"]["model"] == {"arch": "dope", "head": 50, "stages": 6}
+    assert ModelSettings.from_mapping(ckpt["config"].get("model")) == ModelSettings(arch="dope", head=50, stages=6)
     assert ckpt["normalization"]["mean"] == list(IMAGENET_MEAN)
     assert ckpt["normalization"]["std"] == list(IMAGENET_STD)
     assert "BBQSauce.pth" in ckpt["source"]

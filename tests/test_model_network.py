@@ -136,7 +136,7 @@ def test_build_model_rejects_bad_configs():
         build_model({"arch": "dope", "head": 100})
     with pytest.raises(ConfigError, match="stagez"):
         build_model({"arch": "lite", "stagez": 2})
-    with pytest.raises(ConfigError, match="model.lite options: depth"):
+    with pytest.raises(ConfigError, match="unknown setting model.lite.depth"):
         build_model({"arch": "lite", "lite": {"depth": 3}})
 
 

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from dope_hope.cli import main
-from dope_hope.errors import ConfigError
+from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.geometry import cuboid_keypoints, project_points
 from dope_hope.io.dope_json import list_dope_frames, read_dope_json
 from dope_hope.io.images import read_image_raw, write_rgb
@@ -307,7 +307,10 @@ def test_train_command_pairs_meshes_with_objects_and_reads_bop(tmp_path, grocery
 
     objects = load_checkpoint(run / "last.pt")["objects"]  # symmetries from the BOP models_info.json
     assert objects[0]["symmetries"] == {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]}
-    assert objects[1].get("symmetries") is None
+    # the lemon declares none: those found on its mesh (mm), continuous about its long axis x
+    lemon = objects[1]["symmetries"]
+    assert len(lemon["symmetries_continuous"]) == 1 and len(lemon["symmetries_discrete"]) == 1
+    np.testing.assert_allclose(lemon["symmetries_continuous"][0]["axis"], [1, 0, 0], atol=1e-9)
 
 
 def test_a_one_object_start_is_widened_to_the_run_objects():
@@ -336,8 +339,10 @@ def test_train_meshes_pair_in_order_by_name_or_from_a_models_dir(shared_data, gr
     assert train_meshes(["Can", "Lemon"], [f"Lemon={lemon}"], None)[0] == {"Lemon": Path(lemon)}
     models = train_meshes(["Lemon", "Can"], None, shared_data / "grocery_objects", ["m", "cm"])
     assert models == ({"Lemon": Path(lemon), "Can": Path(can)}, {"Lemon": "m", "Can": "cm"})
-    with pytest.raises(ConfigError, match="not one of the objects"):
+    with pytest.raises(ConfigError, match="Milk is not an object of this run"):
         train_meshes(["Can", "Lemon"], [f"Milk={lemon}"], None)
+    with pytest.raises(ConfigError, match="Milk is not an object of this run"):
+        train_meshes(["Can"], [f"Milk={lemon}"], None)  # one object, one mesh: still named
     with pytest.raises(ConfigError, match="either --mesh or --models-dir"):
         train_meshes(["Can"], [can], shared_data / "grocery_objects")
     with pytest.raises(ConfigError, match="--units"):
@@ -359,5 +364,5 @@ def test_evaluate_takes_a_unit_per_object_mesh(shared_data, grocery):
     models = load_models(["Can", "Ketchup"], [f"Can={grocery['Can']}", f"Ketchup={ketchup}"],
                          mesh_units={"Can": "m"})  # Ketchup's .obj: cm by its suffix
     assert 0.08 < models["Can"].diameter < 0.12 and 0.1 < models["Ketchup"].diameter < 0.3
-    with pytest.raises(ConfigError, match="mesh units"):  # one unit for both: Ketchup's box is refused
+    with pytest.raises(InputFileError, match="likely in cm"):  # one unit for both: a 15 m Ketchup is refused
         load_models(["Can", "Ketchup"], [f"Can={grocery['Can']}", f"Ketchup={ketchup}"], mesh_units="m")

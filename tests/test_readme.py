@@ -268,12 +268,12 @@ def test_task_sections_run_in_order(sandbox):
 def test_video_section(tmp_path, monkeypatch):
     """The video / webcam / RealSense block on rendered demo scenes (module docstring)."""
     import cv2
-
     import fake_realsense
-    from dope_hope.commands import infer as infer_cmd
-    from dope_hope.demo_object import DEMO_CLASS_NAME, write_demo_object
     from fitted_model import fit_demo_checkpoint
     from video_files import read_video, write_video
+
+    from dope_hope.commands import infer as infer_cmd
+    from dope_hope.demo_object import DEMO_CLASS_NAME, write_demo_object
 
     if not infer_cmd.DEMO_WEIGHTS.is_file():  # not shipped yet: a quickly fitted stand-in
         monkeypatch.setattr(infer_cmd, "DEMO_WEIGHTS", fit_demo_checkpoint(tmp_path / "fit" / "demo_lite.pt", seed=7))
@@ -321,11 +321,11 @@ def test_video_section(tmp_path, monkeypatch):
 
 def test_recording_section(tmp_path, monkeypatch):
     """The robot recording block on rendered demo scenes (module docstring)."""
+    from fitted_model import fit_demo_checkpoint
     from ros_recordings import write_recording
 
     from dope_hope.commands import infer as infer_cmd
     from dope_hope.demo_object import DEMO_CLASS_NAME, write_demo_object
-    from fitted_model import fit_demo_checkpoint
 
     if not infer_cmd.DEMO_WEIGHTS.is_file():  # not shipped yet: a quickly fitted stand-in
         monkeypatch.setattr(infer_cmd, "DEMO_WEIGHTS", fit_demo_checkpoint(tmp_path / "fit" / "demo_lite.pt", seed=7))

@@ -8,10 +8,10 @@ import trimesh
 from box_depth import render_box_depth
 from scipy.spatial.transform import Rotation
 
+from dope_hope.errors import ConfigError
 from dope_hope.geometry import intrinsics_matrix, rotation_error_deg
 from dope_hope.io.meshes import sample_surface_points
 from dope_hope.refine.depth import DepthImage
-from dope_hope.errors import ConfigError
 from dope_hope.refine.icp import IcpSettings, depth_support, icp_refine, scene_points_under, silhouette_mask
 
 K = intrinsics_matrix(600.0, 600.0, 319.5, 239.5)

@@ -23,9 +23,9 @@ from dope_hope.synth.assets import (
 from dope_hope.synth.background import BackgroundSource
 from dope_hope.synth.camera import reference_intrinsics
 from dope_hope.synth.generate import FrameGenerator, SynthJob
-from dope_hope.synth.to_disk import generate_dataset
 from dope_hope.synth.scene import frame_streams
 from dope_hope.synth.settings import load_synth_config, parse_shard, parse_size
+from dope_hope.synth.to_disk import generate_dataset
 
 SIZE = (160, 120)
 # Busy but small scenes: always two targets and a few distractors.

@@ -11,9 +11,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from dope_hope.catalog import HOPE_OBJECTS
-from dope_hope.symmetry.transforms import category_symmetries
 from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.geometry import cuboid_keypoints, project_points
+from dope_hope.symmetry.transforms import category_symmetries
 from dope_hope.synth.objects import SHAPE_LABELS, SHAPE_SIZES, sample_object
 from dope_hope.synth.scene import MaterialSpec, ObjectSpec, SceneSpec
 

@@ -21,13 +21,13 @@ from pathlib import Path
 
 import pytest
 import torch
+from test_cli_mistakes import TINY_SET, one_line_error, run_cli
+from test_training_trainer import write_frames
 
 from dope_hope.config import load_config
 from dope_hope.model.checkpoint import load_checkpoint
 from dope_hope.training.settings import TrainJob
 from dope_hope.training.trainer import train
-from test_cli_mistakes import TINY_SET, one_line_error, run_cli
-from test_training_trainer import write_frames
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parent.parent

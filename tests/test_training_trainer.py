@@ -531,8 +531,8 @@ def test_label_symmetries_use_the_declaration_beside_the_mesh(tmp_path):
 
 def test_object_info_takes_the_ndds_cuboid_size_without_a_mesh(tmp_path, shared_data):
     """NDDS/FAT folders record their cuboids in _object_settings.json: no --mesh needed."""
-    from dope_hope.training.dataset import scan_frames
     from dope_hope.errors import ConfigError
+    from dope_hope.training.dataset import scan_frames
     from dope_hope.training.settings import object_info
 
     src = shared_data / "dope_format_samples" / "ndds"

@@ -14,6 +14,9 @@ from typing import Any
 from dope_hope import config
 from dope_hope.errors import ConfigError
 
+# preprocess and devices are imported inside the argument types: cli.py builds every
+# command's --help from them, which must not pay for numpy or torch.
+
 
 def _wrap(name: str, rule: Callable[[Any, str], Any], parse: Callable[[str], Any]) -> Callable[[str], Any]:
     """An argparse type: ``parse(text)``, then ``rule(value, name)`` (a ConfigError becomes

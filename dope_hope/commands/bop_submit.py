@@ -26,6 +26,11 @@ import argparse
 from pathlib import Path
 
 from dope_hope.commands.argtypes import finite_float, fixed_device, positive_float, positive_int, working_side
+from dope_hope.commands.settings import add_settings_arguments, given_settings
+from dope_hope.errors import ConfigError, InputFileError
+
+# The library is imported inside the functions: cli.py imports every command to build --help,
+# which must not pay for numpy, OpenCV or torch.
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,7 +55,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--depth-calibration", type=positive_float, default=1.0, metavar="F",
                         help="multiply depth by F (default 1)")
     parser.add_argument("--height", type=working_side, metavar="H", help="network working height (default: the model's)")
-    parser.add_argument("--min-score", type=finite_float, default=0.0, help="drop estimates scoring lower")
+    parser.add_argument("--min-score", type=finite_float,
+                        help="drop estimates scoring lower (default 0: BOP ranks every estimate by its score)")
+    add_settings_arguments(parser, "bop-submit")
     parser.add_argument("--backend", choices=("auto", "torch", "onnx"), default="auto")
     parser.add_argument("--device", type=fixed_device, default="cpu", help="torch device (cpu, cuda)")
     parser.add_argument("--threads", type=positive_int, help="CPU threads for the network")
@@ -58,13 +65,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dope_hope.errors import ConfigError, InputFileError
     from dope_hope.inference.bop_estimates import estimate_frames, load_bop_models
     from dope_hope.io.bop import TEST_TARGETS_NAME, find_split_folder, targeted_frames
     from dope_hope.io.bop_csv import parse_bop_result_filename, write_bop_csv
     from dope_hope.io.paths import output_file
 
     parse_bop_result_filename(args.out)  # fail before any work
+    options = {"min_score": 0.0, **given_settings("bop-submit", args.config, args.overrides)}
+    flags = {"height": args.height, "min_score": args.min_score, "icp": True if args.icp else None}
+    options.update({k: v for k, v in flags.items() if v is not None})
+    args.icp = bool(options.get("icp"))
     if args.icp and args.no_depth:
         raise ConfigError("--icp refines against the depth: it cannot go with --no-depth")
     output_file(args.out)
@@ -80,8 +90,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputFileError(models_dir, "models folder not found")
     if not models_dir.is_dir():
         models_dir = None  # no DATASET/models: the line search uses each model's cuboid
-    models = load_bop_models(args.weights, models_dir, args.models_dir is not None,
-                             {"height": args.height, "min_score": args.min_score, "icp": args.icp},
+    models = load_bop_models(args.weights, models_dir, args.models_dir is not None, options,
                              args.backend, args.device, args.threads)
     frames, wanted = targeted_frames(split_dir, targets_path)
     no_model = sorted({o for objs in (wanted or {}).values() for o in objs} - set(models.predictors))

@@ -33,6 +33,11 @@ from pathlib import Path
 
 from dope_hope.assets import DEMO_WEIGHTS
 from dope_hope.commands.argtypes import positive_int
+from dope_hope.commands.settings import add_settings_arguments, given_settings
+from dope_hope.errors import ModelFileError
+
+# The library is imported inside the functions: cli.py imports every command to build --help,
+# which must not pay for numpy, OpenCV or torch.
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -46,20 +51,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="demo checkpoint (default: the shipped dope_hope/assets/demo_lite.pt)")
     parser.add_argument("--no-onnx", action="store_true", help="PyTorch only (no ONNX export and run)")
     parser.add_argument("--threads", type=positive_int, metavar="T", help="CPU threads of each backend")
+    add_settings_arguments(parser, "demo")
 
 
 def run(args: argparse.Namespace) -> int:
     from dope_hope.demo.report import missing_weights_problem
     from dope_hope.demo.run import DemoSettings, run_demo
     from dope_hope.demo_object import write_demo_object
-    from dope_hope.errors import ModelFileError
     from dope_hope.io.paths import output_dir
 
+    options = given_settings("demo", args.config, args.overrides)  # checked before any work
     out = output_dir(args.out)
     if args.weights is None and not DEMO_WEIGHTS.is_file():
         # the mesh is written on purpose: the message tells how to train a demo model on it
         raise ModelFileError(DEMO_WEIGHTS, missing_weights_problem(write_demo_object(out / "mesh")))
     settings = DemoSettings(weights=args.weights if args.weights is not None else DEMO_WEIGHTS, out=out,
-                            scenes=args.scenes, seed=args.seed, onnx=not args.no_onnx, threads=args.threads)
+                            scenes=args.scenes, seed=args.seed, onnx=not args.no_onnx, threads=args.threads,
+                            options=options)
     run_demo(settings, lambda text: print(text, flush=True))
     return 0

@@ -12,12 +12,18 @@ Meshes: --mesh, then --models-dir (one search order: dope_hope/io/models_dir.py;
 without an evaluated object's mesh is an error), else a procedural cuboid. Symmetries:
 the object's BOP models_info.json entry beside its mesh, else its declaration (--symmetries
 NAME=FILE, or model_info.json beside its mesh: BOP fields symmetries_discrete /
-symmetries_continuous in the mesh's unit), else the HOPE catalog's category.
+symmetries_continuous in the mesh's unit), else the HOPE catalog's category, else those found
+on its mesh (dope_hope.symmetry.detect).
 """
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+from dope_hope.errors import ConfigError
+
+# The library is imported inside the functions: cli.py imports every command to build --help,
+# which must not pay for numpy, OpenCV or torch.
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,7 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="object mesh (HOPE .obj in cm / BOP .ply in mm); repeat for several objects")
     parser.add_argument("--symmetries", action="append", default=[], metavar="[NAME=]FILE",
                         help="an object's symmetry declaration, BOP models_info style (default: "
-                             "model_info.json beside its mesh); repeat for several objects")
+                             "model_info.json beside its mesh, else the HOPE category, else those found on "
+                             "its mesh); repeat for several objects")
     parser.add_argument("--models-dir", type=Path, metavar="DIR",
                         help="folder of meshes: BOP models (obj_000001.ply + models_info.json) or "
                              "HOPE (<Name>/textured.obj, <Name>.obj); it must hold every evaluated object's mesh "
@@ -67,7 +74,6 @@ def mesh_units(values: list[str]) -> str | dict[str, str] | None:
         ConfigError: an unknown unit, or two units for the same object (or for all).
     """
     from dope_hope.catalog import object_names
-    from dope_hope.errors import ConfigError
 
     units: dict[str, str] = {}
     for value in values:

@@ -27,10 +27,23 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
+from dataclasses import replace
 from pathlib import Path
 
 from dope_hope.commands.argtypes import positive_int, working_side
-from dope_hope.export.isaac_ros import ISAAC_ROS_CURRENT
+from dope_hope.commands.settings import add_settings_arguments, command_settings
+from dope_hope.errors import ConfigError
+from dope_hope.export.isaac_ros import (
+    ISAAC_ROS_CURRENT,
+    dope_config_entry,
+    isaac_ros_release,
+    launch_arguments,
+)
+
+# The library is imported inside the functions: cli.py imports every command to build --help,
+# which must not pay for numpy, OpenCV or torch.
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
@@ -41,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--width", type=working_side, help="input width, px, multiple of 8 (default: "
                                                            "training size; isaac-ros: 640)")
     parser.add_argument("--dynamic", action="store_true", help="dynamic input height and width (native only)")
-    parser.add_argument("--layout", choices=("native", "isaac-ros"), default="native",
+    parser.add_argument("--layout", choices=("native", "isaac-ros"),
                         help="graph layout (default native)")
     parser.add_argument("--isaac-ros-version", metavar="X.Y",
                         help=f"isaac-ros: the Isaac ROS release to deploy on (default and newest known "
@@ -61,22 +74,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         default="minmax", help="activation range calibration (default minmax; entropy "
                                                "and percentile hold whole activations of every "
                                                "calibration image in memory: few images for DR-50)")
-    parser.add_argument("--opset", type=int, default=17, help="ONNX opset, 11..20 (default 17)")
+    parser.add_argument("--opset", type=int, help="ONNX opset, 11..20 (default 17)")
+    add_settings_arguments(parser, "export")
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
 
 
 def run(args: argparse.Namespace) -> int:
     from dope_hope.export.pipeline import Int8Calibration, export_checkpoint
-    from dope_hope.export.to_onnx import ExportSettings
     from dope_hope.io.paths import output_file
 
-    from dope_hope.errors import ConfigError
-
-    if args.layout != "isaac-ros":
+    # the export section (--config, --set), then the flags that name its keys
+    base = command_settings("export", args.config, args.overrides).export
+    flags = {"layout": args.layout, "dynamic": True if args.dynamic else None, "opset": args.opset,
+             "isaac_encoder": args.isaac_normalization, "isaac_ros_version": args.isaac_ros_version,
+             "object_name": args.object,
+             "input_hw": None if args.height is None or args.width is None else (args.height, args.width)}
+    settings = replace(base, **{k: v for k, v in flags.items() if v is not None})
+    if settings.layout != "isaac-ros":
         for flag, value in (("--isaac-ros-version", args.isaac_ros_version),
                             ("--isaac-normalization", args.isaac_normalization)):
             if value is not None:
-                raise ConfigError(f"{flag} applies only to --layout isaac-ros (this export: --layout {args.layout})")
+                raise ConfigError(f"{flag} applies only to --layout isaac-ros (this export: --layout {settings.layout})")
     if (args.height is None) != (args.width is None):
         raise ConfigError("give both --height and --width (or neither)")
     if args.int8 and args.calibration is None:
@@ -84,9 +102,6 @@ def run(args: argparse.Namespace) -> int:
     if args.calibration is not None and not args.int8:
         raise ConfigError("--calibration is only used with --int8")
     output_file(args.out)
-    settings = ExportSettings(layout=args.layout, input_hw=None if args.height is None else (args.height, args.width),
-                              dynamic=args.dynamic, opset=args.opset, isaac_encoder=args.isaac_normalization,
-                              isaac_ros_version=args.isaac_ros_version or ISAAC_ROS_CURRENT, object_name=args.object)
     int8 = Int8Calibration(args.calibration, args.calibration_images, args.calibration_method) if args.int8 else None
     res = export_checkpoint(args.weights, args.out, settings, int8)
     info = res.info
@@ -136,12 +151,6 @@ def run(args: argparse.Namespace) -> int:
 
 def isaac_ros_deployment(info, path: Path) -> dict:
     """What Isaac ROS needs for an isaac-ros file: launch arguments, config entry, channel order."""
-    from dope_hope.export.isaac_ros import (
-        dope_config_entry,
-        isaac_ros_release,
-        launch_arguments,
-    )
-
     release = isaac_ros_release(info.extra["isaac_ros.version"])
     args = launch_arguments(release, path, info.fixed_input_hw, info.extra["isaac_ros.encoder"], info.class_name)
     return {"version": release.version, "launch_file": release.launch_file, "launch_arguments": args,
@@ -158,6 +167,4 @@ def _is_hope_object(name: str) -> bool:
 
 def _shell_word(value: str) -> str:
     """A launch argument value as one shell word ('...' when it holds spaces or brackets)."""
-    import shlex
-
     return shlex.quote(value) if value else "''"

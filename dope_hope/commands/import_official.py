@@ -23,6 +23,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
+
+# The library is imported inside the functions: cli.py imports every command to build --help,
+# which must not pay for numpy, OpenCV or torch.
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
@@ -51,7 +56,6 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from dope_hope.catalog import get_object
-    from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
     from dope_hope.geometry import legacy_size_to_mesh
     from dope_hope.io.paths import output_file, require_file
     from dope_hope.model.checkpoint import import_official, official_object_name

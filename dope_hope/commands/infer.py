@@ -87,7 +87,9 @@ import sys
 from pathlib import Path
 
 from dope_hope.assets import DEMO_WEIGHTS  # used when --weights is not given
-from dope_hope.commands.argtypes import fixed_device, finite_float, positive_float, positive_int, working_side
+from dope_hope.commands.argtypes import finite_float, fixed_device, positive_float, positive_int, working_side
+from dope_hope.commands.settings import add_settings_arguments, given_settings
+from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, DopeHopeError
 
 # The library is imported inside the functions: cli.py imports every command to build --help,
@@ -113,8 +115,6 @@ def default_weights() -> Path | None:
 def _default_min_score() -> float:
     """The inference options' min_score (dope_hope/configs/infer.yaml), read without the
     heavy imports of InferenceOptions."""
-    from dope_hope.config import load_config
-
     return float(load_config("infer")["min_score"])
 
 
@@ -133,14 +133,13 @@ def _port(text: str) -> int:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    demo = "present" if default_weights() is not None else "absent"
     parser.add_argument("inputs", nargs="+", metavar="SOURCE",
                         help="image file(s), a folder of images, a quoted glob, a video file, a camera "
                              "index (0), realsense[:SERIAL] or a recording (.bag, .mcap, .db3, ROS 2 bag folder)")
     parser.add_argument("--weights", action="append", type=Path, metavar="W",
                         help="checkpoint (.pt/.pth) or exported .onnx of one or more objects; repeat "
-                             f"for several models (default: the demo model dope_hope/assets/demo_lite.pt when it "
-                             f"exists; {demo} in this installation)")
+                             "for several models (default: the demo model dope_hope/assets/demo_lite.pt when "
+                             "this installation has it)")
     parser.add_argument("--classes", nargs="+", metavar="CLASS",
                         help="report only these objects of the model(s) (default: all)")
     cam = parser.add_argument_group("camera (default: the image's sibling annotation)")
@@ -163,8 +162,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           "depth (needs depth, and --mesh unless the object is a catalog box)")
     stream = parser.add_argument_group("video and cameras")
     stream.add_argument("--realtime", action="store_true",
-                        help="play a video file at its frame rate, dropping the frames the loop cannot "
-                             "keep up with (as a live camera); default: every frame")
+                        help="play a video file (or recording) at its frame rate, dropping the frames the "
+                             "loop cannot keep up with (as a live camera); default: every frame")
     stream.add_argument("--max-frames", type=positive_int, metavar="N", help="stop after N frames of the stream")
     stream.add_argument("--show", action="store_true",
                         help="show the overlays in a window (where a display exists; q quits)")
@@ -176,11 +175,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     stream.add_argument("--track", action="store_true",
                         help="track the objects: stable track ids, smoothed poses (R, t) with the "
                              "frame's own in R_detected / t_detected, a missed object's predicted pose "
-                             "(tracked: coasted) for a few frames; settings: the tracking section of "
-                             "configs/infer.yaml")
+                             "(tracked: coasted) for a few frames; settings: the tracking section, e.g. "
+                             "--set tracking.reprojection_px=2.0")
     stream.add_argument("--foxglove", nargs="?", const=DEFAULT_FOXGLOVE_PORT, type=_port, metavar="PORT",
                         help="serve the results live to the Foxglove app on ws://127.0.0.1:PORT (default "
-                             f"{DEFAULT_FOXGLOVE_PORT}; a file waits for the app to subscribe)")
+                             f"{DEFAULT_FOXGLOVE_PORT}; 0: a free port; a file waits for the app to subscribe)")
     rec = parser.add_argument_group("robot recordings: ROS 1 .bag, ROS 2 bag folder, .mcap, .db3")
     rec.add_argument("--image-topic", metavar="TOPIC", help="colour image topic (default: the only one)")
     rec.add_argument("--depth-topic", metavar="TOPIC|none",
@@ -212,10 +211,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="drop detections whose pose score is lower (default: the model's own threshold "
                              "when its file records one, as the shipped demo model does, else "
                              f"{_default_min_score():g} from dope_hope/configs/infer.yaml; bench/RESULTS.md); "
-                             "0 keeps all")
-    parser.add_argument("--pose-search", choices=("hypotheses", "groups"), default="hypotheses",
+                             "0 keeps all; the option min_score")
+    parser.add_argument("--pose-search", choices=("hypotheses", "groups"),
                         help="hypotheses (default): candidate corner peaks + multi-hypothesis PnP; "
                              "groups: DOPE's one corner per type (faster, finds fewer)")
+    add_settings_arguments(parser, "infer")
     parser.add_argument("--device", type=fixed_device, default="cpu", help="torch device (cpu, cuda, cuda:1)")
     parser.add_argument("--threads", type=positive_int, help="CPU threads for the network")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -257,13 +257,23 @@ def _warn(message: str) -> None:
     print(f"dope-hope infer: warning: {message}", file=sys.stderr, flush=True)
 
 
+def inference_settings(args: argparse.Namespace) -> dict:
+    """The inference options the command line sets: --config and --set (checked: one line naming
+    the file or item and section.key), then the flags that name an option (--height,
+    --min-score, --pose-search, --icp)."""
+    given = given_settings("infer", args.config, args.overrides)
+    flags = {"height": args.height, "min_score": args.min_score, "pose_search": args.pose_search,
+             "icp": True if args.icp else None}
+    given.update({k: v for k, v in flags.items() if v is not None})
+    return given
+
+
 def _predictors(args: argparse.Namespace) -> list:
     from dope_hope.inference.model_set import build_predictors
 
     return build_predictors(_resolve_weights(args), args.mesh or [], mesh_units=args.mesh_units,
-                            backend=args.backend, device=args.device, threads=args.threads, height=args.height,
-                            min_score=args.min_score, pose_search=args.pose_search, icp=args.icp,
-                            classes=args.classes, note=_note)
+                            backend=args.backend, device=args.device, threads=args.threads,
+                            options=inference_settings(args), classes=args.classes, note=_note)
 
 
 # ----------------------------------------------------------------------------- run
@@ -272,6 +282,7 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.io.paths import output_dir
     from dope_hope.io.streams import stream_kind
 
+    args.icp = bool(inference_settings(args).get("icp"))  # settings checked before any work
     if any(stream_kind(item) for item in args.inputs):
         return _run_stream(args)
     given = [f"--{o.replace('_', '-')}" for o in STREAM_OPTIONS + RECORDING_OPTIONS

@@ -30,6 +30,11 @@ import argparse
 from pathlib import Path
 
 from dope_hope.commands.argtypes import nonnegative_int, positive_int
+from dope_hope.commands.settings import add_settings_arguments
+from dope_hope.errors import ConfigError
+
+# The library is imported inside the functions: cli.py imports every command to build --help,
+# which must not pay for numpy, OpenCV or torch.
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--models-dir", type=Path, metavar="DIR",
                      help="models folder (HOPE <Name>/textured.obj or BOP obj_NNNNNN.ply); with --object")
     src.add_argument("--object", dest="object_name", nargs="+", metavar="NAME",
-                     help="object name(s) in --models-dir, e.g. Ketchup Mustard; 'all': the 28 HOPE objects")
+                     help="object name(s) in --models-dir, e.g. Ketchup Mustard; 'all': every object the folder holds")
     src.add_argument("--procedural", action="store_true",
                      help="a new procedural box / can / bottle per frame (pretraining data; config "
                           "section 'procedural')")
@@ -63,10 +68,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--distractors", type=Path, metavar="DIR",
                         help="extra distractor meshes (.obj/.ply, e.g. the other HOPE objects; copies "
                              "of the target are excluded); default: procedural primitives only")
-    parser.add_argument("--config", default="synth", metavar="synth|PATH",
-                        help="generator ranges: config name or YAML merged over configs/synth.yaml")
-    parser.add_argument("--set", nargs="+", default=[], dest="overrides", metavar="KEY=VALUE",
-                        help="config overrides, e.g. --set target.count=[1,1] lights.shadows=true")
+    add_settings_arguments(parser, "synth", config_help=(
+        "generator ranges: a packaged config's name (synth, demo, procedural) or a YAML file, holding "
+        "what it changes from dope_hope/configs/synth.yaml (default synth: those defaults)"))
     parser.add_argument("--depth-noise", action="store_true",
                         help="RealSense-like noise and holes in the written depth")
     parser.add_argument("--preview", action="store_true",
@@ -76,13 +80,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from dope_hope.catalog import object_names
-    from dope_hope.config import apply_overrides
-    from dope_hope.errors import ConfigError
     from dope_hope.io.models_dir import find_object_mesh, objects_in_folder
     from dope_hope.io.paths import output_dir
     from dope_hope.synth.generate import SynthJob
+    from dope_hope.synth.settings import load_synth_config
     from dope_hope.synth.to_disk import generate_dataset
-    from dope_hope.synth.settings import load_synth_config, packaged_synth_config
 
     if args.mesh is not None and (args.models_dir is not None or args.object_name is not None):
         raise ConfigError("give either --mesh or --models-dir with --object, not both")
@@ -102,10 +104,7 @@ def run(args: argparse.Namespace) -> int:
     # one value stays one value: a one-object run passes the arguments it always did
     mesh, class_name, units = (v[0] if v is not None and len(v) == 1 else v
                                for v in (mesh, class_name, args.units))
-    config = args.config
-    if args.overrides:
-        config = apply_overrides(load_synth_config(args.config), args.overrides,
-                                 defaults=packaged_synth_config())
+    config = load_synth_config(args.config, args.overrides)
     output_dir(args.out)
     job = SynthJob(mesh, seed=args.seed, size=args.size, config=config, class_name=class_name, units=units,
                    backgrounds=args.backgrounds, distractors=args.distractors, depth_noise=args.depth_noise,

@@ -28,14 +28,20 @@ from __future__ import annotations
 
 import argparse
 import logging
+import time
 from pathlib import Path
 
 from dope_hope.commands.argtypes import device, nonnegative_float, nonnegative_int, positive_float, positive_int
+from dope_hope.commands.settings import add_settings_arguments, command_settings, given_settings
+from dope_hope.config import load_config
+from dope_hope.errors import ConfigError, InputFileError
+
+# The library is imported inside the functions: cli.py imports every command to build --help,
+# which must not pay for numpy, OpenCV or torch.
 
 
 def _time_budget(text: str) -> float:
     """argparse type of --time-budget: a finite number of minutes > 0, at most a year."""
-    from dope_hope.errors import ConfigError
     from dope_hope.training.settings import check_time_limit
 
     value = positive_float(text)
@@ -47,16 +53,17 @@ def _time_budget(text: str) -> float:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("--config", default="lite",
-                        help="config name (lite, dope_dr_50, dope_dr_400) or YAML path (default lite); "
-                             "ignored with --resume, which continues with the checkpoint's config")
+    add_settings_arguments(parser, "train", config_help=(
+        "training recipe: a packaged one's name (lite, dope_dr_50, dope_dr_400) or a YAML file holding "
+        "what it changes from the defaults (default lite); ignored with --resume, which continues with "
+        "the checkpoint's recipe; `dope-hope settings train` prints every value"))
     parser.add_argument("--data", nargs="+", type=Path, metavar="DIR",
                         help="training folder(s), DOPE format or BOP datasets (with --resume: default "
                              "the checkpoint's)")
     parser.add_argument("--object", dest="object_name", nargs="+", metavar="NAME",
                         help="object class(es) to train (case-insensitive), e.g. Ketchup, or Can Lemon "
-                             "for one network of several objects; 'all': the 28 HOPE objects (with "
-                             "--resume: default the checkpoint's)")
+                             "for one network of several objects; 'all': every object of --models-dir (without "
+                             "it: the 28 HOPE objects) (with --resume: default the checkpoint's)")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     parser.add_argument("--val", nargs="+", type=Path, default=[], metavar="DIR",
                         help="validation folder(s) (default: a seeded train.val_fraction split of --data)")
@@ -93,19 +100,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="mesh file units, one for all meshes or one per mesh (default: .obj cm, .ply mm)")
     parser.add_argument("--symmetries", type=Path, metavar="FILE",
                         help="the object's symmetries, BOP models_info style (default: model_info.json "
-                             "beside --mesh); used by --set targets.symmetry=auto")
-    parser.add_argument("--set", nargs="+", default=[], dest="overrides", metavar="KEY=VALUE",
-                        help="config overrides, e.g. --set train.lr=1e-3 augment.rotation_deg=30")
+                             "beside --mesh, else the HOPE category, else those found on --mesh); used by "
+                             "--set targets.symmetry=auto")
     parser.add_argument("--device", type=device, default="auto", help="auto (CUDA if available), cpu, cuda")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
-    import time
-
     started = time.monotonic()  # a time budget counts the command's own checks too
-    from dope_hope.config import apply_overrides, load_config
-    from dope_hope.errors import ConfigError, InputFileError
     from dope_hope.io.bop_scenes import is_bop_dataset
     from dope_hope.io.dope_json import list_dope_frames
     from dope_hope.io.paths import output_dir
@@ -127,7 +129,10 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     resume, args.init_weights = resolve_resume(args.resume, args.out, args.init_weights)
 
-    overrides = apply_overrides({}, list(args.overrides))
+    # checked over the recipe (a new run) or the defaults (a resumed run's recipe is its checkpoint's)
+    overrides = given_settings("train", None, list(args.overrides))
+    if resume is None:
+        command_settings("train", args.config, list(args.overrides))
     cli = {"epochs": args.epochs, "steps": args.steps, "batch_size": args.batch_size, "workers": args.workers,
            "lr": args.lr, "time_limit_min": args.time_budget, "seed": args.seed}
     for key, value in cli.items():

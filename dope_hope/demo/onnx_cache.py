@@ -6,6 +6,11 @@ import hashlib
 import json
 from pathlib import Path
 
+from dope_hope.export.pipeline import export_checkpoint
+from dope_hope.export.to_onnx import ExportSettings
+from dope_hope.io.atomic import atomic_write_text
+from dope_hope.version import __version__
+
 
 def file_sha256(path: Path) -> str:
     """Hex SHA-256 of a file's bytes."""
@@ -19,11 +24,6 @@ def file_sha256(path: Path) -> str:
 def ensure_onnx(weights: Path, out_dir: Path, input_hw: tuple[int, int]) -> tuple[Path, bool]:
     """Export ``weights`` to ``out_dir/<stem>.onnx`` at the fixed input (H, W) unless an export
     of the same weights (SHA-256) at that size is already there. Returns (path, exported)."""
-    from dope_hope.export.pipeline import export_checkpoint
-    from dope_hope.export.to_onnx import ExportSettings
-    from dope_hope.io.atomic import atomic_write_text
-    from dope_hope.version import __version__
-
     onnx_path = out_dir / f"{weights.stem}.onnx"
     stamp_path = out_dir / f"{weights.stem}.onnx.json"
     stamp = {"weights_sha256": file_sha256(weights), "input_hw": [int(v) for v in input_hw],

@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from dope_hope.evaluation.matching import DEFAULT_METRIC, METRIC_LABELS, TABLE_THRESHOLDS_M, match_frame, pose_errors
+
 if TYPE_CHECKING:
     from dope_hope.evaluation.matching import PoseErrors
 
@@ -75,8 +77,6 @@ def score_scene(res: SceneResult, gts: list, dets_plain: list, dets_ls: list, de
     """Fill ``res`` (errors, found flags, printed lines) from one scene's detections without
     depth refinement, with -LS and with -LS + ICP, matched to the ground truth as ``dope-hope
     evaluate`` matches; a scene is found when every instance is."""
-    from dope_hope.evaluation.matching import match_frame, pose_errors
-
     plain, ls, icp = (match_frame(d, gts, model) for d in (dets_plain, dets_ls, dets_icp))
     res.found_no_ls, res.found, res.found_icp = plain.found, ls.found, icp.found
     res.n_gt, res.true_positives = len(gts), int(ls.correct.sum())
@@ -110,8 +110,6 @@ def score_scene(res: SceneResult, gts: list, dets_plain: list, dets_ls: list, de
 def summary_lines(results: list[SceneResult], with_onnx: bool) -> list[str]:
     """The count ("found N/M scenes ...", M the measurable scenes), the medians over the
     detected measurable scenes, false positives and the backends' agreement."""
-    from dope_hope.evaluation.matching import DEFAULT_METRIC, METRIC_LABELS, TABLE_THRESHOLDS_M
-
     counted = [r for r in results if r.measurable]
     n = len(counted)
     found, found0, found2 = (sum(getattr(r, k) for r in counted) for k in ("found", "found_no_ls", "found_icp"))
@@ -143,8 +141,6 @@ def summary_lines(results: list[SceneResult], with_onnx: bool) -> list[str]:
 def next_steps(results: list[SceneResult], out: Path, mesh_path: Path) -> list[str]:
     """The `infer` and `evaluate` commands that read the demo's output, with the recall
     evaluate reports (the true positives with -LS over every scene's instances)."""
-    from dope_hope.evaluation.matching import DEFAULT_METRIC, METRIC_LABELS, TABLE_THRESHOLDS_M
-
     tp, n_gt = sum(r.true_positives for r in results), sum(r.n_gt for r in results)
     recall = f"{tp / n_gt:.3f}" if n_gt else "n/a"
     return [f"  overlays: {out}/NNNNNN.overlay.png, {out / 'overview.png'}; frames: {out / 'frames'}",

@@ -9,18 +9,35 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from dope_hope.demo.onnx_cache import ensure_onnx
 from dope_hope.demo.report import SceneResult, backend_agreement, next_steps, score_scene, summary_lines
 from dope_hope.demo.scenes import DEMO_CONFIG, IMAGE_SIZE, DemoScene, render_scene
+from dope_hope.demo_object import DEMO_CLASS_NAME, DEMO_SIZE_M, demo_object_mesh, write_demo_object
+from dope_hope.errors import ModelFileError
+from dope_hope.evaluation.object_models import load_models
+from dope_hope.geometry import cuboid_keypoints, project_points
+from dope_hope.inference import backends  # looked up at each call: a substituted open_backend counts
+from dope_hope.inference.predictor import DopePredictor
+from dope_hope.io.images import write_rgb
+from dope_hope.io.paths import output_dir
+from dope_hope.io.predictions import write_predictions_jsonl
+from dope_hope.refine.depth import DepthImage
+from dope_hope.synth import FrameGenerator
+from dope_hope.synth.writer import write_frame
+from dope_hope.viz import draw_cuboid, draw_label, montage, overlay_detections
 
 
 @dataclass
 class DemoSettings:
     """One demo run: ``scenes`` scenes of ``seed`` (None: a fresh random seed) into ``out``
     with the model at ``weights``; ``onnx``: also through onnxruntime; ``threads``: CPU
-    threads of each backend (None: the backend's default)."""
+    threads of each backend (None: the backend's default); ``options``: inference options
+    over the defaults (:class:`~dope_hope.inference.options.InferenceOptions`; min_score: the
+    model's own unless given)."""
 
     weights: Path
     out: Path
@@ -28,6 +45,7 @@ class DemoSettings:
     seed: int | None = None
     onnx: bool = True
     threads: int | None = None
+    options: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -47,32 +65,26 @@ class _Models:
 def _open_models(settings: DemoSettings, out: Path) -> _Models:
     """The backends before any rendering (torch imported after the GL context crashes on some
     machines); a model of another object is refused."""
-    from dope_hope.demo.onnx_cache import ensure_onnx
-    from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
-    from dope_hope.errors import ModelFileError
-    from dope_hope.evaluation.object_models import load_models
-    from dope_hope.inference.backends import backend_objects, model_min_score, open_backend
-    from dope_hope.inference.predictor import DopePredictor
-
-    torch_backend = open_backend(settings.weights, "torch", threads=settings.threads)  # a bad file stops here
-    names = [o.class_name for o in backend_objects(torch_backend)]
+    torch_backend = backends.open_backend(settings.weights, "torch", threads=settings.threads)  # a bad file stops here
+    names = [o.class_name for o in backends.backend_objects(torch_backend)]
     if DEMO_CLASS_NAME not in names:
         raise ModelFileError(settings.weights, f"a model of {', '.join(map(repr, names))}; the demo renders "
                                                f"{DEMO_CLASS_NAME!r} (pass a demo model with --weights)")
     mesh_path = write_demo_object(out / "mesh")
     mesh = demo_object_mesh()
     # The scenes hold the demo object only: a model of several objects reports that one.
-    torch_pred = DopePredictor(torch_backend, mesh=mesh, classes=[DEMO_CLASS_NAME])
+    torch_pred = DopePredictor(torch_backend, mesh=mesh, classes=[DEMO_CLASS_NAME], options=settings.options)
     _, input_hw = torch_pred.working_size((IMAGE_SIZE[1], IMAGE_SIZE[0]))
     onnx_pred, note = None, "ONNX off (--no-onnx)"
     if settings.onnx:
         t0 = time.perf_counter()
         onnx_path, exported = ensure_onnx(settings.weights, out, input_hw)
-        onnx_pred = DopePredictor(open_backend(onnx_path, "onnx", threads=settings.threads), mesh=mesh,
-                                  classes=[DEMO_CLASS_NAME])
+        onnx_pred = DopePredictor(backends.open_backend(onnx_path, "onnx", threads=settings.threads), mesh=mesh,
+                                  classes=[DEMO_CLASS_NAME], options=settings.options)
         note = f"ONNX {onnx_path} (" + (f"exported in {time.perf_counter() - t0:.1f} s" if exported else "cached") + ")"
     model = load_models([DEMO_CLASS_NAME], [str(mesh_path)])[DEMO_CLASS_NAME]
-    return _Models(torch_pred, onnx_pred, note, input_hw, model_min_score(torch_backend) is not None, mesh_path, model)
+    own_min_score = backends.model_min_score(torch_backend) is not None and "min_score" not in settings.options
+    return _Models(torch_pred, onnx_pred, note, input_hw, own_min_score, mesh_path, model)
 
 
 def clear_old_outputs(out: Path) -> None:
@@ -89,8 +101,6 @@ def clear_old_outputs(out: Path) -> None:
 
 def _run_scene(m: _Models, scene: DemoScene, name: str) -> tuple[SceneResult, list]:
     """Both backends, -LS and -LS + ICP on one scene, scored: (result, the -LS detections)."""
-    from dope_hope.refine.depth import DepthImage
-
     frame = scene.frame
     K, gts = frame.annotation.K, frame.annotation.objects
     t0 = time.perf_counter()
@@ -125,10 +135,6 @@ def _scene_header(i: int, n: int, scene: DemoScene, res: SceneResult, n_dets: in
 
 def _overlay(scene: DemoScene, res: SceneResult, dets_ls: list) -> np.ndarray:
     """The scene with the ground truth in white under the -LS detections and a verdict label."""
-    from dope_hope.demo_object import DEMO_SIZE_M
-    from dope_hope.geometry import cuboid_keypoints, project_points
-    from dope_hope.viz import draw_cuboid, draw_label, overlay_detections
-
     img, K = scene.frame.rgb, scene.frame.annotation.K
     for g in scene.frame.annotation.objects:
         img = draw_cuboid(img, project_points(cuboid_keypoints(DEMO_SIZE_M), K, g.R, g.t),
@@ -143,14 +149,6 @@ def run_demo(settings: DemoSettings, show: Callable[[str], None]) -> list[SceneR
     """Run the demo (see ``dope-hope demo --help``); ``show`` gets the header, each scene's
     lines and the summary as they come. Writes OUT/NNNNNN.overlay.png, OUT/overview.png,
     OUT/predictions.jsonl (PyTorch + -LS), OUT/mesh/ and OUT/frames/ (DOPE format)."""
-    from dope_hope.demo_object import DEMO_CLASS_NAME
-    from dope_hope.io.images import write_rgb
-    from dope_hope.io.paths import output_dir
-    from dope_hope.io.predictions import write_predictions_jsonl
-    from dope_hope.synth import FrameGenerator
-    from dope_hope.synth.writer import write_frame
-    from dope_hope.viz import montage
-
     t_start = time.perf_counter()
     out = output_dir(settings.out)
     m = _open_models(settings, out)

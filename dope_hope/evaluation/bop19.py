@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from dope_hope.annotation import ObjectAnnotation
 from dope_hope.errors import InputFileError
@@ -31,6 +32,7 @@ from dope_hope.evaluation import metrics
 from dope_hope.evaluation.datasets import VISIB_GT_MIN, Dataset, EvalFrame
 from dope_hope.evaluation.matching import greedy_match
 from dope_hope.evaluation.object_models import BopModel, ObjectModel
+from dope_hope.io.images import read_depth_m, read_image_raw
 from dope_hope.io.predictions import Prediction
 
 # Thresholds exactly as the toolkit's eval_bop19_pose.py builds them (np.arange: the third is
@@ -181,8 +183,6 @@ BOP_DATASET_IMAGE_SIZE = {"hope": (1920, 1080), "hopev2": (1920, 1080)}
 def _bop_depth_mm(frame: EvalFrame) -> np.ndarray:
     """(H, W) float32 test depth in mm, as the toolkit loads it (``load_depth`` as float32,
     times the scene's ``depth_scale`` in float32)."""
-    from dope_hope.io.images import read_depth_m, read_image_raw
-
     img = read_image_raw(frame.depth_path)
     if img.ndim == 3:
         img = img[:, :, 0]
@@ -374,8 +374,6 @@ def bop19_average_recall(dataset: Dataset, preds_by_frame: list[list[Prediction]
         {"ar", "ar_vsd" (None when skipped), "ar_mssd", "ar_mspd", "recalls": {...},
         "targets", "gt_valid", "notes": [...]}.
     """
-    from tqdm import tqdm
-
     notes: list[str] = []
     targets = _select_targets(dataset, models, notes)
     use_vsd, image_size = _check_inputs(dataset, preds_by_frame, models, targets, use_vsd, notes)

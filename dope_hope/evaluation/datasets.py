@@ -13,9 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
-
 from dope_hope.annotation import FrameAnnotation
 from dope_hope.errors import ConfigError, InputFileError
+from dope_hope.io import bop as bop_io
+from dope_hope.io.dope_json import list_dope_frames, read_dope_json, recorded_cuboid_size
+from dope_hope.io.hope_json import list_hope_frames, read_hope_json
+from dope_hope.io.layouts import dataset_layout
 from dope_hope.io.predictions import Prediction
 
 VISIB_GT_MIN = 0.1
@@ -97,12 +100,8 @@ def load_dataset(root: str | os.PathLike, fmt: str = "auto") -> Dataset:
     if not root.is_dir():
         raise InputFileError(root, "dataset folder not found")
     if fmt == "auto":
-        from dope_hope.io.layouts import dataset_layout
-
         fmt = dataset_layout(root)
     if fmt == "dope":
-        from dope_hope.io.dope_json import list_dope_frames, read_dope_json, recorded_cuboid_size
-
         frames, sizes = [], {}
         for p in (p for d in _subfolders(root) for p in list_dope_frames(d)):
             frame = _frame_from_annotation(root, read_dope_json(p), p)
@@ -113,8 +112,6 @@ def load_dataset(root: str | os.PathLike, fmt: str = "auto") -> Dataset:
                     sizes[name] = (size, p)
         ds = Dataset(root, fmt, frames, cuboid_sizes=sizes)
     elif fmt == "hope":
-        from dope_hope.io.hope_json import list_hope_frames, read_hope_json
-
         frames = [_frame_from_annotation(root, read_hope_json(p), p)
                   for d in _subfolders(root) for p in list_hope_frames(d)]
         ds = Dataset(root, fmt, frames)
@@ -131,8 +128,6 @@ def _load_bop(root: Path) -> Dataset:
     """A BOP split folder (``<split>/<scene_id>/scene_gt.json`` ...) or a dataset folder with
     a ``test/`` split, through :mod:`dope_hope.io.bop`; targets from
     ``test_targets_bop19.json`` in the split or dataset folder when present."""
-    from dope_hope.io import bop as bop_io
-
     split_dir = root
     if not bop_io.list_bop_scenes(root) and (root / "test").is_dir():
         split_dir = root / "test"

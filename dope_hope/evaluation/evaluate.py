@@ -47,12 +47,14 @@ from dope_hope.evaluation.reports import (
     _th_label,
     detection_rates,
     object_table,
+    render_curves,
     summary_rows,
     table_csv,
-    render_curves,
     table_markdown,
 )
 from dope_hope.io.atomic import atomic_write_files
+from dope_hope.io.meshes import mesh_cuboid
+from dope_hope.io.predictions import read_predictions
 
 if TYPE_CHECKING:
     from dope_hope.io.predictions import Prediction
@@ -82,8 +84,6 @@ def cuboid_centres_to_origins(preds: list[Prediction], models: dict[str, ObjectM
     """Give predictions that place the bounding box's centre (``origin == "cuboid"``: official
     DOPE output) the mesh origin's translation, in place: ``t - R c`` with c the centre of
     the model's box in the mesh frame (0 for the centred HOPE meshes)."""
-    from dope_hope.io.meshes import mesh_cuboid
-
     centres: dict[str, np.ndarray] = {}
     for p in preds:
         if p.origin != "cuboid":
@@ -102,8 +102,6 @@ def _safe_name(name: str) -> str:
 def _load_predictions(cfg: EvalConfig, dataset: Dataset, log: Callable[[str], None]) -> list[tuple]:
     """[(method name, path, predictions, predictions per dataset frame)] of every file; names
     from ``--method``, else the file's header, else its stem (each once)."""
-    from dope_hope.io.predictions import read_predictions
-
     loaded = []
     for k, path in enumerate(cfg.predictions):
         preds, meta = read_predictions(path, cfg.official_frame)
@@ -207,6 +205,9 @@ def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[
     bop_ar = cfg.bop_ar if cfg.bop_ar is not None else dataset.fmt == "bop"
     models = load_models(classes, cfg.mesh, cfg.models_dir, cfg.mesh_units, symmetry_args=cfg.symmetries,
                          recorded_sizes=dataset.cuboid_sizes, mesh_required=gt_classes)
+    for name, model in models.items():
+        if model.found_symmetries:
+            log(f"symmetries: {name}: {model.found_symmetries}")
     for _, _, preds, _ in loaded:
         cuboid_centres_to_origins(preds, models)
     out_dir = Path(cfg.out)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+from tqdm import tqdm
 
 from dope_hope.annotation import ObjectAnnotation
 from dope_hope.errors import ConfigError
@@ -126,8 +127,6 @@ def compute_errors(dataset: Dataset, preds_by_frame: list[list[Prediction]],
     ADD-H values above ``upper`` may be returned as a lower bound (>= ``upper``), which
     never changes a match at thresholds <= ``upper``.
     """
-    from tqdm import tqdm
-
     groups = []
     for fi in tqdm(range(len(dataset.frames)), desc="errors", unit="img", disable=not progress):
         frame = dataset.frames[fi]

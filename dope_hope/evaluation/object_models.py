@@ -5,7 +5,8 @@
 without one, from the catalog's cuboid. Symmetries: the object's declaration
 (:func:`dope_hope.symmetry.resolve.resolve_symmetries`: a BOP ``models_info.json`` entry
 beside the mesh, ``--symmetries``, ``model_info.json`` beside the mesh (the one
-``dope-hope demo`` writes for its box)), else the catalog category's. Each also carries a :class:`BopModel`: the model as BOP19 scoring
+``dope-hope demo`` writes for its box)), else the catalog category's, else those found on
+the mesh (:mod:`dope_hope.symmetry.detect`). Each also carries a :class:`BopModel`: the model as BOP19 scoring
 uses it (every vertex of the file, millimetres).
 """
 from __future__ import annotations
@@ -17,8 +18,21 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import trimesh
 
+from dope_hope.catalog import get_object
 from dope_hope.errors import InputFileError, UnknownObjectError
+from dope_hope.geometry import UNIT_SCALE
+from dope_hope.io.meshes import (
+    check_mesh_box,
+    check_plausible_size,
+    load_mesh,
+    mesh_cuboid,
+    mesh_diameter,
+    read_ply,
+    sample_surface_points,
+)
+from dope_hope.io.models_dir import bop_obj_id, check_run_object, find_object_mesh, parse_mesh_args
 from dope_hope.io.symmetries import SymmetryDeclaration
 from dope_hope.symmetry.resolve import ObjectSymmetries, resolve_symmetries
 from dope_hope.symmetry.transforms import category_symmetries, centred_symmetries, symmetries_from_models_info
@@ -67,6 +81,8 @@ class ObjectModel:
         source: where points / mesh come from, for the report.
         procedural: True when the points are sampled on the catalog cuboid (no mesh given).
         bop: the model for BOP19 scoring (all vertices, millimetres).
+        found_symmetries: what was found on the mesh when its symmetries come from it (one
+            line: ``detected on the mesh: ...``), else "".
     """
 
     name: str
@@ -79,6 +95,7 @@ class ObjectModel:
     source: str = ""
     procedural: bool = False
     bop: BopModel | None = None
+    found_symmetries: str = ""
 
 
 @dataclass
@@ -94,16 +111,13 @@ class _LoadedMesh:
 
 def _load_mesh_file(path: Path, mesh_units: str | None) -> _LoadedMesh:
     """Read one mesh for the metrics (a PLY without faces becomes a point cloud: no VSD)."""
-    import trimesh
-
-    from dope_hope.geometry import UNIT_SCALE
-    from dope_hope.io.meshes import load_mesh, read_ply
-
     ply, units, source = None, mesh_units or "mm", f"mesh {path}"
     if path.suffix.lower() == ".ply":
         ply = read_ply(path)  # as stored (BOP19 scoring); faces may be absent
     if ply is not None and ply[1] is None:
-        return _LoadedMesh(trimesh.PointCloud(ply[0] * UNIT_SCALE[units]), ply, units,
+        cloud = trimesh.PointCloud(ply[0] * UNIT_SCALE[units])
+        check_plausible_size(np.ptp(cloud.vertices, axis=0), units, path)
+        return _LoadedMesh(cloud, ply, units,
                            source + " (point cloud: no VSD)")
     mesh = load_mesh(path, units=mesh_units)
     return _LoadedMesh(mesh, ply, mesh.metadata["source_units"], source)
@@ -113,22 +127,18 @@ def _check_box(name: str, loaded: _LoadedMesh, path: Path, obj: Any,
                recorded_sizes: dict[str, tuple[np.ndarray, Path]] | None) -> None:
     """A mesh without a BOP entry must match the box recorded for its object (the dataset's,
     else the catalog's; extents in any axis order)."""
-    from dope_hope.io.meshes import check_mesh_box, mesh_cuboid
-
     if recorded_sizes and name in recorded_sizes:
         size, where = recorded_sizes[name]
         check_mesh_box(mesh_cuboid(loaded.mesh)[0], size, str(path), name,
-                       f"the cuboid {Path(where).name} records", any_axis_order=True)
+                       f"the cuboid {Path(where).name} records", any_axis_order=True, units=loaded.units)
     elif obj is not None:
         check_mesh_box(mesh_cuboid(loaded.mesh)[0], obj.size_array, str(path), name,
-                       "the HOPE catalog's cuboid", any_axis_order=True)
+                       "the HOPE catalog's cuboid", any_axis_order=True, units=loaded.units)
 
 
 def _declared_model_symmetries(decl: SymmetryDeclaration, mesh: Any) -> tuple[np.ndarray, float]:
     """A declaration's symmetries discretized as the BOP toolkit does ((S, 4, 4) metres) and
     the diameter (the declaration's, else the mesh's), metres."""
-    from dope_hope.io.meshes import mesh_diameter
-
     syms = symmetries_from_models_info(decl.entry, BOP19_MAX_SYM_DISC_STEP, unit=decl.unit_m, source=decl.source)
     return syms, decl.diameter_m or mesh_diameter(mesh)
 
@@ -137,8 +147,6 @@ def _bop_model(loaded: _LoadedMesh, path: Path | None, found: ObjectSymmetries, 
                diameter: float) -> BopModel:
     """The model for BOP19 scoring: the file's vertices (to mm unless in mm), the declaration's
     numbers in mm (as stored for a BOP one), else the metre symmetries and diameter x 1000."""
-    from dope_hope.geometry import UNIT_SCALE
-
     if loaded.ply is not None:  # the file's vertices as stored; to mm unless in mm (BOP)
         to_mm = UNIT_SCALE[loaded.units] / UNIT_SCALE["mm"]
         verts, faces = (loaded.ply[0] if to_mm == 1.0 else loaded.ply[0] * to_mm), loaded.ply[1]
@@ -176,12 +184,6 @@ class _ModelArgs:
 
 def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectModel:
     """One class's :class:`ObjectModel` (see :func:`load_models`)."""
-    import trimesh
-
-    from dope_hope.catalog import get_object
-    from dope_hope.io.meshes import mesh_cuboid, mesh_diameter, sample_surface_points
-    from dope_hope.io.models_dir import bop_obj_id
-
     try:
         obj = get_object(name)
     except UnknownObjectError:
@@ -204,14 +206,17 @@ def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectMod
     source = loaded.source
     if found.declaration is not None:
         syms, diameter = _declared_model_symmetries(found.declaration, loaded.mesh)
-        source += f" + symmetries {found.declaration.source}"
+        source += f" + symmetries {found.describe() if found.detected else found.declaration.source}"
     else:
         syms = (category_symmetries(category, step_deg=models.cyl_step_deg) if obj else np.eye(4)[None])
         syms = centred_symmetries(syms, mesh_cuboid(loaded.mesh)[1])
         diameter = mesh_diameter(loaded.mesh)
+        if found.detected is not None:
+            source += f" + symmetries {found.describe()}"
     return ObjectModel(name=name, obj_id=obj_id, category=category, points=points, diameter=diameter,
                        symmetries=syms, mesh=loaded.mesh, source=source, procedural=path is None,
-                       bop=_bop_model(loaded, path, found, syms, diameter))
+                       bop=_bop_model(loaded, path, found, syms, diameter),
+                       found_symmetries=found.describe() if found.detected is not None else "")
 
 
 def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
@@ -235,7 +240,8 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
     mesh; lengths in the mesh's unit), discretized as the toolkit does from the numbers as
     written (:func:`dope_hope.symmetry.transforms.symmetries_from_models_info`); else the
     catalog category's (cylinders in ``cyl_step_deg`` steps) about the mesh's box centre; a
-    class outside the catalog without a declaration has only the identity. The tables use
+    class outside the catalog without a declaration has those found on its mesh
+    (:mod:`dope_hope.symmetry.detect`, discretized as a declaration), else only the identity. The tables use
     ``n_points`` surface samples; BOP19 scoring (``ObjectModel.bop``) every vertex of the
     file, as the toolkit (a PLY is read as stored: :func:`io.meshes.read_ply`); a BOP PLY in
     mm with its ``models_info.json`` entry (diameter included) is the toolkit's exact input.
@@ -247,14 +253,16 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
 
     Raises:
         InputFileError / ConfigError / UnknownObjectError: unreadable mesh or declaration;
+        a NAME in ``--mesh`` / ``--symmetries`` NAME=... or ``mesh_units`` that is not a class;
         ``models_dir`` without the mesh of a required class (and no ``--mesh`` for it); a
         bare ``--mesh PATH`` of an unknown class among several; ``--symmetries`` for an object
         whose ``models_info.json`` entry declares them; a class neither in the catalog nor
         given a mesh. ConfigError: a mesh whose box does not match.
     """
-    from dope_hope.io.models_dir import find_object_mesh, parse_mesh_args
-
     meshes = parse_mesh_args(mesh_args, class_names)
+    if isinstance(mesh_units, Mapping):  # NAME=UNIT: NAME must be an object scored
+        mesh_units = {(check_run_object(k, class_names, "--mesh-units", f"{k}={u}") if k else ""): u
+                      for k, u in mesh_units.items()}
     args = _ModelArgs(mesh_units, n_points, cyl_step_deg,
                       parse_mesh_args(symmetry_args, class_names, flag="--symmetries"), recorded_sizes)
     if models_dir is not None and not os.path.isdir(models_dir):

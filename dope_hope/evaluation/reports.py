@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.spatial import ConvexHull, QhullError
 
 from dope_hope.annotation import ObjectAnnotation
 from dope_hope.evaluation.datasets import Dataset
@@ -37,7 +38,6 @@ def _pixels(gt: ObjectAnnotation, model: ObjectModel, K: np.ndarray | None) -> f
     """Area (px^2) of the convex hull of the projected model points; NaN if unknown."""
     if K is None:
         return math.nan
-    from scipy.spatial import ConvexHull, QhullError
 
     cam = model.points @ np.asarray(gt.R).T + np.asarray(gt.t).reshape(3)
     if np.any(cam[:, 2] <= 0):
@@ -245,6 +245,7 @@ def render_curves(curves: dict[tuple[str, str], dict[str, dict[str, Any]]],
     Args:
         curves: {(method, metric): detection_rates(...)}.
     """
+    # matplotlib (slow to import) only for the curves
     import matplotlib
 
     matplotlib.use("Agg")

@@ -6,6 +6,10 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from dope_hope.maps.decode import DecodeSettings, decode_maps
+from dope_hope.maps.peaks import find_peaks
 
 if TYPE_CHECKING:
     from dope_hope.maps.decode import DecodeSettings
@@ -60,8 +64,6 @@ class MapDeviation:
 
 # ----------------------------------------------------------------------------- comparison
 def _match_instances(ref, test, max_px: float):
-    from scipy.optimize import linear_sum_assignment
-
     if not ref or not test:
         return []
     a = np.array([r.keypoints[8] for r in ref])
@@ -75,10 +77,6 @@ def _match_instances(ref, test, max_px: float):
 def _peak_distances(ref_belief: np.ndarray, test_belief: np.ndarray, stride: int,
                     threshold: float, smooth_sigma: float) -> tuple[int, np.ndarray]:
     """(number of reference peaks, distances of the matched ones in image px)."""
-    from scipy.optimize import linear_sum_assignment
-
-    from dope_hope.maps.peaks import find_peaks
-
     pr = find_peaks(ref_belief, threshold=threshold, smooth_sigma=smooth_sigma)
     pt = find_peaks(test_belief, threshold=threshold, smooth_sigma=smooth_sigma)
     out = []
@@ -117,8 +115,6 @@ def compare_maps(reference: Sequence[tuple[np.ndarray, np.ndarray]],
     map cells), and the distance of every keypoint found in both is measured, image px.
     Belief peaks are also compared one by one, without grouping (:class:`MapDeviation`).
     """
-    from dope_hope.maps.decode import DecodeSettings, decode_maps
-
     decode = DecodeSettings() if decode is None else decode
 
     if len(reference) != len(test) or not reference:

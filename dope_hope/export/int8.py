@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import platform
 import tempfile
 from collections.abc import Sequence
 from dataclasses import replace
@@ -22,9 +23,10 @@ from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.export.compare import MapDeviation, compare_maps
 from dope_hope.export.to_onnx import INT8_MIN_OPSET, _doc, _set_metadata
 from dope_hope.io.atomic import atomic_path
-from dope_hope.io.images import IMAGE_SUFFIXES, image_files
+from dope_hope.io.images import IMAGE_SUFFIXES, image_files, read_rgb
 from dope_hope.model.onnx_contract import OnnxModelInfo
 from dope_hope.model.onnx_graph import OnnxGraph
+from dope_hope.preprocess import prepare_input, to_rgb8, working_size
 
 CALIBRATION_METHODS = ("minmax", "entropy", "percentile")
 
@@ -57,9 +59,6 @@ class ImageFolderReader:
 
     def prepare(self, path: Path) -> np.ndarray:
         """(1, 3, H, W) model-normalized batch of one image file, as the predictor makes it."""
-        from dope_hope.io.images import read_rgb
-        from dope_hope.preprocess import prepare_input, to_rgb8, working_size
-
         rgb = to_rgb8(read_rgb(path))
         info = self.backend.info
         resized, padded = working_size(rgb.shape[:2], input_hw=info.input_hw,
@@ -87,8 +86,6 @@ def cpu_int8_support(cpuinfo: str | None = None, machine: str | None = None) -> 
     description such as "x86-64 AVX2, no VNNI"). ``cpuinfo``/``machine``: for tests
     (default: ``/proc/cpuinfo`` and ``platform.machine()``).
     """
-    import platform
-
     machine = (machine or platform.machine()).lower()
     if cpuinfo is None:
         try:
@@ -154,6 +151,7 @@ def quantize_int8(fp32_path: str | os.PathLike, out: str | os.PathLike, calibrat
         activation_uint8: UINT8 activations (x86 CPU recommendation) or INT8 (ARM/TensorRT).
     Returns (metadata, deviation of INT8 from fp32).
     """
+    # onnx / onnxruntime (slow to import) only for INT8
     import onnx
     from onnxruntime.quantization import (
         CalibrationMethod,

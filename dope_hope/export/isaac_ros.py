@@ -45,6 +45,9 @@ from typing import TYPE_CHECKING
 
 from dope_hope.errors import ConfigError
 
+# numpy, OpenCV, scipy and geometry are imported inside the functions: `dope-hope export` reads
+# ISAAC_ROS_CURRENT from this module to build its --help, which must not pay for them.
+
 if TYPE_CHECKING:
     import numpy as np
 

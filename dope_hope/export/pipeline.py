@@ -11,6 +11,7 @@ from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.export.int8 import list_images, quantize_int8
 from dope_hope.export.isaac_ros import isaac_ros_release
 from dope_hope.export.to_onnx import ExportResult, ExportSettings, export_model, select_object
+from dope_hope.model.checkpoint import load_model
 from dope_hope.model.info import ModelInfo
 
 
@@ -33,8 +34,6 @@ def export_checkpoint(weights: str | os.PathLike, out: str | os.PathLike,
     of a multi-object model needs one); with ``int8`` the fp32 graph goes to a temporary file
     and ``out`` receives the INT8 model (:func:`quantize_int8`).
     """
-    from dope_hope.model.checkpoint import load_model
-
     t0 = time.perf_counter()
     weights, out = Path(weights), Path(out)
     if settings.dynamic and settings.input_hw is not None:

@@ -76,7 +76,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from dope_hope.version import __version__
+from dope_hope.config import SectionSettings, boolean, one_of, or_none, section, whole_number
 from dope_hope.errors import ConfigError, DopeHopeError
 from dope_hope.export.compare import MapDeviation
 from dope_hope.export.isaac_ros import ENCODERS as ISAAC_ENCODERS
@@ -94,6 +94,8 @@ from dope_hope.model.onnx_contract import (
     OnnxModelInfo,
     output_order,
 )
+from dope_hope.preprocess import check_working_side
+from dope_hope.version import __version__
 
 #: Default ONNX opset and the range the TorchScript exporter handles here.
 OPSET = 17
@@ -109,9 +111,30 @@ INT8_MIN_OPSET = 13
 ISAAC_ROS_INPUT_HW = (480, 640)
 
 
+def _opset(value: Any, name: str) -> int:
+    opset = whole_number(value, name, 0)
+    if not MIN_OPSET <= opset <= MAX_OPSET:
+        raise ConfigError(f"{name} must be {MIN_OPSET}..{MAX_OPSET} (TorchScript exporter), got {value!r}")
+    return opset
+
+
+def _input_hw(value: Any, name: str) -> tuple[int, int]:
+    if isinstance(value, (str, bytes, dict)) or not hasattr(value, "__len__") or len(value) != 2:
+        raise ConfigError(f"{name} must be [H, W], got {value!r}")
+    return check_working_side(value[0], name), check_working_side(value[1], name)
+
+
+def _text(value: Any, name: str) -> str:
+    """A string (what it must look like is checked where it is used, e.g. the Isaac ROS release)."""
+    if not isinstance(value, str):
+        raise ConfigError(f"{name} must be a string, got {value!r}")
+    return value
+
+
 @dataclass(frozen=True)
-class ExportSettings:
-    """What an ONNX file is built as (the options of `dope-hope export`).
+class ExportSettings(SectionSettings):
+    """What an ONNX file is built as (the ``export`` section of `dope-hope export`'s settings;
+    its flags set the same keys).
 
     layout: "native" or "isaac-ros" (module docstring). input_hw: (H, W), multiples of 8;
     None: the training input size (native) or 480x640 (isaac-ros); with ``dynamic`` it only
@@ -124,6 +147,11 @@ class ExportSettings:
     None: every object of the model.
     """
 
+    SECTION = "export"
+    RULES = {"layout": one_of("native", "isaac-ros"), "input_hw": or_none(_input_hw), "dynamic": boolean,
+             "opset": _opset, "isaac_encoder": or_none(one_of("half", "imagenet")), "isaac_ros_version": _text,
+             "object_name": or_none(_text)}
+
     layout: str = "native"
     input_hw: tuple[int, int] | None = None
     dynamic: bool = False
@@ -131,6 +159,15 @@ class ExportSettings:
     isaac_encoder: str | None = None
     isaac_ros_version: str = ISAAC_ROS_CURRENT
     object_name: str | None = None
+
+
+@dataclass(frozen=True)
+class ExportConfig(SectionSettings):
+    """The settings of `dope-hope export`: its one section, ``export``."""
+
+    SECTION = ""
+
+    export: ExportSettings = section(ExportSettings)
 
 
 #: The map stride the Isaac ROS decoder assumes, and the strides resampled to it in-graph.
@@ -336,6 +373,7 @@ def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.Pat
     Raises ConfigError for impossible options, ExportError if the graph does not reproduce
     the model.
     """
+    # onnx (slow to import) only when a file is exported
     import onnx
 
     layout, input_hw, dynamic, opset = settings.layout, settings.input_hw, settings.dynamic, settings.opset
@@ -397,6 +435,7 @@ def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.Pat
 
 def _verify(wrapper: nn.Module, path: Path, x: torch.Tensor, layout: str) -> float:
     """max |onnxruntime - torch| on ``x`` (graph-normalized input); ExportError if too large."""
+    # onnxruntime (slow to import) only to verify an export
     import onnxruntime as ort
 
     with torch.inference_mode():

@@ -12,8 +12,10 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
+import torch
 
 from dope_hope.errors import ConfigError, ModelFileError
+from dope_hope.model.checkpoint import load_model
 from dope_hope.model.info import ModelInfo, ObjectInfo
 from dope_hope.model.onnx_graph import require_model_file
 
@@ -87,15 +89,11 @@ class TorchBackend:
     @classmethod
     def load(cls, path: str | os.PathLike, device: str = "cpu") -> TorchBackend:
         """Load a dope-hope checkpoint (``weights_only``); ModelFileError for a bad file."""
-        from dope_hope.model.checkpoint import load_model
-
         model, ckpt = load_model(path, device=device)
         return cls(model, ckpt, device=device, source=path)
 
     def run(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 3, H, W) float32 normalized -> belief (N, 9K, h, w), affinity (N, 16K, h, w)."""
-        import torch
-
         x = torch.from_numpy(np.ascontiguousarray(batch, dtype=np.float32)).to(self.device)
         with torch.inference_mode():
             belief, affinity = self.model(x)[-1]
@@ -134,6 +132,7 @@ def open_backend(weights: str | os.PathLike, backend: str = "auto", device: str 
                                    "'auto' (or export it with dope-hope export)")
     if kind == "onnx":
         try:
+            # onnxruntime (slow to import) only for an ONNX model
             from dope_hope.inference.onnx_backend import OnnxBackend
         except ModuleNotFoundError as exc:
             if exc.name != "dope_hope.inference.onnx_backend":

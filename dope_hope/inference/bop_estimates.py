@@ -15,8 +15,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from tqdm import tqdm
+
 from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
+from dope_hope.inference import backends  # looked up at each call: a substituted open_backend counts
+from dope_hope.inference.predictor import DopePredictor, predict_many
 from dope_hope.io.bop_csv import BopEstimate
+from dope_hope.io.images import read_depth_m, read_rgb
+from dope_hope.io.models_dir import bop_obj_id, find_object_mesh
 
 
 def obj_id_of(class_name: str) -> int:
@@ -25,8 +31,6 @@ def obj_id_of(class_name: str) -> int:
     Raises:
         UnknownObjectError: the class has none.
     """
-    from dope_hope.io.models_dir import bop_obj_id
-
     obj_id = bop_obj_id(class_name)
     if obj_id is None:
         raise UnknownObjectError(f"model class {class_name!r} has no BOP obj_id (not a HOPE object, "
@@ -58,14 +62,10 @@ def load_bop_models(weights: Sequence[str | os.PathLike], models_dir: Path | Non
     Raises:
         ConfigError: two models (or one model twice) for the same obj_id.
     """
-    from dope_hope.inference.backends import backend_objects, open_backend
-    from dope_hope.inference.predictor import DopePredictor
-    from dope_hope.io.models_dir import find_object_mesh
-
     out = BopModels()
     for w in weights:
-        opened = open_backend(w, backend, device, threads)
-        names = [o.class_name for o in backend_objects(opened)]
+        opened = backends.open_backend(w, backend, device, threads)
+        names = [o.class_name for o in backends.backend_objects(opened)]
         ids = [obj_id_of(name) for name in names]
         for obj_id, name in zip(ids, names):
             if obj_id in out.predictors or ids.count(obj_id) > 1:
@@ -98,11 +98,6 @@ def estimate_frames(split_dir: Path, frames: Sequence[Any], wanted: Mapping[tupl
     Raises:
         InputFileError: a targeted image without its file.
     """
-    from tqdm import tqdm
-
-    from dope_hope.inference.predictor import predict_many
-    from dope_hope.io.images import read_depth_m, read_rgb
-
     estimates: list[BopEstimate] = []
     seconds, images = 0.0, 0
     for bf in tqdm(frames, desc="bop-submit", unit="img", disable=not progress, file=sys.stderr):

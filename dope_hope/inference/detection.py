@@ -14,6 +14,7 @@ import numpy as np
 from dope_hope.geometry import (
     matrix_to_quaternion_xyzw,
 )
+from dope_hope.io.predictions import prediction_record
 
 
 # ----------------------------------------------------------------------------- detections
@@ -78,8 +79,6 @@ class Detection:
         ``image`` names the frame (omitted when None: then pass ``scene_id``/``im_id``);
         ``extra`` adds keys (e.g. ``time``, ``scene_id``). The result is strict JSON (no NaN).
         """
-        from dope_hope.io.predictions import prediction_record
-
         kp = [[None if not math.isfinite(v) else round(float(v), 3) for v in row]
               for row in np.asarray(self.keypoints_2d, dtype=np.float64)]
         rec = prediction_record(

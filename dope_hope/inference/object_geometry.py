@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from dope_hope.catalog import get_object
 from dope_hope.errors import ConfigError, UnknownObjectError
 from dope_hope.geometry import LEGACY_TO_MESH, NUM_KEYPOINTS, cuboid_keypoints
 from dope_hope.model.info import ObjectInfo
@@ -27,15 +28,16 @@ class ObjectGeometry:
             model's cuboid (refused when it differs by more than 25 %) and its surface feeds
             the depth steps.
         mesh_units: units of a mesh file ("m", "cm", "mm"; default by suffix).
-        ls_points, icp_points: surface points sampled for the line search / ICP.
+        ls_points, icp_points: surface points sampled for the line search / ICP (the
+            inference options' ``ls_points`` / ``icp_points``).
 
     Attributes: class_name, group, symmetries (BOP fields, mm, or None), mesh,
     cuboid_size_m / cuboid_center_m (mesh frame, m), cuboid_mesh ((9, 3) mesh-frame keypoints,
     current order), cuboid_pnp (the keypoints PnP fits: legacy frame and order for a legacy model).
     """
 
-    def __init__(self, info: ObjectInfo, group: int, legacy: bool, mesh: Any = None,
-                 mesh_units: str | None = None, ls_points: int = 1000, icp_points: int = 2000):
+    def __init__(self, info: ObjectInfo, group: int, legacy: bool, mesh: Any,
+                 mesh_units: str | None, ls_points: int, icp_points: int):
         self.class_name = str(info.class_name)
         self.group = int(group)
         self.symmetries = info.symmetries
@@ -65,6 +67,7 @@ class ObjectGeometry:
         return belief[9 * k:9 * k + 9], affinity[16 * k:16 * k + 16]
 
     def _load_mesh(self, mesh: Any, units: str | None, model_size: np.ndarray):
+        # meshes (trimesh) only for an object given a mesh
         from dope_hope.io.meshes import check_mesh_box, load_mesh, mesh_cuboid
 
         source = "<mesh>"
@@ -72,7 +75,8 @@ class ObjectGeometry:
             source = str(mesh)
             mesh = load_mesh(mesh, units=units)
         size, center = mesh_cuboid(mesh)
-        check_mesh_box(size, model_size, source, self.class_name, "the model's cuboid")
+        check_mesh_box(size, model_size, source, self.class_name, "the model's cuboid",
+                       units=mesh.metadata.get("source_units"))
         return mesh, size, center
 
     def surface(self):
@@ -80,6 +84,7 @@ class ObjectGeometry:
         in front of the real surface: pass the mesh for non-box objects), metres."""
         if self.mesh is not None:
             return self.mesh
+        # trimesh only for an object given a mesh
         import trimesh
 
         box = trimesh.creation.box(extents=self.cuboid_size_m)
@@ -90,7 +95,6 @@ class ObjectGeometry:
         """Without a mesh ICP fits the cuboid's surface to the depth: right for a box only."""
         if self.mesh is not None:
             return
-        from dope_hope.catalog import get_object
 
         try:
             category = get_object(self.class_name).category
@@ -104,6 +108,7 @@ class ObjectGeometry:
     def model_points(self) -> np.ndarray:
         """(ls_points, 3) mesh-frame surface points for the line search, metres (cached)."""
         if self._model_points is None:
+            # meshes (trimesh) only for an object given a mesh
             from dope_hope.io.meshes import sample_surface_points
 
             self._model_points = sample_surface_points(self.surface(), self.ls_points, seed=0)
@@ -125,6 +130,7 @@ class ObjectGeometry:
         """((icp_points, 3) mesh-frame surface points, metres; their (icp_points, 3) unit
         normals) for ICP (cached)."""
         if self._icp_model is None:
+            # meshes (trimesh) only for an object given a mesh
             from dope_hope.io.meshes import sample_surface_points
 
             self.check_icp_surface()

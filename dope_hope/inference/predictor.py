@@ -90,7 +90,6 @@ from dope_hope.refine.depth import DepthImage
 from dope_hope.refine.icp import icp_refine
 from dope_hope.refine.line_search import depth_line_search
 
-
 #: Scale range of the line search the ICP stage repeats when the default one refused.
 ICP_LS_SEARCH = (0.5, 2.0)
 

@@ -12,8 +12,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from tqdm import tqdm
+
 from dope_hope.inference.frame_loop import StreamStats, run_stream
 from dope_hope.io.streams import Frame, FrameSource
+from dope_hope.viz import overlay_detections
 
 
 @dataclass
@@ -61,10 +64,8 @@ def predict_stream(source: FrameSource, predictors: Sequence[Any], sinks: Stream
     Returns:
         The loop's stats and every record.
     """
-    from tqdm import tqdm
-
+    # torch comes with the predictors: after frame_loop.passive_openmp()
     from dope_hope.inference.predictor import as_depth_image, predict_many
-    from dope_hope.viz import overlay_detections
 
     sinks = sinks or StreamSinks()
     records: list[dict] = []

@@ -46,6 +46,7 @@ from dope_hope.geometry import NUM_KEYPOINTS, matrix_to_quaternion_xyzw, project
 from dope_hope.inference.detection import Detection
 from dope_hope.inference.pose_filter import PoseFilter, closest_equivalent
 from dope_hope.inference.tracking_settings import TrackingSettings
+from dope_hope.io.predictions import prediction_record
 from dope_hope.refine.depth import DepthImage
 from dope_hope.refine.line_search import depth_line_search
 
@@ -95,8 +96,6 @@ class TrackedObject:
         ``quaternion_xyzw`` the published pose, ``R_detected`` / ``t_detected`` the frame's own
         estimate (null when coasted), ``track_id``, ``tracked``; the detection's other fields
         (keypoints, -LS, ...) when detected."""
-        from dope_hope.io.predictions import prediction_record
-
         box = None if self.bbox_2d is None else [round(float(v), 2) for v in self.bbox_2d]
         pose = {"R": np.asarray(self.R, dtype=np.float64).tolist(), "t": [float(v) for v in self.t],
                 "quaternion_xyzw": [float(v) for v in self.quaternion_xyzw], "bbox_2d": box}
@@ -132,6 +131,7 @@ def object_symmetries(class_name: str, mesh_path: Any = None, units: str | None 
     resolution order (:func:`dope_hope.symmetry.resolve.resolve_symmetries`: declarations beside
     its mesh file, the demo box's own, the HOPE category), else the identity only. Continuous
     symmetries are sampled every :data:`SYMMETRY_STEP_DEG`."""
+    # meshes (trimesh) only for a class's declared symmetries
     from dope_hope.symmetry.resolve import resolve_symmetries
     from dope_hope.symmetry.transforms import category_symmetries, declaration_transforms
 
@@ -142,6 +142,16 @@ def object_symmetries(class_name: str, mesh_path: Any = None, units: str | None 
     if found.category is not None:
         return category_symmetries(found.category, SYMMETRY_STEP_DEG)
     return np.eye(4)[None]
+
+
+def recorded_symmetries(fields: Any) -> np.ndarray:
+    """(S, 4, 4) model-frame symmetries, metres, of the BOP fields (mm) a model records for an
+    object (``ObjectInfo.symmetries``); continuous ones every :data:`SYMMETRY_STEP_DEG`."""
+    from dope_hope.io.symmetries import SymmetryDeclaration
+    from dope_hope.symmetry.transforms import declaration_transforms
+
+    return declaration_transforms(SymmetryDeclaration(dict(fields), "mm", "the model's object list"),
+                                  SYMMETRY_STEP_DEG)
 
 
 def box_iou(a: np.ndarray | None, b: np.ndarray | None) -> float:
@@ -165,7 +175,8 @@ class PoseTracker:
             give each class's box, surface points and depth-refinement options.
         settings: :class:`TrackingSettings`, a mapping of overrides, or None for the
             predictors' own (``predictor.options.tracking``).
-        symmetries: class name -> (S, 4, 4) model-frame symmetries (metres); default
+        symmetries: class name -> (S, 4, 4) model-frame symmetries (metres); default those
+            the model records for the class (:func:`recorded_symmetries`), else
             :func:`object_symmetries` of the class.
 
     Use: ``tracked = tracker.update(detections, K, depth, frame=index)`` once per frame.
@@ -181,6 +192,10 @@ class PoseTracker:
             settings = getattr(predictors[0].options, "tracking", None) if predictors else None
         self.settings = settings if isinstance(settings, TrackingSettings) else TrackingSettings.from_mapping(settings)
         given = dict(symmetries or {})
+        for c, geometry in self.geometry.items():  # else those the model records (its checkpoint's)
+            recorded = getattr(geometry, "symmetries", None)
+            if given.get(c) is None and recorded is not None:
+                given[c] = recorded_symmetries(recorded)
         self.symmetries = {c: np.asarray(given[c] if given.get(c) is not None else object_symmetries(c),
                                          dtype=np.float64).reshape(-1, 4, 4) for c in self.predictors}
         self.tracks: dict[str, list[_Track]] = {c: [] for c in self.predictors}

@@ -26,6 +26,7 @@ from typing import Any, NamedTuple, TypeVar
 import numpy as np
 
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
+from dope_hope.catalog import HOPE_OBJECTS
 from dope_hope.errors import InputFileError
 from dope_hope.geometry import UNIT_SCALE, nearest_rotation
 from dope_hope.io.images import image_size
@@ -270,8 +271,6 @@ class BopFrame(NamedTuple):
 
 
 def _default_class_name(obj_id: int) -> str:
-    from dope_hope.catalog import HOPE_OBJECTS
-
     if 1 <= obj_id <= len(HOPE_OBJECTS):
         return HOPE_OBJECTS[obj_id - 1].name
     return f"obj_{obj_id:06d}"

@@ -11,7 +11,9 @@ A BOP dataset folder is a split (``<split>/<scene_id:06d>/``, e.g. ``train_pbr``
   metres), projected with the image's K and pose;
 - ``visibility``: ``visib_fract`` of ``scene_gt_info.json``; without it the pixels of
   ``mask_visib/<im_id>_<gt_id>.png`` over those of ``mask/<im_id>_<gt_id>.png``, or the
-  ``mask_visib`` pixel count alone (``visible_pixels``) when there is no full mask;
+  ``mask_visib`` pixel count alone (``visible_pixels``) when there is no full mask; a scene
+  with neither ``visib_fract`` nor ``mask_visib/`` is refused (naming the folder), as is a mask
+  of another size than its image;
 - ``class_name``: see :func:`bop_class_name`.
 
 ``models_info.json`` is looked for in ``<dataset>/models/`` beside the split (the BOP layout
@@ -29,7 +31,9 @@ from dope_hope.annotation import FrameAnnotation
 from dope_hope.errors import InputFileError
 from dope_hope.geometry import KEYPOINT_ORDER, cuboid_keypoints, project_points
 from dope_hope.io.bop import iter_bop_split, list_bop_scenes, parse_symmetries, read_models_info
+from dope_hope.io.images import read_image_raw
 from dope_hope.io.jsonfields import JsonFields, load_json_object
+from dope_hope.io.models_dir import bop_obj_id
 
 #: Where models_info.json is looked for, relative to a split folder.
 MODELS_INFO_PLACES = ("../models/models_info.json", "models/models_info.json",
@@ -83,8 +87,6 @@ def bop_class_name(obj_id: int, class_names: Sequence[str] = ()) -> str:
     """The class of BOP ``obj_id`` in a run of ``class_names``: the run's object whose BOP id it
     is (a class named ``obj_NNNNNN``, or a HOPE object named as in the catalog, which has
     the HOPE dataset's ids), else ``obj_NNNNNN``."""
-    from dope_hope.io.models_dir import bop_obj_id
-
     for name in class_names:
         if bop_obj_id(name) == obj_id:
             return name
@@ -94,8 +96,6 @@ def bop_class_name(obj_id: int, class_names: Sequence[str] = ()) -> str:
 def recorded_box_size(scene_gt: str | os.PathLike, class_name: str) -> np.ndarray | None:
     """(3,) box size in metres of ``class_name``'s model (its BOP id: ``obj_NNNNNN`` or the HOPE
     catalog's) in the ``models_info.json`` of the BOP dataset holding ``scene_gt``, or None."""
-    from dope_hope.io.models_dir import bop_obj_id
-
     obj_id = bop_obj_id(class_name)
     info = find_models_info(Path(scene_gt).parent)
     if obj_id is None or info is None:
@@ -108,8 +108,6 @@ def recorded_symmetries(scene_gt: str | os.PathLike, class_name: str) -> dict | 
     """The BOP symmetry fields (``symmetries_discrete`` / ``symmetries_continuous``, as stored:
     mm) of ``class_name``'s model in the ``models_info.json`` of the BOP dataset holding
     ``scene_gt``, or None when it declares none."""
-    from dope_hope.io.models_dir import bop_obj_id
-
     obj_id = bop_obj_id(class_name)
     path = find_models_info(Path(scene_gt).parent)
     if obj_id is None or path is None:
@@ -122,22 +120,37 @@ def recorded_symmetries(scene_gt: str | os.PathLike, class_name: str) -> dict | 
     return fields or None
 
 
-def _mask_pixels(path: Path) -> int | None:
-    from dope_hope.io.images import read_image_raw
-
+def _mask_pixels(path: Path, size: tuple[int, int] | None) -> int | None:
+    """Non-zero pixels of a mask file (None: no file); InputFileError naming the file when
+    it is not ``size`` (W, H), the image's."""
     if not path.is_file():
         return None
-    return int(np.count_nonzero(read_image_raw(path)))
+    mask = read_image_raw(path)
+    if size is not None and (mask.shape[1], mask.shape[0]) != tuple(size):
+        raise InputFileError(path, f"mask is {mask.shape[1]}x{mask.shape[0]} pixels, its image "
+                                   f"{size[0]}x{size[1]}")
+    return int(np.count_nonzero(mask))
 
 
-def _visibility_from_masks(scene: Path, im_id: int, gt_id: int) -> tuple[float | None, int | None]:
-    """(fraction, None) from mask_visib / mask; (None, visible pixels) with mask_visib alone;
-    (None, None) without masks."""
+def _visibility_from_masks(scene: Path, im_id: int, gt_id: int,
+                           size: tuple[int, int] | None = None) -> tuple[float | None, int | None]:
+    """(fraction, None) from mask_visib / mask; (None, visible pixels) with mask_visib alone.
+
+    Raises:
+        InputFileError: no ``mask_visib/`` folder (naming it: without it and without
+        ``scene_gt_info.json`` nothing says how much of an instance is visible); a mask file
+        missing from it, or not of the image's size (W, H).
+    """
     name = f"{im_id:06d}_{gt_id:06d}.png"
-    visib = _mask_pixels(scene / "mask_visib" / name)
+    folder = scene / "mask_visib"
+    if not folder.is_dir():
+        raise InputFileError(folder, "missing: the visibility of each instance comes from mask_visib/ "
+                                     "(or scene_gt_info.json's visib_fract), and this scene has neither")
+    visib = _mask_pixels(folder / name, size)
     if visib is None:
-        return None, None
-    full = _mask_pixels(scene / "mask" / name)
+        raise InputFileError(folder / name, "mask file not found (the visible mask of instance "
+                                            f"{gt_id} of image {im_id})")
+    full = _mask_pixels(scene / "mask" / name, size)
     if full is not None and full > 0:
         return min(1.0, visib / full), None
     return None, visib
@@ -183,5 +196,6 @@ def iter_bop_frames(folder: str | os.PathLike, class_name: Callable[[int], str] 
             obj.projected_cuboid = project_points(keypoints[obj_id], frame.K, obj.R, obj.t)
             obj.keypoint_order = KEYPOINT_ORDER
             if obj.visibility is None:
-                obj.visibility, obj.visible_pixels = _visibility_from_masks(scene, item.im_id, gt_id)
+                size = None if frame.width is None or frame.height is None else (frame.width, frame.height)
+                obj.visibility, obj.visible_pixels = _visibility_from_masks(scene, item.im_id, gt_id, size)
         yield frame

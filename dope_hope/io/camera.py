@@ -41,13 +41,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
+import yaml
 
 from dope_hope.errors import InputFileError
 from dope_hope.geometry import intrinsics_matrix, is_pinhole
-from dope_hope.io.jsonfields import JsonFields, load_json_object
+from dope_hope.io.bop import read_scene_camera
+from dope_hope.io.dope_json import read_dope_json
+from dope_hope.io.hope_json import read_hope_json
+from dope_hope.io.jsonfields import JsonFields, load_json_object, read_text_file
 from dope_hope.io.layouts import LAYOUTS, annotation_file, annotation_search_description
-
 
 
 @dataclass
@@ -93,7 +97,6 @@ class Rectification:
 
     def _map(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
         if (width, height) not in self._maps:
-            import cv2
 
             self._maps[(width, height)] = cv2.initUndistortRectifyMap(
                 self.K_raw, self.D, self.R, self.K_new, (width, height), cv2.CV_32FC1)
@@ -101,15 +104,11 @@ class Rectification:
 
     def image(self, image: np.ndarray) -> np.ndarray:
         """(H, W[, C]) raw frame -> the rectified frame (bilinear)."""
-        import cv2
-
         mx, my = self._map(image.shape[1], image.shape[0])
         return cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
     def depth(self, depth: np.ndarray) -> np.ndarray:
         """(H, W) raw depth registered to the raw frame -> rectified (nearest: no mixed depths)."""
-        import cv2
-
         mx, my = self._map(depth.shape[1], depth.shape[0])
         return cv2.remap(depth, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
 
@@ -244,10 +243,6 @@ def parse_camera(data: Any, path: str | os.PathLike) -> tuple[np.ndarray, int | 
 
 
 def _load_yaml_object(path: Path) -> dict:
-    import yaml
-
-    from dope_hope.io.jsonfields import read_text_file
-
     try:
         data = yaml.safe_load(read_text_file(path, "camera file"))
     except yaml.YAMLError as exc:
@@ -276,7 +271,6 @@ def _from_dope(image: Path) -> ImageCamera | None:
     ann = annotation_file(image, "dope")
     if ann is None:
         return None
-    from dope_hope.io.dope_json import read_dope_json
 
     frame = read_dope_json(ann)
     if frame.K is None:
@@ -289,7 +283,6 @@ def _from_hope(image: Path) -> ImageCamera | None:
     ann = annotation_file(image, "hope")
     if ann is None:
         return None
-    from dope_hope.io.hope_json import read_hope_json
 
     frame = read_hope_json(ann)
     return ImageCamera(K=frame.K, width=frame.width, height=frame.height, source=ann,
@@ -301,7 +294,6 @@ def _from_bop(image: Path) -> ImageCamera | None:
     if cam_file is None:
         return None
     scene = cam_file.parent
-    from dope_hope.io.bop import read_scene_camera
 
     cams = read_scene_camera(cam_file)
     im_id = int(image.stem)

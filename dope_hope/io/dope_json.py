@@ -74,12 +74,12 @@ import numpy as np
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
 from dope_hope.errors import InputFileError
 from dope_hope.geometry import (
-    UNIT_SCALE,
     CUBOID_CORNER_SIGNS,
     KEYPOINT_ORDER,
     LEGACY_KEYPOINT_ORDER,
     LEGACY_TO_MESH,
     NUM_KEYPOINTS,
+    UNIT_SCALE,
     intrinsics_matrix,
     matrix_to_quaternion_xyzw,
     nearest_rotation,

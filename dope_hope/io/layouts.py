@@ -16,6 +16,7 @@ import re
 from pathlib import Path
 
 from dope_hope.errors import InputFileError
+from dope_hope.io.bop import list_bop_scenes
 from dope_hope.io.images import is_colour_image
 
 #: The layouts, in the order an image's annotation is looked for.
@@ -70,8 +71,6 @@ def dataset_layout(root: str | os.PathLike) -> str:
     Raises:
         InputFileError: the folder is missing or holds no annotated image of any layout.
     """
-    from dope_hope.io.bop import list_bop_scenes
-
     root = Path(root)
     if not root.is_dir():
         raise InputFileError(root, "dataset folder not found")

@@ -18,7 +18,7 @@ import trimesh
 from scipy.spatial import ConvexHull, QhullError
 from scipy.spatial.distance import pdist
 
-from dope_hope.errors import InputFileError
+from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.geometry import UNIT_SCALE
 from dope_hope.io.paths import require_file
 
@@ -26,19 +26,55 @@ from dope_hope.io.paths import require_file
 DEFAULT_UNITS: dict[str, str] = {".obj": "cm", ".ply": "mm"}
 
 
-def load_mesh(path: str | os.PathLike, units: str | None = None) -> trimesh.Trimesh:
+#: The largest side of an object's box, metres, that is plausible: outside this range the
+#: file's unit is almost surely not the one it was read in (a 5 cm can in metres read as
+#: centimetres is 0.5 mm; in millimetres read as centimetres, 5 m).
+PLAUSIBLE_SIZE_M = (0.005, 5.0)
+
+
+def likely_unit(size_m: np.ndarray, units: str) -> str | None:
+    """The unit in which a mesh read in ``units`` with box ``size_m`` (3,) m has the most
+    plausible size (its largest side closest to 10 cm within :data:`PLAUSIBLE_SIZE_M`), or
+    None when no unit makes it plausible."""
+    largest_file = float(np.max(size_m)) / UNIT_SCALE[units]
+    lo, hi = PLAUSIBLE_SIZE_M
+    fits = [u for u in UNIT_SCALE if lo <= largest_file * UNIT_SCALE[u] <= hi]
+    return min(fits, key=lambda u: abs(np.log10(largest_file * UNIT_SCALE[u] / 0.1)), default=None)
+
+
+def check_plausible_size(size_m: np.ndarray, units: str, source: str | os.PathLike) -> None:
+    """InputFileError naming ``source`` when a mesh box ``size_m`` (3,) m, read in ``units``,
+    is implausible for an object (largest side outside :data:`PLAUSIBLE_SIZE_M`), with the
+    unit the file is likely in. The one rule of a mesh's unit; :func:`load_mesh` applies it."""
+    size = np.asarray(size_m, dtype=np.float64)
+    largest = float(np.max(size))
+    lo, hi = PLAUSIBLE_SIZE_M
+    if lo <= largest <= hi:
+        return
+    shown = " x ".join(f"{v / UNIT_SCALE[units]:.4g}" for v in size)
+    what = f"small for an object (largest side under {lo * 1000:g} mm)" if largest < lo else \
+        f"large for an object (largest side over {hi:g} m)"
+    likely = likely_unit(size, units)
+    hint = (f"the file is likely in {likely}: give its unit as {likely}" if likely is not None
+            else "no unit (m, cm, mm) makes it an object's size")
+    raise InputFileError(source, f"mesh box {shown} {units} (read in {units}) is too {what}; {hint}")
+
+
+def load_mesh(path: str | os.PathLike, units: str | None = None, check_size: bool = True) -> trimesh.Trimesh:
     """Load a mesh file as one ``trimesh.Trimesh`` in metres.
 
     Args:
         path: ``.obj`` (HOPE textured model, centimetres by default) or ``.ply`` (BOP model,
             millimetres by default); other trimesh formats need ``units``.
         units: unit of the file's coordinates, "m", "cm" or "mm" (overrides the default).
+        check_size: refuse a box implausible in ``units`` (:func:`check_plausible_size`).
 
     Returns:
         The mesh, vertices (V, 3) in metres; texture visuals kept when the file has them.
 
     Raises:
-        InputFileError: missing, unreadable or empty file, or an unknown unit.
+        InputFileError: missing, unreadable or empty file, an unknown unit, or (``check_size``)
+        a box no object has in that unit.
     """
     path = Path(path)
     if units is None:
@@ -60,6 +96,8 @@ def load_mesh(path: str | os.PathLike, units: str | None = None) -> trimesh.Trim
         raise InputFileError(path, "mesh file has no triangles")
     if not np.all(np.isfinite(loaded.vertices)):
         raise InputFileError(path, "mesh has non-finite vertex coordinates")
+    if check_size:
+        check_plausible_size(mesh_cuboid(loaded)[0] * UNIT_SCALE[units], units, path)
     if UNIT_SCALE[units] != 1.0:
         loaded.apply_scale(UNIT_SCALE[units])
     loaded.metadata["source_path"] = str(path)
@@ -283,7 +321,7 @@ MESH_SIZE_TOLERANCE = 1.25
 
 
 def check_mesh_box(mesh_size: np.ndarray, expected_size: np.ndarray, source: str, class_name: str,
-                   reference: str, any_axis_order: bool = False) -> None:
+                   reference: str, any_axis_order: bool = False, units: str | None = None) -> None:
     """ConfigError unless a mesh's box (3,) m matches the object's known cuboid (3,) m within
     MESH_SIZE_TOLERANCE per extent: a wrong mesh or wrong --mesh-units would silently change
     every pose or error computed with it.
@@ -293,16 +331,33 @@ def check_mesh_box(mesh_size: np.ndarray, expected_size: np.ndarray, source: str
             ("the model's cuboid", "the cuboid the dataset records", ...).
         any_axis_order: compare the sorted extents (a reference whose axes may be another
             frame's, e.g. the catalog's against a BOP model).
+        units: the unit the mesh file was read in: a box off by a factor of 10, 100 or 1000
+            then names the unit the file is likely in.
     """
-    from dope_hope.errors import ConfigError
-
     size = np.asarray(mesh_size, dtype=np.float64)
     expected = np.asarray(expected_size, dtype=np.float64)
     ratio = np.sort(size) / np.sort(expected) if any_axis_order else size / expected
     if np.any(ratio > MESH_SIZE_TOLERANCE) or np.any(ratio < 1.0 / MESH_SIZE_TOLERANCE):
+        hint = "wrong object or wrong mesh units?"
+        likely = _unit_off_by(ratio, units)
+        if likely is not None:
+            hint = f"the file is likely in {likely}, not {units}: give its unit as {likely}"
         raise ConfigError(
             f"{source}: mesh box {np.round(size * 100, 2).tolist()} cm does not match {reference} "
-            f"{np.round(expected * 100, 2).tolist()} cm for {class_name} (wrong object or wrong mesh units?)")
+            f"{np.round(expected * 100, 2).tolist()} cm for {class_name} ({hint})")
+
+
+def _unit_off_by(ratio: np.ndarray, units: str | None) -> str | None:
+    """The unit a mesh read in ``units`` is in when every extent is off by the same factor
+    (within MESH_SIZE_TOLERANCE) that is one unit for another (10, 100, 1000 or their
+    inverses), else None."""
+    if units not in UNIT_SCALE:
+        return None
+    for other, scale in UNIT_SCALE.items():
+        factor = UNIT_SCALE[units] / scale  # a file in `other` read in `units` is `factor` x its size
+        if other != units and np.all(np.abs(np.log(np.asarray(ratio) / factor)) <= np.log(MESH_SIZE_TOLERANCE)):
+            return other
+    return None
 
 
 def mesh_diameter(mesh: trimesh.Trimesh | np.ndarray) -> float:

@@ -22,6 +22,7 @@ import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from dope_hope.catalog import get_object
 from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
 
 _BOP_NAME = re.compile(r"obj_?(\d+)")
@@ -29,8 +30,6 @@ _BOP_NAME = re.compile(r"obj_?(\d+)")
 
 def bop_obj_id(class_name: str) -> int | None:
     """BOP obj_id of a class: the HOPE catalog's, or NNNNNN of ``obj_NNNNNN``; else None."""
-    from dope_hope.catalog import get_object
-
     m = _BOP_NAME.fullmatch(class_name)
     if m:
         return int(m.group(1))
@@ -41,8 +40,6 @@ def bop_obj_id(class_name: str) -> int | None:
 
 
 def _catalog_name(name: str) -> str | None:
-    from dope_hope.catalog import get_object
-
     try:
         return get_object(name).name
     except UnknownObjectError:
@@ -86,30 +83,63 @@ def mesh_class_name(path: str | os.PathLike) -> str:
     return p.stem
 
 
-def parse_mesh_args(mesh_args: Sequence[str | os.PathLike], class_names: Sequence[str],
-                    flag: str = "--mesh") -> dict[str, Path]:
-    """``[NAME=]PATH`` values of ``flag`` -> {class name: path}.
+def run_object(name: str, class_names: Sequence[str]) -> str | None:
+    """The object of ``class_names`` that ``name`` names (case-insensitive; catalog names
+    too), or None when it names none of them."""
+    wanted = {(_catalog_name(name) or name).lower(), name.lower()}
+    return next((c for c in class_names if c.lower() in wanted or (_catalog_name(c) or c).lower() in wanted),
+                None)
 
-    ``NAME`` is a class (catalog names match case-insensitively); a bare ``PATH`` is the class
-    :func:`class_of_mesh` reads from its name, else the only one of ``class_names``.
+
+def check_run_object(name: str, class_names: Sequence[str], flag: str, value: str) -> str:
+    """The object of ``class_names`` named ``name`` in ``flag value`` (``NAME=...``); the one
+    rule of a name that is not an object of the run: ConfigError naming the flag, the value
+    and the run's objects."""
+    found = run_object(name, class_names)
+    if found is None:
+        raise ConfigError(f"{flag} {value}: {name} is not an object of this run "
+                          f"(objects: {', '.join(class_names) or 'none'})")
+    return found
+
+
+def parse_mesh_args(mesh_args: Sequence[str | os.PathLike], class_names: Sequence[str],
+                    flag: str = "--mesh", in_order: bool = False) -> dict[str, Path]:
+    """``[NAME=]PATH`` values of ``flag`` -> {class name: path} for the run's ``class_names``.
+
+    ``NAME`` must be one of ``class_names`` (:func:`check_run_object`; catalog names match
+    case-insensitively). A bare ``PATH`` is the object :func:`class_of_mesh` reads from its
+    name (:func:`mesh_class_name`) when that is one of ``class_names``; else, one path for one object, that object;
+    else with ``in_order`` (one bare path per object) the object at its position, unless its
+    name is another object of the run.
 
     Raises:
-        ConfigError: a bare path of an unknown class among several classes.
+        ConfigError: a NAME that is not an object of the run; a bare path that names another
+        object of the run than the one it pairs with; a bare path of an unknown class among
+        several classes.
     """
+    texts = [os.fspath(a) for a in mesh_args]
+    named = ["=" in t and not Path(t).exists() for t in texts]
     out: dict[str, Path] = {}
-    for arg in mesh_args:
-        text = os.fspath(arg)
-        if "=" in text and not Path(text).exists():
+    for i, text in enumerate(texts):
+        if named[i]:
             name, path = text.split("=", 1)
-            out[_catalog_name(name) or name] = Path(path)
+            out[check_run_object(name, class_names, flag, text)] = Path(path)
             continue
-        name = class_of_mesh(text)
-        if name is None:
-            if len(class_names) != 1 or len(mesh_args) != 1:
-                raise ConfigError(f"{flag} {text}: cannot tell which object it is; write {flag} "
-                                  f"NAME=PATH (classes: {', '.join(class_names)})")
-            name = class_names[0]
-        out[name] = Path(text)
+        mine = run_object(mesh_class_name(text), class_names)
+        if in_order and len(texts) == len(class_names) and not any(named):
+            if mine is not None and mine != class_names[i]:
+                raise ConfigError(f"{flag} {text}: its name says {mine}, but it pairs with {class_names[i]} "
+                                  f"(the meshes pair with the objects in order: {', '.join(class_names)}); "
+                                  f"write {flag} NAME=PATH")
+            out[class_names[i]] = Path(text)
+        elif mine is not None:
+            out[mine] = Path(text)
+        elif len(class_names) == 1 and len(texts) == 1:
+            out[class_names[0]] = Path(text)
+        else:
+            says = class_of_mesh(text)
+            why = f"its name says {says}, not an object of this run" if says else "cannot tell which object it is"
+            raise ConfigError(f"{flag} {text}: {why}; write {flag} NAME=PATH (objects: {', '.join(class_names)})")
     return out
 
 

@@ -51,10 +51,12 @@ from typing import Any
 
 import numpy as np
 
-from dope_hope.errors import DopeHopeError, InputFileError
-from dope_hope.geometry import ROTATION_TOLERANCE, checked_rotation, quaternion_xyzw_to_matrix
+from dope_hope.catalog import get_object
+from dope_hope.errors import ConfigError, DopeHopeError, InputFileError, UnknownObjectError
+from dope_hope.geometry import ROTATION_TOLERANCE, checked_rotation, legacy_rotation_to_mesh, quaternion_xyzw_to_matrix
 from dope_hope.io.atomic import atomic_write_text
-from dope_hope.io.jsonfields import read_text_file
+from dope_hope.io.bop_csv import parse_bop_result_filename, read_bop_csv
+from dope_hope.io.jsonfields import JsonFields, load_json_object, read_text_file
 
 FORMAT_NAME = "dope-hope-predictions"
 #: How the official DOPE inference's cuboid frame relates to the mesh frame.
@@ -161,8 +163,6 @@ def _class_name(path: Path, lineno: int, obj: dict) -> str:
     if isinstance(obj.get("class"), str) and obj["class"]:
         return obj["class"]
     if obj.get("obj_id") is not None:
-        from dope_hope.catalog import get_object
-
         try:
             return get_object(int(obj["obj_id"])).name
         except (DopeHopeError, TypeError, ValueError) as exc:
@@ -253,9 +253,6 @@ def read_predictions(path: str | os.PathLike,
 
 
 def _read_bop(path: Path) -> tuple[list[Prediction], dict[str, Any]]:
-    from dope_hope.catalog import get_object
-    from dope_hope.io.bop_csv import parse_bop_result_filename, read_bop_csv
-
     meta: dict[str, Any] = {}
     try:
         meta["method"] = parse_bop_result_filename(path)[0]
@@ -281,11 +278,6 @@ def read_official_dope_output(folder: str | os.PathLike,
         InputFileError: a folder without JSON files, or a malformed file (named, with field).
         ConfigError: an unknown ``official_frame``.
     """
-    from dope_hope.catalog import get_object
-    from dope_hope.errors import ConfigError, UnknownObjectError
-    from dope_hope.geometry import legacy_rotation_to_mesh
-    from dope_hope.io.jsonfields import JsonFields, load_json_object
-
     if official_frame not in OFFICIAL_FRAMES:
         raise ConfigError(f"official DOPE frame must be one of {', '.join(OFFICIAL_FRAMES)}, "
                           f"got {official_frame!r}")

@@ -26,9 +26,11 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from dope_hope.errors import CameraError, ConfigError, DeviceError, InputFileError
+from dope_hope.geometry import intrinsics_matrix
 from dope_hope.io.camera import ImageCamera, Rectification
 from dope_hope.io.images import GLOB_CHARS
 
@@ -109,8 +111,6 @@ def _rectify(rect: Rectification | None, rgb: np.ndarray, depth: np.ndarray | No
 def open_capture(target: int | str):
     """``cv2.VideoCapture`` of a file path or camera index, OpenCV's and FFmpeg's own log lines
     silenced (a failure becomes one error line of ours)."""
-    import cv2
-
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # read when FFmpeg is first used
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
@@ -128,8 +128,6 @@ class _Capture(FrameSource):
         self.camera = camera
 
     def _frame(self, index: int, timestamp_s: float, bgr: np.ndarray) -> Frame:
-        import cv2
-
         if bgr.ndim == 2:
             rgb = cv2.cvtColor(bgr, cv2.COLOR_GRAY2RGB)
         else:
@@ -147,8 +145,6 @@ class VideoFile(_Capture):
     """A video file decoded by OpenCV; timestamps are the file's presentation times."""
 
     def __init__(self, path: str | os.PathLike, camera: ImageCamera):
-        import cv2
-
         self.path = Path(path)
         if not self.path.is_file():
             raise InputFileError(self.path, "video file not found")
@@ -162,8 +158,6 @@ class VideoFile(_Capture):
         self.length = count if count > 0 else None
 
     def grab(self) -> Iterator[Grabbed]:
-        import cv2
-
         index = 0
         while True:
             ok, bgr = self.capture.read()
@@ -185,8 +179,6 @@ class CameraDevice(_Capture):
 
     def __init__(self, index: int, camera: ImageCamera, size: tuple[int, int] | None = None,
                  fps: float | None = None):
-        import cv2
-
         if not 0 <= index <= MAX_CAMERA_INDEX:
             raise DeviceError(f"camera {index}: camera index out of range (OpenCV takes 0 to {MAX_CAMERA_INDEX})")
         capture = open_capture(index)
@@ -271,7 +263,6 @@ class RealSenseCamera(FrameSource):
         except RuntimeError as exc:
             self.close()
             raise DeviceError(f"{self.name}: cannot read the intrinsics / depth scale ({exc})") from None
-        from dope_hope.geometry import intrinsics_matrix
 
         self.K = intrinsics_matrix(float(intr.fx), float(intr.fy), float(intr.ppx), float(intr.ppy))
         self.size = (int(intr.width), int(intr.height))

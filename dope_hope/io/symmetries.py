@@ -24,9 +24,9 @@ from pathlib import Path
 from typing import Any
 
 from dope_hope.errors import InputFileError
+from dope_hope.geometry import UNIT_SCALE
 from dope_hope.io.bop import parse_model_info
 from dope_hope.io.jsonfields import JsonFields, load_json_object
-from dope_hope.geometry import UNIT_SCALE
 from dope_hope.io.meshes import DEFAULT_UNITS
 
 #: File names looked for beside a mesh: a single model's declaration, then BOP's table.

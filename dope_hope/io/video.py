@@ -16,6 +16,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from dope_hope.errors import ConfigError
@@ -48,7 +49,6 @@ class OverlayVideo:
         self._last: np.ndarray | None = None
 
     def _open(self, width: int, height: int) -> None:
-        import cv2
 
         self.stem.parent.mkdir(parents=True, exist_ok=True)
         for suffix, fourcc in VIDEO_CODECS:
@@ -65,8 +65,6 @@ class OverlayVideo:
 
     def write(self, rgb: np.ndarray, repeat: int = 1) -> None:
         """Append ``rgb`` (H, W, 3) uint8 ``repeat`` times (same size as the first frame)."""
-        import cv2
-
         if self._writer is None:
             self._open(rgb.shape[1], rgb.shape[0])
         bgr = cv2.cvtColor(np.ascontiguousarray(rgb, dtype=np.uint8), cv2.COLOR_RGB2BGR)
@@ -103,8 +101,6 @@ class OverlayVideo:
 
 def display_problem() -> str | None:
     """Why no window can be shown here, or None when one can."""
-    import cv2
-
     if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         return "no display (DISPLAY / WAYLAND_DISPLAY unset)"
     if re.search(r"^\s*GUI:\s*NONE\s*$", cv2.getBuildInformation(), re.MULTILINE):
@@ -121,7 +117,6 @@ class LiveWindow:
         self._opened = False
 
     def show(self, rgb: np.ndarray) -> bool:
-        import cv2
 
         if self._opened and cv2.getWindowProperty(self.title, cv2.WND_PROP_VISIBLE) < 1:
             return False  # closed by the user
@@ -131,7 +126,6 @@ class LiveWindow:
 
     def close(self) -> None:
         if self._opened:
-            import cv2
 
             cv2.destroyWindow(self.title)
             self._opened = False

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from dope_hope.version import __version__
+from dope_hope.catalog import get_object
 from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, InputFileError, ModelFileError
 from dope_hope.geometry import KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER
@@ -49,6 +49,7 @@ from dope_hope.model.network import (
     build_model,
     num_objects_of,
 )
+from dope_hope.version import __version__
 
 CHECKPOINT_FORMAT = "dope-hope-checkpoint"
 FORMAT_VERSION = 1
@@ -200,7 +201,6 @@ def make_object_info(class_name: str, size_m: Any = None, frame: str = "mesh",
     if frame not in OBJECT_FRAMES:
         raise ConfigError(f"object frame must be one of {OBJECT_FRAMES}, got {frame!r}")
     if size_m is None:
-        from dope_hope.catalog import get_object
         size_m = get_object(class_name).size_array
     size = [float(v) for v in np.asarray(size_m, dtype=np.float64).reshape(-1)]
     if len(size) != 3 or min(size) <= 0:

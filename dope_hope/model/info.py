@@ -13,13 +13,16 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
-from dope_hope.errors import DopeHopeError, ModelFileError
+from dope_hope.errors import ConfigError, DopeHopeError, ModelFileError
 from dope_hope.geometry import KEYPOINT_ORDER, LEGACY_KEYPOINT_ORDER
+from dope_hope.io.bop import parse_symmetries
+from dope_hope.io.jsonfields import JsonFields
+from dope_hope.model.settings import InputSettings
 
 #: Object frames a model may be trained in (see docs/ARCHITECTURE.md, "legacy frame").
 OBJECT_FRAMES = ("mesh", "legacy")
@@ -145,9 +148,6 @@ class ModelInfo:
         self._validate_objects(path, bad)
 
     def _validate_objects(self, path: str | os.PathLike, bad) -> None:
-        from dope_hope.io.bop import parse_symmetries
-        from dope_hope.io.jsonfields import JsonFields
-
         first = self.objects[0]
         if first.class_name != self.class_name or tuple(first.size_m) != tuple(self.size_m):
             bad(f"class_name {self.class_name!r} / size_m {list(self.size_m)} differ from the first "
@@ -191,10 +191,13 @@ class ModelInfo:
             std = tuple(float(v) for v in norm["std"])
         except (KeyError, TypeError, ValueError):
             raise ModelFileError(path, "checkpoint 'normalization' must hold mean and std") from None
-        input_hw = None
-        size_in = ((ckpt.get("config") or {}).get("input") or {}).get("size")
-        if isinstance(size_in, (list, tuple)) and len(size_in) == 2:
-            input_hw = (int(size_in[0]), int(size_in[1]))
+        recipe = ckpt.get("config") or {}
+        input_hw: tuple[int, int] | None = None
+        if "input" in recipe or "train" in recipe:  # a recipe leaves out what keeps its default
+            try:
+                input_hw = InputSettings.from_mapping(recipe.get("input")).size
+            except ConfigError:
+                input_hw = None
         info = cls(class_name=objects[0].class_name, size_m=objects[0].size_m, frame=frames,
                    keypoint_order=ckpt.get("keypoint_order", KEYPOINT_ORDER), mean=mean, std=std,
                    input_hw=input_hw, min_score=ckpt.get("min_score"), objects=objects)
@@ -207,8 +210,6 @@ class ModelInfo:
 
     def select(self, class_name: str) -> ModelInfo:
         """This info narrowed to one object (its own class_name and size_m); KeyError."""
-        from dataclasses import replace
-
         obj = self.objects[self.object_index(class_name)]
         return replace(self, class_name=obj.class_name, size_m=tuple(obj.size_m), objects=(obj,))
 

@@ -39,7 +39,11 @@ from torch import nn
 from torchvision.models.vgg import cfgs as _vgg_cfgs
 from torchvision.models.vgg import make_layers as _vgg_make_layers
 
+from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, DopeHopeError, ModelFileError
+from dope_hope.io.paths import require_file
+from dope_hope.model.lite import LiteTrunk
+from dope_hope.model.settings import ModelSettings
 from dope_hope.preprocess import IMAGENET_MEAN, IMAGENET_STD, normalize_rgb
 
 NUM_BELIEF = 9
@@ -210,7 +214,6 @@ class DopeNetwork(nn.Module):
                 if opts:
                     raise ConfigError(f"unknown model.decoder options: {', '.join(sorted(opts))}")
         elif arch == "lite":
-            from dope_hope.model.lite import LiteTrunk
             known = set(inspect.signature(LiteTrunk).parameters) - {"head", "stages", "num_objects"}
             unknown = sorted(set(lite or {}) - known)
             if unknown:
@@ -241,9 +244,12 @@ class DopeNetwork(nn.Module):
 
 
 def model_section(config: dict[str, Any]) -> dict[str, Any]:
-    """The ``model`` section of a full config (or the dict itself if it is already one)."""
+    """The ``model`` section of a full config (or the dict itself if it is already one; a
+    config that leaves the section out: {}, every key its default)."""
     if "model" in config and isinstance(config["model"], dict):
         return config["model"]
+    if "model" in config or set(config) & {"input", "targets", "train", "augment"}:
+        return {}
     return config
 
 
@@ -251,24 +257,17 @@ def build_model(config: dict[str, Any] | str, load_backbone: bool = True) -> Dop
     """Build a DopeNetwork from a config name (``"lite"``, ``"dope_dr_50"``, ``"dope_dr_400"``:
     the packaged YAML files), a full config or its ``model`` section.
 
-    Keys: ``arch`` (dope|lite), ``head`` (50|400, lite 50|100), ``stages``, ``decoder``
-    (head 400), ``lite`` (arch lite), ``num_objects`` (default 1); unknown keys raise
-    ConfigError. ``backbone_weights``: a
+    Keys: those of :class:`~dope_hope.model.settings.ModelSettings` (their defaults where
+    the section leaves them out); unknown keys raise ConfigError. ``backbone_weights``: a
     LOCAL torchvision VGG19 state-dict file loaded into the trunk when ``load_backbone``
     (nothing is ever downloaded; checkpoint loading passes False, its weights win).
     """
     if isinstance(config, str):
-        from dope_hope.config import load_config
         config = load_config(config)
-    m = dict(model_section(config))
-    backbone = m.pop("backbone_weights", None)
-    known = {"arch", "head", "stages", "decoder", "lite", "num_objects"}
-    unknown = sorted(set(m) - known)
-    if unknown:
-        raise ConfigError(f"unknown model options: {', '.join(unknown)}")
-    model = DopeNetwork(arch=m.get("arch", "dope"), head=m.get("head", 50),
-                        stages=m.get("stages", 6), decoder=m.get("decoder"), lite=m.get("lite"),
-                        num_objects=m.get("num_objects", 1))
+    m = ModelSettings.from_mapping(model_section(config))
+    backbone = m.backbone_weights
+    model = DopeNetwork(arch=m.arch, head=m.head, stages=m.stages, decoder=m.decoder.to_dict(),
+                        lite=m.lite.to_dict(), num_objects=m.num_objects)
     if backbone and load_backbone:
         load_backbone_weights(model, backbone)
     return model
@@ -283,7 +282,6 @@ def load_backbone_weights(model: DopeNetwork, path: str | os.PathLike) -> list[s
     """
     if getattr(model, "arch", None) != "dope":
         raise ConfigError("backbone_weights applies to arch dope only (the VGG19 trunk)")
-    from dope_hope.io.paths import require_file
 
     try:
         require_file(path, "backbone weights file")
@@ -321,7 +319,7 @@ def load_backbone_weights(model: DopeNetwork, path: str | os.PathLike) -> list[s
 # ----------------------------------------------------------------------------- many objects
 def num_objects_of(config: dict[str, Any]) -> int:
     """``model.num_objects`` of a full config or model section (1 when absent)."""
-    return int(model_section(config).get("num_objects", 1))
+    return ModelSettings.from_mapping(model_section(config)).num_objects
 
 
 def _widen_rows(t: torch.Tensor, per: tuple[int, ...], n: int) -> torch.Tensor:

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from dope_hope.errors import ConfigError, DopeHopeError, ModelFileError
+from dope_hope.io.paths import require_file, weights_format
 from dope_hope.model.onnx_contract import (
     CHANNEL_ORDER_KEY,
     LAYOUT_NAMES,
@@ -40,8 +41,6 @@ OPTIMIZATION_LEVELS = ("disable", "basic", "extended", "all")
 
 def require_model_file(path: Path, what: str = "weights file") -> str:
     """ModelFileError unless ``path`` is a regular file; returns its io.paths.weights_format."""
-    from dope_hope.io.paths import require_file, weights_format
-
     try:
         require_file(path, what)
     except DopeHopeError as exc:
@@ -64,6 +63,7 @@ def _ort_problem(exc: BaseException, limit: int = 160) -> str:
 
 def default_providers() -> list[str]:
     """CUDA (if this onnxruntime build has it) then CPU."""
+    # onnxruntime (slow to import) only when a graph runs
     import onnxruntime as ort
 
     available = ort.get_available_providers()
@@ -71,6 +71,7 @@ def default_providers() -> list[str]:
 
 
 def _session_options(threads: int | None, optimization: str, spinning: bool):
+    # onnxruntime (slow to import) only when a graph runs
     import onnxruntime as ort
 
     if optimization not in OPTIMIZATION_LEVELS:
@@ -111,6 +112,7 @@ class OnnxGraph:
 
     def __init__(self, path: str | os.PathLike, threads: int | None = None,
                  providers: Sequence[str] | None = None, optimization: str = "all", spinning: bool = False):
+        # onnxruntime (slow to import) only when a graph runs
         import onnxruntime as ort
 
         self.path = Path(path)

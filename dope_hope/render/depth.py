@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from dope_hope.render.gl import import_pyrender
+
 _VERTEX_SHADER = """#version 330 core
 uniform mat4 u_mvp;
 in vec3 a_position;
@@ -72,9 +74,8 @@ class DepthRenderer:
         self._models: dict[int, tuple] = {}  # id(vertices) -> (vertices, vao, n, corners, buffers)
 
     def _gl(self):
-        from dope_hope.render.gl import import_pyrender
-
         import_pyrender()
+        # OpenGL only after render.gl chose the platform
         from OpenGL import GL
 
         if self._platform is None:

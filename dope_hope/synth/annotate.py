@@ -13,7 +13,7 @@ Conventions of the generated annotation (also recorded in each JSON's ``synth`` 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -21,6 +21,8 @@ import numpy as np
 
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
 from dope_hope.geometry import KEYPOINT_ORDER, cuboid_keypoints, project_points
+from dope_hope.symmetry.labels import canonical_rotation, corner_permutations
+from dope_hope.symmetry.transforms import category_symmetries
 from dope_hope.synth.scene import SceneSpec
 
 if TYPE_CHECKING:  # render.py imports OpenGL; annotations need only the arrays
@@ -92,11 +94,6 @@ def canonical_pose_labels(spec: SceneSpec, category: str, cuboid_size: np.ndarra
     :mod:`dope_hope.symmetry.labels` makes canonical for a HOPE ``category`` (what
     ``targets.symmetry=auto`` does to a HOPE object of that category), for annotation only:
     the model frame must be centred on the cuboid (procedural objects are)."""
-    from dataclasses import replace
-
-    from dope_hope.symmetry.labels import canonical_rotation, corner_permutations
-    from dope_hope.symmetry.transforms import category_symmetries
-
     rotations, _ = corner_permutations(cuboid_size, category_symmetries(category, step_deg=90.0))
     objects = [replace(o, R=canonical_rotation(o.R, o.t, rotations)) if o.role == "target" else o
                for o in spec.objects]

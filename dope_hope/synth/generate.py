@@ -15,7 +15,6 @@ from typing import Any
 
 import numpy as np
 
-from dope_hope.version import __version__
 from dope_hope.annotation import FrameAnnotation
 from dope_hope.errors import ConfigError
 from dope_hope.synth.annotate import InstanceStats, TargetBox, annotate_frame, canonical_pose_labels
@@ -32,6 +31,7 @@ from dope_hope.synth.postprocess import composite, post_process
 from dope_hope.synth.scene import ObjectSpec, SceneSpec, frame_streams, sample_scene
 from dope_hope.synth.settings import load_synth_config, parse_size
 from dope_hope.synth.writer import write_frame
+from dope_hope.version import __version__
 
 GENERATOR_NAME = "dope-hope synth"
 
@@ -152,6 +152,7 @@ class FrameGenerator:
     # -- rendering resources, created on first use (in the process that renders)
     def _ensure_renderer(self) -> None:
         if self._renderer is None:
+            # OpenGL starts with the first render, not with the generator
             from dope_hope.synth.materials import MeshBuilder
             from dope_hope.synth.render import SceneRenderer
 
@@ -209,6 +210,7 @@ class FrameGenerator:
         streams = frame_streams(self.seed if seed is None else seed, index)
         targets, category = self.targets, None
         if self.procedural:
+            # procedural objects (trimesh) only for --procedural
             from dope_hope.synth.objects import sample_object
 
             p = self.cfg["procedural"]

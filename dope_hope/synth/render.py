@@ -141,6 +141,7 @@ class SceneRenderer:
         if display is None or context is None:  # not EGL: pyrender's own cleanup is safe
             r.delete()
             return
+        # EGL only where a context is released
         from OpenGL.EGL import (
             EGL_NO_CONTEXT,
             EGL_NO_SURFACE,

@@ -1,10 +1,21 @@
-"""The generator's settings: the synth config (defaults + user file), sizes and shards."""
+"""The generator's settings: the synth config (defaults + user file), sizes and shards.
+
+The packaged ``dope_hope/configs/synth.yaml`` documents every key and gives its default; the
+settings classes (:class:`SynthSettings`, one frozen :class:`~dope_hope.config.SectionSettings`
+per section and nested section) are generated from it, so the defaults have that one owner.
+Each key's value must be of its default's kind (a number, a whole number, true/false, a name,
+a list of the same length; ``depth_noise.stereo_fx_px`` may be null), and the whole config
+passes :func:`validate_synth_config` (ranges, probabilities, bounds, seg ids).
+"""
 from __future__ import annotations
 
+import dataclasses
+import math
 import os
+from collections.abc import Mapping
 from typing import Any
 
-from dope_hope.config import check_known_keys, config_path, load_yaml, merge
+from dope_hope.config import SectionSettings, config_path, load_settings, load_yaml
 from dope_hope.errors import ConfigError
 from dope_hope.synth.sensor import EFFECT_PROBS
 
@@ -70,34 +81,94 @@ def _lookup(cfg: dict[str, Any], path: tuple[str, ...]) -> Any:
     return node
 
 
-def load_synth_config(config: str | os.PathLike | dict[str, Any] | None = None) -> dict[str, Any]:
-    """The synth config: ``configs/synth.yaml`` with ``config`` deep-merged over it.
+#: Keys that may also be null (their meaning: see synth.yaml).
+_NULLABLE = {("depth_noise", "stereo_fx_px")}
+
+
+def _kind_rule(default: Any, nullable: bool) -> Any:
+    """The rule of a key whose default is ``default``: a value of the same kind, kept as given
+    (a list: the same length, numbers where the default has numbers)."""
+    def number(v: Any) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+    def checked(value: Any, name: str) -> Any:
+        if value is None and nullable:
+            return value
+        if isinstance(default, bool):
+            ok = isinstance(value, bool)
+            kind = "true or false"
+        elif isinstance(default, int):
+            ok = number(value) and value == int(value)
+            kind = "a whole number"
+        elif isinstance(default, float):
+            ok = number(value)
+            kind = "a finite number"
+        elif isinstance(default, str):
+            ok = isinstance(value, str)
+            kind = "a name"
+        else:
+            ok = isinstance(value, (list, tuple)) and len(value) == len(default) and all(
+                number(v) or not number(d) for v, d in zip(value, default))
+            kind = f"a list of {len(default)} numbers"
+        if not ok:
+            raise ConfigError(f"{name} must be {kind}{' or null' if nullable else ''}, got {value!r}")
+        return list(value) if isinstance(value, tuple) else value
+    return checked
+
+
+def _section_class(name: str, defaults: Mapping[str, Any], path: tuple[str, ...]) -> type[SectionSettings]:
+    """A frozen settings class of the section ``defaults`` (nested sections: nested classes)."""
+    spec, rules = [], {}
+    for key, value in defaults.items():
+        if isinstance(value, dict):
+            nested = _section_class(key, value, (*path, key))
+            spec.append((key, nested, dataclasses.field(default_factory=nested)))
+        else:
+            frozen = tuple(value) if isinstance(value, list) else value
+            spec.append((key, type(frozen), dataclasses.field(default=frozen)))
+            rules[key] = _kind_rule(value, (*path, key) in _NULLABLE)
+    cls_name = "".join(part.title() for part in (path or ("synth",)) for part in part.split("_")) + "Settings"
+    return dataclasses.make_dataclass(cls_name, spec, bases=(SectionSettings,), frozen=True,
+                                      namespace={"SECTION": ".".join(path), "RULES": rules,
+                                                 "__module__": __name__,
+                                                 "__doc__": f"The synth config's {'.'.join(path) or 'sections'} "
+                                                            "(defaults: dope_hope/configs/synth.yaml)."})
+
+
+def _synth_settings_class() -> type[SectionSettings]:
+    base = _section_class("synth", load_yaml(config_path(DEFAULT_CONFIG)), ())
+
+    def __post_init__(self: Any) -> None:
+        base.__post_init__(self)
+        validate_synth_config(self.to_dict())
+
+    return dataclasses.make_dataclass("SynthSettings", [], bases=(base,), frozen=True,
+                                      namespace={"__post_init__": __post_init__, "__module__": __name__,
+                                                 "__doc__": "The synth config: every section of "
+                                                            "dope_hope/configs/synth.yaml, over its defaults."})
+
+
+def load_synth_config(config: str | os.PathLike | dict[str, Any] | None = None,
+                      assignments: list[str] | tuple[str, ...] = ()) -> dict[str, Any]:
+    """The synth config: ``configs/synth.yaml`` with ``config`` deep-merged over it, then the
+    ``section.key=value`` items of ``assignments`` (:func:`~dope_hope.config.load_settings`).
 
     Args:
         config: None or "synth" (the defaults), a config name or YAML path, or a dict of
             overrides (same nesting as the file).
 
     Raises:
-        ConfigError / InputFileError: unknown name, unreadable file or an invalid range.
+        ConfigError / InputFileError: unknown name or key, unreadable file, a bad value or an
+            invalid range.
     """
-    base = packaged_synth_config()
-    if config is None or (isinstance(config, str) and config == DEFAULT_CONFIG):
-        cfg = base
-    elif isinstance(config, dict):
-        check_known_keys(config, base, "synth config")
-        cfg = merge(base, config)
-    else:
-        path = config_path(config)
-        override = load_yaml(path)
-        check_known_keys(override, base, f"synth config {path}")
-        cfg = merge(base, override)
-    validate_synth_config(cfg)
-    return cfg
+    if isinstance(config, str) and config == DEFAULT_CONFIG:
+        config = None
+    return load_settings(SynthSettings, config, assignments).to_dict()
 
 
 def packaged_synth_config() -> dict[str, Any]:
-    """``configs/synth.yaml``: every key a synth config may set."""
-    return load_yaml(config_path(DEFAULT_CONFIG))
+    """``configs/synth.yaml``: every key a synth config may set, with its default."""
+    return SynthSettings().to_dict()
 
 
 def validate_synth_config(cfg: dict[str, Any]) -> None:
@@ -108,13 +179,13 @@ def validate_synth_config(cfg: dict[str, Any]) -> None:
             lo, hi = _lookup(cfg, path)
             bad = not (float(lo) <= float(hi))
         except (KeyError, TypeError, ValueError):
-            raise ConfigError(f"synth config: {name} must be a [min, max] pair") from None
+            raise ConfigError(f"{name} must be a [min, max] pair") from None
         if bad:
-            raise ConfigError(f"synth config: {name} has min > max ({lo} > {hi})")
+            raise ConfigError(f"{name} has min > max ({lo} > {hi})")
     for path, lo, hi in _BOUNDS:
         a, b = (float(v) for v in _lookup(cfg, path))
         if (lo is not None and a < lo) or (hi is not None and b > hi):
-            raise ConfigError(f"synth config: {'.'.join(path)} must lie in "
+            raise ConfigError(f"{'.'.join(path)} must lie in "
                               f"[{lo}, {'inf' if hi is None else hi}], got [{a:g}, {b:g}]")
     for path in _PROBABILITIES:
         try:
@@ -123,50 +194,55 @@ def validate_synth_config(cfg: dict[str, Any]) -> None:
         except (KeyError, TypeError, ValueError):
             bad = True
         if bad:
-            raise ConfigError(f"synth config: {'.'.join(path)} must be a probability in [0, 1]")
+            raise ConfigError(f"{'.'.join(path)} must be a probability in [0, 1]")
     clutter = cfg["background"]["clutter"]
     if not 0.05 <= float(clutter["resolution"]) <= 1.0:
-        raise ConfigError("synth config: background.clutter.resolution must lie in [0.05, 1]")
+        raise ConfigError("background.clutter.resolution must lie in [0.05, 1]")
     for path in (("background", "clutter", "texture_px"), ("background", "clutter", "texture_pool"),
                  ("hard_negatives", "texture_px")):
         v = _lookup(cfg, path)
         if isinstance(v, bool) or not isinstance(v, int) or v < (4 if path[-1] == "texture_px" else 1):
-            raise ConfigError(f"synth config: {'.'.join(path)} must be a whole number "
+            raise ConfigError(f"{'.'.join(path)} must be a whole number "
                               f"(>= {4 if path[-1] == 'texture_px' else 1}), got {v!r}")
     if cfg["target"]["count"][0] < 0:
-        raise ConfigError("synth config: target.count must start at 0 or more")
+        raise ConfigError("target.count must start at 0 or more")
     if cfg["target"]["distance_m"][0] <= cfg["camera"]["znear"]:
-        raise ConfigError("synth config: target.distance_m must lie beyond camera.znear")
+        raise ConfigError("target.distance_m must lie beyond camera.znear")
     base = int(cfg["output"]["seg_distractor_base"])
     if not cfg["target"]["count"][1] < base or base + cfg["distractors"]["count"][1] + \
             cfg["target"]["count"][1] + cfg["hard_negatives"]["count"][1] > 255:
-        raise ConfigError("synth config: seg ids must fit in uint8: target.count[1] < "
+        raise ConfigError("seg ids must fit in uint8: target.count[1] < "
                           "output.seg_distractor_base and base + distractors + occluders "
                           "(target.count[1]) + hard_negatives.count[1] <= 255")
     for path in (("distractors", "primitives"), ("lights", "types"), ("background", "procedural_weights"),
                  ("background", "clutter", "kinds"), ("hard_negatives", "textures"), ("procedural", "categories")):
         weights = _lookup(cfg, path)
         if not isinstance(weights, dict) or not any(float(v) > 0 for v in weights.values()):
-            raise ConfigError(f"synth config: {'.'.join(path)} needs at least one positive weight")
+            raise ConfigError(f"{'.'.join(path)} needs at least one positive weight")
+    # the procedural shapes' module brings trimesh: only when a config is checked
     from dope_hope.synth.objects import SHAPE_LABELS
 
     unknown = sorted(set(cfg["procedural"]["categories"]) - set(SHAPE_LABELS))
     if unknown:
-        raise ConfigError(f"synth config: procedural.categories: unknown {', '.join(unknown)}; "
+        raise ConfigError(f"procedural.categories: unknown {', '.join(unknown)}; "
                           f"known: {', '.join(SHAPE_LABELS)}")
     scale = cfg["procedural"]["scale"]
     if not (isinstance(scale, list) and len(scale) == 2 and all(isinstance(v, (int, float)) and
             not isinstance(v, bool) for v in scale) and 0.05 <= scale[0] <= scale[1] <= 20):
-        raise ConfigError(f"synth config: procedural.scale must be [low, high] with 0.05 <= low <= "
+        raise ConfigError(f"procedural.scale must be [low, high] with 0.05 <= low <= "
                           f"high <= 20, got {scale!r}")
     jitter = cfg["procedural"]["size_jitter"]
     if not isinstance(jitter, (int, float)) or not 0 <= jitter < 1:
-        raise ConfigError(f"synth config: procedural.size_jitter must be a number in [0, 1), got {jitter!r}")
+        raise ConfigError(f"procedural.size_jitter must be a number in [0, 1), got {jitter!r}")
     px = cfg["procedural"]["texture_px"]
     if isinstance(px, bool) or not isinstance(px, int) or not 16 <= px <= 4096:
-        raise ConfigError(f"synth config: procedural.texture_px must be a whole number in 16..4096, got {px!r}")
+        raise ConfigError(f"procedural.texture_px must be a whole number in 16..4096, got {px!r}")
     if not isinstance(cfg["procedural"]["canonical_labels"], bool):
-        raise ConfigError("synth config: procedural.canonical_labels must be true or false")
+        raise ConfigError("procedural.canonical_labels must be true or false")
+
+
+#: The synth config's settings class (generated from ``configs/synth.yaml``).
+SynthSettings = _synth_settings_class()
 
 
 def parse_size(text: str | tuple[int, int]) -> tuple[int, int]:

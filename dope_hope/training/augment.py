@@ -7,21 +7,32 @@ One 2x3 affine matrix ``M`` (pixel centres at integer coordinates, the conventio
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, replace
 from typing import Any
 
 import cv2
 import numpy as np
 
+from dope_hope.config import (
+    SectionSettings,
+    boolean,
+    fraction,
+    nonnegative_float,
+    one_of,
+    pair,
+    positive_float,
+    whole_number,
+)
 from dope_hope.errors import ConfigError
 from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
 from dope_hope.preprocess import PAD_RGB, contain_scale
 
 
 # --------------------------------------------------------------------------- augmentation
-@dataclass
-class AugmentParams:
-    """Augmentation ranges (the config's ``augment`` section; every key optional).
+@dataclass(frozen=True)
+class AugmentParams(SectionSettings):
+    """Augmentation ranges (the config's ``augment`` section; every key optional, checked on
+    construction: a bad value is a ConfigError naming ``augment.KEY``).
 
     Attributes:
         enabled: False gives the deterministic validation transform (fit + centre).
@@ -49,6 +60,8 @@ class AugmentParams:
             crop size.
     """
 
+    SECTION = "augment"
+
     enabled: bool = True
     fit: str = "contain"
     upscale: bool = False
@@ -68,26 +81,31 @@ class AugmentParams:
 
     @classmethod
     def from_config(cls, section: dict[str, Any] | None, enabled: bool = True) -> AugmentParams:
-        """Build from a config's ``augment`` dict; unknown keys raise ConfigError."""
-        section = dict(section or {})
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(section) - names)
-        if unknown:
-            raise ConfigError(f"augment: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(names))}")
-        params = cls(**section)
-        params.scale = tuple(float(v) for v in params.scale)  # type: ignore[assignment]
-        params.blur_sigma = tuple(float(v) for v in params.blur_sigma)  # type: ignore[assignment]
-        if params.fit not in ("contain", "cover"):
-            raise ConfigError(f"augment.fit must be 'contain' or 'cover', got {params.fit!r}")
-        if params.crop is not None:
-            crop = tuple(int(v) for v in params.crop)
-            if len(crop) != 2 or crop[0] % 8 or crop[1] % 8 or min(crop) <= 0:
-                raise ConfigError(f"augment.crop must be [H, W], positive multiples of 8, got {params.crop!r}")
-            params.crop = crop  # type: ignore[assignment]
-        if not (0 < params.scale[0] <= params.scale[1]):
-            raise ConfigError(f"augment.scale must be 0 < min <= max, got {list(params.scale)}")
-        params.enabled = bool(params.enabled) and enabled
-        return params
+        """Build from a config's ``augment`` dict (:meth:`from_mapping`); ``enabled`` False
+        turns the augmentation off whatever the section says."""
+        params = cls.from_mapping(section)
+        return params if enabled else replace(params, enabled=False)
+
+
+def _crop(value: Any, name: str) -> tuple[int, int] | None:
+    if value is None:
+        return None
+    if isinstance(value, (str, bytes, dict)) or not hasattr(value, "__len__") or len(value) != 2:
+        raise ConfigError(f"{name} must be [H, W], positive multiples of 8, got {value!r}")
+    crop = tuple(whole_number(v, name, 0) for v in value)
+    if crop[0] % 8 or crop[1] % 8 or min(crop) <= 0:
+        raise ConfigError(f"{name} must be [H, W], positive multiples of 8, got {value!r}")
+    return crop  # type: ignore[return-value]
+
+
+AugmentParams.RULES = {
+    "enabled": boolean, "fit": one_of("contain", "cover"), "upscale": boolean,
+    "scale": pair(positive_float), "rotation_deg": nonnegative_float, "translate": nonnegative_float,
+    "brightness": nonnegative_float, "contrast": nonnegative_float, "saturation": nonnegative_float,
+    "hue": nonnegative_float, "noise_std": nonnegative_float, "blur_prob": fraction,
+    "blur_sigma": pair(nonnegative_float), "prob_geometric": fraction, "crop": _crop,
+    "crop_jitter": nonnegative_float,
+}
 
 
 def affine_matrix(

@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 import torch
 from torch.utils.data import Dataset, Sampler
+from tqdm import tqdm
 
 from dope_hope.annotation import FrameAnnotation
 from dope_hope.errors import ConfigError, DopeHopeError, InputFileError
@@ -42,8 +43,13 @@ from dope_hope.geometry import (
     NUM_KEYPOINTS,
     legacy_keypoints_to_current,
 )
-from dope_hope.training.augment import AugmentParams, augment
+from dope_hope.io.dope_json import find_image, list_dope_frames, read_dope_json
+from dope_hope.io.images import read_rgb
+from dope_hope.maps.targets import make_targets
+from dope_hope.model.info import group_channels
+from dope_hope.model.network import normalize_image
 from dope_hope.symmetry.labels import camera_direction, canonical_keypoints
+from dope_hope.training.augment import AugmentParams, augment
 
 log = logging.getLogger(__name__)
 
@@ -124,8 +130,6 @@ def frame_record(frame: FrameAnnotation, annotation_path: Path, want: dict[str, 
     Raises:
         InputFileError: no image beside the annotation.
     """
-    from dope_hope.io.dope_json import find_image
-
     kps: list[np.ndarray] = []
     dirs: list[np.ndarray] = []
     classes: list[int] = []
@@ -167,8 +171,6 @@ def scan_frames(
     Raises:
         InputFileError: a folder that does not exist or holds no DOPE frames.
     """
-    from dope_hope.io.dope_json import list_dope_frames, read_dope_json
-
     want = class_index(class_name)
     records: list[FrameRecord] = []
     bad: list[tuple[Path, str]] = []
@@ -183,7 +185,6 @@ def scan_frames(
         paths.extend(found)
     iterator: Any = paths
     if progress and len(paths) > 2000:
-        from tqdm import tqdm
         iterator = tqdm(paths, desc="scanning annotations", unit="file", leave=False)
     for path in iterator:
         try:
@@ -250,8 +251,6 @@ class DopeDataset(Dataset):
         return np.random.default_rng((self.seed, int(epoch), int(index)))
 
     def _load(self, index: int) -> np.ndarray | None:
-        from dope_hope.io.images import read_rgb
-
         rec = self.records[index]
         try:
             return read_rgb(rec.image_path)
@@ -289,8 +288,6 @@ class DopeDataset(Dataset):
                   classes: np.ndarray | None = None) -> dict[str, Any]:
         """Augment one image + keypoints (``classes``: (I,) object index of each instance,
         default all 0) and build the item dict (see the module docstring)."""
-        from dope_hope.model.network import normalize_image
-
         img, kp, _ = augment(rgb, keypoints, self.input_hw, self.augment,
                              rng if self.augment.enabled else None)
         H, W = img.shape[:2]  # the input size, or the augmentation's object-centred crop
@@ -321,9 +318,6 @@ class DopeDataset(Dataset):
                        image_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """Belief (9N, h, w) and affinity (16N, h, w): object k's group made from its instances
         (``classes == k``) alone, all zero when it has none."""
-        from dope_hope.maps.targets import make_targets
-        from dope_hope.model.info import group_channels
-
         n = self.num_objects
         if n == 1:
             return make_targets(keypoints, image_hw, self.stride, self.sigma, self.radius)

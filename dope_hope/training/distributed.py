@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import torch
 import torch.distributed as dist
 
+from dope_hope.devices import check_device
 
 
 # =============================================================================== distributed
@@ -33,7 +34,6 @@ def init_distributed(device: str) -> tuple[DistInfo, torch.device]:
     """Join a torchrun job (env RANK, WORLD_SIZE, LOCAL_RANK) or run single-process."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     info = DistInfo(int(os.environ.get("RANK", "0")), world, int(os.environ.get("LOCAL_RANK", "0")))
-    from dope_hope.devices import check_device
 
     device = check_device(device)
     if device == "auto":

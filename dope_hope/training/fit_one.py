@@ -14,6 +14,15 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+from dope_hope.catalog import get_object
+from dope_hope.config import load_config
+from dope_hope.geometry import CUBOID_EDGES, cuboid_keypoints, project_points
+from dope_hope.maps.targets import make_targets
+from dope_hope.model.checkpoint import save_checkpoint
+from dope_hope.model.network import build_model, normalize_image
 
 #: (H, W) of :func:`box_scene` and the fitted model's input.
 IMAGE_HW = (96, 128)
@@ -24,11 +33,6 @@ K = np.array([[110.0, 0.0, 63.5], [0.0, 110.0, 47.5], [0.0, 0.0, 1.0]])
 
 def box_scene() -> tuple[np.ndarray, np.ndarray]:
     """(rgb (96, 128, 3) uint8, keypoints (9, 2) image px) of the Ketchup box at a fixed pose."""
-    from scipy.spatial.transform import Rotation
-
-    from dope_hope.catalog import get_object
-    from dope_hope.geometry import CUBOID_EDGES, cuboid_keypoints, project_points
-
     size = get_object(CLASS_NAME).size_array
     R = Rotation.from_euler("xyz", [25, -35, 10], degrees=True).as_matrix()
     t = np.array([0.0, 0.0, 0.42])
@@ -49,12 +53,6 @@ def fit_lite_model(rgb: np.ndarray, kp: np.ndarray, input_hw: tuple[int, int], s
     """A lite network (config "lite" at ``input_hw``) fitted with ``steps`` Adam steps to the
     belief/affinity targets of one image: rgb (H, W, 3) uint8 of size ``input_hw``, kp (9, 2)
     image px. Returns (model in eval mode, its config)."""
-    import torch
-
-    from dope_hope.config import load_config
-    from dope_hope.maps.targets import make_targets
-    from dope_hope.model.network import build_model, normalize_image
-
     torch.manual_seed(0)
     cfg = load_config("lite")
     cfg["input"]["size"] = list(input_hw)
@@ -76,10 +74,6 @@ def fit_lite_model(rgb: np.ndarray, kp: np.ndarray, input_hw: tuple[int, int], s
 
 def fit_lite_checkpoint(path: Path, steps: int = 60) -> Path:
     """Fit a lite network to :func:`box_scene`'s targets and save it as a dope-hope checkpoint."""
-    import torch
-
-    from dope_hope.model.checkpoint import save_checkpoint
-
     torch.set_num_threads(1)
     rgb, kp = box_scene()
     model, cfg = fit_lite_model(rgb, kp, IMAGE_HW, steps)

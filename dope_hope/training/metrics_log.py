@@ -11,6 +11,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+from dope_hope.io.atomic import atomic_write_text, write_error
+
 
 class MetricsLog:
     """Scalars to ``metrics.csv`` + ``metrics.jsonl`` (+ TensorBoard when installed); rank 0.
@@ -34,6 +36,7 @@ class MetricsLog:
         self.jsonl_path = out / "metrics.jsonl"
         self.rows = self._truncate(keep_rows)
         try:
+            # TensorBoard is optional (the tensorboard extra)
             from torch.utils.tensorboard import SummaryWriter
             self.tb = SummaryWriter(str(out / "tensorboard"), purge_step=purge_step)
         except ImportError:  # tensorboard is optional
@@ -41,8 +44,6 @@ class MetricsLog:
 
     def _truncate(self, keep: int) -> int:
         """Keep the header and the first ``keep`` rows of both files; returns the rows kept."""
-        from dope_hope.io.atomic import atomic_write_text
-
         def head(path: Path, n: int) -> list[str]:
             try:
                 return path.read_text(encoding="utf-8").splitlines(keepends=True)[:n]
@@ -61,7 +62,6 @@ class MetricsLog:
     def write(self, event: str, **values: Any) -> None:
         if not self.enabled:
             return
-        from dope_hope.io.atomic import write_error
 
         row = {"event": event, **values}
         for path, text in ((self.csv_path, None), (self.jsonl_path, json.dumps(row) + "\n")):

@@ -14,8 +14,11 @@ from typing import Any
 import numpy as np
 
 from dope_hope.errors import ConfigError
+from dope_hope.io.bop_scenes import recorded_symmetries
+from dope_hope.io.symmetries import SymmetryDeclaration
+from dope_hope.symmetry.labels import corner_permutations
+from dope_hope.symmetry.resolve import ObjectSymmetries, label_symmetries, resolve_symmetries
 from dope_hope.training.dataset import FrameRecord, relabel_symmetric
-from dope_hope.symmetry.resolve import label_symmetries, resolve_symmetries
 from dope_hope.training.settings import TrainJob, object_info
 
 
@@ -25,12 +28,14 @@ class RunObject:
 
     Attributes:
         name: class name; info: its checkpoint entry (class_name, size_m, frame[, symmetries]);
-        size_source: where its cuboid size came from (in words).
+        size_source: where its cuboid size came from (in words); symmetry_source: its
+        symmetries and where they come from (in words: ``ObjectSymmetries.describe``).
     """
 
     name: str
     info: dict[str, Any]
     size_source: str
+    symmetry_source: str = "none"
 
 
 def with_num_objects(config: dict[str, Any], n: int) -> dict[str, Any]:
@@ -56,13 +61,8 @@ def check_class_names(names: list[str]) -> None:
         seen.add(name.lower())
 
 
-def declared_entry_mm(job: TrainJob, name: str) -> dict[str, Any] | None:
-    """The object's declared symmetries as BOP fields in millimetres (the checkpoint's
-    ``symmetries``), from ``--symmetries`` (one object) or ``model_info.json`` beside its mesh;
-    None when it declares none."""
-    mesh = job.mesh_of(name)
-    explicit = job.symmetries if len(job.class_names) == 1 else None
-    declaration = resolve_symmetries(name, mesh, explicit, job.unit_of(name)).declaration
+def entry_mm(declaration: SymmetryDeclaration | None) -> dict[str, Any] | None:
+    """A declaration's BOP fields in millimetres (the checkpoint's ``symmetries``), or None."""
     if declaration is None:
         return None
     to_mm = declaration.unit_m / 0.001
@@ -81,11 +81,17 @@ def declared_entry_mm(job: TrainJob, name: str) -> dict[str, Any] | None:
     return entry
 
 
+def object_symmetries(job: TrainJob, name: str) -> ObjectSymmetries:
+    """The object's symmetries in the one resolution order
+    (:func:`~dope_hope.symmetry.resolve.resolve_symmetries`): ``--symmetries`` (one object),
+    declarations beside its mesh, the catalog category, else what its mesh shows."""
+    explicit = job.symmetries if len(job.class_names) == 1 else None
+    return resolve_symmetries(name, job.mesh_of(name), explicit, job.unit_of(name))
+
+
 def bop_symmetries(records: list[FrameRecord], object_index: int, name: str) -> dict[str, Any] | None:
     """The symmetry fields the ``models_info.json`` of a BOP dataset among the records declares
     for the object (:func:`dope_hope.io.bop_scenes.recorded_symmetries`), or None."""
-    from dope_hope.io.bop_scenes import recorded_symmetries
-
     for r in records:
         if r.json_path.name == "scene_gt.json" and np.any(r.object_indices() == object_index):
             return recorded_symmetries(r.json_path, name)
@@ -94,18 +100,26 @@ def bop_symmetries(records: list[FrameRecord], object_index: int, name: str) -> 
 
 def run_objects(job: TrainJob, records: list[FrameRecord]) -> list[RunObject]:
     """Each object's checkpoint entry (:func:`~dope_hope.training.settings.object_info`: mesh >
-    dataset > catalog), with its declared symmetries (beside its mesh, else in a BOP dataset's
-    models_info.json) when it is one of several objects (a one-object entry stays as it
-    always was)."""
+    dataset > catalog), with its symmetries (:func:`object_symmetries`: declared, or found on
+    its mesh; else declared in a BOP dataset's models_info.json) when it is one of several
+    objects (a one-object entry stays as it always was), and where they come from."""
     names = job.class_names
     out = []
     for k, name in enumerate(names):
         info, source = object_info(name, records, job.mesh_of(name), job.unit_of(name), k)
-        if len(names) > 1:
-            symmetries = declared_entry_mm(job, name) or bop_symmetries(records, k, name)
+        found = object_symmetries(job, name)
+        symmetry_source = found.describe()
+        if len(names) > 1:  # a declaration, a BOP dataset's, then what the mesh shows
+            symmetries = None if found.detected is not None else entry_mm(found.declaration)
+            if symmetries is None:
+                symmetries = bop_symmetries(records, k, name)
+                if symmetries is not None:
+                    symmetry_source = "declared in the BOP dataset's models_info.json"
+            if symmetries is None:
+                symmetries = entry_mm(found.declaration)
             if symmetries is not None:
                 info = {**info, "symmetries": symmetries}
-        out.append(RunObject(info["class_name"], info, source))
+        out.append(RunObject(info["class_name"], info, source, symmetry_source))
     return out
 
 
@@ -118,15 +132,13 @@ def relabel_objects(setting: Any, job: TrainJob, objects: list[RunObject],
     Returns:
         (record sets, the largest number of corner-permuting symmetries, log lines).
     """
-    from dope_hope.symmetry.labels import corner_permutations
-
     if len(objects) > 1 and job.symmetries is not None:
         raise ConfigError(f"--symmetries {job.symmetries}: one file for {len(objects)} objects; put each "
                           "object's model_info.json beside its mesh")
     most, lines = 1, []
     for k, obj in enumerate(objects):
         symmetry = label_symmetries(setting, obj.name, job.symmetries if len(objects) == 1 else None,
-                                    job.mesh_of(obj.name))
+                                    job.mesh_of(obj.name), job.unit_of(obj.name))
         if symmetry is None:
             continue
         rots, perms = corner_permutations(np.asarray(obj.info["size_m"]), symmetry[0])

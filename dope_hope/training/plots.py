@@ -18,7 +18,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
+from scipy.ndimage import gaussian_filter1d
+
+from dope_hope.io.atomic import atomic_write_with
+from dope_hope.maps.decode import DecodeSettings, decode_maps
+from dope_hope.model.info import GROUP_BELIEF, group_channels
+from dope_hope.viz import PALETTE, belief_montage, draw_cuboid, draw_label, montage
 
 #: (event, column, panel title) of the results.png panels, in order.
 PANELS = (
@@ -70,10 +77,8 @@ def plot_results(csv_path: str | Path, png_path: str | Path) -> Path:
     Panels: :data:`PANELS` (x: optimizer steps); a panel without values says "no values yet".
     Returns ``png_path``.
     """
+    # matplotlib (slow to import) only for results.png
     from matplotlib.figure import Figure
-    from scipy.ndimage import gaussian_filter1d
-
-    from dope_hope.io.atomic import atomic_write_with
 
     data = read_metrics(csv_path)
     fig = Figure(figsize=(15, 3.2))
@@ -134,11 +139,6 @@ def snapshot_panel(items: Sequence[SnapshotItem], stride: int, threshold: float,
     Returns:
         (H, W, 3) uint8 RGB.
     """
-    import cv2
-
-    from dope_hope.maps.decode import DecodeSettings, decode_maps
-    from dope_hope.model.info import GROUP_BELIEF, group_channels
-    from dope_hope.viz import PALETTE, belief_montage, draw_cuboid, draw_label, montage
 
     if not items:
         raise ValueError("a snapshot of no images")

@@ -3,7 +3,8 @@
 time budget's plans and time used, the partial loss window, the job's data and objects),
 :meth:`RunCheckpoints._restore` (a resumed run picks all of it up again, so that an
 interrupted CPU run ends with the same weights as an uninterrupted one) and
-:func:`resumed_job` (what ``--resume`` fills in of a job from the checkpoint).
+:func:`resumed_job` (what ``--resume`` fills in of a job from the checkpoint) and
+:func:`check_resume_flags` (what a resumed run cannot honour: refused).
 
 :class:`RunCheckpoints` is a part of :class:`~dope_hope.training.trainer.Trainer` (it reads
 and sets the trainer's counters).
@@ -126,6 +127,7 @@ def resumed_job(job: TrainJob, config: dict[str, Any]) -> tuple[dict[str, Any] |
         ck = load_checkpoint(job.resume)
         config = saved_config = ck.get("config") or config
         saved_job = checkpoint_extra(ck).get("job") or {}
+        check_resume_flags(job, saved_job)
         if not job.data:
             job.data = [Path(p) for p in saved_job.get("data", [])]
             job.val = job.val or [Path(p) for p in saved_job.get("val", [])]
@@ -141,6 +143,22 @@ def resumed_job(job: TrainJob, config: dict[str, Any]) -> tuple[dict[str, Any] |
         if not job.data or not job.object_name:
             raise ConfigError(f"{job.resume} does not record its data folders / object; pass --data and --object")
     return ck, config, saved_config
+
+
+def check_resume_flags(job: TrainJob, saved_job: dict[str, Any]) -> None:
+    """ConfigError naming the flag for what a run continued from ``job.resume`` cannot honour
+    (``saved_job``: the job its checkpoint records): other objects than its own (``--object``:
+    the network's map groups are the checkpoint's objects, in its order) and
+    ``--backbone-weights`` (the checkpoint's weights replace them)."""
+    saved = [str(n) for n in saved_job.get("objects") or ([saved_job["object"]] if saved_job.get("object") else [])]
+    given = job.class_names if job.object_name else []
+    if given and saved and [n.lower() for n in given] != [n.lower() for n in saved]:
+        raise ConfigError(f"--object {' '.join(given)}: --resume continues {job.resume}, a run of "
+                          f"{', '.join(saved)}, whose objects it cannot change; drop --object, or start a new "
+                          "run (another --out)")
+    if job.backbone_weights is not None:
+        raise ConfigError(f"--backbone-weights {job.backbone_weights}: --resume continues {job.resume} with its "
+                          "own weights; give one of them")
 
 
 def checkpoint_extra(ck: dict[str, Any]) -> dict[str, Any]:

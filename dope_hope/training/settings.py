@@ -1,6 +1,9 @@
-"""Training settings: the job, the ``train`` section's defaults and checks, the object's info."""
+"""Training settings: the job, the sections of a training recipe (:class:`TrainConfig`: their
+defaults and checks), the object's info."""
 from __future__ import annotations
 
+import dataclasses
+import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -9,28 +12,28 @@ from typing import Any
 import numpy as np
 
 from dope_hope.assets import DEMO_WEIGHTS, PRETRAINED_WEIGHTS
-from dope_hope.errors import ConfigError, UnknownObjectError
-
+from dope_hope.catalog import CATEGORIES, get_object
+from dope_hope.config import (
+    SectionSettings,
+    at_least,
+    boolean,
+    nonnegative_float,
+    one_of,
+    or_none,
+    positive_float,
+    section,
+)
+from dope_hope.errors import ConfigError, DopeHopeError, InputFileError, UnknownObjectError
+from dope_hope.geometry import fit_cuboid
+from dope_hope.io.bop_scenes import recorded_box_size
+from dope_hope.io.dope_json import read_dope_json, recorded_cuboid_size
+from dope_hope.io.models_dir import find_object_mesh, parse_mesh_args
+from dope_hope.io.paths import require_file
+from dope_hope.model.settings import InputSettings, ModelSettings
+from dope_hope.training.augment import AugmentParams
 
 #: ``--init`` choices besides a checkpoint path.
 INIT_CHOICES = ("auto", "pretrained", "demo", "none")
-
-#: Defaults of the ``train`` section (a config's values override them).
-TRAIN_DEFAULTS: dict[str, Any] = {
-    "batch_size": 16, "epochs": 30, "steps": None, "time_limit_min": None,
-    "optimizer": "adam", "lr": 1e-4, "weight_decay": 0.0, "betas": [0.9, 0.999],
-    "schedule": "constant", "warmup_steps": 0, "min_lr_factor": 0.01,
-    "step_epochs": 20, "step_gamma": 0.1,
-    "grad_clip": None, "loss": "mse", "belief_weight": 1.0, "affinity_weight": 1.0,
-    "foreground_weight": 0.0,
-    "workers": 2, "threads": None, "checkpoint_every": 1, "checkpoint_every_steps": 0,
-    "amp": True, "channels_last": True, "seed": 0,
-    "val_fraction": 0.1, "val_every": 1, "val_radius_px": 5.0, "val_peak_threshold": 0.1,
-    "val_batch_size": None, "max_instances": 8, "min_visibility": 0.0,
-    "include_empty_frames": True, "log_every": 20, "horizon_estimate_after": 20,
-    "plots": True,  # results.png + val_snapshot.png (and TensorBoard images) after each validation
-}
-
 
 # =============================================================================== job + config
 @dataclass
@@ -103,20 +106,6 @@ class TrainJob:
         return self.mesh if len(self.class_names) == 1 else None
 
 
-#: The ``train`` keys that hold numbers: key -> (rule, may be null). Rules: "int>=N" a whole
-#: number >= N, "float>0" / "float>=0" a finite number, "fraction" in [0, 1).
-_TRAIN_NUMBERS: dict[str, tuple[str, bool]] = {
-    "batch_size": ("int>=1", False), "epochs": ("int>=1", False), "steps": ("int>=1", True),
-    "time_limit_min": ("float>0", True), "lr": ("float>=0", False), "weight_decay": ("float>=0", False),
-    "warmup_steps": ("int>=0", False), "min_lr_factor": ("float>=0", False), "step_epochs": ("int>=1", False),
-    "step_gamma": ("float>0", False), "grad_clip": ("float>0", True), "belief_weight": ("float>=0", False),
-    "affinity_weight": ("float>=0", False), "foreground_weight": ("float>=0", False),
-    "workers": ("int>=0", False), "threads": ("int>=1", True), "checkpoint_every": ("int>=0", False),
-    "checkpoint_every_steps": ("int>=0", True), "seed": ("int>=0", False), "val_fraction": ("fraction", False),
-    "val_every": ("int>=0", False), "val_radius_px": ("float>0", False), "val_peak_threshold": ("float>=0", False),
-    "val_batch_size": ("int>=1", True), "max_instances": ("int>=1", False), "min_visibility": ("float>=0", False),
-    "log_every": ("int>=1", False), "horizon_estimate_after": ("int>=2", False),
-}
 #: The longest time budget accepted, minutes (a year): longer ones are mistakes (1e308
 #: minutes is no number of seconds a clock can count); leave the budget out for no limit.
 MAX_TIME_LIMIT_MIN = 525_600.0
@@ -125,8 +114,6 @@ MAX_TIME_LIMIT_MIN = 525_600.0
 def check_time_limit(value: Any, name: str = "train.time_limit_min") -> float:
     """A time budget in minutes: a finite number > 0 and at most :data:`MAX_TIME_LIMIT_MIN`;
     ConfigError naming ``name`` otherwise."""
-    from dope_hope.config import positive_float
-
     minutes = positive_float(value, name)
     if minutes > MAX_TIME_LIMIT_MIN:
         raise ConfigError(f"{name} must be at most {MAX_TIME_LIMIT_MIN:g} minutes (a year; leave it out for "
@@ -134,74 +121,196 @@ def check_time_limit(value: Any, name: str = "train.time_limit_min") -> float:
     return minutes
 
 
-#: Top-level config sections, and the keys of those that no other reader checks.
-CONFIG_SECTIONS = ("model", "input", "targets", "train", "augment")
-_SECTION_KEYS = {"input": ("size", "normalization"), "targets": ("sigma", "radius", "symmetry")}
+def _below_one(value: Any, name: str) -> float:
+    """A fraction in [0, 1)."""
+    if nonnegative_float(value, name) >= 1:
+        raise ConfigError(f"{name} must be a fraction in [0, 1), got {value!r}")
+    return float(value)
 
 
-def check_config_keys(config: dict[str, Any]) -> None:
-    """ConfigError for an unknown top-level section or an unknown ``input`` / ``targets`` key
-    (``model``, ``train`` and ``augment`` keys are checked by their readers)."""
-    unknown = sorted(set(config) - set(CONFIG_SECTIONS))
-    if unknown:
-        raise ConfigError(f"unknown config section(s) {', '.join(unknown)}; known: {', '.join(CONFIG_SECTIONS)}")
-    for section, keys in _SECTION_KEYS.items():
-        bad = sorted(set(config.get(section) or {}) - set(keys))
-        if bad:
-            raise ConfigError(f"{section}: unknown key(s) {', '.join(bad)}; known: {', '.join(keys)}")
+def _betas(value: Any, name: str) -> list[float]:
+    if (not isinstance(value, (list, tuple)) or len(value) != 2
+            or not all(0 <= nonnegative_float(b, name) < 1 for b in value)):
+        raise ConfigError(f"{name} must be two numbers in [0, 1), got {value!r}")
+    return list(value)
+
+
+@dataclass(frozen=True)
+class TrainSettings(SectionSettings):
+    """The ``train`` section of a training recipe: the optimization and the run.
+
+    batch_size: images per step and process. epochs / steps (null: from the epochs) /
+    time_limit_min (minutes, null: none): the run ends at the first reached. optimizer (adam,
+    adamw), lr, weight_decay, betas. schedule: constant | cosine | step, with warmup_steps,
+    min_lr_factor (cosine floor), step_epochs / step_gamma (step). grad_clip: max global grad
+    norm or null. loss: mse; belief_weight, affinity_weight; foreground_weight: belief cells
+    weigh 1 + w * target. workers: DataLoader processes; threads: torch threads (null: torch's
+    default). checkpoint_every (epochs) / checkpoint_every_steps (0: off). amp: bf16 autocast
+    where native; channels_last: NHWC tensors. seed. val_fraction (the split of --data
+    without --val), val_every (epochs, 0: off), val_radius_px, val_peak_threshold,
+    val_batch_size (null: batch_size). max_instances per frame; min_visibility of an instance;
+    include_empty_frames. log_every (steps). horizon_estimate_after: steps before a time
+    budget becomes a step count. plots: results.png + val_snapshot.png after each validation.
+    """
+
+    SECTION = "train"
+    RULES = {
+        "batch_size": at_least(1), "epochs": at_least(1), "steps": or_none(at_least(1)),
+        "time_limit_min": or_none(check_time_limit), "optimizer": one_of("adam", "adamw"),
+        "lr": nonnegative_float, "weight_decay": nonnegative_float, "betas": _betas,
+        "schedule": one_of("constant", "cosine", "step"), "warmup_steps": at_least(0),
+        "min_lr_factor": nonnegative_float, "step_epochs": at_least(1), "step_gamma": positive_float,
+        "grad_clip": or_none(positive_float), "loss": one_of("mse"), "belief_weight": nonnegative_float,
+        "affinity_weight": nonnegative_float, "foreground_weight": nonnegative_float,
+        "workers": at_least(0), "threads": or_none(at_least(1)), "checkpoint_every": at_least(0),
+        "checkpoint_every_steps": or_none(at_least(0)), "amp": boolean, "channels_last": boolean,
+        "seed": at_least(0), "val_fraction": _below_one, "val_every": at_least(0),
+        "val_radius_px": positive_float, "val_peak_threshold": nonnegative_float,
+        "val_batch_size": or_none(at_least(1)), "max_instances": at_least(1),
+        "min_visibility": nonnegative_float, "include_empty_frames": boolean, "log_every": at_least(1),
+        "horizon_estimate_after": at_least(2), "plots": boolean,
+    }
+
+    batch_size: int = 16
+    epochs: int = 30
+    steps: int | None = None
+    time_limit_min: float | None = None
+    optimizer: str = "adam"
+    lr: float = 1e-4
+    weight_decay: float = 0.0
+    betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
+    schedule: str = "constant"
+    warmup_steps: int = 0
+    min_lr_factor: float = 0.01
+    step_epochs: int = 20
+    step_gamma: float = 0.1
+    grad_clip: float | None = None
+    loss: str = "mse"
+    belief_weight: float = 1.0
+    affinity_weight: float = 1.0
+    foreground_weight: float = 0.0
+    workers: int = 2
+    threads: int | None = None
+    checkpoint_every: int = 1
+    checkpoint_every_steps: int | None = 0
+    amp: bool = True
+    channels_last: bool = True
+    seed: int = 0
+    val_fraction: float = 0.1
+    val_every: int = 1
+    val_radius_px: float = 5.0
+    val_peak_threshold: float = 0.1
+    val_batch_size: int | None = None
+    max_instances: int = 8
+    min_visibility: float = 0.0
+    include_empty_frames: bool = True
+    log_every: int = 20
+    horizon_estimate_after: int = 20
+    plots: bool = True
+
+
+def _symmetry(value: Any, name: str) -> Any:
+    if value in (None, False) or (isinstance(value, str) and value.lower() in ("none", "auto", *CATEGORIES)):
+        return value
+    raise ConfigError(f"{name} must be none, auto or one of {', '.join(CATEGORIES)}, got {value!r}")
+
+
+@dataclass(frozen=True)
+class TargetsSettings(SectionSettings):
+    """The ``targets`` section: sigma of the belief maps' Gaussian blobs and radius of the
+    affinity disks, map pixels; symmetry: none (official labels), auto, or a category
+    (cuboid, bottle, cylinder): symmetry-aware relabelling of symmetric views
+    (:mod:`dope_hope.symmetry.labels`)."""
+
+    SECTION = "targets"
+    RULES = {"sigma": positive_float, "radius": positive_float, "symmetry": _symmetry}
+
+    sigma: float = 2.0
+    radius: float = 1.0
+    symmetry: str | None = "none"
+
+
+@dataclass(frozen=True)
+class TrainConfig(SectionSettings):
+    """A training recipe (``configs/lite.yaml``, ``dope_dr_50.yaml``, ...): its sections, each
+    over its defaults. A recipe file holds only what differs from them."""
+
+    SECTION = ""
+
+    model: ModelSettings = section(ModelSettings)
+    input: InputSettings = section(InputSettings)
+    targets: TargetsSettings = section(TargetsSettings)
+    train: TrainSettings = section(TrainSettings)
+    augment: AugmentParams = section(AugmentParams)
+
+
+def check_config_keys(config: dict[str, Any]) -> TrainConfig:
+    """The recipe ``config`` checked (every section, key and value): ConfigError naming the
+    first bad ``section.key``."""
+    return TrainConfig.from_mapping(config)
 
 
 def train_settings(config: dict[str, Any]) -> dict[str, Any]:
-    """The ``train`` section over :data:`TRAIN_DEFAULTS`; unknown keys and values of the wrong
-    kind (``lr: abc``, ``steps: 0``, ``workers: -1``) raise ConfigError naming the key."""
-    from dope_hope.config import nonnegative_float, positive_float, whole_number
-
-    section = dict(config.get("train") or {})
-    unknown = sorted(set(section) - set(TRAIN_DEFAULTS))
-    if unknown:
-        raise ConfigError(f"train: unknown key(s) {', '.join(unknown)}")
-    out = {**TRAIN_DEFAULTS, **section}
-    for key, (rule, nullable) in _TRAIN_NUMBERS.items():
-        value, name = out[key], f"train.{key}"
-        if value is None and nullable:
-            continue
-        if rule.startswith("int>="):
-            out[key] = whole_number(value, name, int(rule[5:]))
-        elif key == "time_limit_min":
-            out[key] = check_time_limit(value, name)
-        elif rule == "float>0":
-            out[key] = positive_float(value, name)
-        elif rule == "float>=0":
-            out[key] = nonnegative_float(value, name)
-        elif nonnegative_float(value, name) >= 1:
-            raise ConfigError(f"{name} must be a fraction in [0, 1), got {value!r}")
-    for key in ("amp", "channels_last", "include_empty_frames", "plots"):
-        if not isinstance(out[key], bool):
-            raise ConfigError(f"train.{key} must be true or false, got {out[key]!r}")
-    betas = out["betas"]
-    if (not isinstance(betas, (list, tuple)) or len(betas) != 2
-            or not all(0 <= nonnegative_float(b, "train.betas") < 1 for b in betas)):
-        raise ConfigError(f"train.betas must be two numbers in [0, 1), got {betas!r}")
-    if out["schedule"] not in ("constant", "cosine", "step"):
-        raise ConfigError(f"train.schedule must be constant, cosine or step, got {out['schedule']!r}")
-    if out["optimizer"] not in ("adam", "adamw"):
-        raise ConfigError(f"train.optimizer must be adam or adamw, got {out['optimizer']!r}")
-    if out["loss"] != "mse":
-        raise ConfigError(f"train.loss must be mse, got {out['loss']!r}")
-    if int(out["batch_size"]) < 1:
-        raise ConfigError(f"train.batch_size must be >= 1, got {out['batch_size']!r}")
-    return out
+    """The ``train`` section over its defaults (:class:`TrainSettings`), as a dict; unknown
+    keys and values of the wrong kind (``lr: abc``, ``steps: 0``, ``workers: -1``) raise
+    ConfigError naming the key."""
+    return TrainSettings.from_mapping(config.get("train")).to_dict()
 
 
 def input_hw(config: dict[str, Any]) -> tuple[int, int]:
     """(H, W) training input size from ``input.size``."""
-    size = (config.get("input") or {}).get("size")
-    if size is None or len(size) != 2:
-        raise ConfigError("config needs input.size: [H, W]")
-    h, w = int(size[0]), int(size[1])
-    if h % 8 or w % 8 or h <= 0 or w <= 0:
-        raise ConfigError(f"input.size {size} must be positive multiples of 8")
-    return h, w
+    return InputSettings.from_mapping(config.get("input")).size
+
+
+def targets_settings(config: dict[str, Any]) -> TargetsSettings:
+    """The ``targets`` section over its defaults."""
+    return TargetsSettings.from_mapping(config.get("targets"))
+
+
+#: An annotation's projected cuboid implies its box when the fitted box reprojects within
+#: this many pixels (RMS) of it (else its pose is in another frame: no size is read from it).
+FIT_RMS_PX = 2.0
+
+
+def annotated_size(name: str, records: Sequence[Any], object_index: int = 0) -> tuple[np.ndarray, str] | None:
+    """(size (3,) m, where from) of ``name``'s box as the data says, or None: the size the
+    dataset records (a synth frame's JSON, an NDDS settings file, a BOP dataset's
+    models_info.json), else the one box the instances' projected cuboids imply with their
+    poses (:func:`dope_hope.geometry.fit_cuboid`; None when they do not fit one box within
+    :data:`FIT_RMS_PX`, e.g. poses in another frame). Looks at the first five records holding
+    object ``object_index``."""
+    holding = [r for r in records if np.any(r.object_indices() == object_index)][:5]
+    recorded = _recorded_size(name, holding)
+    if recorded is not None:
+        return recorded[0], f"the size {recorded[1].name} records"
+    views = []
+    for r in holding:
+        if r.json_path.name == "scene_gt.json":
+            continue
+        try:
+            frame = read_dope_json(r.json_path)
+        except (DopeHopeError, ValueError, KeyError, TypeError, OSError):
+            continue
+        views += [(obj.projected_cuboid, frame.K, obj.R, obj.t) for obj in frame.objects
+                  if obj.class_name.lower() == name.lower() and obj.projected_cuboid is not None]
+    fitted = fit_cuboid(views)
+    if fitted is None or fitted[2] > FIT_RMS_PX:
+        return None
+    return fitted[0], (f"the box the annotated projected cuboids imply ({len(views)} instances, e.g. in "
+                       f"{holding[0].json_path.name})")
+
+
+def _recorded_size(name: str, records: Sequence[Any]) -> tuple[np.ndarray, Path] | None:
+    """(size (3,) m, the annotation file) of the first of ``records`` whose dataset records
+    ``name``'s box, or None."""
+    for r in records:
+        if r.json_path.name == "scene_gt.json":
+            size = recorded_box_size(r.json_path, name)
+        else:
+            size = recorded_cuboid_size(r.json_path, name)
+        if size is not None:
+            return size, r.json_path
+    return None
 
 
 def object_info(name: str, records: Sequence[Any], mesh: Path | None, units: str | None = None,
@@ -210,8 +319,15 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None, units: str
     where the size came from: a mesh's AABB (file in ``units``, default its suffix's) > the
     size the dataset records (a synth frame's JSON, an NDDS settings file, a BOP dataset's
     models_info.json) > the catalog. ``object_index``: the object's index in the records'
-    ``classes``."""
-    from dope_hope.catalog import get_object
+    ``classes``.
+
+    Raises:
+        ConfigError: a mesh whose box does not match the box the data says
+        (:func:`annotated_size`, extents in any order, within
+        :data:`dope_hope.io.meshes.MESH_SIZE_TOLERANCE`): every pose the model gives would
+        be off by the ratio.
+    """
+    # torch and trimesh only for the checkpoint's object entry
     from dope_hope.model.checkpoint import make_object_info
 
     try:
@@ -220,19 +336,18 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None, units: str
     except UnknownObjectError:
         hope = None
     if mesh is not None:
-        from dope_hope.io.meshes import load_mesh, mesh_cuboid
-        size, _ = mesh_cuboid(load_mesh(mesh, units=units))
-        return make_object_info(name, size, "mesh"), f"mesh {Path(mesh).name}"
-    from dope_hope.io.bop_scenes import recorded_box_size
-    from dope_hope.io.dope_json import recorded_cuboid_size
+        from dope_hope.io.meshes import check_mesh_box, load_mesh, mesh_cuboid
 
-    for r in [r for r in records if np.any(r.object_indices() == object_index)][:5]:
-        if r.json_path.name == "scene_gt.json":
-            size = recorded_box_size(r.json_path, name)
-        else:
-            size = recorded_cuboid_size(r.json_path, name)
-        if size is not None:
-            return make_object_info(name, size, "mesh"), f"dataset {r.json_path.name}"
+        loaded = load_mesh(mesh, units=units)
+        size, _ = mesh_cuboid(loaded)
+        implied = annotated_size(name, records, object_index)
+        if implied is not None:
+            check_mesh_box(size, implied[0], f"--mesh {mesh}", name, implied[1], any_axis_order=True,
+                           units=loaded.metadata["source_units"])
+        return make_object_info(name, size, "mesh"), f"mesh {Path(mesh).name}"
+    recorded = _recorded_size(name, [r for r in records if np.any(r.object_indices() == object_index)][:5])
+    if recorded is not None:
+        return make_object_info(name, recorded[0], "mesh"), f"dataset {recorded[1].name}"
     if hope is None:
         raise ConfigError(f"cannot tell the cuboid size of {name!r}: the dataset records none and it is "
                           "not a HOPE object; pass --mesh")
@@ -252,8 +367,6 @@ def resolve_init(choice: str | None, config: dict[str, Any]) -> tuple[Path | Non
         InputFileError: "pretrained" / "demo" where this installation does not ship the file.
         ModelFileError: "pretrained" for another architecture (its shapes differ).
     """
-    from dope_hope.errors import InputFileError
-
     value = "auto" if choice is None else str(choice)
     if value == "none":
         return None, "random start (--init none)"
@@ -291,10 +404,6 @@ def resolve_resume(choice: str | None, out: Path, init: str | None) -> tuple[Pat
         ConfigError: a checkpoint path together with ``--init``.
         InputFileError: a checkpoint path that is not a readable file.
     """
-    import logging
-
-    from dope_hope.io.paths import require_file
-
     log = logging.getLogger(__name__)
     if choice is None:
         return None, init
@@ -316,15 +425,16 @@ def same_architecture(config: dict[str, Any], checkpoint: Path) -> bool:
     """True when ``config`` builds the network ``checkpoint`` holds (same ``model`` section and
     input normalization), up to ``model.num_objects``: a one-object start is widened to the
     run's objects (:func:`dope_hope.model.network.widen_to_objects`)."""
+    # torch only to read the checkpoint
     from dope_hope.model.checkpoint import load_checkpoint
 
     saved = load_checkpoint(checkpoint)["config"]
 
     def norm(c: dict[str, Any]) -> Any:
-        return (c.get("input") or {}).get("normalization", "imagenet")
+        return InputSettings.from_mapping(c.get("input")).normalization
 
     def model(c: dict[str, Any]) -> Any:  # a one-object start widens to any number of objects
-        return {k: v for k, v in (c.get("model") or {}).items() if k != "num_objects"}
+        return dataclasses.replace(ModelSettings.from_mapping(c.get("model")), num_objects=1)
 
     return model(saved) == model(config) and norm(saved) == norm(config)
 
@@ -335,7 +445,8 @@ def train_meshes(objects: Sequence[str], mesh_args: Sequence[str] | None, models
     ({class: mesh}, {class: unit}).
 
     ``--mesh`` values pair with the objects in order when there is one per object (else
-    ``NAME=PATH`` or a file that names its object: :func:`dope_hope.io.models_dir.parse_mesh_args`);
+    ``NAME=PATH`` or a file that names its object; a NAME that is not an object of the run is
+    refused: :func:`dope_hope.io.models_dir.parse_mesh_args`);
     ``--models-dir`` is searched for every object (:func:`~dope_hope.io.models_dir.find_object_mesh`).
     Without objects (a resumed run) one mesh is the run's object's, keyed "".
 
@@ -343,27 +454,19 @@ def train_meshes(objects: Sequence[str], mesh_args: Sequence[str] | None, models
         ConfigError: both --mesh and --models-dir; a mesh of no object of the run; units not
             one or one per mesh.
     """
-    from dope_hope.io.models_dir import find_object_mesh, parse_mesh_args
-
     names = list(objects)
     if mesh_args and models_dir is not None:
         raise ConfigError("give either --mesh or --models-dir, not both")
     meshes: dict[str, Path] = {}
     if models_dir is not None:
         meshes = {n: find_object_mesh(n, models_dir) for n in names}
+    elif mesh_args and not names:  # a resumed run's one object, named by its checkpoint
+        if len(mesh_args) != 1:
+            raise ConfigError(f"--mesh: {len(mesh_args)} meshes for a resumed run; name its objects with --object")
+        text = str(mesh_args[0])
+        meshes = {"": Path(text.split("=", 1)[1] if "=" in text and not Path(text).exists() else text)}
     elif mesh_args:
-        if len(names) <= 1 and len(mesh_args) == 1:
-            text = str(mesh_args[0])
-            named = "=" in text and not Path(text).exists()
-            meshes = {names[0] if names else "": Path(text.split("=", 1)[1] if named else text)}
-        elif len(mesh_args) == len(names) and not any("=" in str(m) and not Path(m).exists() for m in mesh_args):
-            meshes = {n: Path(m) for n, m in zip(names, mesh_args)}
-        else:
-            lower = {n.lower(): n for n in names}
-            for key, path in parse_mesh_args(mesh_args, names).items():
-                if key.lower() not in lower:
-                    raise ConfigError(f"--mesh {path}: {key} is not one of the objects ({', '.join(names)})")
-                meshes[lower[key.lower()]] = path
+        meshes = parse_mesh_args(mesh_args, names, in_order=True)
     if not units:
         return meshes, {}
     if not meshes:

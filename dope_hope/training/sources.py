@@ -10,7 +10,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
+from dope_hope.errors import InputFileError
 from dope_hope.geometry import KEYPOINT_ORDER
+from dope_hope.io.bop_scenes import bop_class_name, is_bop_dataset, iter_bop_frames
 from dope_hope.training.dataset import FrameRecord, class_index, frame_record, scan_frames
 
 
@@ -18,8 +22,6 @@ def scan_bop(folder: str | Path, class_names: Sequence[str], keypoint_order: str
              min_visibility: float = 0.0, include_empty: bool = True) -> list[FrameRecord]:
     """The records of a BOP split or scene folder: each obj_id is the class
     :func:`dope_hope.io.bop_scenes.bop_class_name` gives among ``class_names``."""
-    from dope_hope.io.bop_scenes import bop_class_name, iter_bop_frames
-
     names = list(class_names)
     want = class_index(names)
     records = []
@@ -40,8 +42,6 @@ def scan_training_data(folders: Sequence[str | Path], class_names: str | Sequenc
         (records, bad): bad lists DOPE annotation files that could not be parsed
         (:func:`~dope_hope.training.dataset.scan_frames`).
     """
-    from dope_hope.io.bop_scenes import is_bop_dataset
-
     names = [class_names] if isinstance(class_names, str) else list(class_names)
     records: list[FrameRecord] = []
     bad: list[tuple[Path, str]] = []
@@ -62,3 +62,20 @@ def scan_training_data(folders: Sequence[str | Path], class_names: str | Sequenc
             dope.append(Path(folder))
     flush()
     return records, bad
+
+
+def check_instances(records: Sequence[FrameRecord], class_names: Sequence[str], folders: Sequence[str | Path]) -> None:
+    """InputFileError naming the folders unless every object of the run has an annotated
+    instance among ``records``: an object without one would train a map group that only ever
+    learns "absent" (a misspelt or missing object, or data of other objects)."""
+    names = list(class_names)
+    indices = [r.object_indices() for r in records if len(r.keypoints)]
+    counts = np.bincount(np.concatenate(indices), minlength=len(names)) if indices else np.zeros(len(names), int)
+    where = ", ".join(str(p) for p in folders)
+    if not counts.any():
+        raise InputFileError(where, f"no annotated instance of class {' / '.join(names)!r}")
+    missing = [n for n, c in zip(names, counts) if c == 0]
+    if missing:
+        found = ", ".join(f"{n} {c}" for n, c in zip(names, counts) if c)
+        raise InputFileError(where, f"no annotated instance of {', '.join(missing)} (--object), whose maps would "
+                                    f"only learn 'absent'; instances found: {found}")

@@ -43,25 +43,43 @@ import numpy as np
 import torch
 import torch.distributed as dist
 from torch import nn
+from tqdm import tqdm
 
 from dope_hope.config import merge
 from dope_hope.devices import native_bf16
-from dope_hope.errors import ConfigError, InputFileError
+from dope_hope.errors import ConfigError, InputFileError, ModelFileError
 from dope_hope.geometry import KEYPOINT_ORDER
+from dope_hope.io.atomic import atomic_write_text, remove_stale_temporaries
+from dope_hope.io.images import write_rgb
+from dope_hope.io.paths import output_dir
+from dope_hope.model.checkpoint import check_state_dict, load_checkpoint
+from dope_hope.model.network import build_model, load_backbone_weights, num_objects_of, widen_to_objects
+from dope_hope.preprocess import denormalize_rgb
+from dope_hope.training.augment import AugmentParams
 from dope_hope.training.budget import BudgetPlan
+from dope_hope.training.dataset import DopeDataset, EpochSampler, collate, report_bad_file, split_records
 from dope_hope.training.distributed import init_distributed
 from dope_hope.training.loss import optimizer_step, stage_loss
 from dope_hope.training.metrics_log import MetricsLog
-from dope_hope.training.objects import relabel_objects
+from dope_hope.training.objects import (
+    check_class_names,
+    checkpoint_objects,
+    relabel_objects,
+    run_objects,
+    with_num_objects,
+)
+from dope_hope.training.plots import SNAPSHOT_IMAGES, SnapshotItem, plot_results, snapshot_panel
 from dope_hope.training.resume import RunCheckpoints, resumed_job
 from dope_hope.training.schedule import LrLambda
-from dope_hope.training.stopping import StopControl
 from dope_hope.training.settings import (
     TrainJob,
-    input_hw,
     check_config_keys,
+    input_hw,
+    targets_settings,
     train_settings,
 )
+from dope_hope.training.sources import check_instances, scan_training_data
+from dope_hope.training.stopping import StopControl
 from dope_hope.training.time_budget import LOADER_PREFETCH, TimeBudgetControl
 from dope_hope.training.validation import object_hits
 
@@ -73,9 +91,6 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
     """One training job; :meth:`run` returns a summary dict (see :func:`train`)."""
 
     def __init__(self, job: TrainJob, config: dict[str, Any]):
-        from dope_hope.model.network import build_model
-        from dope_hope.training.objects import check_class_names, with_num_objects
-
         self.job = job
         self.clock: Callable[[], float] = job.clock or time.monotonic
         self._t0 = self.clock() if job.started is None else job.started  # the budget counts from here
@@ -104,7 +119,6 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
 
         self.model = build_model(config)  # before the data: stride comes from the model
         if job.backbone_weights is not None:
-            from dope_hope.model.network import load_backbone_weights
             load_backbone_weights(self.model, job.backbone_weights)
         self._build_data(job, ck is None)
         self._build_optimizer(ts)
@@ -119,20 +133,14 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
     def _build_data(self, job: TrainJob, new_run: bool) -> None:
         """The training and validation sets, samplers and the run's objects (and, for a new
         run, the starting weights once the data checks passed)."""
-        from dope_hope.training.augment import AugmentParams
-        from dope_hope.training.dataset import DopeDataset, EpochSampler, split_records
-        from dope_hope.training.sources import scan_training_data
-
         config, ts = self.config, self.ts
         hw = input_hw(config)
-        tcfg = config.get("targets") or {}
+        tcfg = targets_settings(config)
         stride = int(self.model.stride)
         scan = dict(min_visibility=float(ts["min_visibility"]), include_empty=bool(ts["include_empty_frames"]),
                     progress=job.progress and self.dist.main)
         records, _ = scan_training_data(job.data, job.class_names, KEYPOINT_ORDER, **scan)
-        if not any(len(r.keypoints) for r in records):
-            folders = ", ".join(str(p) for p in job.data)
-            raise InputFileError(folders, f"no annotated instance of class {' / '.join(job.class_names)!r}")
+        check_instances(records, job.class_names, job.data)
         if job.val:
             val_records, _ = scan_training_data(job.val, job.class_names, KEYPOINT_ORDER, **scan)
             if not val_records:
@@ -146,11 +154,11 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
                 log.info("start: %s", job.init_reason)
         self._set_objects(records)
         (records, val_records), self.symmetry_permutations, lines = relabel_objects(
-            tcfg.get("symmetry", "none"), job, self.objects, [records, val_records])
+            tcfg.symmetry, job, self.objects, [records, val_records])
         for line in lines:
             log.info("symmetry-aware labels: %s", line)
-        common = dict(input_hw=hw, stride=stride, sigma=float(tcfg.get("sigma", 2.0)),
-                      radius=float(tcfg.get("radius", 1.0)), seed=self.seed, max_instances=int(ts["max_instances"]),
+        common = dict(input_hw=hw, stride=stride, sigma=float(tcfg.sigma),
+                      radius=float(tcfg.radius), seed=self.seed, max_instances=int(ts["max_instances"]),
                       num_objects=len(self.objects))
         self.train_set = DopeDataset(records, augment=AugmentParams.from_config(config.get("augment")), **common)
         self.val_set = DopeDataset(val_records, augment=AugmentParams(enabled=False), **common)
@@ -212,16 +220,14 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
     def _set_objects(self, records: list[Any]) -> None:
         """The run's objects (:mod:`dope_hope.training.objects`): ``objects``, the checkpoint's
         ``object`` (one entry, or the list of several) and where the sizes came from."""
-        from dope_hope.training.objects import checkpoint_objects, run_objects
-
         self.objects = run_objects(self.job, records)
+        for obj in self.objects:
+            log.info("symmetries: %s: %s", obj.name, obj.symmetry_source)
         self.object = checkpoint_objects(self.objects)
         self.size_source = self.objects[0].size_source if len(self.objects) == 1 else \
             {o.name: o.size_source for o in self.objects}
 
     def _loader(self, dataset: Any, sampler: Any, batch_size: int, drop_last: bool) -> torch.utils.data.DataLoader:
-        from dope_hope.training.dataset import collate
-
         workers = int(self.ts["workers"])
         return torch.utils.data.DataLoader(
             dataset, batch_size=batch_size, sampler=sampler, num_workers=workers, collate_fn=collate,
@@ -230,8 +236,6 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
             multiprocessing_context="fork" if workers > 0 and os.name == "posix" else None)
 
     def _report_bad(self, files: list[str]) -> None:
-        from dope_hope.training.dataset import report_bad_file
-
         for f in files:
             report_bad_file(f, "unreadable image, replaced by another frame")
 
@@ -331,10 +335,6 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
         """Rank 0, after a validation: ``results.png`` (the metrics.csv curves) and
         ``val_snapshot.png`` (a few validation images, their belief maps and decoded cuboids;
         also to TensorBoard when it is installed)."""
-        from dope_hope.io.images import write_rgb
-        from dope_hope.preprocess import denormalize_rgb
-        from dope_hope.training.plots import SNAPSHOT_IMAGES, SnapshotItem, plot_results, snapshot_panel
-
         plot_results(self.metrics.csv_path, self.out / "results.png")
         n = min(SNAPSHOT_IMAGES, len(self.val_set))
         if n == 0:
@@ -360,9 +360,6 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
 
     # ------------------------------------------------------------------ loop
     def run(self) -> dict[str, Any]:
-        from dope_hope.io.atomic import remove_stale_temporaries
-        from dope_hope.io.paths import output_dir
-
         output_dir(self.out)
         if self.dist.main:  # a process killed while writing leaves .last.<random>.tmp.pt
             remove_stale_temporaries(self.out, {"last", "best", "summary", "metrics"})
@@ -386,7 +383,6 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
             "last": str(self.out / "last.pt"), "rank": self.dist.rank,
         }
         if self.dist.main:
-            from dope_hope.io.atomic import atomic_write_text
             atomic_write_text(self.out / "summary.json", json.dumps(summary, indent=2, default=str))
         if self.dist.active:
             dist.barrier()
@@ -467,8 +463,6 @@ class _TrainRows:
     so a resumed run logs the row an uninterrupted one does)."""
 
     def __init__(self, trainer: Trainer):
-        from tqdm import tqdm
-
         self.trainer = trainer
         self.bar = tqdm(total=trainer.total_steps, initial=trainer.step,
                         disable=not (trainer.job.progress and trainer.dist.main),
@@ -515,10 +509,6 @@ def load_init_weights(model: nn.Module, path: str | Path) -> None:
     architecture than ``model`` (compare the configs' ``model`` sections) or holds weights
     that are not finite (NaN / inf: every step from them would be NaN).
     """
-    from dope_hope.errors import ModelFileError
-    from dope_hope.model.checkpoint import check_state_dict, load_checkpoint
-    from dope_hope.model.network import num_objects_of, widen_to_objects
-
     ck = load_checkpoint(path)
     state = ck["model"]
     n = int(getattr(model, "num_objects", 1))

@@ -10,7 +10,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from dope_hope.geometry import NUM_KEYPOINTS
+from dope_hope.maps.decode import DecodeSettings, decode_maps
 from dope_hope.maps.grid import map_to_image
+from dope_hope.maps.peaks import find_peaks
+from dope_hope.model.info import group_channels
 
 
 # =============================================================================== metrics
@@ -59,9 +62,6 @@ def validation_hits(belief: np.ndarray, affinity: np.ndarray, gt: np.ndarray, st
         belief: (9, h, w); affinity: (16, h, w); gt: (I, 9, 2) input pixels, NaN = not visible.
         stride: map stride; radius_px: hit radius, input pixels; threshold: peak threshold.
     """
-    from dope_hope.maps.decode import DecodeSettings, decode_maps
-    from dope_hope.maps.peaks import find_peaks
-
     n_inst = max(1, int(np.any(np.all(np.isfinite(gt), axis=2), axis=1).sum()))
     peaks = find_peaks(belief, threshold)
     pred = []
@@ -87,8 +87,6 @@ def object_hits(belief: np.ndarray, affinity: np.ndarray, gt: np.ndarray, classe
     Returns:
         (N, 4) int: per object (found, visible, found_decoded, visible_decoded).
     """
-    from dope_hope.model.info import group_channels
-
     maps = np.concatenate([belief, affinity], axis=0)
     out = np.zeros((num_objects, 4), np.int64)
     for k in range(num_objects):
