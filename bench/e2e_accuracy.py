@@ -103,6 +103,18 @@ def shared_data_dir() -> Path | None:
     return None
 
 
+def shared_defaults(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """``args.mesh`` / ``args.backgrounds`` when not given: the shared HOPE Ketchup mesh and
+    background photos (a parser error when no mesh is at hand)."""
+    shared = shared_data_dir()
+    if args.mesh is None:
+        if shared is None:
+            parser.error("no --mesh and no shared data (set DOPE_HOPE_SHARED_DATA or pass --mesh)")
+        args.mesh = shared / "hope_ketchup" / "textured.obj"
+    if args.backgrounds is None and shared is not None and (shared / "backgrounds").is_dir():
+        args.backgrounds = shared / "backgrounds"
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -142,13 +154,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     for key, value in defaults.items():
         if getattr(args, key) is None:
             setattr(args, key, value)
-    shared = shared_data_dir()
-    if args.mesh is None:
-        if shared is None:
-            p.error("no --mesh and no shared data (set DOPE_HOPE_SHARED_DATA or pass --mesh)")
-        args.mesh = shared / "hope_ketchup" / "textured.obj"
-    if args.backgrounds is None and shared is not None and (shared / "backgrounds").is_dir():
-        args.backgrounds = shared / "backgrounds"
+    shared_defaults(p, args)
     if not args.mesh.is_file():
         p.error(f"{args.mesh}: mesh not found")
     return args

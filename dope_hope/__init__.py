@@ -6,6 +6,8 @@ stays light (no torch, no OpenGL)::
     import dope_hope
     predictor = dope_hope.DopePredictor("model.pt")        # or an exported .onnx
     detections = predictor.predict(rgb, K, depth=depth)      # list[dope_hope.Detection]
+    new = dope_hope.MeshStartPredictor("my_object.obj")    # a new object, no training: the
+                                                             # pretrained start on its cuboid
     model = dope_hope.build_model("lite")                   # a fresh lite network (packaged config)
     ketchup = dope_hope.get_object("Ketchup")                # catalog entry (size in metres)
 
@@ -24,6 +26,7 @@ from dope_hope.version import __version__
 _LAZY = {
     "DopePredictor": "dope_hope.inference.predictor",
     "predict_many": "dope_hope.inference.predictor",
+    "MeshStartPredictor": "dope_hope.inference.mesh_start",
     "Detection": "dope_hope.inference.detection",
     "load_model": "dope_hope.model.checkpoint",
     "build_model": "dope_hope.model.network",
@@ -31,12 +34,13 @@ _LAZY = {
     "HOPE_OBJECTS": "dope_hope.catalog",
 }
 
-__all__ = ["DopeHopeError", "Detection", "DopePredictor", "HOPE_OBJECTS", "__version__", "build_model", "get_object",
-           "load_model", "predict_many"]
+__all__ = ["DopeHopeError", "Detection", "DopePredictor", "HOPE_OBJECTS", "MeshStartPredictor", "__version__",
+           "build_model", "get_object", "load_model", "predict_many"]
 
 if TYPE_CHECKING:
     from dope_hope.catalog import HOPE_OBJECTS, get_object
     from dope_hope.inference.detection import Detection
+    from dope_hope.inference.mesh_start import MeshStartPredictor
     from dope_hope.inference.predictor import DopePredictor, predict_many
     from dope_hope.model.checkpoint import load_model
     from dope_hope.model.network import build_model

@@ -54,13 +54,13 @@ TINY = {"model": {"arch": "lite", "head": 50, "stages": 1,
                   "lite": {"width": 8, "feature_channels": 16, "stage_channels": 16}},
         "input": {"size": [64, 64]}}
 TASKS = ["See it work: `dope-hope demo`", "Generate training data for a HOPE object", "Train on your own mesh",
-         "Many objects in one network", "Infer on a RealSense image with depth", "Infer on a video, a webcam or a live RealSense",
-         "Infer on a robot recording, view it in Foxglove",
+         "Many objects in one network", "Infer on a RealSense image with depth", "Pose a new object with no training",
+         "Infer on a video, a webcam or a live RealSense", "Infer on a robot recording, view it in Foxglove",
          "Use NVIDIA's published DOPE weights for the HOPE objects",
          "Export to ONNX for CPU inference or Isaac ROS", "Evaluate, and submit to the BOP challenge",
          "Train on many GPUs with torchrun"]
-VIDEO_TASK = TASKS[5]
-RECORDING_TASK = TASKS[6]
+VIDEO_TASK = "Infer on a video, a webcam or a live RealSense"
+RECORDING_TASK = "Infer on a robot recording, view it in Foxglove"
 
 
 # ----------------------------------------------------------------------------- parsing
@@ -255,6 +255,9 @@ def test_task_sections_run_in_order(sandbox):
     assert json.loads((sandbox / "eval" / "shelf" / "summary.json").read_text())["gt_instances"] >= 1
     assert (sandbox / "res" / "realsense" / "color.overlay.png").is_file()
     assert (sandbox / "res" / "realsense" / "predictions.jsonl").is_file()
+    for line in (sandbox / "res" / "new_object" / "predictions.jsonl").read_text().splitlines():
+        rec = json.loads(line)  # the pretrained start on the Ketchup's cuboid, untrained
+        assert rec["class"] == "Ketchup" and len(rec["cuboid_symmetries"]) == 3 and "pose_ambiguity" in rec
     assert (sandbox / "imported" / "Ketchup.pt").is_file()
     for name in ("ketchup.onnx", "ketchup_int8.onnx", "ketchup_isaac.onnx"):
         assert (sandbox / name).is_file()

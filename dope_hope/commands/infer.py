@@ -9,6 +9,7 @@ Examples:
   dope-hope infer realsense --icp --mesh meshes/                (pip install "dope-hope[realsense]")
   dope-hope infer robot.bag --track --foxglove --out res/robot  (pip install "dope-hope[ros]")
   dope-hope infer scene/ --weights shelf.pt --classes Ketchup Mustard --camera K.json
+  dope-hope infer frame.png --mesh my_object.obj --camera K.json   (a new object, no training)
 
 Output: one JSON line per detection on stdout, in the predictions format that
 `dope-hope evaluate` reads (image, class, score, R, t in metres, ls_applied, plus
@@ -97,6 +98,8 @@ from dope_hope.errors import ConfigError, DopeHopeError
 
 #: Frame rate of an overlay video when the source reports none.
 FALLBACK_FPS = 30.0
+#: --up-axis values (dope_hope.inference.mesh_start.UP_AXES, named here without its imports).
+UP_AXIS_NAMES = ("x", "y", "z", "-x", "-y", "-z")
 #: Options of video and camera inputs only.
 STREAM_OPTIONS = ("realtime", "max_frames", "show", "capture_size", "capture_fps", "track", "foxglove")
 #: Options of recordings only.
@@ -197,6 +200,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "surface replace the cuboid (default: the checkpoint's cuboid)")
     parser.add_argument("--mesh-units", choices=("m", "cm", "mm"),
                         help="mesh units (default: OBJ cm, PLY mm)")
+    start = parser.add_argument_group("a new object with no training (--mesh FILE, no --weights)")
+    start.add_argument("--up-axis", choices=UP_AXIS_NAMES, metavar="AXIS",
+                       help="a new object's mesh (--mesh FILE, no --weights): the mesh axis that is its "
+                            "vertical axis, as the pretrained start learned y for cans and bottles: x, y "
+                            "(default), z, or =-x, =-y, =-z (--up-axis=-z)")
+    start.add_argument("--start", type=Path, metavar="W",
+                       help="a new object's mesh: the start to run (default: the shipped "
+                            "dope_hope/assets/pretrained_lite.pt)")
     parser.add_argument("--out", type=Path, default=Path("infer_out"), metavar="DIR",
                         help="folder for overlays and predictions.jsonl (default ./infer_out)")
     parser.add_argument("--no-overlay", action="store_true", help="do not write overlay images / video")
@@ -257,6 +268,26 @@ def _warn(message: str) -> None:
     print(f"dope-hope infer: warning: {message}", file=sys.stderr, flush=True)
 
 
+def _start_mesh(args: argparse.Namespace) -> Path | None:
+    """The mesh the pretrained start detects (no --weights, one --mesh FILE that is not the
+    demo model's object), else None; ConfigError for --up-axis / --start without that case."""
+    from dope_hope.demo_object import DEMO_CLASS_NAME
+    from dope_hope.io.models_dir import mesh_class_name
+
+    meshes = list(args.mesh or [])
+    mesh = meshes[0] if len(meshes) == 1 and not meshes[0].is_dir() else None
+    if mesh is not None and not args.weights and (
+            default_weights() is None or mesh_class_name(mesh).lower() != DEMO_CLASS_NAME.lower()):
+        return mesh
+    flags = [f for f, v in (("--up-axis", args.up_axis), ("--start", args.start)) if v is not None]
+    if flags and args.weights:
+        raise ConfigError(f"{', '.join(flags)}: for a new object detected by the pretrained start "
+                          "(--mesh FILE, no --weights); a trained model knows its object")
+    if flags:
+        raise ConfigError(f"{', '.join(flags)}: give the new object's mesh file (--mesh FILE) and no --weights")
+    return None
+
+
 def inference_settings(args: argparse.Namespace) -> dict:
     """The inference options the command line sets: --config and --set (checked: one line naming
     the file or item and section.key), then the flags that name an option (--height,
@@ -269,8 +300,18 @@ def inference_settings(args: argparse.Namespace) -> dict:
 
 
 def _predictors(args: argparse.Namespace) -> list:
+    """The predictors of --weights, or the pretrained start's of a new object's --mesh
+    (:func:`_start_mesh`; its description printed)."""
     from dope_hope.inference.model_set import build_predictors
 
+    mesh = _start_mesh(args)
+    if mesh is not None:
+        from dope_hope.inference.mesh_start import MeshStartPredictor
+
+        p = MeshStartPredictor(mesh, up_axis=args.up_axis or "y", mesh_units=args.mesh_units, start=args.start,
+                               device=args.device, threads=args.threads, options=inference_settings(args))
+        _note(p.describe())
+        return [p]
     return build_predictors(_resolve_weights(args), args.mesh or [], mesh_units=args.mesh_units,
                             backend=args.backend, device=args.device, threads=args.threads,
                             options=inference_settings(args), classes=args.classes, note=_note)

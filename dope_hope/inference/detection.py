@@ -41,6 +41,14 @@ class Detection:
         ``icp=True``); icp_fit: soft fraction of the depth points under the object that lie on
         the model surface under the returned pose (1 = all; :func:`dope_hope.refine.icp.icp_refine`;
         NaN when not evaluated).
+    pose_ambiguity: None for a detector of the object itself; for a detector of its cuboid
+        (:mod:`dope_hope.inference.mesh_start`) the rotations ``S`` (names, mesh frame, about
+        the box centre) for which the pose ``R S`` is as likely as ``R``: the cuboid's
+        symmetries that the appearance check could not tell apart (empty: resolved).
+    cuboid_symmetries: with pose_ambiguity, all the cuboid's symmetries (names).
+    network_score / appearance_score: with pose_ambiguity, the pose score of the maps and
+        the appearance check's (:mod:`dope_hope.inference.appearance`); ``score`` is their
+        geometric mean.
     """
 
     class_name: str
@@ -61,6 +69,10 @@ class Detection:
     icp_applied: bool = False
     icp_reason: str = "not requested"
     icp_fit: float = float("nan")
+    pose_ambiguity: tuple[str, ...] | None = None
+    cuboid_symmetries: tuple[str, ...] = ()
+    network_score: float = float("nan")
+    appearance_score: float = float("nan")
 
     @property
     def quaternion_xyzw(self) -> np.ndarray:
@@ -74,7 +86,9 @@ class Detection:
         ``keypoints_2d`` (9 x [u, v] original px, null where missing), ``keypoint_scores``,
         ``reprojection_error_px``, ``cuboid_size_m``, ``bbox_2d`` ([u_min, v_min, u_max, v_max]
         original px, null when the box misses the image) and, with ICP requested, ``icp_applied``,
-        ``icp_reason`` and ``icp_fit``, which the evaluation ignores.
+        ``icp_reason`` and ``icp_fit``, and for a detector of a cuboid ``pose_ambiguity``,
+        ``cuboid_symmetries``, ``network_score`` and ``appearance_score``, which the evaluation
+        ignores.
 
         ``image`` names the frame (omitted when None: then pass ``scene_id``/``im_id``);
         ``extra`` adds keys (e.g. ``time``, ``scene_id``). The result is strict JSON (no NaN).
@@ -93,6 +107,10 @@ class Detection:
         if self.icp_reason != "not requested":
             rec.update(icp_applied=self.icp_applied, icp_reason=self.icp_reason,
                        icp_fit=None if not math.isfinite(self.icp_fit) else round(float(self.icp_fit), 4))
+        if self.pose_ambiguity is not None:
+            rec.update(pose_ambiguity=list(self.pose_ambiguity), cuboid_symmetries=list(self.cuboid_symmetries),
+                       network_score=round(float(self.network_score), 4),
+                       appearance_score=round(float(self.appearance_score), 4))
         if image is None:
             del rec["image"]
         return rec

@@ -33,7 +33,9 @@ class ObjectGeometry:
 
     Attributes: class_name, group, symmetries (BOP fields, mm, or None), mesh,
     cuboid_size_m / cuboid_center_m (mesh frame, m), cuboid_mesh ((9, 3) mesh-frame keypoints,
-    current order), cuboid_pnp (the keypoints PnP fits: legacy frame and order for a legacy model).
+    current order), cuboid_pnp (the keypoints PnP fits: legacy frame and order for a legacy model),
+    pnp_axes (None, or the (3, 3) rotation ``A`` of :meth:`set_pnp_frame`: ``p_pnp = A p_mesh``) and
+    pnp_order ((9,) int: mesh-order keypoints are ``keypoints_pnp[pnp_order]``).
     """
 
     def __init__(self, info: ObjectInfo, group: int, legacy: bool, mesh: Any,
@@ -57,9 +59,28 @@ class ObjectGeometry:
             self.cuboid_pnp = cuboid_keypoints(size_leg, LEGACY_TO_MESH.T @ center)
         else:
             self.cuboid_pnp = self.cuboid_mesh
+        self.pnp_axes: np.ndarray | None = None
+        self.pnp_order = np.arange(NUM_KEYPOINTS)
         self._model_points: np.ndarray | None = None
         self._bbox_points: np.ndarray | None = None
         self._icp_model: tuple[np.ndarray, np.ndarray] | None = None
+
+    def set_pnp_frame(self, axes: np.ndarray) -> None:
+        """Fit PnP in another frame of the same box: ``p_pnp = axes @ p_mesh`` with ``axes`` a
+        (3, 3) signed permutation of determinant 1 (a network that learned the object's up
+        axis as its y axis: :mod:`dope_hope.inference.mesh_start`). The predictor turns the
+        pose back (``R_mesh = R_pnp @ axes``) and lists the keypoints in the mesh frame's order.
+        Not for a legacy-frame model."""
+        from dope_hope.geometry import CUBOID_CORNER_SIGNS
+
+        A = np.asarray(axes, dtype=np.float64)
+        if A.shape != (3, 3) or not np.allclose(np.abs(A).sum(axis=0), 1) or not np.allclose(np.abs(A).sum(axis=1), 1) \
+                or not np.isclose(np.linalg.det(A), 1.0) or not np.allclose(np.abs(A), np.abs(A).round()):
+            raise ConfigError(f"{self.class_name}: the PnP frame must be a signed axis permutation of determinant 1")
+        self.cuboid_pnp = cuboid_keypoints(np.abs(A) @ self.cuboid_size_m, A @ self.cuboid_center_m)
+        signs = CUBOID_CORNER_SIGNS @ A.T  # mesh corner j's signs in the PnP frame
+        order = [int(np.flatnonzero(np.all(CUBOID_CORNER_SIGNS == m, axis=1))[0]) for m in signs]
+        self.pnp_axes, self.pnp_order = A, np.array(order + [NUM_KEYPOINTS - 1])
 
     def channels(self, belief: np.ndarray, affinity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """This object's (9, h, w) belief and (16, h, w) affinity out of a model's maps."""

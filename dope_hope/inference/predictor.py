@@ -240,9 +240,29 @@ class DopePredictor:
             Detections of every reported object, sorted by decreasing score, mesh-frame poses.
         """
         K = check_intrinsics(K)
-        belief, affinity, net_in = self.infer_maps(image)
-        depth = as_depth_image(depth, K, depth_scale_m, calibration, net_in.original_hw)
-        return self.detections_from_maps(belief, affinity, net_in, K, depth)
+        rgb = to_rgb8(image)
+        depth = as_depth_image(depth, K, depth_scale_m, calibration, rgb.shape[:2])
+        out = self.detect_image(rgb, K, depth)
+        out.sort(key=lambda d: -d.score)
+        return out
+
+    def detect_image(self, rgb: np.ndarray, K: np.ndarray, depth: DepthImage | None,
+                     cache: dict[tuple, NetworkInput] | None = None,
+                     on_maps: Callable[[DopePredictor, np.ndarray, np.ndarray, NetworkInput], None] | None = None,
+                     classes: Collection[str] | None = None) -> list[Detection]:
+        """One image's detections (:func:`predict_many`'s step per predictor): the network input
+        of this working size from ``cache`` (filled when missing, shared by predictors of equal
+        input), the maps (passed to ``on_maps``), then :meth:`detections_from_maps`.
+        ``rgb`` (H, W, 3) uint8, ``K`` checked intrinsics, ``depth`` a DepthImage or None."""
+        cache = {} if cache is None else cache
+        resized, padded = self.working_size(rgb.shape[:2])
+        key = (resized, padded, self.mean, self.std)
+        if key not in cache:
+            cache[key] = prepare_input(rgb, resized, self.mean, self.std, padded)
+        belief, affinity, net_in = self.infer_maps(cache[key])
+        if on_maps is not None:
+            on_maps(self, belief, affinity, net_in)
+        return self.detections_from_maps(belief, affinity, net_in, K, depth, classes)
 
     def detections_from_maps(self, belief: np.ndarray, affinity: np.ndarray, net_in: NetworkInput,
                              K: np.ndarray, depth: DepthImage | None = None,
@@ -287,6 +307,9 @@ class DopePredictor:
                 kp = legacy_keypoints_to_current(kp)
                 scores = legacy_keypoints_to_current(scores[:, None])[:, 0]
                 inliers = legacy_keypoints_to_current(inliers[:, None])[:, 0]
+            elif obj.pnp_axes is not None:  # PnP in another frame of the box (ObjectGeometry.set_pnp_frame)
+                R = R @ obj.pnp_axes
+                kp, scores, inliers = kp[obj.pnp_order], scores[obj.pnp_order], inliers[obj.pnp_order]
             det = Detection(
                 class_name=obj.class_name, score=float(est.score), R=R, t=t.copy(),
                 keypoints_2d=net_in.to_original_px(kp), keypoint_scores=np.asarray(scores, float),
@@ -442,13 +465,6 @@ def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.n
     for p in predictors:
         if classes is not None and not set(p.class_names) & set(classes):
             continue
-        resized, padded = p.working_size(rgb.shape[:2])
-        key = (resized, padded, p.mean, p.std)
-        if key not in cache:
-            cache[key] = prepare_input(rgb, resized, p.mean, p.std, padded)
-        belief, affinity, net_in = p.infer_maps(cache[key])
-        if on_maps is not None:
-            on_maps(p, belief, affinity, net_in)
-        out.extend(p.detections_from_maps(belief, affinity, net_in, K, depth, classes))
+        out.extend(p.detect_image(rgb, K, depth, cache, on_maps, classes))
     out.sort(key=lambda d: -d.score)
     return out

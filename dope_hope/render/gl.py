@@ -33,6 +33,9 @@ from types import ModuleType
 
 import numpy as np
 
+#: OpenCV camera frame -> OpenGL camera frame.
+CV_TO_GL = np.diag([1.0, -1.0, -1.0])
+
 
 def configure_headless_gl() -> None:
     """Choose EGL unless the user chose a platform; must run before OpenGL is imported."""
@@ -63,3 +66,53 @@ def import_pyrender() -> ModuleType:
     import pyrender  # noqa: PLC0415  (import after the platform is chosen)
 
     return pyrender
+
+
+def close_offscreen(renderer) -> None:
+    """Free a ``pyrender.OffscreenRenderer``'s GL objects and context.
+
+    pyrender's ``OffscreenRenderer.delete`` also calls ``eglTerminate`` on the display,
+    which is shared by every context of the process (EGL displays are per device), so it
+    would break other live renderers (e.g. two generators in one test session). Here the
+    context is destroyed and the display left initialized; it goes away with the process.
+    """
+    platform = renderer._platform
+    display = getattr(platform, "_egl_display", None)
+    context = getattr(platform, "_egl_context", None)
+    if display is None or context is None:  # not EGL: pyrender's own cleanup is safe
+        renderer.delete()
+        return
+    # EGL only where a context is released
+    from OpenGL.EGL import (  # noqa: PLC0415  (after the platform is chosen)
+        EGL_NO_CONTEXT,
+        EGL_NO_SURFACE,
+        eglDestroyContext,
+        eglMakeCurrent,
+    )
+
+    platform.make_current()
+    renderer._renderer.delete()
+    eglMakeCurrent(display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
+    eglDestroyContext(display, context)
+    # Detach everything so that pyrender's __del__ hooks (which would call eglTerminate)
+    # find nothing to delete.
+    platform._egl_context = None
+    platform._egl_display = None
+    renderer._renderer = None
+    renderer._platform = None
+
+
+def pose_gl(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(4, 4) node pose in the OpenGL camera frame of an OpenCV pose (R, t)."""
+    T = np.eye(4)
+    T[:3, :3] = CV_TO_GL @ R
+    T[:3, 3] = CV_TO_GL @ t
+    return T
+
+
+def gl_camera(K: np.ndarray, znear: float, zfar: float, ox: float = 0.0, oy: float = 0.0):
+    """pyrender camera of OpenCV intrinsics K (3, 3) (pixel centres at integers), its principal
+    point shifted by (ox, oy) px (a canvas that starts elsewhere than the image)."""
+    pyrender = import_pyrender()
+    return pyrender.IntrinsicsCamera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2] + 0.5 + ox,
+                                     cy=K[1, 2] + 0.5 + oy, znear=znear, zfar=zfar)

@@ -22,13 +22,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dope_hope.geometry import cuboid_keypoints, project_points
-from dope_hope.render.gl import import_pyrender
+from dope_hope.render.gl import CV_TO_GL, close_offscreen, gl_camera, import_pyrender, pose_gl
 from dope_hope.synth.scene import LightSpec, ObjectSpec, SceneSpec
 
 pyrender = import_pyrender()
 
-#: OpenCV camera frame -> OpenGL camera frame.
-CV_TO_GL = np.diag([1.0, -1.0, -1.0])
 #: Largest alone-render canvas side, as a multiple of the image side (bounds the cost).
 MAX_CANVAS_FACTOR = 4
 
@@ -54,14 +52,6 @@ class RenderOutput:
     alone_depth: dict[int, np.ndarray] = field(default_factory=dict)
 
 
-def pose_gl(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """(4, 4) node pose in the OpenGL camera frame of an OpenCV pose (R, t)."""
-    T = np.eye(4)
-    T[:3, :3] = CV_TO_GL @ R
-    T[:3, 3] = CV_TO_GL @ t
-    return T
-
-
 def _light_pose(light: LightSpec) -> np.ndarray:
     """Node pose whose -z axis is the light's travel direction (OpenGL frame)."""
     d = CV_TO_GL @ light.direction
@@ -85,12 +75,6 @@ def _make_light(light: LightSpec) -> pyrender.Light:
         return pyrender.SpotLight(color=light.color, intensity=light.intensity,
                                   innerConeAngle=light.inner_cone, outerConeAngle=light.outer_cone)
     raise ValueError(f"unknown light kind {light.kind!r}")
-
-
-def _gl_camera(K: np.ndarray, znear: float, zfar: float, ox: float = 0.0,
-               oy: float = 0.0) -> pyrender.IntrinsicsCamera:
-    return pyrender.IntrinsicsCamera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2] + 0.5 + ox,
-                                     cy=K[1, 2] + 0.5 + oy, znear=znear, zfar=zfar)
 
 
 def alone_canvas(obj_keypoints_uv: np.ndarray, width: int, height: int) -> tuple[int, int, int, int]:
@@ -125,40 +109,11 @@ class SceneRenderer:
         self.shadows = shadows
 
     def close(self) -> None:
-        """Free this renderer's GL objects and context.
-
-        pyrender's ``OffscreenRenderer.delete`` also calls ``eglTerminate`` on the display,
-        which is shared by every context of the process (EGL displays are per device), so it
-        would break other live renderers (e.g. two generators in one test session). Here the
-        context is destroyed and the display left initialized; it goes away with the process.
-        """
+        """Free this renderer's GL objects and context (:func:`~dope_hope.render.gl.close_offscreen`)."""
         if self._r is None:
             return
         r, self._r = self._r, None
-        platform = r._platform
-        display = getattr(platform, "_egl_display", None)
-        context = getattr(platform, "_egl_context", None)
-        if display is None or context is None:  # not EGL: pyrender's own cleanup is safe
-            r.delete()
-            return
-        # EGL only where a context is released
-        from OpenGL.EGL import (
-            EGL_NO_CONTEXT,
-            EGL_NO_SURFACE,
-            eglDestroyContext,
-            eglMakeCurrent,
-        )
-
-        platform.make_current()
-        r._renderer.delete()
-        eglMakeCurrent(display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
-        eglDestroyContext(display, context)
-        # Detach everything so that pyrender's __del__ hooks (which would call eglTerminate)
-        # find nothing to delete.
-        platform._egl_context = None
-        platform._egl_display = None
-        r._renderer = None
-        r._platform = None
+        close_offscreen(r)
 
     def __enter__(self) -> SceneRenderer:
         return self
@@ -185,7 +140,7 @@ class SceneRenderer:
         """
         W, H = spec.width, spec.height
         scene = pyrender.Scene(bg_color=np.zeros(4), ambient_light=np.full(3, spec.ambient))
-        scene.add(_gl_camera(spec.K, spec.znear, spec.zfar), pose=np.eye(4))
+        scene.add(gl_camera(spec.K, spec.znear, spec.zfar), pose=np.eye(4))
         nodes = []
         for obj in spec.objects:
             nodes.append(scene.add(mesh_for(obj), pose=pose_gl(obj.R, obj.t)))
@@ -215,7 +170,7 @@ class SceneRenderer:
                 kp = cuboid_keypoints(np.full(3, 2 * obj.radius), np.linalg.solve(obj.R, obj.center - obj.t))
             uv = project_points(kp, spec.K, obj.R, obj.t)
             x0, y0, cw, ch = alone_canvas(uv, W, H)
-            scene.main_camera_node.camera = _gl_camera(spec.K, spec.znear, spec.zfar, -x0, -y0)
+            scene.main_camera_node.camera = gl_camera(spec.K, spec.znear, spec.zfar, -x0, -y0)
             self._viewport(cw, ch)
             mask_rgb, d_alone = self._r.render(scene, flags=pyrender.RenderFlags.SEG,
                                                seg_node_map={node: np.full(3, 255)})
@@ -228,6 +183,6 @@ class SceneRenderer:
                 if u1 > u0 and v1 > v0:
                     d_img[v0:v1, u0:u1] = np.asarray(d_alone)[v0 - y0:v1 - y0, u0 - x0:u1 - x0]
                 out.alone_depth[obj.seg_id] = d_img
-        scene.main_camera_node.camera = _gl_camera(spec.K, spec.znear, spec.zfar)
+        scene.main_camera_node.camera = gl_camera(spec.K, spec.znear, spec.zfar)
         self._viewport(W, H)
         return out

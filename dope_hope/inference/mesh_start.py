@@ -1,0 +1,250 @@
+"""A new object posed with no training: the pretrained start as a detector of one mesh's cuboid.
+
+The shipped start (``dope_hope/assets/pretrained_lite.pt``, docs/commands/train.md
+"Pretraining") learned the cuboid keypoints of thousands of procedural boxes, cans and
+bottles. :class:`MeshStartPredictor` runs it on a user's mesh with no training:
+
+- **The cuboid** is the mesh's bounding box (metres; the mesh file's units as
+  :func:`dope_hope.io.meshes.load_mesh` reads them), the class the mesh's name
+  (:func:`dope_hope.io.models_dir.mesh_class_name`) unless given.
+- **Axes.** The start learned the HOPE frame conventions: y is the vertical axis of cans and
+  bottles. A mesh whose up axis is another declares it (``up_axis="z"``, ``--up-axis z``; any
+  of x, y, z, -x, -y, -z): PnP then fits the same box turned so that this axis is y
+  (:meth:`~dope_hope.inference.object_geometry.ObjectGeometry.set_pnp_frame`) and the pose
+  comes back in the mesh frame. Nothing is guessed: a mesh whose longest extent lies on
+  another axis than the declared one gets a warning (:func:`up_axis_warning`).
+- **Pose ambiguity.** The start was trained with category-canonical labels
+  (``procedural.canonical_labels``, :mod:`dope_hope.symmetry.labels`): for a symmetric shape
+  it reports one of the symmetric-equivalent poses, and for a shape it never saw as such it
+  cannot tell apart the poses ``R S`` for the cuboid's own symmetries ``S``
+  (:func:`dope_hope.symmetry.cuboid.cuboid_rotations`: 180° about x, y and z for a box of
+  three different extents). Each detection lists them (``cuboid_symmetries``) and those the
+  appearance left open (``pose_ambiguity``).
+- **Appearance** (:mod:`dope_hope.inference.appearance`): a cuboid detector finds every
+  object of that shape. Each candidate is compared with the textured mesh rendered at each
+  equivalent pose; the best equivalent pose is kept (which resolves the ambiguity when the
+  texture is not symmetric), the score becomes the geometric mean of the network's and the
+  appearance's, and candidates whose appearance scores under ``min_score`` are dropped.
+- **Scales.** The start saw objects of its training crops' sizes; the network runs at each of
+  ``scales`` times the model's working size (default :data:`DEFAULT_SCALES`), the detections
+  are pooled, and of two whose 2D boxes overlap (IoU above :data:`DUPLICATE_IOU`) the
+  higher-scoring one is kept.
+"""
+from __future__ import annotations
+
+import os
+import warnings
+from collections.abc import Collection, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dope_hope.errors import ConfigError, ModelFileError
+from dope_hope.inference.appearance import AppearanceCheck, AppearanceSettings
+from dope_hope.inference.backends import TorchBackend
+from dope_hope.inference.detection import Detection
+from dope_hope.inference.predictor import DopePredictor
+from dope_hope.inference.tracking import box_iou
+from dope_hope.preprocess import NetworkInput, prepare_input, working_size
+from dope_hope.refine.depth import DepthImage
+from dope_hope.symmetry.cuboid import corner_permutation, cuboid_rotations, describe_rotation
+
+#: ``up_axis`` -> the rotation ``A`` (``p_start = A p_mesh``) that turns that axis into +y.
+UP_AXES: dict[str, np.ndarray] = {
+    "y": np.eye(3),
+    "-y": np.diag([1.0, -1.0, -1.0]),
+    "z": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
+    "-z": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
+    "x": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+    "-x": np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+}
+#: Network working sizes, as multiples of the model's own (its training input size).
+DEFAULT_SCALES = (1.0, 0.625)
+#: Two pooled detections whose 2D boxes overlap more than this are one object.
+DUPLICATE_IOU = 0.5
+#: An extent this many times the up axis's (and the third one's) suggests another up axis.
+LONGEST_AXIS_FACTOR = 1.3
+
+
+def up_axis_rotation(up_axis: str) -> np.ndarray:
+    """(3, 3) ``A`` with ``p_start = A p_mesh``: the declared up axis becomes the start's y;
+    ConfigError naming the accepted values for anything else."""
+    if up_axis not in UP_AXES:
+        raise ConfigError(f"up axis must be one of {', '.join(UP_AXES)}, got {up_axis!r}")
+    return UP_AXES[up_axis].copy()
+
+
+def up_axis_warning(size_m: np.ndarray, up_axis: str, source: str) -> str | None:
+    """A warning when the mesh's longest extent (more than :data:`LONGEST_AXIS_FACTOR` times
+    both others) lies on another axis than the declared up axis, else None."""
+    size = np.asarray(size_m, dtype=np.float64).reshape(3)
+    k = int(np.argmax(size))
+    others = np.delete(size, k)
+    up = "xyz".index(up_axis[-1])
+    if k == up or not np.all(size[k] > LONGEST_AXIS_FACTOR * others):
+        return None
+    cm = ", ".join(f"{a} {v * 100:.1f}" for a, v in zip("xyz", size))
+    return (f"{source}: the mesh is longest along {'xyz'[k]} ({cm} cm) but its up axis is taken as {up_axis}; "
+            f"if {'xyz'[k]} is its vertical axis (a can's or bottle's axis), declare it (--up-axis {'xyz'[k]})")
+
+
+def start_backend(start: str | os.PathLike, class_name: str, size_m: np.ndarray, device: str = "cpu",
+                  threads: int | None = None) -> TorchBackend:
+    """The one-object checkpoint ``start`` (the shipped pretrained start, or any one-object
+    dope-hope checkpoint) as a backend detecting ``class_name`` with cuboid ``size_m`` (3,)
+    metres, mesh frame. ModelFileError for a file of several objects or a legacy frame."""
+    import torch
+
+    from dope_hope.model.checkpoint import load_checkpoint
+    from dope_hope.model.info import ModelInfo
+    from dope_hope.model.network import build_model
+
+    if threads:
+        torch.set_num_threads(int(threads))
+    ckpt = dict(load_checkpoint(start))
+    info = ModelInfo.from_checkpoint(ckpt, start)
+    if info.num_objects != 1 or info.legacy:
+        raise ModelFileError(start, f"a start must be a one-object mesh-frame model; this one holds "
+                                    f"{info.num_objects} object(s) in the {info.frame} frame")
+    ckpt.pop("source", None)
+    ckpt.pop("objects", None)
+    ckpt.pop("min_score", None)  # the start's threshold is no threshold of this object
+    ckpt["object"] = {"class_name": str(class_name), "size_m": [float(v) for v in size_m], "frame": "mesh"}
+    model = build_model(ckpt["config"], load_backbone=False)
+    model.load_state_dict(ckpt["model"], strict=True)
+    return TorchBackend(model.eval(), ckpt, device=device, source=start)
+
+
+class MeshStartPredictor(DopePredictor):
+    """The pretrained start as a detector of one mesh's cuboid (module docstring).
+
+    Args:
+        mesh: the object's mesh file (textured for the appearance check), or a loaded
+            ``trimesh.Trimesh`` in metres with ``class_name``.
+        class_name: the reported class (default: the mesh file's, ``mesh_class_name``).
+        up_axis: the mesh axis that is the object's vertical axis: x, y (default), z, -x, -y, -z.
+        mesh_units: units of the mesh file ("m", "cm", "mm"; default by suffix).
+        start: the start's weights (default: the shipped ``pretrained_lite.pt``).
+        scales: network working sizes as multiples of the model's own.
+        appearance: :class:`~dope_hope.inference.appearance.AppearanceSettings` or a mapping of
+            its fields; ``False`` turns the check off (every cuboid of this shape is reported).
+        device, threads, options, **overrides: as :class:`DopePredictor` (``min_score``
+            applies to the network's pose score; default 0: the appearance decides).
+
+    Attributes beyond DopePredictor's: start (the weights' path), up_axis, symmetries ((S, 3, 3) the cuboid's rotations,
+    mesh frame, identity first), symmetry_names, scales, appearance (the check or None),
+    warnings (the warnings issued while building).
+    """
+
+    def __init__(self, mesh: Any, class_name: str | None = None, up_axis: str = "y",
+                 mesh_units: str | None = None, start: str | os.PathLike | None = None,
+                 scales: Sequence[float] = DEFAULT_SCALES,
+                 appearance: AppearanceSettings | Mapping[str, Any] | bool = True,
+                 device: str = "cpu", threads: int | None = None,
+                 options: Mapping[str, Any] | None = None, **overrides: Any):
+        from dope_hope.assets import PRETRAINED_WEIGHTS
+        from dope_hope.io.meshes import load_mesh, mesh_cuboid
+        from dope_hope.io.models_dir import mesh_class_name
+
+        if isinstance(mesh, (str, os.PathLike)):
+            loaded, source = load_mesh(mesh, units=mesh_units), str(mesh)
+            name = class_name or mesh_class_name(mesh)
+        elif hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
+            if not class_name:
+                raise ConfigError("class_name: name the object of a loaded mesh (a file names its own)")
+            loaded, source, name = mesh, f"<{class_name} mesh>", class_name
+        else:
+            raise ConfigError(f"mesh: give the object's mesh file or a loaded trimesh.Trimesh, got {type(mesh).__name__}")
+        A = up_axis_rotation(up_axis)
+        scales = tuple(float(s) for s in scales)
+        if not scales or not all(np.isfinite(s) and s > 0 for s in scales):
+            raise ConfigError(f"scales must be positive numbers, got {list(scales)}")
+        size, center = mesh_cuboid(loaded)
+        self.warnings: list[str] = []
+        message = up_axis_warning(size, up_axis, source)
+        if message is not None:
+            self.warnings.append(message)
+            warnings.warn(message, UserWarning, stacklevel=2)
+        self.start = Path(start or PRETRAINED_WEIGHTS)
+        backend = start_backend(self.start, name, size, device, threads)
+        given = {**(dict(options or {})), **overrides}
+        given.setdefault("min_score", 0.0)
+        super().__init__(backend, mesh=loaded, options=given)
+        self.up_axis = up_axis
+        self.scales = scales
+        self.objects[0].set_pnp_frame(A)
+        self.symmetries = cuboid_rotations(size)
+        self.symmetry_names = tuple(describe_rotation(S) for S in self.symmetries[1:])
+        self.appearance: AppearanceCheck | None = None
+        if appearance is not False:
+            settings = appearance if isinstance(appearance, AppearanceSettings) else \
+                AppearanceSettings.from_mapping(None if appearance is True else appearance)
+            self.appearance = AppearanceCheck(loaded, self.symmetries, center, settings)
+
+    def describe(self) -> str:
+        """One line: what runs, and what the poses are known up to."""
+        sym = ", ".join(self.symmetry_names) or "none"
+        check = "the appearance check picks among them where the texture tells them apart" \
+            if self.appearance is not None else "no appearance check"
+        return (f"{self.class_name}: the pretrained start ({self.start}) as a detector of its "
+                f"{' x '.join(f'{v * 100:.1f}' for v in self.cuboid_size_m)} cm cuboid, untrained on it, "
+                f"up axis {self.up_axis}; poses known up to the cuboid's symmetries ({sym}); {check}")
+
+    def detect_image(self, rgb: np.ndarray, K: np.ndarray, depth: DepthImage | None,
+                     cache: dict[tuple, NetworkInput] | None = None, on_maps=None,
+                     classes: Collection[str] | None = None) -> list[Detection]:
+        """The detections of every scale, checked against the appearance, duplicates merged
+        (module docstring); ``on_maps`` sees the maps of the first scale."""
+        if classes is not None and self.class_name not in classes:
+            return []
+        cache = {} if cache is None else cache
+        base, _ = self.working_size(rgb.shape[:2])
+        pooled: list[Detection] = []
+        for i, s in enumerate(self.scales):
+            resized, padded = working_size(rgb.shape[:2], height=max(8, round(base[0] * s)))
+            key = (resized, padded, self.mean, self.std)
+            if key not in cache:
+                cache[key] = prepare_input(rgb, resized, self.mean, self.std, padded)
+            belief, affinity, net_in = self.infer_maps(cache[key])
+            if on_maps is not None and i == 0:
+                on_maps(self, belief, affinity, net_in)
+            pooled += self.detections_from_maps(belief, affinity, net_in, K, depth)
+        checked = [self.check_appearance(d, rgb, K) for d in pooled]
+        kept: list[Detection] = []
+        for det in sorted((d for d in checked if d is not None), key=lambda d: -d.score):
+            if all(box_iou(det.bbox_2d, k.bbox_2d) <= DUPLICATE_IOU for k in kept):
+                kept.append(det)
+        return kept
+
+    def check_appearance(self, det: Detection, rgb: np.ndarray, K: np.ndarray) -> Detection | None:
+        """``det`` with its best equivalent pose, scores and ambiguity (module docstring), or
+        None when its appearance scores under the check's ``min_score``."""
+        from dope_hope.geometry import project_points, projected_bbox
+
+        det.network_score = det.score
+        det.cuboid_symmetries = self.symmetry_names
+        if self.appearance is None:
+            det.pose_ambiguity = self.symmetry_names
+            return det
+        res = self.appearance.compare(rgb, K, det.R, det.t)
+        if res.score < self.appearance.settings.min_score:
+            return None
+        best = self.symmetries[res.best]
+        det.pose_ambiguity = tuple(describe_rotation(best.T @ self.symmetries[k]) for k in res.ambiguous)
+        det.appearance_score = res.score
+        det.score = float(np.sqrt(max(det.network_score, 0.0) * res.score))
+        if res.best != 0:  # corner k of R S projects where corner perm[k] of R does
+            obj = self.objects[0]
+            perm = corner_permutation(best)
+            det.keypoints_2d, det.keypoint_scores = det.keypoints_2d[perm], det.keypoint_scores[perm]
+            det.inliers = det.inliers[perm]
+            det.R, det.t = res.R, res.t
+            det.projected_2d = project_points(obj.cuboid_mesh, K, det.R, det.t)
+            det.bbox_2d = projected_bbox(obj.bbox_points, K, det.R, det.t, rgb.shape[:2])
+        return det
+
+    def close(self) -> None:
+        """Free the appearance check's GL context."""
+        if self.appearance is not None:
+            self.appearance.close()
