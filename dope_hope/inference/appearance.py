@@ -17,7 +17,7 @@ The score is their mean, in [0, 1] (a negative correlation counts as 0). The bes
 equivalent pose replaces the detection's; equivalent poses scoring within
 ``ambiguity_margin`` of it remain ambiguous, and a detection scoring under ``min_score`` is
 a look-alike, dropped. CPU cost: one render of ``crop_px`` squared pixels per equivalent
-pose (a few milliseconds each).
+pose (5-10 ms each at 64 px on 2 cores, Mesa llvmpipe).
 """
 from __future__ import annotations
 
