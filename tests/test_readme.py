@@ -19,6 +19,10 @@ for NVIDIA's weights: the importer's DR-50 architecture is swapped for a tiny li
 as in tests/test_cli_import_official.py). The demo runs the shipped model when the installation
 has it, else a checkpoint fitted in seconds (tests/fitted_model.py).
 
+The recording section runs in its own sandbox too (:func:`test_recording_section`):
+``robot.bag`` (ROS 1) and ``robot_ros2/`` (ROS 2, MCAP storage, JPEG CompressedImage) of
+rendered demo scenes, written by rosbags' writers (tests/ros_recordings.py).
+
 The video section runs in its own sandbox (:func:`test_video_section`): ``clip.mp4`` and
 ``camera_info.yaml`` of rendered demo scenes, camera 0 an OpenCV capture of that clip, and
 ``realsense`` a stand-in for ``pyrealsense2`` playing the same scenes with their depth
@@ -51,11 +55,12 @@ TINY = {"model": {"arch": "lite", "head": 50, "stages": 1,
         "input": {"size": [64, 64]}}
 TASKS = ["See it work: `dope-hope demo`", "Generate training data for a HOPE object", "Train on your own mesh",
          "Many objects in one network", "Infer on a RealSense image with depth", "Pose a new object with no training",
-         "Infer on a video, a webcam or a live RealSense",
+         "Infer on a video, a webcam or a live RealSense", "Infer on a robot recording, view it in Foxglove",
          "Use NVIDIA's published DOPE weights for the HOPE objects",
          "Export to ONNX for CPU inference or Isaac ROS", "Evaluate, and submit to the BOP challenge",
          "Train on many GPUs with torchrun"]
 VIDEO_TASK = "Infer on a video, a webcam or a live RealSense"
+RECORDING_TASK = "Infer on a robot recording, view it in Foxglove"
 
 
 # ----------------------------------------------------------------------------- parsing
@@ -234,7 +239,7 @@ def sandbox(shared_data, tmp_path, monkeypatch) -> Path:
 
 
 def test_task_sections_run_in_order(sandbox):
-    for _heading, cmds in [b for b in readme_blocks()[1:] if b[0] != VIDEO_TASK]:
+    for _heading, cmds in [b for b in readme_blocks()[1:] if b[0] not in (VIDEO_TASK, RECORDING_TASK)]:
         for argv in cmds:
             run_command(shrink(argv), sandbox)
     # What each section promises a user, checked on the files it left.
@@ -315,3 +320,38 @@ def test_video_section(tmp_path, monkeypatch):
     live = [json.loads(line) for line in (work / "res" / "rs" / "predictions.jsonl").read_text().splitlines()]
     assert live and all(r["ls_applied"] and "icp_applied" in r for r in live)
     assert ("align", rs.stream.color) in rs.calls and ("stop",) in rs.calls
+
+
+def test_recording_section(tmp_path, monkeypatch):
+    """The robot recording block on rendered demo scenes (module docstring)."""
+    from fitted_model import fit_demo_checkpoint
+    from ros_recordings import write_recording
+
+    from dope_hope.commands import infer as infer_cmd
+    from dope_hope.demo_object import DEMO_CLASS_NAME, write_demo_object
+
+    if not infer_cmd.DEMO_WEIGHTS.is_file():  # not shipped yet: a quickly fitted stand-in
+        monkeypatch.setattr(infer_cmd, "DEMO_WEIGHTS", fit_demo_checkpoint(tmp_path / "fit" / "demo_lite.pt", seed=7))
+    import dope_hope.model  # noqa: F401 - torchvision before the GL context
+    from dope_hope.synth import FrameGenerator
+    from dope_hope.synth.settings import PLAIN_OVERRIDES
+
+    work = tmp_path / "work"
+    still = {**PLAIN_OVERRIDES, "camera": {"focal_jitter": 0.0, "aspect_jitter": 0.0, "principal_jitter_px": 0.0}}
+    with FrameGenerator(write_demo_object(tmp_path / "mesh"), size=(320, 240),
+                        config={**still, "target": {"count": [1, 1], "distance_m": [0.45, 0.6], "truncation_prob": 0.0}},
+                        class_name=DEMO_CLASS_NAME, depth_noise=True, seed=11) as gen:
+        rendered = [gen.render_frame(i) for i in range(3)]
+    frames, K = [(f.rgb, f.depth) for f in rendered], rendered[0].annotation.K
+    work.mkdir()
+    write_recording(work / "robot.bag", "ros1", frames, K)
+    write_recording(work / "robot_ros2", "ros2-mcap", frames, K, compressed="jpeg")
+    monkeypatch.chdir(work)
+    (heading, cmds), = [b for b in readme_blocks() if b[0] == RECORDING_TASK]
+    outputs = [run_command(shrink(argv), work) for argv in cmds]
+    assert "<- colour" in outputs[0] and "<- depth" in outputs[0]
+    for res, name in (("robot", "robot"), ("robot2", "robot_ros2")):
+        records = [json.loads(line) for line in (work / "res" / res / "predictions.jsonl").read_text().splitlines()]
+        assert records and all({"stamp_ns", "frame_id"} <= set(r) for r in records)
+        assert (work / "res" / res / f"{name}_poses" / f"{name}_poses.mcap").is_file()
+    assert all("track_id" in json.loads(line) for line in (work / "res" / "robot" / "predictions.jsonl").open())

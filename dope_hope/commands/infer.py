@@ -7,6 +7,7 @@ Examples:
   dope-hope infer clip.mp4 --camera camera_info.yaml --out res/clip
   dope-hope infer 0 --camera camera_info.yaml --show            (camera 0; Ctrl-C or q stops)
   dope-hope infer realsense --icp --mesh meshes/                (pip install "dope-hope[realsense]")
+  dope-hope infer robot.bag --track --foxglove --out res/robot  (pip install "dope-hope[ros]")
   dope-hope infer scene/ --weights shelf.pt --classes Ketchup Mustard --camera K.json
   dope-hope infer frame.png --mesh my_object.obj --camera K.json   (a new object, no training)
 
@@ -40,6 +41,21 @@ processed frame by frame unless --realtime plays it at its frame rate like a cam
 end prints frames read / processed / dropped and the end-to-end frames/s. --show opens a live
 window where a display exists. Ctrl-C (or q in the window) ends a stream; what was processed
 is written.
+
+Recordings (pip install "dope-hope[ros]"; no ROS installation needed): a ROS 1 .bag, a ROS 2
+bag folder (sqlite3 or MCAP storage) or a ROS 2 .mcap / .db3 file is a stream too: its colour
+image topic (Image rgb8/bgr8/mono8, CompressedImage jpeg/png), a registered depth topic (16UC1
+mm, 32FC1 m, compressedDepth) paired by header stamp within --sync-tolerance, and the colour
+CameraInfo (a distorted camera is undistorted, never taken as pinhole), chosen automatically
+when unambiguous (RealSense names) or named with --image-topic / --depth-topic /
+--camera-info-topic; --list-topics prints them and stops. Records add "stamp_ns" and
+"frame_id" (the image header's); "image" is NAME#FRAME. OUT/NAME_poses/ is a ROS 2 bag (MCAP
+storage; Foxglove opens NAME_poses.mcap, `ros2 bag play` the folder) holding per frame
+vision_msgs/Detection3DArray, geometry_msgs/PoseArray, visualization_msgs/MarkerArray,
+foxglove_msgs/ImageAnnotations, tf (camera -> CLASS_ID) and the overlay as a CompressedImage
+(not with --no-overlay), on the image's stamp and frame_id (docs/formats/recordings.md).
+--foxglove [PORT] (any stream) serves the same messages live to the Foxglove app
+(ws://127.0.0.1:PORT, default 8765); a file waits for the app to subscribe before it plays.
 
 Tracking (--track, streams): each object gets a track_id (per class, stable while it stays
 in view); R, t and quaternion_xyzw become the tracked pose (a constant-velocity filter on
@@ -85,7 +101,13 @@ FALLBACK_FPS = 30.0
 #: --up-axis values (dope_hope.inference.mesh_start.UP_AXES, named here without its imports).
 UP_AXIS_NAMES = ("x", "y", "z", "-x", "-y", "-z")
 #: Options of video and camera inputs only.
-STREAM_OPTIONS = ("realtime", "max_frames", "show", "capture_size", "capture_fps", "track")
+STREAM_OPTIONS = ("realtime", "max_frames", "show", "capture_size", "capture_fps", "track", "foxglove")
+#: Options of recordings only.
+RECORDING_OPTIONS = ("image_topic", "depth_topic", "camera_info_topic", "sync_tolerance", "list_topics")
+#: Colour-to-depth stamp tolerance of a recording, ms (dope_hope.io.recordings.DEFAULT_SYNC_TOLERANCE_S).
+DEFAULT_SYNC_TOLERANCE_MS = 15.0
+#: Port of --foxglove without a value (dope_hope.io.foxglove_live.DEFAULT_PORT).
+DEFAULT_FOXGLOVE_PORT = 8765
 
 
 def default_weights() -> Path | None:
@@ -106,11 +128,17 @@ def _size(text: str) -> tuple[int, int]:
     return int(w), int(h)
 
 
+def _port(text: str) -> int:
+    if not text.isdigit() or int(text) > 65535:
+        raise argparse.ArgumentTypeError(f"expected a port number 0-65535 (0: any free port), got {text!r}")
+    return int(text)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("inputs", nargs="+", metavar="SOURCE",
                         help="image file(s), a folder of images, a quoted glob, a video file, a camera "
-                             "index (0) or realsense[:SERIAL]")
+                             "index (0), realsense[:SERIAL] or a recording (.bag, .mcap, .db3, ROS 2 bag folder)")
     parser.add_argument("--weights", action="append", type=Path, metavar="W",
                         help="checkpoint (.pt/.pth) or exported .onnx of one or more objects; repeat "
                              "for several models (default: the demo model dope_hope/assets/demo_lite.pt when "
@@ -137,8 +165,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           "depth (needs depth, and --mesh unless the object is a catalog box)")
     stream = parser.add_argument_group("video and cameras")
     stream.add_argument("--realtime", action="store_true",
-                        help="play a video file at its frame rate, dropping the frames the loop cannot "
-                             "keep up with (as a live camera); default: every frame")
+                        help="play a video file (or recording) at its frame rate, dropping the frames the "
+                             "loop cannot keep up with (as a live camera); default: every frame")
     stream.add_argument("--max-frames", type=positive_int, metavar="N", help="stop after N frames of the stream")
     stream.add_argument("--show", action="store_true",
                         help="show the overlays in a window (where a display exists; q quits)")
@@ -152,6 +180,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "frame's own in R_detected / t_detected, a missed object's predicted pose "
                              "(tracked: coasted) for a few frames; settings: the tracking section, e.g. "
                              "--set tracking.reprojection_px=2.0")
+    stream.add_argument("--foxglove", nargs="?", const=DEFAULT_FOXGLOVE_PORT, type=_port, metavar="PORT",
+                        help="serve the results live to the Foxglove app on ws://127.0.0.1:PORT (default "
+                             f"{DEFAULT_FOXGLOVE_PORT}; 0: a free port; a file waits for the app to subscribe)")
+    rec = parser.add_argument_group("robot recordings: ROS 1 .bag, ROS 2 bag folder, .mcap, .db3")
+    rec.add_argument("--image-topic", metavar="TOPIC", help="colour image topic (default: the only one)")
+    rec.add_argument("--depth-topic", metavar="TOPIC|none",
+                     help="depth topic registered to colour (default: the only one, aligned_depth_to_color "
+                          "preferred; none: no depth)")
+    rec.add_argument("--camera-info-topic", metavar="TOPIC",
+                     help="colour CameraInfo topic (default: the image topic's sibling camera_info)")
+    rec.add_argument("--sync-tolerance", type=positive_float, metavar="MS",
+                     help=f"largest colour-to-depth header stamp difference (default {DEFAULT_SYNC_TOLERANCE_MS:g} ms)")
+    rec.add_argument("--list-topics", action="store_true", help="print the recording's topics and the chosen ones, then stop")
     parser.add_argument("--mesh", action="append", type=Path, metavar="PATH",
                         help="object mesh per --weights (same order; one-object models), or one models "
                              "folder (any models) holding "
@@ -285,7 +326,8 @@ def run(args: argparse.Namespace) -> int:
     args.icp = bool(inference_settings(args).get("icp"))  # settings checked before any work
     if any(stream_kind(item) for item in args.inputs):
         return _run_stream(args)
-    given = [f"--{o.replace('_', '-')}" for o in STREAM_OPTIONS if getattr(args, o) not in (None, False)]
+    given = [f"--{o.replace('_', '-')}" for o in STREAM_OPTIONS + RECORDING_OPTIONS
+             if getattr(args, o) not in (None, False)]
     if given:
         raise ConfigError(f"{', '.join(given)}: for a video or camera input, not images")
     if args.icp and args.depth is None:
@@ -319,11 +361,14 @@ def _check_stream_flags(args: argparse.Namespace) -> None:
     from dope_hope.io.streams import stream_kind
 
     kind = stream_kind(args.inputs[0]) if len(args.inputs) == 1 else None
-    if args.icp and kind != "realsense":
+    if args.icp and kind not in ("realsense", "recording"):
         raise ConfigError("--icp refines against a depth image: a video or an OpenCV camera has none "
-                          "(a RealSense has)")
-    if args.realtime and kind != "video":
-        raise ConfigError("--realtime plays a video file at its frame rate (cameras are live already)")
+                          "(a RealSense or a recording with depth has)")
+    if args.realtime and kind not in ("video", "recording"):
+        raise ConfigError("--realtime plays a file at its frame rate (cameras are live already)")
+    given = [f"--{o.replace('_', '-')}" for o in RECORDING_OPTIONS if getattr(args, o) not in (None, False)]
+    if given and kind != "recording":
+        raise ConfigError(f"{', '.join(given)}: for a recording input (.bag, .mcap, .db3, ROS 2 bag folder)")
     if args.belief:
         raise ConfigError("--belief writes one montage per image; not for video or camera inputs")
 
@@ -331,10 +376,11 @@ def _check_stream_flags(args: argparse.Namespace) -> None:
 def _stream_outputs(args: argparse.Namespace, out: Path, source, warn):
     """(overlay video or None, live window or None) of a stream."""
     from dope_hope.inference.image_inference import output_stem
+    from dope_hope.io.streams import stream_kind
     from dope_hope.io.video import LiveWindow, OverlayVideo, display_problem
 
     video = window = None
-    if not args.no_overlay:
+    if not args.no_overlay and stream_kind(args.inputs[0]) != "recording":  # a recording's go to its MCAP
         video = OverlayVideo(out / f"{output_stem(source.name)}.overlay", source.fps or FALLBACK_FPS)
     if args.show:
         problem = display_problem()
@@ -346,39 +392,62 @@ def _stream_outputs(args: argparse.Namespace, out: Path, source, warn):
 
 
 def _run_stream(args: argparse.Namespace) -> int:
-    """`run` for a video file, a camera or a RealSense (module docstring, "Streams")."""
+    """`run` for a video file, a camera, a RealSense or a recording (module docstring, "Streams")."""
     from dope_hope.inference.frame_loop import passive_openmp
     from dope_hope.io.paths import output_dir
     from dope_hope.io.predictions import write_predictions_jsonl
-    from dope_hope.io.streams import open_stream
 
     _check_stream_flags(args)
+    if args.list_topics:
+        from dope_hope.io.recordings import topic_table
+
+        print(topic_table(args.inputs[0], args.image_topic, args.depth_topic, args.camera_info_topic))
+        return 0
+    source = _open_source(args)
     out = output_dir(args.out)
-    source = open_stream(args.inputs, _global_camera(args), args.depth, args.capture_size, args.capture_fps, _warn)
-    video = window = None
+    video = window = ros = None
     try:
         passive_openmp()  # before torch is imported: its idle threads must not spin
         from dope_hope.inference.model_set import stream_tracker
+        from dope_hope.inference.ros_outputs import open_ros_outputs
         from dope_hope.inference.stream_inference import StreamSinks, predict_stream
 
         predictors = _predictors(args)
         video, window = _stream_outputs(args, out, source, _warn)
-        sinks = StreamSinks(on_record=lambda rec: print(json.dumps(rec), flush=True), video=video, window=window)
+        ros = open_ros_outputs(out, source, args.foxglove, not args.no_overlay, _note)
+        sinks = StreamSinks(on_record=lambda rec: print(json.dumps(rec), flush=True), video=video, window=window,
+                            on_frame=None if ros is None else ros.on_frame)
         tracker = stream_tracker(predictors, args.mesh or [], args.mesh_units) if args.track else None
         result = predict_stream(source, predictors, sinks, tracker=tracker,
                                 depth_calibration=args.depth_calibration, pace=args.realtime,
                                 max_frames=args.max_frames, progress=not args.no_progress, warn=_warn)
+        mcap = None if ros is None else ros.close()
         write_predictions_jsonl(out / "predictions.jsonl", result.records)
         video_path = None if video is None else video.close()
     except BaseException:
-        if video is not None:
-            video.discard()
+        for output in (video, ros):
+            if output is not None:
+                output.discard()
         raise
     finally:
         source.close()
         if window is not None:
             window.close()
     summary = (f"{source.name}: {result.stats.summary()}; {len(result.records)} detection(s); predictions in "
-               f"{out / 'predictions.jsonl'}" + (f", overlay video {video_path}" if video_path else ""))
+               f"{out / 'predictions.jsonl'}" + (f", overlay video {video_path}" if video_path else "")
+               + (f", poses MCAP {mcap}" if mcap else ""))
     print(f"dope-hope infer: {summary}", file=sys.stderr)
     return 0
+
+
+def _open_source(args: argparse.Namespace):
+    """The stream's FrameSource: a recording (its topics, the --camera override) or open_stream's."""
+    from dope_hope.io.streams import open_stream, stream_kind
+
+    if stream_kind(args.inputs[0]) != "recording":
+        return open_stream(args.inputs, _global_camera(args), args.depth, args.capture_size, args.capture_fps, _warn)
+    from dope_hope.io.recordings import open_recording
+
+    tolerance = DEFAULT_SYNC_TOLERANCE_MS if args.sync_tolerance is None else args.sync_tolerance
+    return open_recording(args.inputs, args.image_topic, args.depth_topic, args.camera_info_topic,
+                          _global_camera(args), args.depth, tolerance / 1000.0, args.icp, _warn)

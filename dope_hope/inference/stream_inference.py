@@ -24,7 +24,8 @@ class StreamSinks:
     """Where a stream's results go (each optional).
 
     on_record: called with each detection record (the dict of ``Detection.to_json`` with
-    ``time`` (s, this frame's processing), ``frame`` and ``timestamp_s``), in order.
+    ``time`` (s, this frame's processing), ``frame`` and ``timestamp_s``; a recorded frame's
+    ``stamp_ns`` and ``frame_id``), in order.
     on_frame: called with each processed frame and its detections.
     video: an :class:`~dope_hope.io.video.OverlayVideo` (``write`` / ``repeat_last``): a
     dropped frame repeats the last overlay, so the video keeps the source's timing.
@@ -81,6 +82,8 @@ def predict_stream(source: FrameSource, predictors: Sequence[Any], sinks: Stream
             dets = tracker.update(dets, frame.K, depth, frame=frame.index, image_hw=frame.rgb.shape[:2])
         extra = {"time": round(time.perf_counter() - t0, 4), "frame": frame.index,
                  "timestamp_s": round(frame.timestamp_s, 4)}
+        if frame.stamp_ns is not None:  # a recorded image: its header's stamp and frame_id
+            extra.update(stamp_ns=frame.stamp_ns, frame_id=frame.frame_id)
         for d in dets:
             rec = d.to_json(frame.name, **extra)
             records.append(rec)

@@ -36,6 +36,8 @@ from dope_hope.io.images import GLOB_CHARS
 
 #: File suffixes read as videos.
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".flv")
+#: File suffixes of robot recordings (ROS 1 bag, ROS 2 MCAP / sqlite3; :mod:`dope_hope.io.recordings`).
+RECORDING_SUFFIXES = (".bag", ".mcap", ".db3")
 #: Colour and depth resolution (W, H) and frame rate asked of a RealSense by default.
 REALSENSE_DEFAULT_SIZE = (640, 480)
 REALSENSE_DEFAULT_FPS = 30
@@ -56,6 +58,8 @@ class Frame:
     name: the records' ``image`` ("clip.mp4#000012", "camera0#000012").
     rgb: (H, W, 3) uint8. K: (3, 3) intrinsics of ``rgb``.
     depth: (H, W) float32 metres registered to ``rgb`` (0 = no measurement), or None.
+    stamp_ns, frame_id: a recorded image's header stamp (ns since the epoch) and frame_id
+        (:mod:`dope_hope.io.recordings`), else None.
     """
 
     index: int
@@ -64,6 +68,8 @@ class Frame:
     rgb: np.ndarray
     K: np.ndarray
     depth: np.ndarray | None = None
+    stamp_ns: int | None = None
+    frame_id: str | None = None
 
 
 @dataclass
@@ -306,8 +312,19 @@ class RealSenseCamera(FrameSource):
 
 
 # ----------------------------------------------------------------------------- dispatch
+def is_recording(item: str) -> bool:
+    """True for a ROS 1 bag, a ROS 2 MCAP / sqlite3 file or a ROS 2 bag folder (metadata.yaml)."""
+    path = Path(item)
+    if path.suffix.lower() in RECORDING_SUFFIXES and not (GLOB_CHARS & set(item)):
+        return True
+    return path.is_dir() and (path / "metadata.yaml").is_file()
+
+
 def stream_kind(item: str) -> str | None:
-    """"camera", "realsense" or "video" for an input naming a stream, else None (images)."""
+    """"camera", "realsense", "video" or "recording" (:mod:`dope_hope.io.recordings`, opened
+    by its ``RecordingSource``) for an input naming a stream, else None (images)."""
+    if is_recording(item):
+        return "recording"
     if item.isdigit():
         return "camera"
     if item == _REALSENSE or item.startswith(_REALSENSE + ":"):
@@ -333,6 +350,8 @@ def open_stream(inputs: list[str], camera: ImageCamera | None = None, depth: str
     if len(inputs) != 1:
         raise ConfigError(f"{stream}: a video, camera or RealSense input must be the only input")
     item, kind = inputs[0], kinds[0]
+    if kind == "recording":
+        raise ConfigError(f"{item}: a recording is opened by dope_hope.io.recordings.RecordingSource")
     if depth is not None:
         raise ConfigError(f"--depth applies to image inputs; {item} has none"
                           + (" (a RealSense brings its own)" if kind == "realsense" else ""))
