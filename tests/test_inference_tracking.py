@@ -208,7 +208,7 @@ def test_record_carries_both_poses_and_evaluate_reads_it(tmp_path):
 
 # ----------------------------------------------------------------------------- settings
 def test_settings_are_checked_with_the_inference_options():
-    assert InferenceOptions.from_mapping({"tracking": {"max_coast": 2}}).tracking == {"max_coast": 2}
+    assert InferenceOptions.from_mapping({"tracking": {"max_coast": 2}}).tracking == TrackingSettings(max_coast=2)
     for bad, words in (({"foo": 1}, "foo"), ({"max_coast": 20}, "max_coast"), ({"gate_m": 0}, "gate_m"),
                        ({"confirm_hits": 1.5}, "confirm_hits"), ({"coast_search": [1.1, 1.2]}, "coast_search"),
                        ({"coast_refine": "yes"}, "coast_refine")):
