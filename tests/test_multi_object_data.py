@@ -3,6 +3,7 @@ training data (alone and mixed with DOPE folders), training targets and checkpoi
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from pathlib import Path
 
@@ -293,14 +294,17 @@ def test_two_object_training_writes_the_object_list_and_grouped_targets(tmp_path
     assert resumed.object == ck["objects"] and resumed.run()["step"] == 3
 
 
-def test_train_command_pairs_meshes_with_objects_and_reads_bop(tmp_path, grocery, bop_and_dope, capsys):
+def test_train_command_pairs_meshes_with_objects_and_reads_bop(tmp_path, grocery, bop_and_dope, capsys, caplog):
     split, dope, _ = bop_and_dope
+    caplog.set_level(logging.INFO, logger="dope_hope")
     run = tmp_path / "run"
     code = main(["train", "--data", str(dope), str(split), "--object", "obj_000001", "Lemon",
                  "--mesh", str(grocery["Can"]), str(grocery["Lemon"]), "--units", "m", "--out", str(run),
                  "--init", "none", "--steps", "1", "--batch-size", "1", "--workers", "0", "--no-progress",
                  "--set", "input.size=[64,64]", "train.plots=false", "train.val_fraction=0.4"])
     assert code == 0, capsys.readouterr().err
+    assert any(r.getMessage().startswith("symmetries: Lemon: detected on the mesh: continuous about x")
+               for r in caplog.records)
     summary = json.loads((run / "summary.json").read_text())
     assert summary["objects"] == ["obj_000001", "Lemon"] and summary["train_frames"] + summary["val_frames"] == 2
     from dope_hope.model.checkpoint import load_checkpoint
