@@ -32,9 +32,9 @@ torch.set_num_threads(1)
 def scene(tmp_path_factory):
     """A 160x120 synthetic frame of the demo box saved as MyBox.obj (not the demo model's
     object): (folder with 000000.png/.json/.depth.png, mesh path, GT R, GT t)."""
+    from dope_hope.io.dope_json import read_dope_json
     from dope_hope.synth.generate import SynthJob
     from dope_hope.synth.to_disk import generate_dataset
-    from dope_hope.io.dope_json import read_dope_json
 
     root = tmp_path_factory.mktemp("start")
     demo = write_demo_object(root / "mesh")
@@ -91,8 +91,8 @@ def test_a_z_up_mesh_comes_back_in_its_own_frame_with_its_ambiguity(scene, monke
     """The demo box turned so that its vertical axis is z, declared --up-axis z: the start
     sees the box as it learned it (y up); the pose returns in the z-up frame, the texture
     picks the true one of the four equivalent poses."""
-    from dope_hope.io.images import read_depth_m, read_rgb
     from dope_hope.io.dope_json import read_dope_json
+    from dope_hope.io.images import read_depth_m, read_rgb
 
     frame_dir, _, R_gt, t_gt = scene
     A = up_axis_rotation("z")
@@ -124,8 +124,8 @@ def test_a_z_up_mesh_comes_back_in_its_own_frame_with_its_ambiguity(scene, monke
 
 def test_shipped_start_runs_in_python(scene):
     frame_dir, mesh, _, _ = scene
-    from dope_hope.io.images import read_rgb
     from dope_hope.io.dope_json import read_dope_json
+    from dope_hope.io.images import read_rgb
 
     p = MeshStartPredictor(mesh, appearance={"min_score": 0.0}, threads=1)
     try:

@@ -3,12 +3,14 @@
 :class:`RosOutputs` is the stream loop's ``on_frame`` sink (:class:`~dope_hope.inference.stream_inference.StreamSinks`):
 each frame's detections (or tracked objects) become the messages of
 :mod:`dope_hope.io.pose_messages`, stamped with the frame's recorded stamp and frame_id (a
-video or camera frame: its timestamp and ``camera``), and go to a
+video or camera frame: the wall-clock time of the stream's first frame plus its timestamp, and
+``camera``), and go to a
 :class:`~dope_hope.io.recording_writer.RecordingWriter` and/or a
 :class:`~dope_hope.io.foxglove_live.FoxgloveLive` server: one set of messages for both.
 """
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -33,9 +35,10 @@ def posed_objects(dets: Sequence[Any]) -> list[PosedObject]:
             for d in dets]
 
 
-def frame_stamp(frame: Frame) -> tuple[int, str]:
-    """(stamp ns, frame_id) of a frame: the recorded header's, else its timestamp and ``camera``."""
-    stamp = frame.stamp_ns if frame.stamp_ns is not None else int(round(frame.timestamp_s * 1e9))
+def frame_stamp(frame: Frame, start_ns: int = 0) -> tuple[int, str]:
+    """(stamp ns, frame_id) of a frame: the recorded header's, else ``start_ns`` plus its
+    timestamp and ``camera``."""
+    stamp = frame.stamp_ns if frame.stamp_ns is not None else start_ns + round(frame.timestamp_s * 1e9)
     return stamp, frame.frame_id or DEFAULT_FRAME_ID
 
 
@@ -51,9 +54,12 @@ class RosOutputs:
         self.writer, self.live, self.overlays = writer, live, overlays
         self.messages = live.messages if live is not None else PoseMessages()
         self.frames = 0
+        self.start_ns: int | None = None  # wall clock at the first frame (frames recorded without a stamp)
 
     def on_frame(self, frame: Frame, dets: Sequence[Any]) -> None:
-        stamp, frame_id = frame_stamp(frame)
+        if self.start_ns is None:
+            self.start_ns = time.time_ns() - round(frame.timestamp_s * 1e9)
+        stamp, frame_id = frame_stamp(frame, self.start_ns)
         jpeg = None
         if self.overlays:
             import cv2
