@@ -23,7 +23,7 @@ from dope_hope.model.checkpoint import (
     save_checkpoint,
 )
 from dope_hope.training.objects import object_mesh_paths
-from dope_hope.training.settings import TrainJob
+from dope_hope.training.settings import TrainConfig, TrainJob
 
 #: The trainer's logger: these lines are the trainer's, under its name.
 log = logging.getLogger("dope_hope.training.trainer")
@@ -112,7 +112,9 @@ class RunCheckpoints:
                     "symmetries": str(self.job.symmetries) if self.job.symmetries else None,
                     "init": str(self.job.init_weights) if self.job.init_weights else None},
         }
-        save_checkpoint(path, self.model, self.config, self.object,
+        # every key of the recipe, over the defaults: the file says how it was trained
+        recipe = TrainConfig.from_mapping(self.config).to_dict()
+        save_checkpoint(path, self.model, recipe, self.object,
                         TrainingState(self.optimizer, self.scheduler, self.step, self.epoch, extra))
         return path
 
