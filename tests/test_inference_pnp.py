@@ -276,3 +276,19 @@ def test_visible_points_are_on_the_visible_surface(seed):
     vis_n = visible_points(Xc, K320, HW320, splat, normals_c=normals)
     assert (vis_n & behind).sum() == 0
     assert (vis_n & on_surface).sum() >= 0.7 * on_surface.sum()
+
+
+def test_line_search_bracket_with_scales_without_depth_warns_nothing():
+    """Scales whose points leave the valid depth cost inf; the bounded search inside a bracket
+    that reaches them must neither warn (numpy's inf - inf) nor return such a scale."""
+    import warnings
+
+    from dope_hope.refine.line_search import _best_scale
+
+    def cost(s: float) -> float:
+        return np.inf if s > 1.02 else (s - 1.0) ** 2
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scale, at_bound = _best_scale(cost, (0.5, 1.5), 11)
+    assert scale == pytest.approx(1.0, abs=1e-4) and not at_bound

@@ -240,8 +240,11 @@ def _best_scale(objective: _ScaleCost, search: tuple[float, float],
         return None
     i = int(np.argmin(costs))
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
-    res = minimize_scalar(objective, bounds=(a, b), method="bounded", options={"xatol": 1e-6})
-    s_best = float(res.x) if res.fun <= costs[i] else grid[i]
+    # Scales without enough valid depth cost inf; the bounded search then subtracts inf from
+    # inf (NaN steps) and numpy warns. Its answer is kept only when it beats the grid's best.
+    with np.errstate(invalid="ignore", over="ignore"):
+        res = minimize_scalar(objective, bounds=(a, b), method="bounded", options={"xatol": 1e-6})
+    s_best = float(res.x) if np.isfinite(res.fun) and res.fun <= costs[i] else grid[i]
     step = grid[1] - grid[0]
     at_lo = i == 0 and s_best <= lo + 0.5 * step
     at_hi = i == len(grid) - 1 and s_best >= hi - 0.5 * step
