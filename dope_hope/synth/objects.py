@@ -103,6 +103,14 @@ def _cap_normals(shape: trimesh.Trimesh) -> np.ndarray:
     return corner_normals(shape, flat_axis=1, flat_cos=0.95)
 
 
+def _fit_box(shape: trimesh.Trimesh, size_m: np.ndarray) -> trimesh.Trimesh:
+    """``shape`` scaled per axis to the extents ``size_m`` (3,) metres and centred on its
+    bounding box (in place; returned)."""
+    shape.apply_scale(np.asarray(size_m, dtype=np.float64) / np.maximum(shape.extents, 1e-9))
+    shape.apply_translation(-shape.bounds.mean(axis=0))
+    return shape
+
+
 def _y_up(shape: trimesh.Trimesh) -> trimesh.Trimesh:
     """Turn a shape built about z (trimesh's axis of revolution) to stand along y."""
     shape = shape.copy()
@@ -138,9 +146,7 @@ def bottle_mesh(size_m: np.ndarray, rng: np.random.Generator, sections: int = 32
     body, which has the bottle category's 180° symmetry about y), metres."""
     profile, neck_h = bottle_profile(rng)
     cap_from = neck_h + 0.4 * (1.0 - neck_h)  # the cap: the upper 60 % of the neck
-    shape = _y_up(trimesh.creation.revolve(profile, sections=sections))
-    shape.apply_scale(np.asarray(size_m, dtype=np.float64) / shape.extents)
-    shape.apply_translation(-shape.bounds.mean(axis=0))
+    shape = _revolved(profile, size_m, sections)
     height = float(shape.extents[1])
     y_range = (-height / 2, -height / 2 + cap_from * height)
     return split_mesh(shape, _wrapped_uv(shape, y_range), _cap_normals(shape))
@@ -149,10 +155,7 @@ def bottle_mesh(size_m: np.ndarray, rng: np.random.Generator, sections: int = 32
 def _revolved(profile: np.ndarray, size_m: np.ndarray, sections: int) -> trimesh.Trimesh:
     """A solid of revolution of the (N, 2) (radius, height) ``profile`` standing along y,
     scaled to the extents ``size_m`` (3,) and centred on its bounding box."""
-    shape = _y_up(trimesh.creation.revolve(profile, sections=sections))
-    shape.apply_scale(np.asarray(size_m, dtype=np.float64) / shape.extents)
-    shape.apply_translation(-shape.bounds.mean(axis=0))
-    return shape
+    return _fit_box(_y_up(trimesh.creation.revolve(profile, sections=sections)), size_m)
 
 
 def jar_mesh(size_m: np.ndarray, rng: np.random.Generator, sections: int = 32) -> trimesh.Trimesh:
@@ -186,10 +189,7 @@ def tube_mesh(size_m: np.ndarray, rng: np.random.Generator, sections: int = 32) 
     flat = rng.uniform(0.05, 0.15)
     v[:, 2] *= 1.0 - (1.0 - flat) * body ** 1.3                        # flatten towards the seam
     v[:, 0] *= 1.0 + 0.25 * body ** 2                                  # and widen a little
-    shape = trimesh.Trimesh(vertices=v, faces=shape.faces, process=False)
-    extents = np.asarray(size_m, dtype=np.float64)
-    shape.apply_scale(extents / shape.extents)
-    shape.apply_translation(-shape.bounds.mean(axis=0))
+    shape = _fit_box(trimesh.Trimesh(vertices=v, faces=shape.faces, process=False), size_m)
     height = float(shape.extents[1])
     y_range = (-height / 2 + cap_h * height, height / 2)
     uv = _wrapped_uv(shape, y_range)
@@ -213,9 +213,7 @@ def superquadric_mesh(size_m: np.ndarray, exponents: tuple[float, float],
 
     v = np.stack([power(np.cos(lat), e1) * power(np.cos(lon), e2), power(np.sin(lat), e1),
                   power(np.cos(lat), e1) * power(np.sin(lon), e2)], axis=1)
-    shape = trimesh.Trimesh(vertices=v, faces=sphere.faces, process=False)
-    shape.apply_scale(np.asarray(size_m, dtype=np.float64) / np.maximum(shape.extents, 1e-9))
-    shape.apply_translation(-shape.bounds.mean(axis=0))
+    shape = _fit_box(trimesh.Trimesh(vertices=v, faces=sphere.faces, process=False), size_m)
     return split_mesh(shape, _atlas_uv(shape), corner_normals(shape))
 
 
@@ -230,10 +228,8 @@ def body_mesh(size_m: np.ndarray, rng: np.random.Generator, subdivisions: int = 
         direction /= np.linalg.norm(direction)
         width = rng.uniform(0.3, 0.9)
         radius += rng.uniform(-0.35, 0.6) * np.exp(-np.sum((d - direction) ** 2, axis=1) / width ** 2)
-    shape = trimesh.Trimesh(vertices=d * np.clip(radius, 0.3, None)[:, None], faces=sphere.faces,
-                            process=False)
-    shape.apply_scale(np.asarray(size_m, dtype=np.float64) / np.maximum(shape.extents, 1e-9))
-    shape.apply_translation(-shape.bounds.mean(axis=0))
+    shape = _fit_box(trimesh.Trimesh(vertices=d * np.clip(radius, 0.3, None)[:, None],
+                                     faces=sphere.faces, process=False), size_m)
     return split_mesh(shape, _atlas_uv(shape), corner_normals(shape))
 
 
