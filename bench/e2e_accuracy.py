@@ -53,14 +53,12 @@ import argparse
 import json
 import math
 import os
-import shlex
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 from dope_hope.config import differing_keys, load_config
 from dope_hope.devices import cpu_description, cpu_line
+from dope_hope.staged_run import CommandStages
 from dope_hope.synth.settings import PLAIN_OVERRIDES
 
 REPO = Path(__file__).resolve().parent.parent
@@ -160,42 +158,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
-class Pipeline:
-    """Runs the stages in order, skipping those whose marker exists."""
-
-    def __init__(self, out: Path):
-        self.out = out
-        (out / "stages").mkdir(parents=True, exist_ok=True)
-        (out / "logs").mkdir(parents=True, exist_ok=True)
-        self.timings: dict[str, float] = {}
-
-    def stage(self, name: str, argv: list[str], stdout_to_log: bool = True) -> None:
-        """Run ``dope-hope *argv`` unless stage ``name`` is done; raise on failure."""
-        marker = self.out / "stages" / f"{name}.json"
-        shown = "dope-hope " + " ".join(shlex.quote(str(a)) for a in argv)
-        if marker.is_file():
-            print(f"[{name}] done earlier, skipped: {shown}", flush=True)
-            self.timings[name] = float(json.loads(marker.read_text())["seconds"])
-            return
-        print(f"[{name}] $ {shown}", flush=True)
-        log = self.out / "logs" / f"{name}.log"
-        t0 = time.perf_counter()
-        cmd = [sys.executable, "-m", "dope_hope.cli", *map(str, argv)]
-        with open(log, "w") as f:
-            f.write(f"$ {shown}\n")
-            f.flush()
-            proc = subprocess.run(cmd, stdout=f if stdout_to_log else None, stderr=subprocess.STDOUT
-                                  if stdout_to_log else None, cwd=REPO)
-        seconds = time.perf_counter() - t0
-        if proc.returncode != 0:
-            tail = log.read_text(errors="replace").strip().splitlines()[-5:]
-            raise SystemExit(f"[{name}] failed with status {proc.returncode} after {seconds:.0f} s; "
-                             f"log {log}:\n  " + "\n  ".join(tail))
-        marker.write_text(json.dumps({"command": shown, "seconds": round(seconds, 1)}) + "\n")
-        self.timings[name] = seconds
-        print(f"[{name}] {seconds:.0f} s (log {log})", flush=True)
-
-
 def check_settings(out: Path, settings: dict) -> None:
     """Record the run's settings; refuse to mix stages made with other settings."""
     path = out / "e2e_settings.json"
@@ -291,11 +253,11 @@ def breakdown_text(counts: dict[str, int], min_score: float) -> str:
             + ", ".join(f"{k} {v} ({100 * v / total:.1f} %)" for k, v in counts.items()))
 
 
-def run_stages(args: argparse.Namespace, out: Path, settings: dict) -> tuple[Pipeline, Path, dict, str, dict]:
+def run_stages(args: argparse.Namespace, out: Path, settings: dict) -> tuple[CommandStages, Path, dict, str, dict]:
     """Stages 1-5 of the module docstring (each skipped when done earlier); returns the
     pipeline, the checkpoint, the run's summary, its steps-and-budget line and the methods
     ("MODEL REFINEMENT" label -> evaluate method name)."""
-    pipe = Pipeline(out)
+    pipe = CommandStages(out, cwd=REPO)
     mesh = args.mesh.resolve()
     train_dir, test_dir, run_dir = out / "train", out / "test", out / "run"
     common = ["--mesh", mesh, "--class-name", args.object, "--no-progress"]

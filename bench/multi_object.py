@@ -56,7 +56,6 @@ from e2e_accuracy import (  # noqa: E402
     REPO,
     TEST_SEED,
     TRAIN_SEED,
-    Pipeline,
     check_settings,
     checkpoint_of,
     percent_text,
@@ -65,6 +64,7 @@ from e2e_accuracy import (  # noqa: E402
 )
 
 from dope_hope.devices import cpu_description, cpu_line  # noqa: E402
+from dope_hope.staged_run import CommandStages  # noqa: E402
 from dope_hope.synth.settings import PLAIN_OVERRIDES  # noqa: E402
 
 #: The objects: class -> (mesh path relative to the shared data folder, its unit).
@@ -174,9 +174,9 @@ def object_symmetries(meshes: dict[str, Path], units: dict[str, str]) -> dict[st
     return out
 
 
-def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], units: dict[str, str]) -> Pipeline:
+def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], units: dict[str, str]) -> CommandStages:
     """Stages 1-6 of the module docstring (each skipped when done earlier)."""
-    pipe = Pipeline(out)
+    pipe = CommandStages(out, cwd=REPO)
     names = list(OBJECTS)
     mesh_args = [str(meshes[n]) for n in names]
     unit_args = [units[n] for n in names]
@@ -214,7 +214,7 @@ def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], uni
     return pipe
 
 
-def report(args: argparse.Namespace, out: Path, pipe: Pipeline, symmetries: dict[str, str]) -> dict:
+def report(args: argparse.Namespace, out: Path, pipe: CommandStages, symmetries: dict[str, str]) -> dict:
     """The recall table, the steps trained and the timing (text printed and written to
     OUT/results.md); returns the figures for OUT/results.json."""
     names = list(OBJECTS)

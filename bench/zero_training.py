@@ -7,7 +7,7 @@ same command, seed 1001, 640x480, photo backgrounds, depth noise), with -LS (`--
 `--min-score 0`), and scores it with `dope-hope evaluate --metric meanssd`: recall at 2 cm and
 10 cm MeanSSD. With ``--baseline B.pt`` the same runs for a second start and the ratios are
 printed (``--start`` / ``--baseline``: e.g. a newly pretrained start against the shipped one).
-Each step is a `dope-hope` command run as a subprocess (bench/e2e_accuracy.py's Pipeline:
+Each step is a `dope-hope` command run as a subprocess (dope_hope.staged_run.CommandStages:
 logged to OUT/logs/, resumable per stage). Prints the CPU and its precision flags.
 
     python bench/zero_training.py                                    # the shipped start, 200 frames
@@ -25,10 +25,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from e2e_accuracy import REPO, SCENE, TEST_SEED, Pipeline, check_settings, percent_text, shared_defaults  # noqa: E402
+from e2e_accuracy import REPO, SCENE, TEST_SEED, check_settings, percent_text, shared_defaults  # noqa: E402
 
 from dope_hope.assets import PRETRAINED_WEIGHTS  # noqa: E402
 from dope_hope.devices import cpu_line  # noqa: E402
+from dope_hope.staged_run import CommandStages  # noqa: E402
 
 #: The targets: recall at 2 cm and 10 cm MeanSSD with -LS.
 TARGETS = {"recall_2cm": 0.15, "recall_10cm": 0.40}
@@ -66,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
                          "size": args.size, "starts": {k: str(v) for k, v in starts.items()},
                          "backgrounds": None if args.backgrounds is None else str(args.backgrounds.resolve())})
     print(cpu_line(), flush=True)
-    pipe = Pipeline(out)
+    pipe = CommandStages(out, cwd=REPO)
     test_dir = out / "test"
     test = ["synth", "--mesh", mesh, "--class-name", args.object, "--no-progress", "--set", *SCENE,
             "--size", args.size, "--out", test_dir, "--count", args.test_count, "--seed", TEST_SEED,

@@ -1,7 +1,7 @@
 """Make the pretrained lite start (dope_hope/assets/pretrained_lite.pt) with one command.
 
-Stages (each a `dope-hope` command run as a subprocess, logged to OUT/logs/; a stage whose
-marker OUT/stages/<stage>.json exists is skipped, an interrupted synth resumes frame by frame
+Stages (each a `dope-hope` command run as a subprocess by :class:`dope_hope.staged_run.CommandStages`,
+logged to OUT/logs/; a stage whose marker OUT/stages/<stage>.json exists is skipped, an interrupted synth resumes frame by frame
 and an interrupted training with --resume, so rerunning the same command continues the run
 and ends with the same weights):
 
@@ -29,43 +29,16 @@ background scenes.
 from __future__ import annotations
 
 import argparse
-import json
-import shlex
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 from dope_hope.model.checkpoint import PRETRAINED_START_SOURCE, save_inference_checkpoint
+from dope_hope.staged_run import CommandStages
 
 REPO = Path(__file__).resolve().parent.parent
 #: Synth seeds of the training and validation frames.
 TRAIN_SEED, VAL_SEED = 21, 22
 #: Training overrides of the recipe: a fixed step count, wider crop zoom and offsets.
 TRAIN_SET = ("train.time_limit_min=null", "augment.scale=[0.6,1.6]", "augment.crop_jitter=0.5")
-
-
-def run_stage(out: Path, name: str, argv: list[str]) -> None:
-    """Run ``dope-hope *argv`` unless stage ``name`` is done; exit on failure."""
-    marker = out / "stages" / f"{name}.json"
-    shown = "dope-hope " + " ".join(shlex.quote(str(a)) for a in argv)
-    if marker.is_file():
-        print(f"[{name}] done earlier, skipped: {shown}", flush=True)
-        return
-    print(f"[{name}] $ {shown}", flush=True)
-    log = out / "logs" / f"{name}.log"
-    t0 = time.perf_counter()
-    with open(log, "a") as f:
-        f.write(f"$ {shown}\n")
-        f.flush()
-        code = subprocess.run([sys.executable, "-m", "dope_hope.cli", *map(str, argv)], stdout=f,
-                              stderr=subprocess.STDOUT, cwd=REPO).returncode
-    if code != 0:
-        tail = "\n  ".join(log.read_text(errors="replace").strip().splitlines()[-5:])
-        raise SystemExit(f"[{name}] failed with status {code}; log {log}:\n  {tail}")
-    seconds = time.perf_counter() - t0
-    marker.write_text(json.dumps({"command": shown, "seconds": round(seconds, 1)}) + "\n")
-    print(f"[{name}] {seconds:.0f} s", flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -85,19 +58,18 @@ def main(argv: list[str] | None = None) -> int:
     if not args.photos.is_dir() or not any(args.photos.iterdir()):
         p.error(f"--photos {args.photos}: not a folder of photographs")
     out = args.out.resolve()
-    (out / "stages").mkdir(parents=True, exist_ok=True)
-    (out / "logs").mkdir(parents=True, exist_ok=True)
+    stages = CommandStages(out, cwd=REPO)
     synth = ["synth", "--procedural", "--config", "pretrain", "--size", "256x192", "--workers", args.workers,
              "--backgrounds", args.photos.resolve(), "--no-progress"]
-    run_stage(out, "synth-train", [*synth, "--out", out / "train", "--count", args.count, "--seed", TRAIN_SEED])
-    run_stage(out, "synth-val", [*synth, "--out", out / "val", "--count", args.val_count, "--seed", VAL_SEED])
+    stages.stage("synth-train", [*synth, "--out", out / "train", "--count", args.count, "--seed", TRAIN_SEED])
+    stages.stage("synth-val", [*synth, "--out", out / "val", "--count", args.val_count, "--seed", VAL_SEED])
     train = ["train", "--out", out / "run", "--no-progress"]
     if (out / "run" / "last.pt").is_file():
         train += ["--resume"]
     else:
         train += ["--config", "lite", "--init", args.init, "--data", out / "train", "--val", out / "val",
                   "--object", "Object", "--steps", args.steps, "--set", *TRAIN_SET]
-    run_stage(out, "train", train)
+    stages.stage("train", train)
     start = save_inference_checkpoint(out / "run" / "last.pt", out / "pretrained_lite.pt",
                                       source=PRETRAINED_START_SOURCE)
     print(f"the start: {start}", flush=True)
