@@ -29,7 +29,8 @@ lights; the test set is the same for both recipes (:data:`SCENE`: plain, photo b
 Prints the CPU and its precision flags (:func:`dope_hope.devices.cpu_line`), the steps trained
 and the share of the time budget used, the table, and how the held-out instances are lost
 (with -LS, detections scoring at least the infer default: none, beyond 10 cm, within 10 cm
-but not 2 cm, within 2 cm MeanSSD); writes OUT/results.md + OUT/results.json. Resumable at stage
+but not 2 cm, within 2 cm MeanSSD; in all, then per band of the visible fraction: below 0.1 an
+instance is no BOP19 target); writes OUT/results.md + OUT/results.json. Resumable at stage
 granularity: a stage whose marker OUT/stages/<stage>.json exists is skipped (an interrupted
 synth resumes frame by frame, an interrupted train with --resume); OUT/e2e_settings.json
 refuses a rerun with other settings in the same folder.
@@ -87,6 +88,9 @@ SCENE = [*TARGET, *set_args(PLAIN_OVERRIDES)]
 RECIPES = {"defaults": TARGET, "plain": SCENE}
 #: The loss classes of a held-out instance (:func:`loss_breakdown`).
 LOSS_CLASSES = ("no detection", "beyond 10 cm", "within 10 cm, not 2 cm", "within 2 cm")
+#: Visible-fraction bands of the breakdown: (label, low, high); below 0.1 an instance is not a
+#: BOP19 target (bop_toolkit's visib_gt_min), nearly all of it hidden or outside the image.
+VISIBILITY_BANDS = (("< 0.1", 0.0, 0.1), ("0.1-0.5", 0.1, 0.5), ("0.5-0.95", 0.5, 0.95), (">= 0.95", 0.95, math.inf))
 #: Training overrides: symmetry-aware labels for the bottle (6x the recall at 2 cm ADD-H of the
 #: official labels in the same 20 minutes; bench/RESULTS.md).
 TRAIN_SET = ("targets.symmetry=auto",)
@@ -217,12 +221,13 @@ def results_table(out: Path, methods: dict[str, str]) -> tuple[str, dict]:
     return "\n".join(rows), data
 
 
-def loss_breakdown(test_dir: Path, predictions: Path, object_name: str, mesh: Path,
-                   min_score: float) -> dict[str, int]:
-    """How the held-out GT instances of ``object_name`` are lost: per instance, the estimate
-    (score >= ``min_score``) paired with it as `evaluate` pairs them at 2 cm MeanSSD, then the
-    remaining ones without a threshold (:func:`dope_hope.evaluation.matching.match_frame`), and
-    its MeanSSD error: counts of :data:`LOSS_CLASSES`."""
+def instance_losses(test_dir: Path, predictions: Path, object_name: str, mesh: Path,
+                    min_score: float) -> list[tuple[float, str]]:
+    """How each held-out GT instance of ``object_name`` is lost: the estimate (score >=
+    ``min_score``) paired with it as `evaluate` pairs them at 2 cm MeanSSD, then the remaining
+    ones without a threshold (:func:`dope_hope.evaluation.matching.match_frame`), and its
+    MeanSSD error. Returns (visible fraction, one of :data:`LOSS_CLASSES`) per instance (a
+    missing visibility counts as 1, as the BOP19 targets count it)."""
     from dope_hope.evaluation.datasets import assign_predictions, load_dataset
     from dope_hope.evaluation.evaluate import cuboid_centres_to_origins
     from dope_hope.evaluation.matching import match_frame
@@ -233,7 +238,7 @@ def loss_breakdown(test_dir: Path, predictions: Path, object_name: str, mesh: Pa
     models = load_models([object_name], [f"{object_name}={mesh}"])
     preds = [p for p in read_predictions(predictions)[0] if p.class_name == object_name and p.score >= min_score]
     cuboid_centres_to_origins(preds, models)
-    counts = dict.fromkeys(LOSS_CLASSES, 0)
+    out = []
     for frame, estimates in zip(dataset.frames, assign_predictions(dataset, preds)[0]):
         gts = [o for o in frame.objects if o.class_name == object_name]
         if not gts:
@@ -243,14 +248,34 @@ def loss_breakdown(test_dir: Path, predictions: Path, object_name: str, mesh: Pa
             error = math.inf if p < 0 else float(match.errors[p, g])
             key = (LOSS_CLASSES[0] if p < 0 else LOSS_CLASSES[1] if error >= 0.10
                    else LOSS_CLASSES[2] if error >= 0.02 else LOSS_CLASSES[3])
-            counts[key] += 1
+            visibility = 1.0 if gts[g].visibility is None else float(gts[g].visibility)
+            out.append((visibility, key))
+    return out
+
+
+def loss_counts(losses: list[tuple[float, str]]) -> dict[str, int]:
+    """Counts of :data:`LOSS_CLASSES` over :func:`instance_losses`' instances."""
+    counts = dict.fromkeys(LOSS_CLASSES, 0)
+    for _, key in losses:
+        counts[key] += 1
     return counts
+
+
+def losses_by_visibility(losses: list[tuple[float, str]]) -> dict[str, dict[str, int]]:
+    """:func:`loss_counts` per band of :data:`VISIBILITY_BANDS` (label -> counts)."""
+    return {label: loss_counts([x for x in losses if lo <= x[0] < hi]) for label, lo, hi in VISIBILITY_BANDS}
 
 
 def breakdown_text(counts: dict[str, int], min_score: float) -> str:
     total = max(1, sum(counts.values()))
     return (f"held-out instances ({sum(counts.values())}, -LS, scores >= {min_score:g}, MeanSSD): "
             + ", ".join(f"{k} {v} ({100 * v / total:.1f} %)" for k, v in counts.items()))
+
+
+def visibility_text(bands: dict[str, dict[str, int]]) -> str:
+    """One line per visibility band: its instances and their loss classes."""
+    return "\n".join(f"  visible {label}: {sum(c.values())} instances: "
+                     + ", ".join(f"{k} {v}" for k, v in c.items()) for label, c in bands.items())
 
 
 def run_stages(args: argparse.Namespace, out: Path, settings: dict) -> tuple[CommandStages, Path, dict, str, dict]:
@@ -330,8 +355,9 @@ def main(argv: list[str] | None = None) -> int:
     share = trained["budget_used_s"] / (60.0 * args.train_minutes)
     table, data = results_table(out, methods)
     min_score = float(load_config("infer")["min_score"])
-    lost = loss_breakdown(test_dir, out / "infer_ls" / "predictions.jsonl", args.object, mesh, min_score)
-    lost_text = breakdown_text(lost, min_score)
+    losses = instance_losses(test_dir, out / "infer_ls" / "predictions.jsonl", args.object, mesh, min_score)
+    lost, lost_bands = loss_counts(losses), losses_by_visibility(losses)
+    lost_text = breakdown_text(lost, min_score) + "; by visible fraction:\n" + visibility_text(lost_bands)
     times = ", ".join(f"{k} {v:.0f} s" for k, v in pipe.timings.items())
     text = (f"# e2e accuracy: {args.object}, {args.config}, {args.train_minutes:g} min training\n\n"
             f"Held-out synthetic test set: {args.test_count} frames at {args.size} (seed {TEST_SEED}, photo "
@@ -344,7 +370,8 @@ def main(argv: list[str] | None = None) -> int:
     (out / "results.md").write_text(text)
     (out / "results.json").write_text(json.dumps({"settings": settings, "checkpoint": str(ckpt),
                                                   "cpu": cpu_description(), "steps": trained["step"],
-                                                  "budget_share": share, "lost": lost, "results": data,
+                                                  "budget_share": share, "lost": lost,
+                                                  "lost_by_visibility": lost_bands, "results": data,
                                                   "stage_seconds": pipe.timings},
                                                  indent=1, default=float) + "\n")
     print("\n" + table + f"\n\n{trained_text}\n{lost_text}\nstage times: {times}\nwritten: {out / 'results.md'}, {out / 'results.json'}")

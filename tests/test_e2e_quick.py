@@ -50,6 +50,9 @@ def test_quick_run_writes_the_table_and_resumes(shared_data, ketchup_obj, tmp_pa
     gt = sum(len(json.loads(p.read_text())["objects"]) for p in (out / "test").glob("[0-9]*.json"))
     assert set(results["lost"]) == {"no detection", "beyond 10 cm", "within 10 cm, not 2 cm", "within 2 cm"}
     assert sum(results["lost"].values()) == gt and "held-out instances" in proc.stdout
+    bands = results["lost_by_visibility"]
+    assert list(bands) == ["< 0.1", "0.1-0.5", "0.5-0.95", ">= 0.95"] and "visible >= 0.95:" in proc.stdout
+    assert {k: sum(c[k] for c in bands.values()) for k in results["lost"]} == results["lost"]
     assert set(results["cpu"]["flags"]) >= {"amx_bf16", "avx512_bf16", "avx512_vnni"}
 
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=120)

@@ -15,7 +15,7 @@ from dope_hope.geometry import (
     rotation_error_deg,
     scale_intrinsics,
 )
-from dope_hope.inference.pnp import PnpSettings, PoseEstimate, solve_pnp
+from dope_hope.inference.pnp import PnpSettings, PoseEstimate, score_in_view, solve_pnp
 from dope_hope.maps.decode import decode_maps
 from dope_hope.maps.targets import make_targets
 from dope_hope.refine.depth import HOPE_REALSENSE_DEPTH_CALIBRATION, DepthImage
@@ -100,6 +100,28 @@ def test_an_outlying_keypoint_is_rejected_and_lowers_the_score():
     assert p.score == pytest.approx(0.9 * 8 / 9)
     np.testing.assert_allclose(p.projected, project_points(CUBOID, K640, R, t), atol=1e-3)
     np.testing.assert_array_equal(p.keypoints, kp)
+
+
+def test_a_cut_off_object_is_scored_by_the_keypoints_inside_the_image():
+    """Keypoints beyond the border can have no peak: the in-view score divides by those the pose
+    puts inside the image (at least min_points); all nine inside: the nine-keypoint score."""
+    R, t, kp = _exact_keypoints()
+    whole = solve_pnp(kp, np.full(9, 0.9), CUBOID, K640)
+    assert score_in_view(whole, (480, 640)) == pytest.approx(whole.score) == pytest.approx(0.9)
+    # the same object, shifted so that some keypoints fall beyond the right border
+    shift = 640 - np.sort(kp[:, 0])[-3] + 1.0                   # 3 keypoints left outside
+    cut = kp + [shift, 0.0]
+    outside = cut[:, 0] > 639.5
+    assert outside.sum() == 3
+    found = np.where(outside[:, None], np.nan, cut)             # the network finds the other six
+    p = solve_pnp(found, np.full(9, 0.9), CUBOID, K640)
+    assert p is not None and p.score == pytest.approx(0.9 * 6 / 9)
+    assert score_in_view(p, (480, 640)) == pytest.approx(0.9)
+    assert score_in_view(p, (480, 640), min_points=7) == pytest.approx(0.9 * 6 / 7)
+    # a keypoint inside the image but not found still counts against the pose
+    found[np.flatnonzero(~outside)[0]] = np.nan
+    q = solve_pnp(found, np.full(9, 0.9), CUBOID, K640)
+    assert score_in_view(q, (480, 640)) == pytest.approx(0.9 * 5 / 6)
 
 
 def test_min_points_is_honoured_down_to_four():

@@ -321,3 +321,6 @@ def test_peaks_found_once_decode_as_the_decoders_find_them(options):
     assert pose_score_bound(peaks) == pytest.approx(sum(best) / 9)
     clipped = [np.clip(inst.scores, 0, 1).sum() / 9 for inst in decode_maps(b, a, 8, settings)]
     assert max(clipped) <= pose_score_bound(peaks) + 1e-12
+    # the in-view score's bound (divided by at least 5 keypoints): the 5 best types' mean
+    assert pose_score_bound(peaks, 5) == pytest.approx(sum(sorted(best)[-5:]) / 5)
+    assert pose_score_bound(peaks, 9) == pytest.approx(pose_score_bound(peaks))

@@ -24,6 +24,10 @@ whatever keypoints were found, down to ``min_points`` (>= 4):
 Score: ``score = sum(clip(scores[inliers], 0, 1)) / 9`` - the mean keypoint confidence of the
 inliers times the inlier fraction of *all nine* keypoints, so missing and outlying keypoints
 both lower it. All thresholds are in pixels of the image the keypoints and ``K`` refer to.
+:func:`score_in_view` divides by the keypoints the pose puts inside the image instead (at
+least ``min_points``): a keypoint beyond the image border can have no peak, so a cut-off
+object is not scored as if its corners were missing (the predictor's default,
+``pnp.score_in_view``).
 
 Several candidate peaks per keypoint (the multi-hypothesis pose search, which ends in
 :func:`solve_pnp`) are :mod:`dope_hope.inference.pose_search`.
@@ -39,6 +43,7 @@ import numpy as np
 from dope_hope.config import (
     SectionSettings,
     at_least,
+    boolean,
     finite_float,
     fraction,
     nonnegative_float,
@@ -80,12 +85,14 @@ class PnpSettings(SectionSettings):
     <= ``min_score`` is treated as missing. min_inlier_ratio: reject when fewer than this
     fraction of the present keypoints are inliers (5 of 9 random points can fit some pose;
     see the module docstring). ransac_iterations, ransac_confidence: OpenCV's RANSAC.
+    score_in_view: the predictor scores a pose by the keypoints it puts inside the image
+    (:func:`score_in_view`); false: by all nine, as :func:`solve_pnp` does.
     """
 
     SECTION = "pnp"
     RULES = {"min_points": at_least(4), "reprojection_threshold_px": positive_float,
              "max_mean_error_px": nonnegative_float, "min_score": finite_float, "min_inlier_ratio": fraction,
-             "ransac_iterations": at_least(1), "ransac_confidence": _open_fraction}
+             "ransac_iterations": at_least(1), "ransac_confidence": _open_fraction, "score_in_view": boolean}
 
     min_points: int = DEFAULT_MIN_POINTS
     reprojection_threshold_px: float = DEFAULT_REPROJECTION_PX
@@ -94,6 +101,7 @@ class PnpSettings(SectionSettings):
     min_inlier_ratio: float = 0.75
     ransac_iterations: int = 200
     ransac_confidence: float = 0.999
+    score_in_view: bool = True
 
 
 @dataclass
@@ -284,3 +292,20 @@ def _accepted_poses(sets: _KeypointSets, refined: list[tuple], settings: PnpSett
             keypoint_scores=sets.sc[b].copy(),
         )
     return out
+
+
+def score_in_view(estimate: PoseEstimate, image_hw: tuple[int, int], min_points: int = DEFAULT_MIN_POINTS) -> float:
+    """The pose score over the keypoints the pose puts inside the image: the inliers' clipped
+    confidences summed, divided by the number of ``estimate.projected`` keypoints inside the
+    (H, W) ``image_hw`` (pixel centres at integers: [-0.5, W - 0.5] x [-0.5, H - 0.5]), or by
+    ``min_points`` or the inlier count where larger. Equals ``estimate.score`` when all nine
+    lie inside; never above the mean of the ``min_points`` best keypoint confidences
+    (:func:`dope_hope.maps.decode.pose_score_bound` with ``min_points``)."""
+    H, W = image_hw
+    uv = np.asarray(estimate.projected, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        inside = int(np.sum((uv[:, 0] >= -0.5) & (uv[:, 0] <= W - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= H - 0.5)))
+    inliers = np.asarray(estimate.inliers, dtype=bool)
+    scores = np.ones(NUM_KEYPOINTS) if estimate.keypoint_scores is None else np.asarray(estimate.keypoint_scores)
+    total = float(np.clip(scores[inliers], 0.0, 1.0).sum())
+    return total / max(min_points, inside, int(inliers.sum()))

@@ -69,7 +69,7 @@ from dope_hope.inference.backends import MapBackend, backend_objects, model_min_
 from dope_hope.inference.detection import Detection
 from dope_hope.inference.object_geometry import ObjectGeometry
 from dope_hope.inference.options import InferenceOptions
-from dope_hope.inference.pnp import PoseEstimate, solve_pnp
+from dope_hope.inference.pnp import PoseEstimate, score_in_view, solve_pnp
 from dope_hope.inference.pose_search import solve_pnp_instances
 from dope_hope.maps.decode import (
     corner_candidates,
@@ -285,7 +285,8 @@ class DopePredictor:
             if not b.max() > threshold:  # find_peaks keeps no cell whose belief is <= threshold
                 continue
             peaks = decoder_peaks(b, self.options.stages.decode)
-            if min_score > 0 and pose_score_bound(peaks) < min_score - SCORE_BOUND_SLACK:
+            in_view = self.options.stages.pnp.min_points if self.options.stages.pnp.score_in_view else None
+            if min_score > 0 and pose_score_bound(peaks, in_view) < min_score - SCORE_BOUND_SLACK:
                 continue  # no pose of these maps could reach min_score: nothing to decode
             out += self._object_detections(obj, b, a, peaks, net_in, K, K_net, depth)
         out.sort(key=lambda d: -d.score)
@@ -297,7 +298,10 @@ class DopePredictor:
         """One object's detections from its own (9, h, w) / (16, h, w) maps and their peaks."""
         mean_scale = math.sqrt(net_in.scale[0] * net_in.scale[1])
         out: list[Detection] = []
+        pnp = self.options.stages.pnp
         for est in self._poses(belief, affinity, K_net, obj.cuboid_pnp, peaks):
+            if pnp.score_in_view:  # a keypoint beyond the border is not a missing one
+                est = replace(est, score=score_in_view(est, net_in.resized_hw, pnp.min_points))
             if est.score < self.options.min_score:
                 continue
             R, t = est.R, est.t
