@@ -406,7 +406,8 @@ def test_auto_backend_runs_exported_onnx_like_torch(tmp_path):
 
 
 def test_partly_outside_object_and_strict_json(tmp_path):
-    """Corners off the image are missing (NaN -> null in JSON); the pose still comes out."""
+    """Corners off the image are missing (NaN -> null in JSON); the pose still comes out, and its
+    score counts only the keypoints the pose puts inside the image."""
     import json
 
     from dope_hope.io.predictions import read_predictions, write_predictions_jsonl
@@ -419,7 +420,11 @@ def test_partly_outside_object_and_strict_json(tmp_path):
     (det,) = DopePredictor(backend(poses=[(R, t)]), height=400).predict(white((480, 640)), K640)
     assert np.isnan(det.keypoints_2d[outside]).all() and not det.inliers[outside].any()
     assert rotation_error_deg(det.R, R) < 0.05 and np.linalg.norm(det.t - t) < 5e-4
-    assert det.score == pytest.approx((~outside).sum() / 9, abs=0.01)
+    # scored by the keypoints inside the image: all found; by all nine (pnp.score_in_view false): 7/9
+    assert det.score == pytest.approx(1.0, abs=0.01)
+    (nine,) = DopePredictor(backend(poses=[(R, t)]), height=400, pnp={"score_in_view": False}).predict(
+        white((480, 640)), K640)
+    assert nine.score == pytest.approx((~outside).sum() / 9, abs=0.01)
     rec = det.to_json("000001.png", time=0.5)
     json.dumps(rec, allow_nan=False)  # strict JSON
     assert all(rec["keypoints_2d"][k] == [None, None] for k in np.flatnonzero(outside))
