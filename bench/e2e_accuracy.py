@@ -86,7 +86,7 @@ TARGET = ["target.count=[1,2]", "target.distance_m=[0.45,1.0]"]
 SCENE = [*TARGET, *set_args(PLAIN_OVERRIDES)]
 #: The training set's scene per ``--recipe``.
 RECIPES = {"defaults": TARGET, "plain": SCENE}
-#: The loss classes of a held-out instance (:func:`loss_breakdown`).
+#: The loss classes of a held-out instance (:func:`instance_losses`).
 LOSS_CLASSES = ("no detection", "beyond 10 cm", "within 10 cm, not 2 cm", "within 2 cm")
 #: Visible-fraction bands of the breakdown: (label, low, high); below 0.1 an instance is not a
 #: BOP19 target (bop_toolkit's visib_gt_min), nearly all of it hidden or outside the image.

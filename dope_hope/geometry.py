@@ -147,6 +147,15 @@ def project_points_poses(points: np.ndarray, K: np.ndarray, Rs: np.ndarray, ts: 
         return uvw[..., :2] / uvw[..., 2:3]
 
 
+def inside_image(uv: np.ndarray, image_hw: tuple[int, int]) -> np.ndarray:
+    """(N,) bool: which (N, 2) pixel positions (u, v) lie on an (H, W) image, pixel centres at
+    integers: [-0.5, W - 0.5] x [-0.5, H - 0.5], borders included; NaN is outside."""
+    H, W = image_hw
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    with np.errstate(invalid="ignore"):
+        return (uv[:, 0] >= -0.5) & (uv[:, 0] <= W - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= H - 0.5)
+
+
 def projected_bbox(points: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
                    image_hw: tuple[int, int] | None) -> np.ndarray | None:
     """2D box [u_min, v_min, u_max, v_max] of model points projected under (R, t), pixels

@@ -34,10 +34,6 @@ class CommandStages:
         (self.out / "logs").mkdir(parents=True, exist_ok=True)
         self.timings: dict[str, float] = {}
 
-    def done(self, name: str) -> bool:
-        """Whether stage ``name`` ended earlier."""
-        return (self.out / "stages" / f"{name}.json").is_file()
-
     def stage(self, name: str, argv: Sequence[object]) -> None:
         """Run ``dope-hope *argv`` unless stage ``name`` is done; SystemExit naming the log on
         failure. The log is appended to: a resumed stage keeps its earlier attempts' lines."""

@@ -198,3 +198,11 @@ def test_fit_cuboid_recovers_the_box_that_views_imply_and_not_from_one_view():
     # poses in another frame than the keypoints': the one box fits badly, which rms says
     R0 = views[0][2] @ Rotation.from_euler("z", 90, degrees=True).as_matrix()
     assert fit_cuboid([views[0][:2] + (R0, views[0][3])] + views[1:])[2] > 2.0
+
+
+def test_inside_image_takes_the_border_pixels_and_refuses_nan():
+    """Pixel centres at integers: [-0.5, W - 0.5] x [-0.5, H - 0.5] is the image, borders in."""
+    from dope_hope.geometry import inside_image
+
+    uv = np.array([[-0.5, -0.5], [639.5, 479.5], [-0.51, 10.0], [10.0, 479.51], [np.nan, 5.0], [320.0, 240.0]])
+    assert inside_image(uv, (480, 640)).tolist() == [True, True, False, False, False, True]

@@ -1,9 +1,10 @@
 """Make the pretrained lite start (dope_hope/assets/pretrained_lite.pt) with one command.
 
-Stages (each a `dope-hope` command run as a subprocess by :class:`dope_hope.staged_run.CommandStages`,
-logged to OUT/logs/; a stage whose marker OUT/stages/<stage>.json exists is skipped, an interrupted synth resumes frame by frame
-and an interrupted training with --resume, so rerunning the same command continues the run
-and ends with the same weights):
+Stages (each a `dope-hope` command run as a subprocess by
+:class:`dope_hope.staged_run.CommandStages`, logged to OUT/logs/; a stage whose marker
+OUT/stages/<stage>.json exists is skipped, an interrupted synth resumes frame by frame and an
+interrupted training with --resume, so rerunning the same command continues the run and ends
+with the same weights):
 
 1. ``synth-train`` / ``synth-val``: `dope-hope synth --procedural --config pretrain` (seeds 21
    and 22): a new object in every 256x192 frame, of eight shapes (boxes, cans, squeeze

@@ -50,7 +50,7 @@ from dope_hope.config import (
     positive_float,
 )
 from dope_hope.errors import ConfigError
-from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
+from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS, inside_image
 
 #: :func:`solve_pnp` defaults, also what the pose search checks its best
 #: hypothesis against before calling it.
@@ -301,10 +301,7 @@ def score_in_view(estimate: PoseEstimate, image_hw: tuple[int, int], min_points:
     ``min_points`` or the inlier count where larger. Equals ``estimate.score`` when all nine
     lie inside; never above the mean of the ``min_points`` best keypoint confidences
     (:func:`dope_hope.maps.decode.pose_score_bound` with ``min_points``)."""
-    H, W = image_hw
-    uv = np.asarray(estimate.projected, dtype=np.float64)
-    with np.errstate(invalid="ignore"):
-        inside = int(np.sum((uv[:, 0] >= -0.5) & (uv[:, 0] <= W - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= H - 0.5)))
+    inside = int(inside_image(estimate.projected, image_hw).sum())
     inliers = np.asarray(estimate.inliers, dtype=bool)
     scores = np.ones(NUM_KEYPOINTS) if estimate.keypoint_scores is None else np.asarray(estimate.keypoint_scores)
     total = float(np.clip(scores[inliers], 0.0, 1.0).sum())

@@ -277,6 +277,8 @@ class DopePredictor:
         K_net = net_in.network_K(K)
         threshold = self.options.stages.decode.threshold
         min_score = float(self.options.min_score)
+        pnp = self.options.stages.pnp
+        in_view = pnp.min_points if pnp.score_in_view else None  # the score's least divisor
         out: list[Detection] = []
         for obj in self.objects:
             if classes is not None and obj.class_name not in classes:
@@ -285,7 +287,6 @@ class DopePredictor:
             if not b.max() > threshold:  # find_peaks keeps no cell whose belief is <= threshold
                 continue
             peaks = decoder_peaks(b, self.options.stages.decode)
-            in_view = self.options.stages.pnp.min_points if self.options.stages.pnp.score_in_view else None
             if min_score > 0 and pose_score_bound(peaks, in_view) < min_score - SCORE_BOUND_SLACK:
                 continue  # no pose of these maps could reach min_score: nothing to decode
             out += self._object_detections(obj, b, a, peaks, net_in, K, K_net, depth)

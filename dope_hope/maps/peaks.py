@@ -39,6 +39,8 @@ import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter, label
 
+from dope_hope.geometry import inside_image
+
 #: Official DOPE ``config_pose.yaml`` values, for reference: thresh_map 0.01 (peak detection
 #: on the smoothed map), thresh_points 0.1 (a peak is used), thresh_angle 0.5, sigma 3.
 DEFAULT_THRESHOLD = 0.1
@@ -320,7 +322,5 @@ def _subpixel_fit(raw: np.ndarray, smooth: np.ndarray, raw_near: np.ndarray, c: 
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         fitted = np.exp(heights[0] + heights[1] - np.log(np.maximum(raw[c, y, x], 1e-30)))
     score = np.where(raw_ok[0] & raw_ok[1] & np.isfinite(fitted), np.maximum(fitted, value), value)
-    inside &= (
-        (xy[:, 0] >= -0.5) & (xy[:, 0] <= w - 0.5) & (xy[:, 1] >= -0.5) & (xy[:, 1] <= h - 0.5)
-    )
+    inside &= inside_image(xy, (h, w))
     return xy, score, inside
