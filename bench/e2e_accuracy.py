@@ -222,12 +222,13 @@ def results_table(out: Path, methods: dict[str, str]) -> tuple[str, dict]:
 
 
 def instance_losses(test_dir: Path, predictions: Path, object_name: str, mesh: Path,
-                    min_score: float) -> list[tuple[float, str]]:
+                    min_score: float, mesh_units: str | None = None) -> list[tuple[float, str]]:
     """How each held-out GT instance of ``object_name`` is lost: the estimate (score >=
     ``min_score``) paired with it as `evaluate` pairs them at 2 cm MeanSSD, then the remaining
     ones without a threshold (:func:`dope_hope.evaluation.matching.match_frame`), and its
-    MeanSSD error. Returns (visible fraction, one of :data:`LOSS_CLASSES`) per instance (a
-    missing visibility counts as 1, as the BOP19 targets count it)."""
+    MeanSSD error (the mesh in ``mesh_units``, None: by its suffix; the object's symmetries as
+    `evaluate` resolves them). Returns (visible fraction, one of :data:`LOSS_CLASSES`) per
+    instance (a missing visibility counts as 1, as the BOP19 targets count it)."""
     from dope_hope.evaluation.datasets import assign_predictions, load_dataset
     from dope_hope.evaluation.evaluate import cuboid_centres_to_origins
     from dope_hope.evaluation.matching import match_frame
@@ -235,7 +236,8 @@ def instance_losses(test_dir: Path, predictions: Path, object_name: str, mesh: P
     from dope_hope.io.predictions import read_predictions
 
     dataset = load_dataset(test_dir)
-    models = load_models([object_name], [f"{object_name}={mesh}"])
+    models = load_models([object_name], [f"{object_name}={mesh}"], mesh_units=mesh_units,
+                         recorded_sizes=dataset.cuboid_sizes)  # as evaluate loads it
     preds = [p for p in read_predictions(predictions)[0] if p.class_name == object_name and p.score >= min_score]
     cuboid_centres_to_origins(preds, models)
     out = []

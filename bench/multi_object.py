@@ -22,7 +22,9 @@ of the shared data (``grocery_objects/``: Bread, Can, Cereal, Lemon, Milk; metre
 4. ``infer-all`` / ``infer-six``: `dope-hope infer --depth auto` (the depth line search,
    "-LS") with the one model, and with the six models (one ``--weights`` each).
 5. ``eval-all`` / ``eval-six``: `dope-hope evaluate --metric meanssd`: recall at 2 cm
-   MeanSSD per object and their mean, with the same symmetries.
+   MeanSSD per object and their mean, with the same symmetries; then, in this process, where
+   each arm loses the held-out instances, per object (no detection, beyond 10 cm, within 10 cm
+   but not 2 cm, within 2 cm; at score >= 0.5 and at every score: :func:`shelf_losses`).
 6. ``export-*`` and, in this process, the time per frame with onnxruntime (2 threads): the
    whole pipeline of `DopePredictor` on each test image (forward pass, decoding, PnP; no
    depth), the one model against a one-object model and against the six one-object models
@@ -31,7 +33,7 @@ of the shared data (``grocery_objects/``: Bread, Can, Cereal, Lemon, Milk; metre
 Targets (issue "Many objects, one network"): the one model's mean recall >= the six models'
 at the same budget; its time per frame <= 1.3x a one-object model's; >= 15 frames/s.
 
-Prints the CPU line, the table and the ratios; writes OUT/results.md and OUT/results.json.
+Prints the CPU line, the tables and the ratios; writes OUT/results.md and OUT/results.json.
 Resumable at stage granularity (OUT/stages/<stage>.json markers; training resumes with
 --resume); OUT/e2e_settings.json refuses a rerun with other settings in the same folder.
 
@@ -53,11 +55,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from e2e_accuracy import (  # noqa: E402
+    LOSS_CLASSES,
     REPO,
     TEST_SEED,
     TRAIN_SEED,
     check_settings,
     checkpoint_of,
+    instance_losses,
+    loss_counts,
     percent_text,
     set_args,
     shared_data_dir,
@@ -76,6 +81,11 @@ TRAIN_TARGETS = ["target.count=[0,4]", "target.distance_m=[0.35,0.8]"]
 #: The held-out scenes: two to four of the objects, plain (no clutter backgrounds, look-alikes or
 #: sensor artefacts), over a photo background given by --backgrounds.
 TEST_SCENE = ["target.count=[2,4]", "target.distance_m=[0.35,0.8]", *set_args(PLAIN_OVERRIDES)]
+#: The scores the loss breakdown is counted at: the 0.5 a user's `infer` keeps, and every
+#: detection (as the recall ranks them).
+BREAKDOWN_SCORES = (0.5, 0.0)
+#: The arms: (label, the folder suffix of their inference, their evaluate method).
+ARMS = (("one six-object model", "all", "one-model-LS"), ("six one-object models", "six", "six-models-LS"))
 #: Training overrides: symmetry-aware labels (each object's symmetries: the catalog category's,
 #: else those found on its mesh).
 TRAIN_SET = ["targets.symmetry=auto"]
@@ -113,6 +123,32 @@ def per_object_recall(eval_dir: Path, method: str) -> dict[str, float]:
 
     with open(eval_dir / f"per_object_{method}.csv", newline="") as f:
         return {row["object"]: float(row["recall_2cm"]) for row in csv.DictReader(f) if row["row"] == "object"}
+
+
+def shelf_losses(out: Path, meshes: dict[str, Path], units: dict[str, str]) -> dict[str, dict[str, dict]]:
+    """How each arm loses the held-out instances: {arm suffix: {min score (text): {object:
+    counts of :data:`~e2e_accuracy.LOSS_CLASSES`}}} at each of :data:`BREAKDOWN_SCORES`
+    (:func:`e2e_accuracy.instance_losses`: MeanSSD with the objects' symmetries, -LS)."""
+    return {arm: {f"{score:g}": {n: loss_counts(instance_losses(out / "test", out / f"infer_{arm}" / "predictions.jsonl",
+                                                                n, meshes[n], score, units[n]))
+                                 for n in OBJECTS}
+                  for score in BREAKDOWN_SCORES}
+            for _, arm, _ in ARMS}
+
+
+def losses_table(losses: dict[str, dict[str, dict]], score: str) -> str:
+    """Markdown table of :func:`shelf_losses` at one score: per object and arm, the instances
+    in each loss class."""
+    classes = " / ".join(LOSS_CLASSES)
+    rows = [f"| object | {ARMS[0][0]}: {classes} | {ARMS[1][0]}: {classes} |", "|---|---|---|"]
+    for n in [*OBJECTS, None]:
+        cells = []
+        for _, arm, _ in ARMS:
+            per = losses[arm][score]
+            counts = per[n] if n else {k: sum(c[k] for c in per.values()) for k in LOSS_CLASSES}
+            cells.append(" / ".join(str(counts[k]) for k in LOSS_CLASSES))
+        rows.append(f"| {n or '**all**'} | " + " | ".join(cells) + " |")
+    return "\n".join(rows)
 
 
 def test_frames(folder: Path, limit: int) -> list[tuple]:
@@ -214,12 +250,15 @@ def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], uni
     return pipe
 
 
-def report(args: argparse.Namespace, out: Path, pipe: CommandStages, symmetries: dict[str, str]) -> dict:
+def report(args: argparse.Namespace, out: Path, pipe: CommandStages, symmetries: dict[str, str],
+           meshes: dict[str, Path], units: dict[str, str]) -> dict:
     """The recall table, the steps trained and the timing (text printed and written to
     OUT/results.md); returns the figures for OUT/results.json."""
     names = list(OBJECTS)
-    recall_one = per_object_recall(out / "eval_all", "one-model-LS")
-    recall_six = per_object_recall(out / "eval_six", "six-models-LS")
+    recall_one, recall_six = (per_object_recall(out / f"eval_{arm}", method) for _, arm, method in ARMS)
+    losses = shelf_losses(out, meshes, units)
+    breakdown = "\n\n".join(f"At score >= {score}:\n\n{losses_table(losses, score)}"
+                             for score in losses["all"])
     mean_one = statistics.mean(recall_one.get(n, 0.0) for n in names)
     mean_six = statistics.mean(recall_six.get(n, 0.0) for n in names)
     steps = {run: json.loads((out / run / "summary.json").read_text())["step"]
@@ -249,12 +288,13 @@ def report(args: argparse.Namespace, out: Path, pipe: CommandStages, symmetries:
         f"Recall at 2 cm MeanSSD with -LS ({args.test_count} held-out frames at {args.size}, two to four "
         f"objects each, photo background; every detection, ranked by score):\n\n{table}\n\n"
         "Symmetries (training labels and MeanSSD):\n\n" + "".join(f"- {n}: {t}\n" for n, t in symmetries.items())
-        + f"\n{trained}\n\n"
+        + "\nWhere the held-out instances are lost (MeanSSD with those symmetries, -LS; instances per object: "
+        + ", ".join(LOSS_CLASSES) + f"):\n\n{breakdown}\n\n{trained}\n\n"
         f"{speed}\n\nStage times: {times}\n")
-    print(f"\n{table}\n\n{trained}\n{speed}\nstage times: {times}\nwritten: {out / 'results.md'}, "
+    print(f"\n{table}\n\n{breakdown}\n\n{trained}\n{speed}\nstage times: {times}\nwritten: {out / 'results.md'}, "
           f"{out / 'results.json'}")
     return {"recall_2cm_one_model": recall_one, "recall_2cm_six_models": recall_six, "mean_one_model": mean_one,
-            "mean_six_models": mean_six, "steps": steps, "timing": timing, "stage_seconds": pipe.timings,
+            "mean_six_models": mean_six, "lost": losses, "steps": steps, "timing": timing, "stage_seconds": pipe.timings,
             "symmetries": symmetries}
 
 
@@ -277,7 +317,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, text in symmetries.items():
         print(f"symmetries: {name}: {text}", flush=True)
     pipe = run_stages(args, out, meshes, units)
-    figures = report(args, out, pipe, symmetries)
+    figures = report(args, out, pipe, symmetries, meshes, units)
     (out / "results.json").write_text(json.dumps({"settings": settings, "cpu": cpu_description(), **figures},
                                                  indent=1) + "\n")
     return 0

@@ -204,8 +204,8 @@ def test_the_bench_check_catches_each_kind(tmp_path, source, expected):
 
 
 #: Tests of the repository as a whole or of a capability across packages (named for it).
-WHOLE_REPOSITORY_TESTS = {"architecture", "docs", "lint", "readme", "packaging", "e2e_quick", "multi_object_data",
-                          "multi_object_model"}
+WHOLE_REPOSITORY_TESTS = {"architecture", "docs", "lint", "readme", "packaging", "e2e_quick", "bench_losses",
+                          "multi_object_data", "multi_object_model"}
 
 
 def _module_names() -> set[str]:
