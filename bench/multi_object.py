@@ -40,6 +40,7 @@ Resumable at stage granularity (OUT/stages/<stage>.json markers; training resume
     python bench/multi_object.py                                  # T = 60 min on 2 CPU cores
     python bench/multi_object.py --minutes 20 --out bench/out/multi_object_20
     python bench/multi_object.py --quick --out /tmp/mo_quick       # every stage, tiny: numbers meaningless
+    python bench/multi_object.py --one-model-set model.lite.stage_channels=96 --out bench/out/mo_wide
 """
 from __future__ import annotations
 
@@ -102,6 +103,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--size", help="held-out frame size WxH (default 640x480; --quick 160x120)")
     p.add_argument("--workers", type=int, default=2, help="synth render processes (default 2)")
     p.add_argument("--threads", type=int, default=2, help="onnxruntime threads of the timing (default 2)")
+    p.add_argument("--one-model-set", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="training overrides of the six-object model only, after the shared ones (e.g. "
+                        "model.lite.stage_channels=96: wider stages, widened from the start)")
     p.add_argument("--quick", action="store_true", help="tiny sizes and budget: checks every stage runs")
     args = p.parse_args(argv)
     q = args.quick
@@ -225,7 +229,7 @@ def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], uni
     options += ["--set", *TRAIN_SET, *(["input.size=[64,64]", "train.threads=1"] if args.quick else [])]
     common = ["train", "--config", "lite", "--data", train_dir, "--init", "pretrained", "--resume", "--no-progress"]
     pipe.stage("train-all", [*common, "--object", *names, "--mesh", *mesh_args, "--units", *unit_args,
-                             "--out", out / "run_all", "--time-budget", args.minutes, *options])
+                             "--out", out / "run_all", "--time-budget", args.minutes, *options, *args.one_model_set])
     for n in names:
         pipe.stage(f"train-{n}", [*common, "--object", n, "--mesh", meshes[n], "--units", units[n],
                                   "--out", out / f"run_{n}", "--time-budget", args.minutes / 6, *options])
@@ -298,6 +302,12 @@ def report(args: argparse.Namespace, out: Path, pipe: CommandStages, symmetries:
             "symmetries": symmetries}
 
 
+def one_model_settings(args: argparse.Namespace) -> dict:
+    """The settings entry of ``--one-model-set`` (none when not given: a folder of a run
+    without it stays valid)."""
+    return {"one_model_set": args.one_model_set} if args.one_model_set else {}
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     out: Path = args.out.resolve()
@@ -305,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
     units = {name: u for name, (_, u) in OBJECTS.items()}
     settings = {"objects": {n: str(p) for n, p in meshes.items()}, "minutes": args.minutes,
                 "train_count": args.train_count, "test_count": args.test_count, "size": args.size,
-                "train_targets": TRAIN_TARGETS, "train_set": TRAIN_SET, "test_scene": TEST_SCENE, "quick": args.quick,
+                "train_targets": TRAIN_TARGETS, "train_set": TRAIN_SET, **one_model_settings(args), "test_scene": TEST_SCENE, "quick": args.quick,
                 "train_seed": TRAIN_SEED, "test_seed": TEST_SEED}
     check_settings(out, settings)
     print(cpu_line(), flush=True)

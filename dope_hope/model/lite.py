@@ -127,3 +127,57 @@ class LiteTrunk(nn.Module):
             if i + 1 < len(self.stages):
                 inp = torch.cat([maps, feats], 1)
         return outputs
+
+
+def stage_channels_of(state: dict[str, torch.Tensor], prefix: str = "lite.") -> int | None:
+    """C, the width inside the stages of a lite state dict (None: no lite stages in it)."""
+    first = state.get(f"{prefix}stages.0.0.0.weight")
+    return None if first is None else int(first.shape[0])
+
+
+def widen_stage_channels(state: dict[str, torch.Tensor], channels: int, prefix: str = "lite.",
+                         seed: int = 0) -> dict[str, torch.Tensor]:
+    """A lite state dict whose stages are C wide -> the same network with stages ``channels``
+    wide, computing the same maps.
+
+    Each stage's 3x3 convs get ``channels - C`` new output channels (He-normal, fan-out, from a
+    generator seeded with ``seed``: reproducible) with identity BatchNorm; the old channels
+    read none of the new ones (those input weights start at zero) and the 1x1 output conv reads
+    none of them either, so every map equals the narrow network's at the start, while each new
+    weight has a gradient from the first step. ConfigError when ``channels`` < C.
+    """
+    old = stage_channels_of(state, prefix)
+    if old is None:
+        raise ConfigError("widen_stage_channels: not a lite state dict (no stages)")
+    channels = int(channels)
+    if channels < old:
+        raise ConfigError(f"model.lite.stage_channels {channels} is narrower than the start's {old}: "
+                          "a start can be widened, not narrowed")
+    out = dict(state)
+    if channels == old:
+        return out
+    extra = channels - old
+    gen = torch.Generator().manual_seed(int(seed))
+    stage = 0
+    while f"{prefix}stages.{stage}.0.0.weight" in state:
+        layer = 0
+        while f"{prefix}stages.{stage}.{layer}.0.weight" in state:
+            key = f"{prefix}stages.{stage}.{layer}"
+            w = state[f"{key}.0.weight"]
+            cin = w.shape[1] if layer == 0 else channels
+            fan_out = channels * w.shape[2] * w.shape[3]
+            new = torch.randn((channels, cin) + tuple(w.shape[2:]), generator=gen, dtype=w.dtype) \
+                * (2.0 / fan_out) ** 0.5
+            new[:old, :w.shape[1]] = w
+            if layer > 0:
+                new[:old, old:] = 0.0  # the old channels read none of the new ones
+            out[f"{key}.0.weight"] = new
+            for name, fill in (("weight", 1.0), ("bias", 0.0), ("running_mean", 0.0), ("running_var", 1.0)):
+                v = state[f"{key}.1.{name}"]
+                out[f"{key}.1.{name}"] = torch.cat([v, torch.full((extra,), fill, dtype=v.dtype)])
+            layer += 1
+        w = state[f"{prefix}stages.{stage}.{layer}.weight"]  # the 1x1 output conv
+        out[f"{prefix}stages.{stage}.{layer}.weight"] = torch.cat(
+            [w, torch.zeros((w.shape[0], extra) + tuple(w.shape[2:]), dtype=w.dtype)], 1)
+        stage += 1
+    return out

@@ -53,6 +53,7 @@ from dope_hope.io.atomic import atomic_write_text, remove_stale_temporaries
 from dope_hope.io.images import write_rgb
 from dope_hope.io.paths import output_dir
 from dope_hope.model.checkpoint import check_state_dict, load_checkpoint
+from dope_hope.model.lite import stage_channels_of, widen_stage_channels
 from dope_hope.model.network import build_model, load_backbone_weights, num_objects_of, widen_to_objects
 from dope_hope.preprocess import denormalize_rgb
 from dope_hope.training.augment import AugmentParams
@@ -503,7 +504,9 @@ class _TrainRows:
 def load_init_weights(model: nn.Module, path: str | Path) -> None:
     """Copy a dope-hope checkpoint's network weights into ``model`` (``--init``); a one-object
     start of a model of N > 1 objects is widened first (every group a copy of its one group:
-    :func:`dope_hope.model.network.widen_to_objects`).
+    :func:`dope_hope.model.network.widen_to_objects`), and a lite start's stages to a wider
+    ``model.lite.stage_channels`` (:func:`dope_hope.model.lite.widen_stage_channels`): the
+    network starts computing the start's maps either way.
 
     Raises ModelFileError naming the file when it is no checkpoint, was trained with another
     architecture than ``model`` (compare the configs' ``model`` sections) or holds weights
@@ -515,14 +518,21 @@ def load_init_weights(model: nn.Module, path: str | Path) -> None:
     widen = n > 1 and num_objects_of(ck["config"]) == 1
     if widen:
         state = widen_to_objects(state, ck["config"], n)
-    check_state_dict(model.state_dict(), state, path)
+    own = model.state_dict()
+    start_width, width = stage_channels_of(state), stage_channels_of(own)
+    wider = start_width is not None and width is not None and width > start_width
+    if wider:
+        state = widen_stage_channels(state, width)
+    check_state_dict(own, state, path)
     bad = [k for k, v in state.items()
            if isinstance(v, torch.Tensor) and v.is_floating_point() and not bool(torch.isfinite(v).all())]
     if bad:
         raise ModelFileError(path, f"{len(bad)} weight tensor(s) hold NaN or inf values (e.g. {bad[0]}); "
                                    "a run cannot start from them")
     model.load_state_dict(state, strict=True)
-    log.info("initialised the network from %s%s", path, f" (its one object widened to {n})" if widen else "")
+    how = [f"its one object widened to {n}"] if widen else []
+    how += [f"its stages widened from {start_width} to {width} channels"] if wider else []
+    log.info("initialised the network from %s%s", path, f" ({'; '.join(how)})" if how else "")
 
 
 def per_object_accuracy(names: list[str], hits: torch.Tensor) -> dict[str, float]:
