@@ -354,17 +354,20 @@ def test_ctrl_c_inside_an_averaging_window_logs_as_an_uninterrupted_run(data, tm
             "--set", *TINY_SET, "train.log_every=20", "train.checkpoint_every_steps=1"]
     code, _, err = run_cli(["train", "--out", tmp_path / "full", *args], capsys)
     assert code == 0, err
-    part = tmp_path / "part"
-    argv = [sys.executable, "-m", "dope_hope.cli", "train", "--out", str(part), *map(str, args)]
-    proc = subprocess.Popen(argv, env=dict(os.environ, PYTHONPATH=str(REPO)), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 90
-    while proc.poll() is None and time.monotonic() < deadline and _checkpoint_step(part / "last.pt") < 22:
-        time.sleep(0.01)
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130, err
-    ck = load_checkpoint(part / "last.pt")
+    for attempt in range(3):  # a loaded machine may overshoot to a window's end: interrupt again
+        part = tmp_path / f"part{attempt}"
+        argv = [sys.executable, "-m", "dope_hope.cli", "train", "--out", str(part), *map(str, args)]
+        proc = subprocess.Popen(argv, env=dict(os.environ, PYTHONPATH=str(REPO)), stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 90
+        while proc.poll() is None and time.monotonic() < deadline and _checkpoint_step(part / "last.pt") < 22:
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 130, err
+        ck = load_checkpoint(part / "last.pt")
+        if ck["extra"]["loss_window"][1] > 0:
+            break
     assert 22 <= ck["step"] < 45 and ck["extra"]["loss_window"][1] > 0  # inside a window
     code, _, err = run_cli(["train", "--out", part, "--resume", "--no-progress"], capsys)
     assert code == 0, err
