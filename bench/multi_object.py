@@ -133,10 +133,11 @@ def shelf_losses(out: Path, meshes: dict[str, Path], units: dict[str, str]) -> d
     """How each arm loses the held-out instances: {arm suffix: {min score (text): {object:
     counts of :data:`~e2e_accuracy.LOSS_CLASSES`}}} at each of :data:`BREAKDOWN_SCORES`
     (:func:`e2e_accuracy.instance_losses`: MeanSSD with the objects' symmetries, -LS)."""
-    return {arm: {f"{score:g}": {n: loss_counts(instance_losses(out / "test", out / f"infer_{arm}" / "predictions.jsonl",
-                                                                n, meshes[n], score, units[n]))
-                                 for n in OBJECTS}
-                  for score in BREAKDOWN_SCORES}
+    def counts(arm: str, name: str, score: float) -> dict[str, int]:
+        predictions = out / f"infer_{arm}" / "predictions.jsonl"
+        return loss_counts(instance_losses(out / "test", predictions, name, meshes[name], score, units[name]))
+
+    return {arm: {f"{score:g}": {n: counts(arm, n, score) for n in OBJECTS} for score in BREAKDOWN_SCORES}
             for _, arm, _ in ARMS}
 
 
@@ -298,8 +299,8 @@ def report(args: argparse.Namespace, out: Path, pipe: CommandStages, symmetries:
     print(f"\n{table}\n\n{breakdown}\n\n{trained}\n{speed}\nstage times: {times}\nwritten: {out / 'results.md'}, "
           f"{out / 'results.json'}")
     return {"recall_2cm_one_model": recall_one, "recall_2cm_six_models": recall_six, "mean_one_model": mean_one,
-            "mean_six_models": mean_six, "lost": losses, "steps": steps, "timing": timing, "stage_seconds": pipe.timings,
-            "symmetries": symmetries}
+            "mean_six_models": mean_six, "lost": losses, "steps": steps, "timing": timing,
+            "stage_seconds": pipe.timings, "symmetries": symmetries}
 
 
 def one_model_settings(args: argparse.Namespace) -> dict:
@@ -315,8 +316,8 @@ def main(argv: list[str] | None = None) -> int:
     units = {name: u for name, (_, u) in OBJECTS.items()}
     settings = {"objects": {n: str(p) for n, p in meshes.items()}, "minutes": args.minutes,
                 "train_count": args.train_count, "test_count": args.test_count, "size": args.size,
-                "train_targets": TRAIN_TARGETS, "train_set": TRAIN_SET, **one_model_settings(args), "test_scene": TEST_SCENE, "quick": args.quick,
-                "train_seed": TRAIN_SEED, "test_seed": TEST_SEED}
+                "train_targets": TRAIN_TARGETS, "train_set": TRAIN_SET, **one_model_settings(args),
+                "test_scene": TEST_SCENE, "quick": args.quick, "train_seed": TRAIN_SEED, "test_seed": TEST_SEED}
     check_settings(out, settings)
     print(cpu_line(), flush=True)
     print(f"multi-object: {', '.join(OBJECTS)}; {args.train_count} training frames; one lite model "

@@ -10,7 +10,6 @@ import importlib.util
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from dope_hope.cli import main
@@ -86,4 +85,4 @@ def test_the_shelf_breakdown_counts_each_arm_per_object_with_totals(milk_frames,
     table = shelf.losses_table(losses, "0.5").splitlines()
     assert table[2] == "| Milk | 2 / 0 / 0 / 2 | 0 / 0 / 0 / 4 |"
     assert table[-1] == "| **all** | 2 / 0 / 0 / 2 | 0 / 0 / 0 / 4 |"
-    assert np.all([row.count("|") == 4 for row in table])
+    assert all(row.count("|") == 4 for row in table)
