@@ -26,8 +26,6 @@ from dope_hope.geometry import (
     rotation_error_deg,
 )
 from dope_hope.io.dope_json import (
-    ORDER_CORNER_SIGNS,
-    fit_cuboid_up_to_scale,
     list_dope_frames,
     read_dope_json,
     read_frame_depth_m,
@@ -35,6 +33,7 @@ from dope_hope.io.dope_json import (
     recorded_cuboid_size,
     write_dope_json,
 )
+from dope_hope.io.dope_objects import ORDER_CORNER_SIGNS, fit_cuboid_up_to_scale
 from dope_hope.io.images import read_depth_m, read_image_raw
 from dope_hope.io.meshes import load_mesh, mesh_cuboid
 
