@@ -6,7 +6,8 @@ of the shared data (``grocery_objects/``: Bread, Can, Cereal, Lemon, Milk; metre
 
 1. ``synth-train``: one training set of the six objects (seed 1, at the lite input size
    256x192, the packaged configs/synth.yaml with :data:`TRAIN_TARGETS`: zero to four of the
-   six per frame, so frames without any target are negatives). No photograph.
+   six per frame, so frames without any target are negatives; ``--train-scene-set`` overrides
+   it, e.g. two to four as in the held-out scenes). No photograph.
 2. ``train-all``: one six-object lite network (`dope-hope train --object ... --mesh ...`)
    for T minutes from the shipped pretrained start; ``train-<Name>``: six one-object lite
    networks, T/6 minutes each, on the same frames (the other five objects are clutter to
@@ -41,6 +42,7 @@ Resumable at stage granularity (OUT/stages/<stage>.json markers; training resume
     python bench/multi_object.py --minutes 20 --out bench/out/multi_object_20
     python bench/multi_object.py --quick --out /tmp/mo_quick       # every stage, tiny: numbers meaningless
     python bench/multi_object.py --one-model-set model.lite.stage_channels=96 --out bench/out/mo_wide
+    python bench/multi_object.py --train-scene-set 'target.count=[2,4]' --out bench/out/mo_2to4
 """
 from __future__ import annotations
 
@@ -106,6 +108,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--one-model-set", nargs="+", default=[], metavar="KEY=VALUE",
                    help="training overrides of the six-object model only, after the shared ones (e.g. "
                         "model.lite.stage_channels=96: wider stages, widened from the start)")
+    p.add_argument("--train-scene-set", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="synth overrides of the training frames, after the bench's own (e.g. "
+                        "'target.count=[2,4]': two to four objects per frame, as in the held-out scenes)")
     p.add_argument("--quick", action="store_true", help="tiny sizes and budget: checks every stage runs")
     args = p.parse_args(argv)
     q = args.quick
@@ -225,7 +230,7 @@ def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], uni
     pipe.stage("synth-train", ["synth", "--mesh", *mesh_args, "--units", *unit_args, "--out", train_dir,
                                "--count", args.train_count, "--size", "64x64" if args.quick else "256x192",
                                "--seed", TRAIN_SEED, "--workers", args.workers, "--no-progress",
-                               "--set", *TRAIN_TARGETS])
+                               "--set", *TRAIN_TARGETS, *args.train_scene_set])
     options = ["--batch-size", "2", "--workers", "0"] if args.quick else []
     options += ["--set", *TRAIN_SET, *(["input.size=[64,64]", "train.threads=1"] if args.quick else [])]
     common = ["train", "--config", "lite", "--data", train_dir, "--init", "pretrained", "--resume", "--no-progress"]
@@ -303,10 +308,11 @@ def report(args: argparse.Namespace, out: Path, pipe: CommandStages, symmetries:
             "stage_seconds": pipe.timings, "symmetries": symmetries}
 
 
-def one_model_settings(args: argparse.Namespace) -> dict:
-    """The settings entry of ``--one-model-set`` (none when not given: a folder of a run
-    without it stays valid)."""
-    return {"one_model_set": args.one_model_set} if args.one_model_set else {}
+def optional_settings(args: argparse.Namespace) -> dict:
+    """The settings entries of ``--one-model-set`` and ``--train-scene-set`` (none when not
+    given: a folder of a run without them stays valid)."""
+    given = {"one_model_set": args.one_model_set, "train_scene_set": args.train_scene_set}
+    return {key: value for key, value in given.items() if value}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -316,7 +322,7 @@ def main(argv: list[str] | None = None) -> int:
     units = {name: u for name, (_, u) in OBJECTS.items()}
     settings = {"objects": {n: str(p) for n, p in meshes.items()}, "minutes": args.minutes,
                 "train_count": args.train_count, "test_count": args.test_count, "size": args.size,
-                "train_targets": TRAIN_TARGETS, "train_set": TRAIN_SET, **one_model_settings(args),
+                "train_targets": TRAIN_TARGETS, "train_set": TRAIN_SET, **optional_settings(args),
                 "test_scene": TEST_SCENE, "quick": args.quick, "train_seed": TRAIN_SEED, "test_seed": TEST_SEED}
     check_settings(out, settings)
     print(cpu_line(), flush=True)
