@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import re
 import signal
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -169,10 +169,8 @@ def test_isaac_ros_flags_that_cannot_apply_are_refused(flags, expected, weights,
 
 # ----------------------------------------------------------------------------- signals
 def test_ctrl_c_while_synth_workers_start_stops_the_run(mesh, tmp_path, monkeypatch, capsys):
-    """A real SIGINT to this process's main thread while ``Pool()`` starts the workers (the
-    moment it used to be ignored in) ends the run like any Ctrl-C: exit 130, the workers gone,
-    nothing left. (Sent to the main thread: a signal to the process could go to any thread
-    that does not block it, such as one of torch's, and reach Python a scheduling slice later.)"""
+    """A real SIGINT to this process while ``Pool()`` starts the workers (the moment it used to
+    be ignored in) ends the run like any Ctrl-C: exit 130, the workers gone, nothing left."""
     spawn = type(multiprocessing.get_context("spawn"))
     real_pool = spawn.Pool
     started = []
@@ -180,7 +178,7 @@ def test_ctrl_c_while_synth_workers_start_stops_the_run(mesh, tmp_path, monkeypa
     def pool_then_ctrl_c(self, *args, **kwargs):
         pool = real_pool(self, *args, **kwargs)
         started.append(pool)
-        signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGINT)
         return pool
 
     monkeypatch.setattr(spawn, "Pool", pool_then_ctrl_c)
