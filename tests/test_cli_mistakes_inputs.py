@@ -168,7 +168,16 @@ def test_isaac_ros_flags_that_cannot_apply_are_refused(flags, expected, weights,
 
 
 # ----------------------------------------------------------------------------- signals
-def test_ctrl_c_while_synth_workers_start_stops_the_run(mesh, tmp_path, monkeypatch, capsys):
+@pytest.fixture
+def ctrl_c_armed():
+    """Ctrl-C handled as in a terminal for the test: a shell starts a background job (``pytest
+    &``) with SIGINT ignored, and Python keeps that, so no interrupt would ever come."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_ctrl_c_while_synth_workers_start_stops_the_run(ctrl_c_armed, mesh, tmp_path, monkeypatch, capsys):
     """A real SIGINT to this process while ``Pool()`` starts the workers (the moment it used to
     be ignored in) ends the run like any Ctrl-C: exit 130, the workers gone, nothing left."""
     spawn = type(multiprocessing.get_context("spawn"))
