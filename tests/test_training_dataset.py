@@ -3,6 +3,7 @@ determinism, keypoint order, sampler."""
 from __future__ import annotations
 
 import logging
+import pickle
 from pathlib import Path
 
 import cv2
@@ -25,7 +26,7 @@ from dope_hope.io.dope_json import write_dope_json
 from dope_hope.io.images import write_rgb
 from dope_hope.maps.grid import image_to_map
 from dope_hope.preprocess import PAD_RGB
-from dope_hope.training.augment import AugmentParams, augment
+from dope_hope.training.augment import AugmentParams, augment, photometric_jitter
 from dope_hope.training.dataset import (
     DopeDataset,
     EpochSampler,
@@ -34,6 +35,7 @@ from dope_hope.training.dataset import (
     scan_frames,
     split_records,
 )
+from dope_hope.training.frame_cache import FrameCache
 
 torch.set_num_threads(1)
 SIZE = np.array([0.06, 0.15, 0.04])
@@ -316,3 +318,52 @@ def test_official_ndds_and_nvisii_samples(shared_data):
     assert obj.keypoint_order == "dope-legacy"
     records, _ = scan_frames([samples / "nvisii"], "shark")
     np.testing.assert_allclose(records[0].keypoints[0], legacy_keypoints_to_current(obj.projected_cuboid))
+
+
+def test_frame_cache_keeps_what_forked_workers_decode_and_changes_no_item(tmp_path):
+    write_frames(tmp_path, 6)
+    records, _ = scan_frames([tmp_path], "Ketchup")
+    plain = DopeDataset(records, (64, 64), 8, 1.0, 1.0, augment=AugmentParams(), seed=7)
+    cached = DopeDataset(records, (64, 64), 8, 1.0, 1.0, augment=AugmentParams(), seed=7, frame_cache_mb=1)
+    assert cached.frame_cache.capacity == 6 and cached.frame_cache.kept == 0
+    loader = torch.utils.data.DataLoader(cached, batch_size=3, num_workers=1, collate_fn=collate,
+                                         multiprocessing_context="fork")
+    assert sum(len(b["index"]) for b in loader) == 6
+    assert cached.frame_cache.kept == 6  # decoded in the worker, kept for the parent and later workers
+    want = [plain[(2, i)] for i in range(6)]
+    for png in tmp_path.glob("*.png"):
+        png.unlink()  # from here on only the cache can give the frames
+    for i, item in enumerate(cached[(2, i)] for i in range(6)):
+        assert torch.equal(item["image"], want[i]["image"]) and torch.equal(item["belief"], want[i]["belief"])
+        assert item["bad_files"] == []
+
+
+def test_frame_cache_holds_its_budget_and_only_frames_of_its_size():
+    frame = np.arange(72 * 96 * 3, dtype=np.uint8).reshape(72, 96, 3)
+    cache = FrameCache(10, (72, 96), budget_mb=2.5 * frame.nbytes / 2**20)
+    assert cache.capacity == 2
+    cache.put(0, frame)
+    cache.put(1, frame[:64])  # another size: decoded every time instead
+    cache.put(5, frame)  # beyond the budget
+    assert cache.kept == 1 and cache.get(1) is None and cache.get(5) is None
+    got = cache.get(0)
+    got[:] = 0  # a copy: the kept frame stays as it was
+    np.testing.assert_array_equal(cache.get(0), frame)
+    spawned = pickle.loads(pickle.dumps(cache))  # a spawned worker cannot share the map
+    assert spawned.capacity == 0 and spawned.get(0) is None
+    assert FrameCache(10, (72, 96), budget_mb=0).capacity == 0
+
+
+def test_sensor_noise_has_the_drawn_strength_and_differs_between_images():
+    flat = np.full((128, 128, 3), 128, np.uint8)
+    params = AugmentParams(brightness=0, contrast=0, saturation=0, hue=0, blur_prob=0, noise_std=8.0)
+    outs = []
+    for seed in (1, 2):
+        std = np.random.default_rng(seed).uniform(0.0, 8.0)  # the jitter's only other draw is the offset
+        out = photometric_jitter(flat, params, np.random.default_rng(seed))
+        noise = out.astype(np.float64) - 128.0
+        assert abs(noise.std() - std) < 0.05 * std + 0.3 and abs(noise.mean()) < 0.1 * std + 0.6
+        outs.append(noise)
+    assert not np.array_equal(outs[0], outs[1])
+    big = np.full((1300, 1100, 3), 128, np.uint8)  # more pixels than the bank: fresh samples
+    assert photometric_jitter(big, params, np.random.default_rng(3)).std() > 0

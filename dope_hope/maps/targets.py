@@ -128,30 +128,25 @@ def affinity_fields(
     mu = image_to_map(kp, stride)
     r = float(radius)
     span = int(np.ceil(r))
-    for inst in mu:  # loop over instances x corners; pixels are vectorized
-        centroid = inst[CENTROID_INDEX]
-        if not np.all(np.isfinite(centroid)):
-            continue
-        for k in range(CENTROID_INDEX):
-            p = inst[k]
-            if not np.all(np.isfinite(p)):
-                continue
-            # Only the cells of the bounding square of the disk, clipped to the map.
-            x0 = max(int(np.floor(p[0])) - span, 0)
-            x1 = min(int(np.ceil(p[0])) + span, w - 1)
-            y0 = max(int(np.floor(p[1])) - span, 0)
-            y1 = min(int(np.ceil(p[1])) + span, h - 1)
-            if x0 > x1 or y0 > y1:
-                continue
-            yy, xx = np.mgrid[y0 : y1 + 1, x0 : x1 + 1].astype(np.float64)
-            inside = (xx - p[0]) ** 2 + (yy - p[1]) ** 2 <= r * r
-            vx = centroid[0] - xx
-            vy = centroid[1] - yy
-            norm = np.hypot(vx, vy)
-            ok = inside & (norm > 1e-9)
-            safe = np.where(ok, norm, 1.0)
-            acc[k, 0, y0 : y1 + 1, x0 : x1 + 1] += np.where(ok, vx / safe, 0.0)
-            acc[k, 1, y0 : y1 + 1, x0 : x1 + 1] += np.where(ok, vy / safe, 0.0)
+    corners, centroids = mu[:, :CENTROID_INDEX], mu[:, CENTROID_INDEX]  # (I, 8, 2), (I, 2)
+    present = np.all(np.isfinite(corners), axis=2) & np.all(np.isfinite(centroids), axis=1)[:, None]
+    inst, k = np.nonzero(present)  # (M,) each: instance-major, the order the sums run in
+    if len(inst):
+        # Every corner's cells at once: a (2 span + 2)^2 window from floor(p) - span holds its disk.
+        p, c = corners[inst, k], centroids[inst]  # (M, 2) each
+        off = np.arange(-span, span + 2, dtype=np.float64)
+        xx = np.floor(p[:, 0])[:, None, None] + off[None, None, :]  # (M, 1, S)
+        yy = np.floor(p[:, 1])[:, None, None] + off[None, :, None]  # (M, S, 1)
+        xx, yy = np.broadcast_arrays(xx, yy)  # (M, S, S)
+        vx, vy = c[:, 0, None, None] - xx, c[:, 1, None, None] - yy
+        norm = np.hypot(vx, vy)
+        keep = (((xx - p[:, 0, None, None]) ** 2 + (yy - p[:, 1, None, None]) ** 2 <= r * r)
+                & (xx >= 0) & (xx <= w - 1) & (yy >= 0) & (yy <= h - 1) & (norm > 1e-9))
+        m = np.nonzero(keep)[0]
+        cell = yy[keep].astype(np.int64) * w + xx[keep].astype(np.int64)
+        flat = acc.reshape(CENTROID_INDEX, 2, h * w)
+        np.add.at(flat, (k[m], 0, cell), vx[keep] / norm[keep])
+        np.add.at(flat, (k[m], 1, cell), vy[keep] / norm[keep])
     norm = np.hypot(acc[:, 0], acc[:, 1])[:, None]  # (8, 1, h, w)
     acc = np.where(norm > 1e-9, acc / np.where(norm > 1e-9, norm, 1.0), 0.0)
     return acc.reshape(2 * CENTROID_INDEX, h, w).astype(np.float32)

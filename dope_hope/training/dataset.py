@@ -44,12 +44,13 @@ from dope_hope.geometry import (
     legacy_keypoints_to_current,
 )
 from dope_hope.io.dope_json import find_image, list_dope_frames, read_dope_json
-from dope_hope.io.images import read_rgb
+from dope_hope.io.images import image_size, read_rgb
 from dope_hope.maps.targets import make_targets
 from dope_hope.model.info import group_channels
 from dope_hope.model.network import normalize_image
 from dope_hope.symmetry.labels import camera_direction, canonical_keypoints
 from dope_hope.training.augment import AugmentParams, augment
+from dope_hope.training.frame_cache import FrameCache
 
 log = logging.getLogger(__name__)
 
@@ -213,12 +214,14 @@ class DopeDataset(Dataset):
         seed: base of the per-item RNG ``default_rng((seed, epoch, index))``.
         max_instances: rows of the padded ``keypoints`` output.
         num_objects: N, the belief/affinity groups of the targets (records' ``classes``).
+        frame_cache_mb: memory for decoded frames shared with forked workers, MiB
+            (:class:`~dope_hope.training.frame_cache.FrameCache`; 0: decode every time).
     """
 
     def __init__(
         self, records: list[FrameRecord], input_hw: tuple[int, int], stride: int,
         sigma: float, radius: float, augment: AugmentParams | None = None, seed: int = 0,
-        max_instances: int = 8, num_objects: int = 1,
+        max_instances: int = 8, num_objects: int = 1, frame_cache_mb: float = 0.0,
     ):
         self.records = records
         self.input_hw = (int(input_hw[0]), int(input_hw[1]))
@@ -233,6 +236,17 @@ class DopeDataset(Dataset):
         self.num_objects = int(num_objects)
         self.epoch = 0
         self._bad_images: set[int] = set()
+        self.frame_cache = self._make_cache(frame_cache_mb)
+
+    def _make_cache(self, budget_mb: float) -> FrameCache | None:
+        """A cache sized by the first readable frame (its header), or None."""
+        if budget_mb <= 0 or not self.records:
+            return None
+        try:
+            w, h = image_size(self.records[0].image_path)
+        except DopeHopeError:
+            return None  # the first read reports the file
+        return FrameCache(len(self.records), (h, w), budget_mb)
 
     @classmethod
     def from_folders(cls, folders: Sequence[str | Path], class_name: str, **kwargs: Any) -> DopeDataset:
@@ -252,8 +266,13 @@ class DopeDataset(Dataset):
 
     def _load(self, index: int) -> np.ndarray | None:
         rec = self.records[index]
+        if self.frame_cache is not None and (kept := self.frame_cache.get(index)) is not None:
+            return kept
         try:
-            return read_rgb(rec.image_path)
+            rgb = read_rgb(rec.image_path)
+            if self.frame_cache is not None:
+                self.frame_cache.put(index, rgb)
+            return rgb
         except (DopeHopeError, OSError, cv2.error) as exc:
             if index not in self._bad_images:
                 self._bad_images.add(index)

@@ -145,7 +145,8 @@ class TrainSettings(SectionSettings):
     min_lr_factor (cosine floor), step_epochs / step_gamma (step). grad_clip: max global grad
     norm or null. loss: mse; belief_weight, affinity_weight; foreground_weight: belief cells
     weigh 1 + w * target. workers: DataLoader processes; threads: torch threads (null: torch's
-    default). checkpoint_every (epochs) / checkpoint_every_steps (0: off). amp: bf16 autocast
+    default); frame_cache_mb: memory (MiB) for decoded frames kept across epochs, shared with
+    the workers (0: decode every time). checkpoint_every (epochs) / checkpoint_every_steps (0: off). amp: bf16 autocast
     where native; channels_last: NHWC tensors. seed. val_fraction (the split of --data
     without --val), val_every (epochs, 0: off), val_radius_px, val_peak_threshold,
     val_batch_size (null: batch_size). max_instances per frame; min_visibility of an instance;
@@ -162,7 +163,8 @@ class TrainSettings(SectionSettings):
         "min_lr_factor": nonnegative_float, "step_epochs": at_least(1), "step_gamma": positive_float,
         "grad_clip": or_none(positive_float), "loss": one_of("mse"), "belief_weight": nonnegative_float,
         "affinity_weight": nonnegative_float, "foreground_weight": nonnegative_float,
-        "workers": at_least(0), "threads": or_none(at_least(1)), "checkpoint_every": at_least(0),
+        "workers": at_least(0), "threads": or_none(at_least(1)), "frame_cache_mb": nonnegative_float,
+        "checkpoint_every": at_least(0),
         "checkpoint_every_steps": or_none(at_least(0)), "amp": boolean, "channels_last": boolean,
         "seed": at_least(0), "val_fraction": _below_one, "val_every": at_least(0),
         "val_radius_px": positive_float, "val_peak_threshold": nonnegative_float,
@@ -191,6 +193,7 @@ class TrainSettings(SectionSettings):
     foreground_weight: float = 0.0
     workers: int = 2
     threads: int | None = None
+    frame_cache_mb: float = 2048.0
     checkpoint_every: int = 1
     checkpoint_every_steps: int | None = 0
     amp: bool = True
