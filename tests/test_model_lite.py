@@ -1,14 +1,15 @@
 """The lite network's stages widened from a narrower start (``model.lite.widen_stage_channels``):
 the wider network computes the start's maps exactly, its new weights learn from the first step,
 the widening is reproducible, and a start is never narrowed. ``--init`` applies it
-(``training.trainer.load_init_weights``) when ``model.lite.stage_channels`` exceeds the start's."""
+(``training.trainer.load_init_weights``) when ``model.lite.stage_channels`` exceeds the start's;
+likewise more ``model.stages`` than the start's (``model.lite.deepen_stages``)."""
 from __future__ import annotations
 
 import pytest
 import torch
 
 from dope_hope.errors import ConfigError
-from dope_hope.model.lite import stage_channels_of, widen_stage_channels
+from dope_hope.model.lite import deepen_stages, stage_channels_of, stage_count_of, widen_stage_channels
 from dope_hope.model.network import build_model
 
 torch.set_num_threads(1)
@@ -97,3 +98,43 @@ def test_init_from_the_shipped_start_widens_objects_and_stages():
     x = torch.rand(1, 3, 64, 64)
     with torch.no_grad():
         torch.testing.assert_close(wide(x)[-1][0], narrow(x)[-1][0], atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.parametrize("objects", [1, 2])
+def test_deepened_stages_apply_the_start_s_last_stage_again(objects):
+    shallow = _trained_looking(_lite(16, objects, stages=2))
+    deep = _lite(16, objects, stages=4).eval()
+    state = deepen_stages(shallow.state_dict(), 4)
+    deep.load_state_dict(state, strict=True)
+    assert stage_count_of(state) == 4 and stage_count_of(shallow.state_dict()) == 2
+    x = torch.rand(2, 3, 64, 80)
+    with torch.no_grad():
+        start, deeper = shallow(x), deep(x)
+        for (b0, a0), (b1, a1) in zip(start, deeper[:2]):  # the start's stages unchanged
+            torch.testing.assert_close(b1, b0)
+            torch.testing.assert_close(a1, a0)
+        feats = shallow.lite.features(x)
+        again = shallow.lite.stages[-1](torch.cat([*start[-1], feats], 1))  # the last stage once more
+        nb = 9 * objects
+        torch.testing.assert_close(deeper[2][0], again[:, :nb])
+        torch.testing.assert_close(deeper[2][1], again[:, nb:])
+    state["lite.stages.3.0.0.weight"].add_(1.0)  # copies, not views of the start's tensors
+    assert not torch.equal(state["lite.stages.3.0.0.weight"], state["lite.stages.2.0.0.weight"])
+
+
+def test_a_start_is_deepened_from_two_stages_and_never_made_shallower():
+    with pytest.raises(ConfigError, match="not made shallower"):
+        deepen_stages(_lite(16, stages=3).state_dict(), 2)
+    with pytest.raises(ConfigError, match="from two stages or more"):
+        deepen_stages(_lite(16, stages=1).state_dict(), 3)
+    from dope_hope.assets import PRETRAINED_WEIGHTS
+    from dope_hope.config import load_config
+    from dope_hope.training.trainer import load_init_weights
+
+    if not PRETRAINED_WEIGHTS.is_file():
+        pytest.skip("this installation ships no pretrained start")
+    config = load_config("lite")
+    deep = build_model({**config, "model": {**config["model"], "stages": 3}}, load_backbone=False)
+    load_init_weights(deep, PRETRAINED_WEIGHTS)  # --init pretrained with model.stages=3
+    assert stage_count_of(deep.state_dict()) == 3
+    assert torch.equal(deep.lite.stages[2][0][0].weight, deep.lite.stages[1][0][0].weight)

@@ -135,6 +135,34 @@ def stage_channels_of(state: dict[str, torch.Tensor], prefix: str = "lite.") -> 
     return None if first is None else int(first.shape[0])
 
 
+def stage_count_of(state: dict[str, torch.Tensor], prefix: str = "lite.") -> int:
+    """The refinement stages of a lite state dict (0: none)."""
+    n = 0
+    while f"{prefix}stages.{n}.0.0.weight" in state:
+        n += 1
+    return n
+
+
+def deepen_stages(state: dict[str, torch.Tensor], stages: int, prefix: str = "lite.") -> dict[str, torch.Tensor]:
+    """A lite state dict of S >= 2 stages -> one of ``stages``: each new stage a copy of the
+    last one (stages 2.. all read the features and the previous stage's maps), so the deeper
+    network starts by applying the start's last refinement again. ConfigError when
+    ``stages`` < S or the start has a single stage (its stage reads the features alone).
+    """
+    old = stage_count_of(state, prefix)
+    stages = int(stages)
+    if old < 2 or stages < old:
+        raise ConfigError(f"model.stages {stages}: a start of {old} stage(s) can be deepened only from "
+                          "two stages or more, and not made shallower")
+    out = dict(state)
+    last = f"{prefix}stages.{old - 1}."
+    for k in range(old, stages):
+        for key, value in state.items():
+            if key.startswith(last):
+                out[f"{prefix}stages.{k}." + key[len(last):]] = value.clone()
+    return out
+
+
 def widen_stage_channels(state: dict[str, torch.Tensor], channels: int, prefix: str = "lite.",
                          seed: int = 0) -> dict[str, torch.Tensor]:
     """A lite state dict whose stages are C wide -> the same network with stages ``channels``

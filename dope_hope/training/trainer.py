@@ -53,7 +53,7 @@ from dope_hope.io.atomic import atomic_write_text, remove_stale_temporaries
 from dope_hope.io.images import write_rgb
 from dope_hope.io.paths import output_dir
 from dope_hope.model.checkpoint import check_state_dict, load_checkpoint
-from dope_hope.model.lite import stage_channels_of, widen_stage_channels
+from dope_hope.model.lite import deepen_stages, stage_channels_of, stage_count_of, widen_stage_channels
 from dope_hope.model.network import build_model, load_backbone_weights, num_objects_of, widen_to_objects
 from dope_hope.preprocess import denormalize_rgb
 from dope_hope.training.augment import AugmentParams
@@ -512,7 +512,8 @@ def load_init_weights(model: nn.Module, path: str | Path) -> None:
     start of a model of N > 1 objects is widened first (every group a copy of its one group:
     :func:`dope_hope.model.network.widen_to_objects`), and a lite start's stages to a wider
     ``model.lite.stage_channels`` (:func:`dope_hope.model.lite.widen_stage_channels`): the
-    network starts computing the start's maps either way.
+    network starts computing the start's maps either way; and to more ``model.stages``
+    (:func:`dope_hope.model.lite.deepen_stages`: the start's last stage applied again).
 
     Raises ModelFileError naming the file when it is no checkpoint, was trained with another
     architecture than ``model`` (compare the configs' ``model`` sections) or holds weights
@@ -529,6 +530,10 @@ def load_init_weights(model: nn.Module, path: str | Path) -> None:
     wider = start_width is not None and width is not None and width > start_width
     if wider:
         state = widen_stage_channels(state, width)
+    start_depth, depth = stage_count_of(state), stage_count_of(own)
+    deeper = start_depth >= 2 and depth > start_depth
+    if deeper:
+        state = deepen_stages(state, depth)
     check_state_dict(own, state, path)
     bad = [k for k, v in state.items()
            if isinstance(v, torch.Tensor) and v.is_floating_point() and not bool(torch.isfinite(v).all())]
@@ -538,6 +543,7 @@ def load_init_weights(model: nn.Module, path: str | Path) -> None:
     model.load_state_dict(state, strict=True)
     how = [f"its one object widened to {n}"] if widen else []
     how += [f"its stages widened from {start_width} to {width} channels"] if wider else []
+    how += [f"its {start_depth} stages deepened to {depth}, each new one a copy of the last"] if deeper else []
     log.info("initialised the network from %s%s", path, f" ({'; '.join(how)})" if how else "")
 
 
