@@ -7,9 +7,12 @@ commands are printed and logged to OUT/logs/):
    lite input size (256x192: no resampling in training). ``--recipe defaults`` (the default):
    the packaged configs/synth.yaml as a user gets it (clutter backgrounds, look-alikes, sensor
    artefacts, empty frames); ``--recipe plain``: those switched off (the frames of the earlier
-   figures in bench/RESULTS.md). No training frame uses a photograph.
+   figures in bench/RESULTS.md). No training frame uses a photograph unless
+   ``--train-backgrounds DIR`` gives some (`dope-hope synth --backgrounds`; never the test
+   set's photographs: a file of the test set's folder among them is refused).
 2. ``train``: `dope-hope train --config lite` for a fixed wall-clock budget (default 20
-   minutes on the 2 CPU cores; `--train-minutes`), validation on a seeded 10 % split, with
+   minutes on the 2 CPU cores; `--train-minutes`), validation on the config's seeded split
+   (lite: `train.val_fraction` 0.025, 300 of the 12,000 frames), with
    symmetry-aware labels (`--train-set`, default ``targets.symmetry=auto``); from scratch, or
    with `--init` from the shipped pretrained start, the demo model or a checkpoint's weights.
 3. ``synth-test``: a held-out test set at 640x480 (the RealSense colour size) with other seeds
@@ -41,6 +44,8 @@ refuses a rerun with other settings in the same folder.
     python bench/e2e_accuracy.py --train-minutes 30 --init demo --out runs/e2e_init      # from the demo model
     python bench/e2e_accuracy.py --train-minutes 30 --init pretrained --out runs/e2e_pre  # the pretrained start
     python bench/e2e_accuracy.py --train-minutes 30 --init pretrained --recipe plain --out runs/e2e_plain
+    python bench/e2e_accuracy.py --train-minutes 30 --init pretrained --train-backgrounds photos \
+        --out runs/e2e_photos              # training frames over photographs (bench/training_photos.py)
     python bench/e2e_accuracy.py --config dope_dr_50 --train-minutes 240 --train-count 20000 \\
         --workers 8 --device cuda --out bench/out/e2e_dr50         # on a GPU machine
 
@@ -125,6 +130,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--object", default="Ketchup", help="class name (default Ketchup)")
     p.add_argument("--backgrounds", type=Path, help="background photos of the test set "
                                                     "(default: the shared data's backgrounds/)")
+    p.add_argument("--train-backgrounds", type=Path, metavar="DIR",
+                   help="photographs behind the training frames (`dope-hope synth --backgrounds`; default "
+                        "none: the recipe's procedural backgrounds); none of the test set's photographs")
     p.add_argument("--config", default="lite", help="training config (lite; dope_dr_50 on a GPU)")
     p.add_argument("--train-minutes", type=float, help="training wall-clock budget (default 20; --quick 0.2)")
     p.add_argument("--train-count", type=int, help="training frames (default 12000; --quick 8)")
@@ -159,7 +167,29 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     shared_defaults(p, args)
     if not args.mesh.is_file():
         p.error(f"{args.mesh}: mesh not found")
+    if args.train_backgrounds is not None:
+        if not args.train_backgrounds.is_dir():
+            p.error(f"--train-backgrounds {args.train_backgrounds}: not a folder")
+        shared_photo = test_photo_among(args.train_backgrounds, args.backgrounds)
+        if shared_photo is not None:
+            p.error(f"--train-backgrounds {args.train_backgrounds}: {shared_photo.name} is a photograph "
+                    "of the test set (--backgrounds): train on other photographs")
     return args
+
+
+def test_photo_among(train_dir: Path, test_dir: Path | None) -> Path | None:
+    """A file of the folder ``train_dir`` whose bytes equal a file of ``test_dir`` (None: none)."""
+    if test_dir is None or not test_dir.is_dir():
+        return None
+    test: dict[int, list[Path]] = {}
+    for f in test_dir.iterdir():
+        if f.is_file():
+            test.setdefault(f.stat().st_size, []).append(f)
+    for f in sorted(train_dir.iterdir()):
+        twins = test.get(f.stat().st_size, []) if f.is_file() else []
+        if any(f.read_bytes() == twin.read_bytes() for twin in twins):
+            return f
+    return None
 
 
 def check_settings(out: Path, settings: dict) -> None:
@@ -288,9 +318,10 @@ def run_stages(args: argparse.Namespace, out: Path, settings: dict) -> tuple[Com
     mesh = args.mesh.resolve()
     train_dir, test_dir, run_dir = out / "train", out / "test", out / "run"
     common = ["--mesh", mesh, "--class-name", args.object, "--no-progress"]
+    photos = [] if args.train_backgrounds is None else ["--backgrounds", args.train_backgrounds.resolve()]
     pipe.stage("synth-train", ["synth", *common, "--set", *RECIPES[args.recipe], "--size", args.train_size,
                                "--out", train_dir, "--count", args.train_count, "--seed", TRAIN_SEED,
-                               "--workers", args.workers])
+                               "--workers", args.workers, *photos])
     train = ["train", "--config", args.config, "--data", train_dir, "--object", args.object,
              "--mesh", mesh, "--out", run_dir, "--time-budget", args.train_minutes, "--resume", "--no-progress"]
     if args.device:
@@ -344,6 +375,8 @@ def main(argv: list[str] | None = None) -> int:
                 "quick": args.quick, "train_seed": TRAIN_SEED, "test_seed": TEST_SEED}
     if args.recipe != "plain":  # only when not plain: earlier runs' settings stay valid
         settings["recipe"] = args.recipe
+    if args.train_backgrounds is not None:  # only when given: earlier runs' settings stay valid
+        settings["train_backgrounds"] = str(args.train_backgrounds.resolve())
     if args.init is not None and args.init != "none":  # only when given: earlier runs' settings stay valid
         settings["init"] = args.init if args.init in ("pretrained", "demo") else str(Path(args.init).resolve())
     check_settings(out, settings)

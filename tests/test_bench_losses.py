@@ -86,3 +86,25 @@ def test_the_shelf_breakdown_counts_each_arm_per_object_with_totals(milk_frames,
     assert table[2] == "| Milk | 2 / 0 / 0 / 2 | 0 / 0 / 0 / 4 |"
     assert table[-1] == "| **all** | 2 / 0 / 0 / 2 | 0 / 0 / 0 / 4 |"
     assert all(row.count("|") == 4 for row in table)
+
+
+def test_e2e_refuses_training_photographs_that_are_test_photographs(tmp_path, capsys):
+    e2e = _bench("e2e_accuracy")
+    test, train = tmp_path / "test", tmp_path / "train"
+    test.mkdir()
+    train.mkdir()
+    (test / "office.png").write_bytes(b"office pixels")
+    (test / "garage.png").write_bytes(b"garage pixel")
+    (train / "street.png").write_bytes(b"street pixel")  # the garage's size, other bytes
+    mesh = tmp_path / "m.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    common = ["--mesh", str(mesh), "--backgrounds", str(test), "--out", str(tmp_path / "out")]
+    args = e2e.parse_args([*common, "--train-backgrounds", str(train)])
+    assert args.train_backgrounds == train
+    (train / "copy_of_garage.png").write_bytes(b"garage pixel")
+    with pytest.raises(SystemExit) as exc:
+        e2e.parse_args([*common, "--train-backgrounds", str(train)])
+    assert exc.value.code == 2 and "copy_of_garage.png is a photograph of the test set" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        e2e.parse_args([*common, "--train-backgrounds", str(tmp_path / "none")])
+    assert exc.value.code == 2 and "not a folder" in capsys.readouterr().err
