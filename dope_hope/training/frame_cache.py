@@ -60,8 +60,8 @@ class FrameCache:
             self._filled[index] = 1
 
     @property
-    def budget_used_mb(self) -> float:
-        """Memory the kept frames may take (all ``capacity`` of them), MiB."""
+    def reserved_mb(self) -> float:
+        """Memory reserved for the frames (``capacity`` of them, taken as they are kept), MiB."""
         return self._pixels.nbytes / 2**20
 
     @property

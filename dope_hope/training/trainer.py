@@ -165,7 +165,7 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
         self.train_set = DopeDataset(records, augment=AugmentParams.from_config(config.get("augment")),
                                      frame_cache_mb=cache_mb, **common)
         if self.train_set.frame_cache is not None:
-            cache_mb -= self.train_set.frame_cache.budget_used_mb
+            cache_mb -= self.train_set.frame_cache.reserved_mb
         self.val_set = DopeDataset(val_records, augment=AugmentParams(enabled=False),
                                    frame_cache_mb=cache_mb, **common)
         self.batch_size = int(ts["batch_size"])
