@@ -50,12 +50,11 @@ def link_frames(data: Path, count: int, out: Path) -> int:
 
 def run_arm(tree: Path, data: Path, args: argparse.Namespace, overrides: list[str], out: Path) -> list[dict]:
     """One `dope-hope train` run from ``tree``; its logged training rows."""
+    mesh = ["--mesh", str(args.mesh)] if args.mesh else []
     cmd = [sys.executable, "-m", "dope_hope", "train", "--config", "lite", "--data", str(data),
-           "--object", args.object, "--out", str(out), "--time-budget", str(args.minutes),
+           "--object", args.object, *mesh, "--out", str(out), "--time-budget", str(args.minutes),
            "--no-progress", "--init", "pretrained", "--set", "train.val_every=0", "train.plots=false",
            *overrides]
-    if args.mesh:
-        cmd[cmd.index("--out"):cmd.index("--out")] = ["--mesh", str(args.mesh)]
     env = dict(os.environ, PYTHONPATH=str(tree))
     done = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
     if done.returncode != 0:

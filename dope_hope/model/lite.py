@@ -186,8 +186,7 @@ def widen_stage_channels(state: dict[str, torch.Tensor], channels: int, prefix: 
         return out
     extra = channels - old
     gen = torch.Generator().manual_seed(int(seed))
-    stage = 0
-    while f"{prefix}stages.{stage}.0.0.weight" in state:
+    for stage in range(stage_count_of(state, prefix)):
         layer = 0
         while f"{prefix}stages.{stage}.{layer}.0.weight" in state:
             key = f"{prefix}stages.{stage}.{layer}"
@@ -207,5 +206,4 @@ def widen_stage_channels(state: dict[str, torch.Tensor], channels: int, prefix: 
         w = state[f"{prefix}stages.{stage}.{layer}.weight"]  # the 1x1 output conv
         out[f"{prefix}stages.{stage}.{layer}.weight"] = torch.cat(
             [w, torch.zeros((w.shape[0], extra) + tuple(w.shape[2:]), dtype=w.dtype)], 1)
-        stage += 1
     return out
