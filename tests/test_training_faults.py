@@ -41,7 +41,8 @@ TINY = {"input": {"size": [64, 64]},
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory) -> Path:
-    """41 frames: 36 training + 5 validation frames, 18 steps per epoch at batch 2."""
+    """41 frames: 40 training + 1 validation frame (lite's val_fraction 0.025), 20 steps per epoch
+    at batch 2."""
     folder = tmp_path_factory.mktemp("faults")
     write_frames(folder, 41, seed=5)
     return folder
@@ -175,6 +176,44 @@ def test_a_replan_bends_the_cosine_without_a_jump():
     w = LrLambda("cosine", horizon=100, warmup=10, min_factor=0.1)
     w.replan(3, 40)    # during the warm-up: the ramp stays, the cosine spans 10..40
     assert w(3) == 0.4 and w(10) == 1.0 and w(40) == pytest.approx(0.1)
+
+
+def test_a_run_freezes_its_startup_objects_and_collects_at_each_validation(data, tmp_path, monkeypatch):
+    """The garbage collector's full passes come at the validations, inside their timed cost (a
+    pass landing at random doubled one validation in three, and a budget planning its final
+    validation from their median overran); the run unfreezes what it froze."""
+    import gc
+
+    from dope_hope.training import trainer as trainer_module
+
+    events: list[str] = []  # "step", "full pass", "validate", in order
+    frozen: list[int] = []
+
+    def on_step(trainer, step: int) -> None:
+        events.append("step")
+        frozen.append(gc.get_freeze_count())
+
+    def count(phase: str, info: dict) -> None:
+        if phase == "start" and info["generation"] == 2:
+            events.append("full pass")
+
+    validate = trainer_module.Trainer.validate
+    monkeypatch.setattr(trainer_module.Trainer, "validate", lambda self: events.append("validate") or validate(self))
+    before = gc.get_freeze_count()
+    gc.callbacks.append(count)
+    try:
+        summary = train(TrainJob([data], "Ketchup", tmp_path / "o", progress=False,
+                                 overrides=_tiny(epochs=3, val_every=1), on_step=on_step), load_config("lite"))
+    finally:
+        gc.callbacks.remove(count)
+    assert summary["status"] == "completed" and summary["step"] == 60
+    assert min(frozen) > before + 1000  # the model, the records and the modules are frozen out ...
+    assert gc.get_freeze_count() == before  # ... and given back at the end
+    at = [i for i, e in enumerate(events) if e == "validate"]
+    assert len(at) == 3
+    for i in at:  # a full pass since the last step, before each validation
+        last_step = max(j for j in range(i) if events[j] == "step")
+        assert "full pass" in events[last_step:i], events[last_step:i]
 
 
 # ============================================================================= the real clock, through the CLI

@@ -81,7 +81,12 @@ from dope_hope.training.settings import (
 )
 from dope_hope.training.sources import check_instances, scan_training_data
 from dope_hope.training.stopping import StopControl
-from dope_hope.training.time_budget import LOADER_PREFETCH, TimeBudgetControl
+from dope_hope.training.time_budget import (
+    LOADER_PREFETCH,
+    TimeBudgetControl,
+    collect_in_validation,
+    collections_at_validations,
+)
 from dope_hope.training.validation import object_hits
 
 log = logging.getLogger(__name__)
@@ -318,6 +323,7 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
         validates = every > 0 and ((self.epoch + 1) % every == 0 or last_epoch)
         if validates:
             t0 = self.clock()  # the validation's cost, as the time budget plans with it: all of this block
+            collect_in_validation()
             self.last_val = self.validate()
             self.val_done_epoch = self.epoch
             if self.dist.main:
@@ -374,7 +380,7 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
         self.metrics = MetricsLog(self.out, self.dist.main, keep_rows=self._metrics_rows if resumed else 0,
                                   purge_step=self.step + 1 if resumed else None)
         try:
-            with self.stop_signals():
+            with self.stop_signals(), collections_at_validations():
                 self._loop()
         finally:
             self.metrics.close()
