@@ -56,6 +56,7 @@ the backgrounds to the `backgrounds/` folder beside it.
 from __future__ import annotations
 
 import argparse
+import filecmp
 import json
 import math
 import os
@@ -178,16 +179,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def test_photo_among(train_dir: Path, test_dir: Path | None) -> Path | None:
-    """A file of the folder ``train_dir`` whose bytes equal a file of ``test_dir`` (None: none)."""
+    """A file of the folder ``train_dir`` whose bytes equal a file of ``test_dir`` (None: none;
+    ``filecmp.cmp`` compares the sizes before the bytes)."""
     if test_dir is None or not test_dir.is_dir():
         return None
-    test: dict[int, list[Path]] = {}
-    for f in test_dir.iterdir():
-        if f.is_file():
-            test.setdefault(f.stat().st_size, []).append(f)
+    test = [f for f in test_dir.iterdir() if f.is_file()]
     for f in sorted(train_dir.iterdir()):
-        twins = test.get(f.stat().st_size, []) if f.is_file() else []
-        if any(f.read_bytes() == twin.read_bytes() for twin in twins):
+        if f.is_file() and any(filecmp.cmp(f, twin, shallow=False) for twin in test):
             return f
     return None
 

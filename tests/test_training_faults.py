@@ -216,6 +216,23 @@ def test_a_run_freezes_its_startup_objects_and_collects_at_each_validation(data,
         assert "full pass" in events[last_step:i], events[last_step:i]
 
 
+def test_a_calling_programs_own_freeze_is_left_to_it(data, tmp_path):
+    """A program that froze its objects before training keeps them frozen after it (Python
+    can only unfreeze all)."""
+    import gc
+
+    gc.freeze()
+    try:
+        mine = gc.get_freeze_count()
+        assert mine > 0
+        summary = train(TrainJob([data], "Ketchup", tmp_path / "o", progress=False,
+                                 overrides=_tiny(epochs=1, val_every=1)), load_config("lite"))
+        assert summary["status"] == "completed"
+        assert gc.get_freeze_count() > mine // 2  # (frozen objects freed by reference counting leave it)
+    finally:
+        gc.unfreeze()
+
+
 # ============================================================================= the real clock, through the CLI
 BUDGET_MIN = 0.4  # 24 s
 
