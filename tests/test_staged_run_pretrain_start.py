@@ -40,7 +40,7 @@ def test_the_default_recipe_is_the_shipped_starts_and_another_is_refused_in_its_
     assert commands["synth-val"][commands["synth-val"].index("--seed") + 1] == "32"
     assert "--backgrounds" in synth and str(photos) in synth
     train = commands["train"]
-    assert train[train.index("--steps") + 1] == "8000" and train[train.index("--init") + 1] == "start_v1.pt"
+    assert train[train.index("--steps") + 1] == "16000" and train[train.index("--init") + 1] == "start_v1.pt"
 
     tool.ran.clear()
     with pytest.raises(SystemExit) as stop:

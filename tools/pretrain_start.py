@@ -17,7 +17,7 @@ with the same weights; a folder holding a run of other settings is refused, exit
      jars, tubes, pouches, rounded boxes, irregular bodies), scaled 0.5-2.2x, at 0.18-1.4 m, a
      quarter of the frames empty, table-top clutter and sensor artefacts (seeds 21 and 22);
      with wider crop scales and offsets in training. It did not beat ``categories``.
-2. ``train``: `dope-hope train --config lite` for the recipe's step count (not a time budget:
+2. ``train``: `dope-hope train --config lite` for the recipe's step count (16,000; not a time budget:
    the same steps on any machine), from ``--init`` (the recipes': the start shipped before
    them, ``git show c9a779e:dope_hope/assets/pretrained_lite.pt``).
 3. ``export``: OUT/pretrained_lite.pt, the run's last weights without training state, marked
@@ -25,7 +25,7 @@ with the same weights; a folder holding a run of other settings is refused, exit
 
     python bench/training_photos.py --out photos
     git show c9a779e:dope_hope/assets/pretrained_lite.pt > start_v1.pt
-    python tools/pretrain_start.py --out pre --photos photos --init start_v1.pt   # 2 CPU cores (AMX): ~35 min
+    python tools/pretrain_start.py --out pre --photos photos --init start_v1.pt   # 2 CPU cores (AMX): ~50 min
     cp pre/pretrained_lite.pt dope_hope/assets/pretrained_lite.pt
 
 Never pretrain on a benchmark's objects or textures (the HOPE Ketchup, the grocery meshes of
@@ -61,7 +61,7 @@ class Recipe:
 
 #: The recipes; the first is the shipped start's.
 RECIPES = {
-    "categories": Recipe("procedural", 31, 32, 8000, ("train.time_limit_min=null",)),
+    "categories": Recipe("procedural", 31, 32, 16000, ("train.time_limit_min=null",)),
     "wide": Recipe("pretrain", 21, 22, 16000,
                    ("train.time_limit_min=null", "augment.scale=[0.6,1.6]", "augment.crop_jitter=0.5")),
 }
@@ -79,8 +79,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="frames and training (default: categories, the shipped start's)")
     p.add_argument("--count", type=int, default=16000, help="training frames (default 16000)")
     p.add_argument("--val-count", type=int, default=300, help="validation frames (default 300)")
-    p.add_argument("--steps", type=int, help="optimizer steps of 16 crops (default: the recipe's, "
-                                             "categories 8000, wide 16000)")
+    p.add_argument("--steps", type=int, help="optimizer steps of 16 crops (default: the recipe's, 16000)")
     p.add_argument("--workers", type=int, default=1, help="synth render processes (default 1: one "
                                                           "already fills 2 cores)")
     args = p.parse_args(argv)
