@@ -63,9 +63,9 @@ import os
 import sys
 from pathlib import Path
 
-from dope_hope.config import differing_keys, load_config
+from dope_hope.config import load_config
 from dope_hope.devices import cpu_description, cpu_line
-from dope_hope.staged_run import CommandStages
+from dope_hope.staged_run import CommandStages, settings_changed
 from dope_hope.synth.settings import PLAIN_OVERRIDES
 
 REPO = Path(__file__).resolve().parent.parent
@@ -192,16 +192,10 @@ def test_photo_among(train_dir: Path, test_dir: Path | None) -> Path | None:
 
 def check_settings(out: Path, settings: dict) -> None:
     """Record the run's settings; refuse to mix stages made with other settings."""
-    path = out / "e2e_settings.json"
-    if path.is_file():
-        old = json.loads(path.read_text())
-        if old != settings:
-            diff = differing_keys(old, settings)
-            raise SystemExit(f"{out} holds a run with other settings ({', '.join(diff)}); "
-                             "use another --out or delete it")
-        return
-    out.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(settings, indent=1) + "\n")
+    diff = settings_changed(out / "e2e_settings.json", settings)
+    if diff:
+        raise SystemExit(f"{out} holds a run with other settings ({', '.join(diff)}); "
+                         "use another --out or delete it")
 
 
 def checkpoint_of(run_dir: Path) -> Path:

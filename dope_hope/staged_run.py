@@ -7,6 +7,7 @@ status 0 leaves ``OUT/stages/<stage>.json`` (its command line and seconds); a st
 marker exists is skipped, so running the same job again continues where it stopped (an
 interrupted `synth` resumes frame by frame, an interrupted `train --resume` from its last
 checkpoint). A failed stage leaves no marker and ends the job with its log's last lines.
+:func:`settings_changed` keeps a job's folder to one set of settings.
 """
 from __future__ import annotations
 
@@ -18,6 +19,22 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+
+from dope_hope.config import differing_keys
+from dope_hope.io.atomic import atomic_write_text
+
+
+def settings_changed(path: str | os.PathLike, settings: dict) -> list[str]:
+    """A job's settings, kept in ``path`` (JSON): recorded (atomically, folders made) the first
+    time; later the sorted dotted keys whose values differ from the recorded ones ([]: the
+    same job, which may go on in its folder). ``settings`` must survive a JSON round trip
+    unchanged (lists, not tuples)."""
+    path = Path(path)
+    if path.is_file():
+        return differing_keys(json.loads(path.read_text()), settings)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(settings, indent=1) + "\n")
+    return []
 
 
 class CommandStages:

@@ -29,3 +29,14 @@ def test_a_failed_stage_leaves_no_marker_and_names_its_log(tmp_path):
             stages.stage("bad", ["objects", "--no-such-option"])
         assert not (tmp_path / "stages" / "bad.json").exists()
     assert (tmp_path / "logs" / "bad.log").read_text().count("$ dope-hope objects --no-such-option") == 2
+
+
+def test_a_jobs_settings_are_recorded_once_and_a_change_is_named(tmp_path):
+    from dope_hope.staged_run import settings_changed
+
+    path = tmp_path / "job" / "settings.json"
+    settings = {"count": 16, "scene": ["a=1"], "train": {"seed": 0}}
+    assert settings_changed(path, settings) == [] and json.loads(path.read_text()) == settings
+    assert settings_changed(path, settings) == []                                   # the same job: on
+    assert settings_changed(path, {**settings, "count": 8, "train": {"seed": 1}}) == ["count", "train.seed"]
+    assert json.loads(path.read_text()) == settings                                 # the record stays

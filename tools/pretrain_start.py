@@ -35,14 +35,11 @@ background scenes.
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from dope_hope.config import differing_keys
-from dope_hope.io.atomic import atomic_write_text
 from dope_hope.model.checkpoint import PRETRAINED_START_SOURCE, save_inference_checkpoint
-from dope_hope.staged_run import CommandStages
+from dope_hope.staged_run import CommandStages, settings_changed
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -87,17 +84,12 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--photos {args.photos}: not a folder of photographs")
     recipe = RECIPES[args.recipe]
     out = args.out.resolve()
+    steps = args.steps or recipe.steps
     chosen = {"recipe": args.recipe, **asdict(recipe), "train_set": list(recipe.train_set), "count": args.count,
-              "val_count": args.val_count, "steps": args.steps or recipe.steps, "init": str(args.init)}
-    record = out / "pretrain_settings.json"
-    if record.is_file():
-        earlier = json.loads(record.read_text())
-        if earlier != chosen:
-            p.error(f"--out {out}: holds a run with other settings ({', '.join(differing_keys(earlier, chosen))}); "
-                    "use another folder or delete it")
-    else:
-        out.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(record, json.dumps(chosen, indent=1) + "\n")
+              "val_count": args.val_count, "steps": steps, "init": str(args.init)}
+    changed = settings_changed(out / "pretrain_settings.json", chosen)
+    if changed:
+        p.error(f"--out {out}: holds a run with other settings ({', '.join(changed)}); use another folder or delete it")
     stages = CommandStages(out, cwd=REPO)
     synth = ["synth", "--procedural", "--config", recipe.synth_config, "--size", "256x192", "--workers",
              args.workers, "--backgrounds", args.photos.resolve(), "--no-progress"]
@@ -108,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         train += ["--resume"]
     else:
         train += ["--config", "lite", "--init", args.init, "--data", out / "train", "--val", out / "val",
-                  "--object", "Object", "--steps", args.steps or recipe.steps, "--set", *recipe.train_set]
+                  "--object", "Object", "--steps", steps, "--set", *recipe.train_set]
     stages.stage("train", train)
     start = save_inference_checkpoint(out / "run" / "last.pt", out / "pretrained_lite.pt",
                                       source=PRETRAINED_START_SOURCE)
