@@ -13,6 +13,9 @@ with the same weights; a folder holding a run of other settings is refused, exit
    - ``categories`` (the shipped start's): `--config procedural`, a new box, can or squeeze
      bottle of HOPE size with a packaging-like texture in every frame, one to three instances
      at table-top distances (seeds 31 and 32);
+   - ``categories-again``: the same on 16,000 new frames (seeds 33 and 34), run from the
+     ``categories`` start (``git show 058b72b:dope_hope/assets/pretrained_lite.pt``): 32,000
+     steps over photographs in all;
    - ``wide``: `--config pretrain`, a new object of eight shapes (boxes, cans, squeeze bottles,
      jars, tubes, pouches, rounded boxes, irregular bodies), scaled 0.5-2.2x, at 0.18-1.4 m, a
      quarter of the frames empty, table-top clutter and sensor artefacts (seeds 21 and 22);
@@ -59,6 +62,7 @@ class Recipe:
 #: The recipes; the first is the shipped start's.
 RECIPES = {
     "categories": Recipe("procedural", 31, 32, 16000, ("train.time_limit_min=null",)),
+    "categories-again": Recipe("procedural", 33, 34, 16000, ("train.time_limit_min=null",)),
     "wide": Recipe("pretrain", 21, 22, 16000,
                    ("train.time_limit_min=null", "augment.scale=[0.6,1.6]", "augment.crop_jitter=0.5")),
 }
