@@ -51,3 +51,12 @@ def test_the_default_recipe_is_the_shipped_starts_and_another_is_refused_in_its_
 
     assert tool.main(["--out", str(out), "--photos", str(photos), "--init", "start_v1.pt"]) == 0  # the same: on
     assert [name for name, _ in tool.ran] == ["synth-train", "synth-val", "train"]
+
+
+@pytest.mark.parametrize("flag", ["--steps", "--count", "--val-count"])
+def test_a_count_under_one_is_refused_before_anything_is_written(tool, tmp_path, capsys, flag):
+    photos, out = _photos(tmp_path), tmp_path / "pre"
+    with pytest.raises(SystemExit) as stop:
+        tool.main(["--out", str(out), "--photos", str(photos), "--init", "start_v1.pt", flag, "0"])
+    assert stop.value.code == 2 and tool.ran == [] and not out.exists()
+    assert capsys.readouterr().err.strip().splitlines()[-1].endswith(f"{flag} 0: must be at least 1")

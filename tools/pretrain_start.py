@@ -21,8 +21,9 @@ with the same weights; a folder holding a run of other settings is refused, exit
      quarter of the frames empty, table-top clutter and sensor artefacts (seeds 21 and 22);
      with wider crop scales and offsets in training. It did not beat ``categories``.
 2. ``train``: `dope-hope train --config lite` for the recipe's step count (16,000; not a time budget:
-   the same steps on any machine), from ``--init`` (the recipes': the start shipped before
-   them, ``git show c9a779e:dope_hope/assets/pretrained_lite.pt``).
+   the same steps on any machine), from ``--init`` (the start shipped before the recipe:
+   ``git show c9a779e:dope_hope/assets/pretrained_lite.pt`` for ``categories`` and ``wide``,
+   ``git show 058b72b:dope_hope/assets/pretrained_lite.pt`` for ``categories-again``).
 3. ``export``: OUT/pretrained_lite.pt, the run's last weights without training state, marked
    as a pretrained start (`infer` takes it only as the zero-training detector of a mesh).
 
@@ -75,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--photos", type=Path, required=True, help="background photographs "
                                                               "(python bench/training_photos.py --out DIR)")
     p.add_argument("--init", required=True, help="weights the run starts from: a dope-hope checkpoint (the "
-                                                 "recipes': the start of commit c9a779e), demo or none")
+                                                 "recipe's: the start shipped before it), demo or none")
     p.add_argument("--recipe", choices=sorted(RECIPES), default=next(iter(RECIPES)),
                    help="frames and training (default: categories, the shipped start's)")
     p.add_argument("--count", type=int, default=16000, help="training frames (default 16000)")
@@ -88,7 +89,10 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--photos {args.photos}: not a folder of photographs")
     recipe = RECIPES[args.recipe]
     out = args.out.resolve()
-    steps = args.steps or recipe.steps
+    steps = recipe.steps if args.steps is None else args.steps
+    for flag, value in (("--steps", steps), ("--count", args.count), ("--val-count", args.val_count)):
+        if value < 1:
+            p.error(f"{flag} {value}: must be at least 1")
     chosen = {"recipe": args.recipe, **asdict(recipe), "train_set": list(recipe.train_set), "count": args.count,
               "val_count": args.val_count, "steps": steps, "init": str(args.init)}
     changed = settings_changed(out / "pretrain_settings.json", chosen)
