@@ -178,6 +178,32 @@ def test_a_replan_bends_the_cosine_without_a_jump():
     assert w(3) == 0.4 and w(10) == 1.0 and w(40) == pytest.approx(0.1)
 
 
+def test_continued_replans_follow_one_cosine_restarted_ones_stay_high():
+    """A time budget re-plans its end some thirty times in 30 minutes (a step or two each way).
+    ``continue``: the learning rate goes on along its cosine's phase, so it anneals as one cosine
+    to the last end would, and a re-plan that keeps the end changes nothing. ``restart`` (the
+    default, measured the better for a 30-minute model): each re-plan starts a cosine from its
+    flat top, so the rate stays high until the last part of the run."""
+    from dope_hope.training.schedule import LrLambda
+
+    def replanned(mode: str) -> LrLambda:
+        f = LrLambda("cosine", horizon=1500, warmup=10, min_factor=0.02, replan=mode)  # first plan too long
+        for i, step in enumerate(range(100, 1000, 30)):
+            f.replan(step, 1000 + (3 if i % 2 else -3))
+        return f
+
+    one = LrLambda("cosine", horizon=1000, warmup=10, min_factor=0.02)
+    same = LrLambda("cosine", horizon=1000, warmup=10, min_factor=0.02, replan="continue")
+    for step in range(50, 1000, 50):
+        same.replan(step, 1000)
+    assert max(abs(same(s) - one(s)) for s in range(1001)) < 1e-12
+    cont, restart = replanned("continue"), replanned("restart")
+    assert cont(920) == pytest.approx(one(920), abs=0.01) and cont(500) == pytest.approx(one(500), abs=0.05)
+    assert restart(920) > 0.4 and restart(500) > 0.9
+    assert cont(1003) == pytest.approx(0.02) and restart(1003) == pytest.approx(0.02)   # the last plan's end
+    assert [cont(s) for s in range(100)] == [restart(s) for s in range(100)]            # before any re-plan
+
+
 def test_a_run_freezes_its_startup_objects_and_collects_at_each_validation(data, tmp_path, monkeypatch):
     """The garbage collector's full passes come at the validations, inside their timed cost (a
     pass landing at random doubled one validation in three, and a budget planning its final

@@ -2,8 +2,17 @@
 
 The horizon is the total number of steps. A run whose length changes while it trains (a time
 budget re-planned from the measured speed, ``--steps`` changed at a resume) calls
-:meth:`LrLambda.replan`: from that step the cosine falls from the factor it had reached to its
-floor at the new end, so the learning rate never jumps.
+:meth:`LrLambda.replan`: from that step the cosine reaches its floor at the new end, and the
+learning rate never jumps. How it goes on (``train.cosine_replan``):
+
+- ``restart`` (the default): a new cosine from the factor it had reached, from its flat top.
+  A time budget re-plans at every validation and as the speed changes (about thirty times in
+  30 minutes of the lite recipe), and each re-plan flattens the curve again: the learning rate
+  stays near its peak for most of the run and falls in its last tenth (at 92 % of a 30-minute
+  run 43 % of the peak, where one cosine is at 4 %). The better of the two for a 30-minute
+  Ketchup model so far (one run each, bench/RESULTS.md "End-to-end accuracy").
+- ``continue``: the cosine goes on from the phase it had reached, so a run anneals as one
+  cosine over the steps it makes, and a re-plan that keeps the end changes nothing.
 """
 from __future__ import annotations
 
@@ -20,14 +29,16 @@ class LrLambda:
     """
 
     def __init__(self, kind: str, horizon: int, warmup: int = 0, min_factor: float = 0.01,
-                 step_every: int = 1000, gamma: float = 0.1):
+                 step_every: int = 1000, gamma: float = 0.1, replan: str = "restart"):
         self.kind, self.horizon, self.warmup = kind, int(max(1, horizon)), int(warmup)
+        self.replan_mode = replan
         self.min_factor, self.step_every, self.gamma = float(min_factor), int(max(1, step_every)), float(gamma)
         self.segments: list[tuple[int, int, float]] = []
 
     def replan(self, step: int, end: int) -> None:
-        """From ``step`` on, the cosine falls from its present factor to the floor at ``end``
-        (earlier steps keep their factors; a re-plan during the warm-up starts at its end)."""
+        """From ``step`` on, the cosine falls from its present factor to the floor at ``end``,
+        restarted or continued (module docstring); earlier steps keep their factors, and a
+        re-plan during the warm-up starts at its end."""
         start = max(int(step), self.warmup)
         factor = self(start)
         self.segments = [seg for seg in self.segments if seg[0] < start] + [(start, int(end), float(factor))]
@@ -41,7 +52,18 @@ class LrLambda:
                 if seg[0] <= step:
                     start, end, top = seg
             p = min(1.0, (step - start) / max(1, end - start))
+            if self.replan_mode == "continue":
+                phase = self._phase(top)
+                p, top = phase + (1.0 - phase) * p, 1.0
             return self.min_factor + (top - self.min_factor) * 0.5 * (1 + math.cos(math.pi * p))
         if self.kind == "step":
             return self.gamma ** (step // self.step_every)
         return 1.0
+
+    def _phase(self, factor: float) -> float:
+        """The cosine's phase in [0, 1] at which it gives ``factor`` (a re-plan's recorded
+        factor at its start; 1.0: phase 0)."""
+        span = 1.0 - self.min_factor
+        if span <= 0:
+            return 0.0
+        return math.acos(min(1.0, max(-1.0, 2.0 * (factor - self.min_factor) / span - 1.0))) / math.pi

@@ -142,7 +142,9 @@ class TrainSettings(SectionSettings):
     batch_size: images per step and process. epochs / steps (null: from the epochs) /
     time_limit_min (minutes, null: none): the run ends at the first reached. optimizer (adam,
     adamw), lr, weight_decay, betas. schedule: constant | cosine | step, with warmup_steps,
-    min_lr_factor (cosine floor), step_epochs / step_gamma (step). grad_clip: max global grad
+    min_lr_factor (cosine floor), cosine_replan (restart | continue: how the cosine goes on when
+    a time budget re-plans the run's end, :mod:`dope_hope.training.schedule`), step_epochs /
+    step_gamma (step). grad_clip: max global grad
     norm or null. loss: mse; belief_weight, affinity_weight; foreground_weight: belief cells
     weigh 1 + w * target. workers: DataLoader processes; threads: torch threads (null: torch's
     default); frame_cache_mb: memory (MiB) for decoded frames kept across epochs, shared with
@@ -160,7 +162,8 @@ class TrainSettings(SectionSettings):
         "time_limit_min": or_none(check_time_limit), "optimizer": one_of("adam", "adamw"),
         "lr": nonnegative_float, "weight_decay": nonnegative_float, "betas": _betas,
         "schedule": one_of("constant", "cosine", "step"), "warmup_steps": at_least(0),
-        "min_lr_factor": nonnegative_float, "step_epochs": at_least(1), "step_gamma": positive_float,
+        "min_lr_factor": nonnegative_float, "cosine_replan": one_of("restart", "continue"),
+        "step_epochs": at_least(1), "step_gamma": positive_float,
         "grad_clip": or_none(positive_float), "loss": one_of("mse"), "belief_weight": nonnegative_float,
         "affinity_weight": nonnegative_float, "foreground_weight": nonnegative_float,
         "workers": at_least(0), "threads": or_none(at_least(1)), "frame_cache_mb": nonnegative_float,
@@ -184,6 +187,7 @@ class TrainSettings(SectionSettings):
     schedule: str = "constant"
     warmup_steps: int = 0
     min_lr_factor: float = 0.01
+    cosine_replan: str = "restart"
     step_epochs: int = 20
     step_gamma: float = 0.1
     grad_clip: float | None = None

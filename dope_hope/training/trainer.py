@@ -206,7 +206,8 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
         self.budget = BudgetPlan(self.time_limit_s) if self.time_limit_s is not None else None
         # Under a time limit the schedule follows the plans, unless steps were given.
         self.lr_lambda = LrLambda(ts["schedule"], self.total_steps, int(ts["warmup_steps"]), float(ts["min_lr_factor"]),
-                                  int(ts["step_epochs"]) * self.steps_per_epoch, float(ts["step_gamma"]))
+                                  int(ts["step_epochs"]) * self.steps_per_epoch, float(ts["step_gamma"]),
+                                  ts["cosine_replan"])
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, self.lr_lambda)
 
     def _reset_state(self) -> None:
