@@ -187,13 +187,13 @@ def test_continued_replans_follow_one_cosine_restarted_ones_stay_high():
     from dope_hope.training.schedule import LrLambda
 
     def replanned(mode: str) -> LrLambda:
-        f = LrLambda("cosine", horizon=1500, warmup=10, min_factor=0.02, replan=mode)  # first plan too long
+        f = LrLambda("cosine", horizon=1500, warmup=10, min_factor=0.02, replan_mode=mode)  # first plan too long
         for i, step in enumerate(range(100, 1000, 30)):
             f.replan(step, 1000 + (3 if i % 2 else -3))
         return f
 
     one = LrLambda("cosine", horizon=1000, warmup=10, min_factor=0.02)
-    same = LrLambda("cosine", horizon=1000, warmup=10, min_factor=0.02, replan="continue")
+    same = LrLambda("cosine", horizon=1000, warmup=10, min_factor=0.02, replan_mode="continue")
     for step in range(50, 1000, 50):
         same.replan(step, 1000)
     assert max(abs(same(s) - one(s)) for s in range(1001)) < 1e-12

@@ -29,9 +29,9 @@ class LrLambda:
     """
 
     def __init__(self, kind: str, horizon: int, warmup: int = 0, min_factor: float = 0.01,
-                 step_every: int = 1000, gamma: float = 0.1, replan: str = "restart"):
+                 step_every: int = 1000, gamma: float = 0.1, replan_mode: str = "restart"):
         self.kind, self.horizon, self.warmup = kind, int(max(1, horizon)), int(warmup)
-        self.replan_mode = replan
+        self.replan_mode = replan_mode
         self.min_factor, self.step_every, self.gamma = float(min_factor), int(max(1, step_every)), float(gamma)
         self.segments: list[tuple[int, int, float]] = []
 
