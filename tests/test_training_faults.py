@@ -204,6 +204,27 @@ def test_continued_replans_follow_one_cosine_restarted_ones_stay_high():
     assert [cont(s) for s in range(100)] == [restart(s) for s in range(100)]            # before any re-plan
 
 
+def test_wsd_holds_the_peak_until_its_decay_share_and_replans_cannot_flatten_it():
+    """``wsd``: the peak rate until the last ``decay_share`` of the planned steps after the
+    warm-up, then a straight line to the floor at the end. Re-plans in the stable part change
+    nothing; a re-plan during the decay goes on from the factor reached, never jumping."""
+    from dope_hope.training.schedule import LrLambda
+
+    plain = LrLambda("wsd", horizon=1010, warmup=10, min_factor=0.02, decay_share=0.2)
+    assert plain(0) == pytest.approx(0.1) and plain(10) == 1.0 and plain(809) == 1.0
+    assert plain(810) == 1.0 and plain(910) == pytest.approx(0.51) and plain(1010) == pytest.approx(0.02)
+    replanned = LrLambda("wsd", horizon=1500, warmup=10, min_factor=0.02, decay_share=0.2)
+    for i, step in enumerate(range(100, 800, 30)):            # stable part: the end wobbles
+        replanned.replan(step, 1010 + (3 if i % 2 else -3))
+    replanned.replan(790, 1010)
+    assert max(abs(replanned(s) - plain(s)) for s in range(1011)) < 1e-12
+    late = LrLambda("wsd", horizon=1010, warmup=10, min_factor=0.02, decay_share=0.2)
+    late.replan(910, 1510)                                     # the end moves out mid-decay
+    factors = [late(s) for s in range(1511)]
+    assert max(abs(a - b) for a, b in zip(factors[10:], factors[11:])) < 0.01   # no jump after the warm-up
+    assert factors[1000] == pytest.approx(plain(910)) and factors[1510] == pytest.approx(0.02)
+    assert LrLambda("wsd", horizon=1010, warmup=10, decay_share=0.0)(1009) == 1.0
+
 def test_a_run_freezes_its_startup_objects_and_collects_at_each_validation(data, tmp_path, monkeypatch):
     """The garbage collector's full passes come at the validations, inside their timed cost (a
     pass landing at random doubled one validation in three, and a budget planning its final

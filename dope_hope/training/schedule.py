@@ -1,9 +1,17 @@
-"""Learning-rate schedule: ``constant | cosine | step`` with linear warm-up, as a LambdaLR factor.
+"""Learning-rate schedule: ``constant | cosine | step | wsd`` with linear warm-up, as a LambdaLR factor.
 
 The horizon is the total number of steps. A run whose length changes while it trains (a time
 budget re-planned from the measured speed, ``--steps`` changed at a resume) calls
-:meth:`LrLambda.replan`: from that step the cosine reaches its floor at the new end, and the
-learning rate never jumps. How it goes on (``train.cosine_replan``):
+:meth:`LrLambda.replan`: from that step the cosine (or the decay of ``wsd``) reaches its floor
+at the new end, and the learning rate never jumps.
+
+``wsd`` (warm-up, stable, decay; Hägele et al. 2024, "Scaling Laws and Compute-Optimal Training
+Beyond Fixed Training Durations"): the peak rate until the last ``decay_share`` of the planned
+steps after the warm-up, then a straight line to the floor at the end. The decay's start is
+read from the plan in force, so re-plans in the stable part change nothing, and a re-plan
+during the decay goes on from the factor reached (held until the new plan's decay starts).
+
+How a cosine goes on at a re-plan (``train.cosine_replan``):
 
 - ``restart`` (the default): a new cosine from the factor it had reached, from its flat top.
   A time budget re-plans at every validation and as the speed changes (about thirty times in
@@ -21,7 +29,7 @@ import math
 
 # =============================================================================== schedule
 class LrLambda:
-    """Picklable lr factor of step: linear warm-up, then constant / cosine / step decay.
+    """Picklable lr factor of step: linear warm-up, then constant / cosine / step / wsd decay.
 
     ``horizon`` is the first planned length; ``segments`` the re-plans ``(start step, end
     step, factor at start)``. Both are part of the scheduler's state dict, so a resumed run
@@ -29,15 +37,16 @@ class LrLambda:
     """
 
     def __init__(self, kind: str, horizon: int, warmup: int = 0, min_factor: float = 0.01,
-                 step_every: int = 1000, gamma: float = 0.1, replan_mode: str = "restart"):
+                 step_every: int = 1000, gamma: float = 0.1, replan_mode: str = "restart",
+                 decay_share: float = 0.2):
         self.kind, self.horizon, self.warmup = kind, int(max(1, horizon)), int(warmup)
-        self.replan_mode = replan_mode
+        self.replan_mode, self.decay_share = replan_mode, float(decay_share)
         self.min_factor, self.step_every, self.gamma = float(min_factor), int(max(1, step_every)), float(gamma)
         self.segments: list[tuple[int, int, float]] = []
 
     def replan(self, step: int, end: int) -> None:
-        """From ``step`` on, the cosine falls from its present factor to the floor at ``end``,
-        restarted or continued (module docstring); earlier steps keep their factors, and a
+        """From ``step`` on, the cosine (or wsd's decay) falls from its present factor to the
+        floor at ``end``, as the module docstring says; earlier steps keep their factors, and a
         re-plan during the warm-up starts at its end."""
         start = max(int(step), self.warmup)
         factor = self(start)
@@ -46,11 +55,13 @@ class LrLambda:
     def __call__(self, step: int) -> float:
         if self.warmup > 0 and step < self.warmup:
             return (step + 1) / self.warmup
-        if self.kind == "cosine":
+        if self.kind in ("cosine", "wsd"):
             start, end, top = self.warmup, self.horizon, 1.0
             for seg in self.segments:  # the last re-plan at or before `step`
                 if seg[0] <= step:
                     start, end, top = seg
+            if self.kind == "wsd":
+                return self._wsd(step, start, end, top)
             p = min(1.0, (step - start) / max(1, end - start))
             if self.replan_mode == "continue":
                 phase = self._phase(top)
@@ -59,6 +70,16 @@ class LrLambda:
         if self.kind == "step":
             return self.gamma ** (step // self.step_every)
         return 1.0
+
+    def _wsd(self, step: int, start: int, end: int, top: float) -> float:
+        """wsd's factor at ``step`` under the plan ``(start, end, top)``: ``top`` until the
+        decay starts (the last ``decay_share`` of the steps from the warm-up's end to ``end``),
+        then linear to the floor at ``end``."""
+        decay_from = max(start, end - round(self.decay_share * max(0, end - self.warmup)))
+        if step < decay_from:
+            return top
+        p = min(1.0, (step - decay_from) / max(1, end - decay_from))
+        return top + (self.min_factor - top) * p
 
     def _phase(self, factor: float) -> float:
         """The cosine's phase in [0, 1] at which it gives ``factor`` (a re-plan's recorded

@@ -17,6 +17,7 @@ from dope_hope.config import (
     SectionSettings,
     at_least,
     boolean,
+    fraction,
     nonnegative_float,
     one_of,
     or_none,
@@ -141,8 +142,9 @@ class TrainSettings(SectionSettings):
 
     batch_size: images per step and process. epochs / steps (null: from the epochs) /
     time_limit_min (minutes, null: none): the run ends at the first reached. optimizer (adam,
-    adamw), lr, weight_decay, betas. schedule: constant | cosine | step, with warmup_steps,
-    min_lr_factor (cosine floor), cosine_replan (restart | continue: how the cosine goes on when
+    adamw), lr, weight_decay, betas. schedule: constant | cosine | step | wsd, with warmup_steps,
+    min_lr_factor (the cosine's and wsd's floor), decay_share (wsd: the last share of the planned
+    steps after the warm-up over which the rate falls linearly to its floor), cosine_replan (restart | continue: how the cosine goes on when
     a time budget re-plans the run's end, :mod:`dope_hope.training.schedule`), step_epochs /
     step_gamma (step). grad_clip: max global grad
     norm or null. loss: mse; belief_weight, affinity_weight; foreground_weight: belief cells
@@ -161,8 +163,8 @@ class TrainSettings(SectionSettings):
         "batch_size": at_least(1), "epochs": at_least(1), "steps": or_none(at_least(1)),
         "time_limit_min": or_none(check_time_limit), "optimizer": one_of("adam", "adamw"),
         "lr": nonnegative_float, "weight_decay": nonnegative_float, "betas": _betas,
-        "schedule": one_of("constant", "cosine", "step"), "warmup_steps": at_least(0),
-        "min_lr_factor": nonnegative_float, "cosine_replan": one_of("restart", "continue"),
+        "schedule": one_of("constant", "cosine", "step", "wsd"), "warmup_steps": at_least(0),
+        "min_lr_factor": nonnegative_float, "decay_share": fraction, "cosine_replan": one_of("restart", "continue"),
         "step_epochs": at_least(1), "step_gamma": positive_float,
         "grad_clip": or_none(positive_float), "loss": one_of("mse"), "belief_weight": nonnegative_float,
         "affinity_weight": nonnegative_float, "foreground_weight": nonnegative_float,
@@ -187,6 +189,7 @@ class TrainSettings(SectionSettings):
     schedule: str = "constant"
     warmup_steps: int = 0
     min_lr_factor: float = 0.01
+    decay_share: float = 0.2
     cosine_replan: str = "restart"
     step_epochs: int = 20
     step_gamma: float = 0.1

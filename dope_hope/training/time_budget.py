@@ -68,7 +68,7 @@ class TimeBudgetControl:
 
     @property
     def budget_sets_horizon(self) -> bool:
-        """Whether the time budget's plans set the cosine's end (a time limit without steps)."""
+        """Whether the time budget's plans set the schedule's end (a time limit without steps)."""
         return self.budget is not None and not self.ts["steps"]
 
     @property
@@ -104,7 +104,7 @@ class TimeBudgetControl:
         return None if int(t.item()) < 0 else int(t.item())
 
     def _set_end(self, end: int) -> None:
-        """End the run at step ``end``; the cosine (when the budget sets it) falls to it."""
+        """End the run at step ``end``; the cosine or wsd's decay (when the budget sets it) falls to it."""
         if end != self.total_steps and self.budget_sets_horizon:
             self.lr_lambda.replan(self.step, max(self.step + 1, end))
         self.total_steps = end

@@ -207,7 +207,7 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
         # Under a time limit the schedule follows the plans, unless steps were given.
         self.lr_lambda = LrLambda(ts["schedule"], self.total_steps, int(ts["warmup_steps"]), float(ts["min_lr_factor"]),
                                   int(ts["step_epochs"]) * self.steps_per_epoch, float(ts["step_gamma"]),
-                                  ts["cosine_replan"])
+                                  ts["cosine_replan"], float(ts["decay_share"]))
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, self.lr_lambda)
 
     def _reset_state(self) -> None:
