@@ -23,6 +23,7 @@ from dope_hope.model.checkpoint import (
     save_checkpoint,
 )
 from dope_hope.training.objects import object_mesh_paths
+from dope_hope.training.schedule import LrLambda
 from dope_hope.training.settings import TrainConfig, TrainJob
 
 #: The trainer's logger: these lines are the trainer's, under its name.
@@ -81,7 +82,7 @@ class RunCheckpoints:
             self._set_end(self._broadcast_end(end))
         elif changed and self.budget is None:
             self.total_steps = self._nominal_total
-        if changed and self.ts["schedule"] in ("cosine", "wsd") and not self.budget_sets_horizon:
+        if changed and self.ts["schedule"] in LrLambda.REPLANNED and not self.budget_sets_horizon:
             self.lr_lambda.replan(self.step, max(self.step + 1, self.total_steps))
         if changed and self.dist.main:
             now = ", ".join(f"train.{k} {self.ts[k]}" for k in changed)

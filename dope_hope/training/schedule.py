@@ -36,6 +36,9 @@ class LrLambda:
     continues with the same schedule.
     """
 
+    #: The kinds whose decay follows :meth:`replan` (the others ignore the run's end).
+    REPLANNED = ("cosine", "wsd")
+
     def __init__(self, kind: str, horizon: int, warmup: int = 0, min_factor: float = 0.01,
                  step_every: int = 1000, gamma: float = 0.1, replan_mode: str = "restart",
                  decay_share: float = 0.2):
@@ -55,7 +58,7 @@ class LrLambda:
     def __call__(self, step: int) -> float:
         if self.warmup > 0 and step < self.warmup:
             return (step + 1) / self.warmup
-        if self.kind in ("cosine", "wsd"):
+        if self.kind in self.REPLANNED:
             start, end, top = self.warmup, self.horizon, 1.0
             for seg in self.segments:  # the last re-plan at or before `step`
                 if seg[0] <= step:
