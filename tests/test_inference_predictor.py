@@ -554,3 +554,34 @@ def test_maps_too_weak_for_min_score_are_not_decoded(monkeypatch):
 
     assert DopePredictor(weak(), min_score=0.5).predict(white((480, 640)), K640) == [] and calls == []
     assert DopePredictor(weak(), min_score=0.1).predict(white((480, 640)), K640) and calls
+
+
+class _TwoStrengthsBackend(TargetsBackend):
+    """The perfect maps of POSES, the second object's belief at 0.4 times its height (a weak
+    instance beside a strong one in the same maps)."""
+
+    def run(self, batch):
+        strong = TargetsBackend(OBJ.name, OBJ.size_array, POSES[:1], K640, (480, 640)).run(batch)
+        weak = TargetsBackend(OBJ.name, OBJ.size_array, POSES[1:], K640, (480, 640)).run(batch)
+        self.calls.append(1)
+        return np.maximum(strong[0], 0.4 * weak[0]), strong[1] + weak[1]
+
+
+def test_a_centroid_whose_peaks_cannot_reach_min_score_is_not_searched(monkeypatch):
+    """Within one object's maps, a centroid whose candidates allow no pose of min_score (the
+    mean of its min_points best keypoint types) goes to no pose search; the detections are
+    those of min_score 0 that reach it."""
+    import dope_hope.inference.predictor as predictor_module
+
+    searched = []
+    real = predictor_module.solve_pnp_instances
+    monkeypatch.setattr(predictor_module, "solve_pnp_instances",
+                        lambda candidates, *a: searched.append(len(candidates)) or real(candidates, *a))
+    backend_ = _TwoStrengthsBackend(OBJ.name, OBJ.size_array, POSES, K640, (480, 640))
+    all_dets = DopePredictor(backend_, min_score=0.0).predict(white((480, 640)), K640)
+    match(all_dets, POSES)
+    assert searched == [2] and sorted(round(d.score, 1) for d in all_dets) == [0.4, 1.0]
+    searched.clear()
+    dets = DopePredictor(backend_, min_score=0.5).predict(white((480, 640)), K640)
+    assert searched == [1]  # the weak centroid is dropped before the search
+    assert [(d.score, d.t.tolist()) for d in dets] == [(d.score, d.t.tolist()) for d in all_dets if d.score >= 0.5]

@@ -43,3 +43,25 @@ def test_noise_floor_is_the_background_plus_robust_standard_deviations():
     maps[:, 20:23, 30:33] = 1.0  # a peak barely moves the median and the MAD
     np.testing.assert_allclose(noise_floor(maps, 4.0), 0.02 + 4.0 * 0.1, atol=0.04)
     np.testing.assert_allclose(noise_floor(np.zeros((9, 300, 400), np.float32), 4.0), 0.0)
+
+
+@pytest.mark.parametrize("hw", [(60, 80), (6, 7)])  # (6, 7): smoothing wider than the map (scipy)
+def test_peaks_of_stacked_maps_split_into_those_of_each_block(hw):
+    """Several objects' belief maps searched at once (:func:`split_peaks`) give every block the
+    peaks, in the order, of a search over that block alone: noisy maps with plateaus, NaN
+    cells, a block with no peak, and a noise floor computed per channel."""
+    from dope_hope.maps.peaks import split_peaks
+
+    rng = np.random.default_rng(7)
+    blocks = [(rng.random((9, *hw)) ** 6).astype(np.float32) for _ in range(4)]
+    blocks[1][:, 2:4, 2:4] = 0.9                   # plateaus of equal maxima
+    blocks[2][:] = 0.0                             # nothing above the threshold
+    blocks[3][0, 1, 1] = np.nan
+    for kwargs in ({}, {"noise_sigmas": 4.0}, {"smooth_sigma": 0.0, "refine_on": "smoothed"}):
+        parts = split_peaks(find_peaks(np.concatenate(blocks), 0.1, **kwargs), len(blocks), 9)
+        assert len(parts) == len(blocks)
+        for block, part in zip(blocks, parts):
+            alone = find_peaks(block, 0.1, **kwargs)
+            for field in ("channel", "cell", "xy", "score"):
+                np.testing.assert_array_equal(getattr(part, field), getattr(alone, field))
+        assert len(parts[2].score) == 0 and sum(len(p.score) for p in parts) > 20

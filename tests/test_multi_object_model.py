@@ -271,11 +271,15 @@ def test_predictor_returns_every_object_from_one_forward_pass(monkeypatch):
         return real(belief, *a, **kw)
 
     monkeypatch.setattr(predictor_module, "corner_candidates", counting)
+    searches = []
+    real_peaks = predictor_module.decoder_peaks
+    monkeypatch.setattr(predictor_module, "decoder_peaks", lambda b, *a: searches.append(b.shape) or real_peaks(b, *a))
     p = DopePredictor(backend, height=400)
     assert p.class_names == NAMES
     dets = p.predict(white(), K640)
     assert_finds(dets, POSES)
     assert len(calls) == 2 and all(s[0] == 9 for s in calls)  # the absent Cookies group is not decoded
+    assert [s[0] for s in searches] == [18]  # one peak search over both present objects' maps
     assert sum(len(part.calls) for part in backend.parts) == 2  # one forward pass (no call for Cookies)
     assert [d.score for d in dets] == sorted((d.score for d in dets), reverse=True)
     with pytest.raises(AttributeError, match="use .objects"):

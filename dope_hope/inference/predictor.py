@@ -13,14 +13,18 @@ run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.pr
    normalized with the model's recorded mean/std.
 3. **Decode and PnP**, object by object (its own channel group, cuboid, mesh; a group whose
    belief maps reach the decode threshold nowhere is skipped before any decoding, so absent
-   objects cost one max each) in network-image pixels with ``K_net``, so the pixel thresholds mean
-   the same whatever the original resolution. ``pose_search="hypotheses"`` (default): each
-   centroid keeps every corner peak whose affinity points at it
-   (:func:`dope_hope.maps.decode.corner_candidates`) and
+   objects cost one max each; the peaks of the groups left come from one search over their
+   stacked belief maps, :func:`dope_hope.maps.peaks.split_peaks`) in network-image pixels with
+   ``K_net``, so the pixel thresholds mean the same whatever the original resolution.
+   ``pose_search="hypotheses"`` (default): each centroid keeps every corner peak whose
+   affinity points at it (:func:`dope_hope.maps.decode.corner_candidates`) and
    :func:`dope_hope.inference.pose_search.solve_pnp_candidates` finds the pose that explains most of
    them (:func:`dope_hope.inference.pose_search.solve_pnp_instances`: the peaks an accepted pose holds
    are no candidates of the centroids searched after it); two centroids explaining the same
-   peaks give one detection, the higher-scoring.
+   peaks give one detection, the higher-scoring. A centroid whose candidates allow no pose of
+   ``min_score`` (:func:`dope_hope.maps.decode.keypoint_score_bound`: the mean of its
+   ``pnp.min_points`` best keypoint types) is left out before the search: it costs no search
+   and holds no peaks.
    ``pose_search="groups"``: DOPE's decoding, one corner per type and centroid
    (:func:`dope_hope.maps.decode.decode_maps`), then :func:`dope_hope.inference.pnp.solve_pnp`.
    The cuboid is the object's: the model's size (mesh frame) or, with ``mesh=``, the
@@ -75,9 +79,9 @@ from dope_hope.maps.decode import (
     corner_candidates,
     decode_maps,
     decoder_peaks,
-    pose_score_bound,
+    keypoint_score_bound,
 )
-from dope_hope.maps.peaks import Peaks
+from dope_hope.maps.peaks import Peaks, split_peaks
 from dope_hope.model.info import ObjectInfo
 from dope_hope.preprocess import (
     NetworkInput,
@@ -270,24 +274,29 @@ class DopePredictor:
         """Decode + PnP (+ line search, ICP) the maps of :meth:`infer_maps` (see :meth:`predict`),
         object by object; an object whose belief maps peak nowhere above the decode threshold
         is skipped before any decoding (one max over its maps), and so is one whose peaks could
-        give no pose the score ``min_score`` asks (:func:`~dope_hope.maps.decode.pose_score_bound`:
-        the weak maps of an absent object cost one peak search, not a pose search). ``classes``: decode only those
-        of the predictor's objects this time (exact class names; None: all)."""
+        give no pose the score ``min_score`` asks (:meth:`_may_reach_min_score` of all its peaks:
+        the weak maps of an absent object cost one peak search, not a pose search). The peaks of
+        all the objects left are found in one search over their stacked belief maps (each
+        channel on its own: the peaks of a search per object, for about the cost of one).
+        ``classes``: decode only those of the predictor's objects this time (exact class names;
+        None: all)."""
         K = check_intrinsics(K)
         K_net = net_in.network_K(K)
         threshold = self.options.stages.decode.threshold
-        min_score = float(self.options.min_score)
-        pnp = self.options.stages.pnp
-        in_view = pnp.min_points if pnp.score_in_view else None  # the score's least divisor
-        out: list[Detection] = []
+        live = []
         for obj in self.objects:
             if classes is not None and obj.class_name not in classes:
                 continue
             b, a = obj.channels(belief, affinity)
-            if not b.max() > threshold:  # find_peaks keeps no cell whose belief is <= threshold
-                continue
-            peaks = decoder_peaks(b, self.options.stages.decode)
-            if min_score > 0 and pose_score_bound(peaks, in_view) < min_score - SCORE_BOUND_SLACK:
+            if b.max() > threshold:  # find_peaks keeps no cell whose belief is <= threshold
+                live.append((obj, b, a))
+        if not live:
+            return []
+        stacked = live[0][1] if len(live) == 1 else np.concatenate([b for _, b, _ in live])
+        all_peaks = split_peaks(decoder_peaks(stacked, self.options.stages.decode), len(live), NUM_KEYPOINTS)
+        out: list[Detection] = []
+        for (obj, b, a), peaks in zip(live, all_peaks):
+            if not self._may_reach_min_score(peaks.channel, peaks.score):
                 continue  # no pose of these maps could reach min_score: nothing to decode
             out += self._object_detections(obj, b, a, peaks, net_in, K, K_net, depth)
         out.sort(key=lambda d: -d.score)
@@ -382,6 +391,17 @@ class DopePredictor:
         if res.applied:
             det.R, det.t = res.R, res.t
 
+    def _may_reach_min_score(self, keypoint_ids: np.ndarray, heights: np.ndarray) -> bool:
+        """Whether keypoint peaks of these types ((n,) int) and heights ((n,)) allow a pose that
+        ``min_score`` keeps (:func:`~dope_hope.maps.decode.keypoint_score_bound`, with the
+        in-view score's least divisor when ``pnp.score_in_view``); always with min_score 0."""
+        min_score = float(self.options.min_score)
+        if min_score <= 0:
+            return True
+        pnp = self.options.stages.pnp
+        bound = keypoint_score_bound(keypoint_ids, heights, pnp.min_points if pnp.score_in_view else None)
+        return bound >= min_score - SCORE_BOUND_SLACK
+
     def _poses(self, belief: np.ndarray, affinity: np.ndarray, K_net: np.ndarray,
                cuboid: np.ndarray, peaks: Peaks | None = None) -> list[PoseEstimate]:
         """Network-image poses of the instances in one object's maps (step 3 of the module
@@ -393,6 +413,8 @@ class DopePredictor:
                      for inst in decode_maps(belief, affinity, self.stride, stages.decode, peaks=peaks)]
             return [e for e in found if e is not None]
         candidates = corner_candidates(belief, affinity, self.stride, stages.decode, peaks=peaks)
+        # A centroid whose candidates allow no pose min_score keeps: no search.
+        candidates = [c for c in candidates if self._may_reach_min_score(c.keypoint_ids, c.scores)]
         return solve_pnp_instances([(c.keypoint_ids, c.xy, c.scores) for c in candidates], cuboid,
                                    K_net, stages.hypotheses, stages.pnp)
 

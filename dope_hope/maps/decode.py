@@ -231,15 +231,21 @@ def decoder_peaks(belief, settings: DecodeSettings = DecodeSettings()) -> Peaks:
 
 
 def pose_score_bound(peaks: Peaks, min_points: int | None = None) -> float:
-    """The highest pose score ``peaks`` allow: the mean over the nine keypoint types of each
-    type's highest peak, clipped to [0, 1]. A pose scores the mean of its inlier keypoints'
-    peak heights, one peak per type, clipped (:mod:`dope_hope.inference.pnp`), so no pose
-    decoded from these peaks scores more; below a score threshold the decoding can be skipped.
+    """The highest pose score ``peaks`` allow (:func:`keypoint_score_bound` of their channels
+    and heights); below a score threshold the decoding can be skipped."""
+    return keypoint_score_bound(peaks.channel, peaks.score, min_points)
+
+
+def keypoint_score_bound(keypoint_ids: np.ndarray, heights: np.ndarray, min_points: int | None = None) -> float:
+    """The highest pose score keypoint peaks of these types ((n,) int 0..8) and heights ((n,))
+    allow: the mean over the nine keypoint types of each type's highest peak, clipped to
+    [0, 1]. A pose scores the mean of its inlier keypoints' peak heights, one peak per type,
+    clipped (:mod:`dope_hope.inference.pnp`), so no pose decoded from these peaks scores more.
     ``min_points``: the bound of the in-view score (:func:`dope_hope.inference.pnp.score_in_view`,
     which divides by at least that many keypoints): the mean of the ``min_points`` highest
     of those per-type peaks."""
     best = np.zeros(NUM_KEYPOINTS)
-    np.maximum.at(best, peaks.channel, np.clip(peaks.score, 0.0, 1.0))
+    np.maximum.at(best, np.asarray(keypoint_ids, dtype=int), np.clip(np.asarray(heights, dtype=np.float64), 0.0, 1.0))
     if min_points is None:
         return float(best.sum() / NUM_KEYPOINTS)
     k = min(int(min_points), NUM_KEYPOINTS)

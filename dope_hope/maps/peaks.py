@@ -73,6 +73,19 @@ class Peaks:
     score: np.ndarray
 
 
+def split_peaks(peaks: Peaks, groups: int, channels: int) -> list[Peaks]:
+    """The peaks of maps stacked as ``groups`` blocks of ``channels`` channels (several objects'
+    belief maps searched at once) as one :class:`Peaks` per block, its channels numbered from 0.
+    Every step of :func:`find_peaks` works channel by channel, so a block's peaks (values and
+    order) are those of a search over that block alone."""
+    block = peaks.channel // channels
+    out = []
+    for g in range(groups):
+        keep = block == g
+        out.append(Peaks(peaks.channel[keep] - g * channels, peaks.cell[keep], peaks.xy[keep], peaks.score[keep]))
+    return out
+
+
 def as_map_array(a) -> np.ndarray:
     """Accept numpy arrays or torch tensors (any device); drop a leading batch of 1."""
     if hasattr(a, "detach"):
