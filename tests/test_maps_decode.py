@@ -304,8 +304,8 @@ def test_noise_floor_leaves_clean_and_lightly_noisy_maps_as_they_were():
                                      {"smooth_sigma": 0.0, "refine_on": "smoothed", "angle_threshold": 0.6}])
 def test_peaks_found_once_decode_as_the_decoders_find_them(options):
     """decoder_peaks(maps, settings) are the peaks both decoders find themselves: handed in,
-    they give the same instances and candidates; pose_score_bound is the best type's peaks' mean."""
-    from dope_hope.maps.decode import decoder_peaks, pose_score_bound
+    they give the same instances and candidates; keypoint_score_bound of the peaks is the best type's peaks' mean."""
+    from dope_hope.maps.decode import decoder_peaks, keypoint_score_bound
 
     b, a = make_targets(_scene(), HW, 8)
     b, a = _noisy(b, a, 0.08, 0.2, seed=3)
@@ -318,6 +318,10 @@ def test_peaks_found_once_decode_as_the_decoders_find_them(options):
             for field in x.__dataclass_fields__:
                 np.testing.assert_array_equal(getattr(x, field), getattr(y, field))
     best = [np.clip(peaks.score[peaks.channel == k], 0, 1).max(initial=0.0) for k in range(9)]
+
+    def pose_score_bound(peaks, min_points=None):
+        return keypoint_score_bound(peaks.channel, peaks.score, min_points)
+
     assert pose_score_bound(peaks) == pytest.approx(sum(best) / 9)
     clipped = [np.clip(inst.scores, 0, 1).sum() / 9 for inst in decode_maps(b, a, 8, settings)]
     assert max(clipped) <= pose_score_bound(peaks) + 1e-12

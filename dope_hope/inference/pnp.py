@@ -300,7 +300,7 @@ def score_in_view(estimate: PoseEstimate, image_hw: tuple[int, int], min_points:
     (H, W) ``image_hw`` (pixel centres at integers: [-0.5, W - 0.5] x [-0.5, H - 0.5]), or by
     ``min_points`` or the inlier count where larger. Equals ``estimate.score`` when all nine
     lie inside; never above the mean of the ``min_points`` best keypoint confidences
-    (:func:`dope_hope.maps.decode.pose_score_bound` with ``min_points``)."""
+    (:func:`dope_hope.maps.decode.keypoint_score_bound` with ``min_points``)."""
     inside = int(inside_image(estimate.projected, image_hw).sum())
     inliers = np.asarray(estimate.inliers, dtype=bool)
     scores = np.ones(NUM_KEYPOINTS) if estimate.keypoint_scores is None else np.asarray(estimate.keypoint_scores)

@@ -225,22 +225,17 @@ PEAK_OPTIONS = ("threshold", "smooth_sigma", "nms_radius", "refine_on", "noise_s
 def decoder_peaks(belief, settings: DecodeSettings = DecodeSettings()) -> Peaks:
     """The peaks :func:`decode_maps` and :func:`corner_candidates` start from under
     ``settings`` (its peak ones, :data:`PEAK_OPTIONS`): computed once, they can be handed to
-    either decoder (``peaks=``) and to :func:`pose_score_bound`."""
+    either decoder (``peaks=``) and, as channels and heights, to :func:`keypoint_score_bound`."""
     return find_peaks(belief, settings.threshold, settings.smooth_sigma, settings.nms_radius, settings.refine_on,
                       settings.noise_sigmas)
-
-
-def pose_score_bound(peaks: Peaks, min_points: int | None = None) -> float:
-    """The highest pose score ``peaks`` allow (:func:`keypoint_score_bound` of their channels
-    and heights); below a score threshold the decoding can be skipped."""
-    return keypoint_score_bound(peaks.channel, peaks.score, min_points)
 
 
 def keypoint_score_bound(keypoint_ids: np.ndarray, heights: np.ndarray, min_points: int | None = None) -> float:
     """The highest pose score keypoint peaks of these types ((n,) int 0..8) and heights ((n,))
     allow: the mean over the nine keypoint types of each type's highest peak, clipped to
     [0, 1]. A pose scores the mean of its inlier keypoints' peak heights, one peak per type,
-    clipped (:mod:`dope_hope.inference.pnp`), so no pose decoded from these peaks scores more.
+    clipped (:mod:`dope_hope.inference.pnp`), so no pose decoded from these peaks scores more;
+    below a score threshold the decoding can be skipped.
     ``min_points``: the bound of the in-view score (:func:`dope_hope.inference.pnp.score_in_view`,
     which divides by at least that many keypoints): the mean of the ``min_points`` highest
     of those per-type peaks."""
