@@ -15,7 +15,14 @@ from dope_hope.geometry import (
     rotation_error_deg,
     scale_intrinsics,
 )
-from dope_hope.inference.pnp import PnpSettings, PoseEstimate, score_in_view, solve_pnp
+from dope_hope.inference.pnp import (
+    PnpSettings,
+    PoseEstimate,
+    least_score_divisor,
+    min_inliers,
+    score_in_view,
+    solve_pnp,
+)
 from dope_hope.maps.decode import decode_maps
 from dope_hope.maps.targets import make_targets
 from dope_hope.refine.depth import HOPE_REALSENSE_DEPTH_CALIBRATION, DepthImage
@@ -314,3 +321,21 @@ def test_line_search_bracket_with_scales_without_depth_warns_nothing():
         warnings.simplefilter("error")
         scale, at_bound = _best_scale(cost, (0.5, 1.5), 11)
     assert scale == pytest.approx(1.0, abs=1e-4) and not at_bound
+
+
+def test_the_inliers_a_pose_needs_bound_the_divisor_of_its_score():
+    settings = PnpSettings()
+    assert [min_inliers(n, settings) for n in (0, 5, 6, 7, 8, 9)] == [5, 5, 5, 6, 6, 7]
+    np.testing.assert_array_equal(min_inliers(np.array([4, 8, 9]), settings), [5, 6, 7])
+    assert min_inliers(9, PnpSettings(min_points=4, min_inlier_ratio=0.5)) == 5
+    assert least_score_divisor(settings) == 5 and least_score_divisor(settings, 9) == 7
+    assert least_score_divisor(PnpSettings(score_in_view=False), 9) is None
+    # Nine keypoints, seven inliers: the in-view score divides by at least 7 (no fewer
+    # inliers are accepted), whatever the image.
+    R, t, kp = _exact_keypoints(3)
+    kp[[1, 6]] += [[40.0, -30.0], [-35.0, 25.0]]
+    scores = np.linspace(0.2, 1.0, 9)
+    est = solve_pnp(kp, scores, CUBOID, K640)
+    assert est is not None and est.inliers.sum() == 7
+    for hw in ((480, 640), (2, 2)):
+        assert score_in_view(est, hw) <= np.sort(np.clip(scores, 0, 1))[::-1][:7].mean() + 1e-12

@@ -43,19 +43,37 @@ def test_candidates_find_the_pose_that_the_strongest_peaks_hide():
     assert q is not None and rotation_error_deg(q.R, R) < 0.01
 
 
-def test_the_search_solves_no_more_hypotheses_than_the_candidates_need(monkeypatch):
+def _count_solves(monkeypatch) -> list[int]:
+    """The pose search's hypotheses, as it takes them: ``cv2.SOLVEPNP_SQPNP`` per least-squares
+    solve, ``cv2.SOLVEPNP_AP3P`` per minimal set considered (sets are solved in blocks that may
+    end past the last one considered)."""
     import cv2
 
     import dope_hope.inference.pose_search as pose_mod
 
-    calls = []  # AP3P minimal-set hypotheses
-    real = cv2.solvePnP
+    calls: list[int] = []
+    solve_pnp_cv, take = cv2.solvePnP, pose_mod._Block.take
 
-    def counting(*a, **kw):
-        calls.append(kw.get("flags"))
-        return real(*a, **kw)
+    def counting_pnp(*a, **kw):
+        if kw.get("flags") != cv2.SOLVEPNP_AP3P:  # minimal sets are counted as taken
+            calls.append(kw.get("flags"))
+        return solve_pnp_cv(*a, **kw)
 
-    monkeypatch.setattr(pose_mod.cv2, "solvePnP", counting)
+    def counting_take(block, scorer, lo, hi):
+        calls.extend([cv2.SOLVEPNP_AP3P] * (hi - lo))
+        return take(block, scorer, lo, hi)
+
+    monkeypatch.setattr(pose_mod.cv2, "solvePnP", counting_pnp)
+    monkeypatch.setattr(pose_mod._Block, "take", counting_take)
+    return calls
+
+
+def test_the_search_takes_no_more_hypotheses_than_the_candidates_need(monkeypatch):
+    import cv2
+
+    import dope_hope.inference.pose_search as pose_mod
+
+    calls = _count_solves(monkeypatch)  # least-squares solves and AP3P minimal sets
     # Consistent first candidates: the least-squares pose through them is the only hypothesis.
     R, t, kp = _exact_keypoints(4)
     assert solve_pnp_candidates(np.arange(9), kp, np.ones(9), CUBOID, K640) is not None
@@ -103,6 +121,60 @@ def test_the_search_solves_no_more_hypotheses_than_the_candidates_need(monkeypat
 
 
 
+def _cluttered_box(seed: int, corners: int, noise_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A box's centroid and its first ``corners`` corners (noisy) among three random peaks per
+    corner type, each type's peaks in random order: (25,) ids, (25, 2) px, (25,) scores."""
+    rng = np.random.default_rng(seed)
+    ids = np.r_[8, np.repeat(np.arange(8), 3)]
+    pts = np.vstack([[320.0, 240.0], rng.uniform(220, 420, (24, 2))])
+    scores = rng.uniform(0.3, 1.0, 25)
+    kp = _exact_keypoints(seed)[2] + rng.normal(scale=noise_px, size=(9, 2))
+    pts[0] = kp[8]
+    for k in range(corners):
+        pts[1 + 3 * k + rng.integers(3)] = kp[k]
+    return ids, pts, scores
+
+
+def test_minimal_sets_are_solved_in_blocks_up_to_the_earliest_stop_as_one_chunk_at_a_time_would(monkeypatch):
+    """The search solves its minimal sets in blocks that end where it may stop next (the stall
+    rule): each set once, none past the last considered unless a hypothesis explaining enough
+    types ends the search within a block; the estimates equal those of solving each chunk on
+    its own."""
+    import dope_hope.inference.pose_search as pose_mod
+
+    solve = pose_mod._Block.solve.__func__
+    blocks: list[tuple[int, int]] = []
+
+    def recording(cls, objs, imgs, K, first, end, scorer):
+        blocks.append((first, end))
+        return solve(cls, objs, imgs, K, first, end, scorer)
+
+    def chunk_by_chunk(cls, objs, imgs, K, first, end, scorer):
+        end = min(e for e in pose_mod._chunk_ends(len(objs)) if e > first)
+        blocks.append((first, end))
+        return solve(cls, objs, imgs, K, first, end, scorer)
+
+    cases = [_cluttered_box(seed, corners, noise) for seed in range(4) for corners in (3, 5, 8) for noise in (0.5, 2.5)]
+    results = {}
+    for name, how in (("blocks", recording), ("chunks", chunk_by_chunk)):
+        monkeypatch.setattr(pose_mod._Block, "solve", classmethod(how))
+        results[name] = []
+        for case in cases:
+            blocks.clear()
+            results[name].append((solve_pnp_candidates(*case, CUBOID, K640), list(blocks)))
+    for (est, solved), (est_chunks, chunks) in zip(results["blocks"], results["chunks"]):
+        assert [b for b, _ in solved] == [0] + [e for _, e in solved[:-1]]     # each set once
+        assert solved[-1][1] >= chunks[-1][1]                                   # no fewer considered
+        assert len(solved) < len(chunks) or len(chunks) == 1
+        assert (est is None) == (est_chunks is None)
+        if est is not None:
+            np.testing.assert_array_equal(est.R, est_chunks.R)
+            np.testing.assert_array_equal(est.keypoints, est_chunks.keypoints)
+            assert est.score == est_chunks.score
+    assert sum(est is not None for est, _ in results["blocks"]) >= 4
+    assert sum(len(solved) > 1 for _, solved in results["blocks"]) >= 8   # searches past the first block
+
+
 def test_instances_give_each_peak_to_one_object_and_drop_a_noise_centroid_before_any_minimal_set(monkeypatch):
     """solve_pnp_instances: box A, decided by step 1, holds its inlier peaks; a noise
     centroid beside it whose candidates are A's corners (they passed its angle test) and two
@@ -111,16 +183,7 @@ def test_instances_give_each_peak_to_one_object_and_drop_a_noise_centroid_before
     estimate."""
     import cv2
 
-    import dope_hope.inference.pose_search as pose_mod
-
-    calls = []
-    real = cv2.solvePnP
-
-    def counting(*a, **kw):
-        calls.append(kw.get("flags"))
-        return real(*a, **kw)
-
-    monkeypatch.setattr(pose_mod.cv2, "solvePnP", counting)
+    calls = _count_solves(monkeypatch)
     RA, tA = Rotation.random(random_state=4).as_matrix(), np.array([-0.12, 0.0, 0.7])
     RB, tB = Rotation.random(random_state=5).as_matrix(), np.array([0.12, 0.02, 0.7])
     a, b = project_points(CUBOID, K640, RA, tA), project_points(CUBOID, K640, RB, tB)
@@ -150,3 +213,42 @@ def test_candidates_without_a_pose_or_a_centroid_give_none():
         solve_pnp_candidates(ids, pts[:-1], scores, CUBOID, K640)
     with pytest.raises(ValueError, match="0..8"):
         solve_pnp_candidates(ids + 1, pts, scores, CUBOID, K640)
+
+
+def test_min_score_skips_only_searches_whose_poses_could_not_reach_it(monkeypatch):
+    """With min_score, a centroid whose candidates (or the assignment its search ends with) can
+    give no pose of that score - its clipped confidences over the fewest inliers an accepted
+    pose needs - is not searched (or not solved): every estimate whose best in-view score
+    reaches min_score is still found, the same; the others may be dropped, and some are."""
+    import dope_hope.inference.pose_search as pose_mod
+
+    searched = []
+    search = pose_mod._Block.solve.__func__
+    monkeypatch.setattr(pose_mod._Block, "solve", classmethod(
+        lambda cls, *a: searched.append(a[4] - a[3]) or search(cls, *a)))
+    min_score, kept, dropped, unsearched = 0.6, 0, 0, 0
+    for seed in range(12):
+        for corners in (6, 8):
+            ids, pts, scores = _cluttered_box(seed, corners, 1.0)
+            scores = np.clip(scores - 0.15 * (seed % 3), 0.05, 1.0)
+            searched.clear()
+            every = solve_pnp_candidates(ids, pts, scores, CUBOID, K640)
+            sets_every = sum(searched)
+            searched.clear()
+            some = solve_pnp_candidates(ids, pts, scores, CUBOID, K640, min_score=min_score)
+            if every is None:
+                assert some is None
+                continue
+            inliers = every.inliers
+            best_in_view = np.clip(every.keypoint_scores[inliers], 0, 1).sum() / max(5, inliers.sum())
+            if best_in_view >= min_score:
+                assert some is not None and some.score == every.score
+                np.testing.assert_array_equal(some.R, every.R)
+                kept += 1
+            elif some is None:
+                dropped += 1
+                assert sum(searched) <= sets_every
+                unsearched += sets_every > 0 and not searched
+            else:
+                assert some.score == every.score
+    assert kept >= 3 and dropped >= 3 and unsearched >= 1

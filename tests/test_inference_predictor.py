@@ -576,7 +576,7 @@ def test_a_centroid_whose_peaks_cannot_reach_min_score_is_not_searched(monkeypat
     searched = []
     real = predictor_module.solve_pnp_instances
     monkeypatch.setattr(predictor_module, "solve_pnp_instances",
-                        lambda candidates, *a: searched.append(len(candidates)) or real(candidates, *a))
+                        lambda candidates, *a, **kw: searched.append(len(candidates)) or real(candidates, *a, **kw))
     backend_ = _TwoStrengthsBackend(OBJ.name, OBJ.size_array, POSES, K640, (480, 640))
     all_dets = DopePredictor(backend_, min_score=0.0).predict(white((480, 640)), K640)
     match(all_dets, POSES)

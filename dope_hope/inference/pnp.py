@@ -34,6 +34,7 @@ Several candidate peaks per keypoint (the multi-hypothesis pose search, which en
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -281,7 +282,7 @@ def _accepted_poses(sets: _KeypointSets, refined: list[tuple], settings: PnpSett
     n_in = inliers.sum(axis=1)
     centre_z = (Rs @ sets.obj[CENTROID_INDEX] + ts)[:, 2]
     mean_err = np.where(inliers, err, 0.0).sum(axis=1) / np.maximum(n_in, 1)
-    ok = ((n_in >= settings.min_points) & (n_in >= settings.min_inlier_ratio * sets.n_present[which])
+    ok = ((n_in >= min_inliers(sets.n_present[which], settings))
           & (ts[:, 2] > 0) & (centre_z > 0) & (mean_err <= settings.max_mean_error_px))
     scores_out = np.where(inliers, np.clip(sets.sc[which], 0.0, 1.0), 0.0).sum(axis=1) / NUM_KEYPOINTS
     for j in np.flatnonzero(ok):
@@ -292,6 +293,23 @@ def _accepted_poses(sets: _KeypointSets, refined: list[tuple], settings: PnpSett
             keypoint_scores=sets.sc[b].copy(),
         )
     return out
+
+
+def min_inliers(n_present: int | np.ndarray, settings: PnpSettings) -> int | np.ndarray:
+    """The fewest inliers :func:`solve_pnp` accepts among ``n_present`` present keypoints (an
+    int or an int array): ``min_points``, and ``min_inlier_ratio`` of those present."""
+    if np.ndim(n_present) == 0:
+        return max(settings.min_points, math.ceil(settings.min_inlier_ratio * int(n_present)))
+    return np.maximum(settings.min_points, np.ceil(settings.min_inlier_ratio * np.asarray(n_present))).astype(int)
+
+
+def least_score_divisor(settings: PnpSettings, n_present: int = 0) -> int | None:
+    """The fewest keypoints the score of a pose :func:`solve_pnp` accepts is divided by, where at
+    least ``n_present`` keypoints are present (0: any number): with ``score_in_view`` the inliers
+    it needs (:func:`min_inliers`: the in-view score divides by at least the inlier count);
+    None without: all nine. :func:`dope_hope.maps.decode.keypoint_score_bound` with it bounds
+    the score of any pose from given peaks."""
+    return min_inliers(n_present, settings) if settings.score_in_view else None
 
 
 def score_in_view(estimate: PoseEstimate, image_hw: tuple[int, int], min_points: int = DEFAULT_MIN_POINTS) -> float:

@@ -22,9 +22,11 @@ import numpy as np
 
 from dope_hope.config import SectionSettings, at_least, positive_float
 from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
-from dope_hope.inference.pnp import PnpSettings, PoseEstimate, solve_pnp, solve_pnp_many
+from dope_hope.inference.p3p import ap3p_poses
+from dope_hope.inference.pnp import PnpSettings, PoseEstimate, least_score_divisor, solve_pnp, solve_pnp_many
+from dope_hope.maps.decode import keypoint_score_bound, may_reach
 
-#: :func:`solve_pnp_candidates`' budget, in AP3P minimal sets: the most it solves by default;
+#: :func:`solve_pnp_candidates`' budget, in AP3P minimal sets: the most it takes by default;
 #: it stops when ``_STALL_AFTER`` sets in a row found no better hypothesis (clutter: none ever
 #: fits; a noisy box's last improvement came by the 51st set, its first fit by the 33rd, on
 #: the README video test's 320x240 frames, where stopping after 8 unfit or 32 unexplaining sets
@@ -35,15 +37,17 @@ DEFAULT_MAX_HYPOTHESES = 400
 DEFAULT_HYPOTHESIS_PX = 5.0
 _STALL_AFTER = 64
 _ENOUGH_TYPES = 6
-#: Minimal sets solved between two later checks of its stopping rules.
+#: Minimal sets taken between two later checks of its stopping rules.
 _HYPOTHESIS_CHUNK = 16
+#: Minimal sets taken before the first check of the stopping rules (any single wrong first
+#: choice is avoided by the second set); clean maps end there.
+_FIRST_CHECK = 4
 
 
 def _chunk_ends(n: int) -> list[int]:
-    """How many of n minimal sets :func:`solve_pnp_candidates` has solved at each check of its
-    stopping rules: 4 (any single wrong first choice is avoided by the second set), then every
-    ``_HYPOTHESIS_CHUNK``, then n."""
-    return sorted({min(4, n), *range(_HYPOTHESIS_CHUNK, n, _HYPOTHESIS_CHUNK), n})
+    """How many of n minimal sets :func:`solve_pnp_candidates` has taken at each check of its
+    stopping rules: ``_FIRST_CHECK``, then every ``_HYPOTHESIS_CHUNK``, then n."""
+    return sorted({min(_FIRST_CHECK, n), *range(_HYPOTHESIS_CHUNK, n, _HYPOTHESIS_CHUNK), n})
 
 
 @dataclass(frozen=True)
@@ -52,7 +56,7 @@ class HypothesisSettings(SectionSettings):
     ``dope_hope/configs/infer.yaml``; :func:`solve_pnp_candidates`).
 
     hypothesis_threshold_px: a candidate supports a hypothesis within this distance, px.
-    max_hypotheses: most AP3P minimal sets solved.
+    max_hypotheses: most AP3P minimal sets taken.
     """
 
     SECTION = "hypotheses"
@@ -124,19 +128,22 @@ def _least_squares_pose(obj: np.ndarray, img: np.ndarray, K: np.ndarray,
     return cv2.Rodrigues(rvec)[0], tvec.ravel()
 
 
-def _ap3p_poses(objs: np.ndarray, imgs: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _ap3p_each(objs: np.ndarray, imgs: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``cv2.SOLVEPNP_AP3P`` on each of (H, 4, 3) model / (H, 4, 2) image point quadruples (no
-    distortion): ((h, 3, 3) R, (h, 3) t) of the h that succeed."""
-    Rs, ts = [], []
-    for obj, img in zip(objs, imgs):
+    distortion), one call per set, as :func:`ap3p_poses` returns them: ((h, 3, 3) R, (h, 3) t,
+    (H,) solved). The first check's few sets go this way: a batch's fixed cost (~0.25 ms) is
+    that of ~14 calls."""
+    Rs, ts, solved = [], [], np.zeros(len(objs), dtype=bool)
+    for i, (obj, img) in enumerate(zip(objs, imgs)):
         try:
-            ok, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_AP3P)
+            ok, rvec, tvec = cv2.solvePnP(obj, np.ascontiguousarray(img), K, None, flags=cv2.SOLVEPNP_AP3P)
         except cv2.error:
             continue
         if ok and np.isfinite(rvec).all() and np.isfinite(tvec).all():
             Rs.append(cv2.Rodrigues(rvec)[0])
             ts.append(tvec.ravel())
-    return np.array(Rs).reshape(-1, 3, 3), np.array(ts).reshape(-1, 3)
+            solved[i] = True
+    return np.array(Rs).reshape(-1, 3, 3), np.array(ts).reshape(-1, 3), solved
 
 
 def solve_pnp_candidates(
@@ -147,6 +154,7 @@ def solve_pnp_candidates(
     K: np.ndarray,
     settings: HypothesisSettings = HypothesisSettings(),
     pnp_settings: PnpSettings = PnpSettings(),
+    min_score: float = 0.0,
 ) -> PoseEstimate | None:
     """Pose of one cuboid from several candidate peaks per keypoint (multi-hypothesis PnP).
 
@@ -161,15 +169,19 @@ def solve_pnp_candidates(
     1. the least-squares pose (``cv2.SOLVEPNP_SQPNP``) through every type's first candidate.
        On clean maps it is the answer: when each first candidate lies within the threshold
        and is the nearest of its type, they go to :func:`solve_pnp` without further search;
-    2. otherwise ``cv2.SOLVEPNP_AP3P`` poses from the centroid plus three corner candidates of
-       distinct types (minimal sets), best-ranked first (candidates are listed best first per
-       type), type triples of equal rank in a covering order (:func:`_covering_order`: any
-       one, two, three wrong first choices are avoided by the 2nd, 4th, 10th set), checked
-       after 4 and then every ``_HYPOTHESIS_CHUNK`` sets (:func:`_chunk_ends`), at most
-       ``max_hypotheses``. Whenever a hypothesis beats the best so far and explains more
-       than four types (not all), the least-squares pose through the candidates it explains
-       is scored too (the local optimization of LO-RANSAC: noisy peaks put a minimal set's
-       pose a few pixels off the far corners).
+    2. otherwise AP3P poses (:func:`dope_hope.inference.p3p.ap3p_poses`) from the centroid
+       plus three corner candidates of distinct types (minimal sets), best-ranked first
+       (candidates are listed best first per type), type triples of equal rank in a covering
+       order (:func:`_covering_order`: any one, two, three wrong first choices are avoided by
+       the 2nd, 4th, 10th set), taken after 4 and then every ``_HYPOTHESIS_CHUNK`` sets
+       (:func:`_chunk_ends`), at most ``max_hypotheses``. After the first four (one
+       ``cv2.solvePnP`` each: clean maps end there), the sets are solved and scored in blocks,
+       each up to the search's earliest possible stop (``_STALL_AFTER`` sets after the last
+       better hypothesis), one numpy call per block, with the result of taking one chunk at a
+       time. Whenever a hypothesis beats the best so far and explains more than four types
+       (not all), the least-squares pose through the candidates it explains is scored too
+       (the local optimization of LO-RANSAC: noisy peaks put a minimal set's pose a few pixels
+       off the far corners).
 
     The search ends as soon as a hypothesis explains every keypoint type present, or all but
     one and at least ``_ENOUGH_TYPES`` (a type whose candidates are all another object's
@@ -194,17 +206,24 @@ def solve_pnp_candidates(
         K: (3, 3) intrinsics of the image the points are in (no distortion).
         settings: :class:`HypothesisSettings` (``hypothesis_threshold_px``, ``max_hypotheses``).
         pnp_settings: :class:`PnpSettings` of the final :func:`solve_pnp`.
+        min_score: no search, and no final :func:`solve_pnp`, where no pose of the candidates
+            (or of the assignment the search ends with) can score this much: the mean of the
+            best keypoint types' clipped confidences over the fewest keypoints its score can
+            be divided by (:func:`dope_hope.inference.pnp.least_score_divisor`: the inliers an
+            accepted pose needs), as the predictor's ``min_score`` would drop it. 0: every
+            pose.
 
     Returns:
         :class:`PoseEstimate` (``keypoints``: the chosen candidate per type), or None: no
         centroid, fewer keypoint types than :func:`solve_pnp`'s ``min_points`` (no minimal
-        set is solved then), or the chosen assignment fails :func:`solve_pnp`.
+        set is solved then), no pose can reach ``min_score``, or the chosen assignment fails
+        :func:`solve_pnp`.
     """
     step1 = _first_choices([(keypoint_ids, points, scores)], cuboid_points, K, settings, pnp_settings)[0]
     if step1 is None or step1[0]:
         return None if step1 is None else step1[1]
     prep = _Candidates.of(keypoint_ids, points, scores, cuboid_points, K, pnp_settings)
-    return _search(prep, step1[2], settings, pnp_settings)
+    return _search(prep, step1[2], settings, pnp_settings, min_score)
 
 
 
@@ -214,6 +233,7 @@ def solve_pnp_instances(
     K: np.ndarray,
     settings: HypothesisSettings = HypothesisSettings(),
     pnp_settings: PnpSettings = PnpSettings(),
+    min_score: float = 0.0,
 ) -> list[PoseEstimate]:
     """Poses of the objects of one image: :func:`solve_pnp_candidates` per centroid, a peak
     belonging to one object only.
@@ -232,7 +252,8 @@ def solve_pnp_instances(
     Args:
         candidates: per centroid (keypoint_ids (n,), points (n, 2) px, scores (n,)) as
             :func:`solve_pnp_candidates` takes them.
-        cuboid_points, K, settings, pnp_settings: as in :func:`solve_pnp_candidates`.
+        cuboid_points, K, settings, pnp_settings, min_score: as in :func:`solve_pnp_candidates`
+            (a centroid searched without peaks an accepted pose holds gets the bound of those left).
 
     Returns:
         The estimates kept, highest score first.
@@ -257,7 +278,7 @@ def solve_pnp_instances(
                     continue
             first_pose = _least_squares_pose(prep.cuboid[prep.types], prep.pts[prep.first], prep.K)
             first_pose = None if first_pose[0] is None else first_pose
-        found[i] = _search(prep, first_pose, settings, pnp_settings)
+        found[i] = _search(prep, first_pose, settings, pnp_settings, min_score)
         if found[i] is not None:
             taken.append(_inlier_peaks([found[i]]))
     found = sorted((e for e in found if e is not None), key=lambda e: -e.score)       # 3
@@ -417,42 +438,68 @@ def _first_choices(candidates: Sequence[tuple], cuboid_points: np.ndarray, K: np
     return out
 
 
+def _may_reach(ids: np.ndarray, heights: np.ndarray, n_present: int, pnp_settings: PnpSettings,
+               min_score: float) -> bool:
+    """Whether a pose :func:`solve_pnp` accepts from keypoints of these types ((n,) int) and
+    heights ((n,)), at least ``n_present`` of them present, may score ``min_score``."""
+    return may_reach(keypoint_score_bound(ids, heights, least_score_divisor(pnp_settings, n_present)), min_score)
+
+
 def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, settings: HypothesisSettings,
-            pnp_settings: PnpSettings) -> PoseEstimate | None:
+            pnp_settings: PnpSettings, min_score: float = 0.0) -> PoseEstimate | None:
     """Step 2 of :func:`solve_pnp_candidates` (and its final :func:`solve_pnp`), after step 1's
-    ``first_pose`` (scored first; None: the solver failed)."""
+    ``first_pose`` (scored first; None: the solver failed); nothing where no pose of these
+    candidates, or of the assignment the search ends with, can score ``min_score``."""
     ids, pts, sc, cuboid, K, types, order, starts = c.ids, c.pts, c.sc, c.cuboid, c.K, c.types, c.order, c.starts
+    if min_score > 0:
+        # Types present whichever candidate each ends with: every candidate scored above the
+        # keypoint threshold (solve_pnp treats the others as missing).
+        u_ids, u_sc = ids[c.usable], sc[c.usable]
+        n_present = len(c.types) - len(np.unique(u_ids[u_sc <= pnp_settings.min_score]))
+        if not _may_reach(u_ids, u_sc, n_present, pnp_settings, min_score):
+            return None
     hypothesis_threshold_px = settings.hypothesis_threshold_px
     anchor = c.first[-1]                                       # the centroid (type 8, last)
     groups = np.split(order, starts[1:])
     scorer = _HypothesisScorer(ids, pts, np.clip(sc, 0.0, 1.0), groups, anchor, cuboid, K,
                                float(hypothesis_threshold_px))
 
-    def add(Rs, ts) -> None:
-        """Score hypotheses; while the best improves, also the least-squares pose through the
-        candidates it explains (when more than its own four): noisy peaks put a minimal
-        set's pose a few pixels off the far corners, the fit through all of them is not."""
-        scorer.add(Rs, ts)
+    def refit() -> None:
+        """While the best improves, also score the least-squares pose through the candidates it
+        explains (when more than its own four): noisy peaks put a minimal set's pose a few
+        pixels off the far corners, the fit through all of them is not."""
         for _ in range(3):
             if not scorer.improved or not 4 < scorer.best_explained.size < len(groups):
                 break
             scorer.improved = False
             fit = _least_squares_pose(cuboid[ids[scorer.best_explained]], pts[scorer.best_explained], K)
             if fit[0] is not None:
-                scorer.add([fit[0]], [fit[1]])
+                scorer.add(fit[0][None], fit[1][None])
+
+    def take(block: _Block, lo: int, hi: int) -> None:
+        """Consider the hypotheses of minimal sets lo..hi-1 (solved and scored in ``block``)."""
+        block.take(scorer, lo, hi)
+        refit()
 
     if first_pose is not None:
-        add([first_pose[0]], [first_pose[1]])
+        scorer.add(first_pose[0][None], np.asarray(first_pose[1])[None])
+        refit()
     n_types = len(types)
     enough = n_types if n_types - 1 < _ENOUGH_TYPES else n_types - 1
     if scorer.most_explained < enough:                                         # step 2
         sets = _minimal_sets(groups[:-1], settings.max_hypotheses)
         quads = np.concatenate([sets, np.full((len(sets), 1), anchor)], axis=1)  # 3 corners + centroid
-        objs, imgs = cuboid[ids[quads]], np.ascontiguousarray(pts[quads])       # (S, 4, 3), (S, 4, 2)
+        objs, imgs = cuboid[ids[quads]], pts[quads]                             # (S, 4, 3), (S, 4, 2)
+        ends = _chunk_ends(len(quads))
         start = last_better = 0
-        for end in _chunk_ends(len(quads)):
+        block = _Block.empty()
+        for end in ends:
+            if end > block.end:  # the first check's sets, then every set up to the earliest stop
+                stop = end if start == 0 else next(e for e in ends if e >= end and (
+                    e - last_better >= _STALL_AFTER or e == ends[-1]))
+                block = _Block.solve(objs, imgs, K, start, stop, scorer)
             best_before = scorer.best_total
-            add(*_ap3p_poses(objs[start:end], imgs[start:end], K))
+            take(block, start, end)
             start, last_better = end, end if scorer.best_total > best_before else last_better
             if scorer.most_explained >= enough:
                 break  # every type present explained, or all but a foreign one
@@ -469,6 +516,9 @@ def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, se
         if best_err[j] > hypothesis_threshold_px:
             j = g[np.argmax(sc[g])]
         kp[k], kp_scores[k] = pts[j], sc[j]
+    present = np.flatnonzero(np.isfinite(kp).all(axis=1) & (kp_scores > pnp_settings.min_score))
+    if not _may_reach(present, kp_scores[present], present.size, pnp_settings, min_score):
+        return None  # no pose of this assignment can score min_score
     est = solve_pnp(kp, kp_scores, cuboid, K, pnp_settings, initial_pose=scorer.best_pose)
     # A minimal set's pose is a few pixels off on noisy peaks: where its consensus does not
     # hold up, RANSAC on the assignment may still find one that does.
@@ -502,33 +552,85 @@ class _HypothesisScorer:
         self.best_err: np.ndarray | None = None      # (n + 1,) errors under the best hypothesis
         self.best_nearest: np.ndarray | None = None  # (T,) its nearest candidate per type
 
-    def add(self, Rs, ts) -> None:
-        """Score hypotheses, Rs (H, 3, 3) and ts (H, 3) (arrays or lists), at once: (H, 3, 9)
-        camera-frame cuboids -> per type the nearest candidate to the projection, explained
-        within the threshold."""
-        if len(Rs) == 0:
-            return
-        cam = np.asarray(Rs) @ self.cuboid_t + np.asarray(ts)[:, :, None]   # (H, 3, 9)
+    def score(self, Rs: np.ndarray, ts: np.ndarray) -> "_Scores":
+        """Score hypotheses Rs (H, 3, 3), ts (H, 3) at once: (H, 3, 9) camera-frame cuboids ->
+        per type the nearest candidate to the projection, explained within the threshold."""
+        cam = Rs @ self.cuboid_t + ts[:, :, None]                             # (H, 3, 9)
         img = self.K @ cam
         with np.errstate(divide="ignore", invalid="ignore"):
             proj = img[:, :2] / np.where(cam[:, 2] > 0, img[:, 2], np.nan)[:, None]   # (H, 2, 9)
         d = proj[:, :, self.ids] - self.pts.T[None]                           # (H, 2, n)
         err = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)                            # (H, n)
-        centre_ok = err[:, self.anchor] <= self.threshold
-        if not centre_ok.any():
-            return  # none fits its centroid: it explains nothing
+        centre_ok = err[:, self.anchor] <= self.threshold                     # else it explains nothing
         err[~np.isfinite(err) | ~centre_ok[:, None]] = np.inf
         err = np.concatenate([err, np.full((len(err), 1), np.inf)], axis=1)  # column n: no candidate
         per_slot = err[:, self.slots]                                         # (H, T, w)
-        pick = np.argmin(per_slot, axis=2)                                    # (H, T)
-        nearest = self.slots[self.type_index, pick]
+        nearest = self.slots[self.type_index, np.argmin(per_slot, axis=2)]   # (H, T)
         inside = per_slot.min(axis=2) <= self.threshold
-        total = (inside * self.weight[nearest]).sum(axis=1)
-        valid = centre_ok
-        h = int(np.argmax(np.where(valid, total, -np.inf)))
-        if valid[h] and total[h] > self.best_total:
-            self.best_total, self.best_err, self.best_nearest = float(total[h]), err[h], nearest[h]
-            self.best_pose = (Rs[h], np.asarray(ts[h]))
-            self.best_explained = nearest[h][inside[h]]
+        total = np.where(centre_ok, (inside * self.weight[nearest]).sum(axis=1), -np.inf)
+        return _Scores(total, inside.sum(axis=1), err, nearest, inside)
+
+    def consider(self, scores: "_Scores", Rs: np.ndarray, ts: np.ndarray, lo: int, hi: int) -> None:
+        """Take hypotheses lo..hi-1 of ``scores`` (of Rs, ts): the best of them replaces the best
+        so far when it explains more weight (the first of equals)."""
+        if hi <= lo:
+            return
+        h = lo + int(np.argmax(scores.total[lo:hi]))
+        if np.isfinite(scores.total[h]) and scores.total[h] > self.best_total:
+            self.best_total, self.best_err, self.best_nearest = float(scores.total[h]), scores.err[h], scores.nearest[h]
+            self.best_pose = (Rs[h], ts[h])
+            self.best_explained = scores.nearest[h][scores.inside[h]]
             self.improved = True
-        self.most_explained = max(self.most_explained, int(inside.sum(axis=1).max()))
+        self.most_explained = max(self.most_explained, int(scores.explained[lo:hi].max()))
+
+    def add(self, Rs: np.ndarray, ts: np.ndarray) -> None:
+        """Score hypotheses Rs (H, 3, 3), ts (H, 3) and take them all."""
+        self.consider(self.score(Rs, ts), Rs, ts, 0, len(Rs))
+
+
+@dataclass(frozen=True)
+class _Scores:
+    """H hypotheses scored by :meth:`_HypothesisScorer.score`: total (H,) summed weight of the
+    types they explain (-inf: the centroid's candidate is not within the threshold); explained
+    (H,) types explained; err (H, n + 1) px from each candidate to its type's projection (inf
+    where the centroid test fails; column n: no candidate); nearest (H, T) candidate per type;
+    inside (H, T) within the threshold."""
+
+    total: np.ndarray
+    explained: np.ndarray
+    err: np.ndarray
+    nearest: np.ndarray
+    inside: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Block:
+    """Minimal sets first..end-1 of a search, solved (:func:`ap3p_poses`) and scored at once:
+    Rs (h, 3, 3), ts (h, 3) of the h that have a pose; offsets (end - first + 1,) the index
+    among them of each set's hypothesis (sets without a pose have none); scores of the h."""
+
+    first: int
+    end: int
+    Rs: np.ndarray
+    ts: np.ndarray
+    offsets: np.ndarray
+    scores: _Scores | None
+
+    @classmethod
+    def empty(cls) -> "_Block":
+        return cls(0, 0, np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(1, dtype=int), None)
+
+    @classmethod
+    def solve(cls, objs: np.ndarray, imgs: np.ndarray, K: np.ndarray, first: int, end: int,
+              scorer: _HypothesisScorer) -> "_Block":
+        """Sets first..end-1 of (S, 4, 3) model / (S, 4, 2) image quadruples (those of the first
+        check one by one, :func:`_ap3p_each`; a block never holds sets on both sides of it)."""
+        solve = _ap3p_each if end <= _FIRST_CHECK else ap3p_poses
+        Rs, ts, solved = solve(objs[first:end], imgs[first:end], K)
+        return cls(first, end, Rs, ts, np.r_[0, np.cumsum(solved)], scorer.score(Rs, ts) if len(Rs) else None)
+
+    def take(self, scorer: _HypothesisScorer, lo: int, hi: int) -> None:
+        """Let ``scorer`` consider the hypotheses of sets lo..hi-1 (within the block)."""
+        if self.scores is not None:
+            scorer.consider(self.scores, self.Rs, self.ts, int(self.offsets[lo - self.first]),
+                            int(self.offsets[hi - self.first]))

@@ -24,7 +24,9 @@ run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.pr
    peaks give one detection, the higher-scoring. A centroid whose candidates allow no pose of
    ``min_score`` (:func:`dope_hope.maps.decode.keypoint_score_bound`: the mean of its
    ``pnp.min_points`` best keypoint types) is left out before the search: it costs no search
-   and holds no peaks.
+   and holds no peaks; the search, given ``min_score``, skips the minimal sets and the final
+   PnP of a centroid whose poses could not reach it with the inliers they need
+   (:func:`dope_hope.inference.pnp.least_score_divisor`).
    ``pose_search="groups"``: DOPE's decoding, one corner per type and centroid
    (:func:`dope_hope.maps.decode.decode_maps`), then :func:`dope_hope.inference.pnp.solve_pnp`.
    The cuboid is the object's: the model's size (mesh frame) or, with ``mesh=``, the
@@ -73,13 +75,14 @@ from dope_hope.inference.backends import MapBackend, backend_objects, model_min_
 from dope_hope.inference.detection import Detection
 from dope_hope.inference.object_geometry import ObjectGeometry
 from dope_hope.inference.options import InferenceOptions
-from dope_hope.inference.pnp import PoseEstimate, score_in_view, solve_pnp
+from dope_hope.inference.pnp import PoseEstimate, least_score_divisor, score_in_view, solve_pnp
 from dope_hope.inference.pose_search import solve_pnp_instances
 from dope_hope.maps.decode import (
     corner_candidates,
     decode_maps,
     decoder_peaks,
     keypoint_score_bound,
+    may_reach,
 )
 from dope_hope.maps.peaks import Peaks, split_peaks
 from dope_hope.model.info import ObjectInfo
@@ -96,11 +99,6 @@ from dope_hope.refine.line_search import depth_line_search
 
 #: Scale range of the line search the ICP stage repeats when the default one refused.
 ICP_LS_SEARCH = (0.5, 2.0)
-
-
-#: A pose's score and its bound are sums of the same clipped peak heights in other orders:
-#: the skip leaves this much for rounding, so it never drops a pose the threshold keeps.
-SCORE_BOUND_SLACK = 1e-9
 
 
 # ----------------------------------------------------------------------------- predictor
@@ -398,9 +396,8 @@ class DopePredictor:
         min_score = float(self.options.min_score)
         if min_score <= 0:
             return True
-        pnp = self.options.stages.pnp
-        bound = keypoint_score_bound(keypoint_ids, heights, pnp.min_points if pnp.score_in_view else None)
-        return bound >= min_score - SCORE_BOUND_SLACK
+        bound = keypoint_score_bound(keypoint_ids, heights, least_score_divisor(self.options.stages.pnp))
+        return may_reach(bound, min_score)
 
     def _poses(self, belief: np.ndarray, affinity: np.ndarray, K_net: np.ndarray,
                cuboid: np.ndarray, peaks: Peaks | None = None) -> list[PoseEstimate]:
@@ -416,7 +413,7 @@ class DopePredictor:
         # A centroid whose candidates allow no pose min_score keeps: no search.
         candidates = [c for c in candidates if self._may_reach_min_score(c.keypoint_ids, c.scores)]
         return solve_pnp_instances([(c.keypoint_ids, c.xy, c.scores) for c in candidates], cuboid,
-                                   K_net, stages.hypotheses, stages.pnp)
+                                   K_net, stages.hypotheses, stages.pnp, min_score=self.options.min_score)
 
     def __repr__(self) -> str:
         return (f"DopePredictor(classes={list(self.class_names)!r}, stride={self.stride}, "

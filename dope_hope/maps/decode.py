@@ -230,17 +230,31 @@ def decoder_peaks(belief, settings: DecodeSettings = DecodeSettings()) -> Peaks:
                       settings.noise_sigmas)
 
 
+#: A pose's score and its bound are sums of the same clipped peak heights in other orders: a
+#: skip below a threshold leaves this much for rounding, so it never drops a pose the
+#: threshold keeps (:func:`may_reach`).
+SCORE_BOUND_SLACK = 1e-9
+
+
+def may_reach(bound: float, min_score: float) -> bool:
+    """Whether a pose whose score is at most ``bound`` (:func:`keypoint_score_bound`) may reach
+    ``min_score`` (always where min_score <= 0)."""
+    return min_score <= 0 or bound >= min_score - SCORE_BOUND_SLACK
+
+
 def keypoint_score_bound(keypoint_ids: np.ndarray, heights: np.ndarray, min_points: int | None = None) -> float:
     """The highest pose score keypoint peaks of these types ((n,) int 0..8) and heights ((n,))
     allow: the mean over the nine keypoint types of each type's highest peak, clipped to
     [0, 1]. A pose scores the mean of its inlier keypoints' peak heights, one peak per type,
     clipped (:mod:`dope_hope.inference.pnp`), so no pose decoded from these peaks scores more;
     below a score threshold the decoding can be skipped.
-    ``min_points``: the bound of the in-view score (:func:`dope_hope.inference.pnp.score_in_view`,
-    which divides by at least that many keypoints): the mean of the ``min_points`` highest
-    of those per-type peaks."""
-    best = np.zeros(NUM_KEYPOINTS)
-    np.maximum.at(best, np.asarray(keypoint_ids, dtype=int), np.clip(np.asarray(heights, dtype=np.float64), 0.0, 1.0))
+    ``min_points``: the bound of a score divided by at least that many keypoints (the in-view
+    score, :func:`dope_hope.inference.pnp.score_in_view`, divides by at least the inliers a pose
+    needs: :func:`dope_hope.inference.pnp.least_score_divisor`): the mean of the ``min_points``
+    highest of those per-type peaks."""
+    clipped = np.clip(np.asarray(heights, dtype=np.float64), 0.0, 1.0)
+    of_type = np.asarray(keypoint_ids, dtype=int)[:, None] == np.arange(NUM_KEYPOINTS)        # (n, 9)
+    best = (of_type * clipped[:, None]).max(axis=0, initial=0.0)
     if min_points is None:
         return float(best.sum() / NUM_KEYPOINTS)
     k = min(int(min_points), NUM_KEYPOINTS)
