@@ -192,10 +192,15 @@ def solve_pnp_candidates(
     is within the threshold: it counts as an outlier unless within the final threshold), and
     that assignment goes through :func:`solve_pnp` with the hypothesis as its consensus
     (``initial_pose``: the search is the RANSAC) and every one of its checks (refinement,
-    inlier ratio, mean error), then, where that consensus fails them, with RANSAC; it is
-    skipped when fewer than its ``min_points`` types lie within its
-    ``reprojection_threshold_px`` of the best hypothesis. OpenCV's RANSAC does not fit the search itself: it counts every inlying
-    correspondence, so several candidates of one type near a wrong pose outvote the right one.
+    inlier ratio, mean error). Where that consensus fails them, the types within
+    ``reprojection_threshold_px`` of the best hypothesis go through it alone, the others
+    missing (a type whose candidates are all another object's peaks or noise would otherwise
+    fail every pose by the inlier ratio: on the Ketchup and six-object benchmarks' maps, a
+    centroid and four to six corners the hypothesis explains, and no pose), and the whole
+    assignment through RANSAC; the higher-scoring of the two is kept. Nothing goes through :func:`solve_pnp` when fewer than its ``min_points``
+    types lie within ``reprojection_threshold_px`` of the best hypothesis. OpenCV's RANSAC does
+    not fit the search itself: it counts every inlying correspondence, so several candidates
+    of one type near a wrong pose outvote the right one.
 
     Args:
         keypoint_ids: (n,) int keypoint index of each candidate (0..7 corners, 8 the centroid),
@@ -512,17 +517,33 @@ def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, se
         return None  # fewer than min_points keypoints near the best pose
     kp = np.full((NUM_KEYPOINTS, 2), np.nan)
     kp_scores = np.zeros(NUM_KEYPOINTS)
+    near = np.zeros(NUM_KEYPOINTS, dtype=bool)   # types within the final threshold of the best
     for k, g, j in zip(types, groups, best_nearest):
+        near[k] = best_err[j] <= pnp_settings.reprojection_threshold_px
         if best_err[j] > hypothesis_threshold_px:
             j = g[np.argmax(sc[g])]
         kp[k], kp_scores[k] = pts[j], sc[j]
     present = np.flatnonzero(np.isfinite(kp).all(axis=1) & (kp_scores > pnp_settings.min_score))
-    if not _may_reach(present, kp_scores[present], present.size, pnp_settings, min_score):
-        return None  # no pose of this assignment can score min_score
-    est = solve_pnp(kp, kp_scores, cuboid, K, pnp_settings, initial_pose=scorer.best_pose)
-    # A minimal set's pose is a few pixels off on noisy peaks: where its consensus does not
-    # hold up, RANSAC on the assignment may still find one that does.
-    return est if est is not None else solve_pnp(kp, kp_scores, cuboid, K, pnp_settings)
+    full = _may_reach(present, kp_scores[present], present.size, pnp_settings, min_score)
+    est = solve_pnp(kp, kp_scores, cuboid, K, pnp_settings, initial_pose=scorer.best_pose) if full else None
+    consensus = est is not None
+    if est is None and not near[types].all():
+        # The types the best hypothesis explains, alone: a type whose candidates are all
+        # another object's peaks or noise fails every pose by the inlier ratio otherwise.
+        kp_near, scores_near = np.full((NUM_KEYPOINTS, 2), np.nan), np.zeros(NUM_KEYPOINTS)
+        for k, j in zip(types, best_nearest):
+            if near[k]:
+                kp_near[k], scores_near[k] = pts[j], sc[j]
+        present = np.flatnonzero(near & (scores_near > pnp_settings.min_score))
+        if _may_reach(present, scores_near[present], present.size, pnp_settings, min_score):
+            est = solve_pnp(kp_near, scores_near, cuboid, K, pnp_settings, initial_pose=scorer.best_pose)
+    if full and not consensus:
+        # A minimal set's pose is a few pixels off on noisy peaks: where its consensus does not
+        # hold up, RANSAC on the assignment may still find one that does (the higher score of
+        # the two is kept).
+        alt = solve_pnp(kp, kp_scores, cuboid, K, pnp_settings)
+        est = alt if alt is not None and (est is None or alt.score > est.score) else est
+    return est
 
 
 class _HypothesisScorer:
