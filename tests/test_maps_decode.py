@@ -328,3 +328,6 @@ def test_peaks_found_once_decode_as_the_decoders_find_them(options):
     # the in-view score's bound (divided by at least 5 keypoints): the 5 best types' mean
     assert pose_score_bound(peaks, 5) == pytest.approx(sum(sorted(best)[-5:]) / 5)
     assert pose_score_bound(peaks, 9) == pytest.approx(pose_score_bound(peaks))
+    # heights above 1 count as 1; NaN, negative and missing types as 0
+    assert keypoint_score_bound([0, 0, 3, 5, 8], [0.4, 1.7, np.nan, -0.2, 0.6], 2) == pytest.approx(0.8)
+    assert keypoint_score_bound([], [], 5) == 0.0 and keypoint_score_bound([2], [0.9]) == pytest.approx(0.1)

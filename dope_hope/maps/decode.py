@@ -251,14 +251,17 @@ def keypoint_score_bound(keypoint_ids: np.ndarray, heights: np.ndarray, min_poin
     ``min_points``: the bound of a score divided by at least that many keypoints (the in-view
     score, :func:`dope_hope.inference.pnp.score_in_view`, divides by at least the inliers a pose
     needs: :func:`dope_hope.inference.pnp.least_score_divisor`): the mean of the ``min_points``
-    highest of those per-type peaks."""
-    clipped = np.clip(np.asarray(heights, dtype=np.float64), 0.0, 1.0)
-    of_type = np.asarray(keypoint_ids, dtype=int)[:, None] == np.arange(NUM_KEYPOINTS)        # (n, 9)
-    best = (of_type * clipped[:, None]).max(axis=0, initial=0.0)
+    highest of those per-type peaks. (A plain loop: the decoder calls it per centroid, on a
+    few to a few hundred peaks, where numpy's per-call cost is most of the time.)"""
+    best = [0.0] * NUM_KEYPOINTS
+    for kind, height in zip(np.asarray(keypoint_ids, dtype=int).ravel().tolist(),
+                            np.asarray(heights, dtype=np.float64).ravel().tolist()):
+        if height > best[kind]:  # NaN and negative heights never count
+            best[kind] = min(height, 1.0)
     if min_points is None:
-        return float(best.sum() / NUM_KEYPOINTS)
+        return sum(best) / NUM_KEYPOINTS
     k = min(int(min_points), NUM_KEYPOINTS)
-    return float(np.sort(best)[::-1][:k].sum() / k)
+    return sum(sorted(best, reverse=True)[:k]) / k
 
 
 def decode_maps(
