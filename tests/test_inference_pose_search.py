@@ -12,6 +12,7 @@ from dope_hope.geometry import (
     project_points,
     rotation_error_deg,
 )
+from dope_hope.inference.hypothesis_scoring import MinimalSetBlock
 from dope_hope.inference.pnp import solve_pnp
 from dope_hope.inference.pose_search import HypothesisSettings, solve_pnp_candidates, solve_pnp_instances
 
@@ -52,7 +53,7 @@ def _count_solves(monkeypatch) -> list[int]:
     import dope_hope.inference.pose_search as pose_mod
 
     calls: list[int] = []
-    solve_pnp_cv, take = cv2.solvePnP, pose_mod._Block.take
+    solve_pnp_cv, take = cv2.solvePnP, MinimalSetBlock.take
 
     def counting_pnp(*a, **kw):
         if kw.get("flags") != cv2.SOLVEPNP_AP3P:  # minimal sets are counted as taken
@@ -64,7 +65,7 @@ def _count_solves(monkeypatch) -> list[int]:
         return take(block, scorer, lo, hi)
 
     monkeypatch.setattr(pose_mod.cv2, "solvePnP", counting_pnp)
-    monkeypatch.setattr(pose_mod._Block, "take", counting_take)
+    monkeypatch.setattr(MinimalSetBlock, "take", counting_take)
     return calls
 
 
@@ -142,7 +143,7 @@ def test_minimal_sets_are_solved_in_blocks_up_to_the_earliest_stop_as_one_chunk_
     its own."""
     import dope_hope.inference.pose_search as pose_mod
 
-    solve = pose_mod._Block.solve.__func__
+    solve = MinimalSetBlock.solve.__func__
     blocks: list[tuple[int, int]] = []
 
     def recording(cls, objs, imgs, K, first, end, scorer):
@@ -157,7 +158,7 @@ def test_minimal_sets_are_solved_in_blocks_up_to_the_earliest_stop_as_one_chunk_
     cases = [_cluttered_box(seed, corners, noise) for seed in range(4) for corners in (3, 5, 8) for noise in (0.5, 2.5)]
     results = {}
     for name, how in (("blocks", recording), ("chunks", chunk_by_chunk)):
-        monkeypatch.setattr(pose_mod._Block, "solve", classmethod(how))
+        monkeypatch.setattr(MinimalSetBlock, "solve", classmethod(how))
         results[name] = []
         for case in cases:
             blocks.clear()
@@ -238,11 +239,9 @@ def test_min_score_skips_only_searches_whose_poses_could_not_reach_it(monkeypatc
     give no pose of that score - its clipped confidences over the fewest inliers an accepted
     pose needs - is not searched (or not solved): every estimate whose best in-view score
     reaches min_score is still found, the same; the others may be dropped, and some are."""
-    import dope_hope.inference.pose_search as pose_mod
-
     searched = []
-    search = pose_mod._Block.solve.__func__
-    monkeypatch.setattr(pose_mod._Block, "solve", classmethod(
+    search = MinimalSetBlock.solve.__func__
+    monkeypatch.setattr(MinimalSetBlock, "solve", classmethod(
         lambda cls, *a: searched.append(a[4] - a[3]) or search(cls, *a)))
     min_score, kept, dropped, unsearched = 0.6, 0, 0, 0
     for seed in range(12):

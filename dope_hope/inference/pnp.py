@@ -52,6 +52,7 @@ from dope_hope.config import (
 )
 from dope_hope.errors import ConfigError
 from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS, inside_image
+from dope_hope.maps.decode import keypoint_score_bound, may_reach
 
 #: :func:`solve_pnp` defaults, also what the pose search checks its best
 #: hypothesis against before calling it.
@@ -310,6 +311,17 @@ def least_score_divisor(settings: PnpSettings, n_present: int = 0) -> int | None
     None without: all nine. :func:`dope_hope.maps.decode.keypoint_score_bound` with it bounds
     the score of any pose from given peaks."""
     return min_inliers(n_present, settings) if settings.score_in_view else None
+
+
+def pose_may_reach(keypoint_ids: np.ndarray, heights: np.ndarray, settings: PnpSettings, min_score: float,
+                   n_present: int = 0) -> bool:
+    """Whether a pose :func:`solve_pnp` accepts from keypoints of these types ((n,) int) and
+    confidences ((n,)), at least ``n_present`` of them present (0: any number), may score
+    ``min_score`` (:func:`dope_hope.maps.decode.keypoint_score_bound` over
+    :func:`least_score_divisor`); always where ``min_score`` <= 0, with nothing computed."""
+    if min_score <= 0:
+        return True
+    return may_reach(keypoint_score_bound(keypoint_ids, heights, least_score_divisor(settings, n_present)), min_score)
 
 
 def score_in_view(estimate: PoseEstimate, image_hw: tuple[int, int], min_points: int = DEFAULT_MIN_POINTS) -> float:

@@ -22,9 +22,8 @@ import numpy as np
 
 from dope_hope.config import SectionSettings, at_least, positive_float
 from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
-from dope_hope.inference.p3p import ap3p_poses
-from dope_hope.inference.pnp import PnpSettings, PoseEstimate, least_score_divisor, solve_pnp, solve_pnp_many
-from dope_hope.maps.decode import keypoint_score_bound, may_reach
+from dope_hope.inference.hypothesis_scoring import FIRST_CHECK, HypothesisScorer, MinimalSetBlock
+from dope_hope.inference.pnp import PnpSettings, PoseEstimate, pose_may_reach, solve_pnp, solve_pnp_many
 
 #: :func:`solve_pnp_candidates`' budget, in AP3P minimal sets: the most it takes by default;
 #: it stops when ``_STALL_AFTER`` sets in a row found no better hypothesis (clutter: none ever
@@ -39,15 +38,12 @@ _STALL_AFTER = 64
 _ENOUGH_TYPES = 6
 #: Minimal sets taken between two later checks of its stopping rules.
 _HYPOTHESIS_CHUNK = 16
-#: Minimal sets taken before the first check of the stopping rules (any single wrong first
-#: choice is avoided by the second set); clean maps end there.
-_FIRST_CHECK = 4
 
 
 def _chunk_ends(n: int) -> list[int]:
     """How many of n minimal sets :func:`solve_pnp_candidates` has taken at each check of its
-    stopping rules: ``_FIRST_CHECK``, then every ``_HYPOTHESIS_CHUNK``, then n."""
-    return sorted({min(_FIRST_CHECK, n), *range(_HYPOTHESIS_CHUNK, n, _HYPOTHESIS_CHUNK), n})
+    stopping rules: ``FIRST_CHECK``, then every ``_HYPOTHESIS_CHUNK``, then n."""
+    return sorted({min(FIRST_CHECK, n), *range(_HYPOTHESIS_CHUNK, n, _HYPOTHESIS_CHUNK), n})
 
 
 @dataclass(frozen=True)
@@ -126,24 +122,6 @@ def _least_squares_pose(obj: np.ndarray, img: np.ndarray, K: np.ndarray,
     if not ok or not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
         return None, None
     return cv2.Rodrigues(rvec)[0], tvec.ravel()
-
-
-def _ap3p_each(objs: np.ndarray, imgs: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``cv2.SOLVEPNP_AP3P`` on each of (H, 4, 3) model / (H, 4, 2) image point quadruples (no
-    distortion), one call per set, as :func:`ap3p_poses` returns them: ((h, 3, 3) R, (h, 3) t,
-    (H,) solved). The first check's few sets go this way: a batch's fixed cost (~0.25 ms) is
-    that of ~14 calls."""
-    Rs, ts, solved = [], [], np.zeros(len(objs), dtype=bool)
-    for i, (obj, img) in enumerate(zip(objs, imgs)):
-        try:
-            ok, rvec, tvec = cv2.solvePnP(obj, np.ascontiguousarray(img), K, None, flags=cv2.SOLVEPNP_AP3P)
-        except cv2.error:
-            continue
-        if ok and np.isfinite(rvec).all() and np.isfinite(tvec).all():
-            Rs.append(cv2.Rodrigues(rvec)[0])
-            ts.append(tvec.ravel())
-            solved[i] = True
-    return np.array(Rs).reshape(-1, 3, 3), np.array(ts).reshape(-1, 3), solved
 
 
 def solve_pnp_candidates(
@@ -443,13 +421,6 @@ def _first_choices(candidates: Sequence[tuple], cuboid_points: np.ndarray, K: np
     return out
 
 
-def _may_reach(ids: np.ndarray, heights: np.ndarray, n_present: int, pnp_settings: PnpSettings,
-               min_score: float) -> bool:
-    """Whether a pose :func:`solve_pnp` accepts from keypoints of these types ((n,) int) and
-    heights ((n,)), at least ``n_present`` of them present, may score ``min_score``."""
-    return may_reach(keypoint_score_bound(ids, heights, least_score_divisor(pnp_settings, n_present)), min_score)
-
-
 def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, settings: HypothesisSettings,
             pnp_settings: PnpSettings, min_score: float = 0.0) -> PoseEstimate | None:
     """Step 2 of :func:`solve_pnp_candidates` (and its final :func:`solve_pnp`), after step 1's
@@ -461,12 +432,12 @@ def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, se
         # keypoint threshold (solve_pnp treats the others as missing).
         u_ids, u_sc = ids[c.usable], sc[c.usable]
         n_present = len(c.types) - len(np.unique(u_ids[u_sc <= pnp_settings.min_score]))
-        if not _may_reach(u_ids, u_sc, n_present, pnp_settings, min_score):
+        if not pose_may_reach(u_ids, u_sc, pnp_settings, min_score, n_present):
             return None
     hypothesis_threshold_px = settings.hypothesis_threshold_px
     anchor = c.first[-1]                                       # the centroid (type 8, last)
     groups = np.split(order, starts[1:])
-    scorer = _HypothesisScorer(ids, pts, np.clip(sc, 0.0, 1.0), groups, anchor, cuboid, K,
+    scorer = HypothesisScorer(ids, pts, np.clip(sc, 0.0, 1.0), groups, anchor, cuboid, K,
                                float(hypothesis_threshold_px))
 
     def refit() -> None:
@@ -481,7 +452,7 @@ def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, se
             if fit[0] is not None:
                 scorer.add(fit[0][None], fit[1][None])
 
-    def take(block: _Block, lo: int, hi: int) -> None:
+    def take(block: MinimalSetBlock, lo: int, hi: int) -> None:
         """Consider the hypotheses of minimal sets lo..hi-1 (solved and scored in ``block``)."""
         block.take(scorer, lo, hi)
         refit()
@@ -497,12 +468,12 @@ def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, se
         objs, imgs = cuboid[ids[quads]], pts[quads]                             # (S, 4, 3), (S, 4, 2)
         ends = _chunk_ends(len(quads))
         start = last_better = 0
-        block = _Block.empty()
+        block = MinimalSetBlock.empty()
         for end in ends:
             if end > block.end:  # the first check's sets, then every set up to the earliest stop
                 stop = end if start == 0 else next(e for e in ends if e >= end and (
                     e - last_better >= _STALL_AFTER or e == ends[-1]))
-                block = _Block.solve(objs, imgs, K, start, stop, scorer)
+                block = MinimalSetBlock.solve(objs, imgs, K, start, stop, scorer)
             best_before = scorer.best_total
             take(block, start, end)
             start, last_better = end, end if scorer.best_total > best_before else last_better
@@ -517,25 +488,23 @@ def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, se
         return None  # fewer than min_points keypoints near the best pose
     kp = np.full((NUM_KEYPOINTS, 2), np.nan)
     kp_scores = np.zeros(NUM_KEYPOINTS)
-    near = np.zeros(NUM_KEYPOINTS, dtype=bool)   # types within the final threshold of the best
+    kp_near, scores_near = kp.copy(), kp_scores.copy()   # the types within the final threshold alone
     for k, g, j in zip(types, groups, best_nearest):
-        near[k] = best_err[j] <= pnp_settings.reprojection_threshold_px
+        if best_err[j] <= pnp_settings.reprojection_threshold_px:
+            kp_near[k], scores_near[k] = pts[j], sc[j]
         if best_err[j] > hypothesis_threshold_px:
             j = g[np.argmax(sc[g])]
         kp[k], kp_scores[k] = pts[j], sc[j]
     present = np.flatnonzero(np.isfinite(kp).all(axis=1) & (kp_scores > pnp_settings.min_score))
-    full = _may_reach(present, kp_scores[present], present.size, pnp_settings, min_score)
+    full = pose_may_reach(present, kp_scores[present], pnp_settings, min_score, present.size)
     est = solve_pnp(kp, kp_scores, cuboid, K, pnp_settings, initial_pose=scorer.best_pose) if full else None
     consensus = est is not None
+    near = np.isfinite(kp_near).all(axis=1)
     if est is None and not near[types].all():
         # The types the best hypothesis explains, alone: a type whose candidates are all
         # another object's peaks or noise fails every pose by the inlier ratio otherwise.
-        kp_near, scores_near = np.full((NUM_KEYPOINTS, 2), np.nan), np.zeros(NUM_KEYPOINTS)
-        for k, j in zip(types, best_nearest):
-            if near[k]:
-                kp_near[k], scores_near[k] = pts[j], sc[j]
         present = np.flatnonzero(near & (scores_near > pnp_settings.min_score))
-        if _may_reach(present, scores_near[present], present.size, pnp_settings, min_score):
+        if pose_may_reach(present, scores_near[present], pnp_settings, min_score, present.size):
             est = solve_pnp(kp_near, scores_near, cuboid, K, pnp_settings, initial_pose=scorer.best_pose)
     if full and not consensus:
         # A minimal set's pose is a few pixels off on noisy peaks: where its consensus does not
@@ -544,114 +513,3 @@ def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, se
         alt = solve_pnp(kp, kp_scores, cuboid, K, pnp_settings)
         est = alt if alt is not None and (est is None or alt.score > est.score) else est
     return est
-
-
-class _HypothesisScorer:
-    """Scores pose hypotheses against candidate peaks and keeps the best (see
-    :func:`solve_pnp_candidates`).
-
-    ids (n,), pts (n, 2) image px, weight (n,) in [0, 1]: the candidates; groups: per keypoint
-    type present, its candidate indices (best first); anchor: the centroid candidate;
-    cuboid (9, 3) metres; K (3, 3); threshold_px: a candidate supports a hypothesis within it.
-    """
-
-    def __init__(self, ids: np.ndarray, pts: np.ndarray, weight: np.ndarray, groups: list[np.ndarray],
-                 anchor: int, cuboid: np.ndarray, K: np.ndarray, threshold_px: float):
-        n = len(ids)
-        self.ids, self.pts, self.anchor, self.cuboid_t, self.K, self.threshold = ids, pts, anchor, cuboid.T, K, threshold_px
-        width = max(len(g) for g in groups)
-        self.slots = np.full((len(groups), width), n)          # (T, w) candidate index, n = none
-        for i, g in enumerate(groups):
-            self.slots[i, : len(g)] = g
-        self.type_index = np.arange(len(groups))
-        self.weight = np.append(weight, 0.0)
-        self.most_explained = 0
-        self.best_total = -1.0
-        self.improved = False                        # set when a hypothesis beats the best
-        self.best_explained = np.zeros(0, dtype=int)  # candidates the best explains, one per type
-        self.best_pose: tuple[np.ndarray, np.ndarray] | None = None   # (R, t) of the best hypothesis
-        self.best_err: np.ndarray | None = None      # (n + 1,) errors under the best hypothesis
-        self.best_nearest: np.ndarray | None = None  # (T,) its nearest candidate per type
-
-    def score(self, Rs: np.ndarray, ts: np.ndarray) -> "_Scores":
-        """Score hypotheses Rs (H, 3, 3), ts (H, 3) at once: (H, 3, 9) camera-frame cuboids ->
-        per type the nearest candidate to the projection, explained within the threshold."""
-        cam = Rs @ self.cuboid_t + ts[:, :, None]                             # (H, 3, 9)
-        img = self.K @ cam
-        with np.errstate(divide="ignore", invalid="ignore"):
-            proj = img[:, :2] / np.where(cam[:, 2] > 0, img[:, 2], np.nan)[:, None]   # (H, 2, 9)
-        d = proj[:, :, self.ids] - self.pts.T[None]                           # (H, 2, n)
-        err = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)                            # (H, n)
-        centre_ok = err[:, self.anchor] <= self.threshold                     # else it explains nothing
-        err[~np.isfinite(err) | ~centre_ok[:, None]] = np.inf
-        err = np.concatenate([err, np.full((len(err), 1), np.inf)], axis=1)  # column n: no candidate
-        per_slot = err[:, self.slots]                                         # (H, T, w)
-        nearest = self.slots[self.type_index, np.argmin(per_slot, axis=2)]   # (H, T)
-        inside = per_slot.min(axis=2) <= self.threshold
-        total = np.where(centre_ok, (inside * self.weight[nearest]).sum(axis=1), -np.inf)
-        return _Scores(total, inside.sum(axis=1), err, nearest, inside)
-
-    def consider(self, scores: "_Scores", Rs: np.ndarray, ts: np.ndarray, lo: int, hi: int) -> None:
-        """Take hypotheses lo..hi-1 of ``scores`` (of Rs, ts): the best of them replaces the best
-        so far when it explains more weight (the first of equals)."""
-        if hi <= lo:
-            return
-        h = lo + int(np.argmax(scores.total[lo:hi]))
-        if np.isfinite(scores.total[h]) and scores.total[h] > self.best_total:
-            self.best_total, self.best_err, self.best_nearest = float(scores.total[h]), scores.err[h], scores.nearest[h]
-            self.best_pose = (Rs[h], ts[h])
-            self.best_explained = scores.nearest[h][scores.inside[h]]
-            self.improved = True
-        self.most_explained = max(self.most_explained, int(scores.explained[lo:hi].max()))
-
-    def add(self, Rs: np.ndarray, ts: np.ndarray) -> None:
-        """Score hypotheses Rs (H, 3, 3), ts (H, 3) and take them all."""
-        self.consider(self.score(Rs, ts), Rs, ts, 0, len(Rs))
-
-
-@dataclass(frozen=True)
-class _Scores:
-    """H hypotheses scored by :meth:`_HypothesisScorer.score`: total (H,) summed weight of the
-    types they explain (-inf: the centroid's candidate is not within the threshold); explained
-    (H,) types explained; err (H, n + 1) px from each candidate to its type's projection (inf
-    where the centroid test fails; column n: no candidate); nearest (H, T) candidate per type;
-    inside (H, T) within the threshold."""
-
-    total: np.ndarray
-    explained: np.ndarray
-    err: np.ndarray
-    nearest: np.ndarray
-    inside: np.ndarray
-
-
-@dataclass(frozen=True)
-class _Block:
-    """Minimal sets first..end-1 of a search, solved (:func:`ap3p_poses`) and scored at once:
-    Rs (h, 3, 3), ts (h, 3) of the h that have a pose; offsets (end - first + 1,) the index
-    among them of each set's hypothesis (sets without a pose have none); scores of the h."""
-
-    first: int
-    end: int
-    Rs: np.ndarray
-    ts: np.ndarray
-    offsets: np.ndarray
-    scores: _Scores | None
-
-    @classmethod
-    def empty(cls) -> "_Block":
-        return cls(0, 0, np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(1, dtype=int), None)
-
-    @classmethod
-    def solve(cls, objs: np.ndarray, imgs: np.ndarray, K: np.ndarray, first: int, end: int,
-              scorer: _HypothesisScorer) -> "_Block":
-        """Sets first..end-1 of (S, 4, 3) model / (S, 4, 2) image quadruples (those of the first
-        check one by one, :func:`_ap3p_each`; a block never holds sets on both sides of it)."""
-        solve = _ap3p_each if end <= _FIRST_CHECK else ap3p_poses
-        Rs, ts, solved = solve(objs[first:end], imgs[first:end], K)
-        return cls(first, end, Rs, ts, np.r_[0, np.cumsum(solved)], scorer.score(Rs, ts) if len(Rs) else None)
-
-    def take(self, scorer: _HypothesisScorer, lo: int, hi: int) -> None:
-        """Let ``scorer`` consider the hypotheses of sets lo..hi-1 (within the block)."""
-        if self.scores is not None:
-            scorer.consider(self.scores, self.Rs, self.ts, int(self.offsets[lo - self.first]),
-                            int(self.offsets[hi - self.first]))

@@ -75,14 +75,12 @@ from dope_hope.inference.backends import MapBackend, backend_objects, model_min_
 from dope_hope.inference.detection import Detection
 from dope_hope.inference.object_geometry import ObjectGeometry
 from dope_hope.inference.options import InferenceOptions
-from dope_hope.inference.pnp import PoseEstimate, least_score_divisor, score_in_view, solve_pnp
+from dope_hope.inference.pnp import PoseEstimate, pose_may_reach, score_in_view, solve_pnp
 from dope_hope.inference.pose_search import solve_pnp_instances
 from dope_hope.maps.decode import (
     corner_candidates,
     decode_maps,
     decoder_peaks,
-    keypoint_score_bound,
-    may_reach,
 )
 from dope_hope.maps.peaks import Peaks, split_peaks
 from dope_hope.model.info import ObjectInfo
@@ -272,7 +270,7 @@ class DopePredictor:
         """Decode + PnP (+ line search, ICP) the maps of :meth:`infer_maps` (see :meth:`predict`),
         object by object; an object whose belief maps peak nowhere above the decode threshold
         is skipped before any decoding (one max over its maps), and so is one whose peaks could
-        give no pose the score ``min_score`` asks (:meth:`_may_reach_min_score` of all its peaks:
+        give no pose the score ``min_score`` asks (:func:`~dope_hope.inference.pnp.pose_may_reach` of all its peaks:
         the weak maps of an absent object cost one peak search, not a pose search). The peaks of
         all the objects left are found in one search over their stacked belief maps (each
         channel on its own: the peaks of a search per object, for about the cost of one).
@@ -294,7 +292,7 @@ class DopePredictor:
         all_peaks = split_peaks(decoder_peaks(stacked, self.options.stages.decode), len(live), NUM_KEYPOINTS)
         out: list[Detection] = []
         for (obj, b, a), peaks in zip(live, all_peaks):
-            if not self._may_reach_min_score(peaks.channel, peaks.score):
+            if not pose_may_reach(peaks.channel, peaks.score, self.options.stages.pnp, self.options.min_score):
                 continue  # no pose of these maps could reach min_score: nothing to decode
             out += self._object_detections(obj, b, a, peaks, net_in, K, K_net, depth)
         out.sort(key=lambda d: -d.score)
@@ -389,16 +387,6 @@ class DopePredictor:
         if res.applied:
             det.R, det.t = res.R, res.t
 
-    def _may_reach_min_score(self, keypoint_ids: np.ndarray, heights: np.ndarray) -> bool:
-        """Whether keypoint peaks of these types ((n,) int) and heights ((n,)) allow a pose that
-        ``min_score`` keeps (:func:`~dope_hope.maps.decode.keypoint_score_bound`, with the
-        in-view score's least divisor when ``pnp.score_in_view``); always with min_score 0."""
-        min_score = float(self.options.min_score)
-        if min_score <= 0:
-            return True
-        bound = keypoint_score_bound(keypoint_ids, heights, least_score_divisor(self.options.stages.pnp))
-        return may_reach(bound, min_score)
-
     def _poses(self, belief: np.ndarray, affinity: np.ndarray, K_net: np.ndarray,
                cuboid: np.ndarray, peaks: Peaks | None = None) -> list[PoseEstimate]:
         """Network-image poses of the instances in one object's maps (step 3 of the module
@@ -411,7 +399,7 @@ class DopePredictor:
             return [e for e in found if e is not None]
         candidates = corner_candidates(belief, affinity, self.stride, stages.decode, peaks=peaks)
         # A centroid whose candidates allow no pose min_score keeps: no search.
-        candidates = [c for c in candidates if self._may_reach_min_score(c.keypoint_ids, c.scores)]
+        candidates = [c for c in candidates if pose_may_reach(c.keypoint_ids, c.scores, stages.pnp, self.options.min_score)]
         return solve_pnp_instances([(c.keypoint_ids, c.xy, c.scores) for c in candidates], cuboid,
                                    K_net, stages.hypotheses, stages.pnp, min_score=self.options.min_score)
 
