@@ -21,7 +21,8 @@ of the shared data (``grocery_objects/``: Bread, Can, Cereal, Lemon, Milk; metre
    (:data:`TEST_SCENE`), a real photo background (the shared ``backgrounds/``, which no
    training frame uses) and RealSense-like depth noise.
 4. ``infer-all`` / ``infer-six``: `dope-hope infer --depth auto` (the depth line search,
-   "-LS") with the one model, and with the six models (one ``--weights`` each).
+   "-LS", on each object's mesh: ``--mesh NAME=PATH --mesh-units NAME=UNIT``) with the one
+   model, and with the six models (one ``--weights`` each).
 5. ``eval-all`` / ``eval-six``: `dope-hope evaluate --metric meanssd`: recall at 2 cm
    MeanSSD per object and their mean, with the same symmetries; then, in this process, where
    each arm loses the held-out instances, per object (no detection, beyond 10 cm, within 10 cm
@@ -245,12 +246,12 @@ def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], uni
                               "--backgrounds", args.shared / "backgrounds", "--set", *TEST_SCENE])
     one_ckpt = checkpoint_of(out / "run_all")
     single_ckpts = {n: checkpoint_of(out / f"run_{n}") for n in names}
-    infer = ["infer", test_dir, "--depth", "auto", "--min-score", "0", "--no-overlay", "--no-progress"]
+    mesh_flags = [a for n in names for a in ("--mesh", f"{n}={meshes[n]}", "--mesh-units", f"{n}={units[n]}")]
+    infer = ["infer", test_dir, "--depth", "auto", "--min-score", "0", "--no-overlay", "--no-progress", *mesh_flags]
     pipe.stage("infer-all", [*infer, "--weights", one_ckpt, "--out", out / "infer_all"])
     six = [a for n in names for a in ("--weights", single_ckpts[n])]
     pipe.stage("infer-six", [*infer, *six, "--out", out / "infer_six"])
-    evaluate = ["evaluate", "-d", test_dir, "--metric", "meanssd", "--no-bop-ar", "--no-progress",
-                *(a for n in names for a in ("--mesh", f"{n}={meshes[n]}", "--mesh-units", f"{n}={units[n]}"))]
+    evaluate = ["evaluate", "-d", test_dir, "--metric", "meanssd", "--no-bop-ar", "--no-progress", *mesh_flags]
     for arm, method in (("all", "one-model-LS"), ("six", "six-models-LS")):
         pipe.stage(f"eval-{arm}", [*evaluate, "-p", out / f"infer_{arm}" / "predictions.jsonl", "--method", method,
                                    "--out", out / f"eval_{arm}"])

@@ -7,7 +7,7 @@ file boundaries and always as ``quaternion_xyzw``.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -29,6 +29,16 @@ CUBOID_CORNER_SIGNS = np.array(
 )
 #: Metres per unit of a length in a file (meshes, BOP models, DOPE ``units``).
 UNIT_SCALE: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+
+
+def unit_for(mesh_units: str | Mapping[str, str] | None, class_name: str) -> str | None:
+    """The unit given for ``class_name``'s mesh file: ``mesh_units`` is one unit for every mesh,
+    or {class name: unit} with "" for the others (``--mesh-units [NAME=]UNIT``); None: by the
+    file's suffix (:data:`dope_hope.io.meshes.DEFAULT_UNITS`)."""
+    if isinstance(mesh_units, Mapping):
+        return mesh_units.get(class_name, mesh_units.get(""))
+    return mesh_units
+
 
 NUM_KEYPOINTS = 9
 CENTROID_INDEX = 8

@@ -245,6 +245,48 @@ def test_resume_with_its_own_objects_continues(shelf_run, tmp_path, capsys):
     assert out.startswith("completed: step 2 ")
 
 
+# ============================================================================= 5b. meshes of a two-object model
+def test_infer_takes_a_mesh_and_a_unit_per_object_of_a_model(shelf_run, shelf, grocery, tmp_path, capsys):
+    """--mesh NAME=PATH / --mesh-units NAME=UNIT (as evaluate takes them): each object of one
+    model gets its own mesh (its box and surface), an object left out keeps its cuboid."""
+    from dope_hope.inference.model_set import build_predictors
+
+    can, cereal = grocery / "Can" / "textured.obj", grocery / "Cereal" / "textured.obj"
+    (p,) = build_predictors([shelf_run / "last.pt"], [Path(f"can={can}"), Path(f"Cereal={cereal}")],
+                            mesh_units={"Can": "m", "": "m"})
+    by_name = {o.class_name: o for o in p.objects}
+    for name in ("Can", "Cereal"):
+        assert by_name[name].mesh is not None
+        np.testing.assert_allclose(by_name[name].cuboid_size_m, _box(grocery, name)[0])
+    (only_can,) = build_predictors([shelf_run / "last.pt"], [Path(f"Can={can}")], mesh_units={"Can": "m"})
+    assert [o.mesh is not None for o in only_can.objects] == [True, False]
+    out = tmp_path / "out"
+    code, _, err = run_cli(["infer", shelf / "000000.png", "--weights", shelf_run / "last.pt", "--mesh", f"Can={can}",
+                            "--mesh", f"Cereal={cereal}", "--mesh-units", "m", "--out", out, "--no-overlay",
+                            "--no-progress"], capsys)
+    assert code == 0, err
+    assert (out / "predictions.jsonl").is_file()
+
+
+@pytest.mark.parametrize("flags, expected", [
+    (["--mesh", "Milk={grocery}/Milk/textured.obj"],
+     "--mesh Milk={grocery}/Milk/textured.obj: Milk is not an object of this run (objects: Can, Cereal)"),
+    (["--mesh", "Can={grocery}/Can/textured.obj", "--mesh-units", "Milk=m"],
+     "--mesh-units Milk=m: Milk is not an object of this run (objects: Can, Cereal)"),
+    (["--mesh", "{grocery}/Can/textured.obj"],
+     "--mesh {grocery}/Can/textured.obj: {run}/last.pt detects 2 objects (Can, Cereal); give --mesh NAME=PATH "
+     "per object, or a models folder"),
+])
+def test_infer_mesh_of_no_object_of_the_model_is_refused(flags, expected, shelf_run, shelf, grocery, tmp_path,
+                                                         capsys):
+    out = tmp_path / "out"
+    argv = ["infer", shelf / "000000.png", "--weights", shelf_run / "last.pt",
+            *[f.format(grocery=grocery) for f in flags], "--out", out, "--no-progress"]
+    line = one_line_error(*run_cli(argv, capsys)[::2], "infer")
+    assert expected.format(grocery=grocery, run=shelf_run) in line
+    assert not out.exists()
+
+
 # ============================================================================= 6. two models, one object
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory) -> tuple[Path, Path, Path]:

@@ -295,25 +295,28 @@ def test_icp_without_a_mesh_is_refused_for_non_boxes():
     DopePredictor(backend(), icp=True)  # Cookies is a box: its cuboid is its surface
 
 
-def test_icp_stage_widens_a_refused_line_search():
+def test_line_search_widens_where_its_optimum_lies_beyond_its_range():
     R, t = POSES[0]
     depth_mm = np.round(render_box_depth(OBJ.size_array, R, t, K640, (480, 640)) * 1000).astype(np.uint16)
     far = (R, 1.5 * t)  # beyond the line search's 0.8-1.25 range
-    (ls_only,) = DopePredictor(backend(poses=[far]), height=400).predict(white((480, 640)), K640, depth=depth_mm)
-    assert not ls_only.ls_applied and "search bound" in ls_only.ls_reason
+    narrow = DopePredictor(backend(poses=[far]), height=400, line_search={"wide_search": None})
+    (refused,) = narrow.predict(white((480, 640)), K640, depth=depth_mm)
+    assert not refused.ls_applied and "search bound" in refused.ls_reason
+    (ls,) = DopePredictor(backend(poses=[far]), height=400).predict(white((480, 640)), K640, depth=depth_mm)
+    assert ls.ls_applied and ls.ls_reason == "ok (search 0.5-2)" and abs(ls.ls_scale - 1 / 1.5) < 0.01
+    assert np.linalg.norm(ls.t - t) < 0.005
     (det,) = DopePredictor(backend(poses=[far]), height=400, icp=True).predict(
         white((480, 640)), K640, depth=depth_mm)
-    assert det.ls_applied and "for ICP" in det.ls_reason and det.icp_applied
+    assert det.ls_applied and det.icp_applied
     assert np.linalg.norm(det.t - t) < 0.003 and rotation_error_deg(det.R, R) < 1.0
-
 
 
 def test_icp_stage_keeps_a_hidden_box_off_the_board_in_front():
     """The keypoints are right, but a board 28 cm in front hides all of the box except its right
     edge (no depth elsewhere, as behind the demo's photo backgrounds). -LS refuses (optimum at
-    its bound); the ICP stage's wider search finds the board (s ~ 0.55) and ICP would fit the
-    box to it, twice as large as the keypoints show it: the object's own depth support
-    (dope_hope.refine.icp, step 6) keeps the box where the keypoints put it."""
+    its bound); its wider search finds the board (s ~ 0.55) and ICP would fit the box to it,
+    twice as large as the keypoints show it: the object's own depth support
+    (dope_hope.refine.icp, step 6) keeps the box where the keypoints put it, with and without ICP."""
     R, t = POSES[0]
     box = render_box_depth(OBJ.size_array, R, t, K640, (480, 640))
     v, u = np.nonzero(box)
@@ -321,10 +324,11 @@ def test_icp_stage_keeps_a_hidden_box_off_the_board_in_front():
     depth[: v.max() + 15, : int(u.max() - 0.2 * np.ptp(u))] = 0.32
     assert 0.1 < ((depth == box) & (box > 0)).sum() / (box > 0).sum() < 0.3  # the box ~20 % visible
     depth_mm = np.round(depth * 1000).astype(np.uint16)
-    (det,) = DopePredictor(backend(poses=[(R, t)]), height=400, icp=True).predict(
-        white((480, 640)), K640, depth=depth_mm)
-    assert not det.ls_applied and "search bound" in det.ls_reason and "own depth support" in det.ls_reason
-    assert np.linalg.norm(det.t - t) < 0.003 and rotation_error_deg(det.R, R) < 1.0
+    for icp in (False, True):
+        (det,) = DopePredictor(backend(poses=[(R, t)]), height=400, icp=icp).predict(
+            white((480, 640)), K640, depth=depth_mm)
+        assert not det.ls_applied and "search bound" in det.ls_reason and "own depth support" in det.ls_reason
+        assert np.linalg.norm(det.t - t) < 0.003 and rotation_error_deg(det.R, R) < 1.0
 
 def test_predict_many_runs_each_model_once_and_merges():
     a = backend(poses=POSES[:1])

@@ -354,7 +354,7 @@ def test_train_meshes_pair_in_order_by_name_or_from_a_models_dir(shared_data, gr
 
 
 def test_evaluate_takes_a_unit_per_object_mesh(shared_data, grocery):
-    from dope_hope.commands.evaluate import mesh_units
+    from dope_hope.commands.argtypes import parse_mesh_units as mesh_units
     from dope_hope.evaluation.object_models import load_models
 
     assert mesh_units([]) is None and mesh_units(["mm"]) == "mm"

@@ -77,3 +77,26 @@ def device(text: str) -> str:
 def fixed_device(text: str) -> str:
     """A torch device this machine has ("cpu", "cuda", "cuda:1", ...)."""
     return _device(text, False)
+
+
+def parse_mesh_units(values: list[str]) -> str | dict[str, str] | None:
+    """``--mesh-units [NAME=]UNIT`` values (evaluate, infer) -> one unit for every mesh, or
+    {object: unit} ("" = the others; a catalog NAME in its catalog spelling); None: none given.
+
+    Raises:
+        ConfigError: an unknown unit, or two units for the same object (or for all).
+    """
+    from dope_hope.catalog import object_names
+
+    units: dict[str, str] = {}
+    for value in values:
+        name, _, unit = value.rpartition("=")
+        if unit not in ("m", "cm", "mm"):
+            raise ConfigError(f"--mesh-units {value}: the unit must be m, cm or mm")
+        key = object_names([name])[0] if name and name.lower() != "all" else ""
+        if key in units:
+            raise ConfigError(f"--mesh-units {value}: {'every mesh' if not key else key} already has a unit")
+        units[key] = unit
+    if not units:
+        return None
+    return units[""] if list(units) == [""] else units

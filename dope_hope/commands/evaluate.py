@@ -20,7 +20,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from dope_hope.errors import ConfigError
+from dope_hope.commands.argtypes import parse_mesh_units
 
 # The library is imported inside the functions: cli.py imports every command to build --help,
 # which must not pay for numpy, OpenCV or torch.
@@ -67,28 +67,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
-def mesh_units(values: list[str]) -> str | dict[str, str] | None:
-    """``--mesh-units`` values -> one unit for every mesh, or {class: unit} ("" = the others).
-
-    Raises:
-        ConfigError: an unknown unit, or two units for the same object (or for all).
-    """
-    from dope_hope.catalog import object_names
-
-    units: dict[str, str] = {}
-    for value in values:
-        name, _, unit = value.rpartition("=")
-        if unit not in ("m", "cm", "mm"):
-            raise ConfigError(f"--mesh-units {value}: the unit must be m, cm or mm")
-        key = object_names([name])[0] if name and name.lower() != "all" else ""
-        if key in units:
-            raise ConfigError(f"--mesh-units {value}: {'every mesh' if not key else key} already has a unit")
-        units[key] = unit
-    if not units:
-        return None
-    return units[""] if list(units) == [""] else units
-
-
 def run(args: argparse.Namespace) -> int:
     from dope_hope.evaluation.evaluate import EvalConfig, run_evaluation
     from dope_hope.io.paths import output_dir
@@ -96,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     output_dir(args.out)
     cfg = EvalConfig(predictions=list(args.predictions), dataset=args.dataset, fmt=args.format,
                      metrics=[m.strip().lower() for m in args.metric.split(",") if m.strip()],
-                     mesh=list(args.mesh), models_dir=args.models_dir, mesh_units=mesh_units(args.mesh_units),
+                     mesh=list(args.mesh), models_dir=args.models_dir, mesh_units=parse_mesh_units(args.mesh_units),
                      out=args.out, methods=args.method, bop_ar=args.bop_ar,
                      progress=not args.no_progress, symmetries=list(args.symmetries),
                      official_frame=args.official_frame)

@@ -88,7 +88,14 @@ import sys
 from pathlib import Path
 
 from dope_hope.assets import DEMO_WEIGHTS  # used when --weights is not given
-from dope_hope.commands.argtypes import finite_float, fixed_device, positive_float, positive_int, working_side
+from dope_hope.commands.argtypes import (
+    finite_float,
+    fixed_device,
+    parse_mesh_units,
+    positive_float,
+    positive_int,
+    working_side,
+)
 from dope_hope.commands.settings import add_settings_arguments, given_settings
 from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, DopeHopeError
@@ -193,13 +200,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rec.add_argument("--sync-tolerance", type=positive_float, metavar="MS",
                      help=f"largest colour-to-depth header stamp difference (default {DEFAULT_SYNC_TOLERANCE_MS:g} ms)")
     rec.add_argument("--list-topics", action="store_true", help="print the recording's topics and the chosen ones, then stop")
-    parser.add_argument("--mesh", action="append", type=Path, metavar="PATH",
-                        help="object mesh per --weights (same order; one-object models), or one models "
-                             "folder (any models) holding "
+    parser.add_argument("--mesh", action="append", type=Path, metavar="[NAME=]PATH",
+                        help="object mesh: NAME=PATH per object (repeat; any models), one per --weights "
+                             "(same order; one-object models), or one models folder holding "
                              "obj_NNNNNN.ply / CLASS/textured.obj / CLASS.obj / CLASS.ply: its box and "
                              "surface replace the cuboid (default: the checkpoint's cuboid)")
-    parser.add_argument("--mesh-units", choices=("m", "cm", "mm"),
-                        help="mesh units (default: OBJ cm, PLY mm)")
+    parser.add_argument("--mesh-units", action="append", default=[], metavar="[NAME=]UNIT",
+                        help="unit of the mesh files, m, cm or mm (default: .obj cm, .ply mm); NAME=UNIT "
+                             "for one object's mesh (repeat; objects of mixed units)")
     start = parser.add_argument_group("a new object with no training (--mesh FILE, no --weights)")
     start.add_argument("--up-axis", choices=UP_AXIS_NAMES, metavar="AXIS",
                        help="a new object's mesh (--mesh FILE, no --weights): the mesh axis that is its "
@@ -308,11 +316,11 @@ def _predictors(args: argparse.Namespace) -> list:
     if mesh is not None:
         from dope_hope.inference.mesh_start import MeshStartPredictor
 
-        p = MeshStartPredictor(mesh, up_axis=args.up_axis or "y", mesh_units=args.mesh_units, start=args.start,
+        p = MeshStartPredictor(mesh, up_axis=args.up_axis or "y", mesh_units=parse_mesh_units(args.mesh_units), start=args.start,
                                device=args.device, threads=args.threads, options=inference_settings(args))
         _note(p.describe())
         return [p]
-    return build_predictors(_resolve_weights(args), args.mesh or [], mesh_units=args.mesh_units,
+    return build_predictors(_resolve_weights(args), args.mesh or [], mesh_units=parse_mesh_units(args.mesh_units),
                             backend=args.backend, device=args.device, threads=args.threads,
                             options=inference_settings(args), classes=args.classes, note=_note)
 
@@ -417,7 +425,7 @@ def _run_stream(args: argparse.Namespace) -> int:
         ros = open_ros_outputs(out, source, args.foxglove, not args.no_overlay, _note)
         sinks = StreamSinks(on_record=lambda rec: print(json.dumps(rec), flush=True), video=video, window=window,
                             on_frame=None if ros is None else ros.on_frame)
-        tracker = stream_tracker(predictors, args.mesh or [], args.mesh_units) if args.track else None
+        tracker = stream_tracker(predictors, args.mesh or [], parse_mesh_units(args.mesh_units)) if args.track else None
         result = predict_stream(source, predictors, sinks, tracker=tracker,
                                 depth_calibration=args.depth_calibration, pace=args.realtime,
                                 max_frames=args.max_frames, progress=not args.no_progress, warn=_warn)

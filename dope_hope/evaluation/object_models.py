@@ -22,7 +22,7 @@ import trimesh
 
 from dope_hope.catalog import get_object
 from dope_hope.errors import InputFileError, UnknownObjectError
-from dope_hope.geometry import UNIT_SCALE
+from dope_hope.geometry import UNIT_SCALE, unit_for
 from dope_hope.io.meshes import (
     check_mesh_box,
     check_plausible_size,
@@ -175,11 +175,6 @@ class _ModelArgs:
     declared: dict[str, Any]
     recorded_sizes: dict[str, tuple[np.ndarray, Path]] | None
 
-    def units_of(self, name: str) -> str | None:
-        """The unit given for ``name``'s mesh file (None: by its suffix)."""
-        if isinstance(self.mesh_units, Mapping):
-            return self.mesh_units.get(name, self.mesh_units.get(""))
-        return self.mesh_units
 
 
 def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectModel:
@@ -191,7 +186,7 @@ def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectMod
     category, obj_id = (obj.category if obj else "other"), bop_obj_id(name)
     explicit = models.declared.get(name)
     if path is not None:
-        loaded = _load_mesh_file(path, models.units_of(name))
+        loaded = _load_mesh_file(path, unit_for(models.mesh_units, name))
         found = resolve_symmetries(name, path, explicit, loaded.units, obj_id)
         if not found.from_bop_table:  # a BOP entry describes the dataset's own model
             _check_box(name, loaded, path, obj, models.recorded_sizes)

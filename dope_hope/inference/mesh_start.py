@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from dope_hope.errors import ConfigError, ModelFileError
+from dope_hope.geometry import unit_for
 from dope_hope.inference.appearance import AppearanceCheck, AppearanceSettings
 from dope_hope.inference.backends import TorchBackend
 from dope_hope.inference.detection import Detection
@@ -124,7 +125,8 @@ class MeshStartPredictor(DopePredictor):
             ``trimesh.Trimesh`` in metres with ``class_name``.
         class_name: the reported class (default: the mesh file's, ``mesh_class_name``).
         up_axis: the mesh axis that is the object's vertical axis: x, y (default), z, -x, -y, -z.
-        mesh_units: units of the mesh file ("m", "cm", "mm"; default by suffix).
+        mesh_units: units of the mesh file ("m", "cm", "mm"; default by suffix), or a mapping
+            class name -> unit ("" for any other).
         start: the start's weights (default: the shipped ``pretrained_lite.pt``).
         scales: network working sizes as multiples of the model's own.
         appearance: :class:`~dope_hope.inference.appearance.AppearanceSettings` or a mapping of
@@ -138,7 +140,7 @@ class MeshStartPredictor(DopePredictor):
     """
 
     def __init__(self, mesh: Any, class_name: str | None = None, up_axis: str = "y",
-                 mesh_units: str | None = None, start: str | os.PathLike | None = None,
+                 mesh_units: str | Mapping[str, str] | None = None, start: str | os.PathLike | None = None,
                  scales: Sequence[float] = DEFAULT_SCALES,
                  appearance: AppearanceSettings | Mapping[str, Any] | bool = True,
                  device: str = "cpu", threads: int | None = None,
@@ -148,8 +150,8 @@ class MeshStartPredictor(DopePredictor):
         from dope_hope.io.models_dir import mesh_class_name
 
         if isinstance(mesh, (str, os.PathLike)):
-            loaded, source = load_mesh(mesh, units=mesh_units), str(mesh)
             name = class_name or mesh_class_name(mesh)
+            loaded, source = load_mesh(mesh, units=unit_for(mesh_units, name)), str(mesh)
         elif hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
             if not class_name:
                 raise ConfigError("class_name: name the object of a loaded mesh (a file names its own)")

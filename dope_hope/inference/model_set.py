@@ -5,8 +5,10 @@ per model file (its objects, its meshes, the classes it reports) and, on a strea
 An object that several model files hold is reported by the first of them only
 (:func:`kept_classes`), never twice.
 
-Meshes: one per model file (same order; one-object models), or one models folder for all
-(each object's mesh by :func:`dope_hope.io.models_dir.find_object_mesh`).
+Meshes (:func:`mesh_files`): ``NAME=PATH`` per object, one per model file (same order;
+one-object models), or one models folder for all (each object's mesh by
+:func:`dope_hope.io.models_dir.find_object_mesh`); their units one for all or per object
+(``mesh_units``: :func:`dope_hope.geometry.unit_for`).
 """
 from __future__ import annotations
 
@@ -15,10 +17,11 @@ from pathlib import Path
 from typing import Any
 
 from dope_hope.errors import ConfigError
+from dope_hope.geometry import unit_for
 from dope_hope.inference import backends  # looked up at each call: a substituted open_backend counts
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.inference.tracking import PoseTracker, object_symmetries
-from dope_hope.io.models_dir import find_object_mesh
+from dope_hope.io.models_dir import check_run_object, find_object_mesh, parse_mesh_args
 
 
 def kept_classes(classes: Sequence[str] | None, models: list[tuple[Path, list[str]]],
@@ -61,16 +64,63 @@ def kept_classes(classes: Sequence[str] | None, models: list[tuple[Path, list[st
     return kept, warnings
 
 
-def build_predictors(weights: Sequence[Path], meshes: Sequence[Path] = (), *, mesh_units: str | None = None,
+def mesh_files(meshes: Sequence[str | Path], models: Sequence[Sequence[str]],
+               weights: Sequence[str | Path] = ()) -> list[dict[str, Path]]:
+    """``--mesh`` values -> per model, {object: mesh file} (an object left out keeps the model's
+    cuboid). ``models``: each model's objects (those it reports); ``weights``: the model files,
+    named in errors.
+
+    ``meshes``: none; one models folder (every object's mesh found there); ``NAME=PATH`` values
+    (each NAME an object of the run, :func:`dope_hope.io.models_dir.parse_mesh_args`, bare
+    paths among them named by their files); or one bare path per model, same order (one-object
+    models).
+
+    Raises:
+        ConfigError: a NAME no model reports, a bare path whose file names no object of the
+        run (where the paths are not one per model), one bare path per model where a model
+        reports several objects.
+    """
+    meshes = [Path(m) for m in meshes]
+    if not meshes:
+        return [{} for _ in models]
+    if len(meshes) == 1 and meshes[0].is_dir():
+        return [{name: find_object_mesh(name, meshes[0]) for name in names} for names in models]
+    named = any("=" in str(m) and not m.exists() for m in meshes)
+    if named or len(meshes) != len(models):
+        by_name = parse_mesh_args(meshes, [n for names in models for n in names])
+        return [{n: by_name[n] for n in names if n in by_name} for names in models]
+    out = []
+    for i, (mesh, names) in enumerate(zip(meshes, models)):
+        if len(names) > 1:
+            model = weights[i] if i < len(weights) else f"model {i + 1}"
+            raise ConfigError(f"--mesh {mesh}: {model} detects {len(names)} objects ({', '.join(names)}); "
+                              "give --mesh NAME=PATH per object, or a models folder")
+        out.append({names[0]: mesh} if names else {})
+    return out
+
+
+def run_mesh_units(mesh_units: str | Mapping[str, str] | None, models: Sequence[Sequence[str]]
+                   ) -> str | dict[str, str] | None:
+    """``mesh_units`` with each NAME of a {NAME: unit} mapping turned into the run's object it
+    names (catalog names match case-insensitively; "" stays: the others); ConfigError naming
+    ``--mesh-units NAME=UNIT`` for a NAME no model reports."""
+    if not isinstance(mesh_units, Mapping):
+        return mesh_units
+    names = [n for group in models for n in group]
+    return {(check_run_object(k, names, "--mesh-units", f"{k}={u}") if k else ""): u for k, u in mesh_units.items()}
+
+
+def build_predictors(weights: Sequence[Path], meshes: Sequence[str | Path] = (), *,
+                     mesh_units: str | Mapping[str, str] | None = None,
                      backend: str = "auto", device: str = "cpu", threads: int | None = None,
                      options: Mapping[str, Any] | None = None, classes: Sequence[str] | None = None,
                      note: Callable[[str], None] = lambda message: None) -> list[DopePredictor]:
     """A predictor per model file in ``weights`` that detects one of ``classes`` (all: None).
 
     Args:
-        meshes: one mesh per model file (one-object models), or one models folder, or none
-            (the models' cuboids).
-        mesh_units, backend, device, threads: as
+        meshes: the ``--mesh`` values (:func:`mesh_files`), or none (the models' cuboids).
+        mesh_units: one unit for every mesh file, or {NAME: unit} ("" for the others; NAME an
+            object of the run). backend, device, threads: as
             :class:`~dope_hope.inference.predictor.DopePredictor` takes them.
         options: the inference options set (a mapping over the defaults,
             :class:`~dope_hope.inference.options.InferenceOptions`); without ``min_score`` each
@@ -79,20 +129,16 @@ def build_predictors(weights: Sequence[Path], meshes: Sequence[Path] = (), *, me
             a model brings along and (starting "warning: ") which model reports an object that
             several hold (:func:`kept_classes`).
 
-    Raises ConfigError for meshes that do not fit the models, a class no model detects.
+    Raises ConfigError for meshes or units that do not fit the models, a class no model detects.
     """
-    meshes = list(meshes)
-    mesh_dir = None
-    if len(meshes) == 1 and meshes[0].is_dir():
-        mesh_dir = meshes[0]
-    elif meshes and len(meshes) != len(weights):
-        raise ConfigError(f"give one --mesh per --weights ({len(weights)}), or one mesh folder; "
-                          f"got {len(meshes)} meshes")
     opened = [backends.open_backend(w, backend, device, threads) for w in weights]
     models = [(w, [o.class_name for o in backends.backend_objects(b)]) for w, b in zip(weights, opened)]
     kept, warnings = kept_classes(classes, models)
     for warning in warnings:
         note(f"warning: {warning}")
+    reported_names = [names if keep is None else keep for (_, names), keep in zip(models, kept)]
+    files = mesh_files(meshes, reported_names, weights)
+    mesh_units = run_mesh_units(mesh_units, reported_names)
     predictors = []
     for i, (model, (w, names), keep) in enumerate(zip(opened, models, kept)):
         if keep == []:
@@ -100,15 +146,7 @@ def build_predictors(weights: Sequence[Path], meshes: Sequence[Path] = (), *, me
         if hasattr(model, "describe"):  # ONNX: fp32 or INT8, and what INT8 costs
             note(f"model {model.describe()}")
         reported = names if keep is None else keep
-        mesh = None
-        if mesh_dir is not None:
-            mesh = {name: find_object_mesh(name, mesh_dir) for name in reported}
-        elif meshes:
-            if len(reported) > 1:
-                raise ConfigError(f"--mesh {meshes[i]}: {w} detects {len(reported)} objects "
-                                  f"({', '.join(reported)}); give a models folder as --mesh")
-            mesh = meshes[i]
-        predictors.append(DopePredictor(model, mesh=mesh, mesh_units=mesh_units, classes=keep,
+        predictors.append(DopePredictor(model, mesh=files[i] or None, mesh_units=mesh_units, classes=keep,
                                         options=dict(options or {})))
         if "min_score" not in (options or {}) and backends.model_min_score(model) is not None:
             note(f"{', '.join(reported)}: min score {predictors[-1].options.min_score:g}, "
@@ -117,19 +155,12 @@ def build_predictors(weights: Sequence[Path], meshes: Sequence[Path] = (), *, me
 
 
 def stream_tracker(predictors: Sequence[DopePredictor], meshes: Sequence[Path] = (),
-                   mesh_units: str | None = None) -> PoseTracker:
-    """The PoseTracker over ``predictors``; each class's symmetries from its mesh (``meshes`` as
-    :func:`build_predictors` takes them: a declaration beside it, else found on it), else those
-    the model records, else the catalog category's."""
-    meshes = list(meshes)
-    symmetries = {}
-    for i, p in enumerate(predictors):
-        for name in p.class_names:
-            path = None
-            if len(meshes) == 1 and meshes[0].is_dir():
-                path = find_object_mesh(name, meshes[0])
-            elif meshes and len(p.class_names) == 1:
-                path = meshes[i]
-            if path is not None:  # else the model's recorded symmetries, else the catalog's
-                symmetries[name] = object_symmetries(name, path, mesh_units)
+                   mesh_units: str | Mapping[str, str] | None = None) -> PoseTracker:
+    """The PoseTracker over ``predictors``; each class's symmetries from its mesh (``meshes``,
+    ``mesh_units`` as :func:`build_predictors` takes them: a declaration beside it, else found
+    on it), else those the model records, else the catalog category's."""
+    models = [list(p.class_names) for p in predictors]
+    mesh_units = run_mesh_units(mesh_units, models)
+    symmetries = {name: object_symmetries(name, path, unit_for(mesh_units, name))
+                  for files in mesh_files(meshes, models) for name, path in files.items()}
     return PoseTracker(predictors, symmetries=symmetries)

@@ -40,15 +40,18 @@ run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.pr
    with the original K and a depth image of the original size. Model points: ``ls_points``
    farthest-point samples of the mesh surface when ``mesh=`` is given, else of the cuboid's
    surface (for a non-box object the box's front face lies in front of the real surface, which
-   biases the distance: pass the mesh for non-box objects).
+   biases the distance: pass the mesh for non-box objects). Where the search over
+   ``line_search.search`` (0.8-1.25x the distance) finds its optimum on the bound, a second one
+   over ``line_search.wide_search`` (0.5-2x) moves the pose, unless the depth already confirms
+   the keypoints' pose (:func:`dope_hope.refine.icp.own_depth_support`: the object is then
+   occluded, not misplaced; a box hidden behind a board is not moved onto the board). The
+   keypoints of a small object put it 20-60 % too far or too near as often as not (the 4.5-cm
+   lemon of ``bench/multi_object.py`` spans ~5 cells of a lite model's maps at 0.6 m).
 6. **Depth ICP** (optional, ``icp=True``, :func:`dope_hope.refine.icp.icp_refine`): after the
    line search, point-to-plane ICP of ``icp_points`` model points against the depth under the
    object refines all six DoF; kept only when it does not fit the depth worse and keeps to the
-   object's own depth support (the detected region: the silhouette of the pose before any
-   depth step). Without ``mesh=`` only the catalog's boxes are allowed. When the line search
-   refused, the ICP stage first repeats it over :data:`ICP_LS_SEARCH`; that pose too is kept
-   only within the object's own depth support (a box hidden behind a board is not moved onto
-   the board).
+   object's own depth support (the detected region: the silhouette of the pose it starts
+   from). Without ``mesh=`` only the catalog's boxes are allowed.
 """
 from __future__ import annotations
 
@@ -70,6 +73,7 @@ from dope_hope.geometry import (
     project_points_poses,
     projected_bbox,
     projected_bboxes,
+    unit_for,
 )
 from dope_hope.inference.backends import MapBackend, backend_objects, model_min_score, open_backend
 from dope_hope.inference.detection import Detection
@@ -92,11 +96,8 @@ from dope_hope.preprocess import (
     working_size,
 )
 from dope_hope.refine.depth import DepthImage
-from dope_hope.refine.icp import icp_refine
+from dope_hope.refine.icp import icp_refine, own_depth_support
 from dope_hope.refine.line_search import depth_line_search
-
-#: Scale range of the line search the ICP stage repeats when the default one refused.
-ICP_LS_SEARCH = (0.5, 2.0)
 
 
 # ----------------------------------------------------------------------------- predictor
@@ -113,7 +114,8 @@ class DopePredictor:
             when the predictor reports one object, or a mapping class name -> mesh for any
             number (objects left out keep the model's cuboid). A mesh's box replaces the
             model's cuboid and its surface feeds the depth steps.
-        mesh_units: units of the mesh files ("m", "cm", "mm"; default by suffix).
+        mesh_units: units of the mesh files ("m", "cm", "mm"; default by suffix), or a mapping
+            class name -> unit ("" for the others: objects of mixed units).
         options: :class:`~dope_hope.inference.options.InferenceOptions`, or a mapping of
             overrides of the packaged defaults (``dope_hope/configs/infer.yaml``).
         classes: report only these of the model's objects (names, case-insensitive; default
@@ -137,7 +139,7 @@ class DopePredictor:
         device: str = "cpu",
         threads: int | None = None,
         mesh: Any = None,
-        mesh_units: str | None = None,
+        mesh_units: str | Mapping[str, str] | None = None,
         options: InferenceOptions | Mapping[str, Any] | None = None,
         classes: Sequence[str] | None = None,
         **overrides: Any,
@@ -165,7 +167,8 @@ class DopePredictor:
         self.num_model_objects = len(model_objects)
         groups = select_groups(model_objects, classes)
         meshes = _meshes_by_group(mesh, [model_objects[k].class_name for k in groups])
-        self.objects = [ObjectGeometry(model_objects[k], k, self.legacy, meshes.get(k), mesh_units,
+        self.objects = [ObjectGeometry(model_objects[k], k, self.legacy, meshes.get(k),
+                                       unit_for(mesh_units, model_objects[k].class_name),
                                        self.options.ls_points, self.options.icp_points) for k in groups]
         if self.options.icp:
             for obj in self.objects:
@@ -328,8 +331,7 @@ class DopePredictor:
                 cuboid_size_m=obj.cuboid_size_m.copy(), cuboid_center_m=obj.cuboid_center_m.copy(),
             )
             if depth is not None:
-                ls = depth_line_search(R, t, obj.model_points, depth, self.options.stages.line_search)
-                det.t, det.ls_applied, det.ls_reason, det.ls_scale = ls.t, ls.applied, ls.reason, ls.scale
+                self._line_search(obj, det, depth)
                 if self.options.icp:
                     self._refine_icp(obj, det, depth)
             elif self.options.icp:
@@ -362,26 +364,33 @@ class DopePredictor:
         out.bbox_2d = projected_bbox(obj.bbox_points, depth.K, out.R, out.t, depth.hw)
         return out
 
+    def _line_search(self, obj: ObjectGeometry, det: Detection, depth: DepthImage) -> None:
+        """The -LS step of the module docstring, in place on ``det`` (its pose the keypoints'):
+        the line search over ``line_search.search``; where its optimum lies on the bound, once
+        more over ``line_search.wide_search``, unless the depth already confirms the keypoints'
+        pose (its own depth support, :func:`~dope_hope.refine.icp.own_depth_support` with the
+        ``icp_refine`` settings of that rule, reaches ``min_own_support``: the object is
+        occluded, not misplaced, and a wider search would move it onto its occluder)."""
+        stages = self.options.stages
+        settings = stages.line_search
+        ls = depth_line_search(det.R, det.t, obj.model_points, depth, settings)
+        wide_range = settings.wide_search
+        if ls.at_bound and wide_range is not None:
+            label = f"search {wide_range[0]:g}-{wide_range[1]:g}"
+            here = own_depth_support(det.R, det.t, obj.model_points, depth, stages.icp_refine)
+            if here >= stages.icp_refine.min_own_support:
+                ls = replace(ls, reason=f"{ls.reason}; no {label}: the depth confirms the keypoints' pose "
+                                        f"(own depth support {here:.2f})")
+            else:
+                wide = depth_line_search(det.R, det.t, obj.model_points, depth, replace(settings, search=wide_range))
+                ls = replace(wide, reason=f"ok ({label})") if wide.applied else \
+                    replace(ls, reason=f"{ls.reason}; {label}: {wide.reason}")
+        det.t, det.ls_applied, det.ls_reason, det.ls_scale = ls.t, ls.applied, ls.reason, ls.scale
+
     def _refine_icp(self, obj: ObjectGeometry, det: Detection, depth: DepthImage) -> None:
         """The ICP step of the module docstring, in place on ``det`` (after the line search)."""
         points, normals = obj.icp_model
-        stages = self.options.stages
-        res = None
-        if not det.ls_applied:  # ICP needs the depth within a few cm: a wider line search first
-            wide = depth_line_search(det.R, det.t, obj.model_points, depth,
-                                     replace(stages.line_search, search=ICP_LS_SEARCH))
-            if wide.applied:  # kept only while the object's own depth support holds it
-                res = icp_refine(det.R, wide.t, points, normals, depth, stages.icp_refine,
-                                 initial_pose=(det.R, det.t))
-                search = f"search {ICP_LS_SEARCH[0]:g}-{ICP_LS_SEARCH[1]:g}, for ICP"
-                if res.start_supported:
-                    det.t, det.ls_applied, det.ls_scale = wide.t, True, wide.scale
-                    det.ls_reason = f"ok ({search})"
-                else:
-                    det.ls_reason += f"; s = {wide.scale:.3f} ({search}) {res.reason.removeprefix('the start pose ')}"
-                    res = None
-        if res is None:
-            res = icp_refine(det.R, det.t, points, normals, depth, stages.icp_refine)
+        res = icp_refine(det.R, det.t, points, normals, depth, self.options.stages.icp_refine)
         det.icp_applied, det.icp_reason = res.applied, res.reason
         det.icp_fit = res.fit_after if res.applied else res.fit_before
         if res.applied:

@@ -158,7 +158,7 @@ class IcpResult:
     own_support: the refined pose's own depth support (step 6; NaN when not evaluated), or
         the input pose's when that had too little.
     start_supported: False when the input pose itself left the object's own depth support
-        (only checked when an ``initial_pose`` is given: a start a wider search moved).
+        (only checked when an ``initial_pose`` is given: a start a depth step moved).
     rmse_m: RMS point-to-plane residual of the last iteration's pairs, metres.
     n_points: scene points used.
     """
@@ -248,6 +248,21 @@ def depth_support(R: np.ndarray, t: np.ndarray, model_points: np.ndarray, depth:
         confirmed, occluded = np.abs(r) <= tolerance_m, r < -tolerance_m
     n = int((~occluded).sum())
     return float((confirmed & region[v, u]).sum() / n) if n else float("nan")
+
+
+def own_depth_support(R: np.ndarray, t: np.ndarray, model_points: np.ndarray, depth: DepthImage,
+                      settings: IcpSettings, region_pose: tuple[np.ndarray, np.ndarray] | None = None) -> float:
+    """The own depth support (step 6) of a pose (R (3, 3), t (3,) metres) in the detected region:
+    the silhouette of ``region_pose`` (R, t; None: the pose itself) dilated by
+    ``settings.mask_dilate``, confirmed within ``settings.fit_threshold_m``. ``model_points``:
+    (N, 3) surface points, metres. A share in [0, 1] (NaN: no visible point unoccluded); under
+    ``settings.min_own_support`` the pose is not where the depth shows the object
+    (:func:`support_problem`)."""
+    P = np.asarray(model_points, dtype=np.float64).reshape(-1, 3)
+    Ri, ti = (R, t) if region_pose is None else region_pose
+    region = silhouette_mask(P @ np.asarray(Ri, np.float64).T + np.asarray(ti, np.float64).reshape(3), depth.K,
+                             depth.hw, settings.mask_dilate)
+    return depth_support(R, t, P, depth, region, settings.fit_threshold_m)
 
 
 def _fit(tree: cKDTree, normals: np.ndarray, x: np.ndarray, threshold_m: float) -> float:
@@ -398,7 +413,7 @@ def icp_refine(
         settings: :class:`IcpSettings` (iterations, starts, acceptance).
         initial_pose: (R, t) of the estimate before any depth step (the keypoints' pose), whose
             dilated silhouette is the detected region (step 6; None: (R, t)); given, the input
-            pose (moved there by a wider search) must keep to that region's support too.
+            pose (moved there by the line search) must keep to that region's support too.
 
     Returns:
         :class:`IcpResult`; the input pose with a reason when not applied.
@@ -415,8 +430,8 @@ def icp_refine(
         return refuse(problem)
     Ri, ti = (R0, t0) if initial_pose is None else initial_pose
     region = silhouette_mask(P @ np.asarray(Ri, float).T + np.asarray(ti, float), depth.K, depth.hw, s.mask_dilate)
-    start = float("inf") if initial_pose is None else depth_support(R0, t0, P, depth, region, s.fit_threshold_m)
-    if problem := support_problem("the start pose", start, s.min_own_support):  # a wider search's start
+    start = float("inf") if initial_pose is None else own_depth_support(R0, t0, P, depth, s, (Ri, ti))
+    if problem := support_problem("the start pose", start, s.min_own_support):  # a start the line search moved
         return refuse(problem, own_support=start, start_supported=False)
     S = scene_points_under(P @ R0.T + t0, depth.metres, depth.K, s.mask_dilate, s.max_scene_points)
     if len(S) < s.min_points:

@@ -65,13 +65,16 @@ class LineSearchSettings(SectionSettings):
     metres). visibility_margin_m, splat_px: the visibility test (:func:`visible_points`;
     ``splat_px=None`` picks half the model points' spacing in pixels, :func:`auto_splat_px`).
     grid_steps: coarse grid size over ``search`` (at least 3). max_residual_m: refuse the
-    result when the robust residual exceeds it, metres (None = off).
+    result when the robust residual exceeds it, metres (None = off). wide_search: (lo, hi) of
+    the second search a caller runs where the first one's optimum lay on its bound
+    (:attr:`LineSearchResult.at_bound`; ``DopePredictor``'s -LS step); None: no second search.
     """
 
     SECTION = "line_search"
     RULES = {"search": _scale_range, "min_valid": at_least(1), "cost": one_of("median", "huber"),
              "huber_delta_m": positive_float, "visibility_margin_m": nonnegative_float,
-             "splat_px": or_none(at_least(0)), "grid_steps": at_least(3), "max_residual_m": or_none(positive_float)}
+             "splat_px": or_none(at_least(0)), "grid_steps": at_least(3), "max_residual_m": or_none(positive_float),
+             "wide_search": or_none(_scale_range)}
 
     search: tuple[float, float] = (0.8, 1.25)
     min_valid: int = 50
@@ -81,6 +84,7 @@ class LineSearchSettings(SectionSettings):
     splat_px: int | None = None
     grid_steps: int = 41
     max_residual_m: float | None = 0.02
+    wide_search: tuple[float, float] | None = (0.5, 2.0)
 
 
 @dataclass
@@ -93,6 +97,8 @@ class LineSearchResult:
     residual_m: median |D - z| of the visible points at the optimum, metres (NaN when not
         evaluated).
     n_valid: visible model points with valid depth at the optimum.
+    at_bound: whether the search refused its optimum for lying on the search bound (the
+        depth agrees best beyond the range: a wider search may find the object).
     """
 
     t: np.ndarray
@@ -101,6 +107,7 @@ class LineSearchResult:
     scale: float = 1.0
     residual_m: float = float("nan")
     n_valid: int = 0
+    at_bound: bool = False
 
 
 def visible_points(
@@ -304,7 +311,7 @@ def depth_line_search(
     residual = float(np.median(np.abs(f.residuals(s_best))))
     if at_bound:
         return refuse(f"optimum at the search bound (s = {s_best:.3f})",
-                      residual_m=residual, n_valid=n_valid)
+                      residual_m=residual, n_valid=n_valid, at_bound=True)
     max_residual_m = settings.max_residual_m
     if max_residual_m is not None and residual > max_residual_m:
         return refuse(f"depth residual {residual * 1000:.1f} mm > {max_residual_m * 1000:.1f} mm",
