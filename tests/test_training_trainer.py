@@ -139,8 +139,10 @@ def test_time_budget_plans_with_the_loaders_steady_speed(tmp_path, monkeypatch, 
     plan = next(r.getMessage() for r in caplog.records if "the run ends at step" in r.getMessage())
     per_step = float(re.search(r"\(([0-9.]+) s per step", plan).group(1))
     # Two workers each load a 2-frame batch in >= 0.06 s: no step comes faster than 0.03 s once
-    # the batches fetched ahead are used up (a slower machine only raises the figure).
-    assert per_step >= 0.9 * 0.03, plan
+    # the batches fetched ahead are used up (a slower machine only raises the figure). A plan on
+    # the fetched-ahead batches' speed says ~0.005 s; the steps it measures may still hold one
+    # fetched-ahead batch where the main process lagged (0.026 s seen on 2 busy cores).
+    assert per_step >= 0.75 * 0.03, plan
 
 
 def test_training_skips_a_corrupt_frame_and_lowers_the_loss(tmp_path, caplog):
