@@ -316,11 +316,11 @@ def _predictors(args: argparse.Namespace) -> list:
     if mesh is not None:
         from dope_hope.inference.mesh_start import MeshStartPredictor
 
-        p = MeshStartPredictor(mesh, up_axis=args.up_axis or "y", mesh_units=parse_mesh_units(args.mesh_units), start=args.start,
+        p = MeshStartPredictor(mesh, up_axis=args.up_axis or "y", mesh_units=args.mesh_units, start=args.start,
                                device=args.device, threads=args.threads, options=inference_settings(args))
         _note(p.describe())
         return [p]
-    return build_predictors(_resolve_weights(args), args.mesh or [], mesh_units=parse_mesh_units(args.mesh_units),
+    return build_predictors(_resolve_weights(args), args.mesh or [], mesh_units=args.mesh_units,
                             backend=args.backend, device=args.device, threads=args.threads,
                             options=inference_settings(args), classes=args.classes, note=_note)
 
@@ -332,6 +332,7 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.io.streams import stream_kind
 
     args.icp = bool(inference_settings(args).get("icp"))  # settings checked before any work
+    args.mesh_units = parse_mesh_units(args.mesh_units)  # [NAME=]UNIT values -> a unit or {NAME: unit}
     if any(stream_kind(item) for item in args.inputs):
         return _run_stream(args)
     given = [f"--{o.replace('_', '-')}" for o in STREAM_OPTIONS + RECORDING_OPTIONS
@@ -425,7 +426,7 @@ def _run_stream(args: argparse.Namespace) -> int:
         ros = open_ros_outputs(out, source, args.foxglove, not args.no_overlay, _note)
         sinks = StreamSinks(on_record=lambda rec: print(json.dumps(rec), flush=True), video=video, window=window,
                             on_frame=None if ros is None else ros.on_frame)
-        tracker = stream_tracker(predictors, args.mesh or [], parse_mesh_units(args.mesh_units)) if args.track else None
+        tracker = stream_tracker(predictors, args.mesh or [], args.mesh_units) if args.track else None
         result = predict_stream(source, predictors, sinks, tracker=tracker,
                                 depth_calibration=args.depth_calibration, pace=args.realtime,
                                 max_frames=args.max_frames, progress=not args.no_progress, warn=_warn)

@@ -176,7 +176,6 @@ class _ModelArgs:
     recorded_sizes: dict[str, tuple[np.ndarray, Path]] | None
 
 
-
 def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectModel:
     """One class's :class:`ObjectModel` (see :func:`load_models`)."""
     try:
@@ -194,7 +193,8 @@ def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectMod
         raise UnknownObjectError(f"class {name!r} is not a HOPE object and no mesh was "
                                  f"given for it (--mesh {name}=PATH)")
     else:
-        loaded = _LoadedMesh(trimesh.creation.box(extents=obj.size_array), None, unit_for(models.mesh_units, name) or "mm",
+        loaded = _LoadedMesh(trimesh.creation.box(extents=obj.size_array), None,
+                             unit_for(models.mesh_units, name) or "mm",
                              "procedural cuboid (catalog size; no mesh given)")
         found = resolve_symmetries(name, None, explicit, loaded.units, obj_id)
     points = sample_surface_points(loaded.mesh, models.n_points)

@@ -21,7 +21,7 @@ from dope_hope.geometry import unit_for
 from dope_hope.inference import backends  # looked up at each call: a substituted open_backend counts
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.inference.tracking import PoseTracker, object_symmetries
-from dope_hope.io.models_dir import check_run_object, find_object_mesh, parse_mesh_args
+from dope_hope.io.models_dir import check_run_object, find_object_mesh, is_named_value, parse_mesh_args
 
 
 def kept_classes(classes: Sequence[str] | None, models: list[tuple[Path, list[str]]],
@@ -85,8 +85,7 @@ def mesh_files(meshes: Sequence[str | Path], models: Sequence[Sequence[str]],
         return [{} for _ in models]
     if len(meshes) == 1 and meshes[0].is_dir():
         return [{name: find_object_mesh(name, meshes[0]) for name in names} for names in models]
-    named = any("=" in str(m) and not m.exists() for m in meshes)
-    if named or len(meshes) != len(models):
+    if any(is_named_value(m) for m in meshes) or len(meshes) != len(models):
         by_name = parse_mesh_args(meshes, [n for names in models for n in names])
         return [{n: by_name[n] for n in names if n in by_name} for names in models]
     out = []

@@ -102,6 +102,13 @@ def check_run_object(name: str, class_names: Sequence[str], flag: str, value: st
     return found
 
 
+def is_named_value(text: str | os.PathLike) -> bool:
+    """Whether a ``[NAME=]PATH`` value names its object (``NAME=PATH``): it holds "=" and is not
+    itself an existing path."""
+    text = os.fspath(text)
+    return "=" in text and not Path(text).exists()
+
+
 def parse_mesh_args(mesh_args: Sequence[str | os.PathLike], class_names: Sequence[str],
                     flag: str = "--mesh", in_order: bool = False) -> dict[str, Path]:
     """``[NAME=]PATH`` values of ``flag`` -> {class name: path} for the run's ``class_names``.
@@ -118,7 +125,7 @@ def parse_mesh_args(mesh_args: Sequence[str | os.PathLike], class_names: Sequenc
         several classes.
     """
     texts = [os.fspath(a) for a in mesh_args]
-    named = ["=" in t and not Path(t).exists() for t in texts]
+    named = [is_named_value(t) for t in texts]
     out: dict[str, Path] = {}
     for i, text in enumerate(texts):
         if named[i]:

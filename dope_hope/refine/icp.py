@@ -251,16 +251,14 @@ def depth_support(R: np.ndarray, t: np.ndarray, model_points: np.ndarray, depth:
 
 
 def own_depth_support(R: np.ndarray, t: np.ndarray, model_points: np.ndarray, depth: DepthImage,
-                      settings: IcpSettings, region_pose: tuple[np.ndarray, np.ndarray] | None = None) -> float:
-    """The own depth support (step 6) of a pose (R (3, 3), t (3,) metres) in the detected region:
-    the silhouette of ``region_pose`` (R, t; None: the pose itself) dilated by
-    ``settings.mask_dilate``, confirmed within ``settings.fit_threshold_m``. ``model_points``:
-    (N, 3) surface points, metres. A share in [0, 1] (NaN: no visible point unoccluded); under
-    ``settings.min_own_support`` the pose is not where the depth shows the object
-    (:func:`support_problem`)."""
+                      settings: IcpSettings) -> float:
+    """The own depth support (step 6) of a pose (R (3, 3), t (3,) metres) in its own detected
+    region: its silhouette dilated by ``settings.mask_dilate``, confirmed within
+    ``settings.fit_threshold_m``. ``model_points``: (N, 3) surface points, metres. A share in
+    [0, 1] (NaN: no visible point unoccluded); at ``settings.min_own_support`` or more the depth
+    confirms the object where the pose puts it (:func:`support_problem`)."""
     P = np.asarray(model_points, dtype=np.float64).reshape(-1, 3)
-    Ri, ti = (R, t) if region_pose is None else region_pose
-    region = silhouette_mask(P @ np.asarray(Ri, np.float64).T + np.asarray(ti, np.float64).reshape(3), depth.K,
+    region = silhouette_mask(P @ np.asarray(R, np.float64).T + np.asarray(t, np.float64).reshape(3), depth.K,
                              depth.hw, settings.mask_dilate)
     return depth_support(R, t, P, depth, region, settings.fit_threshold_m)
 
@@ -430,7 +428,7 @@ def icp_refine(
         return refuse(problem)
     Ri, ti = (R0, t0) if initial_pose is None else initial_pose
     region = silhouette_mask(P @ np.asarray(Ri, float).T + np.asarray(ti, float), depth.K, depth.hw, s.mask_dilate)
-    start = float("inf") if initial_pose is None else own_depth_support(R0, t0, P, depth, s, (Ri, ti))
+    start = float("inf") if initial_pose is None else depth_support(R0, t0, P, depth, region, s.fit_threshold_m)
     if problem := support_problem("the start pose", start, s.min_own_support):  # a start the line search moved
         return refuse(problem, own_support=start, start_supported=False)
     S = scene_points_under(P @ R0.T + t0, depth.metres, depth.K, s.mask_dilate, s.max_scene_points)
