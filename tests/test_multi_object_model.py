@@ -309,6 +309,14 @@ def test_each_object_uses_its_own_mesh(tmp_path):
     with pytest.raises(ConfigError, match="mapping"):
         DopePredictor(MultiTargetsBackend(NAMES[:2], POSES), mesh=box)
 
+    # classes= a subset that skips the model's first object: each reported object still gets its own mesh.
+    sub = DopePredictor(MultiTargetsBackend(NAMES, POSES), height=400, classes=["Mustard", "Cookies"],
+                        mesh={"Mustard": box})
+    mustard_only, cookies = sub.objects
+    assert mustard_only.class_name == "Mustard" and mustard_only.mesh is box and cookies.mesh is None
+    np.testing.assert_allclose(mustard_only.cuboid_size_m, size * 1.1)
+    np.testing.assert_allclose(cookies.cuboid_size_m, get_object("Cookies").size_array)
+
 
 # ----------------------------------------------------------------------------- CLI
 @pytest.fixture()

@@ -167,9 +167,10 @@ class DopePredictor:
         self.num_model_objects = len(model_objects)
         groups = select_groups(model_objects, classes)
         meshes = _meshes_by_group(mesh, [model_objects[k].class_name for k in groups])
-        self.objects = [ObjectGeometry(model_objects[k], k, self.legacy, meshes.get(k),
+        self.objects = [ObjectGeometry(model_objects[k], k, self.legacy, meshes.get(i),
                                        unit_for(mesh_units, model_objects[k].class_name),
-                                       self.options.ls_points, self.options.icp_points) for k in groups]
+                                       self.options.ls_points, self.options.icp_points)
+                        for i, k in enumerate(groups)]
         if self.options.icp:
             for obj in self.objects:
                 obj.check_icp_surface()
@@ -439,7 +440,8 @@ def select_groups(objects: Sequence[ObjectInfo], classes: Sequence[str] | None,
 
 
 def _meshes_by_group(mesh: Any, names: Sequence[str]) -> dict[int, Any]:
-    """``mesh`` (one mesh, or class name -> mesh) as {index into ``names``: mesh}."""
+    """``mesh`` (one mesh, or class name -> mesh) as {index into ``names``: mesh} (``names``: the
+    reported objects, a subset of the model's where ``classes`` selects some)."""
     if mesh is None:
         return {}
     if not isinstance(mesh, Mapping):
