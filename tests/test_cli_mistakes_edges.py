@@ -249,7 +249,8 @@ def test_resume_with_its_own_objects_continues(shelf_run, tmp_path, capsys):
 def test_infer_takes_a_mesh_and_a_unit_per_object_of_a_model(shelf_run, shelf, grocery, tmp_path, capsys):
     """--mesh NAME=PATH / --mesh-units NAME=UNIT (as evaluate takes them): each object of one
     model gets its own mesh (its box and surface), an object left out keeps its cuboid."""
-    from dope_hope.inference.model_set import build_predictors
+    from dope_hope.inference.model_set import build_predictors, stream_tracker
+    from dope_hope.inference.tracking import object_symmetries
 
     can, cereal = grocery / "Can" / "textured.obj", grocery / "Cereal" / "textured.obj"
     (p,) = build_predictors([shelf_run / "last.pt"], [Path(f"can={can}"), Path(f"Cereal={cereal}")],
@@ -258,8 +259,14 @@ def test_infer_takes_a_mesh_and_a_unit_per_object_of_a_model(shelf_run, shelf, g
     for name in ("Can", "Cereal"):
         assert by_name[name].mesh is not None
         np.testing.assert_allclose(by_name[name].cuboid_size_m, _box(grocery, name)[0])
+    assert (by_name["Can"].mesh_file, by_name["Can"].mesh_units) == (can, "m")
+    # --track: the tracker reads each object's symmetries from the file its predictor read, in its unit
+    tracker = stream_tracker([p])
+    np.testing.assert_array_equal(tracker.symmetries["Can"], object_symmetries("Can", can, "m"))
+    np.testing.assert_array_equal(tracker.symmetries["Cereal"], object_symmetries("Cereal", cereal, "m"))
     (only_can,) = build_predictors([shelf_run / "last.pt"], [Path(f"Can={can}")], mesh_units={"Can": "m"})
     assert [o.mesh is not None for o in only_can.objects] == [True, False]
+    assert [o.mesh_file for o in only_can.objects] == [can, None]
     out = tmp_path / "out"
     code, _, err = run_cli(["infer", shelf / "000000.png", "--weights", shelf_run / "last.pt", "--mesh", f"Can={can}",
                             "--mesh", f"Cereal={cereal}", "--mesh-units", "m", "--out", out, "--no-overlay",

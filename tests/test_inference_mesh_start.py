@@ -130,6 +130,7 @@ def test_shipped_start_runs_in_python(scene):
     p = MeshStartPredictor(mesh, appearance={"min_score": 0.0}, threads=1)
     try:
         assert p.class_name == "MyBox" and len(p.symmetries) == 4
+        assert p.objects[0].mesh_file == Path(mesh)  # --track reads its symmetries from this file
         assert "untrained" in p.describe() and "180° about y" in p.describe()
         dets = p.predict(read_rgb(frame_dir / "000000.png"), read_dope_json(frame_dir / "000000.json").K)
     finally:

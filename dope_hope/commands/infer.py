@@ -426,7 +426,7 @@ def _run_stream(args: argparse.Namespace) -> int:
         ros = open_ros_outputs(out, source, args.foxglove, not args.no_overlay, _note)
         sinks = StreamSinks(on_record=lambda rec: print(json.dumps(rec), flush=True), video=video, window=window,
                             on_frame=None if ros is None else ros.on_frame)
-        tracker = stream_tracker(predictors, args.mesh or [], args.mesh_units) if args.track else None
+        tracker = stream_tracker(predictors) if args.track else None
         result = predict_stream(source, predictors, sinks, tracker=tracker,
                                 depth_calibration=args.depth_calibration, pace=args.realtime,
                                 max_frames=args.max_frames, progress=not args.no_progress, warn=_warn)

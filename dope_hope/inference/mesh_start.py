@@ -149,9 +149,11 @@ class MeshStartPredictor(DopePredictor):
         from dope_hope.io.meshes import load_mesh, mesh_cuboid
         from dope_hope.io.models_dir import mesh_class_name
 
+        mesh_file = units = None
         if isinstance(mesh, (str, os.PathLike)):
             name = class_name or mesh_class_name(mesh)
-            loaded, source = load_mesh(mesh, units=unit_for(mesh_units, name)), str(mesh)
+            mesh_file, units = Path(mesh), unit_for(mesh_units, name)
+            loaded, source = load_mesh(mesh_file, units=units), str(mesh)
         elif hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
             if not class_name:
                 raise ConfigError("class_name: name the object of a loaded mesh (a file names its own)")
@@ -173,6 +175,7 @@ class MeshStartPredictor(DopePredictor):
         given = {**(dict(options or {})), **overrides}
         given.setdefault("min_score", 0.0)
         super().__init__(backend, mesh=loaded, options=given)
+        self.objects[0].mesh_file, self.objects[0].mesh_units = mesh_file, units  # read here, not by the object
         self.up_axis = up_axis
         self.scales = scales
         self.objects[0].set_pnp_frame(A)

@@ -17,7 +17,6 @@ from pathlib import Path
 from typing import Any
 
 from dope_hope.errors import ConfigError
-from dope_hope.geometry import unit_for
 from dope_hope.inference import backends  # looked up at each call: a substituted open_backend counts
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.inference.tracking import PoseTracker, object_symmetries
@@ -153,13 +152,10 @@ def build_predictors(weights: Sequence[Path], meshes: Sequence[str | Path] = (),
     return predictors
 
 
-def stream_tracker(predictors: Sequence[DopePredictor], meshes: Sequence[Path] = (),
-                   mesh_units: str | Mapping[str, str] | None = None) -> PoseTracker:
-    """The PoseTracker over ``predictors``; each class's symmetries from its mesh (``meshes``,
-    ``mesh_units`` as :func:`build_predictors` takes them: a declaration beside it, else found
-    on it), else those the model records, else the catalog category's."""
-    models = [list(p.class_names) for p in predictors]
-    mesh_units = run_mesh_units(mesh_units, models)
-    symmetries = {name: object_symmetries(name, path, unit_for(mesh_units, name))
-                  for files in mesh_files(meshes, models) for name, path in files.items()}
+def stream_tracker(predictors: Sequence[DopePredictor]) -> PoseTracker:
+    """The PoseTracker over ``predictors``; each class's symmetries from the mesh file its
+    predictor read (``ObjectGeometry.mesh_file``, in its unit: a declaration beside it, else
+    found on it), else those the model records, else the catalog category's."""
+    symmetries = {obj.class_name: object_symmetries(obj.class_name, obj.mesh_file, obj.mesh_units)
+                  for p in predictors for obj in p.objects if obj.mesh_file is not None}
     return PoseTracker(predictors, symmetries=symmetries)

@@ -7,6 +7,7 @@ each object's detections use its own cuboid, mesh and symmetries.
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -31,7 +32,8 @@ class ObjectGeometry:
         ls_points, icp_points: surface points sampled for the line search / ICP (the
             inference options' ``ls_points`` / ``icp_points``).
 
-    Attributes: class_name, group, symmetries (BOP fields, mm, or None), mesh,
+    Attributes: class_name, group, symmetries (BOP fields, mm, or None), mesh, mesh_file and
+    mesh_units (the file it was read from and the unit given for it; None for a loaded mesh),
     cuboid_size_m / cuboid_center_m (mesh frame, m), cuboid_mesh ((9, 3) mesh-frame keypoints,
     current order), cuboid_pnp (the keypoints PnP fits: legacy frame and order for a legacy model),
     pnp_axes (None, or the (3, 3) rotation ``A`` of :meth:`set_pnp_frame`: ``p_pnp = A p_mesh``) and
@@ -45,6 +47,8 @@ class ObjectGeometry:
         self.symmetries = info.symmetries
         self.ls_points, self.icp_points = int(ls_points), int(icp_points)
         self.mesh = None
+        self.mesh_file = Path(mesh) if isinstance(mesh, (str, os.PathLike)) else None
+        self.mesh_units = mesh_units if self.mesh_file is not None else None
         size = np.asarray(info.size_m, dtype=np.float64).reshape(3)
         center = np.zeros(3)
         if mesh is not None:
