@@ -45,13 +45,16 @@ result only when it fits the depth better than the input pose did.
    changes a pose, as for the line search).
 6. **Own depth support** (:func:`depth_support`): the fit only counts the scene points, so it
    cannot see a pose that grew or slid onto something else: a box hidden behind a board,
-   moved by a wide line search to the board's depth, projects twice as large and fits the
-   board as well as the box would. A pose's own support is the share of its visible model
-   points, leaving out those an occluder hides, that the depth confirms (within
-   ``fit_threshold_m``) inside the image region the object was detected in: the silhouette
-   of ``initial_pose`` (the keypoints' pose, before any depth step; by default the input),
-   dilated by ``mask_dilate`` as for the scene points. The refined pose needs at least
-   ``min_own_support``. Where the pose is right the share is the part of its surface the
+   moved to the board's depth, projects twice as large and fits the board as well as the
+   box would. A pose's own support is the share of its visible model points, leaving out
+   those an occluder hides, that the depth confirms (within ``fit_threshold_m``) inside the
+   image region of the input pose (its silhouette, dilated by ``mask_dilate`` as for the
+   scene points). The refined pose needs at least ``min_own_support``. The region is the
+   input's (after -LS), not the keypoints' pose before the line search: a keypoints' pose at
+   the wrong distance has a silhouette of the wrong size, and with it as the region the
+   30-minute Ketchup model's recall at 2 cm with -LS + ICP fell from 60.5 to 50.3 % on the
+   e2e bench's held-out frames (bench/RESULTS.md, "ICP"); a start that the line search would
+   move onto an occluder is the line search's own check (``DopePredictor``'s second search). Where the pose is right the share is the part of its surface the
    sensor measured (0.6-0.9 on the demo scenes); a pose that snapped to a distractor claims
    surface outside the region, or where the sensor saw nothing or saw through it (0.13 on
    the demo scene that showed it).
@@ -155,10 +158,7 @@ class IcpResult:
     applied: whether the pose changed. reason: "ok" or why not.
     fit_before / fit_after: soft fraction of the scene points on the model surface (1 = all
         exactly on it; see step 5) under the input / refined pose (NaN when not evaluated).
-    own_support: the refined pose's own depth support (step 6; NaN when not evaluated), or
-        the input pose's when that had too little.
-    start_supported: False when the input pose itself left the object's own depth support
-        (only checked when an ``initial_pose`` is given: a start a depth step moved).
+    own_support: the refined pose's own depth support (step 6; NaN when not evaluated).
     rmse_m: RMS point-to-plane residual of the last iteration's pairs, metres.
     n_points: scene points used.
     """
@@ -172,7 +172,6 @@ class IcpResult:
     rmse_m: float = float("nan")
     n_points: int = 0
     own_support: float = float("nan")
-    start_supported: bool = True
 
 
 def silhouette_mask(points_c: np.ndarray, K: np.ndarray, hw: tuple[int, int], dilate: float) -> np.ndarray:
@@ -399,7 +398,6 @@ def icp_refine(
     model_normals: np.ndarray,
     depth: DepthImage,
     settings: IcpSettings = IcpSettings(),
-    initial_pose: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> IcpResult:
     """Refine a pose by point-to-plane ICP against a depth image (steps of the module docstring).
 
@@ -409,9 +407,6 @@ def icp_refine(
             unit normals (sign irrelevant).
         depth: the depth image in metres with its K (:class:`~dope_hope.refine.depth.DepthImage`).
         settings: :class:`IcpSettings` (iterations, starts, acceptance).
-        initial_pose: (R, t) of the estimate before any depth step (the keypoints' pose), whose
-            dilated silhouette is the detected region (step 6; None: (R, t)); given, the input
-            pose (moved there by the line search) must keep to that region's support too.
 
     Returns:
         :class:`IcpResult`; the input pose with a reason when not applied.
@@ -426,11 +421,7 @@ def icp_refine(
     P, N = _model_arrays(model_points, model_normals)
     if problem := depth.problem_for(t0):
         return refuse(problem)
-    Ri, ti = (R0, t0) if initial_pose is None else initial_pose
-    region = silhouette_mask(P @ np.asarray(Ri, float).T + np.asarray(ti, float), depth.K, depth.hw, s.mask_dilate)
-    start = float("inf") if initial_pose is None else depth_support(R0, t0, P, depth, region, s.fit_threshold_m)
-    if problem := support_problem("the start pose", start, s.min_own_support):  # a start the line search moved
-        return refuse(problem, own_support=start, start_supported=False)
+    region = silhouette_mask(P @ R0.T + t0, depth.K, depth.hw, s.mask_dilate)
     S = scene_points_under(P @ R0.T + t0, depth.metres, depth.K, s.mask_dilate, s.max_scene_points)
     if len(S) < s.min_points:
         return refuse(f"too few depth pixels under the object ({len(S)} < {s.min_points})", n_points=len(S))
