@@ -26,14 +26,23 @@ of the shared data (``grocery_objects/``: Bread, Can, Cereal, Lemon, Milk; metre
 5. ``eval-all`` / ``eval-six``: `dope-hope evaluate --metric meanssd`: recall at 2 cm
    MeanSSD per object and their mean, with the same symmetries; then, in this process, where
    each arm loses the held-out instances, per object (no detection, beyond 10 cm, within 10 cm
-   but not 2 cm, within 2 cm; at score >= 0.5 and at every score: :func:`shelf_losses`).
+   but not 2 cm, within 2 cm; at score >= 0.5, at each object's own threshold and at every
+   score: :func:`shelf_losses`).
+5b. Each object's own threshold, as a user calibrates a model: ``synth-calib`` renders other
+   frames like the held-out ones (seed :data:`CALIB_SEED`, ``--calib-count``),
+   ``infer-calib-all`` / ``infer-calib-six`` run both arms on them with no threshold,
+   ``calibrate-all`` / ``calibrate-<Name>`` (`dope-hope calibrate`) record each object's F1
+   threshold with the weights (OUT/calibrated/), and ``infer-all-own`` / ``infer-six-own`` run
+   the calibrated weights on the held-out frames at their own thresholds (no --min-score).
 6. ``export-*`` and, in this process, the time per frame with onnxruntime (2 threads): the
    whole pipeline of `DopePredictor` on each test image (forward pass, decoding, PnP; no
    depth), the one model against a one-object model and against the six one-object models
    in turn, frame by frame (side by side), and the frames per second of the one model.
 
 Targets (issue "Many objects, one network"): the one model's mean recall >= the six models'
-at the same budget; its time per frame <= 1.3x a one-object model's; >= 15 frames/s.
+at the same budget; its time per frame <= 1.3x a one-object model's; >= 15 frames/s. The
+recall ranks every detection; the loss breakdown shows what a user's `infer` keeps: at the
+default 0.5 and at each object's calibrated threshold.
 
 Prints the CPU line, the tables and the ratios; writes OUT/results.md and OUT/results.json.
 Resumable at stage granularity (OUT/stages/<stage>.json markers; training resumes with
@@ -85,9 +94,12 @@ TRAIN_TARGETS = ["target.count=[0,4]", "target.distance_m=[0.35,0.8]"]
 #: The held-out scenes: two to four of the objects, plain (no clutter backgrounds, look-alikes or
 #: sensor artefacts), over a photo background given by --backgrounds.
 TEST_SCENE = ["target.count=[2,4]", "target.distance_m=[0.35,0.8]", *set_args(PLAIN_OVERRIDES)]
-#: The scores the loss breakdown is counted at: the 0.5 a user's `infer` keeps, and every
-#: detection (as the recall ranks them).
-BREAKDOWN_SCORES = (0.5, 0.0)
+#: The seed of the frames each object's threshold is calibrated on (neither trained nor tested on).
+CALIB_SEED = 2002
+#: Where the loss breakdown is counted: (label, the suffix of the arm's inference folder, min
+#: score): at the 0.5 a user's `infer` keeps by default, at each object's own threshold (the
+#: calibrated weights, run at their thresholds), and every detection (as the recall ranks them).
+BREAKDOWNS = (("score >= 0.5", "", 0.5), ("each object's own threshold", "_own", 0.0), ("every score", "", 0.0))
 #: The arms: (label, the folder suffix of their inference, their evaluate method).
 ARMS = (("one six-object model", "all", "one-model-LS"), ("six one-object models", "six", "six-models-LS"))
 #: Training overrides: symmetry-aware labels (each object's symmetries: the catalog category's,
@@ -104,6 +116,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--train-count", type=int, help="training frames (default 12000; --quick 12)")
     p.add_argument("--test-count", type=int, help="held-out frames (default 200; --quick 3)")
     p.add_argument("--size", help="held-out frame size WxH (default 640x480; --quick 160x120)")
+    p.add_argument("--calib-count", type=int, help="frames the thresholds are calibrated on (default 100; "
+                                                   "--quick 12)")
     p.add_argument("--workers", type=int, default=2, help="synth render processes (default 2)")
     p.add_argument("--threads", type=int, default=2, help="onnxruntime threads of the timing (default 2)")
     p.add_argument("--one-model-set", nargs="+", default=[], metavar="KEY=VALUE",
@@ -116,6 +130,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args = p.parse_args(argv)
     q = args.quick
     defaults = {"minutes": 0.6 if q else 60.0, "train_count": 12 if q else 12000, "test_count": 3 if q else 200,
+                "calib_count": 12 if q else 100,
                 "size": "160x120" if q else "640x480",
                 "out": REPO / "bench" / "out" / ("multi_object_quick" if q else "multi_object")}
     for key, value in defaults.items():
@@ -136,20 +151,33 @@ def per_object_recall(eval_dir: Path, method: str) -> dict[str, float]:
 
 
 def shelf_losses(out: Path, meshes: dict[str, Path], units: dict[str, str]) -> dict[str, dict[str, dict]]:
-    """How each arm loses the held-out instances: {arm suffix: {min score (text): {object:
-    counts of :data:`~e2e_accuracy.LOSS_CLASSES`}}} at each of :data:`BREAKDOWN_SCORES`
+    """How each arm loses the held-out instances: {arm suffix: {breakdown label: {object:
+    counts of :data:`~e2e_accuracy.LOSS_CLASSES`}}} for each of :data:`BREAKDOWNS`
     (:func:`e2e_accuracy.instance_losses`: MeanSSD with the objects' symmetries, -LS)."""
     def counts(arm: str, name: str, score: float) -> dict[str, int]:
         predictions = out / f"infer_{arm}" / "predictions.jsonl"
         return loss_counts(instance_losses(out / "test", predictions, name, meshes[name], score, units[name]))
 
-    return {arm: {f"{score:g}": {n: counts(arm, n, score) for n in OBJECTS} for score in BREAKDOWN_SCORES}
+    return {arm: {label: {n: counts(arm + suffix, n, score) for n in OBJECTS} for label, suffix, score in BREAKDOWNS}
             for _, arm, _ in ARMS}
 
 
+def own_thresholds(out: Path) -> dict[str, dict[str, float]]:
+    """{arm suffix: {object: the threshold `calibrate` recorded, or None: none (it keeps infer's
+    default)}} from OUT/calibrated/."""
+    from dope_hope.model.checkpoint import load_checkpoint
+    from dope_hope.model.info import ModelInfo
+
+    def of(path: Path) -> dict[str, float]:
+        return {o.class_name: o.min_score for o in ModelInfo.from_checkpoint(load_checkpoint(path), path).objects}
+
+    return {"all": of(out / "calibrated" / "all.pt"),
+            "six": {n: t for name in OBJECTS for n, t in of(out / "calibrated" / f"{name}.pt").items()}}
+
+
 def losses_table(losses: dict[str, dict[str, dict]], score: str) -> str:
-    """Markdown table of :func:`shelf_losses` at one score: per object and arm, the instances
-    in each loss class."""
+    """Markdown table of :func:`shelf_losses` at one breakdown (its label): per object and
+    arm, the instances in each loss class."""
     classes = " / ".join(LOSS_CLASSES)
     rows = [f"| object | {ARMS[0][0]}: {classes} | {ARMS[1][0]}: {classes} |", "|---|---|---|"]
     for n in [*OBJECTS, None]:
@@ -227,7 +255,7 @@ def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], uni
     names = list(OBJECTS)
     mesh_args = [str(meshes[n]) for n in names]
     unit_args = [units[n] for n in names]
-    train_dir, test_dir = out / "train", out / "test"
+    train_dir, test_dir, calib_dir = out / "train", out / "test", out / "calib"
     pipe.stage("synth-train", ["synth", "--mesh", *mesh_args, "--units", *unit_args, "--out", train_dir,
                                "--count", args.train_count, "--size", "64x64" if args.quick else "256x192",
                                "--seed", TRAIN_SEED, "--workers", args.workers, "--no-progress",
@@ -240,18 +268,35 @@ def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], uni
     for n in names:
         pipe.stage(f"train-{n}", [*common, "--object", n, "--mesh", meshes[n], "--units", units[n],
                                   "--out", out / f"run_{n}", "--time-budget", args.minutes / 6, *options])
-    pipe.stage("synth-test", ["synth", "--mesh", *mesh_args, "--units", *unit_args, "--out", test_dir,
-                              "--count", args.test_count, "--size", args.size, "--seed", TEST_SEED,
-                              "--workers", args.workers, "--depth-noise", "--no-progress",
-                              "--backgrounds", args.shared / "backgrounds", "--set", *TEST_SCENE])
+    for stage, folder, count, seed in (("synth-test", test_dir, args.test_count, TEST_SEED),
+                                       ("synth-calib", calib_dir, args.calib_count, CALIB_SEED)):
+        pipe.stage(stage, ["synth", "--mesh", *mesh_args, "--units", *unit_args, "--out", folder,
+                           "--count", count, "--size", args.size, "--seed", seed,
+                           "--workers", args.workers, "--depth-noise", "--no-progress",
+                           "--backgrounds", args.shared / "backgrounds", "--set", *TEST_SCENE])
     one_ckpt = checkpoint_of(out / "run_all")
     single_ckpts = {n: checkpoint_of(out / f"run_{n}") for n in names}
-    mesh_flags = [a for n in names for a in ("--mesh", f"{n}={meshes[n]}", "--mesh-units", f"{n}={units[n]}")]
-    infer = ["infer", test_dir, "--depth", "auto", "--min-score", "0", "--no-overlay", "--no-progress", *mesh_flags]
-    pipe.stage("infer-all", [*infer, "--weights", one_ckpt, "--out", out / "infer_all"])
+    def mesh_flags(objects: list[str]) -> list[str]:
+        return [a for n in objects for a in ("--mesh", f"{n}={meshes[n]}", "--mesh-units", f"{n}={units[n]}")]
+
+    def infer(folder: Path, *flags) -> list:
+        return ["infer", folder, "--depth", "auto", *flags, "--no-overlay", "--no-progress", *mesh_flags(names)]
+
     six = [a for n in names for a in ("--weights", single_ckpts[n])]
-    pipe.stage("infer-six", [*infer, *six, "--out", out / "infer_six"])
-    evaluate = ["evaluate", "-d", test_dir, "--metric", "meanssd", "--no-bop-ar", "--no-progress", *mesh_flags]
+    for folder, suffix in ((test_dir, ""), (calib_dir, "-calib")):
+        for arm, weights in (("all", ["--weights", one_ckpt]), ("six", six)):
+            pipe.stage(f"infer{suffix}-{arm}", [*infer(folder, "--min-score", "0"), *weights,
+                                                "--out", out / f"infer{suffix.replace('-', '_')}_{arm}"])
+    calibrated = {"all": out / "calibrated" / "all.pt", **{n: out / "calibrated" / f"{n}.pt" for n in names}}
+    for key, weights, arm, objects in (("all", one_ckpt, "all", names),
+                                       *((n, single_ckpts[n], "six", [n]) for n in names)):
+        pipe.stage(f"calibrate-{key}", ["calibrate", "-p", out / f"infer_calib_{arm}" / "predictions.jsonl",
+                                        "-d", calib_dir, "--weights", weights, "--out", calibrated[key],
+                                        "--no-progress", *mesh_flags(objects)])
+    pipe.stage("infer-all-own", [*infer(test_dir), "--weights", calibrated["all"], "--out", out / "infer_all_own"])
+    pipe.stage("infer-six-own", [*infer(test_dir), *(a for n in names for a in ("--weights", calibrated[n])),
+                                 "--out", out / "infer_six_own"])
+    evaluate = ["evaluate", "-d", test_dir, "--metric", "meanssd", "--no-bop-ar", "--no-progress", *mesh_flags(names)]
     for arm, method in (("all", "one-model-LS"), ("six", "six-models-LS")):
         pipe.stage(f"eval-{arm}", [*evaluate, "-p", out / f"infer_{arm}" / "predictions.jsonl", "--method", method,
                                    "--out", out / f"eval_{arm}"])
@@ -268,8 +313,12 @@ def report(args: argparse.Namespace, out: Path, pipe: CommandStages, symmetries:
     names = list(OBJECTS)
     recall_one, recall_six = (per_object_recall(out / f"eval_{arm}", method) for _, arm, method in ARMS)
     losses = shelf_losses(out, meshes, units)
-    breakdown = "\n\n".join(f"At score >= {score}:\n\n{losses_table(losses, score)}"
-                             for score in losses["all"])
+    breakdown = "\n\n".join(f"At {label}:\n\n{losses_table(losses, label)}" for label in losses["all"])
+    own = own_thresholds(out)
+    thresholds = ("Each object's own threshold (`dope-hope calibrate`, F1 at 10 cm MeanSSD on "
+                  f"{args.calib_count} other frames, seed {CALIB_SEED}): "
+                  + "; ".join(f"{label}: " + ", ".join(f"{n} {'none (0.5)' if own[arm][n] is None else own[arm][n]}"
+                                                       for n in names) for label, arm, _ in ARMS))
     mean_one = statistics.mean(recall_one.get(n, 0.0) for n in names)
     mean_six = statistics.mean(recall_six.get(n, 0.0) for n in names)
     steps = {run: json.loads((out / run / "summary.json").read_text())["step"]
@@ -300,12 +349,12 @@ def report(args: argparse.Namespace, out: Path, pipe: CommandStages, symmetries:
         f"objects each, photo background; every detection, ranked by score):\n\n{table}\n\n"
         "Symmetries (training labels and MeanSSD):\n\n" + "".join(f"- {n}: {t}\n" for n, t in symmetries.items())
         + "\nWhere the held-out instances are lost (MeanSSD with those symmetries, -LS; instances per object: "
-        + ", ".join(LOSS_CLASSES) + f"):\n\n{breakdown}\n\n{trained}\n\n"
+        + ", ".join(LOSS_CLASSES) + f"):\n\n{breakdown}\n\n{thresholds}\n\n{trained}\n\n"
         f"{speed}\n\nStage times: {times}\n")
-    print(f"\n{table}\n\n{breakdown}\n\n{trained}\n{speed}\nstage times: {times}\nwritten: {out / 'results.md'}, "
+    print(f"\n{table}\n\n{breakdown}\n\n{thresholds}\n\n{trained}\n{speed}\nstage times: {times}\nwritten: {out / 'results.md'}, "
           f"{out / 'results.json'}")
     return {"recall_2cm_one_model": recall_one, "recall_2cm_six_models": recall_six, "mean_one_model": mean_one,
-            "mean_six_models": mean_six, "lost": losses, "steps": steps, "timing": timing,
+            "mean_six_models": mean_six, "lost": losses, "own_thresholds": own, "steps": steps, "timing": timing,
             "stage_seconds": pipe.timings, "symmetries": symmetries}
 
 
@@ -323,6 +372,7 @@ def main(argv: list[str] | None = None) -> int:
     units = {name: u for name, (_, u) in OBJECTS.items()}
     settings = {"objects": {n: str(p) for n, p in meshes.items()}, "minutes": args.minutes,
                 "train_count": args.train_count, "test_count": args.test_count, "size": args.size,
+                "calib_count": args.calib_count, "calib_seed": CALIB_SEED,
                 "train_targets": TRAIN_TARGETS, "train_set": TRAIN_SET, **optional_settings(args),
                 "test_scene": TEST_SCENE, "quick": args.quick, "train_seed": TRAIN_SEED, "test_seed": TEST_SEED}
     check_settings(out, settings)

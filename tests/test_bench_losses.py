@@ -73,16 +73,20 @@ def test_the_shelf_breakdown_counts_each_arm_per_object_with_totals(milk_frames,
     shelf = _bench("multi_object")
     monkeypatch.setattr(shelf, "OBJECTS", {"Milk": ("grocery_objects/Milk/textured.obj", "m")})
     out = tmp_path / "mo"
-    (out / "infer_all").mkdir(parents=True)
-    (out / "infer_six").mkdir()
+    for arm in ("infer_all", "infer_six", "infer_all_own", "infer_six_own"):
+        (out / arm).mkdir(parents=True)
     (out / "test").symlink_to(frames)
     _predictions(frames, out / "infer_all" / "predictions.jsonl", {0: None, 1: None})
     _predictions(frames, out / "infer_six" / "predictions.jsonl", {})
+    _predictions(frames, out / "infer_all_own" / "predictions.jsonl", {0: None})  # the calibrated weights' run
+    _predictions(frames, out / "infer_six_own" / "predictions.jsonl", {})
     losses = shelf.shelf_losses(out, {"Milk": mesh}, {"Milk": "m"})
-    assert set(losses) == {"all", "six"} and set(losses["all"]) == {"0.5", "0"}
-    assert losses["all"]["0.5"]["Milk"]["no detection"] == 2 and losses["all"]["0.5"]["Milk"]["within 2 cm"] == 2
-    assert losses["six"]["0"]["Milk"]["within 2 cm"] == 4
-    table = shelf.losses_table(losses, "0.5").splitlines()
+    at_half, own, every = "score >= 0.5", "each object's own threshold", "every score"
+    assert set(losses) == {"all", "six"} and list(losses["all"]) == [at_half, own, every]
+    assert losses["all"][at_half]["Milk"]["no detection"] == 2 and losses["all"][at_half]["Milk"]["within 2 cm"] == 2
+    assert losses["all"][own]["Milk"]["no detection"] == 1 and losses["all"][own]["Milk"]["within 2 cm"] == 3
+    assert losses["six"][every]["Milk"]["within 2 cm"] == 4
+    table = shelf.losses_table(losses, at_half).splitlines()
     assert table[2] == "| Milk | 2 / 0 / 0 / 2 | 0 / 0 / 0 / 4 |"
     assert table[-1] == "| **all** | 2 / 0 / 0 / 2 | 0 / 0 / 0 / 4 |"
     assert all(row.count("|") == 4 for row in table)

@@ -227,8 +227,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="network working height, pixels (default: the model's training scale; "
                              "400 for official DOPE weights)")
     parser.add_argument("--min-score", type=finite_float, metavar="S",
-                        help="drop detections whose pose score is lower (default: the model's own threshold "
-                             "when its file records one, as the shipped demo model does, else "
+                        help="drop detections whose pose score is lower, for every object (default: each "
+                             "object's own threshold when its file records one (dope-hope calibrate), else the "
+                             "model's own, as the shipped demo model records, else "
                              f"{_default_min_score():g} from dope_hope/configs/infer.yaml; bench/RESULTS.md); "
                              "0 keeps all; the option min_score")
     parser.add_argument("--pose-search", choices=("hypotheses", "groups"),

@@ -83,7 +83,9 @@ def _open_models(settings: DemoSettings, out: Path) -> _Models:
                                   classes=[DEMO_CLASS_NAME], options=settings.options)
         note = f"ONNX {onnx_path} (" + (f"exported in {time.perf_counter() - t0:.1f} s" if exported else "cached") + ")"
     model = load_models([DEMO_CLASS_NAME], [str(mesh_path)])[DEMO_CLASS_NAME]
-    own_min_score = backends.model_min_score(torch_backend) is not None and "min_score" not in settings.options
+    recorded = backends.model_min_score(torch_backend) is not None or any(
+        o.min_score is not None for o in backends.backend_objects(torch_backend) if o.class_name == DEMO_CLASS_NAME)
+    own_min_score = recorded and "min_score" not in settings.options
     return _Models(torch_pred, onnx_pred, note, input_hw, own_min_score, mesh_path, model)
 
 
@@ -157,7 +159,7 @@ def run_demo(settings: DemoSettings, show: Callable[[str], None]) -> list[SceneR
     show(f"dope-hope demo: {settings.scenes} scene(s) of {DEMO_CLASS_NAME}, seed {seed} (repeat with --seed "
          f"{seed}), {IMAGE_SIZE[0]}x{IMAGE_SIZE[1]}, box at least half visible, RealSense-like depth noise; "
          f"model {settings.weights} (network input {m.input_hw[1]}x{m.input_hw[0]}, min score "
-         f"{m.torch_pred.options.min_score:g}{', its own' if m.own_min_score else ''}); {m.note}")
+         f"{m.torch_pred.objects[0].min_score:g}{', its own' if m.own_min_score else ''}); {m.note}")
     results, records, tiles = [], [], []
     with FrameGenerator(m.mesh_path, size=IMAGE_SIZE, config=DEMO_CONFIG, class_name=DEMO_CLASS_NAME,
                         depth_noise=True, seed=seed) as gen:

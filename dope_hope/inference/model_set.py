@@ -146,9 +146,13 @@ def build_predictors(weights: Sequence[Path], meshes: Sequence[str | Path] = (),
         reported = names if keep is None else keep
         predictors.append(DopePredictor(model, mesh=files[i] or None, mesh_units=mesh_units, classes=keep,
                                         options=dict(options or {})))
-        if "min_score" not in (options or {}) and backends.model_min_score(model) is not None:
-            note(f"{', '.join(reported)}: min score {predictors[-1].options.min_score:g}, "
-                 "the model's own (recorded with its weights; --min-score overrides)")
+        own = [o for o in backends.backend_objects(model) if o.min_score is not None and o.class_name in reported]
+        if "min_score" not in (options or {}) and (backends.model_min_score(model) is not None or own):
+            scores = {obj.class_name: obj.min_score for obj in predictors[-1].objects}
+            text = (f"{', '.join(scores)}: min score {next(iter(scores.values())):g}"
+                    if len(set(scores.values())) == 1 else
+                    "min score " + ", ".join(f"{name} {score:g}" for name, score in scores.items()))
+            note(f"{text}, the model's own (recorded with its weights; --min-score overrides)")
     return predictors
 
 

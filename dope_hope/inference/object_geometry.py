@@ -37,7 +37,9 @@ class ObjectGeometry:
     cuboid_size_m / cuboid_center_m (mesh frame, m), cuboid_mesh ((9, 3) mesh-frame keypoints,
     current order), cuboid_pnp (the keypoints PnP fits: legacy frame and order for a legacy model),
     pnp_axes (None, or the (3, 3) rotation ``A`` of :meth:`set_pnp_frame`: ``p_pnp = A p_mesh``) and
-    pnp_order ((9,) int: mesh-order keypoints are ``keypoints_pnp[pnp_order]``).
+    pnp_order ((9,) int: mesh-order keypoints are ``keypoints_pnp[pnp_order]``), min_score (the
+    pose-score threshold its detections must reach: ``info.min_score``, or None until the
+    predictor sets the one it resolves).
     """
 
     def __init__(self, info: ObjectInfo, group: int, legacy: bool, mesh: Any,
@@ -45,6 +47,7 @@ class ObjectGeometry:
         self.class_name = str(info.class_name)
         self.group = int(group)
         self.symmetries = info.symmetries
+        self.min_score: float | None = info.min_score
         self.ls_points, self.icp_points = int(ls_points), int(icp_points)
         self.mesh = None
         self.mesh_file = Path(mesh) if isinstance(mesh, (str, os.PathLike)) else None

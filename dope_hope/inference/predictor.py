@@ -123,8 +123,10 @@ class DopePredictor:
         **overrides: single options on top (``height=400``, ``icp=True``, ``pnp={...}``, ...);
             an unknown name is a ConfigError.
 
-    ``min_score``: when neither ``options`` nor ``overrides`` gives one, the model's own
-    threshold when its file records one (``ModelInfo.min_score``), else the packaged default.
+    ``min_score``: when neither ``options`` nor ``overrides`` gives one, each object's own
+    threshold when the model file records one (``ObjectInfo.min_score``: `dope-hope calibrate`),
+    else the model's (``ModelInfo.min_score``), else the packaged default; given, it holds for
+    every object. ``ObjectGeometry.min_score`` is the one each object uses.
 
     Attributes: backend, options, objects (one :class:`ObjectGeometry` per reported object,
     channel order), class_names, legacy, mean, std, stride. A predictor of one object also
@@ -171,6 +173,9 @@ class DopePredictor:
                                        unit_for(mesh_units, model_objects[k].class_name),
                                        self.options.ls_points, self.options.icp_points)
                         for i, k in enumerate(groups)]
+        for obj, k in zip(self.objects, groups):  # an explicit min_score, else the object's own
+            own = model_objects[k].min_score
+            obj.min_score = self.options.min_score if "min_score" in given or own is None else float(own)
         if self.options.icp:
             for obj in self.objects:
                 obj.check_icp_surface()
@@ -296,7 +301,7 @@ class DopePredictor:
         all_peaks = split_peaks(decoder_peaks(stacked, self.options.stages.decode), len(live), NUM_KEYPOINTS)
         out: list[Detection] = []
         for (obj, b, a), peaks in zip(live, all_peaks):
-            if not pose_may_reach(peaks.channel, peaks.score, self.options.stages.pnp, self.options.min_score):
+            if not pose_may_reach(peaks.channel, peaks.score, self.options.stages.pnp, obj.min_score):
                 continue  # no pose of these maps could reach min_score: nothing to decode
             out += self._object_detections(obj, b, a, peaks, net_in, K, K_net, depth)
         out.sort(key=lambda d: -d.score)
@@ -309,10 +314,10 @@ class DopePredictor:
         mean_scale = math.sqrt(net_in.scale[0] * net_in.scale[1])
         out: list[Detection] = []
         pnp = self.options.stages.pnp
-        for est in self._poses(belief, affinity, K_net, obj.cuboid_pnp, peaks):
+        for est in self._poses(belief, affinity, K_net, obj.cuboid_pnp, obj.min_score, peaks):
             if pnp.score_in_view:  # a keypoint beyond the border is not a missing one
                 est = replace(est, score=score_in_view(est, net_in.resized_hw, pnp.min_points))
-            if est.score < self.options.min_score:
+            if est.score < obj.min_score:
                 continue
             R, t = est.R, est.t
             kp, scores, inliers = est.keypoints, est.keypoint_scores, est.inliers
@@ -398,10 +403,11 @@ class DopePredictor:
             det.R, det.t = res.R, res.t
 
     def _poses(self, belief: np.ndarray, affinity: np.ndarray, K_net: np.ndarray,
-               cuboid: np.ndarray, peaks: Peaks | None = None) -> list[PoseEstimate]:
+               cuboid: np.ndarray, min_score: float, peaks: Peaks | None = None) -> list[PoseEstimate]:
         """Network-image poses of the instances in one object's maps (step 3 of the module
         docstring), best first; keypoints in the network's own order; ``cuboid`` (9, 3);
-        ``peaks``: the maps' :func:`~dope_hope.maps.decode.decoder_peaks` when already found."""
+        ``min_score``: the object's threshold; ``peaks``: the maps'
+        :func:`~dope_hope.maps.decode.decoder_peaks` when already found."""
         stages = self.options.stages
         if self.options.pose_search == "groups":
             found = [solve_pnp(inst.keypoints, inst.scores, cuboid, K_net, stages.pnp)
@@ -409,9 +415,9 @@ class DopePredictor:
             return [e for e in found if e is not None]
         candidates = corner_candidates(belief, affinity, self.stride, stages.decode, peaks=peaks)
         # A centroid whose candidates allow no pose min_score keeps: no search.
-        candidates = [c for c in candidates if pose_may_reach(c.keypoint_ids, c.scores, stages.pnp, self.options.min_score)]
+        candidates = [c for c in candidates if pose_may_reach(c.keypoint_ids, c.scores, stages.pnp, min_score)]
         return solve_pnp_instances([(c.keypoint_ids, c.xy, c.scores) for c in candidates], cuboid,
-                                   K_net, stages.hypotheses, stages.pnp, min_score=self.options.min_score)
+                                   K_net, stages.hypotheses, stages.pnp, min_score=min_score)
 
     def __repr__(self) -> str:
         return (f"DopePredictor(classes={list(self.class_names)!r}, stride={self.stride}, "

@@ -8,8 +8,10 @@ numbers, strings, lists, tuples, dicts; no pickled classes)::
     config            the full config that built the model (model/input/targets/train/...)
     objects           [{class_name, size_m: [x, y, z] cuboid extents in the MESH frame (m),
                        frame: "mesh" | "legacy" (the object frame the network's keypoints use),
-                       symmetries: BOP models_info symmetry fields (mm) or None}], one per
+                       symmetries: BOP models_info symmetry fields (mm) or None,
+                       min_score: the object's own score threshold, optional}], one per
                       belief/affinity group, in channel order (``model.num_objects`` of them)
+    min_score         the model's own score threshold, optional
     object            objects[0], written for one-object models only (what older readers
                       read; a checkpoint with ``object`` alone is a one-object model)
     keypoint_order    "dope-current" (geometry.KEYPOINT_ORDER) or "dope-legacy"
@@ -27,6 +29,7 @@ import pickle
 import random
 import re
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -356,19 +359,33 @@ PRETRAINED_START_SOURCE = "pretrained start"
 
 
 def save_inference_checkpoint(src: str | os.PathLike, dst: str | os.PathLike,
-                              source: str | None = None, min_score: float | None = None) -> Path:
+                              source: str | None = None, min_score: float | None = None,
+                              object_min_scores: Mapping[str, float] | None = None) -> Path:
     """Copy a checkpoint without its training state (optimizer, scheduler, RNG): what a
     model ships as. Adam's moments double a checkpoint's size and are useless for inference;
     ``--resume`` needs the full file. ``source`` replaces the recorded origin (e.g.
     :data:`PRETRAINED_START_SOURCE`). ``min_score`` records the model's own default score
     threshold (:attr:`ModelInfo.min_score <dope_hope.model.info.ModelInfo.min_score>`; the
-    source's is kept when None). Written atomically; returns ``dst``."""
+    source's is kept when None); ``object_min_scores`` {class name: threshold} each object's
+    own (:attr:`ObjectInfo.min_score <dope_hope.model.info.ObjectInfo.min_score>`; ConfigError
+    for a class the model does not hold). Written atomically; returns ``dst``."""
     ckpt = load_checkpoint(src)
     ckpt.update(optimizer=None, scheduler=None, rng=None)
     if source is not None:
         ckpt["source"] = source
     if min_score is not None:
         ckpt["min_score"] = min_score
+    if object_min_scores:
+        entries = ckpt.get("objects") or [ckpt.get("object") or {}]
+        names = [e.get("class_name") for e in entries]
+        for name, value in object_min_scores.items():
+            if name not in names:
+                raise ConfigError(f"{name!r} is not an object of {src} ({', '.join(map(str, names))})")
+            entries[names.index(name)]["min_score"] = float(value)
+        ckpt["objects"] = entries
+        if len(entries) == 1:
+            ckpt["object"] = entries[0]
+    if min_score is not None or object_min_scores:
         ModelInfo.from_checkpoint(ckpt, dst)
     atomic_write_stream(dst, lambda f: torch.save(ckpt, f))
     return Path(dst)

@@ -44,22 +44,39 @@ class ObjectInfo:
 
     class_name: its class. size_m: (3,) cuboid extents, mesh frame, metres. symmetries: the
     BOP ``models_info`` symmetry fields (``symmetries_discrete`` / ``symmetries_continuous``,
-    BOP units: mm) as a dict, or None when none are declared.
+    BOP units: mm) as a dict, or None when none are declared. min_score: this object's own
+    pose-score threshold (chosen on labelled frames, :mod:`dope_hope.evaluation.thresholds`),
+    or None: the model's (:attr:`ModelInfo.min_score`), else the inference options' default;
+    an explicit ``min_score`` still wins.
     """
 
     class_name: str
     size_m: tuple[float, float, float]
     symmetries: Mapping[str, Any] | None = None
+    min_score: float | None = None
 
     def to_dict(self, frame: str) -> dict[str, Any]:
-        """The checkpoint / ONNX metadata entry ``{class_name, size_m, frame, symmetries}``."""
-        return {"class_name": self.class_name, "size_m": [float(v) for v in self.size_m], "frame": frame,
-                "symmetries": None if self.symmetries is None else dict(self.symmetries)}
+        """The checkpoint / ONNX metadata entry ``{class_name, size_m, frame, symmetries}``
+        (and ``min_score`` when the object has its own)."""
+        entry = {"class_name": self.class_name, "size_m": [float(v) for v in self.size_m], "frame": frame,
+                 "symmetries": None if self.symmetries is None else dict(self.symmetries)}
+        if self.min_score is not None:
+            entry["min_score"] = float(self.min_score)
+        return entry
+
+
+def score_threshold_problem(value: Any) -> str | None:
+    """Why ``value`` is no score threshold (a finite number >= 0, or None), or None."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+        return f"must be a finite number >= 0 or null, got {value!r}"
+    return None
 
 
 def object_from_dict(entry: Any, path: str | os.PathLike, where: str) -> tuple[ObjectInfo, str]:
-    """(ObjectInfo, frame) of one ``{class_name, size_m, frame, symmetries}`` entry (frame
-    "mesh" when absent); ModelFileError naming ``where`` for a malformed entry."""
+    """(ObjectInfo, frame) of one ``{class_name, size_m, frame, symmetries[, min_score]}`` entry
+    (frame "mesh" when absent); ModelFileError naming ``where`` for a malformed entry."""
     if not isinstance(entry, Mapping) or not isinstance(entry.get("class_name"), str) or not entry["class_name"]:
         raise ModelFileError(path, f"model metadata: {where} must hold a class_name")
     try:
@@ -67,8 +84,11 @@ def object_from_dict(entry: Any, path: str | os.PathLike, where: str) -> tuple[O
     except (TypeError, ValueError):
         raise ModelFileError(path, f"model metadata: {where}.size_m must hold 3 extents in metres") from None
     sym = entry.get("symmetries")
-    return ObjectInfo(str(entry["class_name"]), size, None if sym is None else dict(sym)), \
-        str(entry.get("frame", "mesh"))
+    min_score = entry.get("min_score")
+    if problem := score_threshold_problem(min_score):
+        raise ModelFileError(path, f"model metadata: {where}.min_score {problem}")
+    return ObjectInfo(str(entry["class_name"]), size, None if sym is None else dict(sym),
+                      None if min_score is None else float(min_score)), str(entry.get("frame", "mesh"))
 
 
 @dataclass
@@ -142,9 +162,8 @@ class ModelInfo:
                 f"(expected {expected!r})")
         if self.input_hw is not None and (len(self.input_hw) != 2 or min(self.input_hw) < 1):
             bad(f"input_hw must be [H, W] or null, got {self.input_hw}")
-        if self.min_score is not None and (isinstance(self.min_score, bool) or not isinstance(
-                self.min_score, (int, float)) or not math.isfinite(self.min_score) or self.min_score < 0):
-            bad(f"min_score must be a finite number >= 0 or null, got {self.min_score!r}")
+        if problem := score_threshold_problem(self.min_score):
+            bad(f"min_score {problem}")
         self._validate_objects(path, bad)
 
     def _validate_objects(self, path: str | os.PathLike, bad) -> None:
@@ -160,6 +179,8 @@ class ModelInfo:
             if not obj.class_name or obj.class_name.lower() in seen:
                 bad(f"objects[{k}]: class name {obj.class_name!r} is empty or repeated (case-insensitive)")
             seen.add(obj.class_name.lower())
+            if problem := score_threshold_problem(obj.min_score):
+                bad(f"objects[{k}] ({obj.class_name}) min_score {problem}")
             if obj.symmetries is not None:
                 try:
                     parse_symmetries(JsonFields(path), dict(obj.symmetries), f"objects[{k}].symmetries")

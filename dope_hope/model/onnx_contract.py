@@ -11,7 +11,7 @@ stride, input size) lives in the model's ``metadata_props`` under the keys of
 - ``native``: input ``image`` (N, 3, H, W) float32 normalized with the model's mean/std;
   outputs ``belief`` (N, 9K, h, w) and ``affinity`` (N, 16K, h, w) of the last stage for a
   model of K objects (``dope_hope.objects``: a JSON list of ``{class_name, size_m, frame,
-  symmetries}`` in channel-group order; a file without the key is the one object
+  symmetries[, min_score]}`` in channel-group order; a file without the key is the one object
   ``class_name`` / ``size_m``, as every file written before the key existed).
 - ``isaac-ros``: what Isaac ROS DOPE's TensorRT node + decoder consume, always ONE object:
   input ``input`` (1, 3, H, W) normalized with the Isaac ROS image encoder's mean/std

@@ -53,7 +53,7 @@ result only when it fits the depth better than the input pose did.
    input's (after -LS), not the keypoints' pose before the line search: a keypoints' pose at
    the wrong distance has a silhouette of the wrong size, and with it as the region the
    30-minute Ketchup model's recall at 2 cm with -LS + ICP fell from 60.5 to 50.3 % on the
-   e2e bench's held-out frames (bench/RESULTS.md, "ICP"); a start that the line search would
+   e2e bench's held-out frames (bench/RESULTS.md, "Post-processing vs the official decoder"); a start that the line search would
    move onto an occluder is the line search's own check (``DopePredictor``'s second search). Where the pose is right the share is the part of its surface the
    sensor measured (0.6-0.9 on the demo scenes); a pose that snapped to a distractor claims
    surface outside the region, or where the sensor saw nothing or saw through it (0.13 on

@@ -1,0 +1,201 @@
+"""Each object's own score threshold, chosen on labelled frames: the score at which its
+detections best balance the instances found against the false ones (the F1 score's maximum,
+as detection toolkits report a detector's best confidence).
+
+A network's scores are its own and, in a model of several objects, each object's are too: a
+six-object model scores a lemon it places well lower than a can (bench/RESULTS.md,
+"Multi-object"), so one ``min_score`` keeps the cans and drops the lemons.
+:func:`match_estimates` takes estimates made with no threshold (``infer --min-score 0``)
+on frames that were neither trained on nor benchmarked on, matches them to the labels as
+``evaluate`` does (:func:`~dope_hope.evaluation.matching.greedy_match`: by descending score,
+so a threshold never changes which of the estimates it keeps are true), and picks per object
+the threshold of :data:`CANDIDATES` with the highest F1 (ties: the higher threshold, fewer
+false detections). `dope-hope calibrate` records them with the weights
+(:attr:`dope_hope.model.info.ObjectInfo.min_score`).
+"""
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from dope_hope.errors import ConfigError
+from dope_hope.evaluation.datasets import Dataset
+from dope_hope.evaluation.matching import error_matrix, greedy_match
+from dope_hope.evaluation.object_models import ObjectModel
+from dope_hope.io.predictions import Prediction
+
+#: The thresholds a choice is made among: 0.05 to 0.95 in steps of 0.05.
+CANDIDATES: tuple[float, ...] = tuple(round(0.05 * k, 2) for k in range(1, 20))
+
+
+@dataclass(frozen=True)
+class ThresholdChoice:
+    """One object's chosen threshold and what it keeps on the calibration frames.
+
+    min_score: the threshold. f1: ``2 true / (2 true + false + missed)`` there. true: its
+    estimates within the distance of an instance (one per instance); false: the others;
+    missed: instances without a true estimate; instances: all of them.
+    """
+
+    class_name: str
+    min_score: float
+    f1: float
+    true: int
+    false: int
+    missed: int
+    instances: int
+
+
+def best_f1_threshold(class_name: str, scores: np.ndarray, true: np.ndarray, instances: int,
+                      candidates: Sequence[float] = CANDIDATES) -> ThresholdChoice:
+    """The candidate threshold of highest F1 for estimates of ``scores`` (n,) whose ``true``
+    (n,) bool says which are matched to an instance, among ``instances`` labelled ones (ties:
+    the higher threshold); ValueError without a candidate."""
+    if not len(candidates):
+        raise ValueError("no candidate threshold")
+    scores = np.asarray(scores, dtype=np.float64).reshape(-1)
+    true = np.asarray(true, dtype=bool).reshape(-1)
+    best: ThresholdChoice | None = None
+    for t in sorted(candidates):
+        kept = scores >= t
+        tp, fp = int(np.count_nonzero(kept & true)), int(np.count_nonzero(kept & ~true))
+        fn = instances - tp
+        f1 = 2 * tp / (2 * tp + fp + fn) if (2 * tp + fp + fn) else 0.0
+        if best is None or f1 >= best.f1:
+            best = ThresholdChoice(class_name, float(t), f1, tp, fp, fn, instances)
+    assert best is not None
+    return best
+
+
+@dataclass(frozen=True)
+class MatchedEstimates:
+    """One object's estimates on labelled frames: scores (n,), true (n,) bool (matched to an
+    instance within the distance), instances (labelled, all)."""
+
+    scores: np.ndarray
+    true: np.ndarray
+    instances: int
+
+    def at(self, class_name: str, candidates: Sequence[float] = CANDIDATES) -> ThresholdChoice:
+        """:func:`best_f1_threshold` of these estimates."""
+        return best_f1_threshold(class_name, self.scores, self.true, self.instances, candidates)
+
+
+def match_estimates(dataset: Dataset, preds_by_frame: list[list[Prediction]], models: dict[str, ObjectModel],
+                    classes: Sequence[str], metric: str = "meanssd", within_m: float = 0.10,
+                    progress: bool = False) -> dict[str, MatchedEstimates]:
+    """{class: its :class:`MatchedEstimates`} for each of ``classes``: an estimate is true when
+    ``evaluate``'s matching pairs it with an instance of its class within ``within_m`` metres
+    of ``metric`` (predictions per frame as :func:`~dope_hope.evaluation.datasets.
+    assign_predictions` gives them; ``models``: each class's model, symmetries included)."""
+    scores: dict[str, list[float]] = {c: [] for c in classes}
+    true: dict[str, list[bool]] = {c: [] for c in classes}
+    instances = dict.fromkeys(classes, 0)
+    for frame, preds in tqdm(list(zip(dataset.frames, preds_by_frame)), desc="matching", unit="img",
+                             disable=not progress):
+        for c in classes:
+            gts = [o for o in frame.objects if o.class_name == c]
+            estimates = [p for p in preds if p.class_name == c]
+            instances[c] += len(gts)
+            if not estimates:
+                continue
+            s = np.array([p.score for p in estimates], dtype=np.float64)
+            matched = greedy_match(error_matrix(metric, estimates, gts, models[c], upper=within_m), s, within_m)
+            scores[c] += s.tolist()
+            true[c] += (matched >= 0).tolist()
+    return {c: MatchedEstimates(np.array(scores[c]), np.array(true[c], dtype=bool), instances[c]) for c in classes}
+
+
+def calibrate_weights(predictions: str | os.PathLike, dataset_dir: str | os.PathLike, weights: str | os.PathLike,
+                      out: str | os.PathLike, *, fmt: str = "auto", metric: str = "meanssd", within_m: float = 0.10,
+                      mesh: Sequence[str] = (), models_dir: str | os.PathLike | None = None,
+                      mesh_units: str | Mapping[str, str] | None = None, symmetries: Sequence[str] = (),
+                      progress: bool = False, log: Callable[[str], None] = print,
+                      ) -> tuple[dict[str, ThresholdChoice], dict[str, ThresholdChoice]]:
+    """Choose each object's threshold (:func:`match_estimates`, :func:`best_f1_threshold`) from
+    the estimates in ``predictions`` (made by checkpoint ``weights`` with no threshold) on the
+    labelled frames of ``dataset_dir``, and write ``weights`` with them to ``out``
+    (:func:`~dope_hope.model.checkpoint.save_inference_checkpoint`). An object without a
+    labelled instance, without an estimate or without a true one keeps its threshold; estimates of other objects (several models' in one
+    file) are left out; both told through ``log``. Returns (the choices, what each object's
+    threshold before kept) of the objects with labelled instances. ConfigError for a bad
+    argument (an ONNX file, a metric, a distance, no estimate of the model's objects, frames
+    without any of them, no object with both)."""
+    from dope_hope.evaluation.datasets import assign_predictions, load_dataset
+    from dope_hope.evaluation.evaluate import cuboid_centres_to_origins
+    from dope_hope.evaluation.matching import METRICS
+    from dope_hope.evaluation.object_models import load_models
+    from dope_hope.inference.options import InferenceOptions
+    from dope_hope.io.predictions import read_predictions
+    from dope_hope.model.checkpoint import load_checkpoint, save_inference_checkpoint
+    from dope_hope.model.info import ModelInfo
+
+    for flag, path in (("--weights", weights), ("--out", out)):
+        if Path(path).suffix.lower() != ".pt":
+            raise ConfigError(f"{flag} {path}: give a checkpoint (.pt); export the calibrated checkpoint to ONNX")
+    if metric not in METRICS:
+        raise ConfigError(f"--metric: unknown metric {metric!r}; use one of {', '.join(METRICS)}")
+    if not (math.isfinite(within_m) and within_m > 0):
+        raise ConfigError(f"--within-cm must be a positive distance, got {100 * within_m:g}")
+    info = ModelInfo.from_checkpoint(load_checkpoint(weights), weights)
+    default = InferenceOptions.from_mapping(None, model_min_score=info.min_score).min_score
+    current = {o.class_name: default if o.min_score is None else float(o.min_score) for o in info.objects}
+    dataset = load_dataset(dataset_dir, fmt)
+    every, _ = read_predictions(predictions)
+    preds = [p for p in every if p.class_name in current]
+    if not preds:
+        raise ConfigError(f"--predictions {predictions}: no estimate of {', '.join(current)} (the objects of "
+                          f"{weights})")
+    if len(preds) < len(every):  # several models' estimates in one file (infer --weights A --weights B)
+        others = sorted({p.class_name for p in every} - set(current))
+        log(f"{len(every) - len(preds)} estimates of {', '.join(others)} left out: not objects of {weights}")
+    labelled = {o.class_name for f in dataset.frames for o in f.objects} & set(current)
+    if not labelled:
+        raise ConfigError(f"--dataset {dataset_dir}: no labelled instance of {', '.join(current)}")
+    if min(p.score for p in preds) >= min(current.values()):
+        log(f"warning: no estimate in {predictions} scores under {min(current.values()):g}: were they made "
+            "with --min-score 0? (no lower threshold can be chosen)")
+    by_frame, _ = assign_predictions(dataset, preds, predictions)
+    classes = [c for c in current if c in labelled]
+    # the labelled objects' models, and those of the model's other objects a NAME=... flag names
+    named = {a.split("=", 1)[0] for a in [*mesh, *symmetries] if "=" in a} | \
+        (set(mesh_units) - {""} if isinstance(mesh_units, Mapping) else set())
+    models = load_models([c for c in current if c in labelled or c in named], list(mesh), models_dir, mesh_units,
+                         symmetry_args=list(symmetries), recorded_sizes=dataset.cuboid_sizes, mesh_required=classes)
+    cuboid_centres_to_origins([p for p in preds if p.class_name in models], models)
+    for name in current:
+        if name not in labelled:
+            log(f"{name}: no labelled instance in {dataset_dir}; its threshold stays {current[name]:g}")
+    matched = match_estimates(dataset, by_frame, models, classes, metric, within_m, progress=progress)
+    for name in [c for c, m in matched.items() if not len(m.scores)]:
+        log(f"{name}: no estimate on {dataset_dir}; its threshold stays {current[name]:g}")
+        del matched[name]
+    if not matched:
+        raise ConfigError(f"--predictions {predictions}: no estimate of an object labelled in {dataset_dir}")
+    for name in [c for c, m in matched.items() if not m.true.any()]:  # no threshold keeps a true one
+        log(f"{name}: none of its {len(matched[name].scores)} estimates is within {100 * within_m:g} cm of an "
+            f"instance; its threshold stays {current[name]:g}")
+        del matched[name]
+    choices = {c: m.at(c) for c, m in matched.items()}
+    before = {c: m.at(c, [current[c]]) for c, m in matched.items()}
+    save_inference_checkpoint(weights, out, object_min_scores={c: ch.min_score for c, ch in choices.items()})
+    return choices, before
+
+
+def thresholds_table(choices: dict[str, ThresholdChoice], before: dict[str, ThresholdChoice],
+                     within_cm: float) -> str:
+    """Markdown table of :func:`calibrate_weights`' choices: per object, the chosen threshold and
+    what it keeps (true / false / missed, F1) beside the threshold before and what that kept."""
+    rows = [f"| object | min score | true / false / missed (within {within_cm:g} cm) | F1 | before: min score, "
+            "true / false / missed, F1 |", "|---|---|---|---|---|"]
+    for name, c in choices.items():
+        b = before[name]
+        rows.append(f"| {name} | **{c.min_score:g}** | {c.true} / {c.false} / {c.missed} of {c.instances} | "
+                    f"{c.f1:.3f} | {b.min_score:g}: {b.true} / {b.false} / {b.missed}, {b.f1:.3f} |")
+    return "\n".join(rows)
