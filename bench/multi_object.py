@@ -162,13 +162,13 @@ def shelf_losses(out: Path, meshes: dict[str, Path], units: dict[str, str]) -> d
             for _, arm, _ in ARMS}
 
 
-def own_thresholds(out: Path) -> dict[str, dict[str, float]]:
+def own_thresholds(out: Path) -> dict[str, dict[str, float | None]]:
     """{arm suffix: {object: the threshold `calibrate` recorded, or None: none (it keeps infer's
     default)}} from OUT/calibrated/."""
     from dope_hope.model.checkpoint import load_checkpoint
     from dope_hope.model.info import ModelInfo
 
-    def of(path: Path) -> dict[str, float]:
+    def of(path: Path) -> dict[str, float | None]:
         return {o.class_name: o.min_score for o in ModelInfo.from_checkpoint(load_checkpoint(path), path).objects}
 
     return {"all": of(out / "calibrated" / "all.pt"),
@@ -276,6 +276,7 @@ def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], uni
                            "--backgrounds", args.shared / "backgrounds", "--set", *TEST_SCENE])
     one_ckpt = checkpoint_of(out / "run_all")
     single_ckpts = {n: checkpoint_of(out / f"run_{n}") for n in names}
+
     def mesh_flags(objects: list[str]) -> list[str]:
         return [a for n in objects for a in ("--mesh", f"{n}={meshes[n]}", "--mesh-units", f"{n}={units[n]}")]
 

@@ -158,6 +158,7 @@ def test_calibrate_records_each_objects_f1_threshold(two_objects, tmp_path):
          "give a checkpoint (.pt)"),
         (["-p", preds, "-d", data, "--weights", two_objects, "--out", tmp_path / "x.pt", "--within-cm", "0"],
          "--within-cm must be a positive distance"),
+        (["-p", preds, "-d", data, "--weights", two_objects, "--out", two_objects], "is --weights"),
     ]:
         rc, _, err = _cli(["calibrate", *argv])
         assert rc == 2 and message in err and len(err.strip().splitlines()) == 1, err

@@ -139,6 +139,9 @@ def calibrate_weights(predictions: str | os.PathLike, dataset_dir: str | os.Path
     for flag, path in (("--weights", weights), ("--out", out)):
         if Path(path).suffix.lower() != ".pt":
             raise ConfigError(f"{flag} {path}: give a checkpoint (.pt); export the calibrated checkpoint to ONNX")
+    if Path(out).resolve() == Path(weights).resolve():
+        raise ConfigError(f"--out {out} is --weights: write the calibrated weights beside them (the copy has no "
+                          "training state to resume from)")
     if metric not in METRICS:
         raise ConfigError(f"--metric: unknown metric {metric!r}; use one of {', '.join(METRICS)}")
     if not (math.isfinite(within_m) and within_m > 0):
