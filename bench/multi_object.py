@@ -22,8 +22,9 @@ of the shared data (``grocery_objects/``: Bread, Can, Cereal, Lemon, Milk; metre
    training frame uses) and RealSense-like depth noise.
 4. ``infer-all`` / ``infer-six``: `dope-hope infer --depth auto` (the depth line search,
    "-LS", on each object's mesh: ``--mesh NAME=PATH --mesh-units NAME=UNIT``) with the one
-   model, and with the six models (one ``--weights`` each).
-5. ``eval-all`` / ``eval-six``: `dope-hope evaluate --metric meanssd`: recall at 2 cm
+   model, and with the six models (one ``--weights`` each); ``infer-all-icp`` /
+   ``infer-six-icp`` the same with ``--icp`` (-LS + ICP).
+5. ``eval-all`` / ``eval-six`` (and ``-icp``): `dope-hope evaluate --metric meanssd`: recall at 2 cm
    MeanSSD per object and their mean, with the same symmetries; then, in this process, where
    each arm loses the held-out instances, per object (no detection, beyond 10 cm, within 10 cm
    but not 2 cm, within 2 cm; at score >= 0.5, at each object's own threshold and at every
@@ -284,10 +285,11 @@ def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], uni
         return ["infer", folder, "--depth", "auto", *flags, "--no-overlay", "--no-progress", *mesh_flags(names)]
 
     six = [a for n in names for a in ("--weights", single_ckpts[n])]
-    for folder, suffix in ((test_dir, ""), (calib_dir, "-calib")):
+    for folder, suffix, flags in ((test_dir, "", ()), (calib_dir, "-calib", ()), (test_dir, "-icp", ("--icp",))):
         for arm, weights in (("all", ["--weights", one_ckpt]), ("six", six)):
-            pipe.stage(f"infer{suffix}-{arm}", [*infer(folder, "--min-score", "0"), *weights,
-                                                "--out", out / f"infer{suffix.replace('-', '_')}_{arm}"])
+            stage = f"infer-{arm}-icp" if suffix == "-icp" else f"infer{suffix}-{arm}"
+            folder_out = f"infer_{arm}_icp" if suffix == "-icp" else f"infer{suffix.replace('-', '_')}_{arm}"
+            pipe.stage(stage, [*infer(folder, "--min-score", "0", *flags), *weights, "--out", out / folder_out])
     calibrated = {"all": out / "calibrated" / "all.pt", **{n: out / "calibrated" / f"{n}.pt" for n in names}}
     for key, weights, arm, objects in (("all", one_ckpt, "all", names),
                                        *((n, single_ckpts[n], "six", [n]) for n in names)):
@@ -298,9 +300,11 @@ def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], uni
     pipe.stage("infer-six-own", [*infer(test_dir), *(a for n in names for a in ("--weights", calibrated[n])),
                                  "--out", out / "infer_six_own"])
     evaluate = ["evaluate", "-d", test_dir, "--metric", "meanssd", "--no-bop-ar", "--no-progress", *mesh_flags(names)]
-    for arm, method in (("all", "one-model-LS"), ("six", "six-models-LS")):
-        pipe.stage(f"eval-{arm}", [*evaluate, "-p", out / f"infer_{arm}" / "predictions.jsonl", "--method", method,
-                                   "--out", out / f"eval_{arm}"])
+    for _, arm, method in ARMS:
+        for suffix, tag in (("", ""), ("_icp", "-ICP")):
+            pipe.stage(f"eval-{arm}{suffix.replace('_', '-')}", [
+                *evaluate, "-p", out / f"infer_{arm}{suffix}" / "predictions.jsonl", "--method", method + tag,
+                "--out", out / f"eval_{arm}{suffix}"])
     pipe.stage("export-all", ["export", "--weights", one_ckpt, "--out", out / "onnx" / "all.onnx"])
     for n in names:
         pipe.stage(f"export-{n}", ["export", "--weights", single_ckpts[n], "--out", out / "onnx" / f"{n}.onnx"])
@@ -313,6 +317,7 @@ def report(args: argparse.Namespace, out: Path, pipe: CommandStages, symmetries:
     OUT/results.md); returns the figures for OUT/results.json."""
     names = list(OBJECTS)
     recall_one, recall_six = (per_object_recall(out / f"eval_{arm}", method) for _, arm, method in ARMS)
+    icp_one, icp_six = (per_object_recall(out / f"eval_{arm}_icp", method + "-ICP") for _, arm, method in ARMS)
     losses = shelf_losses(out, meshes, units)
     breakdown = "\n\n".join(f"At {label}:\n\n{losses_table(losses, label)}" for label in losses["all"])
     own = own_thresholds(out)
@@ -320,16 +325,19 @@ def report(args: argparse.Namespace, out: Path, pipe: CommandStages, symmetries:
                   f"{args.calib_count} other frames, seed {CALIB_SEED}): "
                   + "; ".join(f"{label}: " + ", ".join(f"{n} {'none (0.5)' if own[arm][n] is None else own[arm][n]}"
                                                        for n in names) for label, arm, _ in ARMS))
-    mean_one = statistics.mean(recall_one.get(n, 0.0) for n in names)
-    mean_six = statistics.mean(recall_six.get(n, 0.0) for n in names)
+    mean_one, mean_six, mean_icp_one, mean_icp_six = (statistics.mean(r.get(n, 0.0) for n in names)
+                                                      for r in (recall_one, recall_six, icp_one, icp_six))
     steps = {run: json.loads((out / run / "summary.json").read_text())["step"]
              for run in ["run_all", *(f"run_{n}" for n in names)]}
     timing = time_per_frame(out / "onnx" / "all.onnx", {n: out / "onnx" / f"{n}.onnx" for n in names},
                             test_frames(out / "test", args.test_count if args.quick else min(args.test_count, 52)),
                             args.threads)
-    rows = ["| object | one six-object model | six one-object models |", "|---|---|---|"]
-    rows += [f"| {n} | {percent_text(recall_one.get(n))} | {percent_text(recall_six.get(n))} |" for n in names]
-    rows.append(f"| **mean** | **{percent_text(mean_one)}** | **{percent_text(mean_six)}** |")
+    rows = ["| object | one six-object model | six one-object models | one model, -LS + ICP | six models, -LS + ICP |",
+            "|---|---|---|---|---|"]
+    rows += [f"| {n} | {percent_text(recall_one.get(n))} | {percent_text(recall_six.get(n))} | "
+             f"{percent_text(icp_one.get(n))} | {percent_text(icp_six.get(n))} |" for n in names]
+    rows.append(f"| **mean** | **{percent_text(mean_one)}** | **{percent_text(mean_six)}** | "
+                f"**{percent_text(mean_icp_one)}** | **{percent_text(mean_icp_six)}** |")
     table = "\n".join(rows)
     ratio_single = timing["one_model_s"] / timing["one_object_model_s"]
     ratio_six = timing["six_models_s"] / timing["one_model_s"]
@@ -346,8 +354,8 @@ def report(args: argparse.Namespace, out: Path, pipe: CommandStages, symmetries:
     times = ", ".join(f"{k} {v:.0f} s" for k, v in pipe.timings.items())
     (out / "results.md").write_text(
         f"# Multi-object benchmark: T = {args.minutes:g} min\n\n{cpu_line()}\n\n"
-        f"Recall at 2 cm MeanSSD with -LS ({args.test_count} held-out frames at {args.size}, two to four "
-        f"objects each, photo background; every detection, ranked by score):\n\n{table}\n\n"
+        f"Recall at 2 cm MeanSSD with -LS, and with -LS + ICP ({args.test_count} held-out frames at {args.size}, "
+        f"two to four objects each, photo background; every detection, ranked by score):\n\n{table}\n\n"
         "Symmetries (training labels and MeanSSD):\n\n" + "".join(f"- {n}: {t}\n" for n, t in symmetries.items())
         + "\nWhere the held-out instances are lost (MeanSSD with those symmetries, -LS; instances per object: "
         + ", ".join(LOSS_CLASSES) + f"):\n\n{breakdown}\n\n{thresholds}\n\n{trained}\n\n"
@@ -355,7 +363,8 @@ def report(args: argparse.Namespace, out: Path, pipe: CommandStages, symmetries:
     print(f"\n{table}\n\n{breakdown}\n\n{thresholds}\n\n{trained}\n{speed}\nstage times: {times}\nwritten: {out / 'results.md'}, "
           f"{out / 'results.json'}")
     return {"recall_2cm_one_model": recall_one, "recall_2cm_six_models": recall_six, "mean_one_model": mean_one,
-            "mean_six_models": mean_six, "lost": losses, "own_thresholds": own, "steps": steps, "timing": timing,
+            "mean_six_models": mean_six, "recall_2cm_icp_one_model": icp_one, "recall_2cm_icp_six_models": icp_six,
+            "mean_icp_one_model": mean_icp_one, "mean_icp_six_models": mean_icp_six, "lost": losses, "own_thresholds": own, "steps": steps, "timing": timing,
             "stage_seconds": pipe.timings, "symmetries": symmetries}
 
 
