@@ -83,10 +83,7 @@ def _open_models(settings: DemoSettings, out: Path) -> _Models:
                                   classes=[DEMO_CLASS_NAME], options=settings.options)
         note = f"ONNX {onnx_path} (" + (f"exported in {time.perf_counter() - t0:.1f} s" if exported else "cached") + ")"
     model = load_models([DEMO_CLASS_NAME], [str(mesh_path)])[DEMO_CLASS_NAME]
-    recorded = backends.model_min_score(torch_backend) is not None or any(
-        o.min_score is not None for o in backends.backend_objects(torch_backend) if o.class_name == DEMO_CLASS_NAME)
-    own_min_score = recorded and "min_score" not in settings.options
-    return _Models(torch_pred, onnx_pred, note, input_hw, own_min_score, mesh_path, model)
+    return _Models(torch_pred, onnx_pred, note, input_hw, torch_pred.own_min_score, mesh_path, model)
 
 
 def clear_old_outputs(out: Path) -> None:

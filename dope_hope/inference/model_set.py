@@ -138,16 +138,14 @@ def build_predictors(weights: Sequence[Path], meshes: Sequence[str | Path] = (),
     files = mesh_files(meshes, reported_names, weights)
     mesh_units = run_mesh_units(mesh_units, reported_names)
     predictors = []
-    for i, (model, (w, names), keep) in enumerate(zip(opened, models, kept)):
+    for i, (model, keep) in enumerate(zip(opened, kept)):
         if keep == []:
             continue  # none of --classes: this model is not run
         if hasattr(model, "describe"):  # ONNX: fp32 or INT8, and what INT8 costs
             note(f"model {model.describe()}")
-        reported = names if keep is None else keep
         predictors.append(DopePredictor(model, mesh=files[i] or None, mesh_units=mesh_units, classes=keep,
                                         options=dict(options or {})))
-        own = [o for o in backends.backend_objects(model) if o.min_score is not None and o.class_name in reported]
-        if "min_score" not in (options or {}) and (backends.model_min_score(model) is not None or own):
+        if predictors[-1].own_min_score:
             scores = {obj.class_name: obj.min_score for obj in predictors[-1].objects}
             text = (f"{', '.join(scores)}: min score {next(iter(scores.values())):g}"
                     if len(set(scores.values())) == 1 else

@@ -129,7 +129,7 @@ class DopePredictor:
     every object. ``ObjectGeometry.min_score`` is the one each object uses.
 
     Attributes: backend, options, objects (one :class:`ObjectGeometry` per reported object,
-    channel order), class_names, legacy, mean, std, stride. A predictor of one object also
+    channel order), own_min_score, class_names, legacy, mean, std, stride. A predictor of one object also
     offers that object's class_name, cuboid_size_m, cuboid_center_m, mesh, cuboid_mesh,
     cuboid_pnp, model_points, bbox_points and icp_model.
     """
@@ -176,6 +176,9 @@ class DopePredictor:
         for obj, k in zip(self.objects, groups):  # an explicit min_score, else the object's own
             own = model_objects[k].min_score
             obj.min_score = self.options.min_score if "min_score" in given or own is None else float(own)
+        #: whether the thresholds are the model's own (recorded with its weights, none given)
+        self.own_min_score = "min_score" not in given and (
+            model_min_score(b) is not None or any(model_objects[k].min_score is not None for k in groups))
         if self.options.icp:
             for obj in self.objects:
                 obj.check_icp_surface()
