@@ -122,8 +122,9 @@ def calibrate_weights(predictions: str | os.PathLike, dataset_dir: str | os.Path
     the estimates in ``predictions`` (made by checkpoint ``weights`` with no threshold) on the
     labelled frames of ``dataset_dir``, and write ``weights`` with them to ``out``
     (:func:`~dope_hope.model.checkpoint.save_inference_checkpoint`). An object without a
-    labelled instance, without an estimate or without a true one keeps its threshold; estimates of other objects (several models' in one
-    file) are left out; both told through ``log``. Returns (the choices, what each object's
+    labelled instance, without an estimate or without a true one keeps its threshold;
+    estimates of other objects (several models' in one file) are left out; both told through
+    ``log``. Returns (the choices, what each object's
     threshold before kept) of the objects with labelled instances. ConfigError for a bad
     argument (an ONNX file, a metric, a distance, no estimate of the model's objects, frames
     without any of them, no object with both)."""
@@ -132,6 +133,7 @@ def calibrate_weights(predictions: str | os.PathLike, dataset_dir: str | os.Path
     from dope_hope.evaluation.matching import METRICS
     from dope_hope.evaluation.object_models import load_models
     from dope_hope.inference.options import InferenceOptions
+    from dope_hope.io.models_dir import is_named_value
     from dope_hope.io.predictions import read_predictions
     from dope_hope.model.checkpoint import load_checkpoint, save_inference_checkpoint
     from dope_hope.model.info import ModelInfo
@@ -167,7 +169,7 @@ def calibrate_weights(predictions: str | os.PathLike, dataset_dir: str | os.Path
     by_frame, _ = assign_predictions(dataset, preds, predictions)
     classes = [c for c in current if c in labelled]
     # the labelled objects' models, and those of the model's other objects a NAME=... flag names
-    named = {a.split("=", 1)[0] for a in [*mesh, *symmetries] if "=" in a} | \
+    named = {os.fspath(a).split("=", 1)[0] for a in [*mesh, *symmetries] if is_named_value(a)} | \
         (set(mesh_units) - {""} if isinstance(mesh_units, Mapping) else set())
     models = load_models([c for c in current if c in labelled or c in named], list(mesh), models_dir, mesh_units,
                          symmetry_args=list(symmetries), recorded_sizes=dataset.cuboid_sizes, mesh_required=classes)
