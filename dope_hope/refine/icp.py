@@ -53,11 +53,13 @@ result only when it fits the depth better than the input pose did.
    input's (after -LS), not the keypoints' pose before the line search: a keypoints' pose at
    the wrong distance has a silhouette of the wrong size, and with it as the region the
    30-minute Ketchup model's recall at 2 cm with -LS + ICP fell from 60.5 to 50.3 % on the
-   e2e bench's held-out frames (bench/RESULTS.md, "Post-processing vs the official decoder"); a start that the line search would
-   move onto an occluder is the line search's own check (``DopePredictor``'s second search). Where the pose is right the share is the part of its surface the
-   sensor measured (0.6-0.9 on the demo scenes); a pose that snapped to a distractor claims
-   surface outside the region, or where the sensor saw nothing or saw through it (0.13 on
-   the demo scene that showed it).
+   e2e bench's held-out frames
+   (bench/RESULTS.md, "Post-processing vs the official decoder"); a start that the line
+   search would move onto an occluder is the line search's own check (``DopePredictor``'s
+   second search). Where the pose is right the share is the part of its surface the sensor
+   measured (0.6-0.9 on the demo scenes); a pose that snapped to a distractor claims surface
+   outside the region, or where the sensor saw nothing or saw through it (0.13 on the demo
+   scene that showed it).
 """
 from __future__ import annotations
 
@@ -421,8 +423,9 @@ def icp_refine(
     P, N = _model_arrays(model_points, model_normals)
     if problem := depth.problem_for(t0):
         return refuse(problem)
-    region = silhouette_mask(P @ R0.T + t0, depth.K, depth.hw, s.mask_dilate)
-    S = scene_points_under(P @ R0.T + t0, depth.metres, depth.K, s.mask_dilate, s.max_scene_points)
+    P_cam = P @ R0.T + t0  # (N, 3) the model in the camera frame under the input pose
+    region = silhouette_mask(P_cam, depth.K, depth.hw, s.mask_dilate)
+    S = scene_points_under(P_cam, depth.metres, depth.K, s.mask_dilate, s.max_scene_points)
     if len(S) < s.min_points:
         return refuse(f"too few depth pixels under the object ({len(S)} < {s.min_points})", n_points=len(S))
     search = _Search(S, P, N, cKDTree(P), list(s.thresholds_m), s.min_points, s.fit_threshold_m)
