@@ -285,11 +285,11 @@ def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], uni
         return ["infer", folder, "--depth", "auto", *flags, "--no-overlay", "--no-progress", *mesh_flags(names)]
 
     six = [a for n in names for a in ("--weights", single_ckpts[n])]
-    for folder, suffix, flags in ((test_dir, "", ()), (calib_dir, "-calib", ()), (test_dir, "-icp", ("--icp",))):
+    for stage, folder, flags in (("infer-{}", test_dir, ()), ("infer-calib-{}", calib_dir, ()),
+                                 ("infer-{}-icp", test_dir, ("--icp",))):
         for arm, weights in (("all", ["--weights", one_ckpt]), ("six", six)):
-            stage = f"infer-{arm}-icp" if suffix == "-icp" else f"infer{suffix}-{arm}"
-            folder_out = f"infer_{arm}_icp" if suffix == "-icp" else f"infer{suffix.replace('-', '_')}_{arm}"
-            pipe.stage(stage, [*infer(folder, "--min-score", "0", *flags), *weights, "--out", out / folder_out])
+            name = stage.format(arm)  # its output folder: the name with underscores
+            pipe.stage(name, [*infer(folder, "--min-score", "0", *flags), *weights, "--out", out / name.replace("-", "_")])
     calibrated = {"all": out / "calibrated" / "all.pt", **{n: out / "calibrated" / f"{n}.pt" for n in names}}
     for key, weights, arm, objects in (("all", one_ckpt, "all", names),
                                        *((n, single_ckpts[n], "six", [n]) for n in names)):
@@ -360,11 +360,12 @@ def report(args: argparse.Namespace, out: Path, pipe: CommandStages, symmetries:
         + "\nWhere the held-out instances are lost (MeanSSD with those symmetries, -LS; instances per object: "
         + ", ".join(LOSS_CLASSES) + f"):\n\n{breakdown}\n\n{thresholds}\n\n{trained}\n\n"
         f"{speed}\n\nStage times: {times}\n")
-    print(f"\n{table}\n\n{breakdown}\n\n{thresholds}\n\n{trained}\n{speed}\nstage times: {times}\nwritten: {out / 'results.md'}, "
-          f"{out / 'results.json'}")
+    print(f"\n{table}\n\n{breakdown}\n\n{thresholds}\n\n{trained}\n{speed}\nstage times: {times}\n"
+          f"written: {out / 'results.md'}, {out / 'results.json'}")
     return {"recall_2cm_one_model": recall_one, "recall_2cm_six_models": recall_six, "mean_one_model": mean_one,
             "mean_six_models": mean_six, "recall_2cm_icp_one_model": icp_one, "recall_2cm_icp_six_models": icp_six,
-            "mean_icp_one_model": mean_icp_one, "mean_icp_six_models": mean_icp_six, "lost": losses, "own_thresholds": own, "steps": steps, "timing": timing,
+            "mean_icp_one_model": mean_icp_one, "mean_icp_six_models": mean_icp_six, "lost": losses,
+            "own_thresholds": own, "steps": steps, "timing": timing,
             "stage_seconds": pipe.timings, "symmetries": symmetries}
 
 

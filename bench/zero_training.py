@@ -6,8 +6,9 @@ training") on the held-out test set of bench/e2e_accuracy.py (its ``synth-test``
 same command, seed 1001, 640x480, photo backgrounds, depth noise), with -LS (`--depth auto`,
 `--min-score 0`), and with -LS + ICP (`--icp`: the depth's own fit of the mesh, where the image
 alone places a bottle it never learned only roughly), and scores both with `dope-hope evaluate
---metric meanssd`: recall at 2 cm and 10 cm MeanSSD. With ``--baseline B.pt`` the same runs for a second start and the ratios are
-printed (``--start`` / ``--baseline``: e.g. a newly pretrained start against the shipped one).
+--metric meanssd`: recall at 2 cm and 10 cm MeanSSD. With ``--baseline B.pt`` the same runs
+for a second start and the ratios are printed (``--start`` / ``--baseline``: e.g. a newly
+pretrained start against the shipped one).
 Each step is a `dope-hope` command run as a subprocess (dope_hope.staged_run.CommandStages:
 logged to OUT/logs/, resumable per stage). Prints the CPU and its precision flags.
 
