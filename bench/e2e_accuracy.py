@@ -31,7 +31,8 @@ lights; the test set is the same for both recipes (:data:`SCENE`: plain, photo b
 
 Prints the CPU and its precision flags (:func:`dope_hope.devices.cpu_line`), the steps trained
 and the share of the time budget used, the table, and how the held-out instances are lost
-(with -LS, detections scoring at least the infer default: none, beyond 10 cm, within 10 cm
+(with -LS, detections scoring at least what `infer` keeps by default, the threshold the run
+recorded (:func:`recorded_threshold`): none, beyond 10 cm, within 10 cm
 but not 2 cm, within 2 cm MeanSSD; in all, then per band of the visible fraction: below 0.1 an
 instance is no BOP19 target); writes OUT/results.md + OUT/results.json. Resumable at stage
 granularity: a stage whose marker OUT/stages/<stage>.json exists is skipped (an interrupted
@@ -63,8 +64,10 @@ import os
 import sys
 from pathlib import Path
 
-from dope_hope.config import load_config
 from dope_hope.devices import cpu_description, cpu_line
+from dope_hope.inference.options import InferenceOptions
+from dope_hope.model.checkpoint import load_checkpoint
+from dope_hope.model.info import ModelInfo
 from dope_hope.staged_run import CommandStages, settings_changed
 from dope_hope.synth.settings import PLAIN_OVERRIDES
 
@@ -290,6 +293,14 @@ def losses_by_visibility(losses: list[tuple[float, str]]) -> dict[str, dict[str,
     return {label: loss_counts([x for x in losses if lo <= x[0] < hi]) for label, lo, hi in VISIBILITY_BANDS}
 
 
+def recorded_threshold(weights: Path, object_name: str) -> float:
+    """The score threshold `infer` runs ``object_name`` of ``weights`` at: the one its training
+    run chose and recorded, else the model's own, else configs/infer.yaml's."""
+    info = ModelInfo.from_checkpoint(load_checkpoint(weights), weights)
+    own = next((o.min_score for o in info.objects if o.class_name == object_name), None)
+    return float(own) if own is not None else InferenceOptions.from_mapping(None, model_min_score=info.min_score).min_score
+
+
 def breakdown_text(counts: dict[str, int], min_score: float) -> str:
     total = max(1, sum(counts.values()))
     return (f"held-out instances ({sum(counts.values())}, -LS, scores >= {min_score:g}, MeanSSD): "
@@ -338,7 +349,7 @@ def run_stages(args: argparse.Namespace, out: Path, settings: dict) -> tuple[Com
         test += ["--backgrounds", args.backgrounds.resolve()]
     pipe.stage("synth-test", test)
     # --min-score 0: every detection, ranked by score, as the figures in bench/RESULTS.md were
-    # measured (the infer default drops scores under 0.5, chosen on the demo model's scenes).
+    # measured (infer's default drops scores under the threshold the run recorded, else 0.5).
     infer = ["infer", test_dir, "--weights", ckpt, "--mesh", mesh, "--no-overlay", "--no-progress",
              "--min-score", "0"]
     if args.device:
@@ -381,7 +392,7 @@ def main(argv: list[str] | None = None) -> int:
     mesh, test_dir = args.mesh.resolve(), out / "test"
     share = trained["budget_used_s"] / (60.0 * args.train_minutes)
     table, data = results_table(out, methods)
-    min_score = float(load_config("infer")["min_score"])
+    min_score = recorded_threshold(ckpt, args.object)  # what a user's `infer` keeps
     losses = instance_losses(test_dir, out / "infer_ls" / "predictions.jsonl", args.object, mesh, min_score)
     lost, lost_bands = loss_counts(losses), losses_by_visibility(losses)
     lost_text = breakdown_text(lost, min_score) + "; by visible fraction:\n" + visibility_text(lost_bands)

@@ -27,8 +27,9 @@ of the shared data (``grocery_objects/``: Bread, Can, Cereal, Lemon, Milk; metre
 5. ``eval-all`` / ``eval-six`` (and ``-icp``): `dope-hope evaluate --metric meanssd`: recall at 2 cm
    MeanSSD per object and their mean, with the same symmetries; then, in this process, where
    each arm loses the held-out instances, per object (no detection, beyond 10 cm, within 10 cm
-   but not 2 cm, within 2 cm; at score >= 0.5, at each object's own threshold and at every
-   score: :func:`shelf_losses`).
+   but not 2 cm, within 2 cm; at score >= 0.5, at the threshold each object's training run
+   chose on its validation frames (what `infer` keeps by default), at each object's own
+   threshold from `calibrate` and at every score: :func:`shelf_losses`).
 5b. Each object's own threshold, as a user calibrates a model: ``synth-calib`` renders other
    frames like the held-out ones (seed :data:`CALIB_SEED`, ``--calib-count``),
    ``infer-calib-all`` / ``infer-calib-six`` run both arms on them with no threshold,
@@ -98,9 +99,12 @@ TEST_SCENE = ["target.count=[2,4]", "target.distance_m=[0.35,0.8]", *set_args(PL
 #: The seed of the frames each object's threshold is calibrated on (neither trained nor tested on).
 CALIB_SEED = 2002
 #: Where the loss breakdown is counted: (label, the suffix of the arm's inference folder, min
-#: score): at the 0.5 a user's `infer` keeps by default, at each object's own threshold (the
-#: calibrated weights, run at their thresholds), and every detection (as the recall ranks them).
-BREAKDOWNS = (("score >= 0.5", "", 0.5), ("each object's own threshold", "_own", 0.0), ("every score", "", 0.0))
+#: score; None: each object's threshold its training run recorded, which a user's `infer`
+#: keeps by default): at 0.5 (infer's default without one), at the run's thresholds, at each
+#: object's own from `calibrate` (the calibrated weights, run at their thresholds), and every
+#: detection (as the recall ranks them).
+BREAKDOWNS = (("score >= 0.5", "", 0.5), ("the threshold its training chose", "", None),
+              ("each object's own threshold", "_own", 0.0), ("every score", "", 0.0))
 #: The arms: (label, the folder suffix of their inference, their evaluate method).
 ARMS = (("one six-object model", "all", "one-model-LS"), ("six one-object models", "six", "six-models-LS"))
 #: Training overrides: symmetry-aware labels (each object's symmetries: the catalog category's,
@@ -155,23 +159,31 @@ def shelf_losses(out: Path, meshes: dict[str, Path], units: dict[str, str]) -> d
     """How each arm loses the held-out instances: {arm suffix: {breakdown label: {object:
     counts of :data:`~e2e_accuracy.LOSS_CLASSES`}}} for each of :data:`BREAKDOWNS`
     (:func:`e2e_accuracy.instance_losses`: MeanSSD with the objects' symmetries, -LS)."""
-    def counts(arm: str, name: str, score: float) -> dict[str, int]:
-        predictions = out / f"infer_{arm}" / "predictions.jsonl"
+    trained = recorded_thresholds(out, "trained")
+
+    def counts(arm: str, suffix: str, name: str, score: float | None) -> dict[str, int]:
+        predictions = out / f"infer_{arm}{suffix}" / "predictions.jsonl"
+        if score is None:
+            score = 0.5 if trained[arm][name] is None else trained[arm][name]
         return loss_counts(instance_losses(out / "test", predictions, name, meshes[name], score, units[name]))
 
-    return {arm: {label: {n: counts(arm + suffix, n, score) for n in OBJECTS} for label, suffix, score in BREAKDOWNS}
+    return {arm: {label: {n: counts(arm, suffix, n, score) for n in OBJECTS} for label, suffix, score in BREAKDOWNS}
             for _, arm, _ in ARMS}
 
 
-def own_thresholds(out: Path) -> dict[str, dict[str, float | None]]:
-    """{arm suffix: {object: the threshold `calibrate` recorded, or None: none (it keeps infer's
-    default)}} from OUT/calibrated/."""
+def recorded_thresholds(out: Path, which: str) -> dict[str, dict[str, float | None]]:
+    """{arm suffix: {object: the threshold recorded with its weights, or None: none (it keeps
+    infer's default)}}: ``which`` "trained" those its training run chose (OUT/run_*), "own"
+    those `calibrate` chose (OUT/calibrated/)."""
     from dope_hope.model.checkpoint import load_checkpoint
     from dope_hope.model.info import ModelInfo
 
     def of(path: Path) -> dict[str, float | None]:
         return {o.class_name: o.min_score for o in ModelInfo.from_checkpoint(load_checkpoint(path), path).objects}
 
+    if which == "trained":
+        return {"all": of(checkpoint_of(out / "run_all")),
+                "six": {n: t for name in OBJECTS for n, t in of(checkpoint_of(out / f"run_{name}")).items()}}
     return {"all": of(out / "calibrated" / "all.pt"),
             "six": {n: t for name in OBJECTS for n, t in of(out / "calibrated" / f"{name}.pt").items()}}
 
@@ -320,11 +332,15 @@ def report(args: argparse.Namespace, out: Path, pipe: CommandStages, symmetries:
     icp_one, icp_six = (per_object_recall(out / f"eval_{arm}_icp", method + "-ICP") for _, arm, method in ARMS)
     losses = shelf_losses(out, meshes, units)
     breakdown = "\n\n".join(f"At {label}:\n\n{losses_table(losses, label)}" for label in losses["all"])
-    own = own_thresholds(out)
-    thresholds = ("Each object's own threshold (`dope-hope calibrate`, F1 at 10 cm MeanSSD on "
-                  f"{args.calib_count} other frames, seed {CALIB_SEED}): "
-                  + "; ".join(f"{label}: " + ", ".join(f"{n} {'none (0.5)' if own[arm][n] is None else own[arm][n]}"
-                                                       for n in names) for label, arm, _ in ARMS))
+    own, trained_own = recorded_thresholds(out, "own"), recorded_thresholds(out, "trained")
+
+    def listed(chosen: dict[str, dict[str, float | None]]) -> str:
+        return "; ".join(f"{label}: " + ", ".join(f"{n} {'none (0.5)' if chosen[arm][n] is None else chosen[arm][n]}"
+                                                  for n in names) for label, arm, _ in ARMS)
+
+    thresholds = ("Each object's threshold its training run chose (F1 at 10 cm MeanSSD on its validation frames): "
+                  f"{listed(trained_own)}\n\nEach object's own threshold (`dope-hope calibrate`, F1 at 10 cm "
+                  f"MeanSSD on {args.calib_count} other frames, seed {CALIB_SEED}): {listed(own)}")
     mean_one, mean_six, mean_icp_one, mean_icp_six = (statistics.mean(r.get(n, 0.0) for n in names)
                                                       for r in (recall_one, recall_six, icp_one, icp_six))
     steps = {run: json.loads((out / run / "summary.json").read_text())["step"]
@@ -365,7 +381,7 @@ def report(args: argparse.Namespace, out: Path, pipe: CommandStages, symmetries:
     return {"recall_2cm_one_model": recall_one, "recall_2cm_six_models": recall_six, "mean_one_model": mean_one,
             "mean_six_models": mean_six, "recall_2cm_icp_one_model": icp_one, "recall_2cm_icp_six_models": icp_six,
             "mean_icp_one_model": mean_icp_one, "mean_icp_six_models": mean_icp_six, "lost": losses,
-            "own_thresholds": own, "steps": steps, "timing": timing,
+            "own_thresholds": own, "trained_thresholds": trained_own, "steps": steps, "timing": timing,
             "stage_seconds": pipe.timings, "symmetries": symmetries}
 
 

@@ -11,10 +11,13 @@ import sys
 from pathlib import Path
 
 import pytest
+from test_multi_object_model import lite_config
 
 from dope_hope.cli import main
 from dope_hope.evaluation.datasets import load_dataset
 from dope_hope.io.predictions import prediction_record, write_predictions_jsonl
+from dope_hope.model.checkpoint import make_object_info, record_min_scores, save_checkpoint
+from dope_hope.model.network import build_model
 
 BENCH = Path(__file__).resolve().parent.parent / "bench"
 
@@ -80,9 +83,17 @@ def test_the_shelf_breakdown_counts_each_arm_per_object_with_totals(milk_frames,
     _predictions(frames, out / "infer_six" / "predictions.jsonl", {})
     _predictions(frames, out / "infer_all_own" / "predictions.jsonl", {0: None})  # the calibrated weights' run
     _predictions(frames, out / "infer_six_own" / "predictions.jsonl", {})
+    # the thresholds the runs chose: the one model's Milk 0.95 (over every score here), the six's none
+    cfg = lite_config(1)
+    for run, chosen in (("run_all", {"Milk": 0.95}), ("run_Milk", None)):
+        weights = save_checkpoint(out / run / "best.pt", build_model(cfg), cfg, make_object_info("Milk", [0.1] * 3))
+        if chosen:
+            record_min_scores(weights, chosen)
     losses = shelf.shelf_losses(out, {"Milk": mesh}, {"Milk": "m"})
-    at_half, own, every = "score >= 0.5", "each object's own threshold", "every score"
-    assert set(losses) == {"all", "six"} and list(losses["all"]) == [at_half, own, every]
+    at_half, trained, own, every = ("score >= 0.5", "the threshold its training chose", "each object's own threshold",
+                                    "every score")
+    assert set(losses) == {"all", "six"} and list(losses["all"]) == [at_half, trained, own, every]
+    assert losses["all"][trained]["Milk"]["no detection"] == 4 and losses["six"][trained] == losses["six"][at_half]
     assert losses["all"][at_half]["Milk"]["no detection"] == 2 and losses["all"][at_half]["Milk"]["within 2 cm"] == 2
     assert losses["all"][own]["Milk"]["no detection"] == 1 and losses["all"][own]["Milk"]["within 2 cm"] == 3
     assert losses["six"][every]["Milk"]["within 2 cm"] == 4

@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
 from dope_hope.catalog import get_object
 from dope_hope.cli import main
-from dope_hope.errors import ConfigError, InputFileError
+from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
 from dope_hope.evaluation import metrics
 from dope_hope.evaluation.bop19 import (
     BOP19_MSSD_THRESHOLDS,
@@ -344,8 +344,14 @@ def test_mesh_models_use_the_mesh_and_centre_the_catalog_symmetries(tmp_path):
     models = load_models(["Tuna", "Milk"], [str(mesh_path)], mesh_units="m")
     tuna, milk = models["Tuna"], models["Milk"]
     assert tuna.source == f"mesh {mesh_path}" and not tuna.procedural
-    assert milk.procedural and milk.source.startswith("procedural cuboid")
+    assert milk.procedural and milk.source.startswith("procedural cuboid (catalog size")
     assert tuna.points.shape == (500, 3)
+    # an object outside the catalog without a mesh: the cuboid its data records, else refused
+    widget = load_models(["Widget"], recorded_sizes={"Widget": (np.array([0.1, 0.02, 0.05]), tmp_path)})["Widget"]
+    assert widget.procedural and widget.source.startswith("procedural cuboid (recorded size")
+    np.testing.assert_allclose(widget.points.max(0) - widget.points.min(0), [0.1, 0.02, 0.05], atol=0.01)
+    with pytest.raises(UnknownObjectError, match="'Widget' is not a HOPE object and no mesh was given"):
+        load_models(["Widget"])
     assert tuna.diameter == pytest.approx(np.hypot(0.084, 0.034), rel=0.02)
     # the mesh is centred at z = 0.01: its symmetries turn about that centre, so a rotation of
     # the object about its own (vertical) axis costs nothing under MeanSSD

@@ -284,9 +284,12 @@ def test_a_calling_programs_own_freeze_is_left_to_it(data, tmp_path):
 BUDGET_MIN = 0.4  # 24 s
 
 
-def _budgeted_argv(data: Path, out: Path, minutes: float = BUDGET_MIN) -> list:
+def _budgeted_argv(data: Path, out: Path, minutes: float = BUDGET_MIN, thresholds: bool = False) -> list:
+    """A budgeted run; without the thresholds' choice at its end unless ``thresholds`` (its
+    cost is estimated, not measured: the plans' own accuracy is what these tests check)."""
     return ["train", "--data", data, "--object", "Ketchup", "--out", out, "--no-progress",
-            "--set", *TINY_SET, "train.epochs=100000", "train.log_every=50", "--time-budget", minutes]
+            "--set", *TINY_SET, "train.epochs=100000", "train.log_every=50",
+            f"train.calibrate_thresholds={str(thresholds).lower()}", "--time-budget", minutes]
 
 
 def _burn(n: int) -> list[subprocess.Popen]:
@@ -294,10 +297,12 @@ def _burn(n: int) -> list[subprocess.Popen]:
     return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
 
 
-def _share(data: Path, out: Path, capfd, load_from: float | None = None, load_until: float | None = None) -> float:
+def _share(data: Path, out: Path, capfd, load_from: float | None = None, load_until: float | None = None,
+           thresholds: bool = False) -> float:
     """Run a budgeted training through the CLI, with CPU burners from ``load_from`` to
-    ``load_until`` (shares of the budget; None: from the start / to the end); returns the
-    share of the budget the command took (wall clock)."""
+    ``load_until`` (shares of the budget; None: from the start / to the end), ending with the
+    thresholds' choice when ``thresholds``; returns the share of the budget the command took
+    (wall clock)."""
     burners: list[subprocess.Popen] = []
     budget_s = BUDGET_MIN * 60.0
 
@@ -317,7 +322,7 @@ def _share(data: Path, out: Path, capfd, load_from: float | None = None, load_un
     for t in timers:
         t.start()
     try:
-        code, stdout, err = run_cli(_budgeted_argv(data, out), capfd)
+        code, stdout, err = run_cli(_budgeted_argv(data, out, thresholds=thresholds), capfd)
     finally:
         for t in timers:
             t.cancel()
@@ -343,6 +348,14 @@ TOLERANCE = 0.01
 def test_time_budget_is_spent_on_an_idle_machine(data, tmp_path, capfd):
     share = _share(data, tmp_path / "o", capfd)
     assert 0.97 <= share <= 1.0 + TOLERANCE
+
+
+def test_time_budget_holds_with_the_thresholds_choice_at_the_end(data, tmp_path, capfd):
+    """The choice after the final validation is planned for (as three validations): the run
+    still ends inside its budget."""
+    share = _share(data, tmp_path / "o", capfd, thresholds=True)
+    assert 0.9 <= share <= 1.0 + TOLERANCE
+    assert json.loads((tmp_path / "o" / "summary.json").read_text())["min_score_frames"] > 0
 
 
 def test_time_budget_holds_when_a_second_job_starts(data, tmp_path, capfd):

@@ -79,7 +79,8 @@ class ObjectModel:
         symmetries: (S, 4, 4) model-frame symmetry transforms, metres, identity first.
         mesh: trimesh in metres (a ``trimesh.PointCloud`` for a PLY without faces).
         source: where points / mesh come from, for the report.
-        procedural: True when the points are sampled on the catalog cuboid (no mesh given).
+        procedural: True when the points are sampled on a cuboid (the catalog's or the
+            recorded one; no mesh given).
         bop: the model for BOP19 scoring (all vertices, millimetres).
         found_symmetries: what was found on the mesh when its symmetries come from it (one
             line: ``detected on the mesh: ...``), else "".
@@ -189,13 +190,14 @@ def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectMod
         found = resolve_symmetries(name, path, explicit, loaded.units, obj_id)
         if not found.from_bop_table:  # a BOP entry describes the dataset's own model
             _check_box(name, loaded, path, obj, models.recorded_sizes)
-    elif obj is None:
+    elif obj is None and not (models.recorded_sizes and name in models.recorded_sizes):
         raise UnknownObjectError(f"class {name!r} is not a HOPE object and no mesh was "
                                  f"given for it (--mesh {name}=PATH)")
     else:
-        loaded = _LoadedMesh(trimesh.creation.box(extents=obj.size_array), None,
+        size, whose = (obj.size_array, "catalog") if obj is not None else (models.recorded_sizes[name][0], "recorded")
+        loaded = _LoadedMesh(trimesh.creation.box(extents=np.asarray(size, dtype=np.float64)), None,
                              unit_for(models.mesh_units, name) or "mm",
-                             "procedural cuboid (catalog size; no mesh given)")
+                             f"procedural cuboid ({whose} size; no mesh given)")
         found = resolve_symmetries(name, None, explicit, loaded.units, obj_id)
     points = sample_surface_points(loaded.mesh, models.n_points)
     source = loaded.source
@@ -227,7 +229,8 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
     :mod:`dope_hope.io.models_dir`; a given folder without the mesh of a class in
     ``mesh_required``, default every class, is an error: evaluate requires the classes of
     the ground truth); else a **procedural** stand-in: points on the surface of
-    the catalog cuboid (reported as such). ``mesh_units``: the unit of every mesh file, or
+    the catalog cuboid, else (a class outside the catalog) of the one ``recorded_sizes``
+    gives (reported as such). ``mesh_units``: the unit of every mesh file, or
     {class: unit} (a class not in it: the unit of key "" if any, else by the file's suffix),
     or None (by suffix). Symmetries and diameter: the object's declaration
     (:func:`dope_hope.symmetry.resolve.resolve_symmetries`: a BOP ``models_info.json`` entry
@@ -251,8 +254,8 @@ def load_models(class_names: Sequence[str], mesh_args: Sequence[str] = (),
         a NAME in ``--mesh`` / ``--symmetries`` NAME=... or ``mesh_units`` that is not a class;
         ``models_dir`` without the mesh of a required class (and no ``--mesh`` for it); a
         bare ``--mesh PATH`` of an unknown class among several; ``--symmetries`` for an object
-        whose ``models_info.json`` entry declares them; a class neither in the catalog nor
-        given a mesh. ConfigError: a mesh whose box does not match.
+        whose ``models_info.json`` entry declares them; a class neither in the catalog, nor
+        given a mesh, nor in ``recorded_sizes``. ConfigError: a mesh whose box does not match.
     """
     meshes = parse_mesh_args(mesh_args, class_names)
     if isinstance(mesh_units, Mapping):  # NAME=UNIT: NAME must be an object scored

@@ -11,7 +11,8 @@ on frames that were neither trained on nor benchmarked on, matches them to the l
 so a threshold never changes which of the estimates it keeps are true), and picks per object
 the threshold of :data:`CANDIDATES` with the highest F1 (ties: the higher threshold, fewer
 false detections). `dope-hope calibrate` records them with the weights
-(:attr:`dope_hope.model.info.ObjectInfo.min_score`).
+(:attr:`dope_hope.model.info.ObjectInfo.min_score`), and so does a training run at its end, on
+its validation frames (:func:`calibrate_on_frames`, :mod:`dope_hope.training.calibration`).
 """
 from __future__ import annotations
 
@@ -24,10 +25,14 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from dope_hope.errors import ConfigError
-from dope_hope.evaluation.datasets import Dataset
+from dope_hope.annotation import FrameAnnotation
+from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.evaluation.matching import error_matrix, greedy_match
 from dope_hope.evaluation.object_models import ObjectModel
+from dope_hope.inference.backends import backend_objects, model_min_score
+from dope_hope.inference.options import InferenceOptions
+from dope_hope.inference.predictor import DopePredictor
+from dope_hope.io.images import read_depth_m, read_rgb
 from dope_hope.io.predictions import Prediction
 
 #: The thresholds a choice is made among: 0.05 to 0.95 in steps of 0.05.
@@ -87,17 +92,18 @@ class MatchedEstimates:
         return best_f1_threshold(class_name, self.scores, self.true, self.instances, candidates)
 
 
-def match_estimates(dataset: Dataset, preds_by_frame: list[list[Prediction]], models: dict[str, ObjectModel],
-                    classes: Sequence[str], metric: str = "meanssd", within_m: float = 0.10,
-                    progress: bool = False) -> dict[str, MatchedEstimates]:
+def match_estimates(frames: Sequence[FrameAnnotation], preds_by_frame: list[list[Prediction]],
+                    models: dict[str, ObjectModel], classes: Sequence[str], metric: str = "meanssd",
+                    within_m: float = 0.10, progress: bool = False) -> dict[str, MatchedEstimates]:
     """{class: its :class:`MatchedEstimates`} for each of ``classes``: an estimate is true when
     ``evaluate``'s matching pairs it with an instance of its class within ``within_m`` metres
-    of ``metric`` (predictions per frame as :func:`~dope_hope.evaluation.datasets.
-    assign_predictions` gives them; ``models``: each class's model, symmetries included)."""
+    of ``metric`` (predictions per frame, as :func:`~dope_hope.evaluation.datasets.
+    assign_predictions` gives them for a dataset's frames; ``models``: each class's model,
+    symmetries included)."""
     scores: dict[str, list[float]] = {c: [] for c in classes}
     true: dict[str, list[bool]] = {c: [] for c in classes}
     instances = dict.fromkeys(classes, 0)
-    for frame, preds in tqdm(list(zip(dataset.frames, preds_by_frame)), desc="matching", unit="img",
+    for frame, preds in tqdm(list(zip(frames, preds_by_frame)), desc="matching", unit="img",
                              disable=not progress):
         for c in classes:
             gts = [o for o in frame.objects if o.class_name == c]
@@ -177,19 +183,67 @@ def calibrate_weights(predictions: str | os.PathLike, dataset_dir: str | os.Path
     for name in current:
         if name not in labelled:
             log(f"{name}: no labelled instance in {dataset_dir}; its threshold stays {current[name]:g}")
-    matched = match_estimates(dataset, by_frame, models, classes, metric, within_m, progress=progress)
-    for name in [c for c, m in matched.items() if not len(m.scores)]:
-        log(f"{name}: no estimate on {dataset_dir}; its threshold stays {current[name]:g}")
-        del matched[name]
-    if not matched:
+    matched = match_estimates(dataset.frames, by_frame, models, classes, metric, within_m, progress=progress)
+    if not any(len(m.scores) for m in matched.values()):
         raise ConfigError(f"--predictions {predictions}: no estimate of an object labelled in {dataset_dir}")
-    for name in [c for c, m in matched.items() if not m.true.any()]:  # no threshold keeps a true one
-        log(f"{name}: none of its {len(matched[name].scores)} estimates is within {100 * within_m:g} cm of an "
-            f"instance; its threshold stays {current[name]:g}")
-        del matched[name]
-    choices = {c: m.at(c) for c, m in matched.items()}
-    before = {c: m.at(c, [current[c]]) for c, m in matched.items()}
+    choices, before = choose_thresholds(matched, current, str(dataset_dir), within_m, log)
     save_inference_checkpoint(weights, out, object_min_scores={c: ch.min_score for c, ch in choices.items()})
+    return choices, before
+
+
+def estimates_on_frames(predictor: DopePredictor, frames: Sequence[FrameAnnotation],
+                        progress: bool = False) -> list[list[Prediction]]:
+    """Each frame's estimates by ``predictor`` (its own threshold and stages; the line search
+    on the frame's depth image when it has one)."""
+    out = []
+    for frame in tqdm(frames, desc="estimates", unit="img", disable=not progress):
+        if frame.image_path is None:
+            raise InputFileError(frame.source, "no image beside the annotation")
+        depth = None if frame.depth_path is None else read_depth_m(frame.depth_path, frame.depth_scale_m)
+        dets = predictor.predict(read_rgb(frame.image_path), frame.K, depth=depth)
+        out.append([Prediction(image=None, class_name=d.class_name, score=float(d.score), R=d.R, t=d.t,
+                               ls_applied=d.ls_applied) for d in dets])
+    return out
+
+
+def calibrate_on_frames(weights: str | os.PathLike, frames: Sequence[FrameAnnotation],
+                        models: Mapping[str, ObjectModel], within_m: float = 0.10, metric: str = "meanssd",
+                        log: Callable[[str], None] = print, progress: bool = False,
+                        ) -> tuple[dict[str, ThresholdChoice], dict[str, ThresholdChoice]]:
+    """Choose each object's threshold for checkpoint ``weights`` on labelled ``frames`` (its
+    estimates at every score, with the objects' meshes of ``models`` where they are not
+    procedural stand-ins, matched with ``models``): :func:`choose_thresholds` of the objects
+    labelled in them; an object without a labelled instance keeps its threshold (said through
+    ``log``). Records nothing."""
+    predictor = DopePredictor(weights, backend="torch", min_score=0.0,
+                              mesh={n: m.mesh for n, m in models.items() if not m.procedural} or None)
+    own = InferenceOptions.from_mapping(None, model_min_score=model_min_score(predictor.backend)).min_score
+    current = {o.class_name: own if o.min_score is None else float(o.min_score)
+               for o in backend_objects(predictor.backend)}
+    labelled = {o.class_name for f in frames for o in f.objects}
+    for name in [c for c in current if c not in labelled]:
+        log(f"{name}: no labelled instance in the frames; its threshold stays {current[name]:g}")
+    classes = [c for c in current if c in labelled]
+    matched = match_estimates(frames, estimates_on_frames(predictor, frames, progress), dict(models), classes,
+                              metric, within_m, progress=progress)
+    return choose_thresholds(matched, current, "the frames", within_m, log)
+
+
+def choose_thresholds(matched: Mapping[str, MatchedEstimates], current: Mapping[str, float], where: str,
+                      within_m: float, log: Callable[[str], None] = print,
+                      ) -> tuple[dict[str, ThresholdChoice], dict[str, ThresholdChoice]]:
+    """(each object's choice, what its ``current`` threshold keeps) for the objects of
+    ``matched`` that can choose: one with no estimate on the frames of ``where`` or no true
+    one (no threshold keeps an instance) keeps its threshold, told through ``log``."""
+    choices, before = {}, {}
+    for name, m in matched.items():
+        if not len(m.scores):
+            log(f"{name}: no estimate on {where}; its threshold stays {current[name]:g}")
+        elif not m.true.any():
+            log(f"{name}: none of its {len(m.scores)} estimates is within {100 * within_m:g} cm of an "
+                f"instance; its threshold stays {current[name]:g}")
+        else:
+            choices[name], before[name] = m.at(name), m.at(name, [current[name]])
     return choices, before
 
 

@@ -364,15 +364,31 @@ def save_inference_checkpoint(src: str | os.PathLike, dst: str | os.PathLike,
     """Copy a checkpoint without its training state (optimizer, scheduler, RNG): what a
     model ships as. Adam's moments double a checkpoint's size and are useless for inference;
     ``--resume`` needs the full file. ``source`` replaces the recorded origin (e.g.
-    :data:`PRETRAINED_START_SOURCE`). ``min_score`` records the model's own default score
-    threshold (:attr:`ModelInfo.min_score <dope_hope.model.info.ModelInfo.min_score>`; the
-    source's is kept when None); ``object_min_scores`` {class name: threshold} each object's
-    own (:attr:`ObjectInfo.min_score <dope_hope.model.info.ObjectInfo.min_score>`; ConfigError
-    for a class the model does not hold). Written atomically; returns ``dst``."""
+    :data:`PRETRAINED_START_SOURCE`). ``min_score`` and ``object_min_scores``: as
+    :func:`with_min_scores`. Written atomically; returns ``dst``."""
     ckpt = load_checkpoint(src)
     ckpt.update(optimizer=None, scheduler=None, rng=None)
     if source is not None:
         ckpt["source"] = source
+    atomic_write_stream(dst, lambda f: torch.save(with_min_scores(ckpt, src, min_score, object_min_scores), f))
+    return Path(dst)
+
+
+def record_min_scores(path: str | os.PathLike, object_min_scores: Mapping[str, float]) -> Path:
+    """Record each object's own score threshold in the checkpoint ``path`` itself, training
+    state and all (:func:`with_min_scores`); rewritten atomically; returns ``path``."""
+    ckpt = with_min_scores(load_checkpoint(path), path, None, object_min_scores)
+    atomic_write_stream(path, lambda f: torch.save(ckpt, f))
+    return Path(path)
+
+
+def with_min_scores(ckpt: dict[str, Any], where: str | os.PathLike, min_score: float | None = None,
+                    object_min_scores: Mapping[str, float] | None = None) -> dict[str, Any]:
+    """``ckpt`` (read from ``where``) with ``min_score``, the model's own default score
+    threshold (:attr:`ModelInfo.min_score <dope_hope.model.info.ModelInfo.min_score>`; kept
+    when None), and ``object_min_scores`` {class name: threshold}, each object's own
+    (:attr:`ObjectInfo.min_score <dope_hope.model.info.ObjectInfo.min_score>`), set in place
+    and checked (ConfigError for a class the model does not hold or a bad value)."""
     if min_score is not None:
         ckpt["min_score"] = min_score
     if object_min_scores:
@@ -380,15 +396,14 @@ def save_inference_checkpoint(src: str | os.PathLike, dst: str | os.PathLike,
         names = [e.get("class_name") for e in entries]
         for name, value in object_min_scores.items():
             if name not in names:
-                raise ConfigError(f"{name!r} is not an object of {src} ({', '.join(map(str, names))})")
+                raise ConfigError(f"{name!r} is not an object of {where} ({', '.join(map(str, names))})")
             entries[names.index(name)]["min_score"] = float(value)
         ckpt["objects"] = entries
         if len(entries) == 1:
             ckpt["object"] = entries[0]
     if min_score is not None or object_min_scores:
-        ModelInfo.from_checkpoint(ckpt, dst)
-    atomic_write_stream(dst, lambda f: torch.save(ckpt, f))
-    return Path(dst)
+        ModelInfo.from_checkpoint(ckpt, where)
+    return ckpt
 
 
 def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[DopeNetwork, dict[str, Any]]:

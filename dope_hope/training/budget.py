@@ -65,12 +65,13 @@ class BudgetPlan:
 
     @staticmethod
     def run_cost(step: int, end: int, per_step_s: float, val_s: float, val_every_steps: int,
-                 validated: bool = False) -> float:
+                 validated: bool = False, after_s: float = 0.0) -> float:
         """Seconds from ``step`` to the end of a run that ends at ``end``: its steps and its
         validations, at the multiples of ``val_every_steps`` (0: none) after ``step`` (and at
         ``step`` unless ``validated`` there already), the last one before a run's end skipped
-        when the run ends before the next (the final validation, at ``end``, replaces it)."""
-        seconds = (end - step) * per_step_s
+        when the run ends before the next (the final validation, at ``end``, replaces it),
+        and ``after_s``, what the run does after its final validation (the thresholds' choice)."""
+        seconds = (end - step) * per_step_s + after_s
         lo = step if validated else step - 1
         if val_every_steps <= 0 or end <= lo:
             return seconds
@@ -78,7 +79,7 @@ class BudgetPlan:
         return seconds + val_s * (count if end % val_every_steps == 0 else max(1, count))
 
     def budget_steps(self, step: int, used_s: float, per_step_s: float, val_s: float, val_every_steps: int,
-                     validated: bool = False) -> int:
+                     validated: bool = False, after_s: float = 0.0) -> int:
         """The last step the budget allows: the largest end whose :meth:`run_cost` (which grows
         with the end) fits in the time left before the end margin; ``step`` when none does."""
         left = self.limit_s * (1.0 - END_MARGIN) - used_s
@@ -86,22 +87,23 @@ class BudgetPlan:
         lo, hi = step, step + math.ceil(max(0.0, left) / per) + 1  # the cost of hi exceeds left
         while hi - lo > 1:
             mid = (lo + hi) // 2
-            fits = self.run_cost(step, mid, per, val_s, val_every_steps, validated) <= left
+            fits = self.run_cost(step, mid, per, val_s, val_every_steps, validated, after_s) <= left
             lo, hi = (mid, hi) if fits else (lo, mid)
         return lo
 
     def plan(self, step: int, used_s: float, other_s: float, per_step_s: float, val_s: float,
-             val_every_steps: int, nominal_end: int, why: str, validated: bool = False) -> dict[str, Any]:
+             val_every_steps: int, nominal_end: int, why: str, validated: bool = False,
+             after_s: float = 0.0) -> dict[str, Any]:
         """Make, record and return a plan (its ``end`` never before ``step``)."""
-        budget_end = self.budget_steps(step, used_s, per_step_s, val_s, val_every_steps, validated)
+        budget_end = self.budget_steps(step, used_s, per_step_s, val_s, val_every_steps, validated, after_s)
         plan = make_plan(step, max(step, min(nominal_end, budget_end)), budget_end, per_step_s, val_s, used_s,
                          other_s, why)
         self.plans.append(plan)
         return plan
 
     def one_more_fits(self, step: int, used_s: float, per_step_s: float, val_s: float, val_every_steps: int,
-                      validated: bool = False) -> bool:
+                      validated: bool = False, after_s: float = 0.0) -> bool:
         """Whether a run ending one step later (validations included) fits in the budget, half
         the end margin kept free (for what the estimates miss)."""
-        cost = self.run_cost(step, step + 1, per_step_s, val_s, val_every_steps, validated)
+        cost = self.run_cost(step, step + 1, per_step_s, val_s, val_every_steps, validated, after_s)
         return used_s + cost <= self.limit_s * (1.0 - END_MARGIN / 2)

@@ -156,6 +156,8 @@ class TrainSettings(SectionSettings):
     val_batch_size (null: batch_size). max_instances per frame; min_visibility of an instance;
     include_empty_frames. log_every (steps). horizon_estimate_after: steps before a time
     budget becomes a step count. plots: results.png + val_snapshot.png after each validation.
+    calibrate_thresholds: at the run's end, each object's score threshold chosen on the
+    validation frames and recorded in best.pt (:mod:`dope_hope.training.calibration`).
     """
 
     SECTION = "train"
@@ -175,7 +177,7 @@ class TrainSettings(SectionSettings):
         "val_radius_px": positive_float, "val_peak_threshold": nonnegative_float,
         "val_batch_size": or_none(at_least(1)), "max_instances": at_least(1),
         "min_visibility": nonnegative_float, "include_empty_frames": boolean, "log_every": at_least(1),
-        "horizon_estimate_after": at_least(2), "plots": boolean,
+        "horizon_estimate_after": at_least(2), "plots": boolean, "calibrate_thresholds": boolean,
     }
 
     batch_size: int = 16
@@ -217,6 +219,7 @@ class TrainSettings(SectionSettings):
     log_every: int = 20
     horizon_estimate_after: int = 20
     plots: bool = True
+    calibrate_thresholds: bool = True
 
 
 def _symmetry(value: Any, name: str) -> Any:

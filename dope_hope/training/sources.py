@@ -8,13 +8,16 @@ into the same :class:`~dope_hope.training.dataset.FrameRecord` list, with the sa
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from dope_hope.annotation import FrameAnnotation
 from dope_hope.errors import InputFileError
 from dope_hope.geometry import KEYPOINT_ORDER
 from dope_hope.io.bop_scenes import bop_class_name, is_bop_dataset, iter_bop_frames
+from dope_hope.io.dope_json import read_dope_json
 from dope_hope.training.dataset import FrameRecord, class_index, frame_record, scan_frames
 
 
@@ -79,3 +82,25 @@ def check_instances(records: Sequence[FrameRecord], class_names: Sequence[str], 
         found = ", ".join(f"{n} {c}" for n, c in zip(names, counts) if c)
         raise InputFileError(where, f"no annotated instance of {', '.join(missing)} (--object), whose maps would "
                                     f"only learn 'absent'; instances found: {found}")
+
+
+def record_annotations(records: Sequence[FrameRecord], folders: Sequence[str | Path],
+                       class_names: Sequence[str]) -> list[FrameAnnotation]:
+    """The whole annotation of each of ``records`` (read from ``folders``, as
+    :func:`scan_training_data` found them), its instances of the run's classes named as
+    ``class_names`` spells them (the annotations' spelling may differ in case)."""
+    names = list(class_names)
+    spelled = {n.lower(): n for n in names}
+    wanted = {r.image_path.resolve() for r in records}
+    bop: dict[Path, FrameAnnotation] = {}
+    for folder in folders:
+        if is_bop_dataset(folder):
+            for frame in iter_bop_frames(folder, class_name=lambda obj_id: bop_class_name(obj_id, names)):
+                if frame.image_path is not None and frame.image_path.resolve() in wanted:
+                    bop[frame.image_path.resolve()] = frame
+    out = []
+    for record in records:
+        frame = bop.get(record.image_path.resolve()) or read_dope_json(record.json_path)
+        objects = [replace(o, class_name=spelled.get(o.class_name.lower(), o.class_name)) for o in frame.objects]
+        out.append(replace(frame, objects=objects, image_path=record.image_path))
+    return out

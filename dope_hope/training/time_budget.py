@@ -28,6 +28,13 @@ from dope_hope.training.settings import input_hw
 #: The trainer's logger: these lines are the trainer's, under its name.
 log = logging.getLogger("dope_hope.training.trainer")
 
+#: What choosing the thresholds at a run's end costs, in validations of the same frames (it
+#: runs the whole predictor at every score, pose search and line search included, and loads
+#: the meshes): 2.6 measured on a trained six-object run's 300 validation frames (22.5 s
+#: against 8.7 s), rounded up so that the run ends inside its budget. A model that finds
+#: little costs less (nothing to search): its run ends that much under its budget.
+CALIBRATION_IN_VALIDATIONS = 3.0
+
 #: Batches each DataLoader worker fetches ahead (PyTorch's default, passed explicitly because the
 #: time-budget plan starts its clock once those are used up).
 LOADER_PREFETCH = 2
@@ -151,6 +158,12 @@ class TimeBudgetControl:
         crop = self.train_set.augment.crop or (h, w)
         return per_step * val_batches * max(1.0, h * w / (crop[0] * crop[1]))
 
+    def _after_run_cost(self, val_s: float) -> float:
+        """Seconds the run spends after its final validation, which costs ``val_s``: choosing
+        the thresholds (:meth:`Trainer._calibrate`), estimated as
+        :data:`CALIBRATION_IN_VALIDATIONS` validations; 0 without it."""
+        return CALIBRATION_IN_VALIDATIONS * val_s if self.calibrates else 0.0
+
     def _decide_end(self, validated: bool) -> int | None:
         """Rank 0: the new end step when a plan is due or the budget is spent, else None.
 
@@ -168,7 +181,8 @@ class TimeBudgetControl:
             measured, window_steps = self._first_window_speed()
             if validated and measured:
                 self._val_steps.append(self._val_seconds / measured)
-            if used + self._val_seconds >= self.budget.limit_s:  # the final validation would not fit
+            if used + self._val_seconds + self._after_run_cost(self._val_seconds) >= self.budget.limit_s:
+                # the final validation (and the thresholds' choice) would not fit
                 return self._plan_now("budget spent before a plan", per_step=measured or 0.0, end=self.step)
             if measured is None or (window_steps < int(self.ts["horizon_estimate_after"]) and not validated):
                 return None
@@ -177,7 +191,9 @@ class TimeBudgetControl:
         if validated:
             self._val_steps.append(self._val_seconds / per_step)
         every = int(self.ts["val_every"]) * self.steps_per_epoch
-        if not self.budget.one_more_fits(self.step, used, per_step, self._val_cost(per_step), every, validated):
+        val_cost = self._val_cost(per_step)
+        if not self.budget.one_more_fits(self.step, used, per_step, val_cost, every, validated,
+                                         self._after_run_cost(val_cost)):
             return self._plan_now("budget spent", per_step=per_step, end=self.step)
         if validated or self.budget.due(used, self.step):
             return self._plan_now("validation" if validated else "re-plan", per_step=per_step, validated=validated)
@@ -194,7 +210,7 @@ class TimeBudgetControl:
         if end is None:
             every = int(self.ts["val_every"]) * self.steps_per_epoch
             plan = self.budget.plan(self.step, used, self.other_time(), per_step, val_cost, every, self._nominal_total, why,
-                                    validated)
+                                    validated, self._after_run_cost(val_cost))
         else:
             plan = make_plan(self.step, end, end, per_step, val_cost, used, self.other_time(), why)
             self.budget.plans.append(plan)
