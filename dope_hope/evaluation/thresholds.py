@@ -208,14 +208,14 @@ def estimates_on_frames(predictor: DopePredictor, frames: Sequence[FrameAnnotati
 
 def calibrate_on_frames(weights: str | os.PathLike, frames: Sequence[FrameAnnotation],
                         models: Mapping[str, ObjectModel], within_m: float = 0.10, metric: str = "meanssd",
-                        log: Callable[[str], None] = print, progress: bool = False,
+                        log: Callable[[str], None] = print, progress: bool = False, device: str = "cpu",
                         ) -> tuple[dict[str, ThresholdChoice], dict[str, ThresholdChoice]]:
     """Choose each object's threshold for checkpoint ``weights`` on labelled ``frames`` (its
     estimates at every score, with the objects' meshes of ``models`` where they are not
-    procedural stand-ins, matched with ``models``): :func:`choose_thresholds` of the objects
-    labelled in them; an object without a labelled instance keeps its threshold (said through
-    ``log``). Records nothing."""
-    predictor = DopePredictor(weights, backend="torch", min_score=0.0,
+    procedural stand-ins, matched with ``models``; the network on ``device``):
+    :func:`choose_thresholds` of the objects labelled in them; an object without a labelled
+    instance keeps its threshold (said through ``log``). Records nothing."""
+    predictor = DopePredictor(weights, backend="torch", device=device, min_score=0.0,
                               mesh={n: m.mesh for n, m in models.items() if not m.procedural} or None)
     own = InferenceOptions.from_mapping(None, model_min_score=model_min_score(predictor.backend)).min_score
     current = {o.class_name: own if o.min_score is None else float(o.min_score)

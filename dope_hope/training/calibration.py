@@ -38,10 +38,10 @@ log = logging.getLogger("dope_hope.training.trainer")
 
 
 def calibrate_run(weights: Path, job: TrainJob, val_records: Sequence[FrameRecord], objects: Sequence[RunObject],
-                  progress: bool = False) -> dict[str, Any]:
+                  progress: bool = False, device: str = "cpu") -> dict[str, Any]:
     """Choose each object's threshold for checkpoint ``weights`` (the run's chosen one) on the
-    run's validation frames ``val_records`` and record the choices in it (rewritten
-    atomically, training state kept). Returns what the run's summary records:
+    run's validation frames ``val_records`` (the network on ``device``) and record the choices
+    in it (rewritten atomically, training state kept). Returns what the run's summary records:
     ``min_scores`` {class: threshold chosen}, ``min_score_frames`` and ``calibration_s``."""
     t0 = time.perf_counter()
     names = [o.name for o in objects]
@@ -52,7 +52,7 @@ def calibrate_run(weights: Path, job: TrainJob, val_records: Sequence[FrameRecor
     models = load_models(names, meshes, None, units or None, recorded_sizes=sizes, mesh_required=(),
                          symmetry_args=[f"{names[0]}={job.symmetries}"] if job.symmetries and len(names) == 1 else [])
     choices, before = calibrate_on_frames(weights, frames, models, log=lambda line: log.info("thresholds: %s", line),
-                                          progress=progress)
+                                          progress=progress, device=device)
     if choices:
         record_min_scores(weights, {c: ch.min_score for c, ch in choices.items()})
         log.info("thresholds chosen on %d validation frames, recorded in %s: %s", len(frames), weights,

@@ -421,7 +421,7 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
         weights = self.out / ("best.pt" if self.best_acc >= 0 and (self.out / "best.pt").is_file() else "last.pt")
         try:
             return calibrate_run(weights, self.job, self.val_set.records, self.objects,
-                                 progress=self.job.progress)
+                                 progress=self.job.progress, device=str(self.device))
         except DopeHopeError as exc:
             log.warning("thresholds not chosen (%s keeps infer's default): %s", weights.name, exc)
             return {}
