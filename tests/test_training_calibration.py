@@ -60,7 +60,7 @@ def test_the_chosen_checkpoint_records_each_objects_threshold(tmp_path, monkeypa
     job = TrainJob([data], "Ketchup", tmp_path, objects=["Ketchup", "Mustard"], progress=False)
     records, _ = scan_training_data([data], job.class_names, KEYPOINT_ORDER)
     caplog.set_level(logging.INFO, logger="dope_hope")
-    found = calibrate_run(weights, job, records, run_objects(job, records))
+    found = calibrate_run(weights, job, records, run_objects(job, records), min_instances=2)
     # Mustard: every estimate true at every threshold (ties: the highest); Ketchup: one of two true
     assert found["min_scores"] == {"Ketchup": 0.95, "Mustard": 0.95} and found["min_score_frames"] == 2
     assert [o.min_score for o in ModelInfo.from_checkpoint(load_checkpoint(weights)).objects] == [0.95, 0.95]
@@ -77,9 +77,13 @@ def test_an_object_without_a_true_estimate_keeps_its_threshold(tmp_path, monkeyp
     job = TrainJob([tmp_path / "val"], "Ketchup", tmp_path, objects=["Ketchup", "Mustard"], progress=False)
     records, _ = scan_training_data(job.data, job.class_names, KEYPOINT_ORDER)
     caplog.set_level(logging.INFO, logger="dope_hope")
-    assert calibrate_run(weights, job, records, run_objects(job, records))["min_scores"] == {"Mustard": 0.95}
+    assert calibrate_run(weights, job, records, run_objects(job, records), min_instances=2)["min_scores"] == \
+        {"Mustard": 0.95}
     assert "Ketchup: no estimate on the frames; its threshold stays 0.5" in caplog.text
     assert [o.min_score for o in ModelInfo.from_checkpoint(load_checkpoint(weights)).objects] == [None, 0.95]
+    # too few instances to choose from (the run's default asks 20): every threshold stays
+    assert calibrate_run(weights, job, records, run_objects(job, records))["min_scores"] == {}
+    assert "Mustard: 4 labelled instance(s) on the frames, fewer than the 20 a choice needs" in caplog.text
 
 
 @pytest.mark.parametrize("calibrate", [True, False])
@@ -91,9 +95,9 @@ def test_a_run_ends_by_choosing_on_its_validation_frames_unless_told_not_to(tmp_
     summary = train(TrainJob([tmp_path / "d"], "Ketchup", tmp_path / "run", progress=False, overrides=overrides),
                     load_config("lite"))
     assert summary["status"] == "completed"
-    if calibrate:  # three steps find no bottle: the threshold stays, and the summary says on what it was chosen
+    if calibrate:  # one bottle to choose on: the threshold stays, and the summary says on what it was chosen
         assert summary["min_scores"] == {} and summary["min_score_frames"] == 1 and summary["calibration_s"] >= 0
-        assert "thresholds: Ketchup: no estimate on the frames; its threshold stays 0.5" in caplog.text
+        assert "thresholds: Ketchup: 1 labelled instance(s) on the frames, fewer than the 20" in caplog.text
     else:
         assert "min_scores" not in summary and "thresholds:" not in caplog.text
 

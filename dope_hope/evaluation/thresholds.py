@@ -209,12 +209,14 @@ def estimates_on_frames(predictor: DopePredictor, frames: Sequence[FrameAnnotati
 def calibrate_on_frames(weights: str | os.PathLike, frames: Sequence[FrameAnnotation],
                         models: Mapping[str, ObjectModel], within_m: float = 0.10, metric: str = "meanssd",
                         log: Callable[[str], None] = print, progress: bool = False, device: str = "cpu",
+                        min_instances: int = 1,
                         ) -> tuple[dict[str, ThresholdChoice], dict[str, ThresholdChoice]]:
     """Choose each object's threshold for checkpoint ``weights`` on labelled ``frames`` (its
     estimates at every score, with the objects' meshes of ``models`` where they are not
     procedural stand-ins, matched with ``models``; the network on ``device``):
-    :func:`choose_thresholds` of the objects labelled in them; an object without a labelled
-    instance keeps its threshold (said through ``log``). Records nothing."""
+    :func:`choose_thresholds` of the objects labelled in them (``min_instances`` each); an
+    object without a labelled instance keeps its threshold (said through ``log``). Records
+    nothing."""
     predictor = DopePredictor(weights, backend="torch", device=device, min_score=0.0,
                               mesh={n: m.mesh for n, m in models.items() if not m.procedural} or None)
     own = InferenceOptions.from_mapping(None, model_min_score=model_min_score(predictor.backend)).min_score
@@ -226,18 +228,22 @@ def calibrate_on_frames(weights: str | os.PathLike, frames: Sequence[FrameAnnota
     classes = [c for c in current if c in labelled]
     matched = match_estimates(frames, estimates_on_frames(predictor, frames, progress), dict(models), classes,
                               metric, within_m, progress=progress)
-    return choose_thresholds(matched, current, "the frames", within_m, log)
+    return choose_thresholds(matched, current, "the frames", within_m, log, min_instances)
 
 
 def choose_thresholds(matched: Mapping[str, MatchedEstimates], current: Mapping[str, float], where: str,
-                      within_m: float, log: Callable[[str], None] = print,
+                      within_m: float, log: Callable[[str], None] = print, min_instances: int = 1,
                       ) -> tuple[dict[str, ThresholdChoice], dict[str, ThresholdChoice]]:
     """(each object's choice, what its ``current`` threshold keeps) for the objects of
-    ``matched`` that can choose: one with no estimate on the frames of ``where`` or no true
-    one (no threshold keeps an instance) keeps its threshold, told through ``log``."""
+    ``matched`` that can choose: one with fewer than ``min_instances`` labelled instances on
+    the frames of ``where``, no estimate or no true one (no threshold keeps an instance)
+    keeps its threshold, told through ``log``."""
     choices, before = {}, {}
     for name, m in matched.items():
-        if not len(m.scores):
+        if m.instances < min_instances:
+            log(f"{name}: {m.instances} labelled instance(s) on {where}, fewer than the {min_instances} a choice "
+                f"needs; its threshold stays {current[name]:g}")
+        elif not len(m.scores):
             log(f"{name}: no estimate on {where}; its threshold stays {current[name]:g}")
         elif not m.true.any():
             log(f"{name}: none of its {len(m.scores)} estimates is within {100 * within_m:g} cm of an "

@@ -35,13 +35,18 @@ from dope_hope.training.sources import record_annotations
 
 #: The trainer's logger: these lines are the trainer's, under its name.
 log = logging.getLogger("dope_hope.training.trainer")
+#: An object with fewer labelled instances among the validation frames keeps infer's default:
+#: an F1 maximum over a handful of instances is noise (a user choosing on frames of their own
+#: with `dope-hope calibrate` decides how many are enough).
+MIN_INSTANCES = 20
 
 
 def calibrate_run(weights: Path, job: TrainJob, val_records: Sequence[FrameRecord], objects: Sequence[RunObject],
-                  progress: bool = False, device: str = "cpu") -> dict[str, Any]:
+                  progress: bool = False, device: str = "cpu", min_instances: int = MIN_INSTANCES) -> dict[str, Any]:
     """Choose each object's threshold for checkpoint ``weights`` (the run's chosen one) on the
-    run's validation frames ``val_records`` (the network on ``device``) and record the choices
-    in it (rewritten atomically, training state kept). Returns what the run's summary records:
+    run's validation frames ``val_records`` (the network on ``device``; an object with fewer
+    than ``min_instances`` instances there keeps its threshold) and record the choices in it
+    (rewritten atomically, training state kept). Returns what the run's summary records:
     ``min_scores`` {class: threshold chosen}, ``min_score_frames`` and ``calibration_s``."""
     t0 = time.perf_counter()
     names = [o.name for o in objects]
@@ -52,7 +57,7 @@ def calibrate_run(weights: Path, job: TrainJob, val_records: Sequence[FrameRecor
     models = load_models(names, meshes, None, units or None, recorded_sizes=sizes, mesh_required=(),
                          symmetry_args=[f"{names[0]}={job.symmetries}"] if job.symmetries and len(names) == 1 else [])
     choices, before = calibrate_on_frames(weights, frames, models, log=lambda line: log.info("thresholds: %s", line),
-                                          progress=progress, device=device)
+                                          progress=progress, device=device, min_instances=min_instances)
     if choices:
         record_min_scores(weights, {c: ch.min_score for c, ch in choices.items()})
         log.info("thresholds chosen on %d validation frames, recorded in %s: %s", len(frames), weights,
