@@ -21,10 +21,13 @@ full config (sections ``model``, ``input``, ``targets``, ``train``, ``augment``;
   more steps (or the first epoch, if shorter) the measured speed turns the budget left into
   the step the run ends at; the run plans again from the speed of its recent steps at every
   validation and whenever a share of the budget has passed (:mod:`~dope_hope.training.budget`),
-  and stops early when one more step and the final validation would not fit. The cosine
+  and stops early when one more step and the final validation (and the thresholds' choice
+  below) would not fit. The cosine
   follows the plans (unless steps were given). The plans and the time used are saved in every
   checkpoint: a resumed run continues with them and plans again from its own measurements
   (with the same measurements, e.g. an injected clock, it ends with the same weights).
+* The end of a run that was not stopped: each object's score threshold chosen on the
+  validation frames and recorded in best.pt (:mod:`~dope_hope.training.calibration`).
 * Ctrl-C / SIGTERM: finish the current step, write ``last.pt`` (with the partial loss average
   of the current log row), return ``interrupted`` / ``terminated``.
 """
