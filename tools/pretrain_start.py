@@ -107,8 +107,10 @@ def main(argv: list[str] | None = None) -> int:
     if (out / "run" / "last.pt").is_file():
         train += ["--resume"]
     else:
+        # a start has no threshold of its own (the zero-training detector drops it): no choice at the end
         train += ["--config", "lite", "--init", args.init, "--data", out / "train", "--val", out / "val",
-                  "--object", "Object", "--steps", steps, "--set", *recipe.train_set]
+                  "--object", "Object", "--steps", steps, "--set", *recipe.train_set,
+                  "train.calibrate_thresholds=false"]
     stages.stage("train", train)
     start = save_inference_checkpoint(out / "run" / "last.pt", out / "pretrained_lite.pt",
                                       source=PRETRAINED_START_SOURCE)
