@@ -41,6 +41,7 @@ def test_the_default_recipe_is_the_shipped_starts_and_another_is_refused_in_its_
     assert "--backgrounds" in synth and str(photos) in synth
     train = commands["train"]
     assert train[train.index("--steps") + 1] == "16000" and train[train.index("--init") + 1] == "start_v1.pt"
+    assert train[-1] == "train.calibrate_thresholds=false"  # a start records no threshold
 
     tool.ran.clear()
     with pytest.raises(SystemExit) as stop:
