@@ -13,6 +13,7 @@ from test_multi_object_model import POSES, MultiTargetsBackend, lite_config, obj
 from test_training_trainer import TINY, write_frames
 
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
+from dope_hope.cli import main
 from dope_hope.config import load_config
 from dope_hope.geometry import KEYPOINT_ORDER, cuboid_keypoints, project_points
 from dope_hope.io.dope_json import write_dope_json
@@ -109,3 +110,17 @@ def test_the_budget_keeps_the_thresholds_choice_inside_it():
     kept = plan.budget_steps(0, 0.0, 1.0, 2.0, 10, after_s=8.0)
     assert BudgetPlan.run_cost(0, kept, 1.0, 2.0, 10, after_s=8.0) <= 100.0 * (1 - 0.015)
     assert kept < free and BudgetPlan.run_cost(0, kept + 1, 1.0, 2.0, 10, after_s=8.0) > 100.0 * (1 - 0.015)
+
+
+def test_the_train_command_says_which_file_records_the_thresholds(tmp_path, monkeypatch, capsys):
+    write_frames(tmp_path / "d", 11)
+    chosen = {"min_scores": {"Ketchup": 0.35}, "min_scores_file": str(tmp_path / "run" / "best.pt"),
+              "min_score_frames": 1, "calibration_s": 0.1}
+    monkeypatch.setattr("dope_hope.training.trainer.calibrate_run", lambda *a, **kw: chosen)
+    assert main(["train", "--data", str(tmp_path / "d"), "--object", "Ketchup", "--out", str(tmp_path / "run"),
+                 "--init", "none", "--steps", "2", "--batch-size", "2", "--workers", "0", "--no-progress",
+                 "--set", "input.size=[64,64]", "train.plots=false", "train.threads=1"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("completed: step 2") and out.rstrip().endswith(
+        f"each object's own score threshold, chosen on the validation frames, recorded in {tmp_path}/run/best.pt: "
+        "Ketchup 0.35"), out

@@ -19,7 +19,9 @@ mask_visib/ and the dataset's models/models_info.json) is read like a DOPE folde
 is the run's object obj_00000i, or the HOPE object of BOP id i, else not trained.
 
 Writes OUT/last.pt (and every checkpoint_every epochs / checkpoint_every_steps steps),
-OUT/best.pt (best validation keypoint accuracy), OUT/metrics.csv + metrics.jsonl,
+OUT/best.pt (best validation keypoint accuracy; at the end of a run that was not stopped,
+with each object's own score threshold chosen on the validation frames, which infer then
+uses: train.calibrate_thresholds), OUT/metrics.csv + metrics.jsonl,
 OUT/summary.json, and after each validation OUT/results.png (the curves) and
 OUT/val_snapshot.png (validation frames, predicted belief maps, decoded cuboids). Ctrl-C
 (exit 130) and SIGTERM (exit 143) write last.pt before exiting; --resume continues exactly.
@@ -171,6 +173,10 @@ def run(args: argparse.Namespace) -> int:
     acc, acc_d = summary.get("val_kp_acc"), summary.get("val_kp_acc_decoded")
     acc_text = (f", val keypoints within {summary.get('val_radius_px', 5):g} px: {acc:.3f} (belief peaks), "
                 f"{acc_d:.3f} (decoded instances)") if isinstance(acc, float) and isinstance(acc_d, float) else ""
+    chosen = summary.get("min_scores")
+    chosen_text = ("; each object's own score threshold, chosen on the validation frames, recorded in "
+                   f"{summary['min_scores_file']}: " + ", ".join(f"{n} {s:g}" for n, s in chosen.items())) if chosen else ""
     if summary.get("rank", 0) == 0:
-        print(f"{status}: step {summary['step']} epoch {summary['epoch']}{acc_text}; checkpoint {summary['last']}")
+        print(f"{status}: step {summary['step']} epoch {summary['epoch']}{acc_text}; checkpoint {summary['last']}"
+              f"{chosen_text}")
     return {"interrupted": 130, "terminated": 143}.get(status, 0)  # 128 + SIGINT / SIGTERM, as a shell reports

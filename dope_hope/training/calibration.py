@@ -47,7 +47,8 @@ def calibrate_run(weights: Path, job: TrainJob, val_records: Sequence[FrameRecor
     run's validation frames ``val_records`` (the network on ``device``; an object with fewer
     than ``min_instances`` instances there keeps its threshold) and record the choices in it
     (rewritten atomically, training state kept). Returns what the run's summary records:
-    ``min_scores`` {class: threshold chosen}, ``min_score_frames`` and ``calibration_s``."""
+    ``min_scores`` {class: threshold chosen}, ``min_scores_file`` (``weights``),
+    ``min_score_frames`` and ``calibration_s``."""
     t0 = time.perf_counter()
     names = [o.name for o in objects]
     frames = record_annotations(val_records, job.val or job.data, names)
@@ -62,8 +63,8 @@ def calibrate_run(weights: Path, job: TrainJob, val_records: Sequence[FrameRecor
         record_min_scores(weights, {c: ch.min_score for c, ch in choices.items()})
         log.info("thresholds chosen on %d validation frames, recorded in %s: %s", len(frames), weights,
                  "; ".join(_described(c, before[n]) for n, c in choices.items()))
-    return {"min_scores": {n: c.min_score for n, c in choices.items()}, "min_score_frames": len(frames),
-            "calibration_s": round(time.perf_counter() - t0, 2)}
+    return {"min_scores": {n: c.min_score for n, c in choices.items()}, "min_scores_file": str(weights),
+            "min_score_frames": len(frames), "calibration_s": round(time.perf_counter() - t0, 2)}
 
 
 def _described(choice: ThresholdChoice, before: ThresholdChoice) -> str:
