@@ -384,6 +384,6 @@ def test_help_states_the_default_min_score(capsys):
     with pytest.raises(SystemExit):
         cli.main(["infer", "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    assert "(default: each object's own threshold when its file records one (dope-hope calibrate), else the " \
+    assert "(default: each object's own threshold when its file records one (train, dope-hope calibrate), else the " \
            "model's own" in text
     assert f"else {default:g} from dope_hope/configs/infer.yaml" in text

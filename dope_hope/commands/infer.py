@@ -228,7 +228,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "400 for official DOPE weights)")
     parser.add_argument("--min-score", type=finite_float, metavar="S",
                         help="drop detections whose pose score is lower, for every object (default: each "
-                             "object's own threshold when its file records one (dope-hope calibrate), else the "
+                             "object's own threshold when its file records one (train, dope-hope calibrate), else the "
                              "model's own, as the shipped demo model records, else "
                              f"{_default_min_score():g} from dope_hope/configs/infer.yaml; bench/RESULTS.md); "
                              "0 keeps all; the option min_score")
