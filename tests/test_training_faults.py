@@ -351,7 +351,7 @@ def test_time_budget_is_spent_on_an_idle_machine(data, tmp_path, capfd):
 
 
 def test_time_budget_holds_with_the_thresholds_choice_at_the_end(data, tmp_path, capfd):
-    """The choice after the final validation is planned for (as three validations): the run
+    """The choice after the final validation is planned for (1.9 validations for one object): the run
     still ends inside its budget."""
     share = _share(data, tmp_path / "o", capfd, thresholds=True)
     assert 0.9 <= share <= 1.0 + TOLERANCE

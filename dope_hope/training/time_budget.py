@@ -28,12 +28,13 @@ from dope_hope.training.settings import input_hw
 #: The trainer's logger: these lines are the trainer's, under its name.
 log = logging.getLogger("dope_hope.training.trainer")
 
-#: What choosing the thresholds at a run's end costs, in validations of the same frames (it
-#: runs the whole predictor at every score, pose search and line search included, and loads
-#: the meshes): 2.6 measured on a trained six-object run's 300 validation frames (22.5 s
-#: against 8.7 s), rounded up so that the run ends inside its budget. A model that finds
-#: little costs less (nothing to search): its run ends that much under its budget.
-CALIBRATION_IN_VALIDATIONS = 3.0
+#: What choosing the thresholds at a run's end costs, in validations of the same frames: a
+#: fixed part (the predictor, the meshes) and a part per object of the run (its pose searches
+#: at every score): measured 1.3-2.0 on six one-object runs' 100 validation frames, 3.5 on a
+#: six-object run's 100 and 2.6 on its 300 (22.5 s against 8.7 s; bench/multi_object.py, AMD
+#: EPYC), so 1.5 + 0.4 per object, which covers them. A model that finds little costs less
+#: (nothing to search): its run ends that much under its budget.
+CALIBRATION_IN_VALIDATIONS = (1.5, 0.4)
 
 #: Batches each DataLoader worker fetches ahead (PyTorch's default, passed explicitly because the
 #: time-budget plan starts its clock once those are used up).
@@ -160,9 +161,10 @@ class TimeBudgetControl:
 
     def _after_run_cost(self, val_s: float) -> float:
         """Seconds the run spends after its final validation, which costs ``val_s``: choosing
-        the thresholds (:meth:`Trainer._calibrate`), estimated as
-        :data:`CALIBRATION_IN_VALIDATIONS` validations; 0 without it."""
-        return CALIBRATION_IN_VALIDATIONS * val_s if self.calibrates else 0.0
+        the thresholds (:meth:`Trainer._calibrate`), estimated from
+        :data:`CALIBRATION_IN_VALIDATIONS` and the run's objects; 0 without it."""
+        fixed, per_object = CALIBRATION_IN_VALIDATIONS
+        return (fixed + per_object * len(self.objects)) * val_s if self.calibrates else 0.0
 
     def _decide_end(self, validated: bool) -> int | None:
         """Rank 0: the new end step when a plan is due or the budget is spent, else None.
