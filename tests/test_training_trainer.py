@@ -31,10 +31,11 @@ from dope_hope.training.validation import keypoint_hits, validation_hits
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parent.parent
 #: lite at 64x64, tiny batches, no time limit (a time-estimated schedule is not reproducible), no
-#: plots after its many tiny validations (test_a_short_run_writes_results_png... turns them on)
+#: plots after its many tiny validations (test_a_short_run_writes_results_png... turns them on), no
+#: thresholds' choice at the end (test_training_calibration.py runs it; these runs find nothing)
 TINY = {"input": {"size": [64, 64]},
         "train": {"batch_size": 2, "workers": 0, "time_limit_min": None, "log_every": 1, "threads": 1,
-                  "plots": False}}
+                  "plots": False, "calibrate_thresholds": False}}
 
 
 def write_frames(folder: Path, n: int, wh=(80, 64), seed=0) -> None:
