@@ -116,7 +116,7 @@ def test_the_train_command_says_which_file_records_the_thresholds(tmp_path, monk
     write_frames(tmp_path / "d", 11)
     chosen = {"min_scores": {"Ketchup": 0.35}, "min_scores_file": str(tmp_path / "run" / "best.pt"),
               "min_score_frames": 1, "calibration_s": 0.1}
-    monkeypatch.setattr("dope_hope.training.trainer.calibrate_run", lambda *a, **kw: chosen)
+    monkeypatch.setattr("dope_hope.training.calibration.calibrate_run", lambda *a, **kw: chosen)
     assert main(["train", "--data", str(tmp_path / "d"), "--object", "Ketchup", "--out", str(tmp_path / "run"),
                  "--init", "none", "--steps", "2", "--batch-size", "2", "--workers", "0", "--no-progress",
                  "--set", "input.size=[64,64]", "train.plots=false", "train.threads=1"]) == 0

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from dope_hope.errors import DopeHopeError
 from dope_hope.evaluation.object_models import load_models
 from dope_hope.evaluation.thresholds import ThresholdChoice, calibrate_on_frames
 from dope_hope.model.checkpoint import record_min_scores
@@ -65,6 +66,34 @@ def calibrate_run(weights: Path, job: TrainJob, val_records: Sequence[FrameRecor
                  "; ".join(_described(c, before[n]) for n, c in choices.items()))
     return {"min_scores": {n: c.min_score for n, c in choices.items()}, "min_scores_file": str(weights),
             "min_score_frames": len(frames), "calibration_s": round(time.perf_counter() - t0, 2)}
+
+
+class RunThresholds:
+    """The trainer's end of a run (a part of :class:`~dope_hope.training.trainer.Trainer`, which
+    it reads: ``ts``, ``val_set``, ``dist``, ``out``, ``best_acc``, ``job``, ``objects``,
+    ``device``)."""
+
+    @property
+    def calibrates(self) -> bool:
+        """Whether the run ends by choosing each object's threshold on its validation frames
+        (``train.calibrate_thresholds``, with validations on)."""
+        return bool(self.ts["calibrate_thresholds"]) and int(self.ts["val_every"]) > 0 and len(self.val_set) > 0
+
+    def _calibrate(self) -> dict[str, Any]:
+        """Rank 0, at the end of a run that was not stopped, when it :attr:`calibrates`: each
+        object's threshold chosen on the validation frames and recorded in the run's chosen
+        checkpoint (best.pt; last.pt when no validation of this run made one;
+        :func:`~dope_hope.training.calibration.calibrate_run`); what the summary records.
+        A problem (a frame that cannot be read) is a warning: the trained weights stand."""
+        if not (self.dist.main and self.calibrates):
+            return {}
+        weights = self.out / ("best.pt" if self.best_acc >= 0 and (self.out / "best.pt").is_file() else "last.pt")
+        try:
+            return calibrate_run(weights, self.job, self.val_set.records, self.objects,
+                                 progress=self.job.progress, device=str(self.device))
+        except DopeHopeError as exc:
+            log.warning("thresholds not chosen (%s keeps infer's default): %s", weights.name, exc)
+            return {}
 
 
 def _described(choice: ThresholdChoice, before: ThresholdChoice) -> str:

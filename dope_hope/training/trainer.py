@@ -2,7 +2,8 @@
 
 Parts of :class:`Trainer` with a module each: the time budget
 (:mod:`~dope_hope.training.time_budget`), checkpoints and resume
-(:mod:`~dope_hope.training.resume`), Ctrl-C / SIGTERM (:mod:`~dope_hope.training.stopping`).
+(:mod:`~dope_hope.training.resume`), Ctrl-C / SIGTERM (:mod:`~dope_hope.training.stopping`),
+the thresholds' choice at the end (:mod:`~dope_hope.training.calibration`).
 
 :func:`train` runs one job described by :class:`~dope_hope.training.settings.TrainJob` and a
 full config (sections ``model``, ``input``, ``targets``, ``train``, ``augment``; see
@@ -50,7 +51,7 @@ from tqdm import tqdm
 
 from dope_hope.config import merge
 from dope_hope.devices import native_bf16
-from dope_hope.errors import ConfigError, DopeHopeError, InputFileError, ModelFileError
+from dope_hope.errors import ConfigError, InputFileError, ModelFileError
 from dope_hope.geometry import KEYPOINT_ORDER
 from dope_hope.io.atomic import atomic_write_text, remove_stale_temporaries
 from dope_hope.io.images import write_rgb
@@ -61,7 +62,7 @@ from dope_hope.model.network import build_model, load_backbone_weights, num_obje
 from dope_hope.preprocess import denormalize_rgb
 from dope_hope.training.augment import AugmentParams
 from dope_hope.training.budget import BudgetPlan
-from dope_hope.training.calibration import calibrate_run
+from dope_hope.training.calibration import RunThresholds
 from dope_hope.training.dataset import DopeDataset, EpochSampler, collate, report_bad_file, split_records
 from dope_hope.training.distributed import init_distributed
 from dope_hope.training.loss import optimizer_step, stage_loss
@@ -97,7 +98,7 @@ log = logging.getLogger(__name__)
 
 
 # =============================================================================== trainer
-class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
+class Trainer(TimeBudgetControl, RunCheckpoints, StopControl, RunThresholds):
     """One training job; :meth:`run` returns a summary dict (see :func:`train`)."""
 
     def __init__(self, job: TrainJob, config: dict[str, Any]):
@@ -406,28 +407,6 @@ class Trainer(TimeBudgetControl, RunCheckpoints, StopControl):
         if self.dist.active:
             dist.barrier()
         return summary
-
-    @property
-    def calibrates(self) -> bool:
-        """Whether the run ends by choosing each object's threshold on its validation frames
-        (``train.calibrate_thresholds``, with validations on)."""
-        return bool(self.ts["calibrate_thresholds"]) and int(self.ts["val_every"]) > 0 and len(self.val_set) > 0
-
-    def _calibrate(self) -> dict[str, Any]:
-        """Rank 0, at the end of a run that was not stopped, when it :attr:`calibrates`: each
-        object's threshold chosen on the validation frames and recorded in the run's chosen
-        checkpoint (best.pt; last.pt when no validation of this run made one;
-        :func:`~dope_hope.training.calibration.calibrate_run`); what the summary records.
-        A problem (a frame that cannot be read) is a warning: the trained weights stand."""
-        if not (self.dist.main and self.calibrates):
-            return {}
-        weights = self.out / ("best.pt" if self.best_acc >= 0 and (self.out / "best.pt").is_file() else "last.pt")
-        try:
-            return calibrate_run(weights, self.job, self.val_set.records, self.objects,
-                                 progress=self.job.progress, device=str(self.device))
-        except DopeHopeError as exc:
-            log.warning("thresholds not chosen (%s keeps infer's default): %s", weights.name, exc)
-            return {}
 
     def _loop(self) -> None:
         """Epochs of steps until the step count, the epochs or the time budget end, or a stop;
