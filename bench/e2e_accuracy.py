@@ -65,7 +65,7 @@ import sys
 from pathlib import Path
 
 from dope_hope.devices import cpu_description, cpu_line
-from dope_hope.inference.options import InferenceOptions
+from dope_hope.evaluation.thresholds import thresholds_in_use
 from dope_hope.model.checkpoint import load_checkpoint
 from dope_hope.model.info import ModelInfo
 from dope_hope.staged_run import CommandStages, settings_changed
@@ -297,8 +297,7 @@ def recorded_threshold(weights: Path, object_name: str) -> float:
     """The score threshold `infer` runs ``object_name`` of ``weights`` at: the one its training
     run chose and recorded, else the model's own, else configs/infer.yaml's."""
     info = ModelInfo.from_checkpoint(load_checkpoint(weights), weights)
-    own = next((o.min_score for o in info.objects if o.class_name == object_name), None)
-    return float(own) if own is not None else InferenceOptions.from_mapping(None, model_min_score=info.min_score).min_score
+    return thresholds_in_use(info.objects, info.min_score)[object_name]
 
 
 def breakdown_text(counts: dict[str, int], min_score: float) -> str:

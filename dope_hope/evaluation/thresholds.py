@@ -34,6 +34,7 @@ from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.io.images import read_depth_m, read_rgb
 from dope_hope.io.predictions import Prediction
+from dope_hope.model.info import ModelInfo, ObjectInfo
 
 #: The thresholds a choice is made among: 0.05 to 0.95 in steps of 0.05.
 CANDIDATES: tuple[float, ...] = tuple(round(0.05 * k, 2) for k in range(1, 20))
@@ -92,6 +93,14 @@ class MatchedEstimates:
         return best_f1_threshold(class_name, self.scores, self.true, self.instances, candidates)
 
 
+def thresholds_in_use(objects: Sequence[ObjectInfo], model_min_score: float | None) -> dict[str, float]:
+    """{class: the threshold `infer` runs each of ``objects`` at without --min-score}: the
+    object's own, else the model's own ``model_min_score``, else configs/infer.yaml's (the
+    resolution :class:`~dope_hope.inference.predictor.DopePredictor` makes)."""
+    default = InferenceOptions.from_mapping(None, model_min_score=model_min_score).min_score
+    return {o.class_name: default if o.min_score is None else float(o.min_score) for o in objects}
+
+
 def match_estimates(frames: Sequence[FrameAnnotation], preds_by_frame: list[list[Prediction]],
                     models: dict[str, ObjectModel], classes: Sequence[str], metric: str = "meanssd",
                     within_m: float = 0.10, progress: bool = False) -> dict[str, MatchedEstimates]:
@@ -138,11 +147,9 @@ def calibrate_weights(predictions: str | os.PathLike, dataset_dir: str | os.Path
     from dope_hope.evaluation.evaluate import cuboid_centres_to_origins
     from dope_hope.evaluation.matching import METRICS
     from dope_hope.evaluation.object_models import load_models
-    from dope_hope.inference.options import InferenceOptions
     from dope_hope.io.models_dir import is_named_value
     from dope_hope.io.predictions import read_predictions
     from dope_hope.model.checkpoint import load_checkpoint, save_inference_checkpoint
-    from dope_hope.model.info import ModelInfo
 
     for flag, path in (("--weights", weights), ("--out", out)):
         if Path(path).suffix.lower() != ".pt":
@@ -155,8 +162,7 @@ def calibrate_weights(predictions: str | os.PathLike, dataset_dir: str | os.Path
     if not (math.isfinite(within_m) and within_m > 0):
         raise ConfigError(f"--within-cm must be a positive distance, got {100 * within_m:g}")
     info = ModelInfo.from_checkpoint(load_checkpoint(weights), weights)
-    default = InferenceOptions.from_mapping(None, model_min_score=info.min_score).min_score
-    current = {o.class_name: default if o.min_score is None else float(o.min_score) for o in info.objects}
+    current = thresholds_in_use(info.objects, info.min_score)
     dataset = load_dataset(dataset_dir, fmt)
     every, _ = read_predictions(predictions)
     preds = [p for p in every if p.class_name in current]
@@ -219,9 +225,7 @@ def calibrate_on_frames(weights: str | os.PathLike, frames: Sequence[FrameAnnota
     nothing."""
     predictor = DopePredictor(weights, backend="torch", device=device, min_score=0.0,
                               mesh={n: m.mesh for n, m in models.items() if not m.procedural} or None)
-    own = InferenceOptions.from_mapping(None, model_min_score=model_min_score(predictor.backend)).min_score
-    current = {o.class_name: own if o.min_score is None else float(o.min_score)
-               for o in backend_objects(predictor.backend)}
+    current = thresholds_in_use(backend_objects(predictor.backend), model_min_score(predictor.backend))
     labelled = {o.class_name for f in frames for o in f.objects}
     for name in [c for c in current if c not in labelled]:
         log(f"{name}: no labelled instance in the frames; its threshold stays {current[name]:g}")
