@@ -9,7 +9,12 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from dope_hope.demo_object import demo_object_mesh
-from dope_hope.inference.appearance import AppearanceCheck, appearance_similarity
+from dope_hope.inference.appearance import (
+    AppearanceCheck,
+    AppearanceSettings,
+    appearance_similarity,
+    candidate_rotations,
+)
 from dope_hope.render.textured import TexturedRenderer
 from dope_hope.symmetry.cuboid import cuboid_rotations, describe_rotation
 
@@ -77,6 +82,41 @@ def test_the_texture_picks_the_true_equivalent_pose(scene):
             assert res.ambiguous == ()  # the demo box's faces all differ: nothing left open
     finally:
         check.close()
+
+
+def test_candidate_rotations_are_the_symmetries_then_the_turns():
+    size = np.array([0.06, 0.15, 0.04])
+    sym = cuboid_rotations(size)
+    np.testing.assert_array_equal(candidate_rotations(sym, np.array([0.0, 1.0, 0.0]), 0.0), sym)
+    np.testing.assert_array_equal(candidate_rotations(sym, None, 30.0), sym)
+    rots = candidate_rotations(sym, np.array([0.0, 1.0, 0.0]), 30.0)
+    np.testing.assert_array_equal(rots[: len(sym)], sym)  # the symmetries first, identity first
+    assert len(rots) == 24  # 12 turns upright, 12 upside down; the box's half turns are among them
+    np.testing.assert_allclose(rots @ rots.transpose(0, 2, 1), np.broadcast_to(np.eye(3), rots.shape), atol=1e-12)
+    assert min(np.linalg.norm(a - b) for i, a in enumerate(rots) for b in rots[:i]) > 0.1  # all distinct
+    up = np.array([0.0, 0.0, 1.0])
+    turned = candidate_rotations(sym[:1], up, 90.0)
+    assert len(turned) == 8 and np.allclose(np.abs((turned @ up) @ up), 1.0)  # the up axis stays an axis
+    assert np.sum((turned @ up) @ up < 0) == 4  # four of them upside down
+
+
+def test_the_texture_turns_the_pose_about_the_up_axis(scene):
+    """A detector that knows the box's up axis but not its turn about it (the start on a
+    bottle it never saw): the turns find the true pose; the symmetries alone cannot."""
+    image, mesh = scene
+    up = np.array([0.0, 1.0, 0.0])
+    turn = Rotation.from_rotvec(np.radians(60.0) * up).as_matrix()
+    check = AppearanceCheck(mesh, cuboid_rotations(np.ptp(mesh.vertices, axis=0)), np.zeros(3),
+                            AppearanceSettings(spin_step_deg=30.0), up=up)
+    try:
+        res = check.compare(image, K, R_TRUE @ turn.T, T_TRUE)
+        fixed = check.compare(image, K, R_TRUE @ turn.T, T_TRUE, turns=False)
+    finally:
+        check.close()
+    np.testing.assert_allclose(res.R, R_TRUE, atol=1e-9)
+    np.testing.assert_allclose(res.t, T_TRUE, atol=1e-9)  # turned about the centre (here the origin)
+    assert res.best >= check.n_symmetries and len(res.scores) == len(check.rotations) == 24
+    assert len(fixed.scores) == check.n_symmetries and res.score > fixed.score + 0.2
 
 
 def test_similarity_follows_the_pattern_more_than_the_lighting():

@@ -122,6 +122,31 @@ def test_a_z_up_mesh_comes_back_in_its_own_frame_with_its_ambiguity(scene, monke
     assert rec["score"] == pytest.approx(np.sqrt(rec["appearance_score"] * rec["network_score"]), abs=1e-3)
 
 
+@pytest.mark.parametrize("step, turned_back", [(30.0, True), (0.0, False)])
+def test_the_appearance_turns_a_pose_about_the_up_axis(scene, monkeypatch, step, turned_back):
+    """The start placing the box's up axis right but turned 60° about it (as it places a
+    bottle it never saw): the turns of ``appearance.spin_step_deg`` find the true pose before
+    -LS; without them (0) the pose stays turned."""
+    from dope_hope.io.dope_json import read_dope_json
+    from dope_hope.io.images import read_depth_m, read_rgb
+
+    frame_dir, mesh, R_gt, t_gt = scene
+    turn = np.array([[0.5, 0.0, np.sqrt(0.75)], [0.0, 1.0, 0.0], [-np.sqrt(0.75), 0.0, 0.5]])  # 60° about y
+    perfect_start(monkeypatch, frame_dir, R_gt @ turn, t_gt, DEMO_SIZE_M)
+    frame = read_dope_json(frame_dir / "000000.json")
+    p = MeshStartPredictor(mesh, options={"appearance": {"spin_step_deg": step}})
+    try:
+        assert ("turns of 30° about the up axis" in p.describe()) is turned_back
+        dets = p.predict(read_rgb(frame_dir / "000000.png"), frame.K, depth=read_depth_m(frame_dir / "000000.depth.png"))
+    finally:
+        p.close()
+    (det,) = dets
+    assert (rotation_error_deg(det.R, R_gt) < 1.0) is turned_back
+    assert rotation_error_deg(det.R, R_gt) == pytest.approx(0.0 if turned_back else 60.0, abs=1.0)
+    assert det.ls_applied and (np.linalg.norm(det.t - t_gt) < 0.01 or not turned_back)  # -LS on the pose kept
+    np.testing.assert_allclose(det.projected_2d, project_points(p.objects[0].cuboid_mesh, frame.K, det.R, det.t))
+
+
 def test_shipped_start_runs_in_python(scene):
     frame_dir, mesh, _, _ = scene
     from dope_hope.io.dope_json import read_dope_json
@@ -191,6 +216,8 @@ def test_cli_refuses_bad_input_with_one_line(scene, tmp_path, capsys):
     assert "--up-axis" in line and "no --weights" in line
     line = one_line_error(*run_cli([img, "--start", "s.pt"], capsys)[::2])
     assert "--start" in line and "--mesh FILE" in line
+    line = one_line_error(*run_cli([img, "--mesh", mesh, "--set", "appearance.spin_step_deg=400"], capsys)[::2])
+    assert "appearance.spin_step_deg" in line and "(0, 180]" in line
     line = one_line_error(*run_cli([img, "--mesh", tmp_path / "missing.obj", "--out", tmp_path / "o"], capsys)[::2])
     assert "missing.obj" in line
     with pytest.raises(ConfigError, match="class_name"):

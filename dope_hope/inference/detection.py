@@ -44,7 +44,8 @@ class Detection:
     pose_ambiguity: None for a detector of the object itself; for a detector of its cuboid
         (:mod:`dope_hope.inference.mesh_start`) the rotations ``S`` (names, mesh frame, about
         the box centre) for which the pose ``R S`` is as likely as ``R``: the cuboid's
-        symmetries that the appearance check could not tell apart (empty: resolved).
+        symmetries and turns about the up axis that the appearance check could not tell
+        apart (empty: resolved).
     cuboid_symmetries: with pose_ambiguity, all the cuboid's symmetries (names).
     network_score / appearance_score: with pose_ambiguity, the pose score of the maps and
         the appearance check's (:mod:`dope_hope.inference.appearance`); ``score`` is their

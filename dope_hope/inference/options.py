@@ -23,6 +23,7 @@ from dope_hope.config import (
     or_none,
     section,
 )
+from dope_hope.inference.appearance import AppearanceSettings
 from dope_hope.inference.pnp import PnpSettings
 from dope_hope.inference.pose_search import HypothesisSettings
 from dope_hope.inference.tracking_settings import TrackingSettings
@@ -46,7 +47,9 @@ class StageSettings:
     pnp (:func:`~dope_hope.inference.pnp.solve_pnp`), hypotheses
     (:func:`~dope_hope.inference.pose_search.solve_pnp_candidates`), line_search
     (:func:`~dope_hope.refine.line_search.depth_line_search`), icp_refine
-    (:func:`~dope_hope.refine.icp.icp_refine`), tracking (the stream tracker)."""
+    (:func:`~dope_hope.refine.icp.icp_refine`), tracking (the stream tracker), appearance
+    (the appearance check of a new object's cuboid detector,
+    :class:`~dope_hope.inference.appearance.AppearanceCheck`)."""
 
     decode: DecodeSettings
     pnp: PnpSettings
@@ -54,6 +57,7 @@ class StageSettings:
     line_search: LineSearchSettings
     icp_refine: IcpSettings
     tracking: TrackingSettings
+    appearance: AppearanceSettings
 
 
 @dataclass(frozen=True)
@@ -63,7 +67,7 @@ class InferenceOptions(SectionSettings):
     height: working height in px or None (the model's training scale). pose_search: one of
     :data:`POSE_SEARCHES`. min_score: detections below are dropped. ls_points / icp_points:
     model points for -LS / ICP. icp: ICP after -LS when depth is given. decode, pnp,
-    hypotheses, line_search, icp_refine, tracking: each stage's settings (a mapping given
+    hypotheses, line_search, icp_refine, tracking, appearance: each stage's settings (a mapping given
     for one is read over its defaults); :attr:`stages` holds them together.
     """
 
@@ -83,12 +87,13 @@ class InferenceOptions(SectionSettings):
     line_search: LineSearchSettings = section(LineSearchSettings)
     icp_refine: IcpSettings = section(IcpSettings)
     tracking: TrackingSettings = section(TrackingSettings)
+    appearance: AppearanceSettings = section(AppearanceSettings)
 
     @property
     def stages(self) -> StageSettings:
         """The stage sections as the settings objects their functions take."""
         return StageSettings(self.decode, self.pnp, self.hypotheses, self.line_search, self.icp_refine,
-                             self.tracking)
+                             self.tracking, self.appearance)
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any] | None = None,

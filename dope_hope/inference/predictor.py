@@ -339,12 +339,7 @@ class DopePredictor:
                 reprojection_error_px=float(est.reprojection_error_px / mean_scale),
                 cuboid_size_m=obj.cuboid_size_m.copy(), cuboid_center_m=obj.cuboid_center_m.copy(),
             )
-            if depth is not None:
-                self._line_search(obj, det, depth)
-                if self.options.icp:
-                    self._refine_icp(obj, det, depth)
-            elif self.options.icp:
-                det.icp_reason = "no depth image"
+            self.depth_stages(obj, det, depth)
             out.append(det)
         if out:  # the final poses' projections, all at once
             Rs, ts = np.stack([d.R for d in out]), np.stack([d.t for d in out])
@@ -353,6 +348,17 @@ class DopePredictor:
             for det, uv, box in zip(out, projected, boxes):
                 det.projected_2d, det.bbox_2d = uv, box
         return out
+
+    def depth_stages(self, obj: ObjectGeometry, det: Detection, depth: DepthImage | None) -> None:
+        """-LS, then ICP where ``icp`` is set, in place on ``det`` of object ``obj`` (its pose the
+        keypoints'); without ``depth`` only the reason ICP did not run. ``projected_2d`` and
+        ``bbox_2d`` are the caller's."""
+        if depth is not None:
+            self._line_search(obj, det, depth)
+            if self.options.icp:
+                self._refine_icp(obj, det, depth)
+        elif self.options.icp:
+            det.icp_reason = "no depth image"
 
     def object_of(self, det: Detection) -> ObjectGeometry:
         """The reported object a detection of this predictor belongs to (by class)."""

@@ -42,6 +42,13 @@ def cuboid_rotations(size_m: np.ndarray, tol: float = EQUAL_EXTENT_TOL) -> np.nd
     return np.stack(keep)
 
 
+def nearest_cube_rotation(R: np.ndarray) -> np.ndarray:
+    """(3, 3) the rotation of the cube group (the 24 rotations mapping the axes onto the axes)
+    nearest (3, 3) ``R`` (Frobenius norm; the first of equals)."""
+    R = np.asarray(R, dtype=np.float64).reshape(3, 3)
+    return CUBE_GROUP[int(np.argmin(np.linalg.norm(CUBE_GROUP - R, axis=(1, 2))))].copy()
+
+
 def corner_permutation(S: np.ndarray) -> np.ndarray:
     """(9,) int ``perm`` of a rotation S of :func:`cuboid_rotations`: corner k of the pose
     ``R S`` is corner ``perm[k]`` of the pose ``R`` (keypoints (9, 2) of R become those of
