@@ -22,7 +22,12 @@ import numpy as np
 
 from dope_hope.config import SectionSettings, at_least, positive_float
 from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
-from dope_hope.inference.hypothesis_scoring import FIRST_CHECK, HypothesisScorer, MinimalSetBlock
+from dope_hope.inference.hypothesis_scoring import (
+    FIRST_CHECK,
+    HypothesisScorer,
+    MinimalSetBlock,
+    assignment_consensus,
+)
 from dope_hope.inference.pnp import PnpSettings, PoseEstimate, pose_may_reach, solve_pnp, solve_pnp_many
 
 #: :func:`solve_pnp_candidates`' budget, in AP3P minimal sets: the most it takes by default;
@@ -165,7 +170,7 @@ def solve_pnp_candidates(
     one and at least ``_ENOUGH_TYPES`` (a type whose candidates are all another object's
     peaks cannot be explained by any pose), or when ``_STALL_AFTER`` minimal sets in a row
     brought no better hypothesis (clutter: none ever fits its centroid). The search draws
-    nothing at random (only the RANSAC fallback below does). The best hypothesis picks, per
+    nothing at random, nor does its fallback below. The best hypothesis picks, per
     type, the candidate nearest its projection (or the type's strongest candidate where none
     is within the threshold: it counts as an outlier unless within the final threshold), and
     that assignment goes through :func:`solve_pnp` with the hypothesis as its consensus
@@ -175,9 +180,12 @@ def solve_pnp_candidates(
     missing (a type whose candidates are all another object's peaks or noise would otherwise
     fail every pose by the inlier ratio: on the Ketchup and six-object benchmarks' maps, a
     centroid and four to six corners the hypothesis explains, and no pose), and the whole
-    assignment through RANSAC; the higher-scoring of the two is kept. Nothing goes through :func:`solve_pnp` when fewer than its ``min_points``
-    types lie within ``reprojection_threshold_px`` of the best hypothesis. OpenCV's RANSAC does
-    not fit the search itself: it counts every inlying correspondence, so several candidates
+    assignment from the consensus of every four of its keypoints
+    (:func:`~dope_hope.inference.hypothesis_scoring.assignment_consensus`, exhaustive where
+    OpenCV's RANSAC samples); the higher-scoring of the two is kept. Nothing goes through
+    :func:`solve_pnp` when fewer than its ``min_points`` types lie within
+    ``reprojection_threshold_px`` of the best hypothesis. OpenCV's RANSAC does not fit the
+    search itself: it counts every inlying correspondence, so several candidates
     of one type near a wrong pose outvote the right one.
 
     Args:
@@ -508,8 +516,10 @@ def _search(c: _Candidates, first_pose: tuple[np.ndarray, np.ndarray] | None, se
             est = solve_pnp(kp_near, scores_near, cuboid, K, pnp_settings, initial_pose=scorer.best_pose)
     if full and not consensus:
         # A minimal set's pose is a few pixels off on noisy peaks: where its consensus does not
-        # hold up, RANSAC on the assignment may still find one that does (the higher score of
-        # the two is kept).
-        alt = solve_pnp(kp, kp_scores, cuboid, K, pnp_settings)
+        # hold up, the consensus of every minimal set of the assignment may still find one that
+        # does (the higher score of the two is kept).
+        start = assignment_consensus(kp, np.isfinite(kp).all(axis=1) & (kp_scores > pnp_settings.min_score),
+                                     cuboid, K, pnp_settings.reprojection_threshold_px)
+        alt = None if start is None else solve_pnp(kp, kp_scores, cuboid, K, pnp_settings, initial_pose=start)
         est = alt if alt is not None and (est is None or alt.score > est.score) else est
     return est
