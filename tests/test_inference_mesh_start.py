@@ -147,6 +147,26 @@ def test_the_appearance_turns_a_pose_about_the_up_axis(scene, monkeypatch, step,
     np.testing.assert_allclose(det.projected_2d, project_points(p.objects[0].cuboid_mesh, frame.K, det.R, det.t))
 
 
+def test_with_icp_the_depth_stages_run_first_and_no_turn_is_compared(scene, monkeypatch):
+    """With ICP the depth places the turn: -LS and ICP run on the network's pose, and the
+    check compares the cuboid's equivalent poses alone (no turn left open or taken)."""
+    from dope_hope.io.dope_json import read_dope_json
+    from dope_hope.io.images import read_depth_m, read_rgb
+
+    frame_dir, mesh, R_gt, t_gt = scene
+    perfect_start(monkeypatch, frame_dir, R_gt, t_gt, DEMO_SIZE_M)
+    frame = read_dope_json(frame_dir / "000000.json")
+    p = MeshStartPredictor(mesh, icp=True, appearance={"ambiguity_margin": 1.0})  # every pose compared left open
+    try:
+        (det,) = p.predict(read_rgb(frame_dir / "000000.png"), frame.K,
+                           depth=read_depth_m(frame_dir / "000000.depth.png"))
+    finally:
+        p.close()
+    assert det.ls_applied and det.icp_reason not in ("not requested", "no depth image")
+    assert sorted(det.pose_ambiguity) == ["180° about x", "180° about y", "180° about z"]  # no "30° about y"
+    assert rotation_error_deg(det.R, R_gt) < 1.0
+
+
 def test_shipped_start_runs_in_python(scene):
     frame_dir, mesh, _, _ = scene
     from dope_hope.io.dope_json import read_dope_json
