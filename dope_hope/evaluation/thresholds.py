@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -91,6 +91,15 @@ class MatchedEstimates:
     def at(self, class_name: str, candidates: Sequence[float] = CANDIDATES) -> ThresholdChoice:
         """:func:`best_f1_threshold` of these estimates."""
         return best_f1_threshold(class_name, self.scores, self.true, self.instances, candidates)
+
+
+def log_unlabelled(current: Mapping[str, float], labelled: Collection[str], where: str,
+                   log: Callable[[str], None]) -> None:
+    """Say, for each object of ``current`` (name -> the threshold in use) without a labelled
+    instance in ``where``, that its threshold stays (nothing can be chosen for it)."""
+    for name in current:
+        if name not in labelled:
+            log(f"{name}: no labelled instance in {where}; its threshold stays {current[name]:g}")
 
 
 def thresholds_in_use(objects: Sequence[ObjectInfo], model_min_score: float | None) -> dict[str, float]:
@@ -186,9 +195,7 @@ def calibrate_weights(predictions: str | os.PathLike, dataset_dir: str | os.Path
     models = load_models([c for c in current if c in labelled or c in named], list(mesh), models_dir, mesh_units,
                          symmetry_args=list(symmetries), recorded_sizes=dataset.cuboid_sizes, mesh_required=classes)
     cuboid_centres_to_origins([p for p in preds if p.class_name in models], models)
-    for name in current:
-        if name not in labelled:
-            log(f"{name}: no labelled instance in {dataset_dir}; its threshold stays {current[name]:g}")
+    log_unlabelled(current, labelled, str(dataset_dir), log)
     matched = match_estimates(dataset.frames, by_frame, models, classes, metric, within_m, progress=progress)
     if not any(len(m.scores) for m in matched.values()):
         raise ConfigError(f"--predictions {predictions}: no estimate of an object labelled in {dataset_dir}")
@@ -227,8 +234,7 @@ def calibrate_on_frames(weights: str | os.PathLike, frames: Sequence[FrameAnnota
                               mesh={n: m.mesh for n, m in models.items() if not m.procedural} or None)
     current = thresholds_in_use(backend_objects(predictor.backend), model_min_score(predictor.backend))
     labelled = {o.class_name for f in frames for o in f.objects}
-    for name in [c for c in current if c not in labelled]:
-        log(f"{name}: no labelled instance in the frames; its threshold stays {current[name]:g}")
+    log_unlabelled(current, labelled, "the frames", log)
     classes = [c for c in current if c in labelled]
     matched = match_estimates(frames, estimates_on_frames(predictor, frames, progress), dict(models), classes,
                               metric, within_m, progress=progress)
