@@ -20,6 +20,15 @@ from dope_hope.inference.p3p import ap3p_each, ap3p_poses
 FIRST_CHECK = 4
 
 
+def front_projections(Rs: np.ndarray, ts: np.ndarray, points_t: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(H, 2, n) image px of (3, n) model points ``points_t`` under H poses Rs (H, 3, 3), ts
+    (H, 3); NaN where a point lies at or behind the camera (a pose there explains nothing)."""
+    cam = Rs @ points_t + ts[:, :, None]                                      # (H, 3, n)
+    img = K @ cam
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return img[:, :2] / np.where(cam[:, 2] > 0, img[:, 2], np.nan)[:, None]
+
+
 class HypothesisScorer:
     """Scores pose hypotheses against candidate peaks and keeps the best (see
     :func:`~dope_hope.inference.pose_search.solve_pnp_candidates`).
@@ -50,10 +59,7 @@ class HypothesisScorer:
     def score(self, Rs: np.ndarray, ts: np.ndarray) -> "HypothesisScores":
         """Score hypotheses Rs (H, 3, 3), ts (H, 3) at once: (H, 3, 9) camera-frame cuboids ->
         per type the nearest candidate to the projection, explained within the threshold."""
-        cam = Rs @ self.cuboid_t + ts[:, :, None]                             # (H, 3, 9)
-        img = self.K @ cam
-        with np.errstate(divide="ignore", invalid="ignore"):
-            proj = img[:, :2] / np.where(cam[:, 2] > 0, img[:, 2], np.nan)[:, None]   # (H, 2, 9)
+        proj = front_projections(Rs, ts, self.cuboid_t, self.K)              # (H, 2, 9)
         d = proj[:, :, self.ids] - self.pts.T[None]                           # (H, 2, n)
         err = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)                            # (H, n)
         centre_ok = err[:, self.anchor] <= self.threshold                     # else it explains nothing
@@ -168,10 +174,7 @@ def assignment_consensus(keypoints: np.ndarray, present: np.ndarray, cuboid: np.
     Rs, ts, _ = ap3p_poses(cuboid[sets], keypoints[sets], K)
     if not len(Rs):
         return None
-    cam = Rs @ cuboid[idx].T + ts[:, :, None]                                 # (h, 3, n)
-    img = K @ cam
-    with np.errstate(divide="ignore", invalid="ignore"):
-        proj = img[:, :2] / np.where(cam[:, 2] > 0, img[:, 2], np.nan)[:, None]
+    proj = front_projections(Rs, ts, cuboid[idx].T, K)                       # (h, 2, n)
     err = np.linalg.norm(proj - keypoints[idx].T[None], axis=1)               # (h, n)
     inside = err <= threshold_px
     total = np.where(inside, err, 0.0).sum(axis=1)
