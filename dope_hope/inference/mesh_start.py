@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from dope_hope.errors import ConfigError, ModelFileError
-from dope_hope.geometry import project_points, projected_bbox, unit_for
+from dope_hope.geometry import unit_for
 from dope_hope.inference.appearance import AppearanceCheck, AppearanceSettings
 from dope_hope.inference.backends import TorchBackend
 from dope_hope.inference.detection import Detection
@@ -245,8 +245,7 @@ class MeshStartPredictor(DopePredictor):
                 self.check_appearance(det, rgb, K)  # the turns, for the candidates kept
             self.depth_stages(obj, det, depth)
             if depth is not None:
-                det.projected_2d = project_points(obj.cuboid_mesh, K, det.R, det.t)
-                det.bbox_2d = projected_bbox(obj.bbox_points, K, det.R, det.t, rgb.shape[:2])
+                self.project_detection(obj, det, K, rgb.shape[:2])
         return kept
 
     def check_appearance(self, det: Detection, rgb: np.ndarray, K: np.ndarray, turns: bool = True) -> Detection | None:
@@ -270,13 +269,11 @@ class MeshStartPredictor(DopePredictor):
         det.appearance_score = res.score
         det.score = float(np.sqrt(max(det.network_score, 0.0) * res.score))
         if res.best != 0:  # corner k of R S projects where corner perm[k] of R does
-            obj = self.objects[0]
             perm = corner_permutation(nearest_cube_rotation(best))
             det.keypoints_2d, det.keypoint_scores = det.keypoints_2d[perm], det.keypoint_scores[perm]
             det.inliers = det.inliers[perm]
             det.R, det.t = res.R, res.t
-            det.projected_2d = project_points(obj.cuboid_mesh, K, det.R, det.t)
-            det.bbox_2d = projected_bbox(obj.bbox_points, K, det.R, det.t, rgb.shape[:2])
+            self.project_detection(self.objects[0], det, K, rgb.shape[:2])
         return det
 
     def close(self) -> None:

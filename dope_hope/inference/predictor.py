@@ -375,9 +375,15 @@ class DopePredictor:
         obj = self.object_of(det)
         out = replace(det)
         self._refine_icp(obj, out, depth)
-        out.projected_2d = project_points(obj.cuboid_mesh, depth.K, out.R, out.t)
-        out.bbox_2d = projected_bbox(obj.bbox_points, depth.K, out.R, out.t, depth.hw)
+        self.project_detection(obj, out, depth.K, depth.hw)
         return out
+
+    @staticmethod
+    def project_detection(obj: ObjectGeometry, det: Detection, K: np.ndarray, image_hw: tuple[int, int]) -> None:
+        """``det.projected_2d`` and ``det.bbox_2d`` of its pose, in place: object ``obj``'s cuboid
+        keypoints and 2D box (clipped to the (H, W) ``image_hw``) with intrinsics K (3, 3)."""
+        det.projected_2d = project_points(obj.cuboid_mesh, K, det.R, det.t)
+        det.bbox_2d = projected_bbox(obj.bbox_points, K, det.R, det.t, image_hw)
 
     def _line_search(self, obj: ObjectGeometry, det: Detection, depth: DepthImage) -> None:
         """The -LS step of the module docstring, in place on ``det`` (its pose the keypoints'):
