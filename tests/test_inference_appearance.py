@@ -9,11 +9,13 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from dope_hope.demo_object import demo_object_mesh
+from dope_hope.errors import ConfigError
 from dope_hope.inference.appearance import (
     AppearanceCheck,
     AppearanceSettings,
     appearance_similarity,
     candidate_rotations,
+    surface_appearance,
 )
 from dope_hope.render.textured import TexturedRenderer
 from dope_hope.symmetry.cuboid import cuboid_rotations, describe_rotation
@@ -128,3 +130,69 @@ def test_similarity_follows_the_pattern_more_than_the_lighting():
     lifted = np.clip(0.7 * a + 40, 0, 255).astype(np.uint8)  # an offset moves the chromaticity only
     assert appearance_similarity(lifted, a, mask, 8) > 0.75
     assert appearance_similarity(a[::-1], a, mask, 8) < 0.6
+
+
+def _one_colour(mesh, rgb):
+    """``mesh``'s shape in one colour (vertex colours)."""
+    import trimesh
+
+    plain = trimesh.Trimesh(mesh.vertices.copy(), mesh.faces.copy(), process=False)
+    plain.visual.vertex_colors = [*rgb, 255]
+    return plain
+
+
+def test_surface_appearance_tells_a_texture_from_one_colour_and_from_none(scene):
+    import trimesh
+
+    _, mesh = scene
+    assert surface_appearance(mesh) == "textured"
+    box = trimesh.creation.box(extents=[0.06, 0.15, 0.04])
+    assert surface_appearance(box) == "none"  # trimesh's default grey: no colours given
+    assert surface_appearance(_one_colour(box, (200, 30, 30))) == "uniform"
+    varied = box.copy()
+    varied.visual.face_colors = [[200, 30, 30, 255]] * 6 + [[30, 30, 200, 255]] * 6
+    assert surface_appearance(varied) == "textured"
+    flat = mesh.copy()
+    flat.visual.material.image = Image.new("RGB", (64, 64), (90, 140, 40))  # a texture of one colour
+    assert surface_appearance(flat) == "uniform"
+
+
+def test_a_mesh_of_one_colour_tells_look_alikes_by_colour_and_no_pose(scene):
+    """One colour cannot tell one pose of the box from another: the check compares the
+    candidate's own pose alone, by colour; a box of another colour scores lower. A mesh with no
+    colours at all has nothing to compare: refused."""
+    import trimesh
+
+    _, mesh = scene
+    red = _one_colour(mesh, (200, 40, 30))
+    rng = np.random.default_rng(5)
+    image = rng.integers(60, 200, size=(H, W, 3)).astype(np.float64)
+    with TexturedRenderer(red, W, H) as r:
+        colour, mask = r.render(R_TRUE, T_TRUE, K)
+    shading = np.linspace(0.6, 1.0, W)[None, :, None]  # light falling off across the object
+    image[mask] = (colour * shading)[mask]
+    image = np.clip(image + rng.normal(0.0, 3.0, image.shape), 0, 255).astype(np.uint8)
+    rotations = cuboid_rotations(np.ptp(mesh.vertices, axis=0))
+    checks = [AppearanceCheck(m, rotations, np.zeros(3), AppearanceSettings(spin_step_deg=30.0),
+                              up=np.array([0.0, 1.0, 0.0])) for m in (red, _one_colour(mesh, (30, 90, 220)))]
+    try:
+        same, other = (c.compare(image, K, R_TRUE, T_TRUE) for c in checks)
+        assert checks[0].surface == "uniform" and len(checks[0].rotations) == 1 and checks[0].n_symmetries == 1
+    finally:
+        for c in checks:
+            c.close()
+    assert len(same.scores) == 1 and same.best == 0 and same.ambiguous == ()
+    np.testing.assert_allclose(same.R, R_TRUE)
+    assert same.score > 0.6 and same.score > other.score + 0.5, (same.score, other.score)
+    with pytest.raises(ConfigError, match="texture or colours"):
+        AppearanceCheck(trimesh.creation.box(extents=[0.06, 0.15, 0.04]), rotations[:1], np.zeros(3))
+
+
+def test_similarity_of_one_colour_is_the_colour_alone():
+    rng = np.random.default_rng(1)
+    a = rng.integers(0, 255, (32, 32, 3)).astype(np.uint8)
+    mask = np.ones((32, 32), bool)
+    assert appearance_similarity(a, a, mask, 8) == pytest.approx(1.0)
+    flat = np.full_like(a, 128)
+    with_texture, colour_only = (appearance_similarity(a, flat, mask, 8, texture=t) for t in (True, False))
+    assert colour_only == pytest.approx(2.0 * with_texture)  # no correlation with a flat render: half of it

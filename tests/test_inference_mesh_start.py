@@ -167,6 +167,38 @@ def test_with_icp_the_depth_stages_run_first_and_no_turn_is_compared(scene, monk
     assert rotation_error_deg(det.R, R_gt) < 1.0
 
 
+def test_a_mesh_without_texture_or_of_one_colour_keeps_the_networks_pose(scene, monkeypatch):
+    """No texture and no colours: no check (a warning says so), every cuboid reported. One
+    colour: the check compares the network's pose alone (colour tells look-alikes, not
+    poses) and resolves nothing. ``appearance.enabled: false`` turns it off for any mesh."""
+    import trimesh
+
+    from dope_hope.io.dope_json import read_dope_json
+    from dope_hope.io.images import read_rgb
+
+    frame_dir, mesh, R_gt, t_gt = scene
+    perfect_start(monkeypatch, frame_dir, R_gt, t_gt, DEMO_SIZE_M)
+    rgb, K = read_rgb(frame_dir / "000000.png"), read_dope_json(frame_dir / "000000.json").K
+    plain = trimesh.creation.box(extents=DEMO_SIZE_M)
+    one_colour = plain.copy()
+    one_colour.visual.vertex_colors = [200, 40, 30, 255]
+    with pytest.warns(UserWarning, match="no texture and no colours, so the appearance check is off"):
+        bare = MeshStartPredictor(plain, class_name="Plain")
+    coloured = MeshStartPredictor(one_colour, class_name="Red", appearance={"min_score": 0.0})
+    off = MeshStartPredictor(mesh, options={"appearance": {"enabled": False}})
+    try:
+        assert bare.appearance is None and off.appearance is None and "no appearance check" in bare.describe()
+        assert coloured.appearance.surface == "uniform" and "one colour" in coloured.describe()
+        for p in (bare, coloured, off):
+            (det,) = p.predict(rgb, K)
+            assert rotation_error_deg(det.R, R_gt) < 1.0, p.class_name  # the network's pose, unturned
+            assert sorted(det.pose_ambiguity) == ["180° about x", "180° about y", "180° about z"]
+            assert np.isfinite(det.appearance_score) == (p is coloured)
+    finally:
+        for p in (bare, coloured, off):
+            p.close()
+
+
 def test_shipped_start_runs_in_python(scene):
     frame_dir, mesh, _, _ = scene
     from dope_hope.io.dope_json import read_dope_json
@@ -224,6 +256,7 @@ def test_cli_shipped_start_and_its_warning(scene, tmp_path, capsys):
                             "--no-overlay", "--threads", "1"], capsys)
     assert code == 0, err
     assert "warning:" in err and "longest along z" in err and "--up-axis z" in err
+    assert "no texture and no colours, so the appearance check is off" in err  # a bare box: nothing to compare
     assert "Lying: the pretrained start" in err
 
 
@@ -238,6 +271,8 @@ def test_cli_refuses_bad_input_with_one_line(scene, tmp_path, capsys):
     assert "--start" in line and "--mesh FILE" in line
     line = one_line_error(*run_cli([img, "--mesh", mesh, "--set", "appearance.spin_step_deg=400"], capsys)[::2])
     assert "appearance.spin_step_deg" in line and "(0, 180]" in line
+    line = one_line_error(*run_cli([img, "--mesh", mesh, "--set", "appearance.enabled=1"], capsys)[::2])
+    assert "appearance.enabled must be true or false" in line
     line = one_line_error(*run_cli([img, "--mesh", tmp_path / "missing.obj", "--out", tmp_path / "o"], capsys)[::2])
     assert "missing.obj" in line
     with pytest.raises(ConfigError, match="class_name"):

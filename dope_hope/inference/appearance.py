@@ -24,6 +24,12 @@ replaces the detection's; poses scoring within ``ambiguity_margin`` of it remain
 and a detection scoring under ``min_score`` is a look-alike, dropped. CPU cost: one render of
 ``crop_px`` squared pixels per rotation (5-10 ms each at 64 px on 2 cores, Mesa llvmpipe):
 4 for a box of three different extents without turns, 24 with the default 30° turns.
+
+What the mesh's surface shows decides what can be compared (:func:`surface_appearance`): a
+texture image or colours that vary tell poses apart; one colour tells a look-alike of another
+colour, never one pose from another (the check then compares the candidate's own pose alone,
+by the colour histograms, and resolves nothing); a mesh with no texture and no colours
+(trimesh's default grey) has nothing to compare, and :class:`AppearanceCheck` refuses it.
 """
 from __future__ import annotations
 
@@ -31,12 +37,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dope_hope.config import SectionSettings, at_least, finite_float, nonnegative_float
+from dope_hope.config import SectionSettings, at_least, boolean, finite_float, nonnegative_float
 from dope_hope.errors import ConfigError
 from dope_hope.geometry import project_points
 
 #: Two candidate rotations closer than this (Frobenius norm of the difference) are one.
 _SAME_ROTATION = 1e-6
+#: Colours whose spread (standard deviation of a channel, 0-255 levels) stays under this are one colour.
+UNIFORM_COLOUR_STD = 2.0
+#: A texture image is judged from a copy this many pixels on a side (its mean colours kept).
+_TEXTURE_PREVIEW_PX = 128
 
 
 def _spin_step(value, name: str) -> float:
@@ -52,7 +62,8 @@ class AppearanceSettings(SectionSettings):
     """The appearance check's settings (``appearance:`` in ``dope_hope/configs/infer.yaml``;
     :class:`AppearanceCheck`).
 
-    crop_px: side of the compared crops, pixels. margin: the crop's border around the
+    enabled: false turns the check off (every cuboid of the mesh's shape is reported, its pose
+    known up to the cuboid's symmetries). crop_px: side of the compared crops, pixels. margin: the crop's border around the
     object's projected box, a fraction of its larger side. min_score: detections scoring
     lower are dropped (0 keeps all). ambiguity_margin: poses scoring within this of the best
     stay ambiguous. min_pixels: fewer silhouette pixels in the crop score 0. hist_bins:
@@ -60,10 +71,11 @@ class AppearanceSettings(SectionSettings):
     compared besides the cuboid's symmetries, degrees apart (0: the symmetries alone)."""
 
     SECTION = "appearance"
-    RULES = {"crop_px": at_least(8), "margin": nonnegative_float, "min_score": finite_float,
+    RULES = {"enabled": boolean, "crop_px": at_least(8), "margin": nonnegative_float, "min_score": finite_float,
              "ambiguity_margin": nonnegative_float, "min_pixels": at_least(1), "hist_bins": at_least(1),
              "spin_step_deg": _spin_step}
 
+    enabled: bool = True
     crop_px: int = 64
     margin: float = 0.15
     min_score: float = 0.25
@@ -97,6 +109,34 @@ def candidate_rotations(symmetries: np.ndarray, up: np.ndarray | None, spin_step
             if all(np.linalg.norm(S - T) > _SAME_ROTATION for T in out):
                 out.append(S)
     return np.stack(out)
+
+
+def _spread(colours: np.ndarray) -> float:
+    """The largest channel standard deviation of (N, >= 3) colours, 0-255 levels."""
+    c = np.asarray(colours, dtype=np.float64).reshape(-1, np.shape(colours)[-1])[:, :3]
+    return float(c.std(axis=0).max()) if len(c) else 0.0
+
+
+def surface_appearance(mesh) -> str:
+    """What a ``trimesh.Trimesh``'s surface shows: "textured" (a texture image, or vertex or
+    face colours, whose colours vary), "uniform" (one colour: a flat texture, a material's
+    colour alone, or equal colours) or "none" (no texture and no colours). A texture image
+    is judged as a whole (a :data:`_TEXTURE_PREVIEW_PX` copy): colours it holds outside the
+    mesh's UVs count too, so a textured mesh is never taken for one colour."""
+    visual = getattr(mesh, "visual", None)
+    kind = getattr(visual, "kind", None)
+    if kind == "texture":
+        material = getattr(visual, "material", None)
+        image = getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
+        if image is None:
+            return "uniform"
+        n = _TEXTURE_PREVIEW_PX
+        preview = np.asarray(image.convert("RGB").resize((n, n)))
+        return "textured" if _spread(preview) > UNIFORM_COLOUR_STD else "uniform"
+    if kind in ("vertex", "face"):
+        colours = visual.vertex_colors if kind == "vertex" else visual.face_colors
+        return "textured" if _spread(colours) > UNIFORM_COLOUR_STD else "uniform"
+    return "none"
 
 
 @dataclass
@@ -136,16 +176,20 @@ def chromaticity_histogram(rgb: np.ndarray, bins: int) -> np.ndarray:
     return h / n if n > 0 else h
 
 
-def appearance_similarity(image: np.ndarray, rendered: np.ndarray, mask: np.ndarray, bins: int) -> float:
+def appearance_similarity(image: np.ndarray, rendered: np.ndarray, mask: np.ndarray, bins: int,
+                          texture: bool = True) -> float:
     """Score in [0, 1] of (H, W, 3) ``image`` against (H, W, 3) ``rendered`` inside (H, W)
     ``mask``: the mean of the colour channels' normalized cross-correlation (negative: 0) and
-    the chromaticity histograms' intersection."""
+    the chromaticity histograms' intersection; ``texture`` False (a mesh of one colour, whose
+    render has no texture to correlate): the intersection alone."""
     a = np.asarray(image, dtype=np.float64)[mask]
     b = np.asarray(rendered, dtype=np.float64)[mask]
+    inter = float(np.minimum(chromaticity_histogram(a, bins), chromaticity_histogram(b, bins)).sum())
+    if not texture:
+        return inter
     a0, b0 = a - a.mean(axis=0), b - b.mean(axis=0)
     den = np.sqrt((a0 ** 2).sum() * (b0 ** 2).sum())
     ncc = float((a0 * b0).sum() / den) if den > 1e-9 else 0.0
-    inter = float(np.minimum(chromaticity_histogram(a, bins), chromaticity_histogram(b, bins)).sum())
     return 0.5 * max(ncc, 0.0) + 0.5 * inter
 
 
@@ -162,8 +206,10 @@ class AppearanceCheck:
         up: (3,) the mesh's up axis, about which the turns of ``settings.spin_step_deg`` are
             compared too (None: the symmetries alone).
 
-    Attributes: rotations (S', 3, 3): those compared (:func:`candidate_rotations`), the
-    ``symmetries`` first; n_symmetries: how many of them the symmetries are.
+    Attributes: surface (:func:`surface_appearance`: "textured" or "uniform"; "none" is
+    refused with a ConfigError); rotations (S', 3, 3): those compared
+    (:func:`candidate_rotations`), the ``symmetries`` first (a uniform surface: the identity
+    alone, no pose told from another); n_symmetries: how many of them the symmetries are.
     """
 
     def __init__(self, mesh, symmetries: np.ndarray, center: np.ndarray,
@@ -171,7 +217,12 @@ class AppearanceCheck:
         from dope_hope.render.textured import TexturedRenderer
 
         self.settings = settings or AppearanceSettings()
+        self.surface = surface_appearance(mesh)
+        if self.surface == "none":
+            raise ConfigError("the appearance check needs a mesh with a texture or colours; this one has neither")
         symmetries = np.asarray(symmetries, dtype=np.float64).reshape(-1, 3, 3)
+        if self.surface == "uniform":
+            symmetries, up = symmetries[:1], None
         self.n_symmetries = len(symmetries)
         self.rotations = candidate_rotations(symmetries, up, self.settings.spin_step_deg)
         self.center = np.asarray(center, dtype=np.float64).reshape(3)
@@ -212,7 +263,7 @@ class AppearanceCheck:
             rendered, mask = self._renderer.render(Rk, tk, K_crop)
             mask &= inside
             if mask.sum() >= s.min_pixels:
-                scores[k] = appearance_similarity(crop, rendered, mask, s.hist_bins)
+                scores[k] = appearance_similarity(crop, rendered, mask, s.hist_bins, self.surface == "textured")
         best = int(np.argmax(scores))
         ambiguous = tuple(int(k) for k in np.flatnonzero(scores >= scores[best] - s.ambiguity_margin) if k != best)
         return AppearanceResult(scores, best, poses[best][0], poses[best][1], ambiguous)

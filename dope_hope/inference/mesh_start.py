@@ -27,7 +27,9 @@ bottles. :class:`MeshStartPredictor` runs it on a user's mesh with no training:
   object it never saw far better than the turn about it); the best pose is kept (which resolves
   the ambiguity when the texture is not symmetric), the score becomes the geometric mean of the
   network's and the appearance's, and candidates whose appearance scores under ``min_score``
-  are dropped. -LS runs after it, on the pose it kept; with ICP, -LS and ICP run before it, on
+  are dropped. A mesh of one colour is compared at the network's pose alone (its colour tells
+  look-alikes, not poses); one with no texture and no colours gets no check, and a warning
+  (``appearance.enabled: false`` turns the check off for any mesh). -LS runs after it, on the pose it kept; with ICP, -LS and ICP run before it, on
   the network's poses, and it compares their equivalent poses alone.
 - **Scales.** The start saw objects of its training crops' sizes; the network runs at each of
   ``scales`` times the model's working size (default :data:`DEFAULT_SCALES`), the detections
@@ -47,7 +49,7 @@ import numpy as np
 
 from dope_hope.errors import ConfigError, ModelFileError
 from dope_hope.geometry import unit_for
-from dope_hope.inference.appearance import AppearanceCheck, AppearanceSettings
+from dope_hope.inference.appearance import AppearanceCheck, AppearanceSettings, surface_appearance
 from dope_hope.inference.backends import TorchBackend
 from dope_hope.inference.detection import Detection
 from dope_hope.inference.predictor import DopePredictor
@@ -174,8 +176,7 @@ class MeshStartPredictor(DopePredictor):
         self.warnings: list[str] = []
         message = up_axis_warning(size, up_axis, source)
         if message is not None:
-            self.warnings.append(message)
-            warnings.warn(message, UserWarning, stacklevel=2)
+            self._warn(message)
         self.start = Path(start or PRETRAINED_WEIGHTS)
         backend = start_backend(self.start, name, size, device, threads)
         given = {**(dict(options or {})), **overrides}
@@ -188,18 +189,31 @@ class MeshStartPredictor(DopePredictor):
         self.symmetries = cuboid_rotations(size)
         self.symmetry_names = tuple(describe_rotation(S) for S in self.symmetries[1:])
         self.appearance: AppearanceCheck | None = None
-        if appearance is not False:
-            settings = appearance if isinstance(appearance, AppearanceSettings) else self.options.appearance
-            if isinstance(appearance, Mapping):
-                settings = AppearanceSettings.from_mapping({**asdict(settings), **appearance})
-            up = A.T @ np.array([0.0, 1.0, 0.0])  # the start's y, in the mesh frame
-            self.appearance = AppearanceCheck(loaded, self.symmetries, center, settings, up=up)
+        settings = appearance if isinstance(appearance, AppearanceSettings) else self.options.appearance
+        if isinstance(appearance, Mapping):
+            settings = AppearanceSettings.from_mapping({**asdict(settings), **appearance})
+        if appearance is not False and settings.enabled:
+            if surface_appearance(loaded) == "none":
+                self._warn(f"{source}: the mesh has no texture and no colours, so the appearance check is off: every "
+                           "cuboid of its shape is reported (look-alikes too), its pose known up to the cuboid's "
+                           "symmetries; a textured mesh (OBJ with its MTL and image, or a PLY with colours) tells them "
+                           "apart")
+            else:
+                up = A.T @ np.array([0.0, 1.0, 0.0])  # the start's y, in the mesh frame
+                self.appearance = AppearanceCheck(loaded, self.symmetries, center, settings, up=up)
+
+    def _warn(self, message: str) -> None:
+        """Keep ``message`` in :attr:`warnings` and issue it (a UserWarning)."""
+        self.warnings.append(message)
+        warnings.warn(message, UserWarning, stacklevel=3)
 
     def describe(self) -> str:
         """One line: what runs, and what the poses are known up to."""
         sym = ", ".join(self.symmetry_names) or "none"
         check = "no appearance check"
-        if self.appearance is not None:
+        if self.appearance is not None and self.appearance.surface == "uniform":
+            check = "the mesh is one colour: the appearance check drops look-alikes of another colour and leaves them open"
+        elif self.appearance is not None:
             step = self.appearance.settings.spin_step_deg
             turns = f" and turns of {step:g}° about the up axis" if step > 0 else ""
             check = f"the appearance check picks among them{turns} where the texture tells them apart"
@@ -266,6 +280,8 @@ class MeshStartPredictor(DopePredictor):
         rotations = self.appearance.rotations
         best = rotations[res.best]
         det.pose_ambiguity = tuple(describe_rotation(best.T @ rotations[k]) for k in res.ambiguous)
+        if self.appearance.surface == "uniform":  # one colour: the pose stays the network's, nothing resolved
+            det.pose_ambiguity = self.symmetry_names
         det.appearance_score = res.score
         det.score = float(np.sqrt(max(det.network_score, 0.0) * res.score))
         if res.best != 0:  # corner k of R S projects where corner perm[k] of R does
