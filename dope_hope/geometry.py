@@ -31,13 +31,14 @@ CUBOID_CORNER_SIGNS = np.array(
 UNIT_SCALE: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 
 
-def unit_for(mesh_units: str | Mapping[str, str] | None, class_name: str) -> str | None:
-    """The unit given for ``class_name``'s mesh file: ``mesh_units`` is one unit for every mesh,
-    or {class name: unit} with "" for the others (``--mesh-units [NAME=]UNIT``); None: by the
-    file's suffix (:data:`dope_hope.io.meshes.DEFAULT_UNITS`)."""
-    if isinstance(mesh_units, Mapping):
-        return mesh_units.get(class_name, mesh_units.get(""))
-    return mesh_units
+def value_for_object(values: str | Mapping[str, str] | None, class_name: str) -> str | None:
+    """The value a ``[NAME=]VALUE`` option gives ``class_name`` (``--mesh-units``, ``--up-axis``):
+    ``values`` is one value for every object, or {class name: value} with "" for the others;
+    None: none given (a mesh file's unit then goes by its suffix,
+    :data:`dope_hope.io.meshes.DEFAULT_UNITS`)."""
+    if isinstance(values, Mapping):
+        return values.get(class_name, values.get(""))
+    return values
 
 
 NUM_KEYPOINTS = 9

@@ -62,6 +62,9 @@ def perfect_start(monkeypatch, frame_dir: Path, R_start: np.ndarray, t: np.ndarr
 
 
 def test_up_axis_rotations_turn_the_axis_into_y():
+    from dope_hope.commands.argtypes import UP_AXIS_NAMES
+
+    assert tuple(UP_AXES) == UP_AXIS_NAMES  # what --up-axis accepts is what the library knows
     for name, A in UP_AXES.items():
         axis = np.zeros(3)
         axis["xyz".index(name[-1])] = -1.0 if name.startswith("-") else 1.0
@@ -260,11 +263,57 @@ def test_cli_shipped_start_and_its_warning(scene, tmp_path, capsys):
     assert "Lying: the pretrained start" in err
 
 
+def test_several_new_objects_share_one_network_pass(scene, monkeypatch, tmp_path, capsys):
+    """--mesh A --mesh NAME=B without --weights: one predictor per new object, each with its
+    own up axis (--up-axis NAME=AXIS) and class; the start's maps are computed once per image
+    and working size for all of them (predict_many's shared cache)."""
+    import trimesh
+
+    from dope_hope.inference.model_set import build_start_predictors
+    from dope_hope.inference.predictor import predict_many
+    from dope_hope.io.dope_json import read_dope_json
+    from dope_hope.io.images import read_rgb
+
+    frame_dir, mesh, R_gt, t_gt = scene
+    perfect_start(monkeypatch, frame_dir, R_gt, t_gt, DEMO_SIZE_M)
+    lying = tmp_path / "Tube.obj"
+    trimesh.creation.box(extents=[4.0, 5.0, 16.0]).export(lying)
+    calls = []
+    real = MeshStartPredictor.infer_maps
+    monkeypatch.setattr(MeshStartPredictor, "infer_maps", lambda self, x: calls.append(self.class_name) or real(self, x))
+    with pytest.warns(UserWarning, match="no texture"):
+        ps = build_start_predictors({"MyBox": mesh, "Tube": lying}, up_axes={"Tube": "z"}, mesh_units="cm")
+    try:
+        assert [(p.class_name, p.up_axis) for p in ps] == [("MyBox", "y"), ("Tube", "z")]
+        frame = read_dope_json(frame_dir / "000000.json")
+        dets = predict_many(ps, read_rgb(frame_dir / "000000.png"), frame.K)
+    finally:
+        for p in ps:
+            p.close()
+    assert calls == ["MyBox"] * len(ps[0].scales)  # the second object reuses the first one's maps
+    assert {d.class_name for d in dets} >= {"MyBox"}
+    with pytest.raises(ConfigError, match="--up-axis Milk=z: Milk is not an object of this run"):
+        build_start_predictors({"MyBox": mesh}, up_axes={"Milk": "z"})
+
+    code, records, err = run_cli([frame_dir / "000000.png", "--mesh", mesh, "--mesh", f"Tube={lying}",
+                                  "--up-axis", "Tube=z", "--mesh-units", "cm", "--out", tmp_path / "o", "--no-overlay"],
+                                 capsys)
+    assert code == 0, err
+    assert "MyBox: the pretrained start" in err and "Tube: the pretrained start" in err and "up axis z" in err
+    assert any(r["class"] == "MyBox" for r in records)
+
+
 def test_cli_refuses_bad_input_with_one_line(scene, tmp_path, capsys):
     frame_dir, mesh, _, _ = scene
     img = frame_dir / "000000.png"
     line = one_line_error(*run_cli([img, "--mesh", mesh, "--up-axis", "w"], capsys)[::2])
-    assert "--up-axis" in line and "invalid choice" in line
+    assert "--up-axis w: must be one of x, y, z, -x, -y, -z" in line
+    line = one_line_error(*run_cli([img, "--mesh", mesh, "--up-axis", "Other=z"], capsys)[::2])
+    assert "--up-axis Other=z: Other is not an object of this run (objects: MyBox)" in line
+    line = one_line_error(*run_cli([img, "--mesh", mesh, "--mesh", f"mybox={mesh}"], capsys)[::2])
+    assert "is MyBox too" in line and "--mesh NAME=PATH" in line
+    line = one_line_error(*run_cli([img, "--mesh", f"={mesh}"], capsys)[::2])
+    assert "name the object before '='" in line
     line = one_line_error(*run_cli([img, "--mesh", mesh, "--weights", "w.pt", "--up-axis", "z"], capsys)[::2])
     assert "--up-axis" in line and "no --weights" in line
     line = one_line_error(*run_cli([img, "--start", "s.pt"], capsys)[::2])

@@ -75,3 +75,15 @@ def test_mesh_args(tmp_path):
     assert parse_mesh_args([str(tmp_path / "box.obj")], ["DemoBox"]) == {"DemoBox": tmp_path / "box.obj"}
     with pytest.raises(ConfigError, match=r"--mesh .*box\.obj: cannot tell which object"):
         parse_mesh_args([str(tmp_path / "box.obj")], ["DemoBox", "Ketchup"])
+
+
+def test_new_object_meshes_name_each_file(tmp_path):
+    from dope_hope.io.models_dir import new_object_meshes
+
+    can = tmp_path / "Can" / "textured.obj"
+    found = new_object_meshes([can, f"Bottle={tmp_path / 'b.obj'}", tmp_path / "my_widget.ply"])
+    assert found == {"Can": can, "Bottle": tmp_path / "b.obj", "my_widget": tmp_path / "my_widget.ply"}
+    with pytest.raises(ConfigError, match="is Can too; name each object"):
+        new_object_meshes([can, f"can={tmp_path / 'other.obj'}"])
+    with pytest.raises(ConfigError, match="name the object before '='"):
+        new_object_meshes([f"={can}"])

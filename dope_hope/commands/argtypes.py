@@ -79,24 +79,40 @@ def fixed_device(text: str) -> str:
     return _device(text, False)
 
 
-def parse_mesh_units(values: list[str]) -> str | dict[str, str] | None:
-    """``--mesh-units [NAME=]UNIT`` values (evaluate, infer) -> one unit for every mesh, or
-    {object: unit} ("" = the others; a catalog NAME in its catalog spelling); None: none given.
+def parse_named_values(values: list[str], flag: str, accepted: tuple[str, ...]) -> str | dict[str, str] | None:
+    """``flag [NAME=]VALUE`` values -> one VALUE for every object, or {object: VALUE} ("" =
+    the others; a catalog NAME in its catalog spelling); None: none given. VALUE is one of
+    ``accepted``.
 
     Raises:
-        ConfigError: an unknown unit, or two units for the same object (or for all).
+        ConfigError: a VALUE not accepted, or two values for the same object (or for all).
     """
     from dope_hope.catalog import object_names
 
-    units: dict[str, str] = {}
-    for value in values:
-        name, _, unit = value.rpartition("=")
-        if unit not in ("m", "cm", "mm"):
-            raise ConfigError(f"--mesh-units {value}: the unit must be m, cm or mm")
+    given: dict[str, str] = {}
+    for text in values:
+        name, _, value = text.rpartition("=")
+        if value not in accepted:
+            raise ConfigError(f"{flag} {text}: must be one of {', '.join(accepted)}")
         key = object_names([name])[0] if name and name.lower() != "all" else ""
-        if key in units:
-            raise ConfigError(f"--mesh-units {value}: {'every mesh' if not key else key} already has a unit")
-        units[key] = unit
-    if not units:
+        if key in given:
+            raise ConfigError(f"{flag} {text}: {'every object' if not key else key} already has one")
+        given[key] = value
+    if not given:
         return None
-    return units[""] if list(units) == [""] else units
+    return given[""] if list(given) == [""] else given
+
+
+def parse_mesh_units(values: list[str]) -> str | dict[str, str] | None:
+    """``--mesh-units [NAME=]UNIT`` values (evaluate, infer): :func:`parse_named_values` of m, cm, mm."""
+    return parse_named_values(values, "--mesh-units", ("m", "cm", "mm"))
+
+
+#: --up-axis values: the keys of ``dope_hope.inference.mesh_start.UP_AXES``, named here without its imports.
+UP_AXIS_NAMES = ("x", "y", "z", "-x", "-y", "-z")
+
+
+def parse_up_axes(values: list[str]) -> str | dict[str, str] | None:
+    """``--up-axis [NAME=]AXIS`` values (a new object's vertical mesh axis, infer):
+    :func:`parse_named_values` of :data:`UP_AXIS_NAMES`."""
+    return parse_named_values(values, "--up-axis", UP_AXIS_NAMES)

@@ -92,6 +92,7 @@ from dope_hope.commands.argtypes import (
     finite_float,
     fixed_device,
     parse_mesh_units,
+    parse_up_axes,
     positive_float,
     positive_int,
     working_side,
@@ -105,8 +106,6 @@ from dope_hope.errors import ConfigError, DopeHopeError
 
 #: Frame rate of an overlay video when the source reports none.
 FALLBACK_FPS = 30.0
-#: --up-axis values (dope_hope.inference.mesh_start.UP_AXES, named here without its imports).
-UP_AXIS_NAMES = ("x", "y", "z", "-x", "-y", "-z")
 #: Options of video and camera inputs only.
 STREAM_OPTIONS = ("realtime", "max_frames", "show", "capture_size", "capture_fps", "track", "foxglove")
 #: Options of recordings only.
@@ -204,15 +203,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="object mesh: NAME=PATH per object (repeat; any models), one per --weights "
                              "(same order; one-object models), or one models folder holding "
                              "obj_NNNNNN.ply / CLASS/textured.obj / CLASS.obj / CLASS.ply: its box and "
-                             "surface replace the cuboid (default: the checkpoint's cuboid)")
+                             "surface replace the cuboid (default: the checkpoint's cuboid); without "
+                             "--weights, each file is a new object the pretrained start detects")
     parser.add_argument("--mesh-units", action="append", default=[], metavar="[NAME=]UNIT",
                         help="unit of the mesh files, m, cm or mm (default: .obj cm, .ply mm); NAME=UNIT "
                              "for one object's mesh (repeat; objects of mixed units)")
-    start = parser.add_argument_group("a new object with no training (--mesh FILE, no --weights)")
-    start.add_argument("--up-axis", choices=UP_AXIS_NAMES, metavar="AXIS",
-                       help="a new object's mesh (--mesh FILE, no --weights): the mesh axis that is its "
-                            "vertical axis, as the pretrained start learned y for cans and bottles: x, y "
-                            "(default), z, or =-x, =-y, =-z (--up-axis=-z)")
+    start = parser.add_argument_group("new objects with no training (--mesh [NAME=]FILE, repeatable, no --weights)")
+    start.add_argument("--up-axis", action="append", default=[], metavar="[NAME=]AXIS",
+                       help="a new object's mesh: the mesh axis that is its vertical axis, as the pretrained "
+                            "start learned y for cans and bottles: x, y (default), z, or =-x, =-y, =-z "
+                            "(--up-axis=-z); NAME=AXIS for one object's mesh (repeat)")
     start.add_argument("--start", type=Path, metavar="W",
                        help="a new object's mesh: the start to run (default: the shipped "
                             "dope_hope/assets/pretrained_lite.pt)")
@@ -277,23 +277,25 @@ def _warn(message: str) -> None:
     print(f"dope-hope infer: warning: {message}", file=sys.stderr, flush=True)
 
 
-def _start_mesh(args: argparse.Namespace) -> Path | None:
-    """The mesh the pretrained start detects (no --weights, one --mesh FILE that is not the
-    demo model's object), else None; ConfigError for --up-axis / --start without that case."""
+def _new_objects(args: argparse.Namespace) -> dict[str, Path] | None:
+    """{class name: mesh file} of the new objects the pretrained start detects (no --weights,
+    every --mesh a [NAME=]FILE, unless it is the demo model's object alone), else None;
+    ConfigError for --up-axis / --start without that case."""
     from dope_hope.demo_object import DEMO_CLASS_NAME
-    from dope_hope.io.models_dir import mesh_class_name
+    from dope_hope.io.models_dir import new_object_meshes
 
     meshes = list(args.mesh or [])
-    mesh = meshes[0] if len(meshes) == 1 and not meshes[0].is_dir() else None
-    if mesh is not None and not args.weights and (
-            default_weights() is None or mesh_class_name(mesh).lower() != DEMO_CLASS_NAME.lower()):
-        return mesh
-    flags = [f for f, v in (("--up-axis", args.up_axis), ("--start", args.start)) if v is not None]
+    files = not args.weights and meshes and not any(m.is_dir() for m in meshes)
+    found = new_object_meshes(meshes) if files else None
+    demo = found is not None and [n.lower() for n in found] == [DEMO_CLASS_NAME.lower()] and default_weights()
+    if found is not None and not demo:
+        return found
+    flags = [f for f, v in (("--up-axis", args.up_axis), ("--start", args.start)) if v]
     if flags and args.weights:
-        raise ConfigError(f"{', '.join(flags)}: for a new object detected by the pretrained start "
-                          "(--mesh FILE, no --weights); a trained model knows its object")
+        raise ConfigError(f"{', '.join(flags)}: for new objects detected by the pretrained start "
+                          "(--mesh FILE, no --weights); a trained model knows its objects")
     if flags:
-        raise ConfigError(f"{', '.join(flags)}: give the new object's mesh file (--mesh FILE) and no --weights")
+        raise ConfigError(f"{', '.join(flags)}: give the new objects' mesh files (--mesh FILE) and no --weights")
     return None
 
 
@@ -310,17 +312,16 @@ def inference_settings(args: argparse.Namespace) -> dict:
 
 def _predictors(args: argparse.Namespace) -> list:
     """The predictors of --weights, or the pretrained start's of a new object's --mesh
-    (:func:`_start_mesh`; its description printed)."""
+    (:func:`_new_objects`; their descriptions printed)."""
     from dope_hope.inference.model_set import build_predictors
 
-    mesh = _start_mesh(args)
-    if mesh is not None:
-        from dope_hope.inference.mesh_start import MeshStartPredictor
+    meshes = _new_objects(args)
+    if meshes is not None:
+        from dope_hope.inference.model_set import build_start_predictors
 
-        p = MeshStartPredictor(mesh, up_axis=args.up_axis or "y", mesh_units=args.mesh_units, start=args.start,
-                               device=args.device, threads=args.threads, options=inference_settings(args))
-        _note(p.describe())
-        return [p]
+        return build_start_predictors(meshes, up_axes=args.up_axis, mesh_units=args.mesh_units, start=args.start,
+                                      device=args.device, threads=args.threads, options=inference_settings(args),
+                                      note=_note)
     return build_predictors(_resolve_weights(args), args.mesh or [], mesh_units=args.mesh_units,
                             backend=args.backend, device=args.device, threads=args.threads,
                             options=inference_settings(args), classes=args.classes, note=_note)
@@ -334,6 +335,7 @@ def run(args: argparse.Namespace) -> int:
 
     args.icp = bool(inference_settings(args).get("icp"))  # settings checked before any work
     args.mesh_units = parse_mesh_units(args.mesh_units)  # [NAME=]UNIT values -> a unit or {NAME: unit}
+    args.up_axis = parse_up_axes(args.up_axis)  # [NAME=]AXIS values -> an axis or {NAME: axis}
     if any(stream_kind(item) for item in args.inputs):
         return _run_stream(args)
     given = [f"--{o.replace('_', '-')}" for o in STREAM_OPTIONS + RECORDING_OPTIONS

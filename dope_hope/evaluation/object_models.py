@@ -22,7 +22,7 @@ import trimesh
 
 from dope_hope.catalog import get_object
 from dope_hope.errors import InputFileError, UnknownObjectError
-from dope_hope.geometry import UNIT_SCALE, unit_for
+from dope_hope.geometry import UNIT_SCALE, value_for_object
 from dope_hope.io.meshes import (
     check_mesh_box,
     check_plausible_size,
@@ -186,7 +186,7 @@ def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectMod
     category, obj_id = (obj.category if obj else "other"), bop_obj_id(name)
     explicit = models.declared.get(name)
     if path is not None:
-        loaded = _load_mesh_file(path, unit_for(models.mesh_units, name))
+        loaded = _load_mesh_file(path, value_for_object(models.mesh_units, name))
         found = resolve_symmetries(name, path, explicit, loaded.units, obj_id)
         if not found.from_bop_table:  # a BOP entry describes the dataset's own model
             _check_box(name, loaded, path, obj, models.recorded_sizes)
@@ -196,7 +196,7 @@ def _object_model(name: str, path: Path | None, models: _ModelArgs) -> ObjectMod
     else:
         size, whose = (obj.size_array, "catalog") if obj is not None else (models.recorded_sizes[name][0], "recorded")
         loaded = _LoadedMesh(trimesh.creation.box(extents=np.asarray(size, dtype=np.float64)), None,
-                             unit_for(models.mesh_units, name) or "mm",
+                             value_for_object(models.mesh_units, name) or "mm",
                              f"procedural cuboid ({whose} size; no mesh given)")
         found = resolve_symmetries(name, None, explicit, loaded.units, obj_id)
     points = sample_surface_points(loaded.mesh, models.n_points)

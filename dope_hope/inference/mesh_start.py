@@ -48,13 +48,13 @@ from typing import Any
 import numpy as np
 
 from dope_hope.errors import ConfigError, ModelFileError
-from dope_hope.geometry import unit_for
+from dope_hope.geometry import value_for_object
 from dope_hope.inference.appearance import AppearanceCheck, AppearanceSettings, surface_appearance
 from dope_hope.inference.backends import TorchBackend
 from dope_hope.inference.detection import Detection
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.inference.tracking import box_iou
-from dope_hope.preprocess import NetworkInput, prepare_input, working_size
+from dope_hope.preprocess import prepare_input, working_size
 from dope_hope.refine.depth import DepthImage
 from dope_hope.symmetry.cuboid import corner_permutation, cuboid_rotations, describe_rotation, nearest_cube_rotation
 
@@ -142,7 +142,8 @@ class MeshStartPredictor(DopePredictor):
         device, threads, options, **overrides: as :class:`DopePredictor` (``min_score``
             applies to the network's pose score; default 0: the appearance decides).
 
-    Attributes beyond DopePredictor's: start (the weights' path), up_axis, symmetries ((S, 3, 3) the cuboid's rotations,
+    Attributes beyond DopePredictor's: start (the weights' path), start_id (what tells one
+    start's maps from another's: the file and the device), up_axis, symmetries ((S, 3, 3) the cuboid's rotations,
     mesh frame, identity first), symmetry_names, scales, appearance (the check or None),
     warnings (the warnings issued while building).
     """
@@ -160,7 +161,7 @@ class MeshStartPredictor(DopePredictor):
         mesh_file = units = None
         if isinstance(mesh, (str, os.PathLike)):
             name = class_name or mesh_class_name(mesh)
-            mesh_file, units = Path(mesh), unit_for(mesh_units, name)
+            mesh_file, units = Path(mesh), value_for_object(mesh_units, name)
             loaded, source = load_mesh(mesh_file, units=units), str(mesh)
         elif hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
             if not class_name:
@@ -179,6 +180,8 @@ class MeshStartPredictor(DopePredictor):
             self._warn(message)
         self.start = Path(start or PRETRAINED_WEIGHTS)
         backend = start_backend(self.start, name, size, device, threads)
+        stat = self.start.stat()
+        self.start_id = (str(self.start.resolve()), stat.st_size, stat.st_mtime_ns, device)
         given = {**(dict(options or {})), **overrides}
         given.setdefault("min_score", 0.0)
         super().__init__(backend, mesh=loaded, options=given)
@@ -222,9 +225,10 @@ class MeshStartPredictor(DopePredictor):
                 f"up axis {self.up_axis}; poses known up to the cuboid's symmetries ({sym}); {check}")
 
     def detect_image(self, rgb: np.ndarray, K: np.ndarray, depth: DepthImage | None,
-                     cache: dict[tuple, NetworkInput] | None = None, on_maps=None,
+                     cache: dict[tuple, Any] | None = None, on_maps=None,
                      classes: Collection[str] | None = None) -> list[Detection]:
-        """The detections of every scale, checked against the appearance, duplicates merged,
+        """The detections of every scale (the network's maps of each kept in ``cache`` for the
+        other new objects of the same start: :attr:`start_id`), checked against the appearance, duplicates merged,
         then the turns of those kept and -LS on ``depth`` (module docstring); with ICP, -LS and
         ICP run first, on the network's poses, and the check compares their equivalent poses
         alone (the depth fit places the turn better than a small crop's texture: on the
@@ -241,7 +245,10 @@ class MeshStartPredictor(DopePredictor):
             key = (resized, padded, self.mean, self.std)
             if key not in cache:
                 cache[key] = prepare_input(rgb, resized, self.mean, self.std, padded)
-            belief, affinity, net_in = self.infer_maps(cache[key])
+            maps_key = ("start maps", self.start_id, *key)  # the start's maps know no object: shared
+            if maps_key not in cache:
+                cache[maps_key] = self.infer_maps(cache[key])
+            belief, affinity, net_in = cache[maps_key]
             if on_maps is not None and i == 0:
                 on_maps(self, belief, affinity, net_in)
             pooled += self.detections_from_maps(belief, affinity, net_in, K, depth if icp_first else None)

@@ -8,7 +8,7 @@ An object that several model files hold is reported by the first of them only
 Meshes (:func:`mesh_files`): ``NAME=PATH`` per object, one per model file (same order;
 one-object models), or one models folder for all (each object's mesh by
 :func:`dope_hope.io.models_dir.find_object_mesh`); their units one for all or per object
-(``mesh_units``: :func:`dope_hope.geometry.unit_for`).
+(``mesh_units``: :func:`dope_hope.geometry.value_for_object`).
 """
 from __future__ import annotations
 
@@ -97,15 +97,15 @@ def mesh_files(meshes: Sequence[str | Path], models: Sequence[Sequence[str]],
     return out
 
 
-def run_mesh_units(mesh_units: str | Mapping[str, str] | None, models: Sequence[Sequence[str]]
-                   ) -> str | dict[str, str] | None:
-    """``mesh_units`` with each NAME of a {NAME: unit} mapping turned into the run's object it
-    names (catalog names match case-insensitively; "" stays: the others); ConfigError naming
-    ``--mesh-units NAME=UNIT`` for a NAME no model reports."""
-    if not isinstance(mesh_units, Mapping):
-        return mesh_units
+def run_object_values(values: str | Mapping[str, str] | None, models: Sequence[Sequence[str]], flag: str
+                      ) -> str | dict[str, str] | None:
+    """``flag [NAME=]VALUE`` values (one for every object, or {NAME: value}) with each NAME
+    turned into the run's object it names (catalog names match case-insensitively; "" stays:
+    the others); ConfigError naming ``flag NAME=VALUE`` for a NAME no model reports."""
+    if not isinstance(values, Mapping):
+        return values
     names = [n for group in models for n in group]
-    return {(check_run_object(k, names, "--mesh-units", f"{k}={u}") if k else ""): u for k, u in mesh_units.items()}
+    return {(check_run_object(k, names, flag, f"{k}={v}") if k else ""): v for k, v in values.items()}
 
 
 def build_predictors(weights: Sequence[Path], meshes: Sequence[str | Path] = (), *,
@@ -136,7 +136,7 @@ def build_predictors(weights: Sequence[Path], meshes: Sequence[str | Path] = (),
         note(f"warning: {warning}")
     reported_names = [names if keep is None else keep for (_, names), keep in zip(models, kept)]
     files = mesh_files(meshes, reported_names, weights)
-    mesh_units = run_mesh_units(mesh_units, reported_names)
+    mesh_units = run_object_values(mesh_units, reported_names, "--mesh-units")
     predictors = []
     for i, (model, keep) in enumerate(zip(opened, kept)):
         if keep == []:
@@ -161,3 +161,35 @@ def stream_tracker(predictors: Sequence[DopePredictor]) -> PoseTracker:
     symmetries = {obj.class_name: object_symmetries(obj.class_name, obj.mesh_file, obj.mesh_units)
                   for p in predictors for obj in p.objects if obj.mesh_file is not None}
     return PoseTracker(predictors, symmetries=symmetries)
+
+
+def build_start_predictors(meshes: Mapping[str, str | Path], *, up_axes: str | Mapping[str, str] | None = None,
+                           mesh_units: str | Mapping[str, str] | None = None, start: str | Path | None = None,
+                           device: str = "cpu", threads: int | None = None, options: Mapping[str, Any] | None = None,
+                           note: Callable[[str], None] = lambda message: None) -> list:
+    """A :class:`~dope_hope.inference.mesh_start.MeshStartPredictor` per new object (the
+    pretrained start as a detector of its mesh's cuboid, no training), in the order given;
+    their network runs once per image and working size for all of them (the start's maps
+    know no object). Each one's description goes to ``note``.
+
+    Args:
+        meshes: {class name: mesh file} (:func:`dope_hope.io.models_dir.new_object_meshes`).
+        up_axes, mesh_units: one value for every mesh, or {NAME: value} ("" for the others;
+            NAME one of ``meshes``): the vertical mesh axis (default y) and the file's unit.
+        start, device, threads, options: as :class:`MeshStartPredictor` takes them.
+
+    Raises ConfigError for a NAME of ``up_axes`` or ``mesh_units`` that is not one of ``meshes``.
+    """
+    from dope_hope.geometry import value_for_object
+    from dope_hope.inference.mesh_start import MeshStartPredictor
+
+    names = [list(meshes)]
+    up_axes = run_object_values(up_axes, names, "--up-axis")
+    mesh_units = run_object_values(mesh_units, names, "--mesh-units")
+    predictors = []
+    for name, path in meshes.items():
+        p = MeshStartPredictor(path, class_name=name, up_axis=value_for_object(up_axes, name) or "y", mesh_units=mesh_units,
+                               start=start, device=device, threads=threads, options=options)
+        note(p.describe())
+        predictors.append(p)
+    return predictors

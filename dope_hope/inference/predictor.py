@@ -73,7 +73,7 @@ from dope_hope.geometry import (
     project_points_poses,
     projected_bbox,
     projected_bboxes,
-    unit_for,
+    value_for_object,
 )
 from dope_hope.inference.backends import MapBackend, backend_objects, model_min_score, open_backend
 from dope_hope.inference.detection import Detection
@@ -170,7 +170,7 @@ class DopePredictor:
         groups = select_groups(model_objects, classes)
         meshes = _meshes_by_group(mesh, [model_objects[k].class_name for k in groups])
         self.objects = [ObjectGeometry(model_objects[k], k, self.legacy, meshes.get(i),
-                                       unit_for(mesh_units, model_objects[k].class_name),
+                                       value_for_object(mesh_units, model_objects[k].class_name),
                                        self.options.ls_points, self.options.icp_points)
                         for i, k in enumerate(groups)]
         for obj, k in zip(self.objects, groups):  # an explicit min_score, else the object's own
@@ -259,12 +259,12 @@ class DopePredictor:
         return out
 
     def detect_image(self, rgb: np.ndarray, K: np.ndarray, depth: DepthImage | None,
-                     cache: dict[tuple, NetworkInput] | None = None,
+                     cache: dict[tuple, Any] | None = None,
                      on_maps: Callable[[DopePredictor, np.ndarray, np.ndarray, NetworkInput], None] | None = None,
                      classes: Collection[str] | None = None) -> list[Detection]:
         """One image's detections (:func:`predict_many`'s step per predictor): the network input
         of this working size from ``cache`` (filled when missing, shared by predictors of equal
-        input), the maps (passed to ``on_maps``), then :meth:`detections_from_maps`.
+        input; a subclass may keep more there, as the new objects of one start keep its maps), the maps (passed to ``on_maps``), then :meth:`detections_from_maps`.
         ``rgb`` (H, W, 3) uint8, ``K`` checked intrinsics, ``depth`` a DepthImage or None."""
         cache = {} if cache is None else cache
         resized, padded = self.working_size(rgb.shape[:2])
@@ -504,7 +504,7 @@ def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.n
     K = check_intrinsics(K)
     rgb = to_rgb8(image)
     depth = as_depth_image(depth, K, depth_scale_m, calibration, rgb.shape[:2])
-    cache: dict[tuple, NetworkInput] = {}
+    cache: dict[tuple, Any] = {}
     out: list[Detection] = []
     for p in predictors:
         if classes is not None and not set(p.class_names) & set(classes):

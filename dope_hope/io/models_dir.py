@@ -109,6 +109,23 @@ def is_named_value(text: str | os.PathLike) -> bool:
     return "=" in text and not Path(text).exists()
 
 
+def new_object_meshes(mesh_args: Sequence[str | os.PathLike], flag: str = "--mesh") -> dict[str, Path]:
+    """``[NAME=]PATH`` values naming objects no model holds yet (new objects for the
+    pretrained start) -> {class name: path}, in the order given: NAME, else the file's
+    (:func:`mesh_class_name`). ConfigError naming ``flag`` for two meshes of one name (names
+    compare case-insensitively)."""
+    out: dict[str, Path] = {}
+    for text in map(os.fspath, mesh_args):
+        name, path = text.split("=", 1) if is_named_value(text) else (mesh_class_name(text), text)
+        if not name:
+            raise ConfigError(f"{flag} {text}: name the object before '=' (--mesh NAME=PATH)")
+        same = next((n for n in out if n.lower() == name.lower()), None)
+        if same is not None:
+            raise ConfigError(f"{flag} {text}: {out[same]} is {same} too; name each object (--mesh NAME=PATH)")
+        out[name] = Path(path)
+    return out
+
+
 def parse_mesh_args(mesh_args: Sequence[str | os.PathLike], class_names: Sequence[str],
                     flag: str = "--mesh", in_order: bool = False) -> dict[str, Path]:
     """``[NAME=]PATH`` values of ``flag`` -> {class name: path} for the run's ``class_names``.
