@@ -294,6 +294,12 @@ def test_several_new_objects_share_one_network_pass(scene, monkeypatch, tmp_path
     assert {d.class_name for d in dets} >= {"MyBox"}
     with pytest.raises(ConfigError, match="--up-axis Milk=z: Milk is not an object of this run"):
         build_start_predictors({"MyBox": mesh}, up_axes={"Milk": "z"})
+    with pytest.raises(ConfigError, match="--classes Milk: Milk is not an object of this run"):
+        build_start_predictors({"MyBox": mesh}, classes=["Milk"])
+    with pytest.warns(UserWarning, match="no texture"):
+        (tube,) = build_start_predictors({"MyBox": mesh, "Tube": lying}, classes=["tube"], mesh_units="cm")
+    assert tube.class_name == "Tube"
+    tube.close()
 
     code, records, err = run_cli([frame_dir / "000000.png", "--mesh", mesh, "--mesh", f"Tube={lying}",
                                   "--up-axis", "Tube=z", "--mesh-units", "cm", "--out", tmp_path / "o", "--no-overlay"],

@@ -321,7 +321,7 @@ def _predictors(args: argparse.Namespace) -> list:
 
         return build_start_predictors(meshes, up_axes=args.up_axis, mesh_units=args.mesh_units, start=args.start,
                                       device=args.device, threads=args.threads, options=inference_settings(args),
-                                      note=_note)
+                                      classes=args.classes, note=_note)
     return build_predictors(_resolve_weights(args), args.mesh or [], mesh_units=args.mesh_units,
                             backend=args.backend, device=args.device, threads=args.threads,
                             options=inference_settings(args), classes=args.classes, note=_note)

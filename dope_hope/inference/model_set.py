@@ -166,7 +166,8 @@ def stream_tracker(predictors: Sequence[DopePredictor]) -> PoseTracker:
 def build_start_predictors(meshes: Mapping[str, str | Path], *, up_axes: str | Mapping[str, str] | None = None,
                            mesh_units: str | Mapping[str, str] | None = None, start: str | Path | None = None,
                            device: str = "cpu", threads: int | None = None, options: Mapping[str, Any] | None = None,
-                           note: Callable[[str], None] = lambda message: None) -> list:
+                           classes: Sequence[str] | None = None, note: Callable[[str], None] = lambda message: None
+                           ) -> list:
     """A :class:`~dope_hope.inference.mesh_start.MeshStartPredictor` per new object (the
     pretrained start as a detector of its mesh's cuboid, no training), in the order given;
     their network runs once per image and working size for all of them (the start's maps
@@ -177,8 +178,10 @@ def build_start_predictors(meshes: Mapping[str, str | Path], *, up_axes: str | M
         up_axes, mesh_units: one value for every mesh, or {NAME: value} ("" for the others;
             NAME one of ``meshes``): the vertical mesh axis (default y) and the file's unit.
         start, device, threads, options: as :class:`MeshStartPredictor` takes them.
+        classes: keep these of ``meshes`` (``--classes``; None: all).
 
-    Raises ConfigError for a NAME of ``up_axes`` or ``mesh_units`` that is not one of ``meshes``.
+    Raises ConfigError for a NAME of ``up_axes``, ``mesh_units`` or ``classes`` that is not one
+    of ``meshes``.
     """
     from dope_hope.geometry import value_for_object
     from dope_hope.inference.mesh_start import MeshStartPredictor
@@ -186,8 +189,11 @@ def build_start_predictors(meshes: Mapping[str, str | Path], *, up_axes: str | M
     names = [list(meshes)]
     up_axes = run_object_values(up_axes, names, "--up-axis")
     mesh_units = run_object_values(mesh_units, names, "--mesh-units")
+    kept = None if classes is None else {check_run_object(c, names[0], "--classes", c) for c in classes}
     predictors = []
     for name, path in meshes.items():
+        if kept is not None and name not in kept:
+            continue
         p = MeshStartPredictor(path, class_name=name, up_axis=value_for_object(up_axes, name) or "y", mesh_units=mesh_units,
                                start=start, device=device, threads=threads, options=options)
         note(p.describe())
