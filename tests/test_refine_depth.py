@@ -29,11 +29,19 @@ def test_units_calibration_and_invalid_pixels():
     (np.full((240, 320), 1000, np.uint16), (480, 640), "the image is 640x480"),
     (np.full((120, 160), 1000, np.uint16), None, "K implies"),
     (np.zeros((240, 320), np.uint16), None, "no valid pixel"),
+    (np.full((240, 320), 650.0, np.float32), None, "median is 650 m, beyond any depth camera's range (30 m): "
+                                                  "wrong units? float depth is read as metres"),  # mm as floats
 ])
 def test_unusable_depth_is_a_reason_not_an_exception(depth, image_hw, reason):
     d = DepthImage.from_raw(depth, K, image_hw=image_hw)
     assert not d.usable and reason in d.problem
     assert reason in d.problem_for(np.array([0.0, 0.0, 1.0]))
+
+
+def test_a_wrong_depth_scale_is_a_reason():
+    d = DepthImage.from_raw(np.full((240, 320), 650, np.uint16), K, depth_scale_m=1.0)  # mm read as m
+    assert not d.usable and "integer depth is read in units of 1 m" in d.problem
+    assert DepthImage.from_raw(np.full((240, 320), 25.0, np.float32), K).usable  # far, but a camera's range
 
 
 def test_pose_behind_the_camera_is_refused_per_pose():

@@ -29,8 +29,12 @@ bottles. :class:`MeshStartPredictor` runs it on a user's mesh with no training:
   network's and the appearance's, and candidates whose appearance scores under ``min_score``
   are dropped. A mesh of one colour is compared at the network's pose alone (its colour tells
   look-alikes, not poses); one with no texture and no colours gets no check, and a warning
-  (``appearance.enabled: false`` turns the check off for any mesh). -LS runs after it, on the pose it kept; with ICP, -LS and ICP run before it, on
-  the network's poses, and it compares their equivalent poses alone.
+  (``appearance.enabled: false`` turns the check off for any mesh). -LS runs after it, on
+  the pose it kept; with ICP, -LS and ICP run before it, on the network's poses, and it
+  compares their equivalent poses alone.
+- **Several new objects** (:func:`dope_hope.inference.model_set.build_start_predictors`): one
+  predictor each; the start's maps know no object, so :func:`predict_many` computes them once
+  per image and working size for all of them (its cache, keyed by :attr:`start_id`).
 - **Scales.** The start saw objects of its training crops' sizes; the network runs at each of
   ``scales`` times the model's working size (default :data:`DEFAULT_SCALES`), the detections
   are pooled, and of two whose 2D boxes overlap (IoU above :data:`DUPLICATE_IOU`) the
@@ -143,9 +147,9 @@ class MeshStartPredictor(DopePredictor):
             applies to the network's pose score; default 0: the appearance decides).
 
     Attributes beyond DopePredictor's: start (the weights' path), start_id (what tells one
-    start's maps from another's: the file and the device), up_axis, symmetries ((S, 3, 3) the cuboid's rotations,
-    mesh frame, identity first), symmetry_names, scales, appearance (the check or None),
-    warnings (the warnings issued while building).
+    start's maps from another's: the file and the device), up_axis, symmetries ((S, 3, 3)
+    the cuboid's rotations, mesh frame, identity first), symmetry_names, scales, appearance
+    (the check or None), warnings (the warnings issued while building).
     """
 
     def __init__(self, mesh: Any, class_name: str | None = None, up_axis: str = "y",
@@ -228,8 +232,8 @@ class MeshStartPredictor(DopePredictor):
                      cache: dict[tuple, Any] | None = None, on_maps=None,
                      classes: Collection[str] | None = None) -> list[Detection]:
         """The detections of every scale (the network's maps of each kept in ``cache`` for the
-        other new objects of the same start: :attr:`start_id`), checked against the appearance, duplicates merged,
-        then the turns of those kept and -LS on ``depth`` (module docstring); with ICP, -LS and
+        other new objects of the same start: :attr:`start_id`), checked against the
+        appearance, duplicates merged, then the turns of those kept and -LS on ``depth`` (module docstring); with ICP, -LS and
         ICP run first, on the network's poses, and the check compares their equivalent poses
         alone (the depth fit places the turn better than a small crop's texture: on the
         held-out Ketchup frames 38.8 % within 2 cm against 35.0 % with the turns first);

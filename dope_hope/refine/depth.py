@@ -20,6 +20,10 @@ from dope_hope.errors import ConfigError
 #: HOPE's RealSense depth scale correction. The HOPE dataset README says its depth images were
 #: already multiplied by it before registration: use it only for raw RealSense captures.
 HOPE_REALSENSE_DEPTH_CALIBRATION = 0.98042517
+#: A depth image whose median valid depth lies beyond this (metres) is in other units than it is
+#: read in (millimetres given as float metres, or a wrong depth scale): no RGB-D camera measures
+#: a scene that far.
+MAX_MEDIAN_DEPTH_M = 30.0
 
 
 def _positive_finite(value: float, name: str) -> float:
@@ -91,6 +95,12 @@ class DepthImage:
         m[~np.isfinite(m) | (m <= 0)] = np.nan
         if not np.isfinite(m).any():
             return cls(None, K, "depth has no valid pixel (all zero / NaN)")
+        median = float(np.nanmedian(m))
+        if median > MAX_MEDIAN_DEPTH_M:
+            read = ("float depth is read as metres" if not np.issubdtype(d.dtype, np.integer)
+                    else f"integer depth is read in units of {depth_scale_m:g} m")
+            return cls(None, K, f"depth's median is {median:.4g} m, beyond any depth camera's range "
+                                f"({MAX_MEDIAN_DEPTH_M:g} m): wrong units? {read}")
         return cls(m, K)
 
     def problem_for(self, t: np.ndarray) -> str:
