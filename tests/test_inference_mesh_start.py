@@ -202,6 +202,28 @@ def test_a_mesh_without_texture_or_of_one_colour_keeps_the_networks_pose(scene, 
             p.close()
 
 
+def test_the_working_sizes_are_the_new_object_section(scene, monkeypatch):
+    """``new_object.scales`` sets the sizes the start runs at (Python and --set alike): one
+    size, one forward pass."""
+    from dope_hope.io.dope_json import read_dope_json
+    from dope_hope.io.images import read_rgb
+
+    frame_dir, mesh, R_gt, t_gt = scene
+    perfect_start(monkeypatch, frame_dir, R_gt, t_gt, DEMO_SIZE_M)
+    calls = []
+    real = MeshStartPredictor.infer_maps
+    monkeypatch.setattr(MeshStartPredictor, "infer_maps", lambda self, x: calls.append(x) or real(self, x))
+    p = MeshStartPredictor(mesh, new_object={"scales": [1.0], "duplicate_iou": 0.3})
+    try:
+        assert p.scales == (1.0,) and p.options.new_object.duplicate_iou == 0.3
+        (det,) = p.predict(read_rgb(frame_dir / "000000.png"), read_dope_json(frame_dir / "000000.json").K)
+    finally:
+        p.close()
+    assert len(calls) == 1 and rotation_error_deg(det.R, R_gt) < 1.0
+    with pytest.raises(ConfigError, match="new_object.scales must be a non-empty list"):
+        MeshStartPredictor(mesh, new_object={"scales": []})
+
+
 def test_shipped_start_runs_in_python(scene):
     frame_dir, mesh, _, _ = scene
     from dope_hope.io.dope_json import read_dope_json
@@ -329,6 +351,8 @@ def test_cli_refuses_bad_input_with_one_line(scene, tmp_path, capsys):
     assert "appearance.spin_step_deg" in line and "(0, 180]" in line
     line = one_line_error(*run_cli([img, "--mesh", mesh, "--set", "appearance.enabled=1"], capsys)[::2])
     assert "appearance.enabled must be true or false" in line
+    line = one_line_error(*run_cli([img, "--mesh", mesh, "--set", "new_object.scales=[1.0,0]"], capsys)[::2])
+    assert "new_object.scales" in line and "> 0" in line
     line = one_line_error(*run_cli([img, "--mesh", tmp_path / "missing.obj", "--out", tmp_path / "o"], capsys)[::2])
     assert "missing.obj" in line
     with pytest.raises(ConfigError, match="class_name"):

@@ -36,15 +36,16 @@ bottles. :class:`MeshStartPredictor` runs it on a user's mesh with no training:
   predictor each; the start's maps know no object, so :func:`predict_many` computes them once
   per image and working size for all of them (its cache, keyed by :attr:`start_id`).
 - **Scales.** The start saw objects of its training crops' sizes; the network runs at each of
-  ``scales`` times the model's working size (default :data:`DEFAULT_SCALES`), the detections
-  are pooled, and of two whose 2D boxes overlap (IoU above :data:`DUPLICATE_IOU`) the
+  the ``new_object`` section's ``scales`` times the model's working size
+  (:class:`~dope_hope.inference.new_object_settings.NewObjectSettings`), the detections are
+  pooled, and of two whose 2D boxes overlap (IoU above its ``duplicate_iou``) the
   higher-scoring one is kept.
 """
 from __future__ import annotations
 
 import os
 import warnings
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Collection, Mapping
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -71,10 +72,6 @@ UP_AXES: dict[str, np.ndarray] = {
     "x": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
     "-x": np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
 }
-#: Network working sizes, as multiples of the model's own (its training input size).
-DEFAULT_SCALES = (1.0, 0.625)
-#: Two pooled detections whose 2D boxes overlap more than this are one object.
-DUPLICATE_IOU = 0.5
 #: An extent this many times the up axis's (and the third one's) suggests another up axis.
 LONGEST_AXIS_FACTOR = 1.3
 
@@ -139,12 +136,12 @@ class MeshStartPredictor(DopePredictor):
         mesh_units: units of the mesh file ("m", "cm", "mm"; default by suffix), or a mapping
             class name -> unit ("" for any other).
         start: the start's weights (default: the shipped ``pretrained_lite.pt``).
-        scales: network working sizes as multiples of the model's own.
         appearance: :class:`~dope_hope.inference.appearance.AppearanceSettings`, or a mapping of
             its fields read over the options' ``appearance`` section (True: that section as it
             is); ``False`` turns the check off (every cuboid of this shape is reported).
         device, threads, options, **overrides: as :class:`DopePredictor` (``min_score``
-            applies to the network's pose score; default 0: the appearance decides).
+            applies to the network's pose score; default 0: the appearance decides; the
+            ``new_object`` section sets the working sizes, e.g. ``new_object={"scales": (1.0,)}``).
 
     Attributes beyond DopePredictor's: start (the weights' path), start_id (what tells one
     start's maps from another's: the file and the device), up_axis, symmetries ((S, 3, 3)
@@ -154,7 +151,6 @@ class MeshStartPredictor(DopePredictor):
 
     def __init__(self, mesh: Any, class_name: str | None = None, up_axis: str = "y",
                  mesh_units: str | Mapping[str, str] | None = None, start: str | os.PathLike | None = None,
-                 scales: Sequence[float] = DEFAULT_SCALES,
                  appearance: AppearanceSettings | Mapping[str, Any] | bool = True,
                  device: str = "cpu", threads: int | None = None,
                  options: Mapping[str, Any] | None = None, **overrides: Any):
@@ -174,9 +170,6 @@ class MeshStartPredictor(DopePredictor):
         else:
             raise ConfigError(f"mesh: give the object's mesh file or a loaded trimesh.Trimesh, got {type(mesh).__name__}")
         A = up_axis_rotation(up_axis)
-        scales = tuple(float(s) for s in scales)
-        if not scales or not all(np.isfinite(s) and s > 0 for s in scales):
-            raise ConfigError(f"scales must be positive numbers, got {list(scales)}")
         size, center = mesh_cuboid(loaded)
         self.warnings: list[str] = []
         message = up_axis_warning(size, up_axis, source)
@@ -191,7 +184,7 @@ class MeshStartPredictor(DopePredictor):
         super().__init__(backend, mesh=loaded, options=given)
         self.objects[0].mesh_file, self.objects[0].mesh_units = mesh_file, units  # read here, not by the object
         self.up_axis = up_axis
-        self.scales = scales
+        self.scales = self.options.new_object.scales
         self.objects[0].set_pnp_frame(A)
         self.symmetries = cuboid_rotations(size)
         self.symmetry_names = tuple(describe_rotation(S) for S in self.symmetries[1:])
@@ -259,7 +252,7 @@ class MeshStartPredictor(DopePredictor):
         checked = [self.check_appearance(d, rgb, K, turns=False) for d in pooled]
         kept: list[Detection] = []
         for det in sorted((d for d in checked if d is not None), key=lambda d: -d.score):
-            if all(box_iou(det.bbox_2d, k.bbox_2d) <= DUPLICATE_IOU for k in kept):
+            if all(box_iou(det.bbox_2d, k.bbox_2d) <= self.options.new_object.duplicate_iou for k in kept):
                 kept.append(det)
         if icp_first:
             return kept  # -LS and ICP ran on the network's poses, before the check

@@ -24,6 +24,7 @@ from dope_hope.config import (
     section,
 )
 from dope_hope.inference.appearance import AppearanceSettings
+from dope_hope.inference.new_object_settings import NewObjectSettings
 from dope_hope.inference.pnp import PnpSettings
 from dope_hope.inference.pose_search import HypothesisSettings
 from dope_hope.inference.tracking_settings import TrackingSettings
@@ -49,7 +50,8 @@ class StageSettings:
     (:func:`~dope_hope.refine.line_search.depth_line_search`), icp_refine
     (:func:`~dope_hope.refine.icp.icp_refine`), tracking (the stream tracker), appearance
     (the appearance check of a new object's cuboid detector,
-    :class:`~dope_hope.inference.appearance.AppearanceCheck`)."""
+    :class:`~dope_hope.inference.appearance.AppearanceCheck`), new_object (that detector's
+    working sizes and merging, :class:`~dope_hope.inference.mesh_start.MeshStartPredictor`)."""
 
     decode: DecodeSettings
     pnp: PnpSettings
@@ -58,6 +60,7 @@ class StageSettings:
     icp_refine: IcpSettings
     tracking: TrackingSettings
     appearance: AppearanceSettings
+    new_object: NewObjectSettings
 
 
 @dataclass(frozen=True)
@@ -67,8 +70,8 @@ class InferenceOptions(SectionSettings):
     height: working height in px or None (the model's training scale). pose_search: one of
     :data:`POSE_SEARCHES`. min_score: detections below are dropped. ls_points / icp_points:
     model points for -LS / ICP. icp: ICP after -LS when depth is given. decode, pnp,
-    hypotheses, line_search, icp_refine, tracking, appearance: each stage's settings (a mapping given
-    for one is read over its defaults); :attr:`stages` holds them together.
+    hypotheses, line_search, icp_refine, tracking, appearance, new_object: each stage's settings (a
+    mapping given for one is read over its defaults); :attr:`stages` holds them together.
     """
 
     SECTION = ""
@@ -88,12 +91,13 @@ class InferenceOptions(SectionSettings):
     icp_refine: IcpSettings = section(IcpSettings)
     tracking: TrackingSettings = section(TrackingSettings)
     appearance: AppearanceSettings = section(AppearanceSettings)
+    new_object: NewObjectSettings = section(NewObjectSettings)
 
     @property
     def stages(self) -> StageSettings:
         """The stage sections as the settings objects their functions take."""
         return StageSettings(self.decode, self.pnp, self.hypotheses, self.line_search, self.icp_refine,
-                             self.tracking, self.appearance)
+                             self.tracking, self.appearance, self.new_object)
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any] | None = None,
