@@ -9,6 +9,10 @@ Meshes (:func:`mesh_files`): ``NAME=PATH`` per object, one per model file (same 
 one-object models), or one models folder for all (each object's mesh by
 :func:`dope_hope.io.models_dir.find_object_mesh`); their units one for all or per object
 (``mesh_units``: :func:`dope_hope.geometry.value_for_object`).
+
+New objects with no training (:func:`build_start_predictors`): a
+:class:`~dope_hope.inference.mesh_start.MeshStartPredictor` per mesh, their up axes and units
+one for all or per object.
 """
 from __future__ import annotations
 
@@ -17,7 +21,9 @@ from pathlib import Path
 from typing import Any
 
 from dope_hope.errors import ConfigError
+from dope_hope.geometry import value_for_object
 from dope_hope.inference import backends  # looked up at each call: a substituted open_backend counts
+from dope_hope.inference.mesh_start import MeshStartPredictor
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.inference.tracking import PoseTracker, object_symmetries
 from dope_hope.io.models_dir import check_run_object, find_object_mesh, is_named_value, parse_mesh_args
@@ -167,7 +173,7 @@ def build_start_predictors(meshes: Mapping[str, str | Path], *, up_axes: str | M
                            mesh_units: str | Mapping[str, str] | None = None, start: str | Path | None = None,
                            device: str = "cpu", threads: int | None = None, options: Mapping[str, Any] | None = None,
                            classes: Sequence[str] | None = None, note: Callable[[str], None] = lambda message: None
-                           ) -> list:
+                           ) -> list[MeshStartPredictor]:
     """A :class:`~dope_hope.inference.mesh_start.MeshStartPredictor` per new object (the
     pretrained start as a detector of its mesh's cuboid, no training), in the order given;
     their network runs once per image and working size for all of them (the start's maps
@@ -183,9 +189,6 @@ def build_start_predictors(meshes: Mapping[str, str | Path], *, up_axes: str | M
     Raises ConfigError for a NAME of ``up_axes``, ``mesh_units`` or ``classes`` that is not one
     of ``meshes``.
     """
-    from dope_hope.geometry import value_for_object
-    from dope_hope.inference.mesh_start import MeshStartPredictor
-
     names = [list(meshes)]
     up_axes = run_object_values(up_axes, names, "--up-axis")
     mesh_units = run_object_values(mesh_units, names, "--mesh-units")
