@@ -330,6 +330,14 @@ def test_several_new_objects_share_one_network_pass(scene, monkeypatch, tmp_path
     assert code == 0, err
     assert "MyBox: the pretrained start" in err and "Tube: the pretrained start" in err and "up axis z" in err
     assert any(r["class"] == "MyBox" for r in records)
+    folder = tmp_path / "meshes"  # one models folder: each mesh in it a new object, --classes keeps some
+    folder.mkdir()
+    shutil.copy(mesh, folder / "MyBox.obj")
+    shutil.copy(lying, folder / "Tube.obj")
+    code, records, err = run_cli([frame_dir / "000000.png", "--mesh", folder, "--mesh-units", "cm", "--classes", "MyBox",
+                                  "--out", tmp_path / "o2", "--no-overlay"], capsys)
+    assert code == 0, err
+    assert "MyBox: the pretrained start" in err and "Tube:" not in err and {r["class"] for r in records} == {"MyBox"}
 
 
 def test_cli_refuses_bad_input_with_one_line(scene, tmp_path, capsys):

@@ -87,3 +87,8 @@ def test_new_object_meshes_name_each_file(tmp_path):
         new_object_meshes([can, f"can={tmp_path / 'other.obj'}"])
     with pytest.raises(ConfigError, match="name the object before '='"):
         new_object_meshes([f"={can}"])
+    folder = tmp_path / "meshes"
+    (folder / "Can").mkdir(parents=True)
+    (folder / "Can" / "textured.obj").write_text("v 0 0 0\n")
+    (folder / "Bottle.ply").write_text("ply\n")
+    assert new_object_meshes([folder]) == {"Bottle": folder / "Bottle.ply", "Can": folder / "Can" / "textured.obj"}

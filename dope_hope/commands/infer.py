@@ -204,7 +204,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(same order; one-object models), or one models folder holding "
                              "obj_NNNNNN.ply / CLASS/textured.obj / CLASS.obj / CLASS.ply: its box and "
                              "surface replace the cuboid (default: the checkpoint's cuboid); without "
-                             "--weights, each file is a new object the pretrained start detects")
+                             "--weights, each file (or the folder's each mesh) is a new object the "
+                             "pretrained start detects")
     parser.add_argument("--mesh-units", action="append", default=[], metavar="[NAME=]UNIT",
                         help="unit of the mesh files, m, cm or mm (default: .obj cm, .ply mm); NAME=UNIT "
                              "for one object's mesh (repeat; objects of mixed units)")
@@ -279,14 +280,14 @@ def _warn(message: str) -> None:
 
 def _new_objects(args: argparse.Namespace) -> dict[str, Path] | None:
     """{class name: mesh file} of the new objects the pretrained start detects (no --weights,
-    every --mesh a [NAME=]FILE, unless it is the demo model's object alone), else None;
-    ConfigError for --up-axis / --start without that case."""
+    every --mesh a [NAME=]FILE or one models folder, unless they are the demo model's object
+    alone), else None; ConfigError for --up-axis / --start without that case."""
     from dope_hope.demo_object import DEMO_CLASS_NAME
     from dope_hope.io.models_dir import new_object_meshes
 
     meshes = list(args.mesh or [])
-    files = not args.weights and meshes and not any(m.is_dir() for m in meshes)
-    found = new_object_meshes(meshes) if files else None
+    new = not args.weights and meshes and (len(meshes) == 1 or not any(m.is_dir() for m in meshes))
+    found = new_object_meshes(meshes) if new else None
     demo = found is not None and [n.lower() for n in found] == [DEMO_CLASS_NAME.lower()] and default_weights()
     if found is not None and not demo:
         return found

@@ -112,8 +112,12 @@ def is_named_value(text: str | os.PathLike) -> bool:
 def new_object_meshes(mesh_args: Sequence[str | os.PathLike], flag: str = "--mesh") -> dict[str, Path]:
     """``[NAME=]PATH`` values naming objects no model holds yet (new objects for the
     pretrained start) -> {class name: path}, in the order given: NAME, else the file's
-    (:func:`mesh_class_name`). ConfigError naming ``flag`` for two meshes of one name (names
-    compare case-insensitively)."""
+    (:func:`mesh_class_name`); or one models folder: each object it holds
+    (:func:`objects_in_folder`, its mesh by :func:`find_object_mesh`). ConfigError naming
+    ``flag`` for two meshes of one name (names compare case-insensitively)."""
+    if len(mesh_args) == 1 and Path(mesh_args[0]).is_dir():
+        folder = Path(mesh_args[0])
+        return {name: find_object_mesh(name, folder) for name in objects_in_folder(folder)}
     out: dict[str, Path] = {}
     for text in map(os.fspath, mesh_args):
         name, path = text.split("=", 1) if is_named_value(text) else (mesh_class_name(text), text)
