@@ -20,7 +20,7 @@ from dope_hope import cli
 from dope_hope.demo_object import DEMO_SIZE_M, demo_object_mesh, write_demo_object
 from dope_hope.errors import ConfigError
 from dope_hope.geometry import cuboid_keypoints, project_points, rotation_error_deg
-from dope_hope.inference.mesh_start import UP_AXES, MeshStartPredictor, up_axis_rotation
+from dope_hope.inference.mesh_start import UP_AXES, MeshStartPredictor, size_warning, up_axis_rotation
 from dope_hope.inference.object_geometry import ObjectGeometry
 from dope_hope.inference.pnp import PnpSettings, solve_pnp
 from dope_hope.model.info import ObjectInfo
@@ -72,6 +72,16 @@ def test_up_axis_rotations_turn_the_axis_into_y():
         assert np.isclose(np.linalg.det(A), 1.0)
     with pytest.raises(ConfigError, match="up axis must be one of"):
         up_axis_rotation("w")
+
+
+def test_a_mesh_far_from_the_learned_sizes_gets_a_warning():
+    """A 15 cm bottle in millimetres read as centimetres is 1.5 m: the start learned objects
+    of 6.8-25 cm (the HOPE objects'); a size near them passes."""
+    line = size_warning(np.array([0.06, 1.5, 0.04]), "bottle.obj")
+    assert line.startswith("bottle.obj: the mesh's largest side is 150 cm") and "--mesh-units" in line
+    assert "0.6 cm" in size_warning(np.array([0.006, 0.004, 0.002]), "tiny.obj")
+    assert size_warning(np.array([0.06, 0.15, 0.04]), "bottle.obj") is None
+    assert size_warning(np.array([0.045, 0.04, 0.04]), "lemon.obj") is None  # the grocery lemon
 
 
 def test_pnp_frame_round_trip():

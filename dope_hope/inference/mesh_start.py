@@ -12,7 +12,8 @@ bottles. :class:`MeshStartPredictor` runs it on a user's mesh with no training:
   of x, y, z, -x, -y, -z): PnP then fits the same box turned so that this axis is y
   (:meth:`~dope_hope.inference.object_geometry.ObjectGeometry.set_pnp_frame`) and the pose
   comes back in the mesh frame. Nothing is guessed: a mesh whose longest extent lies on
-  another axis than the declared one gets a warning (:func:`up_axis_warning`).
+  another axis than the declared one gets a warning (:func:`up_axis_warning`), and so does
+  one far outside the sizes the start learned (:func:`size_warning`: a wrong unit, mostly).
 - **Pose ambiguity.** The start was trained with category-canonical labels
   (``procedural.canonical_labels``, :mod:`dope_hope.symmetry.labels`): for a symmetric shape
   it reports one of the symmetric-equivalent poses, and for a shape it never saw as such it
@@ -74,6 +75,10 @@ UP_AXES: dict[str, np.ndarray] = {
 }
 #: An extent this many times the up axis's (and the third one's) suggests another up axis.
 LONGEST_AXIS_FACTOR = 1.3
+#: A mesh whose largest side lies this many times beyond the HOPE objects' range (the sizes the
+#: start learned, each extent jittered by 25 %) gets a warning: a wrong unit, or an object the
+#: start cannot find.
+LEARNED_SIZE_FACTOR = 2.5
 
 
 def up_axis_rotation(up_axis: str) -> np.ndarray:
@@ -96,6 +101,21 @@ def up_axis_warning(size_m: np.ndarray, up_axis: str, source: str) -> str | None
     cm = ", ".join(f"{a} {v * 100:.1f}" for a, v in zip("xyz", size))
     return (f"{source}: the mesh is longest along {'xyz'[k]} ({cm} cm) but its up axis is taken as {up_axis}; "
             f"if {'xyz'[k]} is its vertical axis (a can's or bottle's axis), declare it (--up-axis {'xyz'[k]})")
+
+
+def size_warning(size_m: np.ndarray, source: str) -> str | None:
+    """A warning when the mesh's largest side lies more than :data:`LEARNED_SIZE_FACTOR` times
+    outside the largest sides of the HOPE objects (the start's training objects' sizes), else None."""
+    from dope_hope.catalog import HOPE_OBJECTS
+
+    largest = float(np.max(size_m))
+    sides = [max(o.size) for o in HOPE_OBJECTS]
+    lo, hi = min(sides), max(sides)
+    if lo / LEARNED_SIZE_FACTOR <= largest <= hi * LEARNED_SIZE_FACTOR:
+        return None
+    return (f"{source}: the mesh's largest side is {largest * 100:.3g} cm, the start learned objects of "
+            f"{lo * 100:.3g}-{hi * 100:.3g} cm: if the file is in another unit than it was read in, "
+            "give it (--mesh-units); an object of that size the start is unlikely to find")
 
 
 def start_backend(start: str | os.PathLike, class_name: str, size_m: np.ndarray, device: str = "cpu",
@@ -172,9 +192,9 @@ class MeshStartPredictor(DopePredictor):
         A = up_axis_rotation(up_axis)
         size, center = mesh_cuboid(loaded)
         self.warnings: list[str] = []
-        message = up_axis_warning(size, up_axis, source)
-        if message is not None:
-            self._warn(message)
+        for message in (size_warning(size, source), up_axis_warning(size, up_axis, source)):
+            if message is not None:
+                self._warn(message)
         self.start = Path(start or PRETRAINED_WEIGHTS)
         backend = start_backend(self.start, name, size, device, threads)
         stat = self.start.stat()
