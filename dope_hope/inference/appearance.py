@@ -63,8 +63,8 @@ class AppearanceSettings(SectionSettings):
     :class:`AppearanceCheck`).
 
     enabled: false turns the check off (every cuboid of the mesh's shape is reported, its pose
-    known up to the cuboid's symmetries). crop_px: side of the compared crops, pixels. margin: the crop's border around the
-    object's projected box, a fraction of its larger side. min_score: detections scoring
+    known up to the cuboid's symmetries). crop_px: side of the compared crops, pixels.
+    margin: the crop's border around the object's projected box, a fraction of its larger side. min_score: detections scoring
     lower are dropped (0 keeps all). ambiguity_margin: poses scoring within this of the best
     stay ambiguous. min_pixels: fewer silhouette pixels in the crop score 0. hist_bins:
     chromaticity histogram bins per axis. spin_step_deg: the turns about the up axis
@@ -205,6 +205,7 @@ class AppearanceCheck:
         settings: :class:`AppearanceSettings`.
         up: (3,) the mesh's up axis, about which the turns of ``settings.spin_step_deg`` are
             compared too (None: the symmetries alone).
+        surface: :func:`surface_appearance` of ``mesh`` where the caller has it (None: found here).
 
     Attributes: surface (:func:`surface_appearance`: "textured" or "uniform"; "none" is
     refused with a ConfigError); rotations (S', 3, 3): those compared
@@ -213,11 +214,12 @@ class AppearanceCheck:
     """
 
     def __init__(self, mesh, symmetries: np.ndarray, center: np.ndarray,
-                 settings: AppearanceSettings | None = None, up: np.ndarray | None = None):
+                 settings: AppearanceSettings | None = None, up: np.ndarray | None = None,
+                 surface: str | None = None):
         from dope_hope.render.textured import TexturedRenderer
 
         self.settings = settings or AppearanceSettings()
-        self.surface = surface_appearance(mesh)
+        self.surface = surface or surface_appearance(mesh)
         if self.surface == "none":
             raise ConfigError("the appearance check needs a mesh with a texture or colours; this one has neither")
         symmetries = np.asarray(symmetries, dtype=np.float64).reshape(-1, 3, 3)

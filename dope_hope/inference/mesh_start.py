@@ -75,9 +75,9 @@ UP_AXES: dict[str, np.ndarray] = {
 }
 #: An extent this many times the up axis's (and the third one's) suggests another up axis.
 LONGEST_AXIS_FACTOR = 1.3
-#: A mesh whose largest side lies this many times beyond the HOPE objects' range (the sizes the
-#: start learned, each extent jittered by 25 %) gets a warning: a wrong unit, or an object the
-#: start cannot find.
+#: A mesh whose largest side lies this many times beyond the HOPE objects' range of largest sides
+#: (the sizes the start learned, before its training frames' 25 % jitter of each extent) gets a
+#: warning: a wrong unit, or an object the start cannot find.
 LEARNED_SIZE_FACTOR = 2.5
 
 
@@ -212,15 +212,16 @@ class MeshStartPredictor(DopePredictor):
         settings = appearance if isinstance(appearance, AppearanceSettings) else self.options.appearance
         if isinstance(appearance, Mapping):
             settings = AppearanceSettings.from_mapping({**asdict(settings), **appearance})
-        if appearance is not False and settings.enabled:
-            if surface_appearance(loaded) == "none":
+        surface = surface_appearance(loaded) if appearance is not False and settings.enabled else None
+        if surface is not None:
+            if surface == "none":
                 self._warn(f"{source}: the mesh has no texture and no colours, so the appearance check is off: every "
                            "cuboid of its shape is reported (look-alikes too), its pose known up to the cuboid's "
                            "symmetries; a textured mesh (OBJ with its MTL and image, or a PLY with colours) tells them "
                            "apart")
             else:
                 up = A.T @ np.array([0.0, 1.0, 0.0])  # the start's y, in the mesh frame
-                self.appearance = AppearanceCheck(loaded, self.symmetries, center, settings, up=up)
+                self.appearance = AppearanceCheck(loaded, self.symmetries, center, settings, up=up, surface=surface)
 
     def _warn(self, message: str) -> None:
         """Keep ``message`` in :attr:`warnings` and issue it (a UserWarning)."""
@@ -246,8 +247,8 @@ class MeshStartPredictor(DopePredictor):
                      classes: Collection[str] | None = None) -> list[Detection]:
         """The detections of every scale (the network's maps of each kept in ``cache`` for the
         other new objects of the same start: :attr:`start_id`), checked against the
-        appearance, duplicates merged, then the turns of those kept and -LS on ``depth`` (module docstring); with ICP, -LS and
-        ICP run first, on the network's poses, and the check compares their equivalent poses
+        appearance, duplicates merged, then the turns of those kept and -LS on ``depth``
+        (module docstring); with ICP, -LS and ICP run first, on the network's poses, and the check compares their equivalent poses
         alone (the depth fit places the turn better than a small crop's texture: on the
         held-out Ketchup frames 38.8 % within 2 cm against 35.0 % with the turns first);
         ``on_maps`` sees the maps of the first scale."""
@@ -303,9 +304,10 @@ class MeshStartPredictor(DopePredictor):
             return None
         rotations = self.appearance.rotations
         best = rotations[res.best]
-        det.pose_ambiguity = tuple(describe_rotation(best.T @ rotations[k]) for k in res.ambiguous)
         if self.appearance.surface == "uniform":  # one colour: the pose stays the network's, nothing resolved
             det.pose_ambiguity = self.symmetry_names
+        else:
+            det.pose_ambiguity = tuple(describe_rotation(best.T @ rotations[k]) for k in res.ambiguous)
         det.appearance_score = res.score
         det.score = float(np.sqrt(max(det.network_score, 0.0) * res.score))
         if res.best != 0:  # corner k of R S projects where corner perm[k] of R does

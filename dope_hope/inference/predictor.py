@@ -264,7 +264,8 @@ class DopePredictor:
                      classes: Collection[str] | None = None) -> list[Detection]:
         """One image's detections (:func:`predict_many`'s step per predictor): the network input
         of this working size from ``cache`` (filled when missing, shared by predictors of equal
-        input; a subclass may keep more there, as the new objects of one start keep its maps), the maps (passed to ``on_maps``), then :meth:`detections_from_maps`.
+        input; a subclass may keep more there, as the new objects of one start keep its maps),
+        the maps (passed to ``on_maps``), then :meth:`detections_from_maps`.
         ``rgb`` (H, W, 3) uint8, ``K`` checked intrinsics, ``depth`` a DepthImage or None."""
         cache = {} if cache is None else cache
         resized, padded = self.working_size(rgb.shape[:2])
