@@ -24,6 +24,9 @@ HOPE_REALSENSE_DEPTH_CALIBRATION = 0.98042517
 #: read in (millimetres given as float metres, or a wrong depth scale): no RGB-D camera measures
 #: a scene that far.
 MAX_MEDIAN_DEPTH_M = 30.0
+#: The median of that check is taken over every this-many-th row and column (a 720p frame's
+#: full median costs ~10 ms, this one ~0.1 ms; the whole image where that sample holds no depth).
+_UNIT_CHECK_STRIDE = 8
 
 
 def _positive_finite(value: float, name: str) -> float:
@@ -95,7 +98,9 @@ class DepthImage:
         m[~np.isfinite(m) | (m <= 0)] = np.nan
         if not np.isfinite(m).any():
             return cls(None, K, "depth has no valid pixel (all zero / NaN)")
-        median = float(np.nanmedian(m))
+        sample = m[::_UNIT_CHECK_STRIDE, ::_UNIT_CHECK_STRIDE]  # the unit check needs no more (per frame)
+        sample = sample[np.isfinite(sample)]
+        median = float(np.median(sample if len(sample) else m[np.isfinite(m)]))
         if median > MAX_MEDIAN_DEPTH_M:
             read = ("float depth is read as metres" if not np.issubdtype(d.dtype, np.integer)
                     else f"integer depth is read in units of {depth_scale_m:g} m")
