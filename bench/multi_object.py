@@ -148,11 +148,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def per_object_recall(eval_dir: Path, method: str) -> dict[str, float]:
-    """{object: recall at 2 cm} from `evaluate`'s per-object CSV of ``method``."""
+    """{object: recall at 2 cm} from `evaluate`'s per-object CSV of ``method`` (an object with
+    no held-out instance, whose recall is empty there, left out: a --quick run's few frames)."""
     import csv
 
     with open(eval_dir / f"per_object_{method}.csv", newline="") as f:
-        return {row["object"]: float(row["recall_2cm"]) for row in csv.DictReader(f) if row["row"] == "object"}
+        return {row["object"]: float(row["recall_2cm"]) for row in csv.DictReader(f)
+                if row["row"] == "object" and row["recall_2cm"]}
 
 
 def shelf_losses(out: Path, meshes: dict[str, Path], units: dict[str, str]) -> dict[str, dict[str, dict]]:

@@ -34,11 +34,20 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from e2e_accuracy import REPO, SCENE, TEST_SEED, check_settings, percent_text, shared_defaults  # noqa: E402
+from e2e_accuracy import (  # noqa: E402
+    REPO,
+    SCENE,
+    TEST_SEED,
+    check_settings,
+    percent_text,
+    shared_data_dir,
+    shared_defaults,
+)
 from multi_object import OBJECTS, TEST_SCENE, per_object_recall  # noqa: E402
 
 from dope_hope.assets import PRETRAINED_WEIGHTS  # noqa: E402
 from dope_hope.devices import cpu_line  # noqa: E402
+from dope_hope.io.meshes import DEFAULT_UNITS  # noqa: E402
 from dope_hope.staged_run import CommandStages  # noqa: E402
 
 #: The targets: recall at 2 cm and 10 cm MeanSSD with -LS.
@@ -68,6 +77,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.shelf and args.mesh is not None:
         p.error("--mesh: --shelf measures the six objects of bench/multi_object.py")
     shared_defaults(p, args)
+    if args.mesh.suffix.lower() not in DEFAULT_UNITS:
+        p.error(f"--mesh {args.mesh}: an .obj (cm) or .ply (mm) file")
     for flag, path in (("--mesh", args.mesh), ("--start", args.start), ("--baseline", args.baseline)):
         if path is not None and not path.is_file():
             p.error(f"{flag} {path}: not a file")
@@ -75,10 +86,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def objects_of(args: argparse.Namespace) -> dict[str, tuple[Path, str, str]]:
-    """{class: (mesh, unit, up axis)}: the one object, or with --shelf the six of bench/multi_object.py."""
+    """{class: (mesh, unit, up axis)}: the one object (its file's default unit), or with --shelf
+    the six of bench/multi_object.py."""
     if not args.shelf:
-        return {args.object: (args.mesh.resolve(), "cm" if args.mesh.suffix.lower() == ".obj" else "mm", "y")}
-    shared = args.mesh.parent.parent  # shared_defaults: the shared data's hope_ketchup/textured.obj
+        return {args.object: (args.mesh.resolve(), DEFAULT_UNITS[args.mesh.suffix.lower()], "y")}
+    shared = shared_data_dir()
     return {n: ((shared / rel).resolve(), unit, SHELF_UP_AXES[n]) for n, (rel, unit) in OBJECTS.items()}
 
 
