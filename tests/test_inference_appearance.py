@@ -15,6 +15,7 @@ from dope_hope.inference.appearance import (
     AppearanceSettings,
     appearance_similarity,
     candidate_rotations,
+    feature_similarity,
     surface_appearance,
 )
 from dope_hope.render.textured import TexturedRenderer
@@ -84,6 +85,63 @@ def test_the_texture_picks_the_true_equivalent_pose(scene):
             assert res.ambiguous == ()  # the demo box's faces all differ: nothing left open
     finally:
         check.close()
+
+
+@pytest.fixture(scope="module")
+def start_features():
+    """The shipped start's first layers (what MeshStartPredictor gives its check)."""
+    from dope_hope.assets import PRETRAINED_WEIGHTS
+    from dope_hope.inference.mesh_start import start_backend
+
+    return start_backend(PRETRAINED_WEIGHTS, "Box", np.array([0.1, 0.1, 0.1])).texture_features
+
+
+def test_feature_similarity_is_the_mean_cosine_inside_the_silhouette():
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(8, 4, 4))
+    whole = np.ones((16, 16), bool)
+    assert feature_similarity(a, 3.0 * a, whole) == pytest.approx(1.0)  # the length does not count
+    b = a.copy()
+    b[:, :, :2] *= -1.0  # the cells of the two left columns opposite
+    assert feature_similarity(a, b, whole) == pytest.approx(0.0, abs=1e-12)
+    left = np.zeros((16, 16), bool)
+    left[:, :9] = True  # after the one-pixel erosion, the cells of columns 0-1 alone are whole
+    assert feature_similarity(a, b, left) == pytest.approx(-1.0)
+    corner = np.zeros((16, 16), bool)
+    corner[:6, :6] = True  # one whole cell: too few to judge
+    assert feature_similarity(a, a, corner) == 0.0
+
+
+def test_the_starts_first_layers_choose_the_pose_and_the_colour_score_the_object(scene, start_features):
+    """With the network's features the chosen pose is theirs (the true one, from a pose turned
+    60° about the up axis and from each equivalent pose); how much the object looks like the
+    mesh stays the colour score's best; ``texture_features: false`` gives the choice back to the
+    colour score."""
+    image, mesh = scene
+    up = np.array([0.0, 1.0, 0.0])
+    turn = Rotation.from_rotvec(np.radians(60.0) * up).as_matrix()
+    rotations = cuboid_rotations(np.ptp(mesh.vertices, axis=0))
+    check = AppearanceCheck(mesh, rotations, np.zeros(3), AppearanceSettings(spin_step_deg=30.0), up=up,
+                            features=start_features)
+    plain = AppearanceCheck(mesh, rotations, np.zeros(3), AppearanceSettings(spin_step_deg=30.0, texture_features=False),
+                            up=up, features=start_features)
+    try:
+        assert check.features is not None and plain.features is None
+        res = check.compare(image, K, R_TRUE @ turn.T, T_TRUE)
+        for k, S in enumerate(rotations):
+            each = check.compare(image, K, R_TRUE @ S.T, T_TRUE, turns=False)
+            assert each.best == k and len(each.pose_scores) == len(rotations)
+        colour = plain.compare(image, K, R_TRUE @ turn.T, T_TRUE)
+        look = check.compare(image, K, R_LOOK, T_LOOK)
+    finally:
+        check.close()
+        plain.close()
+    np.testing.assert_allclose(res.R, R_TRUE, atol=1e-9)
+    assert res.pose_scores[res.best] > 0.8 and np.sort(res.pose_scores)[-2] < res.pose_scores[res.best] - 0.03
+    assert res.score == res.scores.max() > 0.8  # the object check: the colour score, as without features
+    np.testing.assert_array_equal(colour.pose_scores, colour.scores)
+    np.testing.assert_allclose(colour.R, R_TRUE, atol=1e-9)
+    assert res.score > look.score + 0.25  # the look-alike is still told by its colours
 
 
 def test_candidate_rotations_are_the_symmetries_then_the_turns():

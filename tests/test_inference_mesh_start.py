@@ -6,6 +6,7 @@ itself runs where a test checks that the path runs. CLI and Python alike.
 """
 from __future__ import annotations
 
+import functools
 import json
 import shutil
 from pathlib import Path
@@ -47,15 +48,27 @@ def scene(tmp_path_factory):
     return root / "data", mesh, gt.R, gt.t
 
 
+@functools.cache
+def shipped_start_features():
+    """The shipped start's first layers (what the appearance check chooses the pose by)."""
+    from dope_hope.assets import PRETRAINED_WEIGHTS
+    from dope_hope.inference.mesh_start import start_backend
+
+    return start_backend(PRETRAINED_WEIGHTS, "Box", np.asarray(DEMO_SIZE_M)).texture_features
+
+
 def perfect_start(monkeypatch, frame_dir: Path, R_start: np.ndarray, t: np.ndarray, size_start) -> None:
-    """The start's maps become the perfect ones of one object at (R_start, t) in its frame."""
+    """The start's maps become the perfect ones of one object at (R_start, t) in its frame;
+    its first layers stay the shipped start's."""
     from dope_hope.io.dope_json import read_dope_json
 
     frame = read_dope_json(frame_dir / "000000.json")
+    features = shipped_start_features()
 
     def fake(start, class_name, size_m, device="cpu", threads=None):
         b = TargetsBackend(class_name, np.abs(size_start), [(R_start, t)], frame.K, (frame.height, frame.width))
         b.info = SimpleNamespace(objects=(ObjectInfo(class_name, tuple(size_m)),), min_score=None)  # mesh frame
+        b.texture_features = features
         return b
 
     monkeypatch.setattr("dope_hope.inference.mesh_start.start_backend", fake)

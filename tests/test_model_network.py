@@ -129,6 +129,22 @@ def test_lite_shapes_and_size():
     assert coarse.stride == 8 and b.shape == (1, 9, 12, 8) and a.shape == (1, 16, 12, 8)
 
 
+def test_texture_features_are_the_first_layers_at_stride_4(dr50):
+    """What the appearance check compares renders by: the lite stem and first downsampling,
+    VGG19's first two blocks; the same numbers as running those layers by hand."""
+    x = torch.randn(2, 3, 64, 48)
+    lite = build_model(load_config("lite")).eval()
+    with torch.no_grad():
+        f_lite, f_dope = lite.texture_features(x), dr50.texture_features(x)
+        by_hand = lite.lite.down4(lite.lite.stem(x))
+        vgg = dr50.vgg[4](dr50.vgg[3](dr50.vgg[2](dr50.vgg[1](dr50.vgg[0](x)))))
+        vgg = dr50.vgg[9](dr50.vgg[8](dr50.vgg[7](dr50.vgg[6](dr50.vgg[5](vgg)))))
+    assert f_lite.shape == (2, 48, 16, 12)  # twice the encoder width (24)
+    assert f_dope.shape == (2, 128, 16, 12)
+    torch.testing.assert_close(f_lite, by_hand)
+    torch.testing.assert_close(f_dope, vgg)
+
+
 def test_build_model_rejects_bad_configs():
     with pytest.raises(ConfigError, match="arch"):
         build_model({"arch": "resnet"})

@@ -17,6 +17,7 @@ import torch
 from dope_hope.errors import ConfigError, ModelFileError
 from dope_hope.model.checkpoint import load_model
 from dope_hope.model.info import ModelInfo, ObjectInfo
+from dope_hope.model.network import normalize_batch
 from dope_hope.model.onnx_graph import require_model_file
 
 BACKENDS = ("auto", "torch", "onnx")
@@ -98,6 +99,13 @@ class TorchBackend:
         with torch.inference_mode():
             belief, affinity = self.model(x)[-1]
         return belief.float().cpu().numpy(), affinity.float().cpu().numpy()
+
+    def texture_features(self, images: np.ndarray) -> np.ndarray:
+        """(N, H, W, 3) uint8 RGB -> (N, C, H/4, W/4) float32: the network's first layers
+        (:meth:`~dope_hope.model.network.DopeNetwork.texture_features`), normalized as its input."""
+        x = normalize_batch(torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2), self.mean, self.std)
+        with torch.inference_mode():
+            return self.model.texture_features(x.to(self.device)).float().cpu().numpy()
 
 
 def model_min_score(backend: MapBackend) -> float | None:

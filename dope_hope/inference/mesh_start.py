@@ -25,7 +25,8 @@ bottles. :class:`MeshStartPredictor` runs it on a user's mesh with no training:
   object of that shape. Each candidate is compared with the textured mesh rendered at each
   equivalent pose and at each turn about the up axis (``appearance.spin_step_deg``, 30° by
   default: the start learned cans and bottles without a front, so it places the up axis of an
-  object it never saw far better than the turn about it); the best pose is kept (which resolves
+  object it never saw far better than the turn about it); the pose the start's own first
+  layers find most like the image is kept (``appearance.texture_features``; which resolves
   the ambiguity when the texture is not symmetric), the score becomes the geometric mean of the
   network's and the appearance's, and candidates whose appearance scores under ``min_score``
   are dropped. A mesh of one colour is compared at the network's pose alone (its colour tells
@@ -221,7 +222,8 @@ class MeshStartPredictor(DopePredictor):
                            "apart")
             else:
                 up = A.T @ np.array([0.0, 1.0, 0.0])  # the start's y, in the mesh frame
-                self.appearance = AppearanceCheck(loaded, self.symmetries, center, settings, up=up, surface=surface)
+                self.appearance = AppearanceCheck(loaded, self.symmetries, center, settings, up=up, surface=surface,
+                                                  features=backend.texture_features)
 
     def _warn(self, message: str) -> None:
         """Keep ``message`` in :attr:`warnings` and issue it (a UserWarning)."""

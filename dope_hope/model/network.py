@@ -53,6 +53,8 @@ NUM_MAPS = NUM_BELIEF + NUM_AFFINITY
 FEATURE_CHANNELS = 128
 #: Number of ``vgg19().features`` layers kept: through conv4_2 + ReLU (index 22), stride 8.
 VGG_LAYERS_KEPT = 23
+#: VGG19's layers up to its second pooling (stride 4): conv1_1 ... conv2_2 and the two pools.
+VGG_STRIDE4_LAYERS = 10
 #: Head name -> map stride (image pixels per map cell).
 HEAD_STRIDES = {50: 8, 400: 1}
 
@@ -224,6 +226,15 @@ class DopeNetwork(nn.Module):
             self.lite.reset_output_layers()
         else:
             raise ConfigError(f"model.arch must be 'dope' or 'lite', got {arch!r}")
+
+    def texture_features(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 3, H, W) normalized RGB -> (B, C, H/4, W/4): the trunk's first layers (lite: its
+        stem and first downsampling, C = 2 x width; dope: VGG19's first two blocks, C = 128),
+        local texture and edges before any keypoint is decided (the appearance check compares
+        renders with the image by them: :mod:`dope_hope.inference.appearance`)."""
+        if self.arch == "lite":
+            return self.lite.down4(self.lite.stem(x))
+        return self.vgg[:VGG_STRIDE4_LAYERS](x)
 
     def forward(self, x: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """(B, 3, H, W) normalized RGB -> [(belief (B, 9N, h, w), affinity (B, 16N, h, w))] per stage."""
