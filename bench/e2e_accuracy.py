@@ -21,10 +21,12 @@ commands are printed and logged to OUT/logs/):
 Both sets share the target ranges of :data:`TARGET` (one or two instances at 0.45-1.0 m, as
 in the HOPE scenes' table-top views) over configs/synth.yaml's distractors, occluders and
 lights; the test set is the same for both recipes (:data:`SCENE`: plain, photo backgrounds).
-4. ``infer-ls`` / ``infer`` / ``infer-icp``: `dope-hope infer TEST --depth auto` (with the
-   depth line search, "-LS"), the same without `--depth` (no -LS), and with `--depth auto
-   --icp` (-LS, then ICP against the depth: rotation too), with the mesh for the points.
-5. ``eval-meanssd`` / ``eval-addh``: `dope-hope evaluate` of the three prediction files: recall at
+4. ``infer-ls`` / ``infer`` / ``infer-icp`` / ``infer-turns``: `dope-hope infer TEST --depth
+   auto` (with the depth line search, "-LS"), the same without `--depth` (no -LS), with
+   `--depth auto --icp` (-LS, then ICP against the depth: rotation too), and with `--depth auto
+   --set appearance.trained_turns=true` (each pose turned about the bottle's axis where its
+   textured render says so, then -LS: ``dope_hope.inference.turns``), with the mesh for the points.
+5. ``eval-meanssd`` / ``eval-addh``: `dope-hope evaluate` of the four prediction files: recall at
    2 cm and 10 cm and the median error of the true positives (at 10 cm) for MeanSSD and ADD-H
    (500 model points, the bottle category's symmetries), and the BOP19 AR_MSSD / AR_MSPD /
    AR_VSD.
@@ -356,10 +358,14 @@ def run_stages(args: argparse.Namespace, out: Path, settings: dict) -> tuple[Com
     pipe.stage("infer-ls", infer + ["--depth", "auto", "--out", out / "infer_ls"])
     pipe.stage("infer", infer + ["--out", out / "infer"])
     name = Path(args.config).stem.replace("_", "-")
-    methods = {f"{name} -LS": f"{name}-LS", f"{name} none": name, f"{name} -LS+ICP": f"{name}-LS-ICP"}
+    methods = {f"{name} -LS": f"{name}-LS", f"{name} none": name, f"{name} -LS+ICP": f"{name}-LS-ICP",
+               f"{name} turns+-LS": f"{name}-turns-LS"}
     pipe.stage("infer-icp", infer + ["--depth", "auto", "--icp", "--out", out / "infer_icp"])
+    pipe.stage("infer-turns", infer + ["--depth", "auto", "--set", "appearance.trained_turns=true",
+                                       "--out", out / "infer_turns"])
     evaluate = ["evaluate", "-p", out / "infer_ls" / "predictions.jsonl", out / "infer" / "predictions.jsonl",
-                out / "infer_icp" / "predictions.jsonl", "--method", *methods.values(), "-d", test_dir,
+                out / "infer_icp" / "predictions.jsonl", out / "infer_turns" / "predictions.jsonl",
+                "--method", *methods.values(), "-d", test_dir,
                 "--mesh", f"{args.object}={mesh}", "--no-progress"]
     pipe.stage("eval-meanssd", evaluate + ["--metric", "meanssd,addh", "--bop-ar", "--out", out / "eval_meanssd"])
     pipe.stage("eval-addh", evaluate + ["--metric", "addh,meanssd", "--no-bop-ar", "--out", out / "eval_addh"])

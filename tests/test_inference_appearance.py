@@ -91,7 +91,7 @@ def test_the_texture_picks_the_true_equivalent_pose(scene):
 def start_features():
     """The shipped start's first layers (what MeshStartPredictor gives its check)."""
     from dope_hope.assets import PRETRAINED_WEIGHTS
-    from dope_hope.inference.mesh_start import start_backend
+    from dope_hope.inference.backends import start_backend
 
     return start_backend(PRETRAINED_WEIGHTS, "Box", np.array([0.1, 0.1, 0.1])).texture_features
 

@@ -52,7 +52,7 @@ def scene(tmp_path_factory):
 def shipped_start_features():
     """The shipped start's first layers (what the appearance check chooses the pose by)."""
     from dope_hope.assets import PRETRAINED_WEIGHTS
-    from dope_hope.inference.mesh_start import start_backend
+    from dope_hope.inference.backends import start_backend
 
     return start_backend(PRETRAINED_WEIGHTS, "Box", np.asarray(DEMO_SIZE_M)).texture_features
 

@@ -5,7 +5,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dope_hope.geometry import cuboid_keypoints, project_points
-from dope_hope.symmetry.cuboid import corner_permutation, cuboid_rotations, describe_rotation
+from dope_hope.symmetry.cuboid import corner_permutation, cuboid_rotations, describe_rotation, long_axis
 
 
 def test_group_sizes_follow_the_box_shape():
@@ -27,3 +27,12 @@ def test_corner_permutation_relabels_the_projected_keypoints():
     uv = project_points(box, K, R, t)
     for S in cuboid_rotations(size):
         np.testing.assert_allclose(project_points(box, K, R @ S, t), uv[corner_permutation(S)], atol=1e-9)
+
+
+def test_long_axis_is_the_one_much_longer_than_both_others():
+    assert long_axis(np.array([0.065, 0.149, 0.043])) == 1  # the Ketchup bottle: y
+    assert long_axis(np.array([0.05, 0.05, 0.08])) == 2  # a can: z
+    assert long_axis(np.array([0.1227, 0.1672, 0.0402])) == 1  # the demo box: 1.36x
+    assert long_axis(np.array([0.06, 0.05, 0.06])) is None  # a loaf: no axis stands out
+    assert long_axis(np.array([0.10, 0.12, 0.04])) is None  # 1.2x: not long enough
+    assert long_axis(np.array([0.10, 0.12, 0.04]), factor=1.1) == 1

@@ -80,12 +80,15 @@ class AppearanceSettings(SectionSettings):
     chromaticity histogram bins per axis. spin_step_deg: the turns about the up axis
     compared besides the cuboid's symmetries, degrees apart (0: the symmetries alone).
     texture_features: the pose is the one the network's first layers find most like the image
-    (false: the one the colour score prefers)."""
+    (false: the one the colour score prefers). trained_turns: a trained model's poses are
+    turned too, about each textured object's long axis (:mod:`dope_hope.inference.turns`; off:
+    a render per turn and detection)."""
 
     SECTION = "appearance"
     RULES = {"enabled": boolean, "crop_px": at_least(8), "margin": nonnegative_float, "min_score": finite_float,
              "ambiguity_margin": nonnegative_float, "min_pixels": at_least(1), "hist_bins": at_least(1),
-             "spin_step_deg": _spin_step, "texture_features": boolean}
+             "spin_step_deg": _spin_step, "texture_features": boolean,
+             "trained_turns": boolean}
 
     enabled: bool = True
     crop_px: int = 64
@@ -96,14 +99,16 @@ class AppearanceSettings(SectionSettings):
     hist_bins: int = 8
     spin_step_deg: float = 30.0
     texture_features: bool = True
+    trained_turns: bool = False
 
 
-def candidate_rotations(symmetries: np.ndarray, up: np.ndarray | None, spin_step_deg: float) -> np.ndarray:
+def candidate_rotations(symmetries: np.ndarray, up: np.ndarray | None, spin_step_deg: float,
+                        upside_down: bool = True) -> np.ndarray:
     """(S', 3, 3) the rotations the check compares, mesh frame, about the cuboid centre:
     ``symmetries`` (S, 3, 3) first (identity first, as given), then the turns about the unit
     axis ``up`` (3,) by every multiple of ``spin_step_deg`` below 360°, each also after a half
-    turn about an axis across ``up`` (upside down), those equal to an earlier one left out.
-    ``up`` None or a step of 0: the symmetries alone."""
+    turn about an axis across ``up`` (upside down; ``upside_down`` False: not), those equal to
+    an earlier one left out. ``up`` None or a step of 0: the symmetries alone."""
     from scipy.spatial.transform import Rotation
 
     out = [np.asarray(S, dtype=np.float64) for S in np.asarray(symmetries, dtype=np.float64).reshape(-1, 3, 3)]
@@ -116,7 +121,7 @@ def candidate_rotations(symmetries: np.ndarray, up: np.ndarray | None, spin_step
     if np.linalg.norm(across) < 1e-9:
         across = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
     flip = Rotation.from_rotvec(np.pi * across / np.linalg.norm(across)).as_matrix()
-    for upside in (np.eye(3), flip):
+    for upside in (np.eye(3), flip) if upside_down else (np.eye(3),):
         for angle in np.arange(0.0, 360.0 - 1e-9, spin_step_deg):
             S = upside @ Rotation.from_rotvec(np.radians(angle) * up).as_matrix()
             if all(np.linalg.norm(S - T) > _SAME_ROTATION for T in out):
@@ -244,6 +249,7 @@ class AppearanceCheck:
             (:meth:`~dope_hope.inference.backends.TorchBackend.texture_features`); they choose
             the pose where ``settings.texture_features`` and the surface is textured (None: the
             colour score chooses).
+        upside_down: compare the turns upside down too (:func:`candidate_rotations`).
 
     Attributes: surface (:func:`surface_appearance`: "textured" or "uniform"; "none" is
     refused with a ConfigError); rotations (S', 3, 3): those compared
@@ -253,7 +259,8 @@ class AppearanceCheck:
 
     def __init__(self, mesh, symmetries: np.ndarray, center: np.ndarray,
                  settings: AppearanceSettings | None = None, up: np.ndarray | None = None,
-                 surface: str | None = None, features: Callable[[np.ndarray], np.ndarray] | None = None):
+                 surface: str | None = None, features: Callable[[np.ndarray], np.ndarray] | None = None,
+                 upside_down: bool = True):
         from dope_hope.render.textured import TexturedRenderer
 
         self.settings = settings or AppearanceSettings()
@@ -265,7 +272,7 @@ class AppearanceCheck:
             symmetries, up = symmetries[:1], None
         self.n_symmetries = len(symmetries)
         self.features = features if self.settings.texture_features and self.surface == "textured" else None
-        self.rotations = candidate_rotations(symmetries, up, self.settings.spin_step_deg)
+        self.rotations = candidate_rotations(symmetries, up, self.settings.spin_step_deg, upside_down)
         self.center = np.asarray(center, dtype=np.float64).reshape(3)
         self.hull = np.asarray(mesh.convex_hull.vertices, dtype=np.float64)
         n = self.settings.crop_px

@@ -15,9 +15,9 @@ import numpy as np
 import torch
 
 from dope_hope.errors import ConfigError, ModelFileError
-from dope_hope.model.checkpoint import load_model
+from dope_hope.model.checkpoint import load_checkpoint, load_model
 from dope_hope.model.info import ModelInfo, ObjectInfo
-from dope_hope.model.network import normalize_batch
+from dope_hope.model.network import build_model, normalize_batch
 from dope_hope.model.onnx_graph import require_model_file
 
 BACKENDS = ("auto", "torch", "onnx")
@@ -156,3 +156,26 @@ def open_backend(weights: str | os.PathLike, backend: str = "auto", device: str 
 
         torch.set_num_threads(int(threads))
     return TorchBackend.load(path, device=device)
+
+
+def start_backend(start: str | os.PathLike, class_name: str, size_m: np.ndarray, device: str = "cpu",
+                  threads: int | None = None) -> TorchBackend:
+    """The one-object checkpoint ``start`` (the shipped pretrained start, or any one-object
+    dope-hope checkpoint) as a backend detecting ``class_name`` with cuboid ``size_m`` (3,)
+    metres, mesh frame (what :class:`~dope_hope.inference.mesh_start.MeshStartPredictor` runs,
+    and whose first layers a trained ONNX model's turns compare by). ModelFileError for a file
+    of several objects or a legacy frame."""
+    if threads:
+        torch.set_num_threads(int(threads))
+    ckpt = dict(load_checkpoint(start))
+    info = ModelInfo.from_checkpoint(ckpt, start)
+    if info.num_objects != 1 or info.legacy:
+        raise ModelFileError(start, f"a start must be a one-object mesh-frame model; this one holds "
+                                    f"{info.num_objects} object(s) in the {info.frame} frame")
+    ckpt.pop("source", None)
+    ckpt.pop("objects", None)
+    ckpt.pop("min_score", None)  # the start's threshold is no threshold of this object
+    ckpt["object"] = {"class_name": str(class_name), "size_m": [float(v) for v in size_m], "frame": "mesh"}
+    model = build_model(ckpt["config"], load_backbone=False)
+    model.load_state_dict(ckpt["model"], strict=True)
+    return TorchBackend(model.eval(), ckpt, device=device, source=start)

@@ -54,16 +54,17 @@ from typing import Any
 
 import numpy as np
 
-from dope_hope.errors import ConfigError, ModelFileError
+from dope_hope.errors import ConfigError
 from dope_hope.geometry import value_for_object
 from dope_hope.inference.appearance import AppearanceCheck, AppearanceSettings, surface_appearance
-from dope_hope.inference.backends import TorchBackend
+from dope_hope.inference.backends import start_backend
 from dope_hope.inference.detection import Detection
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.inference.tracking import box_iou
+from dope_hope.inference.turns import turn_detection
 from dope_hope.preprocess import prepare_input, working_size
 from dope_hope.refine.depth import DepthImage
-from dope_hope.symmetry.cuboid import corner_permutation, cuboid_rotations, describe_rotation, nearest_cube_rotation
+from dope_hope.symmetry.cuboid import cuboid_rotations, describe_rotation, long_axis
 
 #: ``up_axis`` -> the rotation ``A`` (``p_start = A p_mesh``) that turns that axis into +y.
 UP_AXES: dict[str, np.ndarray] = {
@@ -74,8 +75,6 @@ UP_AXES: dict[str, np.ndarray] = {
     "x": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
     "-x": np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
 }
-#: An extent this many times the up axis's (and the third one's) suggests another up axis.
-LONGEST_AXIS_FACTOR = 1.3
 #: A mesh whose largest side lies this many times beyond the HOPE objects' range of largest sides
 #: (the sizes the start learned, before its training frames' 25 % jitter of each extent) gets a
 #: warning: a wrong unit, or an object the start cannot find.
@@ -91,13 +90,11 @@ def up_axis_rotation(up_axis: str) -> np.ndarray:
 
 
 def up_axis_warning(size_m: np.ndarray, up_axis: str, source: str) -> str | None:
-    """A warning when the mesh's longest extent (more than :data:`LONGEST_AXIS_FACTOR` times
-    both others) lies on another axis than the declared up axis, else None."""
+    """A warning when the mesh's long axis (:func:`~dope_hope.symmetry.cuboid.long_axis`) is
+    another axis than the declared up axis, else None."""
     size = np.asarray(size_m, dtype=np.float64).reshape(3)
-    k = int(np.argmax(size))
-    others = np.delete(size, k)
-    up = "xyz".index(up_axis[-1])
-    if k == up or not np.all(size[k] > LONGEST_AXIS_FACTOR * others):
+    k = long_axis(size)
+    if k is None or k == "xyz".index(up_axis[-1]):
         return None
     cm = ", ".join(f"{a} {v * 100:.1f}" for a, v in zip("xyz", size))
     return (f"{source}: the mesh is longest along {'xyz'[k]} ({cm} cm) but its up axis is taken as {up_axis}; "
@@ -117,33 +114,6 @@ def size_warning(size_m: np.ndarray, source: str) -> str | None:
     return (f"{source}: the mesh's largest side is {largest * 100:.3g} cm, the start learned objects of "
             f"{lo * 100:.3g}-{hi * 100:.3g} cm: if the file is in another unit than it was read in, "
             "give it (--mesh-units); an object of that size the start is unlikely to find")
-
-
-def start_backend(start: str | os.PathLike, class_name: str, size_m: np.ndarray, device: str = "cpu",
-                  threads: int | None = None) -> TorchBackend:
-    """The one-object checkpoint ``start`` (the shipped pretrained start, or any one-object
-    dope-hope checkpoint) as a backend detecting ``class_name`` with cuboid ``size_m`` (3,)
-    metres, mesh frame. ModelFileError for a file of several objects or a legacy frame."""
-    import torch
-
-    from dope_hope.model.checkpoint import load_checkpoint
-    from dope_hope.model.info import ModelInfo
-    from dope_hope.model.network import build_model
-
-    if threads:
-        torch.set_num_threads(int(threads))
-    ckpt = dict(load_checkpoint(start))
-    info = ModelInfo.from_checkpoint(ckpt, start)
-    if info.num_objects != 1 or info.legacy:
-        raise ModelFileError(start, f"a start must be a one-object mesh-frame model; this one holds "
-                                    f"{info.num_objects} object(s) in the {info.frame} frame")
-    ckpt.pop("source", None)
-    ckpt.pop("objects", None)
-    ckpt.pop("min_score", None)  # the start's threshold is no threshold of this object
-    ckpt["object"] = {"class_name": str(class_name), "size_m": [float(v) for v in size_m], "frame": "mesh"}
-    model = build_model(ckpt["config"], load_backbone=False)
-    model.load_state_dict(ckpt["model"], strict=True)
-    return TorchBackend(model.eval(), ckpt, device=device, source=start)
 
 
 class MeshStartPredictor(DopePredictor):
@@ -312,15 +282,13 @@ class MeshStartPredictor(DopePredictor):
             det.pose_ambiguity = tuple(describe_rotation(best.T @ rotations[k]) for k in res.ambiguous)
         det.appearance_score = res.score
         det.score = float(np.sqrt(max(det.network_score, 0.0) * res.score))
-        if res.best != 0:  # corner k of R S projects where corner perm[k] of R does
-            perm = corner_permutation(nearest_cube_rotation(best))
-            det.keypoints_2d, det.keypoint_scores = det.keypoints_2d[perm], det.keypoint_scores[perm]
-            det.inliers = det.inliers[perm]
-            det.R, det.t = res.R, res.t
+        if res.best != 0:
+            turn_detection(det, best, res.R, res.t)
             self.project_detection(self.objects[0], det, K, rgb.shape[:2])
         return det
 
     def close(self) -> None:
         """Free the appearance check's GL context."""
+        super().close()
         if self.appearance is not None:
             self.appearance.close()

@@ -52,11 +52,17 @@ run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.pr
    object refines all six DoF; kept only when it does not fit the depth worse and keeps to the
    object's own depth support (the detected region: the silhouette of the pose it starts
    from). Without ``mesh=`` only the catalog's boxes are allowed.
+7. **Turns by the texture** (optional, ``appearance.trained_turns``, without ICP;
+   :class:`dope_hope.inference.turns.TrainedTurns`): each pose turned about its object's long
+   axis to the turn whose textured render the network's first layers find most like the image;
+   before -LS, which then places the pose kept.
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
+import warnings
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import replace
 from typing import Any
@@ -75,12 +81,13 @@ from dope_hope.geometry import (
     projected_bboxes,
     value_for_object,
 )
-from dope_hope.inference.backends import MapBackend, backend_objects, model_min_score, open_backend
+from dope_hope.inference.backends import MapBackend, backend_objects, model_min_score, open_backend, start_backend
 from dope_hope.inference.detection import Detection
 from dope_hope.inference.object_geometry import ObjectGeometry
 from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.pnp import PoseEstimate, pose_may_reach, score_in_view, solve_pnp
 from dope_hope.inference.pose_search import solve_pnp_instances
+from dope_hope.inference.turns import TrainedTurns
 from dope_hope.maps.decode import (
     corner_candidates,
     decode_maps,
@@ -182,6 +189,7 @@ class DopePredictor:
         if self.options.icp:
             for obj in self.objects:
                 obj.check_icp_surface()
+        self._turns: TrainedTurns | None = None  # appearance.trained_turns, built on first use
 
     # ------------------------------------------------------------------ one-object view
     @property
@@ -275,7 +283,37 @@ class DopePredictor:
         belief, affinity, net_in = self.infer_maps(cache[key])
         if on_maps is not None:
             on_maps(self, belief, affinity, net_in)
-        return self.detections_from_maps(belief, affinity, net_in, K, depth, classes)
+        turns = self.trained_turns()
+        if turns is None:
+            return self.detections_from_maps(belief, affinity, net_in, K, depth, classes)
+        out = self.detections_from_maps(belief, affinity, net_in, K, None, classes)
+        for det in out:  # the turn first: -LS then places the pose it kept
+            obj = self.object_of(det)
+            turns.turn(det, rgb, K)
+            self.depth_stages(obj, det, depth)
+            self.project_detection(obj, det, K, rgb.shape[:2])
+        return out
+
+    def trained_turns(self) -> TrainedTurns | None:
+        """The turns of ``appearance.trained_turns`` (module docstring, step 7), built on first
+        use, the objects they skip named in a warning; None where the setting is off or ICP
+        runs. Their features: the backend's own first layers (a PyTorch model), else the
+        shipped start's (an ONNX model)."""
+        if not self.options.appearance.trained_turns or self.options.icp:
+            return None
+        if self._turns is None:
+            features = getattr(self.backend, "texture_features", None) or _shipped_start_features()
+            self._turns = TrainedTurns(self.objects, self.options.appearance, features)
+            if self._turns.skipped:
+                warnings.warn("appearance.trained_turns: no turns for " + "; ".join(
+                    f"{name} ({why})" for name, why in self._turns.skipped.items()), UserWarning, stacklevel=3)
+        return self._turns
+
+    def close(self) -> None:
+        """Free the GL contexts of ``appearance.trained_turns`` (a later image builds them again)."""
+        if self._turns is not None:
+            self._turns.close()
+            self._turns = None
 
     def detections_from_maps(self, belief: np.ndarray, affinity: np.ndarray, net_in: NetworkInput,
                              K: np.ndarray, depth: DepthImage | None = None,
@@ -513,3 +551,12 @@ def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.n
         out.extend(p.detect_image(rgb, K, depth, cache, on_maps, classes))
     out.sort(key=lambda d: -d.score)
     return out
+
+
+@functools.cache
+def _shipped_start_features() -> Callable[[np.ndarray], np.ndarray]:
+    """The shipped pretrained start's first layers on the CPU (``TorchBackend.texture_features``),
+    for a model whose backend cannot run its own (ONNX); loaded once."""
+    from dope_hope.assets import PRETRAINED_WEIGHTS
+
+    return start_backend(PRETRAINED_WEIGHTS, "start", np.ones(3)).texture_features

@@ -15,6 +15,8 @@ import numpy as np
 
 #: Extents closer than this fraction of the larger one count as equal (a square section).
 EQUAL_EXTENT_TOL = 0.02
+#: An extent this many times both others makes its axis the box's long axis (a can's, a bottle's).
+LONG_AXIS_FACTOR = 1.3
 
 
 def _cube_group() -> np.ndarray:
@@ -40,6 +42,14 @@ def cuboid_rotations(size_m: np.ndarray, tol: float = EQUAL_EXTENT_TOL) -> np.nd
     size = np.asarray(size_m, dtype=np.float64).reshape(3)
     keep = [M for M in CUBE_GROUP if np.all(np.abs(np.abs(M) @ size - size) <= tol * size.max())]
     return np.stack(keep)
+
+
+def long_axis(size_m: np.ndarray, factor: float = LONG_AXIS_FACTOR) -> int | None:
+    """The axis (0, 1, 2: x, y, z) whose extent in ``size_m`` (3,) exceeds ``factor`` times
+    both others (a can's or bottle's axis, a tall box's), else None."""
+    size = np.asarray(size_m, dtype=np.float64).reshape(3)
+    k = int(np.argmax(size))
+    return k if np.all(size[k] > factor * np.delete(size, k)) else None
 
 
 def nearest_cube_rotation(R: np.ndarray) -> np.ndarray:
