@@ -66,6 +66,10 @@ def test_a_pose_turned_about_the_long_axis_is_turned_back(scene):
     assert rotation_error_deg(det.R, R_gt) < 1.0
     assert np.linalg.norm(det.t - t_gt) < 0.01  # turned about the box centre, after -LS
     assert det.ls_applied and 0 < det.appearance_score <= 1
+    assert det.texture_turn_deg == pytest.approx(300.0)  # -60° about y, the turn that undoes the model's
+    rec = det.to_json("000000.png")
+    assert rec["texture_turn_deg"] == 300.0 and rec["appearance_score"] == round(det.appearance_score, 4)
+    assert "pose_ambiguity" not in rec
     np.testing.assert_allclose(det.projected_2d, project_points(p.objects[0].cuboid_mesh, K, det.R, det.t))
 
 
@@ -73,7 +77,7 @@ def test_off_by_default_and_with_icp(scene):
     _, _, R_gt, _ = scene
     _, (det,) = run(scene, R_gt @ TURN)
     assert rotation_error_deg(det.R, R_gt) == pytest.approx(60.0, abs=1.0)  # the network's pose, as it was
-    assert np.isnan(det.appearance_score)
+    assert np.isnan(det.appearance_score) and "texture_turn_deg" not in det.to_json("000000.png")
     p, (det,) = run(scene, R_gt @ TURN, appearance={"trained_turns": True}, icp=True)
     assert p.trained_turns() is None  # the depth fit places the turn
     assert np.isnan(det.appearance_score)

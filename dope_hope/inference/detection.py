@@ -50,6 +50,9 @@ class Detection:
     network_score / appearance_score: with pose_ambiguity, the pose score of the maps and
         the appearance check's (:mod:`dope_hope.inference.appearance`); ``score`` is their
         geometric mean.
+    texture_turn_deg: where ``appearance.trained_turns`` ran (:mod:`dope_hope.inference.turns`),
+        the turn about the object's long axis it applied, degrees in [0, 360) (0: the network's
+        pose kept), with ``appearance_score`` (its colour score); NaN where it did not run.
     """
 
     class_name: str
@@ -74,6 +77,7 @@ class Detection:
     cuboid_symmetries: tuple[str, ...] = ()
     network_score: float = float("nan")
     appearance_score: float = float("nan")
+    texture_turn_deg: float = float("nan")
 
     @property
     def quaternion_xyzw(self) -> np.ndarray:
@@ -88,8 +92,9 @@ class Detection:
         ``reprojection_error_px``, ``cuboid_size_m``, ``bbox_2d`` ([u_min, v_min, u_max, v_max]
         original px, null when the box misses the image) and, with ICP requested, ``icp_applied``,
         ``icp_reason`` and ``icp_fit``, and for a detector of a cuboid ``pose_ambiguity``,
-        ``cuboid_symmetries``, ``network_score`` and ``appearance_score``, which the evaluation
-        ignores.
+        ``cuboid_symmetries``, ``network_score`` and ``appearance_score``, and where a trained
+        model's pose was turned by its texture ``texture_turn_deg`` and ``appearance_score``,
+        which the evaluation ignores.
 
         ``image`` names the frame (omitted when None: then pass ``scene_id``/``im_id``);
         ``extra`` adds keys (e.g. ``time``, ``scene_id``). The result is strict JSON (no NaN).
@@ -111,6 +116,9 @@ class Detection:
         if self.pose_ambiguity is not None:
             rec.update(pose_ambiguity=list(self.pose_ambiguity), cuboid_symmetries=list(self.cuboid_symmetries),
                        network_score=round(float(self.network_score), 4),
+                       appearance_score=round(float(self.appearance_score), 4))
+        elif math.isfinite(self.texture_turn_deg):
+            rec.update(texture_turn_deg=round(float(self.texture_turn_deg), 2),
                        appearance_score=round(float(self.appearance_score), 4))
         if image is None:
             del rec["image"]

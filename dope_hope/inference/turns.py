@@ -51,12 +51,14 @@ class TrainedTurns:
         features: the network's first layers, (N, H, W, 3) uint8 -> (N, C, h, w)
             (:meth:`~dope_hope.inference.backends.TorchBackend.texture_features`).
 
-    Attributes: checks ({class name: AppearanceCheck}), skipped ({class name: reason}).
+    Attributes: checks ({class name: AppearanceCheck}), axes ({class name: (3,) its long
+    axis, mesh frame}), skipped ({class name: reason}).
     """
 
     def __init__(self, objects: Sequence[ObjectGeometry], settings: AppearanceSettings,
                  features: Callable[[np.ndarray], np.ndarray]):
         self.checks: dict[str, AppearanceCheck] = {}
+        self.axes: dict[str, np.ndarray] = {}
         self.skipped: dict[str, str] = {}
         for obj in objects:
             axis = long_axis(obj.cuboid_size_m)
@@ -66,22 +68,27 @@ class TrainedTurns:
             elif axis is None:
                 self.skipped[obj.class_name] = "its box has no long axis"
             else:
-                up = np.eye(3)[axis]
+                up = self.axes[obj.class_name] = np.eye(3)[axis]
                 self.checks[obj.class_name] = AppearanceCheck(
                     obj.mesh, np.eye(3)[None], obj.cuboid_center_m, settings, up=up, surface=surface,
                     features=features, upside_down=False)
 
     def turn(self, det: Detection, rgb: np.ndarray, K: np.ndarray) -> None:
         """In place: ``det`` turned to the pose its render finds most like the (H, W, 3) uint8
-        image with intrinsics K (3, 3), where its object has a check; ``appearance_score``
-        set (the colour score's best). ``projected_2d`` and ``bbox_2d`` are the caller's."""
+        image with intrinsics K (3, 3), where its object has a check; ``texture_turn_deg``
+        (the turn applied about the long axis, 0 for none) and ``appearance_score`` (the colour
+        score's best) set. ``projected_2d`` and ``bbox_2d`` are the caller's."""
+        from scipy.spatial.transform import Rotation
+
         check = self.checks.get(det.class_name)
         if check is None:
             return
         res = check.compare(rgb, K, det.R, det.t)
         det.appearance_score = res.score
+        S = check.rotations[res.best]
+        det.texture_turn_deg = float(np.degrees(Rotation.from_matrix(S).as_rotvec() @ self.axes[det.class_name])) % 360.0
         if res.best != 0:
-            turn_detection(det, check.rotations[res.best], res.R, res.t)
+            turn_detection(det, S, res.R, res.t)
 
     def close(self) -> None:
         """Free the checks' GL contexts."""
