@@ -78,7 +78,8 @@ def test_off_by_default_and_with_icp(scene):
     _, (det,) = run(scene, R_gt @ TURN)
     assert rotation_error_deg(det.R, R_gt) == pytest.approx(60.0, abs=1.0)  # the network's pose, as it was
     assert np.isnan(det.appearance_score) and "texture_turn_deg" not in det.to_json("000000.png")
-    p, (det,) = run(scene, R_gt @ TURN, appearance={"trained_turns": True}, icp=True)
+    with pytest.warns(UserWarning, match="trained_turns does not run with ICP"):
+        p, (det,) = run(scene, R_gt @ TURN, appearance={"trained_turns": True}, icp=True)
     assert p.trained_turns() is None  # the depth fit places the turn
     assert np.isnan(det.appearance_score)
 

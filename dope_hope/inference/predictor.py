@@ -190,6 +190,7 @@ class DopePredictor:
             for obj in self.objects:
                 obj.check_icp_surface()
         self._turns: TrainedTurns | None = None  # appearance.trained_turns, built on first use
+        self._turns_told = False  # whether the warning of trained_turns was issued
 
     # ------------------------------------------------------------------ one-object view
     @property
@@ -296,15 +297,21 @@ class DopePredictor:
 
     def trained_turns(self) -> TrainedTurns | None:
         """The turns of ``appearance.trained_turns`` (module docstring, step 7), built on first
-        use, the objects they skip named in a warning; None where the setting is off or ICP
-        runs. Their features: the backend's own first layers (a PyTorch model), else the
-        shipped start's (an ONNX model)."""
-        if not self.options.appearance.trained_turns or self.options.icp:
+        use, the objects they skip named in a warning; None where the setting is off, or where
+        ICP runs (a warning says so, once). Their features: the backend's own first layers (a
+        PyTorch model), else the shipped start's (an ONNX model)."""
+        if not self.options.appearance.trained_turns:
+            return None
+        told, self._turns_told = self._turns_told, True
+        if self.options.icp:
+            if not told:
+                warnings.warn("appearance.trained_turns does not run with ICP: the depth fit places the turn",
+                              UserWarning, stacklevel=3)
             return None
         if self._turns is None:
             features = getattr(self.backend, "texture_features", None) or _shipped_start_features()
             self._turns = TrainedTurns(self.objects, self.options.appearance, features)
-            if self._turns.skipped:
+            if self._turns.skipped and not told:
                 warnings.warn("appearance.trained_turns: no turns for " + "; ".join(
                     f"{name} ({why})" for name, why in self._turns.skipped.items()), UserWarning, stacklevel=3)
         return self._turns
