@@ -32,7 +32,7 @@ Without them, the colour score chooses. The chosen pose replaces the detection's
 scoring within ``ambiguity_margin`` of it remain ambiguous. CPU cost: one render of
 ``crop_px`` squared pixels per rotation (5-10 ms each at 64 px on 2 cores, Mesa llvmpipe):
 4 for a box of three different extents without turns, 24 with the default 30° turns; the
-features of all of them, one batch of ~1 ms.
+features of all of them, one batch (~7 ms for 25 crops).
 
 What the mesh's surface shows decides what can be compared (:func:`surface_appearance`): a
 texture image or colours that vary tell poses apart; one colour tells a look-alike of another

@@ -15,8 +15,8 @@ axis of a can, a bottle, a tall box), the appearance check
 and the one whose render the network's first layers find most like the image replaces it.
 It runs before -LS (which then places the pose kept: a pose 60° off about the axis puts the
 depth's surface elsewhere and -LS would move it along the ray for it); with ICP it does not
-run (the depth fit places the turn). Its cost: one render per turn, 12 at
-30° steps: ~0.1 s a detection on 2 cores (Mesa llvmpipe, a 15,000-face mesh).
+run (the depth fit places the turn). Its cost: one render per turn, 12 at 30° steps, ~0.1 s a
+detection on 2 cores (Mesa llvmpipe, a 15,000-face mesh).
 """
 from __future__ import annotations
 
