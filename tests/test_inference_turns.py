@@ -73,6 +73,16 @@ def test_a_pose_turned_about_the_long_axis_is_turned_back(scene):
     np.testing.assert_allclose(det.projected_2d, project_points(p.objects[0].cuboid_mesh, K, det.R, det.t))
 
 
+@pytest.mark.parametrize("refine_deg, error_deg", [(8.0, 0.0), (0.0, 8.0)])
+def test_the_refinement_takes_out_a_small_tilt(scene, refine_deg, error_deg):
+    """A model 60° off about the long axis and tilted 8° across it: the turn takes out the 60°,
+    the refinement (``trained_refine_deg``) the tilt; without it the tilt stays."""
+    _, _, R_gt, _ = scene
+    tilt = Rotation.from_euler("x", 8.0, degrees=True).as_matrix()
+    _, (det,) = run(scene, R_gt @ tilt @ TURN, appearance={"trained_turns": True, "trained_refine_deg": refine_deg})
+    assert rotation_error_deg(det.R, R_gt) == pytest.approx(error_deg, abs=1.0)
+
+
 def test_off_by_default_and_with_icp(scene):
     _, _, R_gt, _ = scene
     _, (det,) = run(scene, R_gt @ TURN)
@@ -114,3 +124,13 @@ def test_turn_detection_relabels_the_keypoints():
     np.testing.assert_allclose(det.R, S)
     np.testing.assert_allclose(det.t, np.ones(3))
     assert perm[8] == 8 and sorted(perm) == list(range(9)) and list(perm) != list(range(9))
+
+
+def test_the_refinement_step_is_checked():
+    from dope_hope.errors import ConfigError
+
+    assert AppearanceSettings.from_mapping({"trained_refine_deg": 0}).trained_refine_deg == 0.0
+    with pytest.raises(ConfigError, match=r"appearance.trained_refine_deg must be 0 \(no refinement\) or a step"):
+        AppearanceSettings.from_mapping({"trained_refine_deg": 50})
+    with pytest.raises(ConfigError, match="trained_refine_deg"):
+        AppearanceSettings.from_mapping({"trained_refine_deg": -1})

@@ -67,6 +67,14 @@ def _spin_step(value, name: str) -> float:
     return v
 
 
+def _refine_step(value, name: str) -> float:
+    """The rule of ``trained_refine_deg``: 0 (no refinement) or a step in (0, 45] degrees."""
+    v = nonnegative_float(value, name)
+    if v > 45:
+        raise ConfigError(f"{name} must be 0 (no refinement) or a step in (0, 45] degrees, got {value!r}")
+    return v
+
+
 @dataclass(frozen=True)
 class AppearanceSettings(SectionSettings):
     """The appearance check's settings (``appearance:`` in ``dope_hope/configs/infer.yaml``;
@@ -82,13 +90,14 @@ class AppearanceSettings(SectionSettings):
     texture_features: the pose is the one the network's first layers find most like the image
     (false: the one the colour score prefers). trained_turns: a trained model's poses are
     turned too, about each textured object's long axis (:mod:`dope_hope.inference.turns`; off:
-    a render per turn and detection)."""
+    a render per turn and detection). trained_refine_deg: after that turn, the pose tilted and
+    turned by this many degrees either way about each mesh axis is compared too, once (0: not)."""
 
     SECTION = "appearance"
     RULES = {"enabled": boolean, "crop_px": at_least(8), "margin": nonnegative_float, "min_score": finite_float,
              "ambiguity_margin": nonnegative_float, "min_pixels": at_least(1), "hist_bins": at_least(1),
              "spin_step_deg": _spin_step, "texture_features": boolean,
-             "trained_turns": boolean}
+             "trained_turns": boolean, "trained_refine_deg": _refine_step}
 
     enabled: bool = True
     crop_px: int = 64
@@ -100,6 +109,7 @@ class AppearanceSettings(SectionSettings):
     spin_step_deg: float = 30.0
     texture_features: bool = True
     trained_turns: bool = False
+    trained_refine_deg: float = 8.0
 
 
 def candidate_rotations(symmetries: np.ndarray, up: np.ndarray | None, spin_step_deg: float,
@@ -281,19 +291,24 @@ class AppearanceCheck:
     def equivalent_pose(self, R: np.ndarray, t: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Pose ``R S_k`` turned about the centre (k < ``n_symmetries``: the same cuboid, the
         ``k``-th equivalent; beyond: a turn about the up axis)."""
-        Rk = np.asarray(R, dtype=np.float64) @ self.rotations[k]
-        return Rk, np.asarray(t, dtype=np.float64) + R @ self.center - Rk @ self.center
+        return self.turned_pose(R, t, self.rotations[k])
+
+    def turned_pose(self, R: np.ndarray, t: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pose ``R S`` for a mesh-frame rotation S (3, 3) about the centre."""
+        RS = np.asarray(R, dtype=np.float64) @ np.asarray(S, dtype=np.float64)
+        return RS, np.asarray(t, dtype=np.float64) + R @ self.center - RS @ self.center
 
     def compare(self, rgb: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
-                turns: bool = True) -> AppearanceResult:
+                turns: bool = True, rotations: np.ndarray | None = None) -> AppearanceResult:
         """Score every pose ``R S`` of the candidate (R (3, 3), t (3,) m; S of ``rotations``, or
-        of its first ``n_symmetries`` without ``turns``) in the (H, W, 3) uint8 image with
-        intrinsics K (3, 3)."""
+        of its first ``n_symmetries`` without ``turns``; or of the (S, 3, 3) ``rotations``
+        given, identity first) in the (H, W, 3) uint8 image with intrinsics K (3, 3)."""
         import cv2
 
         s = self.settings
         K = np.asarray(K, dtype=np.float64)
-        count = len(self.rotations) if turns else self.n_symmetries
+        compared = self.rotations if rotations is None else np.asarray(rotations, dtype=np.float64)
+        count = len(compared) if turns or rotations is not None else self.n_symmetries
         scores = np.zeros(count)
         uv = project_points(self.hull, K, R, t)
         if float(np.asarray(t)[2]) <= 0 or not np.all(np.isfinite(uv)):
@@ -306,7 +321,7 @@ class AppearanceCheck:
         inside = cv2.warpAffine(np.ones(rgb.shape[:2], np.uint8), M, (s.crop_px, s.crop_px),
                                 flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT) > 0
         K_crop = np.array([[scale, 0.0, -u0 * scale], [0.0, scale, -v0 * scale], [0.0, 0.0, 1.0]]) @ K
-        poses = [self.equivalent_pose(R, t, k) for k in range(count)]
+        poses = [self.turned_pose(R, t, S) for S in compared[:count]]
         renders = []
         for k, (Rk, tk) in enumerate(poses):
             rendered, mask = self._renderer.render(Rk, tk, K_crop)
