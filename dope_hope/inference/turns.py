@@ -102,8 +102,8 @@ class TrainedTurns:
             turn_detection(det, S, res.R, res.t)
         if len(self.refinements) > 1:
             fine = check.compare(rgb, K, det.R, det.t, rotations=self.refinements)
-            if fine.best != 0:  # a few degrees: the corner order stays
-                det.R, det.t = fine.R, fine.t
+            if fine.best != 0:
+                turn_detection(det, self.refinements[fine.best], fine.R, fine.t)
 
     def close(self) -> None:
         """Free the checks' GL contexts."""

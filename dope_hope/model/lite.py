@@ -102,10 +102,13 @@ class LiteTrunk(nn.Module):
             nn.init.normal_(block[-1].weight, std=1e-3)
             nn.init.zeros_(block[-1].bias)
 
+    def texture_features(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 3, H, W) -> (N, 2w, H/4, W/4): the encoder's stem and first downsampling."""
+        return self.down4(self.stem(x))
+
     def features(self, x: torch.Tensor) -> torch.Tensor:
         """(N, 3, H, W) -> (N, F, H/stride, W/stride) merged multi-scale features."""
-        c2 = self.stem(x)
-        c4 = self.down4(c2)
+        c4 = self.texture_features(x)
         c8 = self.down8(c4)
         c16 = self.down16(c8)
         c32 = self.down32(c16)

@@ -233,7 +233,7 @@ class DopeNetwork(nn.Module):
         local texture and edges before any keypoint is decided (the appearance check compares
         renders with the image by them: :mod:`dope_hope.inference.appearance`)."""
         if self.arch == "lite":
-            return self.lite.down4(self.lite.stem(x))
+            return self.lite.texture_features(x)
         return self.vgg[:VGG_STRIDE4_LAYERS](x)
 
     def forward(self, x: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
