@@ -21,12 +21,15 @@ commands are printed and logged to OUT/logs/):
 Both sets share the target ranges of :data:`TARGET` (one or two instances at 0.45-1.0 m, as
 in the HOPE scenes' table-top views) over configs/synth.yaml's distractors, occluders and
 lights; the test set is the same for both recipes (:data:`SCENE`: plain, photo backgrounds).
-4. ``infer-ls`` / ``infer`` / ``infer-icp`` / ``infer-turns``: `dope-hope infer TEST --depth
-   auto` (with the depth line search, "-LS"), the same without `--depth` (no -LS), with
-   `--depth auto --icp` (-LS, then ICP against the depth: rotation too), and with `--depth auto
-   --set appearance.trained_turns=true` (each pose turned about the bottle's axis where its
-   textured render says so, then -LS: ``dope_hope.inference.turns``), with the mesh for the points.
-5. ``eval-meanssd`` / ``eval-addh``: `dope-hope evaluate` of the four prediction files: recall at
+4. ``infer-ls`` / ``infer`` / ``infer-icp`` / ``infer-turns`` / ``infer-scales``: `dope-hope
+   infer TEST --depth auto` (with the depth line search, "-LS"), the same without `--depth` (no
+   -LS), with `--depth auto --icp` (-LS, then ICP against the depth: rotation too), with
+   `--depth auto --set appearance.trained_turns=true` (each pose turned about the bottle's axis
+   where its textured render says so, then -LS: ``dope_hope.inference.turns``), and with
+   `--depth auto --set multiscale.scales=[...]` (:data:`SCALES`: the network at three working
+   sizes, the detections pooled, then -LS: ``dope_hope.inference.scales``), with the mesh for
+   the points.
+5. ``eval-meanssd`` / ``eval-addh``: `dope-hope evaluate` of the five prediction files: recall at
    2 cm and 10 cm and the median error of the true positives (at 10 cm) for MeanSSD and ADD-H
    (500 model points, the bottle category's symmetries), and the BOP19 AR_MSSD / AR_MSPD /
    AR_VSD.
@@ -105,6 +108,10 @@ VISIBILITY_BANDS = (("< 0.1", 0.0, 0.1), ("0.1-0.5", 0.1, 0.5), ("0.5-0.95", 0.5
 #: Training overrides: symmetry-aware labels for the bottle (6x the recall at 2 cm ADD-H of the
 #: official labels in the same 20 minutes; bench/RESULTS.md).
 TRAIN_SET = ("targets.symmetry=auto",)
+#: The ``infer-scales`` stage's working sizes (``multiscale.scales``): the model's own, and 0.75
+#: and 1.33 of it (on the six-object bench's T = 10 model these three lost the fewest
+#: instances of the pairs and triples tried with 0.625-1.33).
+SCALES = "multiscale.scales=[1,0.75,1.33]"
 
 
 def shared_data_dir() -> Path | None:
@@ -359,12 +366,14 @@ def run_stages(args: argparse.Namespace, out: Path, settings: dict) -> tuple[Com
     pipe.stage("infer", infer + ["--out", out / "infer"])
     name = Path(args.config).stem.replace("_", "-")
     methods = {f"{name} -LS": f"{name}-LS", f"{name} none": name, f"{name} -LS+ICP": f"{name}-LS-ICP",
-               f"{name} turns+-LS": f"{name}-turns-LS"}
+               f"{name} turns+-LS": f"{name}-turns-LS", f"{name} scales+-LS": f"{name}-scales-LS"}
     pipe.stage("infer-icp", infer + ["--depth", "auto", "--icp", "--out", out / "infer_icp"])
     pipe.stage("infer-turns", infer + ["--depth", "auto", "--set", "appearance.trained_turns=true",
                                        "--out", out / "infer_turns"])
+    pipe.stage("infer-scales", infer + ["--depth", "auto", "--set", SCALES, "--out", out / "infer_scales"])
     evaluate = ["evaluate", "-p", out / "infer_ls" / "predictions.jsonl", out / "infer" / "predictions.jsonl",
                 out / "infer_icp" / "predictions.jsonl", out / "infer_turns" / "predictions.jsonl",
+                out / "infer_scales" / "predictions.jsonl",
                 "--method", *methods.values(), "-d", test_dir,
                 "--mesh", f"{args.object}={mesh}", "--no-progress"]
     pipe.stage("eval-meanssd", evaluate + ["--metric", "meanssd,addh", "--bop-ar", "--out", out / "eval_meanssd"])
@@ -401,6 +410,10 @@ def main(argv: list[str] | None = None) -> int:
     losses = instance_losses(test_dir, out / "infer_ls" / "predictions.jsonl", args.object, mesh, min_score)
     lost, lost_bands = loss_counts(losses), losses_by_visibility(losses)
     lost_text = breakdown_text(lost, min_score) + "; by visible fraction:\n" + visibility_text(lost_bands)
+    scaled = instance_losses(test_dir, out / "infer_scales" / "predictions.jsonl", args.object, mesh, min_score)
+    lost_scaled, scaled_bands = loss_counts(scaled), losses_by_visibility(scaled)
+    lost_text += (f"\nwith the three working sizes ({SCALES}): " + breakdown_text(lost_scaled, min_score)
+                  + "; by visible fraction:\n" + visibility_text(scaled_bands))
     times = ", ".join(f"{k} {v:.0f} s" for k, v in pipe.timings.items())
     text = (f"# e2e accuracy: {args.object}, {args.config}, {args.train_minutes:g} min training\n\n"
             f"Held-out synthetic test set: {args.test_count} frames at {args.size} (seed {TEST_SEED}, photo "
@@ -414,7 +427,8 @@ def main(argv: list[str] | None = None) -> int:
     (out / "results.json").write_text(json.dumps({"settings": settings, "checkpoint": str(ckpt),
                                                   "cpu": cpu_description(), "steps": trained["step"],
                                                   "budget_share": share, "lost": lost,
-                                                  "lost_by_visibility": lost_bands, "results": data,
+                                                  "lost_by_visibility": lost_bands, "lost_scales": lost_scaled,
+                                                  "lost_scales_by_visibility": scaled_bands, "results": data,
                                                   "stage_seconds": pipe.timings},
                                                  indent=1, default=float) + "\n")
     print("\n" + table + f"\n\n{trained_text}\n{lost_text}\nstage times: {times}\nwritten: {out / 'results.md'}, {out / 'results.json'}")

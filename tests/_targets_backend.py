@@ -69,3 +69,19 @@ class TargetsBackend:
         kp = self.network_keypoints(sx, sy)
         belief, affinity = make_targets(kp, (Hp, Wp), self.stride, self.sigma, self.radius)
         return np.repeat(belief[None], N, 0), np.repeat(affinity[None], N, 0)
+
+
+def demo_box_frame(root):
+    """One 160x120 rendered frame of the demo box (no distractor, not cut off, 0.45-0.55 m),
+    with depth, for a TargetsBackend to place: (frame folder, mesh path, GT R, GT t)."""
+    from dope_hope.demo_object import write_demo_object
+    from dope_hope.io.dope_json import read_dope_json
+    from dope_hope.synth.generate import SynthJob
+    from dope_hope.synth.to_disk import generate_dataset
+
+    demo = write_demo_object(root / "mesh")
+    cfg = {"target": {"count": [1, 1], "truncation_prob": 0.0, "distance_m": [0.45, 0.55]},
+           "distractors": {"count": [0, 0], "occluder_prob": 0.0}}
+    generate_dataset(root / "data", SynthJob(demo, size=(160, 120), config=cfg), 1, progress=False)
+    (gt,) = read_dope_json(root / "data" / "000000.json").objects
+    return root / "data", demo, gt.R, gt.t

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-STAGES = ("synth-train", "train", "synth-test", "infer-ls", "infer", "infer-icp", "infer-turns", "eval-meanssd",
-          "eval-addh")
+STAGES = ("synth-train", "train", "synth-test", "infer-ls", "infer", "infer-icp", "infer-turns", "infer-scales",
+          "eval-meanssd", "eval-addh")
 
 
 @pytest.mark.slow
@@ -31,16 +31,18 @@ def test_quick_run_writes_the_table_and_resumes(shared_data, ketchup_obj, tmp_pa
     assert train_line.count("--set") == 1
     assert "symmetry-aware labels: bottle category, 2 corner-permuting" in (out / "logs" / "train.log").read_text()
     table = [line for line in proc.stdout.splitlines() if line.startswith("| lite |")]
-    assert [line.split("|")[2].strip() for line in table] == ["-LS", "none", "-LS+ICP", "turns+-LS"]
+    assert [line.split("|")[2].strip() for line in table] == ["-LS", "none", "-LS+ICP", "turns+-LS", "scales+-LS"]
     assert all(len(line.split("|")) == 13 for line in table)
     results = json.loads((out / "results.json").read_text())
-    assert set(results["results"]) == {"lite -LS", "lite none", "lite -LS+ICP", "lite turns+-LS"}
+    assert set(results["results"]) == {"lite -LS", "lite none", "lite -LS+ICP", "lite turns+-LS", "lite scales+-LS"}
     for row in results["results"].values():
         assert {"recall_2cm_meanssd", "recall_10cm_addh", "median_addh_cm", "ar_mssd", "ar_mspd"} <= set(row)
         assert 0.0 <= row["recall_2cm_meanssd"] <= 1.0 and 0.0 <= row["ar_mssd"] <= 1.0
-    assert (out / "results.md").read_text().count("| lite |") == 4
+    assert (out / "results.md").read_text().count("| lite |") == 5
     turns_line = next(line for line in proc.stdout.splitlines() if line.startswith("[infer-turns] $"))
     assert "--set appearance.trained_turns=true" in turns_line and "--depth auto" in turns_line
+    scales_line = next(line for line in proc.stdout.splitlines() if line.startswith("[infer-scales] $"))
+    assert "--set 'multiscale.scales=[1,0.75,1.33]'" in scales_line and "--depth auto" in scales_line
     assert len(list((out / "test").glob("*.depth.png"))) == 3
     # what is measured: the default recipe's training frames, the CPU, the budget spent, the losses
     synth_train = next(line for line in proc.stdout.splitlines() if line.startswith("[synth-train] $"))
@@ -56,6 +58,7 @@ def test_quick_run_writes_the_table_and_resumes(shared_data, ketchup_obj, tmp_pa
     bands = results["lost_by_visibility"]
     assert list(bands) == ["< 0.1", "0.1-0.5", "0.5-0.95", ">= 0.95"] and "visible >= 0.95:" in proc.stdout
     assert {k: sum(c[k] for c in bands.values()) for k in results["lost"]} == results["lost"]
+    assert sum(results["lost_scales"].values()) == gt and "with the three working sizes" in proc.stdout
     assert set(results["cpu"]["flags"]) >= {"amx_bf16", "avx512_bf16", "avx512_vnni"}
 
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=120)

@@ -227,7 +227,7 @@ def test_a_mesh_without_texture_or_of_one_colour_keeps_the_networks_pose(scene, 
 
 def test_the_working_sizes_are_the_new_object_section(scene, monkeypatch):
     """``new_object.scales`` sets the sizes the start runs at (Python and --set alike): one
-    size, one forward pass."""
+    size, one forward pass; ``multiscale.scales`` (a trained model's) is refused there."""
     from dope_hope.io.dope_json import read_dope_json
     from dope_hope.io.images import read_rgb
 
@@ -236,15 +236,17 @@ def test_the_working_sizes_are_the_new_object_section(scene, monkeypatch):
     calls = []
     real = MeshStartPredictor.infer_maps
     monkeypatch.setattr(MeshStartPredictor, "infer_maps", lambda self, x: calls.append(x) or real(self, x))
-    p = MeshStartPredictor(mesh, new_object={"scales": [1.0], "duplicate_iou": 0.3})
+    p = MeshStartPredictor(mesh, new_object={"scales": [1.0]}, multiscale={"duplicate_iou": 0.3})
     try:
-        assert p.scales == (1.0,) and p.options.new_object.duplicate_iou == 0.3
+        assert p.scales == (1.0,) and p.options.multiscale.duplicate_iou == 0.3
         (det,) = p.predict(read_rgb(frame_dir / "000000.png"), read_dope_json(frame_dir / "000000.json").K)
     finally:
         p.close()
     assert len(calls) == 1 and rotation_error_deg(det.R, R_gt) < 1.0
     with pytest.raises(ConfigError, match="new_object.scales must be a non-empty list"):
         MeshStartPredictor(mesh, new_object={"scales": []})
+    with pytest.raises(ConfigError, match="multiscale.scales sets a trained model's working sizes"):
+        MeshStartPredictor(mesh, multiscale={"scales": [1.0, 0.5]})
 
 
 def test_shipped_start_runs_in_python(scene):

@@ -8,10 +8,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import trimesh
-from _targets_backend import TargetsBackend
+from _targets_backend import TargetsBackend, demo_box_frame
 from scipy.spatial.transform import Rotation
 
-from dope_hope.demo_object import DEMO_SIZE_M, write_demo_object
+from dope_hope.demo_object import DEMO_SIZE_M
 from dope_hope.geometry import project_points, rotation_error_deg
 from dope_hope.inference.appearance import AppearanceSettings
 from dope_hope.inference.detection import Detection
@@ -28,16 +28,7 @@ TURN = Rotation.from_euler("y", 60.0, degrees=True).as_matrix()  # about the dem
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     """A 160x120 frame of the demo box: (frame folder, mesh path, GT R, GT t)."""
-    from dope_hope.synth.generate import SynthJob
-    from dope_hope.synth.to_disk import generate_dataset
-
-    root = tmp_path_factory.mktemp("turns")
-    demo = write_demo_object(root / "mesh")
-    cfg = {"target": {"count": [1, 1], "truncation_prob": 0.0, "distance_m": [0.45, 0.55]},
-           "distractors": {"count": [0, 0], "occluder_prob": 0.0}}
-    generate_dataset(root / "data", SynthJob(demo, size=(160, 120), config=cfg), 1, progress=False)
-    (gt,) = read_dope_json(root / "data" / "000000.json").objects
-    return root / "data", demo, gt.R, gt.t
+    return demo_box_frame(tmp_path_factory.mktemp("turns"))
 
 
 def trained_model(scene, R):

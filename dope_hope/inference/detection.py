@@ -123,3 +123,16 @@ class Detection:
         if image is None:
             del rec["image"]
         return rec
+
+
+def box_iou(a: np.ndarray | None, b: np.ndarray | None) -> float:
+    """Intersection over union of two [u_min, v_min, u_max, v_max] boxes (0 when one is None)."""
+    if a is None or b is None:
+        return 0.0
+    w = min(a[2], b[2]) - max(a[0], b[0])
+    h = min(a[3], b[3]) - max(a[1], b[1])
+    if w <= 0 or h <= 0:
+        return 0.0
+    inter = w * h
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return float(inter / union) if union > 0 else 0.0

@@ -40,8 +40,9 @@ bottles. :class:`MeshStartPredictor` runs it on a user's mesh with no training:
 - **Scales.** The start saw objects of its training crops' sizes; the network runs at each of
   the ``new_object`` section's ``scales`` times the model's working size
   (:class:`~dope_hope.inference.new_object_settings.NewObjectSettings`), the detections are
-  pooled, and of two whose 2D boxes overlap (IoU above its ``duplicate_iou``) the
-  higher-scoring one is kept.
+  pooled as a trained model's several sizes are (:func:`~dope_hope.inference.scales.pool_detections`:
+  of two whose 2D boxes overlap by an IoU above ``multiscale.duplicate_iou``, the
+  higher-scoring one is kept).
 """
 from __future__ import annotations
 
@@ -60,9 +61,9 @@ from dope_hope.inference.appearance import AppearanceCheck, AppearanceSettings, 
 from dope_hope.inference.backends import start_backend
 from dope_hope.inference.detection import Detection
 from dope_hope.inference.predictor import DopePredictor
-from dope_hope.inference.tracking import box_iou
+from dope_hope.inference.scales import MultiscaleSettings, pool_detections
 from dope_hope.inference.turns import turn_detection
-from dope_hope.preprocess import prepare_input, working_size
+from dope_hope.preprocess import prepare_input
 from dope_hope.refine.depth import DepthImage
 from dope_hope.symmetry.cuboid import cuboid_rotations, describe_rotation, long_axis
 
@@ -175,6 +176,9 @@ class MeshStartPredictor(DopePredictor):
         super().__init__(backend, mesh=loaded, options=given)
         self.objects[0].mesh_file, self.objects[0].mesh_units = mesh_file, units  # read here, not by the object
         self.up_axis = up_axis
+        if self.options.multiscale.scales != MultiscaleSettings.scales:
+            raise ConfigError("multiscale.scales sets a trained model's working sizes; a new object's are "
+                              "new_object.scales")
         self.scales = self.options.new_object.scales
         self.objects[0].set_pnp_frame(A)
         self.symmetries = cuboid_rotations(size)
@@ -228,10 +232,8 @@ class MeshStartPredictor(DopePredictor):
             return []
         cache = {} if cache is None else cache
         icp_first = depth is not None and self.options.icp
-        base, _ = self.working_size(rgb.shape[:2])
         pooled: list[Detection] = []
-        for i, s in enumerate(self.scales):
-            resized, padded = working_size(rgb.shape[:2], height=max(8, round(base[0] * s)))
+        for i, (resized, padded) in enumerate(self.scale_sizes(rgb.shape[:2], self.scales)):
             key = (resized, padded, self.mean, self.std)
             if key not in cache:
                 cache[key] = prepare_input(rgb, resized, self.mean, self.std, padded)
@@ -243,10 +245,7 @@ class MeshStartPredictor(DopePredictor):
                 on_maps(self, belief, affinity, net_in)
             pooled += self.detections_from_maps(belief, affinity, net_in, K, depth if icp_first else None)
         checked = [self.check_appearance(d, rgb, K, turns=False) for d in pooled]
-        kept: list[Detection] = []
-        for det in sorted((d for d in checked if d is not None), key=lambda d: -d.score):
-            if all(box_iou(det.bbox_2d, k.bbox_2d) <= self.options.new_object.duplicate_iou for k in kept):
-                kept.append(det)
+        kept = pool_detections([d for d in checked if d is not None], self.options.multiscale.duplicate_iou)
         if icp_first:
             return kept  # -LS and ICP ran on the network's poses, before the check
         turns = self.appearance is not None and len(self.appearance.rotations) > self.appearance.n_symmetries

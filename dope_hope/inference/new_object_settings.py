@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dope_hope.config import SectionSettings, each, fraction, positive_float
+from dope_hope.config import SectionSettings, each, positive_float
 
 
 @dataclass(frozen=True)
@@ -18,11 +18,11 @@ class NewObjectSettings(SectionSettings):
 
     scales: the network's working sizes, multiples of the model's own (its training input
     size), each run and their detections pooled (the start saw objects of its training crops'
-    sizes). duplicate_iou: two pooled detections whose 2D boxes overlap more than this are one
-    object (the higher-scoring kept)."""
+    sizes; two pooled detections are one object by ``multiscale.duplicate_iou``, the
+    higher-scoring kept: :mod:`dope_hope.inference.scales`, whose ``multiscale.scales`` are a
+    trained model's sizes)."""
 
     SECTION = "new_object"
-    RULES = {"scales": each(positive_float), "duplicate_iou": fraction}
+    RULES = {"scales": each(positive_float)}
 
     scales: tuple[float, ...] = (1.0, 0.625)
-    duplicate_iou: float = 0.5

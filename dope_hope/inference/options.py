@@ -27,6 +27,7 @@ from dope_hope.inference.appearance import AppearanceSettings
 from dope_hope.inference.new_object_settings import NewObjectSettings
 from dope_hope.inference.pnp import PnpSettings
 from dope_hope.inference.pose_search import HypothesisSettings
+from dope_hope.inference.scales import MultiscaleSettings
 from dope_hope.inference.tracking_settings import TrackingSettings
 from dope_hope.maps.decode import DecodeSettings
 from dope_hope.preprocess import check_working_side
@@ -51,7 +52,9 @@ class StageSettings:
     (:func:`~dope_hope.refine.icp.icp_refine`), tracking (the stream tracker), appearance
     (the appearance check of a new object's cuboid detector,
     :class:`~dope_hope.inference.appearance.AppearanceCheck`), new_object (that detector's
-    working sizes and merging, :class:`~dope_hope.inference.mesh_start.MeshStartPredictor`)."""
+    working sizes, :class:`~dope_hope.inference.mesh_start.MeshStartPredictor`), multiscale (a
+    trained model's working sizes and the pooling of every model's,
+    :mod:`dope_hope.inference.scales`)."""
 
     decode: DecodeSettings
     pnp: PnpSettings
@@ -61,6 +64,7 @@ class StageSettings:
     tracking: TrackingSettings
     appearance: AppearanceSettings
     new_object: NewObjectSettings
+    multiscale: MultiscaleSettings
 
 
 @dataclass(frozen=True)
@@ -70,7 +74,7 @@ class InferenceOptions(SectionSettings):
     height: working height in px or None (the model's training scale). pose_search: one of
     :data:`POSE_SEARCHES`. min_score: detections below are dropped. ls_points / icp_points:
     model points for -LS / ICP. icp: ICP after -LS when depth is given. decode, pnp,
-    hypotheses, line_search, icp_refine, tracking, appearance, new_object: each stage's settings (a
+    hypotheses, line_search, icp_refine, tracking, appearance, new_object, multiscale: each stage's settings (a
     mapping given for one is read over its defaults); :attr:`stages` holds them together.
     """
 
@@ -92,12 +96,13 @@ class InferenceOptions(SectionSettings):
     tracking: TrackingSettings = section(TrackingSettings)
     appearance: AppearanceSettings = section(AppearanceSettings)
     new_object: NewObjectSettings = section(NewObjectSettings)
+    multiscale: MultiscaleSettings = section(MultiscaleSettings)
 
     @property
     def stages(self) -> StageSettings:
         """The stage sections as the settings objects their functions take."""
         return StageSettings(self.decode, self.pnp, self.hypotheses, self.line_search, self.icp_refine,
-                             self.tracking, self.appearance, self.new_object)
+                             self.tracking, self.appearance, self.new_object, self.multiscale)
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any] | None = None,

@@ -56,6 +56,10 @@ run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.pr
    :class:`dope_hope.inference.turns.TrainedTurns`): each pose turned about its object's long
    axis to the turn whose textured render the network's first layers find most like the image;
    before -LS, which then places the pose kept.
+
+Several working sizes (optional, ``multiscale.scales``, :mod:`dope_hope.inference.scales`):
+steps 1-4 at each, the detections pooled (a duplicate of a higher-scoring one by its 2D box
+dropped), then steps 5-7 on those kept.
 """
 from __future__ import annotations
 
@@ -87,6 +91,7 @@ from dope_hope.inference.object_geometry import ObjectGeometry
 from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.pnp import PoseEstimate, pose_may_reach, score_in_view, solve_pnp
 from dope_hope.inference.pose_search import solve_pnp_instances
+from dope_hope.inference.scales import pool_detections, scaled_height
 from dope_hope.inference.turns import TrainedTurns
 from dope_hope.maps.decode import (
     corner_candidates,
@@ -167,6 +172,10 @@ class DopePredictor:
             raise ConfigError(f"weights must be a file path or a MapBackend, got {type(weights).__name__}")
         b = self.backend
         self.options = InferenceOptions.from_mapping(given, model_min_score=model_min_score(b))
+        fixed = getattr(b, "fixed_input_hw", None)
+        if fixed is not None and len(self.options.multiscale.scales) > 1:
+            raise ConfigError(f"multiscale.scales: this model takes {fixed[0]}x{fixed[1]} inputs only (a fixed-size "
+                              "export), so it runs at one size: give one scale, or the checkpoint")
         self.legacy = b.frame == "legacy" or b.keypoint_order == LEGACY_KEYPOINT_ORDER
         self.mean = tuple(float(v) for v in b.mean)
         self.std = tuple(float(v) for v in b.std)
@@ -271,29 +280,47 @@ class DopePredictor:
                      cache: dict[tuple, Any] | None = None,
                      on_maps: Callable[[DopePredictor, np.ndarray, np.ndarray, NetworkInput], None] | None = None,
                      classes: Collection[str] | None = None) -> list[Detection]:
-        """One image's detections (:func:`predict_many`'s step per predictor): the network input
-        of this working size from ``cache`` (filled when missing, shared by predictors of equal
-        input; a subclass may keep more there, as the new objects of one start keep its maps),
-        the maps (passed to ``on_maps``), then :meth:`detections_from_maps`.
+        """One image's detections (:func:`predict_many`'s step per predictor): for each working
+        size (``multiscale.scales``; one by default) the network input from ``cache`` (filled
+        when missing, shared by predictors of equal input; a subclass may keep more there, as
+        the new objects of one start keep its maps), the maps (those of the first size passed
+        to ``on_maps``), then :meth:`detections_from_maps`; several sizes' detections pooled
+        (:func:`~dope_hope.inference.scales.pool_detections`), and then, where sizes were pooled
+        or the turns run, the turns and the depth stages of those kept.
         ``rgb`` (H, W, 3) uint8, ``K`` checked intrinsics, ``depth`` a DepthImage or None."""
         cache = {} if cache is None else cache
-        resized, padded = self.working_size(rgb.shape[:2])
-        key = (resized, padded, self.mean, self.std)
-        if key not in cache:
-            cache[key] = prepare_input(rgb, resized, self.mean, self.std, padded)
-        belief, affinity, net_in = self.infer_maps(cache[key])
-        if on_maps is not None:
-            on_maps(self, belief, affinity, net_in)
+        scales = self.options.multiscale.scales
         turns = self.trained_turns()
-        if turns is None:
-            return self.detections_from_maps(belief, affinity, net_in, K, depth, classes)
-        out = self.detections_from_maps(belief, affinity, net_in, K, None, classes)
+        late = turns is not None or len(scales) > 1  # the depth stages after the turns / the pooling
+        out: list[Detection] = []
+        for i, (resized, padded) in enumerate(self.scale_sizes(rgb.shape[:2])):
+            key = (resized, padded, self.mean, self.std)
+            if key not in cache:
+                cache[key] = prepare_input(rgb, resized, self.mean, self.std, padded)
+            belief, affinity, net_in = self.infer_maps(cache[key])
+            if on_maps is not None and i == 0:
+                on_maps(self, belief, affinity, net_in)
+            out += self.detections_from_maps(belief, affinity, net_in, K, None if late else depth, classes)
+        if not late:
+            return out
+        if len(scales) > 1:
+            out = pool_detections(out, self.options.multiscale.duplicate_iou)
         for det in out:  # the turn first: -LS then places the pose it kept
             obj = self.object_of(det)
-            turns.turn(det, rgb, K)
+            if turns is not None:
+                turns.turn(det, rgb, K)
             self.depth_stages(obj, det, depth)
             self.project_detection(obj, det, K, rgb.shape[:2])
         return out
+
+    def scale_sizes(self, image_hw: tuple[int, int], scales: Sequence[float] | None = None,
+                    ) -> list[tuple[tuple[int, int], tuple[int, int]]]:
+        """((H', W') resized content, (Hp, Wp) padded network input) of each of ``scales``
+        (default ``multiscale.scales``) for an image of (H, W): scale 1 is :meth:`working_size`,
+        another that size's height times the scale."""
+        base = self.working_size(image_hw)
+        return [base if s == 1.0 else working_size(image_hw, height=scaled_height(base[0][0], s))
+                for s in (self.options.multiscale.scales if scales is None else scales)]
 
     def trained_turns(self) -> TrainedTurns | None:
         """The turns of ``appearance.trained_turns`` (module docstring, step 7), built on first

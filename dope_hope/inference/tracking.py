@@ -43,7 +43,7 @@ from scipy.optimize import linear_sum_assignment
 
 from dope_hope.errors import ConfigError
 from dope_hope.geometry import NUM_KEYPOINTS, matrix_to_quaternion_xyzw, project_points, projected_bbox
-from dope_hope.inference.detection import Detection
+from dope_hope.inference.detection import Detection, box_iou
 from dope_hope.inference.pose_filter import PoseFilter, closest_equivalent
 from dope_hope.inference.tracking_settings import TrackingSettings
 from dope_hope.io.predictions import prediction_record
@@ -152,19 +152,6 @@ def recorded_symmetries(fields: Any) -> np.ndarray:
 
     return declaration_transforms(SymmetryDeclaration(dict(fields), "mm", "the model's object list"),
                                   SYMMETRY_STEP_DEG)
-
-
-def box_iou(a: np.ndarray | None, b: np.ndarray | None) -> float:
-    """Intersection over union of two [u_min, v_min, u_max, v_max] boxes (0 when one is None)."""
-    if a is None or b is None:
-        return 0.0
-    w = min(a[2], b[2]) - max(a[0], b[0])
-    h = min(a[3], b[3]) - max(a[1], b[1])
-    if w <= 0 or h <= 0:
-        return 0.0
-    inter = w * h
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return float(inter / union) if union > 0 else 0.0
 
 
 class PoseTracker:
