@@ -63,7 +63,6 @@ from dope_hope.inference.detection import Detection
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.inference.scales import MultiscaleSettings, pool_detections
 from dope_hope.inference.turns import turn_detection
-from dope_hope.preprocess import prepare_input
 from dope_hope.refine.depth import DepthImage
 from dope_hope.symmetry.cuboid import cuboid_rotations, describe_rotation, long_axis
 
@@ -233,13 +232,10 @@ class MeshStartPredictor(DopePredictor):
         cache = {} if cache is None else cache
         icp_first = depth is not None and self.options.icp
         pooled: list[Detection] = []
-        for i, (resized, padded) in enumerate(self.scale_sizes(rgb.shape[:2], self.scales)):
-            key = (resized, padded, self.mean, self.std)
-            if key not in cache:
-                cache[key] = prepare_input(rgb, resized, self.mean, self.std, padded)
+        for i, (key, net_input) in enumerate(self.network_inputs(rgb, cache, self.scales)):
             maps_key = ("start maps", self.start_id, *key)  # the start's maps know no object: shared
             if maps_key not in cache:
-                cache[maps_key] = self.infer_maps(cache[key])
+                cache[maps_key] = self.infer_maps(net_input)
             belief, affinity, net_in = cache[maps_key]
             if on_maps is not None and i == 0:
                 on_maps(self, belief, affinity, net_in)

@@ -293,11 +293,8 @@ class DopePredictor:
         turns = self.trained_turns()
         late = turns is not None or len(scales) > 1  # the depth stages after the turns / the pooling
         out: list[Detection] = []
-        for i, (resized, padded) in enumerate(self.scale_sizes(rgb.shape[:2])):
-            key = (resized, padded, self.mean, self.std)
-            if key not in cache:
-                cache[key] = prepare_input(rgb, resized, self.mean, self.std, padded)
-            belief, affinity, net_in = self.infer_maps(cache[key])
+        for i, (_, net_input) in enumerate(self.network_inputs(rgb, cache)):
+            belief, affinity, net_in = self.infer_maps(net_input)
             if on_maps is not None and i == 0:
                 on_maps(self, belief, affinity, net_in)
             out += self.detections_from_maps(belief, affinity, net_in, K, None if late else depth, classes)
@@ -311,6 +308,19 @@ class DopePredictor:
                 turns.turn(det, rgb, K)
             self.depth_stages(obj, det, depth)
             self.project_detection(obj, det, K, rgb.shape[:2])
+        return out
+
+    def network_inputs(self, rgb: np.ndarray, cache: dict[tuple, Any], scales: Sequence[float] | None = None,
+                       ) -> list[tuple[tuple, NetworkInput]]:
+        """(cache key, :class:`NetworkInput`) of the (H, W, 3) uint8 image at each of
+        :meth:`scale_sizes`, from ``cache`` (filled where missing: predictors of equal working
+        size and normalization share an input)."""
+        out = []
+        for resized, padded in self.scale_sizes(rgb.shape[:2], scales):
+            key = (resized, padded, self.mean, self.std)
+            if key not in cache:
+                cache[key] = prepare_input(rgb, resized, self.mean, self.std, padded)
+            out.append((key, cache[key]))
         return out
 
     def scale_sizes(self, image_hw: tuple[int, int], scales: Sequence[float] | None = None,
