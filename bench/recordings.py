@@ -5,7 +5,7 @@
 Renders ``--frames`` demo scenes at 640x480 with depth (bench/stream.py's :func:`render`: one
 fixed camera, RealSense-like depth noise) and stores them twice:
 
-* as a ROS 2 bag with MCAP storage, written by rosbags (:class:`~dope_hope.io.recording_writer.RecordingWriter`):
+* as a ROS 2 bag with MCAP storage, written by rosbags (:class:`~dope_hope.ros.recording_writer.RecordingWriter`):
   ``sensor_msgs/Image`` rgb8 colour, 16UC1 depth (mm) aligned to it, ``CameraInfo``, on
   RealSense's topic names, 30 frames/s stamps;
 * as the video of bench/stream.py (mp4v) with each frame's depth attached (``VideoWithDepth``).
@@ -13,9 +13,9 @@ fixed camera, RealSense-like depth noise) and stores them twice:
 Then, in this process, alternating ``--repeats`` times after a 3-frame warm-up of each, the
 loop of `dope-hope infer` runs over each with the same PyTorch predictor (``--threads``):
 
-* recording: :class:`~dope_hope.io.recordings.RecordingSource` (reading, deserialising, depth
+* recording: :class:`~dope_hope.ros.recordings.RecordingSource` (reading, deserialising, depth
   paired by stamp, decoding) -> ``predict_stream`` (network, PnP, -LS, the JSON records) ->
-  :class:`~dope_hope.inference.ros_outputs.RosOutputs` writing the poses MCAP (Detection3DArray,
+  :class:`~dope_hope.ros.outputs.RosOutputs` writing the poses MCAP (Detection3DArray,
   PoseArray, MarkerArray, ImageAnnotations, tf and the JPEG overlay);
 * video: bench/stream.py's :func:`run_loop` (OpenCV decoding, the same predictor, the overlay
   video written).
@@ -55,8 +55,8 @@ def write_bag(path: Path, video: Path, K: np.ndarray, depths: list) -> Path:
     depth and K as a ROS 2 MCAP bag on RealSense's topics; returns the bag folder."""
     import cv2
 
-    from dope_hope.io.recording_writer import RecordingWriter
-    from dope_hope.io.ros_types import ros2_typestore
+    from dope_hope.ros.message_types import ros2_typestore
+    from dope_hope.ros.recording_writer import RecordingWriter
 
     T = ros2_typestore().types
     writer = RecordingWriter(path)
@@ -86,10 +86,10 @@ def write_bag(path: Path, video: Path, K: np.ndarray, depths: list) -> Path:
 
 def run_recording(predictor, bag: Path, out: Path, max_frames: int | None = None):
     """The `dope-hope infer robot_bag/` loop: (StreamStats, detections, detections refined by -LS)."""
-    from dope_hope.inference.ros_outputs import RosOutputs
     from dope_hope.inference.stream_inference import StreamSinks, predict_stream
-    from dope_hope.io.recording_writer import RecordingWriter
-    from dope_hope.io.recordings import RecordingSource
+    from dope_hope.ros.outputs import RosOutputs
+    from dope_hope.ros.recording_writer import RecordingWriter
+    from dope_hope.ros.recordings import RecordingSource
 
     source = RecordingSource(bag)
     outputs = RosOutputs(RecordingWriter(out), None, overlays=True)
@@ -102,12 +102,12 @@ def run_recording(predictor, bag: Path, out: Path, max_frames: int | None = None
 
 def io_only(bag: Path, video: Path, K: np.ndarray, depths: list, out: Path) -> dict[str, tuple[float, float]]:
     """{"recording" | "video": (ms per frame read, ms per frame written)}, no network (module docstring)."""
-    from dope_hope.inference.ros_outputs import RosOutputs
     from dope_hope.io.camera import ImageCamera
-    from dope_hope.io.recording_writer import RecordingWriter
-    from dope_hope.io.recordings import RecordingSource
     from dope_hope.io.streams import VideoWithDepth
     from dope_hope.io.video import OverlayVideo
+    from dope_hope.ros.outputs import RosOutputs
+    from dope_hope.ros.recording_writer import RecordingWriter
+    from dope_hope.ros.recordings import RecordingSource
     from dope_hope.viz import overlay_detections
 
     def timed(source, write) -> tuple[float, float]:

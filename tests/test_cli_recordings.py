@@ -32,7 +32,7 @@ from ros_recordings import (
 from dope_hope import cli
 from dope_hope.assets import DEMO_WEIGHTS
 from dope_hope.io.images import write_depth_mm, write_rgb
-from dope_hope.io.pose_messages import TOPICS
+from dope_hope.ros.pose_messages import TOPICS
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parent.parent
@@ -195,7 +195,7 @@ def receive_detection(url: str, topic: str, deadline: float) -> tuple[dict, byte
 
 
 def test_foxglove_serves_the_detections_live(scenes, tmp_path):
-    from dope_hope.io.ros_types import ros2_typestore
+    from dope_hope.ros.message_types import ros2_typestore
 
     rec = write_recording(tmp_path / "robot.mcap", "mcap", scenes["frames"], scenes["K"])
     env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}

@@ -1,6 +1,6 @@
 """Recordings in and poses out, as a library: message decoding, topic choice, depth pairing,
-the recorded camera, the MCAP writer and the pose messages (dope_hope/io/recordings.py,
-recording_writer.py, pose_messages.py, ros_types.py). Recordings are written here by rosbags'
+the recorded camera, the MCAP writer and the pose messages (dope_hope/ros/recordings.py,
+recording_writer.py, pose_messages.py, message_types.py in dope_hope/ros/). Recordings are written here by rosbags'
 own writers (tests/ros_recordings.py) from small synthetic images."""
 from __future__ import annotations
 
@@ -25,9 +25,11 @@ from ros_recordings import (
 )
 
 from dope_hope.errors import CameraError, ConfigError, InputFileError
-from dope_hope.io.pose_messages import TOPICS, PosedObject, PoseMessages
-from dope_hope.io.recording_writer import RecordingWriter
-from dope_hope.io.recordings import (
+from dope_hope.io.streams import is_recording, stream_kind
+from dope_hope.ros.message_types import ros1_typestore, ros2_typestore
+from dope_hope.ros.pose_messages import TOPICS, PosedObject, PoseMessages
+from dope_hope.ros.recording_writer import RecordingWriter
+from dope_hope.ros.recordings import (
     RecordingSource,
     TopicInfo,
     camera_from_info,
@@ -36,8 +38,6 @@ from dope_hope.io.recordings import (
     decode_image,
     topic_table,
 )
-from dope_hope.io.ros_types import ros1_typestore, ros2_typestore
-from dope_hope.io.streams import is_recording, stream_kind
 
 W, H = 32, 24
 K = np.array([[40.0, 0, 15.5], [0, 40.0, 11.5], [0, 0, 1]])
@@ -254,8 +254,8 @@ def test_corrupt_and_truncated_recordings_are_named(tmp_path):
 
 
 def test_missing_extra_says_which_to_install(monkeypatch):
-    from dope_hope.io.foxglove_live import FoxgloveLive
-    from dope_hope.io.ros_types import require_rosbags
+    from dope_hope.ros.foxglove_live import FoxgloveLive
+    from dope_hope.ros.message_types import require_rosbags
 
     monkeypatch.setitem(sys.modules, "rosbags", None)
     with pytest.raises(ConfigError, match=r'rosbags package: pip install "dope-hope\[ros\]"'):

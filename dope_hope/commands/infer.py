@@ -110,9 +110,9 @@ FALLBACK_FPS = 30.0
 STREAM_OPTIONS = ("realtime", "max_frames", "show", "capture_size", "capture_fps", "track", "foxglove")
 #: Options of recordings only.
 RECORDING_OPTIONS = ("image_topic", "depth_topic", "camera_info_topic", "sync_tolerance", "list_topics")
-#: Colour-to-depth stamp tolerance of a recording, ms (dope_hope.io.recordings.DEFAULT_SYNC_TOLERANCE_S).
+#: Colour-to-depth stamp tolerance of a recording, ms (dope_hope.ros.recordings.DEFAULT_SYNC_TOLERANCE_S).
 DEFAULT_SYNC_TOLERANCE_MS = 15.0
-#: Port of --foxglove without a value (dope_hope.io.foxglove_live.DEFAULT_PORT).
+#: Port of --foxglove without a value (dope_hope.ros.foxglove_live.DEFAULT_PORT).
 DEFAULT_FOXGLOVE_PORT = 8765
 
 
@@ -412,7 +412,7 @@ def _run_stream(args: argparse.Namespace) -> int:
 
     _check_stream_flags(args)
     if args.list_topics:
-        from dope_hope.io.recordings import topic_table
+        from dope_hope.ros.recordings import topic_table
 
         print(topic_table(args.inputs[0], args.image_topic, args.depth_topic, args.camera_info_topic))
         return 0
@@ -422,8 +422,8 @@ def _run_stream(args: argparse.Namespace) -> int:
     try:
         passive_openmp()  # before torch is imported: its idle threads must not spin
         from dope_hope.inference.model_set import stream_tracker
-        from dope_hope.inference.ros_outputs import open_ros_outputs
         from dope_hope.inference.stream_inference import StreamSinks, predict_stream
+        from dope_hope.ros.outputs import open_ros_outputs
 
         predictors = _predictors(args)
         video, window = _stream_outputs(args, out, source, _warn)
@@ -459,7 +459,7 @@ def _open_source(args: argparse.Namespace):
 
     if stream_kind(args.inputs[0]) != "recording":
         return open_stream(args.inputs, _global_camera(args), args.depth, args.capture_size, args.capture_fps, _warn)
-    from dope_hope.io.recordings import open_recording
+    from dope_hope.ros.recordings import open_recording
 
     tolerance = DEFAULT_SYNC_TOLERANCE_MS if args.sync_tolerance is None else args.sync_tolerance
     return open_recording(args.inputs, args.image_topic, args.depth_topic, args.camera_info_topic,

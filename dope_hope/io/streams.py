@@ -36,7 +36,7 @@ from dope_hope.io.images import GLOB_CHARS
 
 #: File suffixes read as videos.
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".flv")
-#: File suffixes of robot recordings (ROS 1 bag, ROS 2 MCAP / sqlite3; :mod:`dope_hope.io.recordings`).
+#: File suffixes of robot recordings (ROS 1 bag, ROS 2 MCAP / sqlite3; :mod:`dope_hope.ros.recordings`).
 RECORDING_SUFFIXES = (".bag", ".mcap", ".db3")
 #: Colour and depth resolution (W, H) and frame rate asked of a RealSense by default.
 REALSENSE_DEFAULT_SIZE = (640, 480)
@@ -59,7 +59,7 @@ class Frame:
     rgb: (H, W, 3) uint8. K: (3, 3) intrinsics of ``rgb``.
     depth: (H, W) float32 metres registered to ``rgb`` (0 = no measurement), or None.
     stamp_ns, frame_id: a recorded image's header stamp (ns since the epoch) and frame_id
-        (:mod:`dope_hope.io.recordings`), else None.
+        (:mod:`dope_hope.ros.recordings`), else None.
     """
 
     index: int
@@ -321,7 +321,7 @@ def is_recording(item: str) -> bool:
 
 
 def stream_kind(item: str) -> str | None:
-    """"camera", "realsense", "video" or "recording" (:mod:`dope_hope.io.recordings`, opened
+    """"camera", "realsense", "video" or "recording" (:mod:`dope_hope.ros.recordings`, opened
     by its ``RecordingSource``) for an input naming a stream, else None (images)."""
     if is_recording(item):
         return "recording"
@@ -351,7 +351,7 @@ def open_stream(inputs: list[str], camera: ImageCamera | None = None, depth: str
         raise ConfigError(f"{stream}: a video, camera or RealSense input must be the only input")
     item, kind = inputs[0], kinds[0]
     if kind == "recording":
-        raise ConfigError(f"{item}: a recording is opened by dope_hope.io.recordings.RecordingSource")
+        raise ConfigError(f"{item}: a recording is opened by dope_hope.ros.recordings.RecordingSource")
     if depth is not None:
         raise ConfigError(f"--depth applies to image inputs; {item} has none"
                           + (" (a RealSense brings its own)" if kind == "realsense" else ""))

@@ -1,4 +1,4 @@
-"""The stream sink of ROS 2 messages (dope_hope/inference/ros_outputs.py): detections and tracked
+"""The stream sink of ROS 2 messages (dope_hope/ros/outputs.py): detections and tracked
 objects become the poses MCAP's messages, on the recorded stamp and frame_id, or, for a video /
 camera frame, on the wall clock of the stream's start plus the frame's timestamp and ``camera``."""
 from __future__ import annotations
@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 from rosbags.highlevel import AnyReader
 
-from dope_hope.inference.ros_outputs import RosOutputs, posed_objects
-from dope_hope.io.recording_writer import RecordingWriter
 from dope_hope.io.streams import Frame
+from dope_hope.ros.outputs import RosOutputs, posed_objects
+from dope_hope.ros.recording_writer import RecordingWriter
 
 K = np.array([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]])
 

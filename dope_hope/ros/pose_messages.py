@@ -1,5 +1,5 @@
 """A frame's poses as ROS 2 messages: what the output MCAP holds and the live Foxglove view
-serves (:mod:`dope_hope.io.recording_writer`, :mod:`dope_hope.io.foxglove_live`), built here
+serves (:mod:`dope_hope.ros.recording_writer`, :mod:`dope_hope.ros.foxglove_live`), built here
 once for both.
 
 Topics (:data:`TOPICS`), every message on the image's header stamp and frame_id (the camera
@@ -32,7 +32,7 @@ from dope_hope.geometry import (
     matrix_to_quaternion_xyzw,
     project_points,
 )
-from dope_hope.io.ros_types import ros2_typestore
+from dope_hope.ros.message_types import ros2_typestore
 
 DETECTIONS = "/dope_hope/detections"
 POSES = "/dope_hope/poses"

@@ -1,7 +1,7 @@
 """Live results for the Foxglove app: a WebSocket server (Foxglove's protocol, ``foxglove-sdk``)
-serving the messages of :mod:`dope_hope.io.pose_messages` as they are made.
+serving the messages of :mod:`dope_hope.ros.pose_messages` as they are made.
 
-Each topic of :data:`~dope_hope.io.pose_messages.TOPICS` is a channel with the type's
+Each topic of :data:`~dope_hope.ros.pose_messages.TOPICS` is a channel with the type's
 ``ros2msg`` definition as schema and CDR messages: the very bytes the output MCAP stores, so
 Foxglove shows the image, the image annotations, the cuboid markers (a 3D scene in the camera
 frame), the poses and tf as it does for a ROS 2 robot. :meth:`FoxgloveLive.wait_for_client`
@@ -13,8 +13,8 @@ import threading
 from typing import Any
 
 from dope_hope.errors import ConfigError, DeviceError
-from dope_hope.io.pose_messages import TOPICS, PoseMessages
-from dope_hope.io.ros_types import ROS_EXTRA_HINT
+from dope_hope.ros.message_types import ROS_EXTRA_HINT
+from dope_hope.ros.pose_messages import TOPICS, PoseMessages
 
 #: Default port of the Foxglove WebSocket server (the app's default).
 DEFAULT_PORT = 8765

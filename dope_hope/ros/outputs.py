@@ -2,11 +2,11 @@
 
 :class:`RosOutputs` is the stream loop's ``on_frame`` sink (:class:`~dope_hope.inference.stream_inference.StreamSinks`):
 each frame's detections (or tracked objects) become the messages of
-:mod:`dope_hope.io.pose_messages`, stamped with the frame's recorded stamp and frame_id (a
+:mod:`dope_hope.ros.pose_messages`, stamped with the frame's recorded stamp and frame_id (a
 video or camera frame: the wall-clock time of the stream's first frame plus its timestamp, and
 ``camera``), and go to a
-:class:`~dope_hope.io.recording_writer.RecordingWriter` and/or a
-:class:`~dope_hope.io.foxglove_live.FoxgloveLive` server: one set of messages for both.
+:class:`~dope_hope.ros.recording_writer.RecordingWriter` and/or a
+:class:`~dope_hope.ros.foxglove_live.FoxgloveLive` server: one set of messages for both.
 """
 from __future__ import annotations
 
@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from dope_hope.io.pose_messages import DEFAULT_FRAME_ID, PosedObject, PoseMessages
 from dope_hope.io.streams import Frame, FrameSource
+from dope_hope.ros.pose_messages import DEFAULT_FRAME_ID, PosedObject, PoseMessages
 
 #: JPEG quality of the overlay images.
 JPEG_QUALITY = 90
@@ -97,9 +97,9 @@ def open_ros_outputs(out: Path, source: FrameSource, foxglove_port: int | None, 
     (:func:`~dope_hope.io.streams.is_recording`), the Foxglove server when ``foxglove_port`` is
     given (``tell`` says where to connect; a file source then waits for the app to subscribe);
     None when neither."""
-    from dope_hope.io.foxglove_live import FoxgloveLive
-    from dope_hope.io.recording_writer import RecordingWriter
     from dope_hope.io.streams import is_recording
+    from dope_hope.ros.foxglove_live import FoxgloveLive
+    from dope_hope.ros.recording_writer import RecordingWriter
 
     recorded = is_recording(str(getattr(source, "path", "")))
     if not recorded and foxglove_port is None:

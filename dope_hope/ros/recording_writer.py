@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from dope_hope.io.atomic import write_error
-from dope_hope.io.ros_types import require_rosbags, ros2_typestore
+from dope_hope.ros.message_types import require_rosbags, ros2_typestore
 
 
 class RecordingWriter:
