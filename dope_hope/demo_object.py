@@ -124,8 +124,7 @@ def demo_object_mesh() -> trimesh.Trimesh:
 
 
 def _to_pil(rgb: np.ndarray):
-    # Pillow only to write the texture
-    from PIL import Image
+    from PIL import Image  # noqa: PLC0415 (Pillow only to write the texture)
 
     return Image.fromarray(rgb)
 

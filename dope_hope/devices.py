@@ -41,8 +41,7 @@ def check_device(name: str, allow_auto: bool = True) -> str:
     text = str(name).strip()
     if text == "cpu" or (allow_auto and text == "auto"):
         return text
-    # torch only to check a device (the CPU description needs none)
-    import torch
+    import torch  # noqa: PLC0415 (torch only to check a device (the CPU description needs none))
 
     try:
         dev = torch.device(text)
@@ -112,8 +111,7 @@ def native_bf16(device_type: str) -> bool:
     a CUDA device with bf16 support, or an x86 CPU with AMX-BF16 / AVX512-BF16 (Linux) whose
     oneDNN the environment does not cap below them (``ONEDNN_MAX_CPU_ISA=AVX2``: float32)."""
     if device_type == "cuda":
-        # torch only to check a device (the CPU description needs none)
-        import torch
+        import torch  # noqa: PLC0415 (torch only to check a device (the CPU description needs none))
 
         return bool(torch.cuda.is_available() and torch.cuda.is_bf16_supported())
     return device_type == "cpu" and cpu_has_native_bf16() and onednn_cap_allows_bf16()

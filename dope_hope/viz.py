@@ -226,8 +226,7 @@ def belief_montage(belief: np.ndarray, image: np.ndarray | None = None,
     Returns:
         (rows * (th + 2) - 2, cols * (tw + 2) - 2, 3) uint8 RGB.
     """
-    # matplotlib (slow to import) only for the colour map
-    from matplotlib import colormaps
+    from matplotlib import colormaps  # noqa: PLC0415 (matplotlib (slow to import) only for the colour map)
 
     maps = np.clip(np.nan_to_num(np.asarray(belief, dtype=np.float32)), 0.0, 1.0)
     if maps.ndim != 3 or maps.shape[0] == 0:

@@ -516,8 +516,7 @@ def vsd(R_e: np.ndarray, t_e: np.ndarray, R_g: np.ndarray, t_g: np.ndarray,
     if depth_test.ndim != 2:
         raise ValueError(f"depth_test must be (H, W), got shape {depth_test.shape}")
     if renderer is None:
-        # OpenGL (pyrender's EGL) only for VSD
-        from dope_hope.render.depth import default_renderer
+        from dope_hope.render.depth import default_renderer  # noqa: PLC0415 (OpenGL (pyrender's EGL) only for VSD)
 
         renderer = default_renderer()
     h, w = depth_test.shape

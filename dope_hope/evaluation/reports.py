@@ -245,11 +245,10 @@ def render_curves(curves: dict[tuple[str, str], dict[str, dict[str, Any]]],
     Args:
         curves: {(method, metric): detection_rates(...)}.
     """
-    # matplotlib (slow to import) only for the curves
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 (matplotlib (slow to import) only for the curves)
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 (after matplotlib.use chose the Agg backend)
 
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")

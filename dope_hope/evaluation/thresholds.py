@@ -27,13 +27,17 @@ from tqdm import tqdm
 
 from dope_hope.annotation import FrameAnnotation
 from dope_hope.errors import ConfigError, InputFileError
-from dope_hope.evaluation.matching import error_matrix, greedy_match
-from dope_hope.evaluation.object_models import ObjectModel
+from dope_hope.evaluation.datasets import assign_predictions, load_dataset
+from dope_hope.evaluation.evaluate import cuboid_centres_to_origins
+from dope_hope.evaluation.matching import METRICS, error_matrix, greedy_match
+from dope_hope.evaluation.object_models import ObjectModel, load_models
 from dope_hope.inference.backends import backend_objects, model_min_score
 from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.io.images import read_depth_m, read_rgb
-from dope_hope.io.predictions import Prediction
+from dope_hope.io.models_dir import is_named_value
+from dope_hope.io.predictions import Prediction, read_predictions
+from dope_hope.model.checkpoint import load_checkpoint, save_inference_checkpoint
 from dope_hope.model.info import ModelInfo, ObjectInfo
 
 #: The thresholds a choice is made among: 0.05 to 0.95 in steps of 0.05.
@@ -152,14 +156,6 @@ def calibrate_weights(predictions: str | os.PathLike, dataset_dir: str | os.Path
     threshold before kept) of the objects with labelled instances. ConfigError for a bad
     argument (an ONNX file, a metric, a distance, no estimate of the model's objects, frames
     without any of them, no object with both)."""
-    from dope_hope.evaluation.datasets import assign_predictions, load_dataset
-    from dope_hope.evaluation.evaluate import cuboid_centres_to_origins
-    from dope_hope.evaluation.matching import METRICS
-    from dope_hope.evaluation.object_models import load_models
-    from dope_hope.io.models_dir import is_named_value
-    from dope_hope.io.predictions import read_predictions
-    from dope_hope.model.checkpoint import load_checkpoint, save_inference_checkpoint
-
     for flag, path in (("--weights", weights), ("--out", out)):
         if Path(path).suffix.lower() != ".pt":
             raise ConfigError(f"{flag} {path}: give a checkpoint (.pt); export the calibrated checkpoint to ONNX")

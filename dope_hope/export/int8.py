@@ -151,9 +151,8 @@ def quantize_int8(fp32_path: str | os.PathLike, out: str | os.PathLike, calibrat
         activation_uint8: UINT8 activations (x86 CPU recommendation) or INT8 (ARM/TensorRT).
     Returns (metadata, deviation of INT8 from fp32).
     """
-    # onnx / onnxruntime (slow to import) only for INT8
-    import onnx
-    from onnxruntime.quantization import (
+    import onnx  # noqa: PLC0415 (onnx / onnxruntime (slow to import) only for INT8)
+    from onnxruntime.quantization import (  # noqa: PLC0415 (onnx / onnxruntime (slow to import) only for INT8)
         CalibrationMethod,
         QuantFormat,
         QuantType,

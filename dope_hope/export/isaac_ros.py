@@ -43,7 +43,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
 from dope_hope.errors import ConfigError
+from dope_hope.geometry import CENTROID_INDEX, CUBOID_CORNER_SIGNS, LEGACY_TO_MESH, NUM_KEYPOINTS
 
 # numpy, OpenCV, scipy and geometry are imported inside the functions: `dope-hope export` reads
 # ISAAC_ROS_CURRENT from this module to build its --help, which must not pay for them.
@@ -149,8 +154,6 @@ def isaac_ros_release(version: str = ISAAC_ROS_CURRENT) -> IsaacRosRelease:
 # ----------------------------------------------------------------------------- vertex order
 def cuboid_vertices(dims: Sequence[float], release: IsaacRosRelease) -> np.ndarray:
     """(3, 9) ``CuboidVertices(ext)`` of ``release``: columns = vertices 0..7, centroid (units of dims)."""
-    import numpy as np
-
     x, y, z = (float(v) for v in dims)
     if release.flipped:
         right, left, bottom, top = -x * 0.5, x * 0.5, -y * 0.5, y * 0.5
@@ -172,10 +175,6 @@ def channel_order(frame: str, release: IsaacRosRelease) -> np.ndarray:
     of :func:`cuboid_vertices`. Matching them makes PnP on the mesh-frame extents return the
     mesh-frame pose.
     """
-    import numpy as np
-
-    from dope_hope.geometry import CENTROID_INDEX, CUBOID_CORNER_SIGNS, LEGACY_TO_MESH
-
     if frame not in ("mesh", "legacy"):
         raise ConfigError(f"object frame must be 'mesh' or 'legacy', got {frame!r}")
     ours = CUBOID_CORNER_SIGNS if frame == "mesh" else CUBOID_CORNER_SIGNS @ LEGACY_TO_MESH.T
@@ -212,8 +211,6 @@ def launch_arguments(release: IsaacRosRelease, model_path: str | Path, input_hw:
 
 # ----------------------------------------------------------------------------- decoder
 def _isolate_maxima(src: np.ndarray) -> np.ndarray:
-    import cv2
-
     dil = cv2.dilate(src, None)
     ero = cv2.erode(src, None)
     return (src >= dil) & (src > ero)
@@ -221,8 +218,6 @@ def _isolate_maxima(src: np.ndarray) -> np.ndarray:
 
 def _weighted_peak(image: np.ndarray, px: int, py: int, release: IsaacRosRelease) -> tuple[float, float]:
     """The decoder's weighted mean around peak (x, y) = (px, py), float32 as in C++; map px."""
-    import numpy as np
-
     rows, cols = image.shape
     transposed = release.window == 5  # 3.0-3.1: row = x + ii, col = y + jj (x and y swapped)
     half = release.window // 2
@@ -250,11 +245,6 @@ def find_objects(maps: np.ndarray, release: IsaacRosRelease, map_peak_threshold:
     Indices are the valid corners in increasing order, then 8 (centroid); objects with fewer
     than ``release.min_points`` are dropped, as the decoder does.
     """
-    import cv2
-    import numpy as np
-
-    from dope_hope.geometry import CENTROID_INDEX, NUM_KEYPOINTS
-
     maps = np.ascontiguousarray(maps, dtype=np.float32)
     if maps.ndim != 3 or maps.shape[0] != 25:
         raise ValueError(f"expected the (25, h, w) Isaac ROS output, got {maps.shape}")
@@ -313,18 +303,12 @@ def find_objects(maps: np.ndarray, release: IsaacRosRelease, map_peak_threshold:
 
 
 def _axis_rotation(angle: float, axis: int) -> np.ndarray:
-    import numpy as np
-    from scipy.spatial.transform import Rotation
-
     return Rotation.from_rotvec(np.eye(3)[axis] * float(angle)).as_matrix()
 
 
 def extract_pose(valid: Sequence[int], image_points: np.ndarray, dims_cm: Sequence[float], K: np.ndarray,
                  release: IsaacRosRelease, rotation_xyz: Sequence[float] = (0.0, 0.0, 0.0)):
     """``ExtractPose``: PnP on the release's vertices -> (R (3, 3), t (3,) metres) or None."""
-    import cv2
-    import numpy as np
-
     pts3 = cuboid_vertices(dims_cm, release)[:, list(valid)].T.astype(np.float64)
     pts2 = np.asarray(image_points, dtype=np.float32).astype(np.float64)
     flag = cv2.SOLVEPNP_EPNP if release.pnp == "epnp" else cv2.SOLVEPNP_ITERATIVE
@@ -348,8 +332,6 @@ def decode(output: np.ndarray, K: np.ndarray, dims_cm: Sequence[float], release:
     K: (3, 3) intrinsics of the network input image. dims_cm: the ``dimensions`` entry.
     Returns [(R (3, 3), t (3,) metres)], one per object, in the decoder's order.
     """
-    import numpy as np
-
     maps = np.asarray(output)
     maps = maps[0] if maps.ndim == 4 else maps
     poses = []

@@ -373,8 +373,7 @@ def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.Pat
     Raises ConfigError for impossible options, ExportError if the graph does not reproduce
     the model.
     """
-    # onnx (slow to import) only when a file is exported
-    import onnx
+    import onnx  # noqa: PLC0415 (onnx (slow to import) only when a file is exported)
 
     layout, input_hw, dynamic, opset = settings.layout, settings.input_hw, settings.dynamic, settings.opset
 
@@ -435,8 +434,7 @@ def export_model(model: nn.Module, checkpoint: dict[str, Any], out: str | os.Pat
 
 def _verify(wrapper: nn.Module, path: Path, x: torch.Tensor, layout: str) -> float:
     """max |onnxruntime - torch| on ``x`` (graph-normalized input); ExportError if too large."""
-    # onnxruntime (slow to import) only to verify an export
-    import onnxruntime as ort
+    import onnxruntime as ort  # noqa: PLC0415 (onnxruntime (slow to import) only to verify an export)
 
     with torch.inference_mode():
         ref = wrapper(x)

@@ -45,7 +45,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from dope_hope.config import SectionSettings, at_least, boolean, finite_float, nonnegative_float
 from dope_hope.errors import ConfigError
@@ -119,8 +121,6 @@ def candidate_rotations(symmetries: np.ndarray, up: np.ndarray | None, spin_step
     axis ``up`` (3,) by every multiple of ``spin_step_deg`` below 360°, each also after a half
     turn about an axis across ``up`` (upside down; ``upside_down`` False: not), those equal to
     an earlier one left out. ``up`` None or a step of 0: the symmetries alone."""
-    from scipy.spatial.transform import Rotation
-
     out = [np.asarray(S, dtype=np.float64) for S in np.asarray(symmetries, dtype=np.float64).reshape(-1, 3, 3)]
     if up is None or spin_step_deg <= 0:
         return np.stack(out)
@@ -229,8 +229,6 @@ def feature_similarity(image_features: np.ndarray, render_features: np.ndarray, 
     """Mean cosine, in [-1, 1], of (C, h, w) ``image_features`` and ``render_features`` over the
     cells whose whole area lies inside the (H, W) silhouette ``mask`` (eroded by a pixel: a
     render's edge cells see its black background); 0 for fewer than ``min_cells`` cells."""
-    import cv2
-
     h, w = np.shape(image_features)[1:]
     inner = cv2.erode(np.asarray(mask, np.uint8), np.ones((3, 3), np.uint8)).astype(np.float32)
     cells = cv2.resize(inner, (w, h), interpolation=cv2.INTER_AREA) > 0.99
@@ -271,7 +269,7 @@ class AppearanceCheck:
                  settings: AppearanceSettings | None = None, up: np.ndarray | None = None,
                  surface: str | None = None, features: Callable[[np.ndarray], np.ndarray] | None = None,
                  upside_down: bool = True):
-        from dope_hope.render.textured import TexturedRenderer
+        from dope_hope.render.textured import TexturedRenderer  # noqa: PLC0415 (OpenGL (pyrender's EGL) only when a candidate is rendered)
 
         self.settings = settings or AppearanceSettings()
         self.surface = surface or surface_appearance(mesh)
@@ -303,8 +301,6 @@ class AppearanceCheck:
         """Score every pose ``R S`` of the candidate (R (3, 3), t (3,) m; S of ``rotations``, or
         of its first ``n_symmetries`` without ``turns``; or of the (S, 3, 3) ``rotations``
         given, identity first) in the (H, W, 3) uint8 image with intrinsics K (3, 3)."""
-        import cv2
-
         s = self.settings
         K = np.asarray(K, dtype=np.float64)
         compared = self.rotations if rotations is None else np.asarray(rotations, dtype=np.float64)

@@ -140,8 +140,7 @@ def open_backend(weights: str | os.PathLike, backend: str = "auto", device: str 
                                    "'auto' (or export it with dope-hope export)")
     if kind == "onnx":
         try:
-            # onnxruntime (slow to import) only for an ONNX model
-            from dope_hope.inference.onnx_backend import OnnxBackend
+            from dope_hope.inference.onnx_backend import OnnxBackend  # noqa: PLC0415 (onnxruntime (slow to import) only for an ONNX model)
         except ModuleNotFoundError as exc:
             if exc.name != "dope_hope.inference.onnx_backend":
                 raise
@@ -152,7 +151,7 @@ def open_backend(weights: str | os.PathLike, backend: str = "auto", device: str 
     if is_onnx:
         raise ModelFileError(path, "an ONNX model; use backend 'onnx' or 'auto'")
     if threads:
-        import torch
+        import torch  # noqa: PLC0415 (torch only to cap the threads of a torch model)
 
         torch.set_num_threads(int(threads))
     return TorchBackend.load(path, device=device)

@@ -55,6 +55,8 @@ from typing import Any
 
 import numpy as np
 
+from dope_hope.assets import PRETRAINED_WEIGHTS
+from dope_hope.catalog import HOPE_OBJECTS
 from dope_hope.errors import ConfigError
 from dope_hope.geometry import value_for_object
 from dope_hope.inference.appearance import AppearanceCheck, AppearanceSettings, surface_appearance
@@ -63,6 +65,8 @@ from dope_hope.inference.detection import Detection
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.inference.scales import MultiscaleSettings, pool_detections
 from dope_hope.inference.turns import turn_detection
+from dope_hope.io.meshes import load_mesh, mesh_cuboid
+from dope_hope.io.models_dir import mesh_class_name
 from dope_hope.refine.depth import DepthImage
 from dope_hope.symmetry.cuboid import cuboid_rotations, describe_rotation, long_axis
 
@@ -104,8 +108,6 @@ def up_axis_warning(size_m: np.ndarray, up_axis: str, source: str) -> str | None
 def size_warning(size_m: np.ndarray, source: str) -> str | None:
     """A warning when the mesh's largest side lies more than :data:`LEARNED_SIZE_FACTOR` times
     outside the largest sides of the HOPE objects (the start's training objects' sizes), else None."""
-    from dope_hope.catalog import HOPE_OBJECTS
-
     largest = float(np.max(size_m))
     sides = [max(o.size) for o in HOPE_OBJECTS]
     lo, hi = min(sides), max(sides)
@@ -145,10 +147,6 @@ class MeshStartPredictor(DopePredictor):
                  appearance: AppearanceSettings | Mapping[str, Any] | bool = True,
                  device: str = "cpu", threads: int | None = None,
                  options: Mapping[str, Any] | None = None, **overrides: Any):
-        from dope_hope.assets import PRETRAINED_WEIGHTS
-        from dope_hope.io.meshes import load_mesh, mesh_cuboid
-        from dope_hope.io.models_dir import mesh_class_name
-
         mesh_file = units = None
         if isinstance(mesh, (str, os.PathLike)):
             name = class_name or mesh_class_name(mesh)

@@ -14,7 +14,7 @@ import numpy as np
 
 from dope_hope.catalog import get_object
 from dope_hope.errors import ConfigError, UnknownObjectError
-from dope_hope.geometry import LEGACY_TO_MESH, NUM_KEYPOINTS, cuboid_keypoints
+from dope_hope.geometry import CUBOID_CORNER_SIGNS, LEGACY_TO_MESH, NUM_KEYPOINTS, cuboid_keypoints
 from dope_hope.model.info import ObjectInfo
 
 
@@ -78,8 +78,6 @@ class ObjectGeometry:
         axis as its y axis: :mod:`dope_hope.inference.mesh_start`). The predictor turns the
         pose back (``R_mesh = R_pnp @ axes``) and lists the keypoints in the mesh frame's order.
         Not for a legacy-frame model."""
-        from dope_hope.geometry import CUBOID_CORNER_SIGNS
-
         A = np.asarray(axes, dtype=np.float64)
         if A.shape != (3, 3) or not np.allclose(np.abs(A).sum(axis=0), 1) or not np.allclose(np.abs(A).sum(axis=1), 1) \
                 or not np.isclose(np.linalg.det(A), 1.0) or not np.allclose(np.abs(A), np.abs(A).round()):
@@ -95,8 +93,7 @@ class ObjectGeometry:
         return belief[9 * k:9 * k + 9], affinity[16 * k:16 * k + 16]
 
     def _load_mesh(self, mesh: Any, units: str | None, model_size: np.ndarray):
-        # meshes (trimesh) only for an object given a mesh
-        from dope_hope.io.meshes import check_mesh_box, load_mesh, mesh_cuboid
+        from dope_hope.io.meshes import check_mesh_box, load_mesh, mesh_cuboid  # noqa: PLC0415 (meshes (trimesh) only for an object given a mesh)
 
         source = "<mesh>"
         if isinstance(mesh, (str, os.PathLike)):
@@ -112,8 +109,7 @@ class ObjectGeometry:
         in front of the real surface: pass the mesh for non-box objects), metres."""
         if self.mesh is not None:
             return self.mesh
-        # trimesh only for an object given a mesh
-        import trimesh
+        import trimesh  # noqa: PLC0415 (trimesh only for an object given a mesh)
 
         box = trimesh.creation.box(extents=self.cuboid_size_m)
         box.apply_translation(self.cuboid_center_m)
@@ -136,8 +132,7 @@ class ObjectGeometry:
     def model_points(self) -> np.ndarray:
         """(ls_points, 3) mesh-frame surface points for the line search, metres (cached)."""
         if self._model_points is None:
-            # meshes (trimesh) only for an object given a mesh
-            from dope_hope.io.meshes import sample_surface_points
+            from dope_hope.io.meshes import sample_surface_points  # noqa: PLC0415 (meshes (trimesh) only for an object given a mesh)
 
             self._model_points = sample_surface_points(self.surface(), self.ls_points, seed=0)
         return self._model_points
@@ -158,8 +153,7 @@ class ObjectGeometry:
         """((icp_points, 3) mesh-frame surface points, metres; their (icp_points, 3) unit
         normals) for ICP (cached)."""
         if self._icp_model is None:
-            # meshes (trimesh) only for an object given a mesh
-            from dope_hope.io.meshes import sample_surface_points
+            from dope_hope.io.meshes import sample_surface_points  # noqa: PLC0415 (meshes (trimesh) only for an object given a mesh)
 
             self.check_icp_surface()
             self._icp_model = sample_surface_points(self.surface(), self.icp_points, seed=0,

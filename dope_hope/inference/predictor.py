@@ -73,6 +73,7 @@ from typing import Any
 
 import numpy as np
 
+from dope_hope.assets import PRETRAINED_WEIGHTS
 from dope_hope.errors import ConfigError, ModelFileError
 from dope_hope.geometry import (
     LEGACY_KEYPOINT_ORDER,
@@ -601,6 +602,4 @@ def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.n
 def _shipped_start_features() -> Callable[[np.ndarray], np.ndarray]:
     """The shipped pretrained start's first layers on the CPU (``TorchBackend.texture_features``),
     for a model whose backend cannot run its own (ONNX); loaded once."""
-    from dope_hope.assets import PRETRAINED_WEIGHTS
-
     return start_backend(PRETRAINED_WEIGHTS, "start", np.ones(3)).texture_features

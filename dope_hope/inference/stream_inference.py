@@ -64,8 +64,7 @@ def predict_stream(source: FrameSource, predictors: Sequence[Any], sinks: Stream
     Returns:
         The loop's stats and every record.
     """
-    # torch comes with the predictors: after frame_loop.passive_openmp()
-    from dope_hope.inference.predictor import as_depth_image, predict_many
+    from dope_hope.inference.predictor import as_depth_image, predict_many  # noqa: PLC0415 (torch comes with the predictors: after frame_loop.passive_openmp())
 
     sinks = sinks or StreamSinks()
     records: list[dict] = []

@@ -131,9 +131,8 @@ def object_symmetries(class_name: str, mesh_path: Any = None, units: str | None 
     resolution order (:func:`dope_hope.symmetry.resolve.resolve_symmetries`: declarations beside
     its mesh file, the demo box's own, the HOPE category), else the identity only. Continuous
     symmetries are sampled every :data:`SYMMETRY_STEP_DEG`."""
-    # meshes (trimesh) only for a class's declared symmetries
-    from dope_hope.symmetry.resolve import resolve_symmetries
-    from dope_hope.symmetry.transforms import category_symmetries, declaration_transforms
+    from dope_hope.symmetry.resolve import resolve_symmetries  # noqa: PLC0415 (meshes (trimesh) only for a class's declared symmetries)
+    from dope_hope.symmetry.transforms import category_symmetries, declaration_transforms  # noqa: PLC0415 (meshes (trimesh) only for a class's declared symmetries)
 
     path = mesh_path if mesh_path is not None and not hasattr(mesh_path, "vertices") else None
     found = resolve_symmetries(class_name, path, units=units)
@@ -147,8 +146,8 @@ def object_symmetries(class_name: str, mesh_path: Any = None, units: str | None 
 def recorded_symmetries(fields: Any) -> np.ndarray:
     """(S, 4, 4) model-frame symmetries, metres, of the BOP fields (mm) a model records for an
     object (``ObjectInfo.symmetries``); continuous ones every :data:`SYMMETRY_STEP_DEG`."""
-    from dope_hope.io.symmetries import SymmetryDeclaration
-    from dope_hope.symmetry.transforms import declaration_transforms
+    from dope_hope.io.symmetries import SymmetryDeclaration  # noqa: PLC0415 (meshes (trimesh) only for a recorded declaration)
+    from dope_hope.symmetry.transforms import declaration_transforms  # noqa: PLC0415 (meshes (trimesh) only for a recorded declaration)
 
     return declaration_transforms(SymmetryDeclaration(dict(fields), "mm", "the model's object list"),
                                   SYMMETRY_STEP_DEG)

@@ -27,6 +27,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from dope_hope.inference.appearance import AppearanceCheck, AppearanceSettings, surface_appearance
 from dope_hope.inference.detection import Detection
@@ -63,8 +64,6 @@ class TrainedTurns:
 
     def __init__(self, objects: Sequence[ObjectGeometry], settings: AppearanceSettings,
                  features: Callable[[np.ndarray], np.ndarray]):
-        from scipy.spatial.transform import Rotation
-
         self.checks: dict[str, AppearanceCheck] = {}
         self.axes: dict[str, np.ndarray] = {}
         step = np.radians(settings.trained_refine_deg)
@@ -89,8 +88,6 @@ class TrainedTurns:
         image with intrinsics K (3, 3), where its object has a check; ``texture_turn_deg``
         (the turn applied about the long axis, 0 for none) and ``appearance_score`` (the colour
         score's best) set. ``projected_2d`` and ``bbox_2d`` are the caller's."""
-        from scipy.spatial.transform import Rotation
-
         check = self.checks.get(det.class_name)
         if check is None:
             return

@@ -162,8 +162,7 @@ def read_image_raw(path: str | os.PathLike) -> np.ndarray:
 def _read_exr(path: Path) -> np.ndarray:
     """EXR as float32 (H, W) or (H, W, C) RGB(A), via the OpenEXR bindings: OpenCV's wheels
     are built without OpenEXR (cv2.imread returns None even with OPENCV_IO_ENABLE_OPENEXR)."""
-    # OpenEXR only for .exr files
-    import OpenEXR
+    import OpenEXR  # noqa: PLC0415 (OpenEXR only for .exr files)
 
     try:
         with OpenEXR.File(str(path)) as exr:
@@ -180,8 +179,7 @@ def _read_exr(path: Path) -> np.ndarray:
 
 def image_size(path: str | os.PathLike) -> tuple[int, int]:
     """(width, height) of an image file from its header only (no decoding), pixels."""
-    # Pillow reads the header alone
-    from PIL import Image, UnidentifiedImageError
+    from PIL import Image, UnidentifiedImageError  # noqa: PLC0415 (Pillow reads the header alone)
 
     path = require_file(path, "image file")
     try:

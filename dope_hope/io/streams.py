@@ -212,7 +212,7 @@ class CameraDevice(_Capture):
 # ----------------------------------------------------------------------------- RealSense
 def _import_realsense():
     try:
-        import pyrealsense2
+        import pyrealsense2  # noqa: PLC0415 (pyrealsense2 is the optional realsense extra)
     except ModuleNotFoundError as exc:
         if exc.name != "pyrealsense2":
             raise

@@ -63,16 +63,14 @@ def _ort_problem(exc: BaseException, limit: int = 160) -> str:
 
 def default_providers() -> list[str]:
     """CUDA (if this onnxruntime build has it) then CPU."""
-    # onnxruntime (slow to import) only when a graph runs
-    import onnxruntime as ort
+    import onnxruntime as ort  # noqa: PLC0415 (onnxruntime (slow to import) only when a graph runs)
 
     available = ort.get_available_providers()
     return (["CUDAExecutionProvider"] if "CUDAExecutionProvider" in available else []) + ["CPUExecutionProvider"]
 
 
 def _session_options(threads: int | None, optimization: str, spinning: bool):
-    # onnxruntime (slow to import) only when a graph runs
-    import onnxruntime as ort
+    import onnxruntime as ort  # noqa: PLC0415 (onnxruntime (slow to import) only when a graph runs)
 
     if optimization not in OPTIMIZATION_LEVELS:
         raise ConfigError(f"optimization must be one of {', '.join(OPTIMIZATION_LEVELS)}, "
@@ -112,8 +110,7 @@ class OnnxGraph:
 
     def __init__(self, path: str | os.PathLike, threads: int | None = None,
                  providers: Sequence[str] | None = None, optimization: str = "all", spinning: bool = False):
-        # onnxruntime (slow to import) only when a graph runs
-        import onnxruntime as ort
+        import onnxruntime as ort  # noqa: PLC0415 (onnxruntime (slow to import) only when a graph runs)
 
         self.path = Path(path)
         require_model_file(self.path, "ONNX file")

@@ -75,15 +75,14 @@ class DepthRenderer:
 
     def _gl(self):
         import_pyrender()
-        # OpenGL only after render.gl chose the platform
-        from OpenGL import GL
+        from OpenGL import GL  # noqa: PLC0415 (OpenGL only after render.gl chose the platform)
 
         if self._platform is None:
-            from pyrender.platforms.egl import EGLPlatform
+            from pyrender.platforms.egl import EGLPlatform  # noqa: PLC0415 (only after render.gl chose the platform)
 
             self._platform = EGLPlatform(1, 1)
             self._platform.init_context()
-            from OpenGL.GL import shaders
+            from OpenGL.GL import shaders  # noqa: PLC0415 (only after render.gl chose the platform)
 
             self._program = shaders.compileProgram(
                 shaders.compileShader(_VERTEX_SHADER, GL.GL_VERTEX_SHADER),

@@ -22,7 +22,7 @@ DEFAULT_PORT = 8765
 
 def _import_foxglove():
     try:
-        import foxglove
+        import foxglove  # noqa: PLC0415 (foxglove-sdk is the optional ros extra)
     except ModuleNotFoundError as exc:
         if exc.name != "foxglove":
             raise

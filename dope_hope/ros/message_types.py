@@ -55,7 +55,7 @@ EXTRA_MSG_DEFINITIONS: tuple[tuple[str, str], ...] = (
 def require_rosbags() -> None:
     """ConfigError naming the extra to install when ``rosbags`` is missing."""
     try:
-        import rosbags  # noqa: F401
+        import rosbags  # noqa: F401, PLC0415 (rosbags is the optional ros extra)
     except ModuleNotFoundError as exc:
         if exc.name != "rosbags":
             raise
@@ -66,7 +66,7 @@ def require_rosbags() -> None:
 def ros2_typestore() -> Any:
     """rosbags' ROS 2 Humble typestore with :data:`EXTRA_MSG_DEFINITIONS` registered."""
     require_rosbags()
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: PLC0415 (rosbags is the optional ros extra)
 
     store = get_typestore(Stores.ROS2_HUMBLE)
     types: dict = {}
@@ -80,6 +80,6 @@ def ros2_typestore() -> Any:
 def ros1_typestore() -> Any:
     """rosbags' ROS 1 Noetic typestore (ROS 1 bags without embedded definitions)."""
     require_rosbags()
-    from rosbags.typesys import Stores, get_typestore
+    from rosbags.typesys import Stores, get_typestore  # noqa: PLC0415 (rosbags is the optional ros extra)
 
     return get_typestore(Stores.ROS1_NOETIC)

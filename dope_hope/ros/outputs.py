@@ -15,10 +15,14 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
-from dope_hope.io.streams import Frame, FrameSource
+from dope_hope.io.streams import Frame, FrameSource, is_recording
+from dope_hope.ros.foxglove_live import FoxgloveLive
 from dope_hope.ros.pose_messages import DEFAULT_FRAME_ID, PosedObject, PoseMessages
+from dope_hope.ros.recording_writer import RecordingWriter
+from dope_hope.viz import class_color, overlay_detections
 
 #: JPEG quality of the overlay images.
 JPEG_QUALITY = 90
@@ -27,8 +31,6 @@ JPEG_QUALITY = 90
 def posed_objects(dets: Sequence[Any]) -> list[PosedObject]:
     """:class:`PosedObject` of each Detection / TrackedObject (the published pose, its box,
     the track id when tracking, the overlay's class colour)."""
-    from dope_hope.viz import class_color
-
     return [PosedObject(class_name=d.class_name, score=float(d.score), R=np.asarray(d.R), t=np.asarray(d.t),
                         size_m=np.asarray(d.cuboid_size_m), center_m=np.asarray(d.cuboid_center_m),
                         track_id=getattr(d, "track_id", None), color_rgb=tuple(int(c) for c in class_color(d.class_name)))
@@ -62,10 +64,6 @@ class RosOutputs:
         stamp, frame_id = frame_stamp(frame, self.start_ns)
         jpeg = None
         if self.overlays:
-            import cv2
-
-            from dope_hope.viz import overlay_detections
-
             bgr = cv2.cvtColor(overlay_detections(frame.rgb, dets, frame.K), cv2.COLOR_RGB2BGR)
             jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])[1].tobytes()
         for topic, msg in self.messages.frame(stamp, frame_id, posed_objects(dets), frame.K, jpeg):
@@ -97,10 +95,6 @@ def open_ros_outputs(out: Path, source: FrameSource, foxglove_port: int | None, 
     (:func:`~dope_hope.io.streams.is_recording`), the Foxglove server when ``foxglove_port`` is
     given (``tell`` says where to connect; a file source then waits for the app to subscribe);
     None when neither."""
-    from dope_hope.io.streams import is_recording
-    from dope_hope.ros.foxglove_live import FoxgloveLive
-    from dope_hope.ros.recording_writer import RecordingWriter
-
     recorded = is_recording(str(getattr(source, "path", "")))
     if not recorded and foxglove_port is None:
         return None

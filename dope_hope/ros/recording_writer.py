@@ -29,7 +29,7 @@ class RecordingWriter:
 
     def __init__(self, path: str | os.PathLike):
         require_rosbags()
-        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: PLC0415 (rosbags is the optional ros extra)
 
         self.path = Path(path)
         self.store = ros2_typestore()

@@ -44,6 +44,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from dope_hope.errors import CameraError, ConfigError, InputFileError
@@ -71,8 +72,6 @@ def _stamp_ns(msg: Any) -> int:
 def decode_image(msg: Any, where: str) -> np.ndarray:
     """(H, W, 3) uint8 RGB of a colour Image or CompressedImage message; InputFileError
     naming ``where`` (file and topic) for an encoding it does not take."""
-    import cv2
-
     if msg.__msgtype__ == COMPRESSED:
         fmt = msg.format.lower()
         if "compresseddepth" in fmt or not any(k in fmt for k in ("jpeg", "jpg", "png")):
@@ -111,8 +110,6 @@ def _pixels(msg: Any, dtype: Any, channels: int, where: str) -> np.ndarray:
 
 def decode_depth(msg: Any, where: str) -> np.ndarray:
     """(H, W) float32 metres (0 = no measurement) of a depth Image or compressedDepth message."""
-    import cv2
-
     if msg.__msgtype__ == COMPRESSED:
         fmt = msg.format
         if "compressedDepth" not in fmt or "rvl" in fmt.lower():
@@ -255,7 +252,7 @@ def _corrupt(path: Path, exc: BaseException) -> InputFileError:
 def _open_reader(path: Path) -> Any:
     """An open rosbags AnyReader of ``path``; InputFileError for a missing or unreadable one."""
     require_rosbags()
-    from rosbags.highlevel import AnyReader
+    from rosbags.highlevel import AnyReader  # noqa: PLC0415 (rosbags is the optional ros extra)
 
     if not path.exists():
         raise InputFileError(path, "recording not found")

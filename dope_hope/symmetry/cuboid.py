@@ -12,6 +12,9 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+
+from dope_hope.geometry import CUBOID_CORNER_SIGNS
 
 #: Extents closer than this fraction of the larger one count as equal (a square section).
 EQUAL_EXTENT_TOL = 0.02
@@ -63,8 +66,6 @@ def corner_permutation(S: np.ndarray) -> np.ndarray:
     """(9,) int ``perm`` of a rotation S of :func:`cuboid_rotations`: corner k of the pose
     ``R S`` is corner ``perm[k]`` of the pose ``R`` (keypoints (9, 2) of R become those of
     ``R S`` as ``keypoints[perm]``); the centre stays."""
-    from dope_hope.geometry import CUBOID_CORNER_SIGNS
-
     signs = CUBOID_CORNER_SIGNS @ np.rint(np.asarray(S, dtype=np.float64)).T
     order = [int(np.flatnonzero(np.all(CUBOID_CORNER_SIGNS == m, axis=1))[0]) for m in signs]
     return np.array(order + [len(CUBOID_CORNER_SIGNS)])
@@ -73,8 +74,6 @@ def corner_permutation(S: np.ndarray) -> np.ndarray:
 def describe_rotation(S: np.ndarray) -> str:
     """A person's name of a rotation of the cube group: "identity", "180° about y",
     "90° about -z" (right-handed), or an axis of the form "120° about (1, 1, 1)"."""
-    from scipy.spatial.transform import Rotation
-
     rotvec = Rotation.from_matrix(np.asarray(S, dtype=np.float64)).as_rotvec()
     angle = float(np.degrees(np.linalg.norm(rotvec)))
     if angle < 1e-6:

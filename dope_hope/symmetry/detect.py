@@ -41,6 +41,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from dope_hope.io.meshes import DEFAULT_UNITS, UNIT_SCALE, load_mesh, mesh_cuboid
 from dope_hope.io.symmetries import SymmetryDeclaration
@@ -161,8 +164,6 @@ def axis_name(axis: np.ndarray) -> str:
 
 
 def _rotation(axis: np.ndarray, angle_deg: float) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
     return Rotation.from_rotvec(np.radians(angle_deg) * np.asarray(axis, dtype=np.float64)).as_matrix()
 
 
@@ -178,9 +179,6 @@ class _Surface:
     """A mesh's surface samples and the distance of any point to the surface (metres)."""
 
     def __init__(self, mesh: Any, seed: int):
-        import trimesh
-        from scipy.spatial import cKDTree
-
         self.triangles = np.asarray(mesh.triangles, dtype=np.float64)
         dense, faces = trimesh.sample.sample_surface(mesh, DENSE_POINTS, seed=seed)
         self.faces = np.asarray(faces)
@@ -191,8 +189,6 @@ class _Surface:
     def distance(self, x: np.ndarray) -> np.ndarray:
         """(N,) distance of each of (N, 3) points to the surface: the nearest of the faces of
         its nearest dense samples (exact point-to-triangle; an upper bound of the distance)."""
-        import trimesh
-
         near, idx = self.tree.query(x, k=NEAREST_FACES)
         faces = self.faces[idx].reshape(-1)
         pts = np.repeat(x, NEAREST_FACES, axis=0)

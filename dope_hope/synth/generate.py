@@ -152,9 +152,8 @@ class FrameGenerator:
     # -- rendering resources, created on first use (in the process that renders)
     def _ensure_renderer(self) -> None:
         if self._renderer is None:
-            # OpenGL starts with the first render, not with the generator
-            from dope_hope.synth.materials import MeshBuilder
-            from dope_hope.synth.render import SceneRenderer
+            from dope_hope.synth.materials import MeshBuilder  # noqa: PLC0415 (OpenGL starts with the first render, not with the generator)
+            from dope_hope.synth.render import SceneRenderer  # noqa: PLC0415 (OpenGL starts with the first render, not with the generator)
 
             self._renderer = SceneRenderer(*self.size, shadows=bool(self.cfg["lights"]["shadows"]))
             self._meshes = MeshBuilder()
@@ -210,8 +209,7 @@ class FrameGenerator:
         streams = frame_streams(self.seed if seed is None else seed, index)
         targets, category = self.targets, None
         if self.procedural:
-            # procedural objects (trimesh) only for --procedural
-            from dope_hope.synth.objects import sample_object
+            from dope_hope.synth.objects import sample_object  # noqa: PLC0415 (procedural objects (trimesh) only for --procedural)
 
             p = self.cfg["procedural"]
             obj = sample_object(streams["object"], p["categories"], float(p["size_jitter"]),

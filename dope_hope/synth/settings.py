@@ -219,8 +219,7 @@ def validate_synth_config(cfg: dict[str, Any]) -> None:
         weights = _lookup(cfg, path)
         if not isinstance(weights, dict) or not any(float(v) > 0 for v in weights.values()):
             raise ConfigError(f"{'.'.join(path)} needs at least one positive weight")
-    # the procedural shapes' module brings trimesh: only when a config is checked
-    from dope_hope.synth.objects import SHAPE_LABELS
+    from dope_hope.synth.objects import SHAPE_LABELS  # noqa: PLC0415 (the procedural shapes' module brings trimesh: only when a config is checked)
 
     unknown = sorted(set(cfg["procedural"]["categories"]) - set(SHAPE_LABELS))
     if unknown:

@@ -36,8 +36,7 @@ class MetricsLog:
         self.jsonl_path = out / "metrics.jsonl"
         self.rows = self._truncate(keep_rows)
         try:
-            # TensorBoard is optional (the tensorboard extra)
-            from torch.utils.tensorboard import SummaryWriter
+            from torch.utils.tensorboard import SummaryWriter  # noqa: PLC0415 (TensorBoard is optional (the tensorboard extra))
             self.tb = SummaryWriter(str(out / "tensorboard"), purge_step=purge_step)
         except ImportError:  # tensorboard is optional
             self.tb = None

@@ -77,8 +77,7 @@ def plot_results(csv_path: str | Path, png_path: str | Path) -> Path:
     Panels: :data:`PANELS` (x: optimizer steps); a panel without values says "no values yet".
     Returns ``png_path``.
     """
-    # matplotlib (slow to import) only for results.png
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # noqa: PLC0415 (matplotlib (slow to import) only for results.png)
 
     data = read_metrics(csv_path)
     fig = Figure(figsize=(15, 3.2))

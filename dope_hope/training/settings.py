@@ -340,8 +340,7 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None, units: str
         :data:`dope_hope.io.meshes.MESH_SIZE_TOLERANCE`): every pose the model gives would
         be off by the ratio.
     """
-    # torch and trimesh only for the checkpoint's object entry
-    from dope_hope.model.checkpoint import make_object_info
+    from dope_hope.model.checkpoint import make_object_info  # noqa: PLC0415 (torch and trimesh only for the checkpoint's object entry)
 
     try:
         hope = get_object(name)
@@ -349,7 +348,7 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None, units: str
     except UnknownObjectError:
         hope = None
     if mesh is not None:
-        from dope_hope.io.meshes import check_mesh_box, load_mesh, mesh_cuboid
+        from dope_hope.io.meshes import check_mesh_box, load_mesh, mesh_cuboid  # noqa: PLC0415 (trimesh only for a run given a mesh)
 
         loaded = load_mesh(mesh, units=units)
         size, _ = mesh_cuboid(loaded)
@@ -438,8 +437,7 @@ def same_architecture(config: dict[str, Any], checkpoint: Path) -> bool:
     """True when ``config`` builds the network ``checkpoint`` holds (same ``model`` section and
     input normalization), up to ``model.num_objects``: a one-object start is widened to the
     run's objects (:func:`dope_hope.model.network.widen_to_objects`)."""
-    # torch only to read the checkpoint
-    from dope_hope.model.checkpoint import load_checkpoint
+    from dope_hope.model.checkpoint import load_checkpoint  # noqa: PLC0415 (torch only to read the checkpoint)
 
     saved = load_checkpoint(checkpoint)["config"]
 
