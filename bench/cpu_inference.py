@@ -26,7 +26,7 @@ of the images' true keypoints (the sharp isolated peaks a trained DR-50 aims for
 ``dope_dr_50.yaml``) and decodes them: what an error of that absolute size does to such
 peaks (a trained network's INT8 error may be smaller or larger than a random one's).
 The **keypoint** deviation of decoded instances is measured on a lite network briefly fitted
-end to end on a synthetic box scene (``dope_hope.training.fit_one``, the same model the tests
+end to end on a synthetic box scene (bench/fit_one.py, the same model the tests
 use: a trained network whose maps decode one clean instance) and on held-out jittered
 copies of the scene. Evaluation images are never calibration images.
 """
@@ -220,11 +220,12 @@ def lite_keypoints(tmp: Path, n_eval: int) -> tuple:
     Both calibrate and evaluate on the same jittered copies of the fitted scene (held out from
     calibration). Returns (input (H, W), fitted deviation, untrained deviation).
     """
+    from fit_one import IMAGE_HW, fit_lite_checkpoint  # bench/fit_one.py, beside this script
+    from fit_one import box_scene as scene
+
     from dope_hope.config import load_settings
     from dope_hope.export.pipeline import Int8Calibration, export_checkpoint
     from dope_hope.io.images import write_rgb
-    from dope_hope.training.fit_one import IMAGE_HW, fit_lite_checkpoint
-    from dope_hope.training.fit_one import box_scene as scene
     from dope_hope.training.settings import TrainConfig
 
     rgb, _ = scene()

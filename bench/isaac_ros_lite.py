@@ -67,7 +67,7 @@ def pooled(maps: np.ndarray, how: str) -> np.ndarray:
 
 def peak_drift(belief: np.ndarray, pooled_belief: np.ndarray) -> tuple[list[float], int]:
     """(distances of the matched peaks, network px; native peaks without a match)."""
-    a, b = find_peaks(belief), find_peaks(pooled_belief)
+    a, b = find_peaks(belief, noise_sigmas=0.0), find_peaks(pooled_belief, noise_sigmas=0.0)  # every peak
     out, missing = [], 0
     for c in range(9):
         pa = map_to_image(a.xy[a.channel == c], 4)

@@ -8,7 +8,8 @@ fixed camera, RealSense-like depth noise) and stores them twice:
 * as a ROS 2 bag with MCAP storage, written by rosbags (:class:`~dope_hope.ros.recording_writer.RecordingWriter`):
   ``sensor_msgs/Image`` rgb8 colour, 16UC1 depth (mm) aligned to it, ``CameraInfo``, on
   RealSense's topic names, 30 frames/s stamps;
-* as the video of bench/stream.py (mp4v) with each frame's depth attached (``VideoWithDepth``).
+* as the video of bench/stream.py (mp4v) with each frame's depth attached (``VideoWithDepth``,
+  bench/video_with_depth.py).
 
 Then, in this process, alternating ``--repeats`` times after a 3-frame warm-up of each, the
 loop of `dope-hope infer` runs over each with the same PyTorch predictor (``--threads``):
@@ -38,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 from stream import render, run_loop
+from video_with_depth import VideoWithDepth
 
 from dope_hope.assets import DEMO_WEIGHTS
 from dope_hope.demo.scenes import IMAGE_SIZE
@@ -103,7 +105,6 @@ def run_recording(predictor, bag: Path, out: Path, max_frames: int | None = None
 def io_only(bag: Path, video: Path, K: np.ndarray, depths: list, out: Path) -> dict[str, tuple[float, float]]:
     """{"recording" | "video": (ms per frame read, ms per frame written)}, no network (module docstring)."""
     from dope_hope.io.camera import ImageCamera
-    from dope_hope.io.streams import VideoWithDepth
     from dope_hope.io.video import OverlayVideo
     from dope_hope.ros.outputs import RosOutputs
     from dope_hope.ros.recording_writer import RecordingWriter

@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from video_with_depth import VideoWithDepth
 
 from dope_hope.assets import DEMO_WEIGHTS
 from dope_hope.demo.onnx_cache import ensure_onnx
@@ -39,7 +40,6 @@ from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_
 from dope_hope.devices import cpu_line
 from dope_hope.inference.frame_loop import passive_openmp
 from dope_hope.io.camera import ImageCamera
-from dope_hope.io.streams import VideoWithDepth
 
 TARGET_FPS = 15.0
 SEED = 5000  # never used for training (demo_lite: seeds 1, 2) or the demo figures

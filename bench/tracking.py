@@ -56,13 +56,13 @@ from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+from video_with_depth import VideoWithDepth
 
 from dope_hope.assets import DEMO_WEIGHTS
 from dope_hope.demo_object import DEMO_CLASS_NAME, demo_object_mesh, write_demo_object
 from dope_hope.devices import cpu_line
 from dope_hope.inference.frame_loop import passive_openmp
 from dope_hope.io.camera import ImageCamera
-from dope_hope.io.streams import VideoWithDepth
 
 FPS = 30.0
 SIZE = (640, 480)

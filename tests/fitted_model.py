@@ -6,20 +6,25 @@ to the belief/affinity targets of ONE image whose cuboid keypoints are known, wh
 for its maps to hold one clean instance at that image. The fit is deterministic (seeded) and
 takes a few seconds. Two images:
 
-* :func:`scene` / :func:`fit_lite_checkpoint`: a drawn Ketchup box (one thread), the
-  library's :mod:`dope_hope.training.fit_one`;
+* :func:`scene` / :func:`fit_lite_checkpoint`: a drawn Ketchup box (one thread), from
+  bench/fit_one.py (which bench/cpu_inference.py uses too: bench/ may not import tests/);
 * :func:`fit_demo_checkpoint`: demo scene (seed, 0) of `dope-hope demo`, which renders scene i
   of seed S deterministically, so the fitted network detects the box there: tests get a real
   detection (with a pose to score) without the shipped, trained weights.
 """
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import cv2
 
-from dope_hope.training.fit_one import CLASS_NAME, IMAGE_HW, K, fit_lite_checkpoint, fit_lite_model
-from dope_hope.training.fit_one import box_scene as scene
+BENCH = Path(__file__).resolve().parent.parent / "bench"
+if str(BENCH) not in sys.path:  # the bench helpers, as tests/test_bench_losses.py loads them
+    sys.path.insert(0, str(BENCH))
+
+from fit_one import CLASS_NAME, IMAGE_HW, K, fit_lite_checkpoint, fit_lite_model
+from fit_one import box_scene as scene
 
 __all__ = ["CLASS_NAME", "DEMO_INPUT_HW", "IMAGE_HW", "K", "fit_demo_checkpoint", "fit_lite_checkpoint",
            "fit_lite_model", "scene"]

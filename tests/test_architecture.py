@@ -228,3 +228,89 @@ def test_test_files_follow_the_package_layout():
              if p.stem[5:] not in WHOLE_REPOSITORY_TESTS
              and not any(p.stem[5:] == m or p.stem[5:].startswith(m + "_") for m in modules)]
     assert not stray, f"test files named for no module of dope_hope: {stray}"
+
+
+# ----------------------------------------------------------------------------- names
+#: Top-level names that several modules define on purpose: name -> (the package every module
+#: defining it lies in, the reason). A new entry needs its reason.
+ALLOWED_SHARED_NAMES: dict[str, tuple[str, str]] = {
+    "add_arguments": ("dope_hope.commands", "the command protocol: cli.py calls each command module's own"),
+    "run": ("dope_hope.commands", "the command protocol: cli.py calls each command module's own"),
+}
+
+
+def top_level_definitions(paths: dict[str, Path]) -> dict[str, list[str]]:
+    """{name: modules defining it} of the functions and classes at the top of each module."""
+    found: dict[str, list[str]] = {}
+    for module, path in paths.items():
+        for node in ast.parse(path.read_text()).body:
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                found.setdefault(node.name, []).append(module)
+    return found
+
+
+def shared_names(paths: dict[str, Path]) -> dict[str, list[str]]:
+    """The names two modules or more define (private ones too) beyond :data:`ALLOWED_SHARED_NAMES`."""
+    shared = {}
+    for name, modules in top_level_definitions(paths).items():
+        allowed = ALLOWED_SHARED_NAMES.get(name)
+        if len(modules) > 1 and not (allowed and all(m.startswith(allowed[0] + ".") for m in modules)):
+            shared[name] = modules
+    return shared
+
+
+def test_top_level_names_are_unique():
+    """One name, one contract: no two modules of dope_hope define a function or class of the
+    same name (a reader who finds the name knows which one is meant)."""
+    assert shared_names(MODULES) == {}
+
+
+def test_the_name_check_catches_a_shared_name(tmp_path):
+    (tmp_path / "a.py").write_text("def load(path):\n    pass\n\n\nclass Run:\n    pass\n")
+    (tmp_path / "b.py").write_text("def load(path, unit):\n    pass\n\n\ndef run():\n    pass\n")
+    paths = {"dope_hope.io.a": tmp_path / "a.py", "dope_hope.io.b": tmp_path / "b.py"}
+    assert shared_names(paths) == {"load": ["dope_hope.io.a", "dope_hope.io.b"]}
+    paths["dope_hope.io.c"] = paths.pop("dope_hope.io.b")
+    (tmp_path / "a.py").write_text("def run():\n    pass\n")
+    assert shared_names(paths) == {"run": ["dope_hope.io.a", "dope_hope.io.c"]}  # outside commands/
+
+
+# ----------------------------------------------------------------------------- module list
+def layout_entries() -> dict[str, str]:
+    """{entry: its text} of the dope_hope/ tree in the "## Layout" block of docs/ARCHITECTURE.md:
+    each top-level module (``catalog.py``) and package (``io/``) with the lines that describe it."""
+    text = (REPO / "docs" / "ARCHITECTURE.md").read_text()
+    block = text.split("\n## Layout\n", 1)[1].split("```", 2)[1]
+    tree = block.split("\ndope_hope/\n", 1)[1]
+    entries: dict[str, str] = {}
+    name = None
+    for line in tree.splitlines():
+        if not line.startswith("  "):
+            break  # the package's tree ends at the next top-level line (tests/)
+        if line[2] != " ":
+            name, _, line = line[2:].partition(" ")
+            entries[name] = ""
+        entries[name] += " " + line.strip()
+    return entries
+
+
+def unnamed_modules() -> list[str]:
+    """The modules of dope_hope that the layout's module list does not name: a top-level module
+    without its entry, a package's module whose name its package's entry lacks (as a name:
+    followed by its description in brackets, a comma, a colon or a semicolon)."""
+    entries = layout_entries()
+    missing = []
+    for path in sorted((REPO / PACKAGE).rglob("*.py")):
+        parts = path.relative_to(REPO / PACKAGE).with_suffix("").parts
+        if len(parts) == 1:
+            if f"{parts[0]}.py" not in entries:
+                missing.append(f"{parts[0]}.py")
+        elif parts[-1] != "__init__":
+            entry = entries.get(f"{parts[0]}/", "")
+            if not re.search(rf"(?<![\w./-]){re.escape(parts[-1])}(?=\s*[(,;:)]|\s*$)", entry):
+                missing.append("/".join(parts) + ".py")
+    return missing
+
+
+def test_every_module_is_named_in_the_layout():
+    assert unnamed_modules() == [], "modules missing from the module list of docs/ARCHITECTURE.md (## Layout)"

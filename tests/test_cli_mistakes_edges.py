@@ -250,7 +250,7 @@ def test_infer_takes_a_mesh_and_a_unit_per_object_of_a_model(shelf_run, shelf, g
     """--mesh NAME=PATH / --mesh-units NAME=UNIT (as evaluate takes them): each object of one
     model gets its own mesh (its box and surface), an object left out keeps its cuboid."""
     from dope_hope.inference.model_set import build_predictors, stream_tracker
-    from dope_hope.inference.tracking import object_symmetries
+    from dope_hope.inference.tracking import class_symmetry_transforms
 
     can, cereal = grocery / "Can" / "textured.obj", grocery / "Cereal" / "textured.obj"
     (p,) = build_predictors([shelf_run / "last.pt"], [Path(f"can={can}"), Path(f"Cereal={cereal}")],
@@ -262,8 +262,8 @@ def test_infer_takes_a_mesh_and_a_unit_per_object_of_a_model(shelf_run, shelf, g
     assert (by_name["Can"].mesh_file, by_name["Can"].mesh_units) == (can, "m")
     # --track: the tracker reads each object's symmetries from the file its predictor read, in its unit
     tracker = stream_tracker([p])
-    np.testing.assert_array_equal(tracker.symmetries["Can"], object_symmetries("Can", can, "m"))
-    np.testing.assert_array_equal(tracker.symmetries["Cereal"], object_symmetries("Cereal", cereal, "m"))
+    np.testing.assert_array_equal(tracker.symmetries["Can"], class_symmetry_transforms("Can", can, "m"))
+    np.testing.assert_array_equal(tracker.symmetries["Cereal"], class_symmetry_transforms("Cereal", cereal, "m"))
     (only_can,) = build_predictors([shelf_run / "last.pt"], [Path(f"Can={can}")], mesh_units={"Can": "m"})
     assert [o.mesh is not None for o in only_can.objects] == [True, False]
     assert [o.mesh_file for o in only_can.objects] == [can, None]

@@ -1,6 +1,7 @@
 """The documents hold together: links resolve, every command option has its page with the
-description `--help` gives it, and the bench/RESULTS.md sections that code and configs point
-to exist."""
+description `--help` gives it, the bench/RESULTS.md and bench/EXPERIMENTS.md sections that code
+and configs point to exist, and every figure of the README's table of current figures stands in
+a line of the RESULTS.md section it links."""
 from __future__ import annotations
 
 import argparse
@@ -12,7 +13,9 @@ import pytest
 from dope_hope import cli
 
 REPO = Path(__file__).resolve().parent.parent
-DOCS = [REPO / "README.md", REPO / "bench" / "RESULTS.md", *sorted((REPO / "docs").rglob("*.md"))]
+RESULTS = REPO / "bench" / "RESULTS.md"
+EXPERIMENTS = REPO / "bench" / "EXPERIMENTS.md"
+DOCS = [REPO / "README.md", RESULTS, EXPERIMENTS, *sorted((REPO / "docs").rglob("*.md"))]
 LINK = re.compile(r"\]\(([^)\s]+)\)")
 
 
@@ -87,13 +90,67 @@ def test_option_descriptions_match_help():
     assert not wrong, "option descriptions that differ from --help:\n" + "\n".join(wrong)
 
 
-def test_results_sections_named_in_the_repository_exist():
-    headings = {line.lstrip("#").strip() for line in (REPO / "bench" / "RESULTS.md").read_text(
-        encoding="utf-8").splitlines() if line.startswith("## ")}
-    pointer = re.compile(r'RESULTS(?:\.md)?,? "([^"\n]+)"')
+def section_headings(path: Path) -> set[str]:
+    """The ``## `` headings of a Markdown page."""
+    return {line[3:].strip() for line in path.read_text(encoding="utf-8").splitlines() if line.startswith("## ")}
+
+
+@pytest.mark.parametrize("page", [RESULTS, EXPERIMENTS], ids=lambda p: p.name)
+def test_results_sections_named_in_the_repository_exist(page):
+    headings = section_headings(page)
+    pointer = re.compile(rf'{page.stem}(?:\.md)?,? "([^"\n]+)"')
     files = [*(REPO / "dope_hope").rglob("*.py"), *(REPO / "dope_hope" / "configs").glob("*.yaml"),
              *(REPO / "bench").glob("*.py"), *DOCS]
     for path in files:
         for name in pointer.findall(path.read_text(encoding="utf-8")):
             assert any(h == name or h.startswith(name) for h in headings), \
-                f"{path.relative_to(REPO)} points to a RESULTS section that does not exist: {name!r}"
+                f"{path.relative_to(REPO)} points to a {page.name} section that does not exist: {name!r}"
+
+
+def test_every_results_section_keeps_its_experiments():
+    """RESULTS.md holds the current figures; the runs behind them stay in EXPERIMENTS.md under
+    the same section names."""
+    assert section_headings(RESULTS) <= section_headings(EXPERIMENTS)
+
+
+def results_lines(path: Path = RESULTS) -> dict[str, list[str]]:
+    """{anchor of a ``## `` section: its table lines} of RESULTS.md."""
+    out: dict[str, list[str]] = {}
+    anchor = None
+    for line in path.read_text(encoding="utf-8").splitlines():
+        if line.startswith("## "):
+            anchor = slug(line[3:])
+            out[anchor] = []
+        elif anchor and line.startswith("| ") and not line.startswith("| figure"):
+            out[anchor].append(line)
+    return out
+
+
+#: A figure in a README row: a decimal number, or a whole one followed by its unit.
+FIGURE = re.compile(r"(?<![\w.,\[])(\d[\d,]*\.\d+|\d[\d,]*(?= ?(?:%|x\b|ms|frames|s\b|px|crops|of\b)))")
+
+
+def untraced_figures(readme: str, sections: dict[str, list[str]]) -> list[str]:
+    """The figures of the README's "Current figures" table that no line of the RESULTS.md
+    sections its row links holds."""
+    table = readme.split("\n## Current figures\n", 1)[1].split("\n## ", 1)[0]
+    missing = []
+    for row in table.splitlines():
+        if not row.startswith("| ["):
+            continue
+        anchors = re.findall(r"RESULTS\.md#([\w-]+)", row)
+        lines = [line for a in anchors for line in sections.get(a, [])]
+        for figure in FIGURE.findall(row.split(") | ", 1)[1]):
+            if not any(re.search(rf"(?<![\d.]){re.escape(figure)}(?!\d)", line) for line in lines):
+                missing.append(f"{anchors[0] if anchors else row[:40]}: {figure}")
+    return missing
+
+
+def test_readme_figures_stand_in_results():
+    assert untraced_figures((REPO / "README.md").read_text(encoding="utf-8"), results_lines()) == []
+
+
+def test_the_figure_check_catches_a_figure_results_lacks():
+    readme = "\n## Current figures\n\n| [X](bench/RESULTS.md#x) | 4.4x faster, 12 of 30 found, 2 cores |\n"
+    assert untraced_figures(readme, {"x": ["| **4.4x** faster, 12 of 30 | cmd |"]}) == []
+    assert untraced_figures(readme, {"x": ["| 4.3x faster, 12 of 30 | cmd |"]}) == ["x: 4.4"]

@@ -14,7 +14,7 @@ from dope_hope.cli import main
 from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, InputFileError
 from dope_hope.export.compare import compare_maps
-from dope_hope.export.int8 import list_images
+from dope_hope.export.int8 import calibration_images
 from dope_hope.export.isaac_ros import ENCODERS as ISAAC_ENCODERS
 from dope_hope.export.isaac_ros import (
     ISAAC_ROS_CURRENT,
@@ -303,7 +303,7 @@ def test_int8_export_stays_close_to_fp32(fitted, tmp_path):
         img = np.clip(rgb.astype(int) + rng.integers(-20, 20, rgb.shape), 0, 255).astype(np.uint8)
         write_rgb(calib / f"{i:06d}.png", img if i < 2 else np.roll(img, 20 * i, axis=1))
     write_rgb(calib / "000000.depth.png", np.zeros(IMAGE_HW, np.uint16))  # skipped
-    assert len(list_images(calib)) == 4
+    assert len(calibration_images(calib)) == 4
 
     fp32 = export_checkpoint(fitted, tmp_path / "fp32.onnx")
     res = export_checkpoint(fitted, tmp_path / "int8.onnx", int8=Int8Calibration(calib))

@@ -275,7 +275,7 @@ def test_heavy_noise_leaves_the_true_peaks_not_every_noise_blob():
     kp = _scene(2)
     b, a = make_targets(kp, HW, 8)
     nb, na = _noisy(b, a, 0.1, 0.3)
-    assert np.bincount(find_peaks(nb).channel, minlength=9).min() > 40     # no floor: noise everywhere
+    assert np.bincount(find_peaks(nb, noise_sigmas=0.0).channel, minlength=9).min() > 40  # no floor: noise everywhere
     cands = corner_candidates(nb, na, 8)
     assert len(cands) == 3
     for c in cands:
@@ -331,3 +331,15 @@ def test_peaks_found_once_decode_as_the_decoders_find_them(options):
     # heights above 1 count as 1; NaN, negative and missing types as 0
     assert keypoint_score_bound([0, 0, 3, 5, 8], [0.4, 1.7, np.nan, -0.2, 0.6], 2) == pytest.approx(0.8)
     assert keypoint_score_bound([], [], 5) == 0.0 and keypoint_score_bound([2], [0.9]) == pytest.approx(0.1)
+
+
+def test_find_peaks_defaults_are_the_decoders():
+    """The peak options have one owner, the decoder's settings: a bare find_peaks (validation,
+    benches) finds the peaks inference finds, noise floor included."""
+    import inspect
+
+    from dope_hope.maps.decode import PEAK_OPTIONS
+    from dope_hope.maps.peaks import find_peaks
+
+    defaults = {k: p.default for k, p in inspect.signature(find_peaks).parameters.items() if k in PEAK_OPTIONS}
+    assert defaults == {k: getattr(DecodeSettings(), k) for k in PEAK_OPTIONS}

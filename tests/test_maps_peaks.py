@@ -57,7 +57,8 @@ def test_peaks_of_stacked_maps_split_into_those_of_each_block(hw):
     blocks[1][:, 2:4, 2:4] = 0.9                   # plateaus of equal maxima
     blocks[2][:] = 0.0                             # nothing above the threshold
     blocks[3][0, 1, 1] = np.nan
-    for kwargs in ({}, {"noise_sigmas": 4.0}, {"smooth_sigma": 0.0, "refine_on": "smoothed"}):
+    for kwargs in ({"noise_sigmas": 0.0}, {"noise_sigmas": 4.0},
+                   {"smooth_sigma": 0.0, "refine_on": "smoothed", "noise_sigmas": 0.0}):
         parts = split_peaks(find_peaks(np.concatenate(blocks), 0.1, **kwargs), len(blocks), 9)
         assert len(parts) == len(blocks)
         for block, part in zip(blocks, parts):

@@ -333,6 +333,30 @@ def test_validation_hits_perfect_for_target_maps_and_matched_per_instance():
     assert validation_hits(np.zeros_like(belief), affinity, one, 8, 5.0, 0.1)[0::2] == (0, 0)
 
 
+def test_validation_counts_the_peaks_inference_finds():
+    """Peaks under their map's noise floor are no keypoints at inference (the decoder's
+    settings, ``decode.noise_sigmas``); validation does not count them either. Here true peaks
+    0.35 high in noise of std 0.1: without the floor the strongest peak of most corners is the
+    true one; with it, few pass, as at inference."""
+    from dope_hope.maps.decode import DecodeSettings, decoder_peaks
+    from dope_hope.maps.grid import map_to_image
+    from dope_hope.maps.peaks import find_peaks
+
+    rng = np.random.default_rng(0)
+    one = np.stack([rng.uniform(8, 120, 9), rng.uniform(8, 88, 9)], 1)[None]
+    belief, affinity = make_targets(one, (96, 128), stride=8, sigma=1.0, radius=1.0)
+    noisy = (0.35 * belief + rng.normal(0, 0.1, belief.shape)).astype(np.float32)
+
+    def strongest_hits(peaks) -> int:
+        pred = [map_to_image(peaks.xy[peaks.channel == k][np.argsort(-peaks.score[peaks.channel == k])[:1]], 8)
+                for k in range(9)]
+        return keypoint_hits(pred, one, 5.0)[0]
+
+    found = validation_hits(noisy, affinity, one, 8, 5.0, 0.1)[0]
+    assert found == strongest_hits(decoder_peaks(noisy, DecodeSettings(threshold=0.1)))
+    assert found < strongest_hits(find_peaks(noisy, 0.1, noise_sigmas=0.0)) - 2
+
+
 def test_keypoint_hits_nearest_instance_and_radius():
     gt = np.full((2, 9, 2), np.nan)
     gt[0, 0], gt[1, 0] = [10, 10], [50, 10]

@@ -55,7 +55,7 @@ vision_msgs/Detection3DArray, geometry_msgs/PoseArray, visualization_msgs/Marker
 foxglove_msgs/ImageAnnotations, tf (camera -> CLASS_ID) and the overlay as a CompressedImage
 (not with --no-overlay), on the image's stamp and frame_id (docs/formats/recordings.md).
 --foxglove [PORT] (any stream) serves the same messages live to the Foxglove app
-(ws://127.0.0.1:PORT, default 8765); a file waits for the app to subscribe before it plays.
+(ws://127.0.0.1:PORT); a file waits for the app to subscribe before it plays.
 
 Tracking (--track, streams): each object gets a track_id (per class, stable while it stays
 in view); R, t and quaternion_xyzw become the tracked pose (a constant-velocity filter on
@@ -100,6 +100,7 @@ from dope_hope.commands.argtypes import (
 from dope_hope.commands.settings import add_settings_arguments, given_settings
 from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, DopeHopeError
+from dope_hope.ros.defaults import DEFAULT_FOXGLOVE_PORT, DEFAULT_SYNC_TOLERANCE_S  # plain numbers
 
 # The library is imported inside the functions: cli.py imports every command to build --help,
 # which must not pay for numpy, OpenCV or torch.
@@ -110,10 +111,6 @@ FALLBACK_FPS = 30.0
 STREAM_OPTIONS = ("realtime", "max_frames", "show", "capture_size", "capture_fps", "track", "foxglove")
 #: Options of recordings only.
 RECORDING_OPTIONS = ("image_topic", "depth_topic", "camera_info_topic", "sync_tolerance", "list_topics")
-#: Colour-to-depth stamp tolerance of a recording, ms (dope_hope.ros.recordings.DEFAULT_SYNC_TOLERANCE_S).
-DEFAULT_SYNC_TOLERANCE_MS = 15.0
-#: Port of --foxglove without a value (dope_hope.ros.foxglove_live.DEFAULT_PORT).
-DEFAULT_FOXGLOVE_PORT = 8765
 
 
 def default_weights() -> Path | None:
@@ -197,7 +194,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rec.add_argument("--camera-info-topic", metavar="TOPIC",
                      help="colour CameraInfo topic (default: the image topic's sibling camera_info)")
     rec.add_argument("--sync-tolerance", type=positive_float, metavar="MS",
-                     help=f"largest colour-to-depth header stamp difference (default {DEFAULT_SYNC_TOLERANCE_MS:g} ms)")
+                     help="largest colour-to-depth header stamp difference "
+                          f"(default {DEFAULT_SYNC_TOLERANCE_S * 1000:g} ms)")
     rec.add_argument("--list-topics", action="store_true", help="print the recording's topics and the chosen ones, then stop")
     parser.add_argument("--mesh", action="append", type=Path, metavar="[NAME=]PATH",
                         help="object mesh: NAME=PATH per object (repeat; any models), one per --weights "
@@ -461,6 +459,6 @@ def _open_source(args: argparse.Namespace):
         return open_stream(args.inputs, _global_camera(args), args.depth, args.capture_size, args.capture_fps, _warn)
     from dope_hope.ros.recordings import open_recording
 
-    tolerance = DEFAULT_SYNC_TOLERANCE_MS if args.sync_tolerance is None else args.sync_tolerance
+    tolerance_s = DEFAULT_SYNC_TOLERANCE_S if args.sync_tolerance is None else args.sync_tolerance / 1000.0
     return open_recording(args.inputs, args.image_topic, args.depth_topic, args.camera_info_topic,
-                          _global_camera(args), args.depth, tolerance / 1000.0, args.icp, _warn)
+                          _global_camera(args), args.depth, tolerance_s, args.icp, _warn)

@@ -34,7 +34,7 @@ CATEGORY_ORDER = ("cylinder", "cuboid", "bottle")
 
 
 # =========================================================================== HOPE tables
-def _pixels(gt: ObjectAnnotation, model: ObjectModel, K: np.ndarray | None) -> float:
+def _projected_area_px(gt: ObjectAnnotation, model: ObjectModel, K: np.ndarray | None) -> float:
     """Area (px^2) of the convex hull of the projected model points; NaN if unknown."""
     if K is None:
         return math.nan
@@ -96,7 +96,7 @@ def object_table(dataset: Dataset, groups: list[GroupErrors], models: dict[str, 
         K = dataset.frames[g.frame].K
         for o in g.gt:
             s["vis"].append(math.nan if o.visibility is None else float(o.visibility))
-            s["pix"].append(_pixels(o, models[g.class_name], K))
+            s["pix"].append(_projected_area_px(o, models[g.class_name], K))
             s["dist"].append(float(np.linalg.norm(o.t)))
     tps = {th: _matched_errors(groups, metric, th) for th in thresholds}
     med_th = max(thresholds)

@@ -77,8 +77,9 @@ def _match_instances(ref, test, max_px: float):
 def _peak_distances(ref_belief: np.ndarray, test_belief: np.ndarray, stride: int,
                     threshold: float, smooth_sigma: float) -> tuple[int, np.ndarray]:
     """(number of reference peaks, distances of the matched ones in image px)."""
-    pr = find_peaks(ref_belief, threshold=threshold, smooth_sigma=smooth_sigma)
-    pt = find_peaks(test_belief, threshold=threshold, smooth_sigma=smooth_sigma)
+    # every peak above the threshold (no noise floor): how far precision moves each peak
+    pr = find_peaks(ref_belief, threshold=threshold, smooth_sigma=smooth_sigma, noise_sigmas=0.0)
+    pt = find_peaks(test_belief, threshold=threshold, smooth_sigma=smooth_sigma, noise_sigmas=0.0)
     out = []
     for c in np.unique(pr.channel):
         a, b = pr.xy[pr.channel == c], pt.xy[pt.channel == c]

@@ -32,7 +32,7 @@ CALIBRATION_METHODS = ("minmax", "entropy", "percentile")
 
 
 # ----------------------------------------------------------------------------- INT8
-def list_images(folder: str | os.PathLike, limit: int | None = None) -> list[Path]:
+def calibration_images(folder: str | os.PathLike, limit: int | None = None) -> list[Path]:
     """Sorted RGB image files of a folder (depth/segmentation images of DOPE folders skipped)."""
     folder = Path(folder)
     if not folder.is_dir():
@@ -167,7 +167,7 @@ def quantize_int8(fp32_path: str | os.PathLike, out: str | os.PathLike, calibrat
         raise ConfigError(f"{fp32_path}: already {fp32.info.precision}; quantize the fp32 export")
     if fp32.info.opset < INT8_MIN_OPSET:
         raise ConfigError(f"INT8 (per-channel QDQ) needs opset >= {INT8_MIN_OPSET}, the model has {fp32.info.opset}")
-    files = list_images(calibration, max_images)
+    files = calibration_images(calibration, max_images)
     reader = ImageFolderReader(fp32, files)
     calib = {"minmax": CalibrationMethod.MinMax, "entropy": CalibrationMethod.Entropy,
              "percentile": CalibrationMethod.Percentile}[method]

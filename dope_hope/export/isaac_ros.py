@@ -302,7 +302,7 @@ def find_objects(maps: np.ndarray, release: IsaacRosRelease, map_peak_threshold:
     return out
 
 
-def _axis_rotation(angle: float, axis: int) -> np.ndarray:
+def _euler_step(angle: float, axis: int) -> np.ndarray:
     return Rotation.from_rotvec(np.eye(3)[axis] * float(angle)).as_matrix()
 
 
@@ -319,7 +319,7 @@ def extract_pose(valid: Sequence[int], image_points: np.ndarray, dims_cm: Sequen
     t = tvec.reshape(3)
     if release.flipped:  # composed_rotation = Rz * Ry * Rx, applied on the right
         a, b, c = rotation_xyz
-        R = R @ (_axis_rotation(c, 2) @ _axis_rotation(b, 1) @ _axis_rotation(a, 0))
+        R = R @ (_euler_step(c, 2) @ _euler_step(b, 1) @ _euler_step(a, 0))
     if t[2] < 0:  # Pose3d::inverse(): negated translation, inverted rotation
         t, R = -t, R.T
     return R, t / 100.0

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dope_hope.errors import ConfigError, InputFileError
-from dope_hope.export.int8 import list_images, quantize_int8
+from dope_hope.export.int8 import calibration_images, quantize_int8
 from dope_hope.export.isaac_ros import isaac_ros_release
 from dope_hope.export.to_onnx import ExportResult, ExportSettings, export_model, select_object
 from dope_hope.model.checkpoint import load_model
@@ -43,7 +43,7 @@ def export_checkpoint(weights: str | os.PathLike, out: str | os.PathLike,
     if weights.suffix.lower() == ".onnx":
         raise InputFileError(weights, "already an ONNX model; export takes a dope-hope checkpoint")
     if int8 is not None:
-        list_images(int8.images)  # fail before the (slow) export if the folder is unusable
+        calibration_images(int8.images)  # fail before the (slow) export if the folder is unusable
     if settings.layout == "isaac-ros":
         isaac_ros_release(settings.isaac_ros_version)  # a bad version fails before the model loads
     model, ckpt = load_model(weights)

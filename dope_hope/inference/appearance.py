@@ -286,11 +286,6 @@ class AppearanceCheck:
         n = self.settings.crop_px
         self._renderer = TexturedRenderer(mesh, n, n)
 
-    def equivalent_pose(self, R: np.ndarray, t: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Pose ``R S_k`` turned about the centre (k < ``n_symmetries``: the same cuboid, the
-        ``k``-th equivalent; beyond: a turn about the up axis)."""
-        return self.turned_pose(R, t, self.rotations[k])
-
     def turned_pose(self, R: np.ndarray, t: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pose ``R S`` for a mesh-frame rotation S (3, 3) about the centre."""
         RS = np.asarray(R, dtype=np.float64) @ np.asarray(S, dtype=np.float64)

@@ -25,7 +25,7 @@ from dope_hope.geometry import value_for_object
 from dope_hope.inference import backends  # looked up at each call: a substituted open_backend counts
 from dope_hope.inference.mesh_start import MeshStartPredictor
 from dope_hope.inference.predictor import DopePredictor
-from dope_hope.inference.tracking import PoseTracker, object_symmetries
+from dope_hope.inference.tracking import PoseTracker, class_symmetry_transforms
 from dope_hope.io.models_dir import check_run_object, find_object_mesh, is_named_value, parse_mesh_args
 
 
@@ -164,7 +164,7 @@ def stream_tracker(predictors: Sequence[DopePredictor]) -> PoseTracker:
     """The PoseTracker over ``predictors``; each class's symmetries from the mesh file its
     predictor read (``ObjectGeometry.mesh_file``, in its unit: a declaration beside it, else
     found on it), else those the model records, else the catalog category's."""
-    symmetries = {obj.class_name: object_symmetries(obj.class_name, obj.mesh_file, obj.mesh_units)
+    symmetries = {obj.class_name: class_symmetry_transforms(obj.class_name, obj.mesh_file, obj.mesh_units)
                   for p in predictors for obj in p.objects if obj.mesh_file is not None}
     return PoseTracker(predictors, symmetries=symmetries)
 

@@ -126,7 +126,7 @@ class _Track:
     box_pred: np.ndarray | None = None
 
 
-def object_symmetries(class_name: str, mesh_path: Any = None, units: str | None = None) -> np.ndarray:
+def class_symmetry_transforms(class_name: str, mesh_path: Any = None, units: str | None = None) -> np.ndarray:
     """(S, 4, 4) model-frame symmetries of an object, metres, identity first, in the one
     resolution order (:func:`dope_hope.symmetry.resolve.resolve_symmetries`: declarations beside
     its mesh file, the demo box's own, the HOPE category), else the identity only. Continuous
@@ -143,7 +143,7 @@ def object_symmetries(class_name: str, mesh_path: Any = None, units: str | None 
     return np.eye(4)[None]
 
 
-def recorded_symmetries(fields: Any) -> np.ndarray:
+def recorded_symmetry_transforms(fields: Any) -> np.ndarray:
     """(S, 4, 4) model-frame symmetries, metres, of the BOP fields (mm) a model records for an
     object (``ObjectInfo.symmetries``); continuous ones every :data:`SYMMETRY_STEP_DEG`."""
     from dope_hope.io.symmetries import SymmetryDeclaration  # noqa: PLC0415 (meshes (trimesh) only for a recorded declaration)
@@ -162,8 +162,8 @@ class PoseTracker:
         settings: :class:`TrackingSettings`, a mapping of overrides, or None for the
             predictors' own (``predictor.options.tracking``).
         symmetries: class name -> (S, 4, 4) model-frame symmetries (metres); default those
-            the model records for the class (:func:`recorded_symmetries`), else
-            :func:`object_symmetries` of the class.
+            the model records for the class (:func:`recorded_symmetry_transforms`), else
+            :func:`class_symmetry_transforms` of the class.
 
     Use: ``tracked = tracker.update(detections, K, depth, frame=index)`` once per frame.
     """
@@ -181,16 +181,12 @@ class PoseTracker:
         for c, geometry in self.geometry.items():  # else those the model records (its checkpoint's)
             recorded = getattr(geometry, "symmetries", None)
             if given.get(c) is None and recorded is not None:
-                given[c] = recorded_symmetries(recorded)
-        self.symmetries = {c: np.asarray(given[c] if given.get(c) is not None else object_symmetries(c),
+                given[c] = recorded_symmetry_transforms(recorded)
+        self.symmetries = {c: np.asarray(given[c] if given.get(c) is not None else class_symmetry_transforms(c),
                                          dtype=np.float64).reshape(-1, 4, 4) for c in self.predictors}
         self.tracks: dict[str, list[_Track]] = {c: [] for c in self.predictors}
         self._next_id = {c: 1 for c in self.predictors}
         self._frame = -1
-
-    def reset(self) -> None:
-        """Forget every track (a new stream); ids start again at 1."""
-        self.__init__(list({id(p): p for p in self.predictors.values()}.values()), self.settings, self.symmetries)
 
     def update(self, detections: Sequence[Detection], K: np.ndarray, depth: DepthImage | np.ndarray | None = None,
                frame: int | None = None, image_hw: tuple[int, int] | None = None) -> list[TrackedObject]:

@@ -59,7 +59,7 @@ def _stored_rotation(f: JsonFields, value: Any, field: str) -> np.ndarray:
     return M
 
 
-def _int(f: JsonFields, value: Any, field: str) -> int:
+def _whole_number(f: JsonFields, value: Any, field: str) -> int:
     if (isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value)
             or value != int(value)):
         raise f.fail(field, f"expected an integer, got {value!r}")
@@ -107,7 +107,7 @@ def read_scene_gt_stored(path: str | os.PathLike) -> dict[int, list[tuple[int, n
     def parse(f: JsonFields, gt: Any, where: str) -> tuple[int, np.ndarray, np.ndarray]:
         R = _stored_rotation(f, f.get(gt, "cam_R_m2c", where), f"{where}.cam_R_m2c")
         t = f.array(f.get(gt, "cam_t_m2c", where), f"{where}.cam_t_m2c", (3,))
-        return _int(f, f.get(gt, "obj_id", where), f"{where}.obj_id"), R, t
+        return _whole_number(f, f.get(gt, "obj_id", where), f"{where}.obj_id"), R, t
 
     return _per_image_lists(path, "scene_gt file", parse)
 
@@ -149,7 +149,7 @@ def read_scene_gt_info(path: str | os.PathLike) -> dict[int, list[GtInfo]]:
         vf = f.number(f.get(info, "visib_fract", where), f"{where}.visib_fract")
         if not 0.0 <= vf <= 1.0:
             raise f.fail(f"{where}.visib_fract", f"expected a fraction in [0, 1], got {vf}")
-        counts = [_int(f, info.get(k, 0), f"{where}.{k}")
+        counts = [_whole_number(f, info.get(k, 0), f"{where}.{k}")
                   for k in ("px_count_all", "px_count_valid", "px_count_visib")]
         boxes = [f.array(info.get(k, [0, 0, 0, 0]), f"{where}.{k}", (4,))
                  for k in ("bbox_obj", "bbox_visib")]
@@ -248,7 +248,7 @@ def read_test_targets(path: str | os.PathLike) -> list[tuple[int, int, int, int]
     out = []
     for j, item in enumerate(_list(f, data, "top level")):
         where = f"[{j}]"
-        out.append(tuple(_int(f, f.get(item, k, where), f"{where}.{k}")
+        out.append(tuple(_whole_number(f, f.get(item, k, where), f"{where}.{k}")
                          for k in ("scene_id", "im_id", "obj_id", "inst_count")))
     return out  # type: ignore[return-value]
 

@@ -104,7 +104,7 @@ def recorded_box_size(scene_gt: str | os.PathLike, class_name: str) -> np.ndarra
     return None if box is None else box[0]
 
 
-def recorded_symmetries(scene_gt: str | os.PathLike, class_name: str) -> dict | None:
+def recorded_symmetry_fields(scene_gt: str | os.PathLike, class_name: str) -> dict | None:
     """The BOP symmetry fields (``symmetries_discrete`` / ``symmetries_continuous``, as stored:
     mm) of ``class_name``'s model in the ``models_info.json`` of the BOP dataset holding
     ``scene_gt``, or None when it declares none."""

@@ -132,7 +132,7 @@ def _intrinsics(f: JsonFields, value: Any, field: str) -> np.ndarray:
     return K
 
 
-def _size(f: JsonFields, node: dict, where: str) -> tuple[int | None, int | None]:
+def _camera_image_size(f: JsonFields, node: dict, where: str) -> tuple[int | None, int | None]:
     out = []
     for key in ("width", "height"):
         v = node.get(key)
@@ -224,20 +224,20 @@ def parse_camera(data: Any, path: str | os.PathLike) -> tuple[np.ndarray, int | 
     if not isinstance(data, dict):
         raise f.fail("top level", f"expected a JSON object, got {type(data).__name__}")
     if all(k in data for k in ("fx", "fy", "cx", "cy")):
-        return (_intrinsics(f, data, "camera"), *_size(f, data, ""))
+        return (_intrinsics(f, data, "camera"), *_camera_image_size(f, data, ""))
     for key in ("K", "cam_K", "intrinsics"):
         if data.get(key) is not None:
-            return (_intrinsics(f, data[key], key), *_size(f, data, ""))
+            return (_intrinsics(f, data[key], key), *_camera_image_size(f, data, ""))
     for key in ("camera_data", "camera"):
         node = data.get(key)
         if isinstance(node, dict) and node.get("intrinsics") is not None:
-            return (_intrinsics(f, node["intrinsics"], f"{key}.intrinsics"), *_size(f, node, f"{key}."))
+            return (_intrinsics(f, node["intrinsics"], f"{key}.intrinsics"), *_camera_image_size(f, node, f"{key}."))
     cams = data.get("camera_settings")
     if isinstance(cams, list) and cams and isinstance(cams[0], dict):
         K = _intrinsics(f, f.get(cams[0], "intrinsic_settings", "camera_settings[0]"),
                         "camera_settings[0].intrinsic_settings")
         size = cams[0].get("captured_image_size") or {}
-        return (K, *_size(f, size, "camera_settings[0].captured_image_size."))
+        return (K, *_camera_image_size(f, size, "camera_settings[0].captured_image_size."))
     raise f.fail("top level", "no camera intrinsics: expected fx/fy/cx/cy, K, cam_K, intrinsics, "
                               "camera_data.intrinsics, camera.intrinsics or camera_settings")
 

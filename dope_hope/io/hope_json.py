@@ -43,7 +43,7 @@ def _depth_scale_m(f: _Fields, data: dict, camera: dict) -> float:
     return 0.001
 
 
-def _pose(f: _Fields, value, field: str) -> tuple[np.ndarray, np.ndarray]:
+def _pose_matrix(f: _Fields, value, field: str) -> tuple[np.ndarray, np.ndarray]:
     T = f.array(value, field, (4, 4), "rows", "columns")
     if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
         raise f.fail(field, f"bottom row must be [0, 0, 0, 1] (translation in the last column), "
@@ -83,7 +83,7 @@ def read_hope_json(path: str | os.PathLike) -> FrameAnnotation:
         cls = f.get(o, "class", where)
         if not isinstance(cls, str) or not cls:
             raise f.fail(f"{where}.class", f"expected a non-empty string, got {cls!r}")
-        R, t = _pose(f, f.get(o, "pose", where), f"{where}.pose")
+        R, t = _pose_matrix(f, f.get(o, "pose", where), f"{where}.pose")
         objects.append(ObjectAnnotation(class_name=cls, R=R, t=t))
     return FrameAnnotation(source=path, K=K, width=size[0], height=size[1], objects=objects,
                            image_path=_sibling(path, _RGB_SUFFIXES),

@@ -366,18 +366,3 @@ def open_stream(inputs: list[str], camera: ImageCamera | None = None, depth: str
     if kind == "camera":
         return CameraDevice(int(item), camera, capture_size, capture_fps)
     return VideoFile(item, camera)
-
-
-class VideoWithDepth(VideoFile):
-    """A video file whose frame i carries ``depths[i]`` (metres): rendered clips with their
-    depth (benchmarks, tests), which a video container cannot hold."""
-
-    def __init__(self, path: Path, camera: ImageCamera, depths: list[np.ndarray]):
-        super().__init__(path, camera)
-        self.depths = depths
-
-    def grab(self):
-        for g in super().grab():
-            frame = g.load()
-            frame.depth = self.depths[g.index]
-            yield Grabbed(g.index, g.timestamp_s, lambda frame=frame: frame)

@@ -255,9 +255,12 @@ def find_peaks(
     smooth_sigma: float = DEFAULT_SMOOTH_SIGMA,
     nms_radius: int = 1,
     refine_on: str = "raw",
-    noise_sigmas: float = 0.0,
+    noise_sigmas: float = DEFAULT_NOISE_SIGMAS,
 ) -> Peaks:
-    """Sub-pixel peaks of every belief channel (see the module docstring).
+    """Sub-pixel peaks of every belief channel (see the module docstring). The defaults are
+    the decoder's (:class:`dope_hope.maps.decode.DecodeSettings`, which owns them and is built
+    from the same constants): the decoders, inference and validation find their peaks through
+    :func:`dope_hope.maps.decode.decoder_peaks` with their settings.
 
     Args:
         belief: (C, h, w) belief maps (numpy or torch; a leading batch of 1 is dropped).
@@ -265,7 +268,8 @@ def find_peaks(
         smooth_sigma: Gaussian smoothing for detection, map px (0 = none).
         nms_radius: a peak is the maximum of its (2r+1)^2 neighbourhood, map px.
         refine_on: "raw" (default) or "smoothed": which map the log-parabola fit uses first.
-        noise_sigmas: a peak also exceeds its channel's :func:`noise_floor` (0: no floor).
+        noise_sigmas: a peak also exceeds its channel's :func:`noise_floor` by this many robust
+            standard deviations (0: no floor, ``threshold`` alone).
 
     Returns:
         :class:`Peaks` with positions in continuous map coordinates inside the map.

@@ -86,12 +86,13 @@ def strip_prefix(state: dict[str, Any], prefix: str = "module.") -> dict[str, An
     return {k[len(prefix):] if k.startswith(prefix) else k: v for k, v in state.items()}
 
 
-def _plain(obj: Any) -> Any:
+def _weights_only_value(obj: Any) -> Any:
     """Convert numpy values / paths to types ``weights_only`` loading accepts."""
     if isinstance(obj, dict):
-        return {(_plain(k) if not isinstance(k, str) else k): _plain(v) for k, v in obj.items()}
+        return {(_weights_only_value(k) if not isinstance(k, str) else k): _weights_only_value(v)
+                for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        seq = [_plain(v) for v in obj]
+        seq = [_weights_only_value(v) for v in obj]
         return tuple(seq) if isinstance(obj, tuple) else seq
     if isinstance(obj, np.ndarray):
         return torch.from_numpy(np.ascontiguousarray(obj))
@@ -171,7 +172,7 @@ def rng_state() -> dict[str, Any]:
     np_state["state"] = dict(np_state["state"], key=np_state["state"]["key"].astype(np.int64))
     state = {
         "python": random.getstate(),
-        "numpy": _plain(np_state),
+        "numpy": _weights_only_value(np_state),
         "torch": torch.get_rng_state(),
         "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
     }
@@ -210,7 +211,7 @@ def make_object_info(class_name: str, size_m: Any = None, frame: str = "mesh",
         raise ConfigError(f"object size must be 3 positive extents in metres, got {size}")
     info = {"class_name": str(class_name), "size_m": size, "frame": frame}
     if symmetries is not None:
-        info["symmetries"] = _plain(dict(symmetries))
+        info["symmetries"] = _weights_only_value(dict(symmetries))
     return info
 
 
@@ -287,18 +288,18 @@ def save_checkpoint(
         "format_version": FORMAT_VERSION,
         "dope_hope_version": __version__,
         "model": state,
-        "config": _plain(config),
+        "config": _weights_only_value(config),
         "objects": objects,
         **({"object": info} if len(objects) == 1 else {}),
         "keypoint_order": keypoint_order,
-        "normalization": _plain(norm),
+        "normalization": _weights_only_value(norm),
         "optimizer": run.optimizer.state_dict() if run.optimizer is not None else None,
         "scheduler": run.scheduler.state_dict() if run.scheduler is not None else None,
         "step": int(run.step),
         "epoch": int(run.epoch),
         "rng": rng_state(),
         "source": source,
-        "extra": _plain(run.extra) if run.extra is not None else None,
+        "extra": _weights_only_value(run.extra) if run.extra is not None else None,
     }
     atomic_write_stream(path, lambda f: torch.save(ckpt, f))
     return path

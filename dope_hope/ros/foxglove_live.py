@@ -13,11 +13,9 @@ import threading
 from typing import Any
 
 from dope_hope.errors import ConfigError, DeviceError
+from dope_hope.ros.defaults import DEFAULT_FOXGLOVE_PORT
 from dope_hope.ros.message_types import ROS_EXTRA_HINT
 from dope_hope.ros.pose_messages import TOPICS, PoseMessages
-
-#: Default port of the Foxglove WebSocket server (the app's default).
-DEFAULT_PORT = 8765
 
 
 def _import_foxglove():
@@ -43,7 +41,7 @@ def _subscription_listener(fg, subscribed: threading.Event):
 class FoxgloveLive:
     """A Foxglove WebSocket server on ``host:port`` (0: a free port; :attr:`port` says which)."""
 
-    def __init__(self, port: int = DEFAULT_PORT, host: str = "127.0.0.1", messages: PoseMessages | None = None):
+    def __init__(self, port: int = DEFAULT_FOXGLOVE_PORT, host: str = "127.0.0.1", messages: PoseMessages | None = None):
         fg = _import_foxglove()
         self.messages = messages or PoseMessages()
         self.context = fg.Context()

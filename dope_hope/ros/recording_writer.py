@@ -72,11 +72,6 @@ class RecordingWriter:
         self._cleanup()
         return self.path
 
-    @property
-    def mcap_file(self) -> Path:
-        """The MCAP file inside the bag folder."""
-        return self.path / f"{self.path.name}.mcap"
-
     def discard(self) -> None:
         """Drop what was written (idempotent)."""
         writer = getattr(self, "_writer", None)

@@ -50,10 +50,9 @@ import numpy as np
 from dope_hope.errors import CameraError, ConfigError, InputFileError
 from dope_hope.io.camera import ImageCamera, Rectification, parse_ros_camera_info
 from dope_hope.io.streams import Frame, FrameSource, Grabbed
+from dope_hope.ros.defaults import DEFAULT_SYNC_TOLERANCE_S
 from dope_hope.ros.message_types import require_rosbags, ros1_typestore, ros2_typestore
 
-#: Largest colour-to-depth stamp difference of a pair, seconds (half a 30 fps frame is 16.7 ms).
-DEFAULT_SYNC_TOLERANCE_S = 0.015
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"

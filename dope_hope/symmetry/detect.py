@@ -163,7 +163,7 @@ def axis_name(axis: np.ndarray) -> str:
     return "(" + ", ".join(f"{v:.2f}" for v in a) + ")"
 
 
-def _rotation(axis: np.ndarray, angle_deg: float) -> np.ndarray:
+def _rotation_about(axis: np.ndarray, angle_deg: float) -> np.ndarray:
     return Rotation.from_rotvec(np.radians(angle_deg) * np.asarray(axis, dtype=np.float64)).as_matrix()
 
 
@@ -326,7 +326,7 @@ def _axis_symmetries(axis: np.ndarray, center: np.ndarray, surface: _Surface, to
     ``continuous`` / ``turns`` and the turns (each order's every power) to ``generators``."""
     if any(abs(float(axis @ c.axis)) > math.cos(math.radians(_SAME_AXIS_DEG)) for c in continuous):
         return
-    worst = _worst_error([_transform(_rotation(axis, a), center) for a in CONTINUOUS_ANGLES_DEG], surface, tol)
+    worst = _worst_error([_transform(_rotation_about(axis, a), center) for a in CONTINUOUS_ANGLES_DEG], surface, tol)
     if worst is not None:
         continuous.append(FoundSymmetry(axis, center, 0, *worst))
         return
@@ -335,7 +335,7 @@ def _axis_symmetries(axis: np.ndarray, center: np.ndarray, surface: _Surface, to
     for n in DISCRETE_ORDERS:
         if any(n % m == 0 for m in failed):  # an n-fold turn holds the m-fold ones
             continue
-        powers = [_transform(_rotation(axis, 360.0 * k / n), center) for k in range(1, n)]
+        powers = [_transform(_rotation_about(axis, 360.0 * k / n), center) for k in range(1, n)]
         worst = _worst_error(powers, surface, tol)
         if worst is None:
             failed.append(n)

@@ -17,7 +17,7 @@ from dope_hope.synth.clutter import clutter_image
 from dope_hope.synth.textures import procedural_image
 
 
-def list_images(photos: str | os.PathLike | Sequence[str | os.PathLike]) -> list[Path]:
+def background_images(photos: str | os.PathLike | Sequence[str | os.PathLike]) -> list[Path]:
     """Image files of ``photos``: one path or several, each a folder (searched recursively,
     sorted so that indices are reproducible) or an image file, in the order given."""
     paths = [photos] if isinstance(photos, (str, os.PathLike)) else list(photos)
@@ -75,13 +75,13 @@ class BackgroundSource:
     Args:
         cfg: the ``background`` section of the synth config.
         photos: photographs to crop from (a folder, an image file, or several of either:
-            :func:`list_images`), or None for procedural backgrounds only.
+            :func:`background_images`), or None for procedural backgrounds only.
     """
 
     def __init__(self, cfg: dict[str, Any],
                  photos: str | os.PathLike | Sequence[str | os.PathLike] | None = None):
         self.cfg = cfg
-        self.files = list_images(photos) if photos is not None else []
+        self.files = background_images(photos) if photos is not None else []
         self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
 
     def _load(self, i: int) -> np.ndarray:

@@ -42,8 +42,8 @@ def make_material(spec: MaterialSpec, texture: pyrender.Texture | None = None) -
     )
 
 
-def make_primitive(mesh: trimesh.Trimesh, material: pyrender.MetallicRoughnessMaterial,
-                   use_uv: bool = True, colors: np.ndarray | None = None) -> pyrender.Primitive:
+def pyrender_primitive(mesh: trimesh.Trimesh, material: pyrender.MetallicRoughnessMaterial,
+                       use_uv: bool = True, colors: np.ndarray | None = None) -> pyrender.Primitive:
     """A pyrender primitive with the mesh's smooth normals, uv and (optionally) vertex colours."""
     uv = getattr(mesh.visual, "uv", None) if use_uv else None
     return pyrender.Primitive(
@@ -82,13 +82,13 @@ class MeshBuilder:
         if not asset.cacheable:
             texture = make_texture(asset.texture) if asset.texture is not None else None
             material = make_material(spec, texture)
-            return pyrender.Mesh(primitives=[make_primitive(asset.mesh, material, use_uv=texture is not None,
-                                                            colors=asset.colors)])
+            return pyrender.Mesh(primitives=[pyrender_primitive(asset.mesh, material, use_uv=texture is not None,
+                                                                colors=asset.colors)])
         key = str(asset.path)
         material = make_material(spec, self._texture_for(asset))
         if key not in self._target_meshes:
-            prim = make_primitive(asset.mesh, material, use_uv=asset.texture is not None,
-                                  colors=asset.colors)
+            prim = pyrender_primitive(asset.mesh, material, use_uv=asset.texture is not None,
+                                      colors=asset.colors)
             self._target_meshes[key] = pyrender.Mesh(primitives=[prim])
         mesh = self._target_meshes[key]
         mesh.primitives[0].material = material
@@ -104,12 +104,12 @@ class MeshBuilder:
             texture = make_texture(spec.texture) if spec.texture is not None and has_uv else None
             colors = None
         material = make_material(spec, texture)
-        return pyrender.Mesh(primitives=[make_primitive(asset.mesh, material, use_uv=texture is not None,
-                                                        colors=colors)])
+        return pyrender.Mesh(primitives=[pyrender_primitive(asset.mesh, material, use_uv=texture is not None,
+                                                            colors=colors)])
 
     @staticmethod
     def primitive_mesh(geometry: trimesh.Trimesh, spec: MaterialSpec) -> pyrender.Mesh:
         """A procedural primitive with its random material."""
         texture = make_texture(spec.texture) if spec.texture is not None else None
         material = make_material(spec, texture)
-        return pyrender.Mesh(primitives=[make_primitive(geometry, material, use_uv=texture is not None)])
+        return pyrender.Mesh(primitives=[pyrender_primitive(geometry, material, use_uv=texture is not None)])

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from dope_hope.synth.generate import FrameGenerator
-from dope_hope.synth.writer import remove_stale_temporaries
+from dope_hope.synth.writer import remove_stale_frame_temporaries
 
 _WORKER: FrameGenerator | None = None
 
@@ -125,5 +125,5 @@ def render_in_pool(gen_kwargs: dict[str, Any], out: Path, todo: list[int], worke
     except BaseException:
         # Leaving the pool terminated and joined its workers: the temporary files of
         # the frames they were writing (Ctrl-C, SIGTERM, a failed frame) are nobody's now.
-        remove_stale_temporaries(out, set(todo))
+        remove_stale_frame_temporaries(out, set(todo))
         raise

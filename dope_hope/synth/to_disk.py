@@ -19,7 +19,7 @@ from dope_hope.synth.generate import FrameGenerator, SynthJob
 from dope_hope.synth.pool import render_in_pool
 from dope_hope.synth.preview import write_preview
 from dope_hope.synth.settings import parse_shard
-from dope_hope.synth.writer import check_or_write_info, is_complete, remove_stale_temporaries
+from dope_hope.synth.writer import check_or_write_info, is_complete, remove_stale_frame_temporaries
 
 
 @dataclass
@@ -68,7 +68,7 @@ def generate_dataset(out_dir: str | os.PathLike, job: SynthJob, count: int, work
     check_or_write_info(out, local.dataset_info(gen_kwargs))
     wanted = [i for i in (range(count) if indices is None else indices) if i % n_shard == i_shard]
     todo = [i for i in wanted if not is_complete(out, i)]
-    remove_stale_temporaries(out, set(todo))
+    remove_stale_frame_temporaries(out, set(todo))
     start = time.perf_counter()
     bar = tqdm(total=len(todo), unit="frame", desc="synth", disable=not progress, dynamic_ncols=True)
 

@@ -43,7 +43,7 @@ def is_complete(out_dir: str | os.PathLike, index: int) -> bool:
     return frame_paths(out_dir, index)["json"].is_file()
 
 
-def remove_stale_temporaries(out_dir: str | os.PathLike, indices: set[int]) -> int:
+def remove_stale_frame_temporaries(out_dir: str | os.PathLike, indices: set[int]) -> int:
     """Delete temporary files an interrupted run left for the given frames; returns how many.
 
     Only call this when no other process writes the same frames.

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from dope_hope.errors import ConfigError
-from dope_hope.io.bop_scenes import recorded_symmetries
+from dope_hope.io.bop_scenes import recorded_symmetry_fields
 from dope_hope.io.symmetries import SymmetryDeclaration
 from dope_hope.symmetry.labels import corner_permutations
 from dope_hope.symmetry.resolve import ObjectSymmetries, label_symmetries, resolve_symmetries
@@ -81,7 +81,7 @@ def entry_mm(declaration: SymmetryDeclaration | None) -> dict[str, Any] | None:
     return entry
 
 
-def object_symmetries(job: TrainJob, name: str) -> ObjectSymmetries:
+def job_object_symmetries(job: TrainJob, name: str) -> ObjectSymmetries:
     """The object's symmetries in the one resolution order
     (:func:`~dope_hope.symmetry.resolve.resolve_symmetries`): ``--symmetries`` (one object),
     declarations beside its mesh, the catalog category, else what its mesh shows."""
@@ -91,23 +91,23 @@ def object_symmetries(job: TrainJob, name: str) -> ObjectSymmetries:
 
 def bop_symmetries(records: list[FrameRecord], object_index: int, name: str) -> dict[str, Any] | None:
     """The symmetry fields the ``models_info.json`` of a BOP dataset among the records declares
-    for the object (:func:`dope_hope.io.bop_scenes.recorded_symmetries`), or None."""
+    for the object (:func:`dope_hope.io.bop_scenes.recorded_symmetry_fields`), or None."""
     for r in records:
         if r.json_path.name == "scene_gt.json" and np.any(r.object_indices() == object_index):
-            return recorded_symmetries(r.json_path, name)
+            return recorded_symmetry_fields(r.json_path, name)
     return None
 
 
 def run_objects(job: TrainJob, records: list[FrameRecord]) -> list[RunObject]:
     """Each object's checkpoint entry (:func:`~dope_hope.training.settings.object_info`: mesh >
-    dataset > catalog), with its symmetries (:func:`object_symmetries`: declared, or found on
+    dataset > catalog), with its symmetries (:func:`job_object_symmetries`: declared, or found on
     its mesh; else declared in a BOP dataset's models_info.json) when it is one of several
     objects (a one-object entry stays as it always was), and where they come from."""
     names = job.class_names
     out = []
     for k, name in enumerate(names):
         info, source = object_info(name, records, job.mesh_of(name), job.unit_of(name), k)
-        found = object_symmetries(job, name)
+        found = job_object_symmetries(job, name)
         symmetry_source = found.describe()
         if len(names) > 1:  # a declaration, a BOP dataset's, then what the mesh shows
             symmetries = None if found.detected is not None else entry_mm(found.declaration)

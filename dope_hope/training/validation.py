@@ -10,9 +10,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from dope_hope.geometry import NUM_KEYPOINTS
-from dope_hope.maps.decode import DecodeSettings, decode_maps
+from dope_hope.maps.decode import DecodeSettings, decode_maps, decoder_peaks
 from dope_hope.maps.grid import map_to_image
-from dope_hope.maps.peaks import find_peaks
 from dope_hope.model.info import group_channels
 
 
@@ -51,8 +50,9 @@ def keypoint_hits(predicted: Sequence[np.ndarray], gt: np.ndarray, radius_px: fl
 
 def validation_hits(belief: np.ndarray, affinity: np.ndarray, gt: np.ndarray, stride: int,
                     radius_px: float, threshold: float) -> tuple[int, int, int, int]:
-    """Keypoint hits of one image, two ways: (found, visible) for the raw belief peaks and for
-    the instances of :func:`dope_hope.maps.decode.decode_maps`.
+    """Keypoint hits of one image, two ways: (found, visible) for the belief peaks and for the
+    instances of :func:`dope_hope.maps.decode.decode_maps`, both found as inference finds them
+    (the decoder's settings, :class:`~dope_hope.maps.decode.DecodeSettings`, at ``threshold``).
 
     Both keep as many predictions as the image has GT instances with a visible keypoint (the
     strongest peaks per keypoint index; the best-scoring decoded instances), so that a map
@@ -63,14 +63,15 @@ def validation_hits(belief: np.ndarray, affinity: np.ndarray, gt: np.ndarray, st
         stride: map stride; radius_px: hit radius, input pixels; threshold: peak threshold.
     """
     n_inst = max(1, int(np.any(np.all(np.isfinite(gt), axis=2), axis=1).sum()))
-    peaks = find_peaks(belief, threshold)
+    settings = DecodeSettings(threshold=threshold)  # the rest as inference decodes (noise floor included)
+    peaks = decoder_peaks(belief, settings)
     pred = []
     for k in range(NUM_KEYPOINTS):
         sel = np.flatnonzero(peaks.channel == k)
         sel = sel[np.argsort(-peaks.score[sel])[:n_inst]]
         pred.append(map_to_image(peaks.xy[sel], stride))
     found, visible = keypoint_hits(pred, gt, radius_px)
-    instances = decode_maps(belief, affinity, stride, DecodeSettings(threshold=threshold))[:n_inst]
+    instances = decode_maps(belief, affinity, stride, settings, peaks=peaks)[:n_inst]
     pred_d = [np.array([inst.keypoints[k] for inst in instances]).reshape(-1, 2) for k in range(NUM_KEYPOINTS)]
     found_d, visible_d = keypoint_hits(pred_d, gt, radius_px)
     return found, visible, found_d, visible_d

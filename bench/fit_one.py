@@ -1,4 +1,5 @@
-"""A lite network fitted to one image in seconds: a model whose maps detect a known box.
+"""Bench and test helper (not a benchmark, not shipped): a lite network fitted to one image in
+seconds, a model whose maps detect a known box.
 
 Untrained networks output near-zero maps: nothing decodes, so comparing the detections of two
 backends (torch, ONNX fp32, INT8) would compare empty lists. Here a lite network is fitted
