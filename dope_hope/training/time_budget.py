@@ -160,8 +160,9 @@ class TimeBudget:
                 "plans": self.plan.plans if self.plan is not None else None}
 
     def restore(self, extra: dict[str, Any]) -> None:
-        """The time a checkpoint's ``extra`` records as used before (the plans: the trainer's
-        choice, :meth:`~dope_hope.training.trainer.Trainer`)."""
+        """The time a checkpoint's ``extra`` records as used before and its validations' costs
+        (its plans are the trainer's to take up or replace: a length or budget changed at the
+        resume plans again)."""
         self.used_before = float(extra.get("time_used_s", 0.0))
         self.other_before = float(extra.get("other_s", 0.0))
         self.val_seconds = float(extra.get("last_val_s", 0.0))
