@@ -115,7 +115,7 @@ def run_size(size: tuple[int, int], args: argparse.Namespace, predictor: DopePre
     with FrameGenerator(mesh_path, size=size, config=composite_config(size, args.sensor),
                         class_name=class_name, backgrounds=args.photos, depth_noise=False,
                         seed=args.seed) as gen:
-        dn = noise_kwargs(gen.cfg["depth_noise"])
+        dn = noise_kwargs(gen.cfg.depth_noise)
         for i in range(args.frames):
             t0 = time.perf_counter()
             frame = gen.render_frame(i)
@@ -152,31 +152,31 @@ def empty_photo_scores(gen: FrameGenerator, predictor: DopePredictor, photos: li
     """Scores of the predictor's detections (all false) on ``count`` random crops of the
     photographs without the box: crop, flips and post-processing as the generator ``gen``
     (:func:`composite_config`) composites, each with the camera of composite i."""
-    background = BackgroundSource(gen.cfg["background"], photos)
+    background = BackgroundSource(gen.cfg.background, photos)
     out = []
     for i in range(count):
         rng = np.random.default_rng((seed, 2, i))
-        rgb = post_process(rng, background.sample(rng, *gen.size), gen.cfg["post"])
+        rgb = post_process(rng, background.sample(rng, *gen.size), gen.cfg.post)
         K = gen.sample_scene(i)[0].K  # the camera of a composite (jittered as synth.yaml)
         out.append([d.score for d in predictor.predict(rgb, K)])
     return out
 
 
-def composite_config(size: tuple[int, int] = (640, 480), sensor: bool = False) -> dict:
+def composite_config(size: tuple[int, int] = (640, 480), sensor: bool = False):
     """configs/synth.yaml < configs/demo.yaml < no clutter, hard negatives or sensor artefacts
     (PLAIN_OVERRIDES) < :data:`COMPOSITE_CONFIG`, with the D415 colour camera at ``size``
-    (W, H); with ``sensor`` the sensor artefacts at synth.yaml's probabilities."""
+    (W, H); with ``sensor`` the sensor artefacts at synth.yaml's probabilities: synth settings."""
     from dope_hope.config import merge
     from dope_hope.synth.sensor import EFFECT_PROBS
     from dope_hope.synth.settings import PLAIN_OVERRIDES, load_synth_config, packaged_synth_config
 
     f = D415_FY_AT_480 * size[1] / 480.0
     camera = {"camera": {"reference_size": list(size), "fx": f, "fy": f}}
-    cfg = merge(merge(merge(load_synth_config(DEMO_CONFIG), PLAIN_OVERRIDES), COMPOSITE_CONFIG), camera)
+    cfg = merge(merge(merge(load_synth_config(DEMO_CONFIG).to_dict(), PLAIN_OVERRIDES), COMPOSITE_CONFIG), camera)
     if sensor:
         post = packaged_synth_config()["post"]
         cfg = merge(cfg, {"post": {k: post[k] for k in EFFECT_PROBS}})
-    return cfg
+    return load_synth_config(cfg)
 
 
 def write_preview(path: Path, preview: list) -> None:
@@ -229,7 +229,7 @@ def main() -> int:
     # The model's default: its own threshold when its file records one, else the packaged one.
     default_min = InferenceOptions.from_mapping({}, model_min_score=model_min_score(predictor.backend)).min_score
     args.min_scores = sorted({0.0, float(default_min), *args.min_scores})
-    photos = BackgroundSource(composite_config()["background"], args.photos).files
+    photos = BackgroundSource(composite_config().background, args.photos).files
     print(f"model {args.weights}, object {class_name}; photos {' '.join(map(str, args.photos))}: {len(photos)} ({', '.join(p.name for p in photos)}); "
           f"{args.frames} composites + {args.empty} empty crops per size, seed {args.seed}; "
           f"min scores {', '.join(f'{m:g}' for m in args.min_scores)} (default {default_min:g}); "

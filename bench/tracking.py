@@ -184,11 +184,11 @@ def render_clip(gen, clip: str, n: int, out: Path) -> Clip:
         extra.append(ObjectSpec(role="distractor", seg_id=250, R=np.eye(3), t=centre, radius=0.14, center=centre,
                                 source="primitive", geometry=geometry,
                                 material=MaterialSpec(np.array([0.55, 0.5, 0.45, 1.0]), 0.0, 0.8)))
-    background = BackgroundSource(gen.cfg["background"], None).sample(streams["background"], *SIZE)
+    background = BackgroundSource(gen.cfg.background, None).sample(streams["background"], *SIZE)
     builder = MeshBuilder()
     rng = np.random.default_rng(SEED + 100 + CLIPS.index(clip))
     depths, writer, video = [], None, None
-    with SceneRenderer(*SIZE, shadows=bool(gen.cfg["lights"]["shadows"])) as renderer:
+    with SceneRenderer(*SIZE, shadows=bool(gen.cfg.lights.shadows)) as renderer:
         for k, poses in enumerate(paths):
             spec.objects = _scene_for(base, target_spec, poses, K, extra)
             r = renderer.render(spec, lambda o: builder.target(target, o.material) if o.source == "target"
@@ -200,7 +200,7 @@ def render_clip(gen, clip: str, n: int, out: Path) -> Clip:
                 color, alpha = motion_blur(color, alpha, 0.5 * step)
             rgb = composite(background, color, alpha).astype(np.float32)
             rgb = np.clip(rgb + rng.normal(0.0, 3.0, rgb.shape), 0, 255).astype(np.uint8)
-            depths.append(add_realsense_noise(r.depth, rgb, K, rng, **noise_kwargs(gen.cfg["depth_noise"]))
+            depths.append(add_realsense_noise(r.depth, rgb, K, rng, **noise_kwargs(gen.cfg.depth_noise))
                           .astype(np.float32))
             if writer is None:
                 for suffix, fourcc in ((".mp4", "mp4v"), (".avi", "MJPG")):

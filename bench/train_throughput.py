@@ -26,20 +26,20 @@ from dope_hope.config import load_config
 from dope_hope.devices import native_bf16
 from dope_hope.maps.targets import make_targets
 from dope_hope.model import build_model
-from dope_hope.training.augment import AugmentParams, crop_size
+from dope_hope.training.augment import crop_size
 from dope_hope.training.loss import optimizer_step
-from dope_hope.training.settings import input_hw, targets_settings, train_settings
+from dope_hope.training.settings import TrainConfig
 
 
-def item_hw(config: dict) -> tuple[int, int]:
-    """(H, W) of the config's training items: the input size, or its augmentation crop."""
-    return crop_size(AugmentParams.from_config(config.get("augment")), input_hw(config))
+def item_hw(recipe: TrainConfig) -> tuple[int, int]:
+    """(H, W) of the recipe's training items: the input size, or its augmentation crop."""
+    return crop_size(recipe.augment, recipe.input.size)
 
 
-def batch_for(config: dict, stride: int, batch: int, device: torch.device):
-    H, W = item_hw(config)
+def batch_for(recipe: TrainConfig, stride: int, batch: int, device: torch.device):
+    H, W = item_hw(recipe)
     rng = np.random.default_rng(0)
-    tc = targets_settings(config)
+    tc = recipe.targets
     beliefs, affinities = [], []
     for _ in range(batch):
         kp = np.stack([rng.uniform(0.2 * W, 0.8 * W, 9), rng.uniform(0.2 * H, 0.8 * H, 9)], 1)[None]
@@ -56,12 +56,12 @@ def measure(name: str, batch: int, steps: int, warmup: int, device: torch.device
     """(images per second, process CPU seconds per image) of training steps for the config
     ``name``: as the trainer runs it (``recipe``: the config's amp where native, its
     channels_last), or in plain float32 NCHW."""
-    config = load_config(name)
-    ts = train_settings(config)
-    amp = recipe and bool(ts["amp"]) and native_bf16(device.type)
-    channels_last = recipe and bool(ts["channels_last"])
+    config = TrainConfig.from_mapping(load_config(name))
+    ts = config.train
+    amp = recipe and bool(ts.amp) and native_bf16(device.type)
+    channels_last = recipe and bool(ts.channels_last)
     torch.manual_seed(0)
-    model = build_model(config).to(device)
+    model = build_model(config.to_dict()).to(device)
     cuda = device.type == "cuda"
     images, belief, affinity = batch_for(config, model.stride, batch, device)
     if channels_last:

@@ -1,7 +1,7 @@
 """The lite network's stages widened from a narrower start (``model.lite.widen_stage_channels``):
 the wider network computes the start's maps exactly, its new weights learn from the first step,
 the widening is reproducible, and a start is never narrowed. ``--init`` applies it
-(``training.trainer.load_init_weights``) when ``model.lite.stage_channels`` exceeds the start's;
+(``training.init_weights.load_init_weights``) when ``model.lite.stage_channels`` exceeds the start's;
 likewise more ``model.stages`` than the start's (``model.lite.deepen_stages``)."""
 from __future__ import annotations
 
@@ -81,12 +81,13 @@ def test_a_start_is_widened_not_narrowed():
 def test_init_from_the_shipped_start_widens_objects_and_stages():
     from dope_hope.assets import PRETRAINED_WEIGHTS
     from dope_hope.config import load_config
+    from dope_hope.training.init_weights import load_init_weights
     from dope_hope.training.objects import with_num_objects
-    from dope_hope.training.trainer import load_init_weights
+    from dope_hope.training.settings import TrainConfig
 
     if not PRETRAINED_WEIGHTS.is_file():
         pytest.skip("this installation ships no pretrained start")
-    config = with_num_objects(load_config("lite"), 2)
+    config = with_num_objects(TrainConfig.from_mapping(load_config("lite")), 2).to_dict()
     narrow = build_model(config, load_backbone=False).eval()
     load_init_weights(narrow, PRETRAINED_WEIGHTS)
     width = stage_channels_of(narrow.state_dict())
@@ -129,7 +130,7 @@ def test_a_start_is_deepened_from_two_stages_and_never_made_shallower():
         deepen_stages(_lite(16, stages=1).state_dict(), 3)
     from dope_hope.assets import PRETRAINED_WEIGHTS
     from dope_hope.config import load_config
-    from dope_hope.training.trainer import load_init_weights
+    from dope_hope.training.init_weights import load_init_weights
 
     if not PRETRAINED_WEIGHTS.is_file():
         pytest.skip("this installation ships no pretrained start")

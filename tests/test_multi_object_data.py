@@ -321,12 +321,13 @@ def test_a_one_object_start_is_widened_to_the_run_objects():
     from dope_hope.assets import PRETRAINED_WEIGHTS
     from dope_hope.config import load_config
     from dope_hope.model.network import build_model
+    from dope_hope.training.init_weights import load_init_weights
     from dope_hope.training.objects import with_num_objects
-    from dope_hope.training.trainer import load_init_weights
+    from dope_hope.training.settings import TrainConfig
 
     if not PRETRAINED_WEIGHTS.is_file():
         pytest.skip("this installation ships no pretrained start")
-    model = build_model(with_num_objects(load_config("lite"), 3)).eval()
+    model = build_model(with_num_objects(TrainConfig.from_mapping(load_config("lite")), 3).to_dict()).eval()
     load_init_weights(model, PRETRAINED_WEIGHTS)
     with torch.no_grad():
         belief, affinity = model(torch.rand(1, 3, 64, 64))[-1]

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -127,7 +128,7 @@ def test_mask_inside_projected_cuboid_hull(frames):
 
 
 def test_seg_ids_bbox_and_visibility(frames, gen):
-    base = gen.cfg["output"]["seg_distractor_base"]
+    base = gen.cfg.output.seg_distractor_base
     for f in frames:
         ids = set(np.unique(f.seg).tolist())
         target_ids = {o.instance_id for o in f.annotation.objects}
@@ -342,15 +343,15 @@ def test_mesh_distractors_and_background_photos(simple_obj: Path, shared_data: P
         f = g.render_frame(0)
     sources = [o.source for o in f.scene.objects if o.role == "distractor"]
     assert sources and set(sources) == {"mesh"}
-    assert (f.seg > g.cfg["output"]["seg_distractor_base"]).any()
+    assert (f.seg > g.cfg.output.seg_distractor_base).any()
     # copies of the target are never used as distractors
     found = list_distractor_meshes(shared_data, shared_data / "hope_ketchup" / "textured.obj", "Ketchup")
     assert not any("hope_ketchup" in str(p) for p in found)
 
 
 def test_background_source_crops_photos(shared_data: Path):
-    cfg = load_synth_config()["background"]
-    src = BackgroundSource(dict(cfg, procedural_prob_with_images=0.0), shared_data / "backgrounds")
+    cfg = load_synth_config().background
+    src = BackgroundSource(replace(cfg, procedural_prob_with_images=0.0), shared_data / "backgrounds")
     a = src.sample(np.random.default_rng(0), 96, 64)
     b = src.sample(np.random.default_rng(0), 96, 64)
     c = src.sample(np.random.default_rng(1), 96, 64)
@@ -363,7 +364,7 @@ def test_background_source_crops_photos(shared_data: Path):
 
 
 def test_background_photos_from_folders_and_files(shared_data: Path, tmp_path: Path):
-    cfg = load_synth_config()["background"]
+    cfg = load_synth_config().background
     folder = sorted(BackgroundSource(cfg, shared_data / "backgrounds").files)
     extra = tmp_path / "garage.png"
     extra.write_bytes(folder[0].read_bytes())
@@ -374,7 +375,7 @@ def test_background_photos_from_folders_and_files(shared_data: Path, tmp_path: P
 
 
 def test_reference_camera_scales_with_size():
-    cam = load_synth_config()["camera"]
+    cam = load_synth_config().camera
     K = reference_intrinsics((640, 480), cam)
     np.testing.assert_allclose(K, [[615, 0, 319.5], [0, 615, 239.5], [0, 0, 1]])
     K2 = reference_intrinsics((400, 400), cam)
@@ -394,7 +395,7 @@ def test_settings_parsing_and_validation(tmp_path: Path):
     user = tmp_path / "mine.yaml"
     user.write_text("target:\n  count: [1, 1]\n")
     cfg = load_synth_config(user)
-    assert cfg["target"]["count"] == [1, 1] and cfg["lights"]["count"] == [1, 4]
+    assert cfg.target.count == [1, 1] and cfg.lights.count == [1, 4]
 
 
 def test_class_name_of_a_target_mesh_falls_back_on_the_stem(tmp_path: Path):

@@ -1,6 +1,7 @@
 """Table-top clutter backgrounds (dope_hope/synth/clutter.py, background.clutter_prob)."""
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -12,13 +13,13 @@ from dope_hope.synth.settings import load_synth_config
 
 
 @pytest.fixture(scope="module")
-def bg_cfg() -> dict:
-    return load_synth_config()["background"]
+def bg_cfg():
+    return load_synth_config().background
 
 
 def test_clutter_is_deterministic_and_covers_the_background(bg_cfg):
     base = np.full((90, 120, 3), 128, np.uint8)
-    cfg = dict(bg_cfg["clutter"], count=[20, 20], blur_sigma_px=[0.0, 0.0])
+    cfg = replace(bg_cfg.clutter, count=[20, 20], blur_sigma_px=[0.0, 0.0])
     a = clutter_image(np.random.default_rng(0), base, cfg)
     b = clutter_image(np.random.default_rng(0), base, cfg)
     c = clutter_image(np.random.default_rng(1), base, cfg)
@@ -27,7 +28,7 @@ def test_clutter_is_deterministic_and_covers_the_background(bg_cfg):
     changed = np.abs(a.astype(int) - base).max(axis=2) > 8
     assert 0.2 < changed.mean() < 1.0                         # a pile, not a new image
     # no objects (count 0): the background, untouched
-    empty = clutter_image(np.random.default_rng(0), base, dict(cfg, count=[0, 0]))
+    empty = clutter_image(np.random.default_rng(0), base, replace(cfg, count=[0, 0]))
     assert np.array_equal(empty, base)
 
 
@@ -44,8 +45,8 @@ def test_box_faces_facing_the_light_are_brighter():
 
 def test_background_source_draws_clutter_with_its_probability_only(bg_cfg, shared_data: Path):
     folder = shared_data / "backgrounds"
-    off = BackgroundSource(dict(bg_cfg, clutter_prob=0.0), folder)
-    on = BackgroundSource(dict(bg_cfg, clutter_prob=1.0), folder)
+    off = BackgroundSource(replace(bg_cfg, clutter_prob=0.0), folder)
+    on = BackgroundSource(replace(bg_cfg, clutter_prob=1.0), folder)
     a = off.sample(np.random.default_rng(4), 96, 72)
     b = on.sample(np.random.default_rng(4), 96, 72)
     assert a.shape == b.shape == (72, 96, 3) and not np.array_equal(a, b)
@@ -63,7 +64,7 @@ def test_clutter_takes_photo_textures_when_asked(bg_cfg):
         return np.zeros((px, px, 3), np.uint8) + np.array([0, 255, 0], np.uint8)
 
     base = np.zeros((60, 80, 3), np.uint8)
-    cfg = dict(bg_cfg["clutter"], photo_texture_prob=1.0, count=[15, 15], blur_sigma_px=[0.0, 0.0])
+    cfg = replace(bg_cfg.clutter, photo_texture_prob=1.0, count=[15, 15], blur_sigma_px=[0.0, 0.0])
     img = clutter_image(np.random.default_rng(0), base, cfg, source)
-    assert calls and set(calls) == {cfg["texture_px"]}
+    assert calls and set(calls) == {cfg.texture_px}
     assert img[..., 1].max() > 100 and img[..., 0].max() == 0 and img[..., 2].max() == 0

@@ -73,7 +73,7 @@ def test_textures_reuse_the_targets_colours_not_its_layout(shared_data: Path):
 
 def test_hard_negatives_are_rendered_and_never_annotated(frames):
     gen, fs = frames
-    base = int(gen.cfg["output"]["seg_distractor_base"])
+    base = int(gen.cfg.output.seg_distractor_base)
     radius = gen.target.shape.radius
     seen = 0
     for f in fs:
@@ -105,7 +105,7 @@ def test_hard_negatives_leave_the_rest_of_the_frame_unchanged(frames, shared_dat
     assert np.array_equal(f0.annotation.K, f1.annotation.K)
     for a, b in zip(f0.annotation.objects, f1.annotation.objects):
         assert np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t)
-    free = f1.seg < int(gen.cfg["output"]["seg_distractor_base"])
+    free = f1.seg < int(gen.cfg.output.seg_distractor_base)
     assert np.array_equal(f0.seg[free], f1.seg[free])
 
 
@@ -143,6 +143,6 @@ def test_demo_scenes_keep_the_new_randomization_off():
     from dope_hope.config import merge
     from dope_hope.synth.settings import PLAIN_OVERRIDES
 
-    demo, default = load_synth_config("demo"), load_synth_config()
+    demo, default = load_synth_config("demo").to_dict(), load_synth_config().to_dict()
     assert merge(demo, PLAIN_OVERRIDES) == demo
     assert merge(default, PLAIN_OVERRIDES) != default

@@ -154,15 +154,15 @@ def test_procedural_config_is_checked():
     with pytest.raises(ConfigError, match="procedural.scale"):
         load_synth_config({"procedural": {"scale": [2.0, 1.0]}})
     cfg = load_synth_config({"procedural": {"categories": {"jar": 1.0, "cuboid": 0.0}}})
-    assert cfg["procedural"]["categories"]["jar"] == 1.0
+    assert cfg.procedural.categories.jar == 1.0
 
 
 def test_the_pretraining_config_draws_every_shape_and_empty_frames():
     from dope_hope.synth.settings import load_synth_config
 
     cfg = load_synth_config("pretrain")
-    assert set(k for k, w in cfg["procedural"]["categories"].items() if w > 0) == set(SHAPE_LABELS)
-    assert cfg["target"]["count"][0] == 0 and cfg["procedural"]["scale"][1] > 1.0
+    assert set(k for k, w in cfg.procedural.categories.to_dict().items() if w > 0) == set(SHAPE_LABELS)
+    assert cfg.target.count[0] == 0 and cfg.procedural.scale[1] > 1.0
 
 
 def test_synth_cli_refuses_procedural_with_a_mesh(tmp_path):
@@ -182,20 +182,21 @@ def test_init_choices(tmp_path, monkeypatch):
     from dope_hope.training import settings
 
     lite = load_config("lite")
+    recipe = settings.TrainConfig.from_mapping
     ckpt = tmp_path / "pretrained_lite.pt"
     monkeypatch.setattr(settings, "PRETRAINED_WEIGHTS", ckpt)
-    assert settings.resolve_init(None, lite)[0] is None                      # not shipped: random
+    assert settings.resolve_init(None, recipe(lite))[0] is None              # not shipped: random
     with pytest.raises(InputFileError):
-        settings.resolve_init("pretrained", lite)
+        settings.resolve_init("pretrained", recipe(lite))
     torch.manual_seed(0)
     save_checkpoint(ckpt, build_model(lite), lite, make_object_info("Object", [0.1, 0.1, 0.1]))
-    assert settings.resolve_init(None, lite)[0] == ckpt
-    assert settings.resolve_init("auto", merge(lite, {"input": {"size": [64, 64]}}))[0] == ckpt
-    other = merge(lite, {"model": {"lite": {"width": 8}}})
+    assert settings.resolve_init(None, recipe(lite))[0] == ckpt
+    assert settings.resolve_init("auto", recipe(merge(lite, {"input": {"size": [64, 64]}})))[0] == ckpt
+    other = recipe(merge(lite, {"model": {"lite": {"width": 8}}}))
     path, why = settings.resolve_init(None, other)
     assert path is None and "differs" in why
-    assert settings.resolve_init("none", lite) == (None, "random start (--init none)")
-    assert settings.resolve_init(str(tmp_path / "x.pt"), lite)[0] == tmp_path / "x.pt"
+    assert settings.resolve_init("none", recipe(lite)) == (None, "random start (--init none)")
+    assert settings.resolve_init(str(tmp_path / "x.pt"), recipe(lite))[0] == tmp_path / "x.pt"
 
 
 def test_the_shipped_pretrained_start_is_refused_as_a_detector(tmp_path):

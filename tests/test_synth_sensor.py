@@ -1,6 +1,8 @@
 """Sensor artefacts of the synthetic images (dope_hope/synth/sensor.py): each within its bounds."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -18,16 +20,13 @@ from dope_hope.synth.settings import load_synth_config
 
 
 @pytest.fixture(scope="module")
-def post_cfg() -> dict:
-    return load_synth_config()["post"]
+def post_cfg():
+    return load_synth_config().post
 
 
-def only(cfg: dict, **on) -> dict:
+def only(cfg, **on):
     """``cfg`` with every sensor effect off except those given (prob 1) and the given ranges."""
-    out = dict(cfg, **{k: 0.0 for k in EFFECT_PROBS})
-    for key, value in on.items():
-        out[key] = value
-    return out
+    return replace(cfg, **{**{k: 0.0 for k in EFFECT_PROBS}, **on})
 
 
 def grey(v: int, h: int = 60, w: int = 80) -> np.ndarray:
@@ -46,7 +45,7 @@ def test_all_effects_off_returns_the_image_unchanged(post_cfg):
 
 def test_same_generator_state_gives_the_same_image(post_cfg):
     img = np.random.default_rng(0).integers(0, 256, (40, 50, 3), dtype=np.uint8)
-    cfg = {k: 1.0 if k in EFFECT_PROBS else v for k, v in post_cfg.items()}
+    cfg = replace(post_cfg, **{k: 1.0 for k in EFFECT_PROBS})
     a = post_process(np.random.default_rng(5), img, cfg)
     b = post_process(np.random.default_rng(5), img, cfg)
     c = post_process(np.random.default_rng(6), img, cfg)
@@ -58,7 +57,7 @@ def test_one_effect_off_leaves_the_others_draws(post_cfg):
     img = grey(120)
     cfg = only(post_cfg, shot_noise_prob=1.0)
     a = sensor_artifacts(np.random.default_rng(3), img, cfg)
-    b = sensor_artifacts(np.random.default_rng(3), img, dict(cfg, jpeg_quality=[10, 20], defocus_radius_px=[3, 4]))
+    b = sensor_artifacts(np.random.default_rng(3), img, replace(cfg, jpeg_quality=[10, 20], defocus_radius_px=[3, 4]))
     assert np.array_equal(a, b) and not np.array_equal(a, img)
 
 

@@ -35,7 +35,7 @@ from pathlib import Path
 
 from dope_hope.commands.argtypes import device, nonnegative_float, nonnegative_int, positive_float, positive_int
 from dope_hope.commands.settings import add_settings_arguments, command_settings, given_settings
-from dope_hope.config import load_config
+from dope_hope.config import merge
 from dope_hope.errors import ConfigError, InputFileError
 
 # The library is imported inside the functions: cli.py imports every command to build --help,
@@ -125,33 +125,30 @@ def run(args: argparse.Namespace) -> int:
         if not list_dope_frames(folder) and not is_bop_dataset(folder):
             raise InputFileError(folder, "no DOPE frames (NNNNNN.json beside an image) and no BOP scenes "
                                          "(scene_gt.json + scene_camera.json) in this folder")
-    from dope_hope.training.settings import TrainJob, resolve_resume
+    from dope_hope.training.settings import TrainJob, resolve_init, resolve_resume, with_train_values
     from dope_hope.training.trainer import train
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     resume, args.init_weights = resolve_resume(args.resume, args.out, args.init_weights)
 
-    # checked over the recipe (a new run) or the defaults (a resumed run's recipe is its checkpoint's)
-    overrides = given_settings("train", None, list(args.overrides))
+    # a new run's recipe: --config, --set and the flags over the defaults, checked once; a resumed
+    # run's is its checkpoint's, with what --set and the flags give now over it (the trainer's)
+    flags = {"epochs": args.epochs, "steps": args.steps, "batch_size": args.batch_size, "workers": args.workers,
+             "lr": args.lr, "time_limit_min": args.time_budget, "seed": args.seed}
+    flags = {key: value for key, value in flags.items() if value is not None}
+    recipe, overrides = None, {}
     if resume is None:
-        command_settings("train", args.config, list(args.overrides))
-    cli = {"epochs": args.epochs, "steps": args.steps, "batch_size": args.batch_size, "workers": args.workers,
-           "lr": args.lr, "time_limit_min": args.time_budget, "seed": args.seed}
-    for key, value in cli.items():
-        if value is not None:
-            overrides.setdefault("train", {})[key] = value
-    config = {} if resume is not None else load_config(args.config)
+        recipe = with_train_values(command_settings("train", args.config, list(args.overrides)), **flags)
+    else:
+        overrides = merge(given_settings("train", None, list(args.overrides)), {"train": flags} if flags else {})
 
     if resume is None and not args.data:
         raise ConfigError("--data DIR is required (the training folders)")
     if resume is None and not args.object_name:
         raise ConfigError("--object NAME is required (the class to train)")
     init_weights, why = None, ""
-    if resume is None:
-        from dope_hope.config import merge
-        from dope_hope.training.settings import resolve_init
-
-        init_weights, why = resolve_init(args.init_weights, merge(config, overrides))
+    if recipe is not None:
+        init_weights, why = resolve_init(args.init_weights, recipe)
     from dope_hope.catalog import object_names
     from dope_hope.io.models_dir import objects_in_folder
     from dope_hope.training.settings import train_meshes
@@ -168,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
                    progress=not args.no_progress, overrides=overrides, started=started,
                    objects=[] if one else objects, meshes={} if one else meshes,
                    units={"": u for u in units.values()} if one else units)
-    summary = train(job, config)
+    summary = train(job, recipe)
     status = summary["status"]
     acc, acc_d = summary.get("val_kp_acc"), summary.get("val_kp_acc_decoded")
     acc_text = (f", val keypoints within {summary.get('val_radius_px', 5):g} px: {acc:.3f} (belief peaks), "

@@ -2,7 +2,8 @@
 
 Modules, one job each:
 
-- ``settings``: the synth config (configs/synth.yaml + user overrides), sizes, shards.
+- ``settings``: the synth config (configs/synth.yaml + user overrides) as frozen settings
+  objects, read as attributes; sizes, shards.
 - ``camera``: reference intrinsics scaled to the image size, jittered.
 - ``textures`` / ``background``: procedural images; background photo crops.
 - ``clutter``: table-top clutter drawn over backgrounds (2D, no OpenGL).

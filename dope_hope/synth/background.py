@@ -6,11 +6,11 @@ import os
 from collections import OrderedDict
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
 
+from dope_hope.config import SectionSettings
 from dope_hope.errors import InputFileError
 from dope_hope.io.images import IMAGE_SUFFIXES, image_files, read_rgb
 from dope_hope.synth.clutter import clutter_image
@@ -37,14 +37,14 @@ def background_images(photos: str | os.PathLike | Sequence[str | os.PathLike]) -
     return files
 
 
-def color_shift(rng: np.random.Generator, img: np.ndarray, cfg: dict[str, Any]) -> np.ndarray:
+def color_shift(rng: np.random.Generator, img: np.ndarray, cfg: SectionSettings) -> np.ndarray:
     """Random brightness, contrast and per-channel gain/offset. (H, W, 3) uint8 -> same."""
     x = img.astype(np.float32)
     mean = x.mean()
-    contrast = rng.uniform(*cfg["contrast"])
-    brightness = rng.uniform(*cfg["brightness"])
-    gain = rng.uniform(*cfg["channel_gain"], size=3).astype(np.float32)
-    offset = rng.uniform(-cfg["channel_offset"], cfg["channel_offset"], size=3).astype(np.float32)
+    contrast = rng.uniform(*cfg.contrast)
+    brightness = rng.uniform(*cfg.brightness)
+    gain = rng.uniform(*cfg.channel_gain, size=3).astype(np.float32)
+    offset = rng.uniform(-cfg.channel_offset, cfg.channel_offset, size=3).astype(np.float32)
     x = ((x - mean) * contrast + mean) * brightness * gain + offset
     return np.clip(x + 0.5, 0, 255).astype(np.uint8)
 
@@ -78,7 +78,7 @@ class BackgroundSource:
             :func:`background_images`), or None for procedural backgrounds only.
     """
 
-    def __init__(self, cfg: dict[str, Any],
+    def __init__(self, cfg: SectionSettings,
                  photos: str | os.PathLike | Sequence[str | os.PathLike] | None = None):
         self.cfg = cfg
         self.files = background_images(photos) if photos is not None else []
@@ -90,13 +90,13 @@ class BackgroundSource:
             return self._cache[i]
         img = read_rgb(self.files[i])
         # Keep memory bounded: cache a copy no larger than needed for the largest crop.
-        limit = int(self.cfg["max_cached_side_px"])
+        limit = int(self.cfg.max_cached_side_px)
         if max(img.shape[:2]) > limit:
             f = limit / max(img.shape[:2])
             img = cv2.resize(img, (max(1, int(img.shape[1] * f)), max(1, int(img.shape[0] * f))),
                              interpolation=cv2.INTER_AREA)
         self._cache[i] = img
-        while len(self._cache) > int(self.cfg["cache_images"]):
+        while len(self._cache) > int(self.cfg.cache_images):
             self._cache.popitem(last=False)
         return img
 
@@ -116,17 +116,17 @@ class BackgroundSource:
         later children) as it was.
         """
         cfg = self.cfg
-        clutter_rng = rng.spawn(1)[0] if float(cfg["clutter_prob"]) > 0 else None
-        use_photo = bool(self.files) and rng.random() >= cfg["procedural_prob_with_images"]
+        clutter_rng = rng.spawn(1)[0] if float(cfg.clutter_prob) > 0 else None
+        use_photo = bool(self.files) and rng.random() >= cfg.procedural_prob_with_images
         if use_photo:
             img = self._load(int(rng.integers(0, len(self.files))))
-            img = random_crop(rng, img, width, height, tuple(cfg["crop_scale"]))
+            img = random_crop(rng, img, width, height, tuple(cfg.crop_scale))
         else:
-            img = procedural_image(rng, height, width, cfg["procedural_weights"])
-        if clutter_rng is not None and clutter_rng.random() < cfg["clutter_prob"]:
-            img = clutter_image(clutter_rng, img, cfg["clutter"], self.photo_patch if self.files else None)
-        if rng.random() < cfg["flip_prob"]:
+            img = procedural_image(rng, height, width, cfg.procedural_weights.to_dict())
+        if clutter_rng is not None and clutter_rng.random() < cfg.clutter_prob:
+            img = clutter_image(clutter_rng, img, cfg.clutter, self.photo_patch if self.files else None)
+        if rng.random() < cfg.flip_prob:
             img = img[:, ::-1]
-        if rng.random() < cfg["vflip_prob"]:
+        if rng.random() < cfg.vflip_prob:
             img = img[::-1]
-        return color_shift(rng, np.ascontiguousarray(img), cfg["color_shift"])
+        return color_shift(rng, np.ascontiguousarray(img), cfg.color_shift)

@@ -11,12 +11,12 @@ textures are procedural images or, when photographs are given, crops of those ("
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
 
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from dope_hope.config import SectionSettings
 from dope_hope.synth.textures import procedural_image
 
 #: Object kinds of a clutter pile.
@@ -163,11 +163,11 @@ def _paste(acc: np.ndarray, trans: np.ndarray, rgb: np.ndarray, alpha: np.ndarra
         acc[v0:v1, u0:u1] += rgb[v0 - y0:v1 - y0, u0 - x0:u1 - x0]
 
 
-def clutter_image(rng: np.random.Generator, base: np.ndarray, cfg: dict[str, Any],
+def clutter_image(rng: np.random.Generator, base: np.ndarray, cfg: SectionSettings,
                   texture_source: Callable[[np.random.Generator, int], np.ndarray] | None = None) -> np.ndarray:
     """A pile of clutter drawn over ``base`` (module docstring).
 
-    The pile is drawn at ``cfg["resolution"]`` times the image size (premultiplied colours and
+    The pile is drawn at ``cfg.resolution`` times the image size (premultiplied colours and
     the background's transmittance), upsampled and laid over the full-resolution ``base``.
 
     Args:
@@ -181,7 +181,7 @@ def clutter_image(rng: np.random.Generator, base: np.ndarray, cfg: dict[str, Any
         (H, W, 3) uint8.
     """
     H, W = base.shape[:2]
-    f = float(cfg["resolution"])
+    f = float(cfg.resolution)
     h, w = max(1, int(round(H * f))), max(1, int(round(W * f)))
     diag = float(np.hypot(w, h))
     acc = np.zeros((h, w, 3), np.float32)
@@ -190,16 +190,17 @@ def clutter_image(rng: np.random.Generator, base: np.ndarray, cfg: dict[str, Any
     # camera's side and mostly from above
     light = np.array([rng.uniform(-0.7, 0.7), rng.uniform(-0.9, 0.2), -1.0])
     light /= np.linalg.norm(light)
-    ambient = float(rng.uniform(*cfg["ambient"]))
-    px = int(cfg["texture_px"])
-    kinds = [k for k in CLUTTER_KINDS if float(cfg["kinds"].get(k, 0.0)) > 0]
-    p = np.array([float(cfg["kinds"][k]) for k in kinds])
-    n = int(rng.integers(cfg["count"][0], cfg["count"][1] + 1))
+    ambient = float(rng.uniform(*cfg.ambient))
+    px = int(cfg.texture_px)
+    weights = cfg.kinds.to_dict()  # kind -> weight
+    kinds = [k for k in CLUTTER_KINDS if float(weights.get(k, 0.0)) > 0]
+    p = np.array([float(weights[k]) for k in kinds])
+    n = int(rng.integers(cfg.count[0], cfg.count[1] + 1))
     ys = np.sort(rng.uniform(-0.1, 1.1, size=n))             # back (top) to front (bottom)
 
     pool = []
-    for _ in range(int(cfg["texture_pool"])):
-        photo = texture_source is not None and rng.random() < cfg["photo_texture_prob"]
+    for _ in range(int(cfg.texture_pool)):
+        photo = texture_source is not None and rng.random() < cfg.photo_texture_prob
         pool.append(texture_source(rng, px) if photo else procedural_image(rng, px, px))
 
     def texture() -> np.ndarray:  # a texture of the pool, turned, with its own colour gain
@@ -210,12 +211,12 @@ def clutter_image(rng: np.random.Generator, base: np.ndarray, cfg: dict[str, Any
     shadow_dx, shadow_dy = -light[0], -light[1]             # shadows fall away from the light
     for y in ys:
         kind = kinds[int(rng.choice(len(kinds), p=p / p.sum()))]
-        size = diag * rng.uniform(*cfg["size"]) * (0.6 + 0.6 * float(np.clip(y, 0.0, 1.0)))
+        size = diag * rng.uniform(*cfg.size) * (0.6 + 0.6 * float(np.clip(y, 0.0, 1.0)))
         rgb, alpha = _SPRITES[kind](rng, size, texture, light, ambient)
         sh, sw = alpha.shape
         x0 = int(rng.uniform(-0.1, 1.1) * w - sw / 2)
         y0 = int(y * h - sh / 2)
-        if rng.random() < cfg["shadow_prob"]:
+        if rng.random() < cfg.shadow_prob:
             sigma = max(0.7, 0.06 * size)
             pad = int(3 * sigma)
             soft = cv2.GaussianBlur(np.pad(alpha, pad), (0, 0), sigma)
@@ -223,7 +224,7 @@ def clutter_image(rng: np.random.Generator, base: np.ndarray, cfg: dict[str, Any
             _paste(acc, trans, rgb, soft, x0 - pad + int(off * shadow_dx), y0 - pad + int(off * shadow_dy),
                    shadow=float(rng.uniform(0.3, 0.7)))
         _paste(acc, trans, rgb, alpha, x0, y0)
-    sigma = rng.uniform(*cfg["blur_sigma_px"])
+    sigma = rng.uniform(*cfg.blur_sigma_px)
     if (h, w) != (H, W):
         acc = cv2.resize(acc, (W, H), interpolation=cv2.INTER_LINEAR)
         trans = cv2.resize(trans, (W, H), interpolation=cv2.INTER_LINEAR)[..., None]

@@ -165,9 +165,10 @@ def add_realsense_noise(depth_m: np.ndarray, rgb: np.ndarray | None, K: np.ndarr
     return out.astype(np.float32)
 
 
-def noise_kwargs(cfg: dict) -> dict:
-    """Keyword arguments of :func:`add_realsense_noise` from the config's ``depth_noise`` section."""
-    kw = dict(cfg)
+def noise_kwargs(cfg: Any) -> dict[str, Any]:
+    """Keyword arguments of :func:`add_realsense_noise` from the synth settings' ``depth_noise``
+    section (:class:`~dope_hope.config.SectionSettings`)."""
+    kw = cfg.to_dict()
     kw["stereo_shadow_enabled"] = bool(kw.pop("stereo_shadow", True))
     kw["edge_width_px"] = tuple(int(v) for v in kw["edge_width_px"])
     return kw

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from dope_hope.annotation import FrameAnnotation
+from dope_hope.config import SectionSettings
 from dope_hope.errors import ConfigError
 from dope_hope.synth.annotate import InstanceStats, TargetBox, annotate_frame, canonical_pose_labels
 from dope_hope.synth.assets import (
@@ -101,7 +102,8 @@ class FrameGenerator:
             several (each frame draws which of them appear: scene.sample_targets); None with
             ``procedural``.
         size: (W, H) or "WxH".
-        config: synth config name/path/overrides (see settings.load_synth_config).
+        config: the synth settings (:func:`~dope_hope.synth.settings.load_synth_config`'s), or
+            what that function loads them from: a config name, path or dict of overrides.
         class_name: annotation class, one per mesh (default: the class the file names,
             io.models_dir.mesh_class_name); class names must differ (case-insensitive).
         units: mesh file units override ("m", "cm", "mm"): one for every mesh, or one per mesh.
@@ -116,7 +118,7 @@ class FrameGenerator:
 
     def __init__(self, mesh_path: str | os.PathLike | Sequence[str | os.PathLike] | None,
                  size: tuple[int, int] | str = (640, 480),
-                 config: str | os.PathLike | dict | None = None,
+                 config: str | os.PathLike | dict | SectionSettings | None = None,
                  class_name: str | Sequence[str] | None = None,
                  units: str | Sequence[str | None] | None = None,
                  backgrounds: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
@@ -133,7 +135,7 @@ class FrameGenerator:
         if self.procedural:
             if class_name is not None and not isinstance(class_name, str):
                 raise ConfigError("--class-name: --procedural objects have one class")
-            self.class_names = [class_name or str(self.cfg["procedural"]["class_name"])]
+            self.class_names = [class_name or str(self.cfg.procedural.class_name)]
         else:
             self.targets = load_targets(mesh_path, class_name, units)
             self.class_names = [t.name for t in self.targets]
@@ -142,9 +144,9 @@ class FrameGenerator:
         self.library = None
         if distractors is not None:
             files = list_distractor_meshes(distractors, mesh_path, self.class_names)
-            d = self.cfg["distractors"]
-            self.library = DistractorLibrary(files, d["mesh_cache"], d["max_texture_px"])
-        self.backgrounds = BackgroundSource(self.cfg["background"], backgrounds)
+            d = self.cfg.distractors
+            self.library = DistractorLibrary(files, d.mesh_cache, d.max_texture_px)
+        self.backgrounds = BackgroundSource(self.cfg.background, backgrounds)
         self.depth_noise = bool(depth_noise)
         self._renderer = None
         self._meshes = None
@@ -155,7 +157,7 @@ class FrameGenerator:
             from dope_hope.synth.materials import MeshBuilder  # noqa: PLC0415 (OpenGL starts with the first render, not with the generator)
             from dope_hope.synth.render import SceneRenderer  # noqa: PLC0415 (OpenGL starts with the first render, not with the generator)
 
-            self._renderer = SceneRenderer(*self.size, shadows=bool(self.cfg["lights"]["shadows"]))
+            self._renderer = SceneRenderer(*self.size, shadows=bool(self.cfg.lights.shadows))
             self._meshes = MeshBuilder()
 
     def close(self) -> None:
@@ -211,10 +213,10 @@ class FrameGenerator:
         if self.procedural:
             from dope_hope.synth.objects import sample_object  # noqa: PLC0415 (procedural objects (trimesh) only for --procedural)
 
-            p = self.cfg["procedural"]
-            obj = sample_object(streams["object"], p["categories"], float(p["size_jitter"]),
-                                int(p["texture_px"]), name=self.class_name,
-                                scale=(float(p["scale"][0]), float(p["scale"][1])))
+            p = self.cfg.procedural
+            obj = sample_object(streams["object"], p.categories.to_dict(), float(p.size_jitter),
+                                int(p.texture_px), name=self.class_name,
+                                scale=(float(p.scale[0]), float(p.scale[1])))
             targets, category = [obj.asset], obj.category
         n_lib = len(self.library) if self.library is not None else 0
         shapes = targets[0].shape if len(targets) == 1 else [t.shape for t in targets]
@@ -245,13 +247,13 @@ class FrameGenerator:
                                     with_alone_depth=with_alone_depth)
         background = self.backgrounds.sample(streams["background"], W, H)
         rgb = composite(background, out.color, out.alpha)
-        rgb = post_process(streams["post"], rgb, self.cfg["post"])
+        rgb = post_process(streams["post"], rgb, self.cfg.post)
         depth = out.depth
         if self.depth_noise:
             depth = add_realsense_noise(out.depth, rgb, spec.K, streams["depth_noise"],
-                                        **noise_kwargs(self.cfg["depth_noise"]))
+                                        **noise_kwargs(self.cfg.depth_noise))
         labelled = spec
-        if category is not None and self.cfg["procedural"]["canonical_labels"]:
+        if category is not None and self.cfg.procedural.canonical_labels:
             labelled = canonical_pose_labels(spec, category, target.cuboid_size)
         annotation, stats = annotate_frame(labelled, out, self.boxes(targets))
         return SynthFrame(index=int(index), rgb=rgb, depth=depth, depth_clean=out.depth, seg=out.seg,
@@ -262,7 +264,7 @@ class FrameGenerator:
         targets = frame.targets or [frame.target]
         names = ["procedural"] if frame.category is not None else [t.path.name for t in targets]
         return frame.json_extra(self.seed if seed is None else seed, self.boxes(targets), names,
-                                int(self.cfg["output"]["seg_distractor_base"]), self.depth_noise)
+                                int(self.cfg.output.seg_distractor_base), self.depth_noise)
 
     def write_frame(self, out_dir: str | os.PathLike, index: int) -> Path:
         """Render frame ``index`` and write it (images first, JSON last)."""
@@ -303,7 +305,7 @@ def load_targets(mesh_path: str | os.PathLike | Sequence[str | os.PathLike],
 
 
 def render_frame(mesh_path: str | os.PathLike, index: int = 0, seed: int = 0,
-                 size: tuple[int, int] | str = (640, 480), config: str | os.PathLike | dict | None = None,
+                 size: tuple[int, int] | str = (640, 480), config: str | os.PathLike | dict | SectionSettings | None = None,
                  force_occluder: int | None = None, **kwargs: Any) -> SynthFrame:
     """One frame in memory (loads the mesh and opens a renderer: for many frames keep a
     :class:`FrameGenerator`). ``kwargs`` go to FrameGenerator (class_name, backgrounds, ...)."""
@@ -332,7 +334,7 @@ def photo_paths(photos: str | os.PathLike | Sequence[str | os.PathLike] | None) 
     return paths[0] if len(paths) == 1 else paths
 
 
-def dataset_info(gen_kwargs: dict[str, Any], cfg: dict[str, Any], class_name: str | list[str],
+def dataset_info(gen_kwargs: dict[str, Any], cfg: SectionSettings, class_name: str | list[str],
                  cuboid_size: np.ndarray | list[np.ndarray] | None,
                  cuboid_center: np.ndarray | list[np.ndarray] | None) -> dict[str, Any]:
     """Settings that define a dataset's frames (must match when resuming or adding shards);
@@ -359,7 +361,7 @@ def dataset_info(gen_kwargs: dict[str, Any], cfg: dict[str, Any], class_name: st
             "distractors": name(gen_kwargs.get("distractors")),
             "depth_noise": bool(gen_kwargs.get("depth_noise")),
             "cuboid_size_m": vec(cuboid_size), "cuboid_center_m": vec(cuboid_center),
-            "config": cfg}
+            "config": cfg.to_dict()}
 
 
 @dataclass(frozen=True)
@@ -370,7 +372,7 @@ class SynthJob:
     mesh_path: str | os.PathLike | Sequence[str | os.PathLike] | None
     seed: int = 0
     size: tuple[int, int] | str = (640, 480)
-    config: str | os.PathLike | dict | None = None
+    config: str | os.PathLike | dict | SectionSettings | None = None
     class_name: str | Sequence[str] | None = None
     units: str | Sequence[str | None] | None = None
     backgrounds: str | os.PathLike | Sequence[str | os.PathLike] | None = None

@@ -9,12 +9,12 @@ Scene placement and seg ids are :func:`dope_hope.synth.scene.sample_hard_negativ
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
 import trimesh
 
+from dope_hope.config import SectionSettings
 from dope_hope.synth.primitives import make_primitive
 from dope_hope.synth.textures import procedural_image
 
@@ -126,12 +126,12 @@ def shuffled_texture(rng: np.random.Generator, look: TargetLook, px: int,
     return out if side == px else cv2.resize(out, (px, px), interpolation=cv2.INTER_NEAREST)
 
 
-def hard_negative_geometry(rng: np.random.Generator, look: TargetLook, cfg: dict[str, Any]) -> trimesh.Trimesh:
+def hard_negative_geometry(rng: np.random.Generator, look: TargetLook, cfg: SectionSettings) -> trimesh.Trimesh:
     """A box, cylinder or bottle (the target's class with ``same_shape_prob``) the size of the
     target's cuboid, each extent scaled by ``size_jitter``; centred at the origin, with uv."""
-    same = rng.random() < cfg["same_shape_prob"]
+    same = rng.random() < cfg.same_shape_prob
     kind = look.shape if same else SHAPE_CLASSES[int(rng.integers(0, len(SHAPE_CLASSES)))]
-    s = np.sort(look.size)[::-1] * rng.uniform(*cfg["size_jitter"], size=3)  # long, mid, short
+    s = np.sort(look.size)[::-1] * rng.uniform(*cfg.size_jitter, size=3)  # long, mid, short
     if kind == "box":
         dims = rng.permutation(s)
     else:  # axis along the longest extent, diameter the mean of the other two
@@ -140,9 +140,9 @@ def hard_negative_geometry(rng: np.random.Generator, look: TargetLook, cfg: dict
 
 
 def hard_negative_material(rng: np.random.Generator, look: TargetLook,
-                           cfg: dict[str, Any]) -> tuple[np.ndarray, np.ndarray | None]:
+                           cfg: SectionSettings) -> tuple[np.ndarray, np.ndarray | None]:
     """(base colour (4,) in [0, 1], texture (px, px, 3) uint8 or None) of one look-alike."""
-    weights = {k: float(cfg["textures"].get(k, 0.0)) for k in TEXTURE_KINDS}
+    weights = {k: float(cfg.textures.to_dict().get(k, 0.0)) for k in TEXTURE_KINDS}
     if look.texture is None:
         weights["shuffled"] = 0.0
     if not any(v > 0 for v in weights.values()):
@@ -150,10 +150,10 @@ def hard_negative_material(rng: np.random.Generator, look: TargetLook,
     keys = [k for k in TEXTURE_KINDS if weights[k] > 0]
     p = np.array([weights[k] for k in keys])
     kind = keys[int(rng.choice(len(keys), p=p / p.sum()))]
-    px = int(cfg["texture_px"])
+    px = int(cfg.texture_px)
     if kind == "palette":
         return np.ones(4), palette_texture(rng, look, px)
     if kind == "shuffled":
-        return np.ones(4), shuffled_texture(rng, look, px, tuple(cfg["shuffle_grid"]))
+        return np.ones(4), shuffled_texture(rng, look, px, tuple(cfg.shuffle_grid))
     c = look.colors[int(rng.integers(0, len(look.colors)))].astype(np.float64) / 255.0
     return np.append(c, 1.0), None

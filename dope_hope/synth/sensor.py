@@ -18,10 +18,11 @@ probability does not shift the others' draws.
 from __future__ import annotations
 
 from functools import lru_cache
-from typing import Any
 
 import cv2
 import numpy as np
+
+from dope_hope.config import SectionSettings
 
 #: The ``post`` keys of this module: each effect's probability key, in the order applied.
 EFFECT_PROBS = ("defocus_prob", "motion_blur_prob", "chromatic_prob", "vignetting_prob",
@@ -114,7 +115,7 @@ def jpeg(img: np.ndarray, quality: int) -> np.ndarray:
     return cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
 
 
-def sensor_artifacts(rng: np.random.Generator, img: np.ndarray, cfg: dict[str, Any]) -> np.ndarray:
+def sensor_artifacts(rng: np.random.Generator, img: np.ndarray, cfg: SectionSettings) -> np.ndarray:
     """Optics, exposure, white balance, shot/read noise and JPEG (module docstring).
 
     Args:
@@ -125,15 +126,15 @@ def sensor_artifacts(rng: np.random.Generator, img: np.ndarray, cfg: dict[str, A
     Returns:
         (H, W, 3) uint8 RGB; ``img`` itself when no effect applies.
     """
-    do = rng.random(len(EFFECT_PROBS)) < np.array([float(cfg[k]) for k in EFFECT_PROBS])
+    do = rng.random(len(EFFECT_PROBS)) < np.array([float(getattr(cfg, k)) for k in EFFECT_PROBS])
     do_defocus, do_motion, do_chroma, do_vignette, do_exposure, do_noise, do_jpeg = do
-    defocus_r = rng.uniform(*cfg["defocus_radius_px"])
-    motion_len, motion_angle = rng.uniform(*cfg["motion_blur_px"]), rng.uniform(0.0, np.pi)
-    chroma_px = rng.uniform(*cfg["chromatic_px"])
-    vignette = rng.uniform(*cfg["vignetting"])
-    ev, wb = rng.uniform(*cfg["exposure_ev"]), rng.uniform(*cfg["white_balance"], size=2)
-    shot, read = rng.uniform(*cfg["shot_noise"]), rng.uniform(*cfg["read_noise"])
-    quality = int(rng.integers(int(cfg["jpeg_quality"][0]), int(cfg["jpeg_quality"][1]) + 1))
+    defocus_r = rng.uniform(*cfg.defocus_radius_px)
+    motion_len, motion_angle = rng.uniform(*cfg.motion_blur_px), rng.uniform(0.0, np.pi)
+    chroma_px = rng.uniform(*cfg.chromatic_px)
+    vignette = rng.uniform(*cfg.vignetting)
+    ev, wb = rng.uniform(*cfg.exposure_ev), rng.uniform(*cfg.white_balance, size=2)
+    shot, read = rng.uniform(*cfg.shot_noise), rng.uniform(*cfg.read_noise)
+    quality = int(rng.integers(int(cfg.jpeg_quality[0]), int(cfg.jpeg_quality[1]) + 1))
     noise_rng = rng.spawn(1)[0]
 
     out = img

@@ -2,7 +2,11 @@
 
 The packaged ``dope_hope/configs/synth.yaml`` documents every key and gives its default; the
 settings classes (:class:`SynthSettings`, one frozen :class:`~dope_hope.config.SectionSettings`
-per section and nested section) are generated from it, so the defaults have that one owner.
+per section and nested section, named after it: ``SynthTargetSettings``,
+``SynthBackgroundClutterSettings`` ...) are generated from it, so the defaults have that one
+owner. The generator reads them as attributes (``cfg.target.count``); a section of named
+weights (``distractors.primitives``, ``lights.types`` ...) is read as a mapping with
+``to_dict()``.
 Each key's value must be of its default's kind (a number, a whole number, true/false, a name,
 a list of the same length; ``depth_noise.stereo_fx_px`` may be null), and the whole config
 passes :func:`validate_synth_config` (ranges, probabilities, bounds, seg ids).
@@ -74,10 +78,11 @@ _BOUNDS = [
 ]
 
 
-def _lookup(cfg: dict[str, Any], path: tuple[str, ...]) -> Any:
+def _lookup(cfg: SectionSettings, path: tuple[str, ...]) -> Any:
+    """The value of the dotted key ``path`` of the settings ``cfg``."""
     node: Any = cfg
     for part in path:
-        node = node[part]
+        node = getattr(node, part)
     return node
 
 
@@ -127,12 +132,17 @@ def _section_class(name: str, defaults: Mapping[str, Any], path: tuple[str, ...]
             frozen = tuple(value) if isinstance(value, list) else value
             spec.append((key, type(frozen), dataclasses.field(default=frozen)))
             rules[key] = _kind_rule(value, (*path, key) in _NULLABLE)
-    cls_name = "".join(part.title() for part in (path or ("synth",)) for part in part.split("_")) + "Settings"
-    return dataclasses.make_dataclass(cls_name, spec, bases=(SectionSettings,), frozen=True,
-                                      namespace={"SECTION": ".".join(path), "RULES": rules,
-                                                 "__module__": __name__,
-                                                 "__doc__": f"The synth config's {'.'.join(path) or 'sections'} "
-                                                            "(defaults: dope_hope/configs/synth.yaml)."})
+    cls_name = "Synth" + "".join(part.title() for part in path for part in part.split("_")) + \
+        ("Settings" if path else "Sections")
+    cls = dataclasses.make_dataclass(cls_name, spec, bases=(SectionSettings,), frozen=True,
+                                     namespace={"SECTION": ".".join(path), "RULES": rules,
+                                                "__module__": __name__,
+                                                "__doc__": f"The synth config's {'.'.join(path) or 'sections'} "
+                                                           "(defaults: dope_hope/configs/synth.yaml)."})
+    if cls_name in globals():
+        raise RuntimeError(f"synth.yaml: two sections make the settings class {cls_name}")
+    globals()[cls_name] = cls  # importable by name: the settings pickle to the worker processes
+    return cls
 
 
 def _synth_settings_class() -> type[SectionSettings]:
@@ -140,7 +150,7 @@ def _synth_settings_class() -> type[SectionSettings]:
 
     def __post_init__(self: Any) -> None:
         base.__post_init__(self)
-        validate_synth_config(self.to_dict())
+        validate_synth_config(self)
 
     return dataclasses.make_dataclass("SynthSettings", [], bases=(base,), frozen=True,
                                       namespace={"__post_init__": __post_init__, "__module__": __name__,
@@ -148,22 +158,28 @@ def _synth_settings_class() -> type[SectionSettings]:
                                                             "dope_hope/configs/synth.yaml, over its defaults."})
 
 
-def load_synth_config(config: str | os.PathLike | dict[str, Any] | None = None,
-                      assignments: list[str] | tuple[str, ...] = ()) -> dict[str, Any]:
-    """The synth config: ``configs/synth.yaml`` with ``config`` deep-merged over it, then the
-    ``section.key=value`` items of ``assignments`` (:func:`~dope_hope.config.load_settings`).
+def load_synth_config(config: str | os.PathLike | Mapping[str, Any] | SectionSettings | None = None,
+                      assignments: list[str] | tuple[str, ...] = ()) -> Any:
+    """The synth config (a frozen :data:`SynthSettings`, each section an attribute):
+    ``configs/synth.yaml`` with ``config`` deep-merged over it, then the ``section.key=value``
+    items of ``assignments`` (:func:`~dope_hope.config.load_settings`).
 
     Args:
-        config: None or "synth" (the defaults), a config name or YAML path, or a dict of
-            overrides (same nesting as the file).
+        config: None or "synth" (the defaults), a config name or YAML path, a dict of
+            overrides (same nesting as the file), or settings already loaded (returned as
+            they are when there are no ``assignments``).
 
     Raises:
         ConfigError / InputFileError: unknown name or key, unreadable file, a bad value or an
             invalid range.
     """
+    if isinstance(config, SynthSettings) and not assignments:
+        return config
+    if isinstance(config, SectionSettings):
+        config = config.to_dict()
     if isinstance(config, str) and config == DEFAULT_CONFIG:
         config = None
-    return load_settings(SynthSettings, config, assignments).to_dict()
+    return load_settings(SynthSettings, config, assignments)
 
 
 def packaged_synth_config() -> dict[str, Any]:
@@ -171,14 +187,15 @@ def packaged_synth_config() -> dict[str, Any]:
     return SynthSettings().to_dict()
 
 
-def validate_synth_config(cfg: dict[str, Any]) -> None:
-    """Raise ConfigError naming the first invalid key."""
+def validate_synth_config(cfg: Any) -> None:
+    """Raise ConfigError naming the first invalid key of the synth settings ``cfg`` (each
+    value already of its default's kind)."""
     for path in _RANGES:
         name = ".".join(path)
         try:
             lo, hi = _lookup(cfg, path)
             bad = not (float(lo) <= float(hi))
-        except (KeyError, TypeError, ValueError):
+        except (AttributeError, TypeError, ValueError):
             raise ConfigError(f"{name} must be a [min, max] pair") from None
         if bad:
             raise ConfigError(f"{name} has min > max ({lo} > {hi})")
@@ -191,12 +208,11 @@ def validate_synth_config(cfg: dict[str, Any]) -> None:
         try:
             p = float(_lookup(cfg, path))
             bad = not 0.0 <= p <= 1.0
-        except (KeyError, TypeError, ValueError):
+        except (AttributeError, TypeError, ValueError):
             bad = True
         if bad:
             raise ConfigError(f"{'.'.join(path)} must be a probability in [0, 1]")
-    clutter = cfg["background"]["clutter"]
-    if not 0.05 <= float(clutter["resolution"]) <= 1.0:
+    if not 0.05 <= float(cfg.background.clutter.resolution) <= 1.0:
         raise ConfigError("background.clutter.resolution must lie in [0.05, 1]")
     for path in (("background", "clutter", "texture_px"), ("background", "clutter", "texture_pool"),
                  ("hard_negatives", "texture_px")):
@@ -204,39 +220,39 @@ def validate_synth_config(cfg: dict[str, Any]) -> None:
         if isinstance(v, bool) or not isinstance(v, int) or v < (4 if path[-1] == "texture_px" else 1):
             raise ConfigError(f"{'.'.join(path)} must be a whole number "
                               f"(>= {4 if path[-1] == 'texture_px' else 1}), got {v!r}")
-    if cfg["target"]["count"][0] < 0:
+    if cfg.target.count[0] < 0:
         raise ConfigError("target.count must start at 0 or more")
-    if cfg["target"]["distance_m"][0] <= cfg["camera"]["znear"]:
+    if cfg.target.distance_m[0] <= cfg.camera.znear:
         raise ConfigError("target.distance_m must lie beyond camera.znear")
-    base = int(cfg["output"]["seg_distractor_base"])
-    if not cfg["target"]["count"][1] < base or base + cfg["distractors"]["count"][1] + \
-            cfg["target"]["count"][1] + cfg["hard_negatives"]["count"][1] > 255:
+    base = int(cfg.output.seg_distractor_base)
+    if not cfg.target.count[1] < base or base + cfg.distractors.count[1] + \
+            cfg.target.count[1] + cfg.hard_negatives.count[1] > 255:
         raise ConfigError("seg ids must fit in uint8: target.count[1] < "
                           "output.seg_distractor_base and base + distractors + occluders "
                           "(target.count[1]) + hard_negatives.count[1] <= 255")
     for path in (("distractors", "primitives"), ("lights", "types"), ("background", "procedural_weights"),
                  ("background", "clutter", "kinds"), ("hard_negatives", "textures"), ("procedural", "categories")):
-        weights = _lookup(cfg, path)
-        if not isinstance(weights, dict) or not any(float(v) > 0 for v in weights.values()):
+        weights = _lookup(cfg, path).to_dict()
+        if not any(float(v) > 0 for v in weights.values()):
             raise ConfigError(f"{'.'.join(path)} needs at least one positive weight")
     from dope_hope.synth.objects import SHAPE_LABELS  # noqa: PLC0415 (the procedural shapes' module brings trimesh: only when a config is checked)
 
-    unknown = sorted(set(cfg["procedural"]["categories"]) - set(SHAPE_LABELS))
+    unknown = sorted(set(cfg.procedural.categories.to_dict()) - set(SHAPE_LABELS))
     if unknown:
         raise ConfigError(f"procedural.categories: unknown {', '.join(unknown)}; "
                           f"known: {', '.join(SHAPE_LABELS)}")
-    scale = cfg["procedural"]["scale"]
+    scale = cfg.procedural.scale
     if not (isinstance(scale, list) and len(scale) == 2 and all(isinstance(v, (int, float)) and
             not isinstance(v, bool) for v in scale) and 0.05 <= scale[0] <= scale[1] <= 20):
         raise ConfigError(f"procedural.scale must be [low, high] with 0.05 <= low <= "
                           f"high <= 20, got {scale!r}")
-    jitter = cfg["procedural"]["size_jitter"]
+    jitter = cfg.procedural.size_jitter
     if not isinstance(jitter, (int, float)) or not 0 <= jitter < 1:
         raise ConfigError(f"procedural.size_jitter must be a number in [0, 1), got {jitter!r}")
-    px = cfg["procedural"]["texture_px"]
+    px = cfg.procedural.texture_px
     if isinstance(px, bool) or not isinstance(px, int) or not 16 <= px <= 4096:
         raise ConfigError(f"procedural.texture_px must be a whole number in 16..4096, got {px!r}")
-    if not isinstance(cfg["procedural"]["canonical_labels"], bool):
+    if not isinstance(cfg.procedural.canonical_labels, bool):
         raise ConfigError("procedural.canonical_labels must be true or false")
 
 

@@ -88,5 +88,5 @@ def generate_dataset(out_dir: str | os.PathLike, job: SynthJob, count: int, work
         bar.close()
         local.close()
     seconds = time.perf_counter() - start
-    preview_path = write_preview(out, wanted, int(local.cfg["output"]["preview_frames"])) if preview else None
+    preview_path = write_preview(out, wanted, int(local.cfg.output.preview_frames)) if preview else None
     return GenerateSummary(out, len(todo), len(wanted) - len(todo), seconds, preview_path)

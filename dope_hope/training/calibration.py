@@ -69,28 +69,41 @@ def calibrate_run(weights: Path, job: TrainJob, val_records: Sequence[FrameRecor
 
 
 class RunThresholds:
-    """The trainer's end of a run (a part of :class:`~dope_hope.training.trainer.Trainer`, which
-    it reads: ``ts``, ``val_set``, ``dist``, ``out``, ``best_acc``, ``job``, ``objects``,
-    ``device``)."""
+    """The end of a run: each object's threshold chosen on its validation frames.
 
-    @property
-    def calibrates(self) -> bool:
-        """Whether the run ends by choosing each object's threshold on its validation frames
-        (``train.calibrate_thresholds``, with validations on)."""
-        return bool(self.ts["calibrate_thresholds"]) and int(self.ts["val_every"]) > 0 and len(self.val_set) > 0
+    Args:
+        enabled: ``train.calibrate_thresholds``.
+        val_every: ``train.val_every`` (0: no validations, nothing to choose from).
+        job: the run's job (its meshes, symmetries and folders).
+        out: the run's output folder (its best.pt / last.pt).
+        device: the network's device.
+    """
 
-    def _calibrate(self) -> dict[str, Any]:
-        """Rank 0, at the end of a run that was not stopped, when it :attr:`calibrates`: each
-        object's threshold chosen on the validation frames and recorded in the run's chosen
-        checkpoint (best.pt; last.pt when no validation of this run made one;
-        :func:`~dope_hope.training.calibration.calibrate_run`); what the summary records.
-        A problem (a frame that cannot be read) is a warning: the trained weights stand."""
-        if not (self.dist.main and self.calibrates):
+    def __init__(self, enabled: bool, val_every: int, job: TrainJob, out: Path, device: str):
+        self.enabled = enabled
+        self.val_every = val_every
+        self.job = job
+        self.out = Path(out)
+        self.device = device
+
+    def calibrates(self, val_frames: int) -> bool:
+        """Whether a run with ``val_frames`` validation frames ends by choosing each object's
+        threshold on them (``train.calibrate_thresholds``, with validations on)."""
+        return bool(self.enabled) and int(self.val_every) > 0 and val_frames > 0
+
+    def choose(self, validated: bool, val_records: Sequence[FrameRecord], objects: Sequence[RunObject]
+               ) -> dict[str, Any]:
+        """Rank 0, at the end of a run that was not stopped, when it :meth:`calibrates`: each
+        object's threshold chosen on ``val_records`` and recorded in the run's chosen
+        checkpoint (best.pt; last.pt when no validation of this run made one, ``validated``
+        False; :func:`calibrate_run`); what the summary records. A problem (a frame that
+        cannot be read) is a warning: the trained weights stand."""
+        if not self.calibrates(len(val_records)):
             return {}
-        weights = self.out / ("best.pt" if self.best_acc >= 0 and (self.out / "best.pt").is_file() else "last.pt")
+        weights = self.out / ("best.pt" if validated and (self.out / "best.pt").is_file() else "last.pt")
         try:
-            return calibrate_run(weights, self.job, self.val_set.records, self.objects,
-                                 progress=self.job.progress, device=str(self.device))
+            return calibrate_run(weights, self.job, val_records, objects, progress=self.job.progress,
+                                 device=self.device)
         except DopeHopeError as exc:
             log.warning("thresholds not chosen (%s keeps infer's default): %s", weights.name, exc)
             return {}

@@ -7,7 +7,7 @@ write the checkpoint's ``objects`` list.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +19,7 @@ from dope_hope.io.symmetries import SymmetryDeclaration
 from dope_hope.symmetry.labels import corner_permutations
 from dope_hope.symmetry.resolve import ObjectSymmetries, label_symmetries, resolve_symmetries
 from dope_hope.training.dataset import FrameRecord, relabel_symmetric
-from dope_hope.training.settings import TrainJob, object_info
+from dope_hope.training.settings import TrainConfig, TrainJob, object_info
 
 
 @dataclass
@@ -38,16 +38,15 @@ class RunObject:
     symmetry_source: str = "none"
 
 
-def with_num_objects(config: dict[str, Any], n: int) -> dict[str, Any]:
-    """``config`` with ``model.num_objects = n`` (unchanged for one object whose config does not
-    say; ConfigError when the config says another number, e.g. a resumed run's)."""
-    model = dict(config.get("model") or {})
-    given = model.get("num_objects")
-    if given is not None and int(given) != n:
+def with_num_objects(recipe: TrainConfig, n: int) -> TrainConfig:
+    """``recipe`` with ``model.num_objects = n``: its default 1 becomes the run's ``n``; another
+    number than ``n`` (e.g. a resumed run's) is a ConfigError."""
+    given = recipe.model.num_objects
+    if given not in (1, n):
         raise ConfigError(f"model.num_objects is {given} but the run trains {n} object(s)")
-    if given is None and n == 1:
-        return config
-    return {**config, "model": {**model, "num_objects": int(n)}}
+    if given == n:
+        return recipe
+    return replace(recipe, model=replace(recipe.model, num_objects=int(n)))
 
 
 def check_class_names(names: list[str]) -> None:

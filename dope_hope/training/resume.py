@@ -1,134 +1,107 @@
 """What a training checkpoint records of its run and how a resumed run continues from it:
-:meth:`RunCheckpoints.save` (model, optimizer, scheduler, step, epoch, the batch position, the
-time budget's plans and time used, the partial loss window, the job's data and objects),
-:meth:`RunCheckpoints._restore` (a resumed run picks all of it up again, so that an
-interrupted CPU run ends with the same weights as an uninterrupted one) and
-:func:`resumed_job` (what ``--resume`` fills in of a job from the checkpoint) and
-:func:`check_resume_flags` (what a resumed run cannot honour: refused).
-
-:class:`RunCheckpoints` is a part of :class:`~dope_hope.training.trainer.Trainer` (it reads
-and sets the trainer's counters).
+:class:`CheckpointStore` (``last.pt`` / ``best.pt`` written from the state the trainer hands it:
+model, optimizer, scheduler, step, epoch and the run's bookkeeping), :class:`RunProgress` (the
+counters a checkpoint records and a resumed run picks up again, so that an interrupted CPU run
+ends with the same weights as an uninterrupted one), :func:`job_record` (the job's data and
+objects, as recorded), :func:`resumed_job` (what ``--resume`` fills in of a job from the
+checkpoint) and :func:`check_resume_flags` (what a resumed run cannot honour: refused).
 """
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from torch import nn
+
 from dope_hope.errors import ConfigError
-from dope_hope.model.checkpoint import (
-    TrainingState,
-    load_checkpoint,
-    restore_rng_state,
-    save_checkpoint,
-)
+from dope_hope.model.checkpoint import TrainingState, load_checkpoint, save_checkpoint
 from dope_hope.training.objects import object_mesh_paths
-from dope_hope.training.schedule import LrLambda
 from dope_hope.training.settings import TrainConfig, TrainJob
 
 #: The trainer's logger: these lines are the trainer's, under its name.
 log = logging.getLogger("dope_hope.training.trainer")
 
 
-class RunCheckpoints:
-    """The trainer's checkpoints: ``last.pt`` / ``best.pt`` written, a resumed run restored."""
+@dataclass
+class RunProgress:
+    """Where a run stands beyond its weights: what a checkpoint's ``extra`` records of the
+    loop and a resumed run continues from.
 
-    def _restore(self, ck: dict[str, Any], saved_ts: dict[str, Any]) -> None:
-        """Continue from checkpoint ``ck``; ``saved_ts``: its ``train`` settings (a length or
-        budget given now that differs wins, said in one line)."""
-        self.model.load_state_dict(ck["model"])
-        if ck.get("optimizer") is not None:
-            self.optimizer.load_state_dict(ck["optimizer"])
-        if ck.get("scheduler") is not None:
-            self.scheduler.load_state_dict(ck["scheduler"])
-        self.step = int(ck.get("step", 0))
-        self.epoch = int(ck.get("epoch", 0))
-        extra = checkpoint_extra(ck)
-        self.batch_in_epoch = int(extra.get("batch_in_epoch", 0))
-        self.best_acc = float(extra.get("best_acc", -1.0))
-        self.val_done_epoch = int(extra.get("val_done_epoch", -1))
-        if self.batch_in_epoch < self.steps_per_epoch and self.val_done_epoch == self.epoch:
-            self.val_done_epoch = -1  # stopped mid-epoch: validate again when the epoch ends
-        self._time_used_before = float(extra.get("time_used_s", 0.0))
-        self._other_before = float(extra.get("other_s", 0.0))
-        self._val_seconds = float(extra.get("last_val_s", 0.0))
-        self._val_steps = [float(v) for v in extra.get("val_steps") or []]
-        self._metrics_rows = int(extra.get("metrics_rows", 0))
-        self.last_val = dict(extra.get("val") or {})
+    Attributes:
+        batch_in_epoch: batches of the current epoch done.
+        best_acc: the best validation keypoint accuracy so far (-1: none yet).
+        val_done_epoch: the last epoch validated (-1: none).
+        last_val: the last validation's figures.
+        loss_window: the loss sum and steps of the next train row of metrics.csv.
+        metrics_rows: rows of metrics.csv written.
+    """
+
+    batch_in_epoch: int = 0
+    best_acc: float = -1.0
+    val_done_epoch: int = -1
+    last_val: dict[str, Any] = field(default_factory=dict)
+    loss_window: list[float] = field(default_factory=lambda: [0.0, 0])
+    metrics_rows: int = 0
+
+    @classmethod
+    def from_extra(cls, extra: dict[str, Any], epoch: int, steps_per_epoch: int) -> RunProgress:
+        """The progress a checkpoint's ``extra`` records of a run stopped in ``epoch`` (a run
+        stopped mid-epoch validates again when that epoch ends)."""
+        progress = cls(batch_in_epoch=int(extra.get("batch_in_epoch", 0)),
+                       best_acc=float(extra.get("best_acc", -1.0)),
+                       val_done_epoch=int(extra.get("val_done_epoch", -1)),
+                       last_val=dict(extra.get("val") or {}), metrics_rows=int(extra.get("metrics_rows", 0)))
+        if progress.batch_in_epoch < steps_per_epoch and progress.val_done_epoch == epoch:
+            progress.val_done_epoch = -1  # stopped mid-epoch: validate again when the epoch ends
         window = extra.get("loss_window")
         if isinstance(window, (list, tuple)) and len(window) == 2:
-            self.loss_window = [float(window[0]), int(window[1])]
-        if ck.get("rng"):
-            restore_rng_state(ck["rng"])
-        if self.dist.main:
-            log.info("resumed from %s at step %d (epoch %d, batch %d)", self.job.resume, self.step, self.epoch, self.batch_in_epoch)
-        self._restore_length(extra, saved_ts)
+            progress.loss_window = [float(window[0]), int(window[1])]
+        return progress
 
-    def _restore_length(self, extra: dict[str, Any], saved_ts: dict[str, Any]) -> None:
-        """The resumed run's end: the checkpoint's plans when its length and budget are kept;
-        a length (``steps``, ``epochs``) or budget given now that differs wins, at once (one
-        line says so) and the learning rate falls from where it is to the new end."""
-        plans = extra.get("plans")
-        if plans is None and extra.get("planned_steps") is not None and self.budget is not None:
-            self.total_steps = min(self._nominal_total, int(extra["planned_steps"]))  # one fixed plan: measured again
-        keys = ("steps", "epochs", "time_limit_min")
-        changed = [k for k in keys if self.ts[k] != saved_ts.get(k)]
-        if self.budget is not None and plans and "time_limit_min" not in changed:
-            self.budget.plans = [dict(p) for p in plans]
-            self.total_steps = min(self._nominal_total, int(plans[-1]["budget_end"]))
-        if self.budget is not None and plans and changed:  # planned again at once, at the last plan's speed
-            self.budget.plans = [dict(p) for p in plans]
-            end = self._plan_now("length or budget changed at resume") if self.dist.main else None
-            self._set_end(self._broadcast_end(end))
-        elif changed and self.budget is None:
-            self.total_steps = self._nominal_total
-        if changed and self.ts["schedule"] in LrLambda.REPLANNED and not self.budget_sets_horizon:
-            self.lr_lambda.replan(self.step, max(self.step + 1, self.total_steps))
-        if changed and self.dist.main:
-            now = ", ".join(f"train.{k} {self.ts[k]}" for k in changed)
-            before = ", ".join(f"{saved_ts.get(k)}" for k in changed)
-            tail = (f", or earlier when the {self.ts['time_limit_min']:g}-min time budget is spent"
-                    if self.budget is not None and self.total_steps >= self._nominal_total else "")
-            log.warning("resume: %s given now win(s) over the checkpoint's %s: the run ends at step %d%s",
-                        now, before, self.total_steps, tail)
-
-    def save(self, name: str) -> Path:
-        """Write ``out/name`` atomically (rank 0 only); returns its path."""
-        path = self.out / name
-        if not self.dist.main:
-            return path
-        extra = {
-            "batch_in_epoch": self.batch_in_epoch, "best_acc": self.best_acc, "val_done_epoch": self.val_done_epoch,
-            "time_used_s": self.budget_used(), "other_s": self.other_time(),
-            "last_val_s": self._val_seconds, "val_steps": self._val_steps[-3:], "size_source": self.size_source,
-            "planned_steps": self.planned_steps, "plans": self.budget.plans if self.budget is not None else None,
-            "loss_window": list(self.loss_window),
-            "metrics_rows": self.metrics.rows if self.metrics is not None else self._metrics_rows,
-            "val": {k: v for k, v in self.last_val.items() if isinstance(v, (int, float))},
-            "world_size": self.dist.world_size,
-            "job": {"data": [str(p) for p in self.job.data], "val": [str(p) for p in self.job.val],
-                    "object": self.job.object_name, "mesh": str(self.job.mesh) if self.job.mesh else None,
-                    **({"objects": self.job.class_names, "meshes": object_mesh_paths(self.job),
-                        "units": dict(self.job.units)} if len(self.objects) > 1 else {}),
-                    "symmetries": str(self.job.symmetries) if self.job.symmetries else None,
-                    "init": str(self.job.init_weights) if self.job.init_weights else None},
-        }
-        # every key of the recipe, over the defaults: the file says how it was trained
-        recipe = TrainConfig.from_mapping(self.config).to_dict()
-        save_checkpoint(path, self.model, recipe, self.object,
-                        TrainingState(self.optimizer, self.scheduler, self.step, self.epoch, extra))
-        return path
+    def extra(self, metrics_rows: int) -> dict[str, Any]:
+        """The checkpoint ``extra`` entries of the progress (``metrics_rows``: the rows written now)."""
+        return {"batch_in_epoch": self.batch_in_epoch, "best_acc": self.best_acc,
+                "val_done_epoch": self.val_done_epoch, "loss_window": list(self.loss_window),
+                "metrics_rows": metrics_rows,
+                "val": {k: v for k, v in self.last_val.items() if isinstance(v, (int, float))}}
 
 
-def resumed_job(job: TrainJob, config: dict[str, Any]) -> tuple[dict[str, Any] | None, dict[str, Any], dict[str, Any]]:
-    """(checkpoint or None, the config to build from, the checkpoint's own config or {}): with
-    ``job.resume`` the checkpoint's config and the data, objects and meshes it records fill
-    what the job leaves out."""
+def job_record(job: TrainJob, several: bool) -> dict[str, Any]:
+    """The job a checkpoint records (its data, objects and meshes; ``several``: a run of
+    several objects, whose classes, meshes and units are listed): what ``--resume`` fills in."""
+    return {"data": [str(p) for p in job.data], "val": [str(p) for p in job.val],
+            "object": job.object_name, "mesh": str(job.mesh) if job.mesh else None,
+            **({"objects": job.class_names, "meshes": object_mesh_paths(job),
+                "units": dict(job.units)} if several else {}),
+            "symmetries": str(job.symmetries) if job.symmetries else None,
+            "init": str(job.init_weights) if job.init_weights else None}
+
+
+class CheckpointStore:
+    """A run's checkpoints in its output folder (``out``), each written atomically from the
+    state it is handed (by rank 0 alone: the trainer's call)."""
+
+    def __init__(self, out: Path):
+        self.out = Path(out)
+
+    def save(self, name: str, model: nn.Module, recipe: TrainConfig, object_entry: Any,
+             state: TrainingState) -> Path:
+        """Write ``out/name``: the weights, every key of the ``recipe`` over the defaults (the
+        file says how it was trained), the object entry and the training ``state``; returns
+        its path."""
+        return save_checkpoint(self.out / name, model, recipe.to_dict(), object_entry, state)
+
+
+def resumed_job(job: TrainJob) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+    """(checkpoint or None, the recipe it records or None): with ``job.resume`` the data,
+    objects and meshes the checkpoint records fill what the job leaves out."""
     ck = None
-    saved_config: dict[str, Any] = {}
+    saved_config: dict[str, Any] | None = None
     if job.resume is not None:
         ck = load_checkpoint(job.resume)
-        config = saved_config = ck.get("config") or config
+        saved_config = ck.get("config") or None
         saved_job = checkpoint_extra(ck).get("job") or {}
         check_resume_flags(job, saved_job)
         if not job.data:
@@ -145,7 +118,7 @@ def resumed_job(job: TrainJob, config: dict[str, Any]) -> tuple[dict[str, Any] |
             job.symmetries = Path(saved_job["symmetries"])
         if not job.data or not job.object_name:
             raise ConfigError(f"{job.resume} does not record its data folders / object; pass --data and --object")
-    return ck, config, saved_config
+    return ck, saved_config
 
 
 def check_resume_flags(job: TrainJob, saved_job: dict[str, Any]) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -18,6 +18,7 @@ from dope_hope.config import (
     at_least,
     boolean,
     fraction,
+    merge,
     nonnegative_float,
     one_of,
     or_none,
@@ -57,8 +58,9 @@ class TrainJob:
         init_reason: what the run starts from, in words (logged; from :func:`resolve_init`).
         device: "auto" (CUDA when available), "cpu" or "cuda[:i]".
         progress: show tqdm bars (rank 0).
-        overrides: nested config values set on the command line (``--epochs``, ``--set``...);
-            merged over the given config, or over the checkpoint's config when resuming.
+        overrides: nested recipe values (a resumed run's ``--epochs``, ``--set``...): merged
+            over the given recipe, or over the checkpoint's when resuming (:func:`run_recipe`,
+            the one merge; a new run's command gives its recipe whole and leaves this empty).
         on_step: hook called with (trainer, step) after every optimizer step (tests use it to
             interrupt a run at a given step); typed loosely, as this module sits below the trainer.
         clock: the seconds the time budget counts (default ``time.monotonic``; tests inject a
@@ -257,27 +259,26 @@ class TrainConfig(SectionSettings):
     augment: AugmentParams = section(AugmentParams)
 
 
-def check_config_keys(config: dict[str, Any]) -> TrainConfig:
-    """The recipe ``config`` checked (every section, key and value): ConfigError naming the
-    first bad ``section.key``."""
-    return TrainConfig.from_mapping(config)
+def run_recipe(config: TrainConfig | Mapping[str, Any] | None, overrides: Mapping[str, Any] | None = None,
+               recorded: Mapping[str, Any] | None = None) -> TrainConfig:
+    """The recipe a run trains with, checked once: ``recorded`` (a resumed run's checkpoint's
+    recipe) or else ``config`` (settings, or a recipe mapping over the defaults), with
+    ``overrides`` (nested values, e.g. the command line's) deep-merged over it.
+
+    Raises:
+        ConfigError: an unknown section or key, or a bad value, naming ``section.key``.
+    """
+    base = recorded if recorded is not None else config
+    if isinstance(base, TrainConfig) and not overrides:
+        return base
+    values = base.to_dict() if isinstance(base, TrainConfig) else dict(base or {})
+    return TrainConfig.from_mapping(merge(values, dict(overrides or {})))
 
 
-def train_settings(config: dict[str, Any]) -> dict[str, Any]:
-    """The ``train`` section over its defaults (:class:`TrainSettings`), as a dict; unknown
-    keys and values of the wrong kind (``lr: abc``, ``steps: 0``, ``workers: -1``) raise
-    ConfigError naming the key."""
-    return TrainSettings.from_mapping(config.get("train")).to_dict()
-
-
-def input_hw(config: dict[str, Any]) -> tuple[int, int]:
-    """(H, W) training input size from ``input.size``."""
-    return InputSettings.from_mapping(config.get("input")).size
-
-
-def targets_settings(config: dict[str, Any]) -> TargetsSettings:
-    """The ``targets`` section over its defaults."""
-    return TargetsSettings.from_mapping(config.get("targets"))
+def with_train_values(recipe: TrainConfig, **values: Any) -> TrainConfig:
+    """``recipe`` with the ``train`` keys ``values`` set (each checked by its rule; ConfigError
+    naming ``train.key``)."""
+    return dataclasses.replace(recipe, train=dataclasses.replace(recipe.train, **values))
 
 
 #: An annotation's projected cuboid implies its box when the fitted box reprojects within
@@ -366,14 +367,14 @@ def object_info(name: str, records: Sequence[Any], mesh: Path | None, units: str
     return make_object_info(name, hope.size_array, "mesh"), "catalog"
 
 
-def resolve_init(choice: str | None, config: dict[str, Any]) -> tuple[Path | None, str]:
+def resolve_init(choice: str | None, recipe: TrainConfig) -> tuple[Path | None, str]:
     """The checkpoint whose weights start a new run (``--init``) and a line saying why.
 
     Args:
         choice: None or "auto" (the shipped pretrained start when the run's ``model`` section
             and input normalization are the ones it was trained with, else a random start),
             "pretrained", "demo" (the shipped demo model), "none" (random start) or a path.
-        config: the run's config.
+        recipe: the run's recipe.
 
     Raises:
         InputFileError: "pretrained" / "demo" where this installation does not ship the file.
@@ -392,7 +393,7 @@ def resolve_init(choice: str | None, config: dict[str, Any]) -> tuple[Path | Non
                 raise InputFileError(PRETRAINED_WEIGHTS, "--init pretrained: this installation ships no "
                                                          "pretrained start")
             return None, "random start (this installation ships no pretrained start)"
-        if value == "pretrained" or same_architecture(config, PRETRAINED_WEIGHTS):
+        if value == "pretrained" or same_architecture(recipe, PRETRAINED_WEIGHTS):
             return PRETRAINED_WEIGHTS, f"the shipped pretrained start {PRETRAINED_WEIGHTS.name}"
         return None, ("random start: the config's model differs from the shipped pretrained lite "
                       "start's (--init none to say so, --init PATH for another checkpoint)")
@@ -433,21 +434,18 @@ def resolve_resume(choice: str | None, out: Path, init: str | None) -> tuple[Pat
     return candidate, None
 
 
-def same_architecture(config: dict[str, Any], checkpoint: Path) -> bool:
-    """True when ``config`` builds the network ``checkpoint`` holds (same ``model`` section and
+def same_architecture(recipe: TrainConfig, checkpoint: Path) -> bool:
+    """True when ``recipe`` builds the network ``checkpoint`` holds (same ``model`` section and
     input normalization), up to ``model.num_objects``: a one-object start is widened to the
     run's objects (:func:`dope_hope.model.network.widen_to_objects`)."""
     from dope_hope.model.checkpoint import load_checkpoint  # noqa: PLC0415 (torch only to read the checkpoint)
 
     saved = load_checkpoint(checkpoint)["config"]
-
-    def norm(c: dict[str, Any]) -> Any:
-        return InputSettings.from_mapping(c.get("input")).normalization
-
-    def model(c: dict[str, Any]) -> Any:  # a one-object start widens to any number of objects
-        return dataclasses.replace(ModelSettings.from_mapping(c.get("model")), num_objects=1)
-
-    return model(saved) == model(config) and norm(saved) == norm(config)
+    saved_model = ModelSettings.from_mapping(saved.get("model"))
+    saved_norm = InputSettings.from_mapping(saved.get("input")).normalization
+    # a one-object start widens to any number of objects
+    return (dataclasses.replace(saved_model, num_objects=1) == dataclasses.replace(recipe.model, num_objects=1)
+            and saved_norm == recipe.input.normalization)
 
 
 def train_meshes(objects: Sequence[str], mesh_args: Sequence[str] | None, models_dir: Path | None,

@@ -1,29 +1,28 @@
-"""The time budget of a training run, as the trainer follows it: its clock (the budget belongs
-to the run: the time of every process so far), the speed measured from the steps, the plans
-of :mod:`~dope_hope.training.budget` turning the budget left into the step the run ends at,
+"""The time of a training run and its budget: the clock (the budget belongs to the run: the
+time of every process so far), the speed measured from the steps, the plans of
+:mod:`~dope_hope.training.budget` turning the budget left into the step the run ends at,
 re-planned at every validation and whenever a share of the budget has passed, and the stop
 when one more step and the final validation would not fit. The garbage collector's full passes
 are held to the validations (:func:`collections_at_validations`), so that a validation's cost,
 which the plans count, does not jump at random.
 
-:class:`TimeBudgetControl` is a part of :class:`~dope_hope.training.trainer.Trainer`: it reads
-the trainer's counters (``step``, ``steps_per_epoch``, ``ts``, ``dist``, ``clock``, the
-validation times) and sets its end (``total_steps``, the cosine of ``lr_lambda``).
+:class:`TimeBudget` is fed what it measures by the trainer (its start, each step, each
+validation's seconds) and given the shape of the run once (:class:`BudgetShape`); asked after a
+step, it answers with the step the run ends at (:meth:`TimeBudget.decide_end`), which the
+trainer then follows (its step count and the schedule's end).
 """
 from __future__ import annotations
 
 import contextlib
 import gc
 import logging
-import math
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Iterator
 
 import numpy as np
-import torch
-import torch.distributed as dist
 
-from dope_hope.training.budget import MIN_WINDOW_STEPS, make_plan
-from dope_hope.training.settings import input_hw
+from dope_hope.training.budget import MIN_WINDOW_STEPS, BudgetPlan, make_plan
 
 #: The trainer's logger: these lines are the trainer's, under its name.
 log = logging.getLogger("dope_hope.training.trainer")
@@ -70,79 +69,147 @@ def collect_in_validation() -> None:
     gc.collect()
 
 
-class TimeBudgetControl:
-    """The trainer's time budget (``self.budget``: a :class:`~dope_hope.training.budget.BudgetPlan`,
-    None without a time limit): the clock, the speed, the plans and the end they set."""
+@dataclass(frozen=True)
+class BudgetShape:
+    """What a run tells its time budget once, at its start.
+
+    Attributes:
+        limit_s: the budget, seconds; None: no time limit (the budget only keeps the time).
+        sets_horizon: whether the plans set the schedule's end (a time limit without
+            ``train.steps``).
+        nominal_steps: the run's length without the budget (steps or epochs), steps.
+        steps_per_epoch: optimizer steps per epoch.
+        val_every: epochs between validations (0: none).
+        val_batches: batches of one validation.
+        val_area_ratio: a validation frame's area over a training crop's (at least 1): a
+            validation batch costs about that many training steps.
+        first_window_steps: the step after which the loader's prefetched batches are used up
+            (1 + workers x :data:`LOADER_PREFETCH`): the first plan's speed window starts again there.
+        horizon_estimate_after: steps the first plan measures.
+        after_run_validations: what the run does after its final validation (the thresholds'
+            choice), in validations of the same frames; None: nothing.
+    """
+
+    limit_s: float | None
+    sets_horizon: bool
+    nominal_steps: int
+    steps_per_epoch: int
+    val_every: int
+    val_batches: int
+    val_area_ratio: float
+    first_window_steps: int
+    horizon_estimate_after: int
+    after_run_validations: float | None
 
     @property
-    def budget_sets_horizon(self) -> bool:
-        """Whether the time budget's plans set the schedule's end (a time limit without steps)."""
-        return self.budget is not None and not self.ts["steps"]
+    def val_every_steps(self) -> int:
+        """Steps between validations (0: none)."""
+        return self.val_every * self.steps_per_epoch
 
-    @property
-    def planned_steps(self) -> int | None:
-        """The step the time budget's last plan ends the run at (None before a plan / without)."""
-        return None if self.budget is None or self.budget.last is None else int(self.budget.last["end"])
 
+def after_run_validations(calibrates: bool, objects: int) -> float | None:
+    """The thresholds' choice at a run's end in validations (:data:`CALIBRATION_IN_VALIDATIONS`),
+    for a run of ``objects`` objects that ``calibrates``; None when it does not."""
+    fixed, per_object = CALIBRATION_IN_VALIDATIONS
+    return fixed + per_object * objects if calibrates else None
+
+
+class TimeBudget:
+    """A run's time (its clock, the time of earlier processes, this one's start-up and
+    validations) and, under a time limit, its plans (``plan``: a
+    :class:`~dope_hope.training.budget.BudgetPlan`, None without one).
+
+    Args:
+        shape: the run's shape (:class:`BudgetShape`).
+        clock: the seconds the budget counts (``time.monotonic``, or an injected clock).
+        started: the clock's reading when the budget started (the command's start).
+    """
+
+    def __init__(self, shape: BudgetShape, clock: Callable[[], float], started: float):
+        self.shape = shape
+        self.clock = clock
+        self.started = started
+        self.plan = BudgetPlan(shape.limit_s) if shape.limit_s is not None else None
+        self.used_before = 0.0  # seconds of earlier processes (up to their last checkpoint)
+        self.other_before = 0.0  # of them not spent on steps (validations, start-ups)
+        self.startup_s = 0.0  # this process's seconds before its first step
+        self.val_seconds = 0.0  # the last validation's seconds (plots included)
+        self.val_steps: list[float] = []  # the validations' seconds over the seconds per step then (rank 0)
+        self.val_time_run = 0.0  # all validations' seconds, this process
+        self.steps_this_run = 0
+        self.window: tuple[float, float, int] | None = None  # first plan's window: (clock, val time, steps)
+
+    # ------------------------------------------------------------------ what the trainer feeds it
+    def begin_steps(self) -> None:
+        """The first step starts now: the seconds so far are this process's start-up."""
+        self.startup_s = self.elapsed()
+
+    def stepped(self) -> None:
+        """One optimizer step of this process is done."""
+        self.steps_this_run += 1
+
+    def validated(self, seconds: float) -> None:
+        """A validation (best.pt and plots included) took ``seconds``."""
+        self.val_seconds = seconds
+        self.val_time_run += seconds
+
+    def state(self) -> dict[str, Any]:
+        """What a checkpoint records of the budget (:meth:`restore` reads it back)."""
+        return {"time_used_s": self.used(), "other_s": self.other_time(), "last_val_s": self.val_seconds,
+                "val_steps": self.val_steps[-3:], "planned_steps": self.planned_steps,
+                "plans": self.plan.plans if self.plan is not None else None}
+
+    def restore(self, extra: dict[str, Any]) -> None:
+        """The time a checkpoint's ``extra`` records as used before and its validations' costs
+        (its plans are the trainer's to take up or replace: a length or budget changed at the
+        resume plans again)."""
+        self.used_before = float(extra.get("time_used_s", 0.0))
+        self.other_before = float(extra.get("other_s", 0.0))
+        self.val_seconds = float(extra.get("last_val_s", 0.0))
+        self.val_steps = [float(v) for v in extra.get("val_steps") or []]
+
+    # ------------------------------------------------------------------ the time
     def elapsed(self) -> float:
-        """Seconds since this process's trainer started (by its clock)."""
-        return self.clock() - self._t0
+        """Seconds since this process's budget started (by its clock)."""
+        return self.clock() - self.started
 
-    def budget_used(self) -> float:
+    def used(self) -> float:
         """Seconds of the time budget used: earlier processes' (up to their last checkpoint)
         plus this one's."""
-        return self._time_used_before + self.elapsed()
-
-    def _budget_step(self, validated: bool = False) -> None:
-        """Time-limited run, after each step (``validated``: after a validation): rank 0
-        measures the speed and plans when a plan is due (:meth:`_decide_end`); every rank
-        takes the end it planned."""
-        if self.budget is None or self.step >= self.total_steps:
-            return
-        end = self._broadcast_end(self._decide_end(validated) if self.dist.main else None)
-        if end is not None:
-            self._set_end(end)
-
-    def _broadcast_end(self, end: int | None) -> int | None:
-        """Rank 0's end step (or None) on every rank."""
-        if not self.dist.active:
-            return end
-        t = torch.tensor([-1 if end is None else end], dtype=torch.int64, device=self.device if self.cuda else "cpu")
-        dist.broadcast(t, 0)
-        return None if int(t.item()) < 0 else int(t.item())
-
-    def _set_end(self, end: int) -> None:
-        """End the run at step ``end``; the cosine or wsd's decay (when the budget sets it) falls to it."""
-        if end != self.total_steps and self.budget_sets_horizon:
-            self.lr_lambda.replan(self.step, max(self.step + 1, end))
-        self.total_steps = end
+        return self.used_before + self.elapsed()
 
     def other_time(self) -> float:
         """Seconds of the budget not spent on steps: validations and each process's start-up
         (every process so far)."""
-        return self._other_before + self._startup_s + self._val_time_run
+        return self.other_before + self.startup_s + self.val_time_run
 
+    @property
+    def planned_steps(self) -> int | None:
+        """The step the last plan ends the run at (None before a plan / without a limit)."""
+        return None if self.plan is None or self.plan.last is None else int(self.plan.last["end"])
+
+    # ------------------------------------------------------------------ the plans
     def _first_window_speed(self) -> tuple[float | None, int]:
         """Seconds per step of this process's steps since its speed window started
         (validation time left out) and the number of those steps; (None, 0) before."""
-        if self._window is None:
+        if self.window is None:
             return None, 0
-        t, val, n = self._window
-        steps = self._steps_this_run - n
+        t, val, n = self.window
+        steps = self.steps_this_run - n
         if steps <= 0:
             return None, 0
-        return max(1e-9, (self.clock() - t - (self._val_time_run - val)) / steps), steps
+        return max(1e-9, (self.clock() - t - (self.val_time_run - val)) / steps), steps
 
-    def _recent_speed(self, last: dict[str, Any]) -> float:
+    def _recent_speed(self, step: int, last: dict[str, Any]) -> float:
         """Seconds per step since the last plan (budget used minus validations and start-ups,
         over the steps: the same figures whichever process made them, so a resumed run measures what an
         uninterrupted one does); since an earlier plan when the last is fewer than
         MIN_WINDOW_STEPS steps back, the first plan's figure when all are."""
-        since = next((p for p in reversed(self.budget.plans) if self.step - int(p["step"]) >= MIN_WINDOW_STEPS), None)
+        since = next((p for p in reversed(self.plan.plans) if step - int(p["step"]) >= MIN_WINDOW_STEPS), None)
         if since is None:
-            return float(self.budget.plans[0]["per_step_s"]) if self.budget.plans else float(last["per_step_s"])
-        train_s = (self.budget_used() - self.other_time()) - (float(since["used_s"]) - float(since.get("other_s", 0.0)))
-        return max(1e-9, train_s / (self.step - int(since["step"])))
+            return float(self.plan.plans[0]["per_step_s"]) if self.plan.plans else float(last["per_step_s"])
+        train_s = (self.used() - self.other_time()) - (float(since["used_s"]) - float(since.get("other_s", 0.0)))
+        return max(1e-9, train_s / (step - int(since["step"])))
 
     def _val_cost(self, per_step: float) -> float:
         """Seconds a validation (best.pt and plots included) costs at ``per_step`` seconds per
@@ -150,75 +217,69 @@ class TimeBudgetControl:
         load that slows the steps slows the validation too), else an estimate: a batch costs
         about a training step per unit of image area (forward + decoding of whole frames vs
         forward + backward of the training crops)."""
-        if self._val_steps:
-            return float(np.median(self._val_steps[-3:])) * per_step
-        if int(self.ts["val_every"]) <= 0:
+        if self.val_steps:
+            return float(np.median(self.val_steps[-3:])) * per_step
+        if self.shape.val_every <= 0:
             return 0.0
-        val_batches = math.ceil(len(self.val_set) / max(1, int(self.ts["val_batch_size"] or self.batch_size)))
-        h, w = input_hw(self.config)
-        crop = self.train_set.augment.crop or (h, w)
-        return per_step * val_batches * max(1.0, h * w / (crop[0] * crop[1]))
+        return per_step * self.shape.val_batches * self.shape.val_area_ratio
 
     def _after_run_cost(self, val_s: float) -> float:
         """Seconds the run spends after its final validation, which costs ``val_s``: choosing
-        the thresholds (:meth:`Trainer._calibrate`), estimated from
-        :data:`CALIBRATION_IN_VALIDATIONS` and the run's objects; 0 without it."""
-        fixed, per_object = CALIBRATION_IN_VALIDATIONS
-        return (fixed + per_object * len(self.objects)) * val_s if self.calibrates else 0.0
+        the thresholds (:class:`~dope_hope.training.calibration.RunThresholds`); 0 without it."""
+        factor = self.shape.after_run_validations
+        return factor * val_s if factor is not None else 0.0
 
-    def _decide_end(self, validated: bool) -> int | None:
-        """Rank 0: the new end step when a plan is due or the budget is spent, else None.
+    def decide_end(self, step: int, validated: bool) -> int | None:
+        """Rank 0, after step ``step`` (``validated``: after a validation) of a time-limited
+        run: the new end step when a plan is due or the budget is spent, else None.
 
         The first plan measures this process's steps from its first one, and again once the
         batches the loader fetched ahead are used up (they come for free: counting them makes a
         loader-bound run look faster than it is); re-plans measure the steps since the last plan.
         """
-        last = self.budget.last
-        used = self.budget_used()
+        last = self.plan.last
+        used = self.used()
         if last is None:
-            n = self._steps_this_run
-            steady = 1 + int(self.ts["workers"]) * LOADER_PREFETCH
-            if not validated and n in (1, steady):
-                self._window = (self.clock(), self._val_time_run, n)
+            n = self.steps_this_run
+            if not validated and n in (1, self.shape.first_window_steps):
+                self.window = (self.clock(), self.val_time_run, n)
             measured, window_steps = self._first_window_speed()
             if validated and measured:
-                self._val_steps.append(self._val_seconds / measured)
-            if used + self._val_seconds + self._after_run_cost(self._val_seconds) >= self.budget.limit_s:
+                self.val_steps.append(self.val_seconds / measured)
+            if used + self.val_seconds + self._after_run_cost(self.val_seconds) >= self.plan.limit_s:
                 # the final validation (and the thresholds' choice) would not fit
-                return self._plan_now("budget spent before a plan", per_step=measured or 0.0, end=self.step)
-            if measured is None or (window_steps < int(self.ts["horizon_estimate_after"]) and not validated):
+                return self.plan_now(step, "budget spent before a plan", per_step=measured or 0.0, end=step)
+            if measured is None or (window_steps < self.shape.horizon_estimate_after and not validated):
                 return None
-            return self._plan_now("first", per_step=measured)
-        per_step = self._recent_speed(last)
+            return self.plan_now(step, "first", per_step=measured)
+        per_step = self._recent_speed(step, last)
         if validated:
-            self._val_steps.append(self._val_seconds / per_step)
-        every = int(self.ts["val_every"]) * self.steps_per_epoch
+            self.val_steps.append(self.val_seconds / per_step)
+        every = self.shape.val_every_steps
         val_cost = self._val_cost(per_step)
-        if not self.budget.one_more_fits(self.step, used, per_step, val_cost, every, validated,
-                                         self._after_run_cost(val_cost)):
-            return self._plan_now("budget spent", per_step=per_step, end=self.step)
-        if validated or self.budget.due(used, self.step):
-            return self._plan_now("validation" if validated else "re-plan", per_step=per_step, validated=validated)
+        if not self.plan.one_more_fits(step, used, per_step, val_cost, every, validated,
+                                       self._after_run_cost(val_cost)):
+            return self.plan_now(step, "budget spent", per_step=per_step, end=step)
+        if validated or self.plan.due(used, step):
+            return self.plan_now(step, "validation" if validated else "re-plan", per_step=per_step,
+                                 validated=validated)
         return None
 
-    def _plan_now(self, why: str, per_step: float | None = None, end: int | None = None,
-                  validated: bool = False) -> int:
-        """Record a plan from ``per_step`` (default: the last plan's) or, given ``end``, the
-        end itself; return the end step."""
-        last = self.budget.last
+    def plan_now(self, step: int, why: str, per_step: float | None = None, end: int | None = None,
+                 validated: bool = False) -> int:
+        """Rank 0: record a plan made after step ``step`` from ``per_step`` seconds per step
+        (default: the last plan's) or, given ``end``, the end itself; return the end step."""
+        last = self.plan.last
         per_step = float(last["per_step_s"]) if per_step is None and last is not None else float(per_step or 0.0)
         val_cost = self._val_cost(per_step)
-        used = self.budget_used()
+        used = self.used()
         if end is None:
-            every = int(self.ts["val_every"]) * self.steps_per_epoch
-            plan = self.budget.plan(self.step, used, self.other_time(), per_step, val_cost, every, self._nominal_total, why,
-                                    validated, self._after_run_cost(val_cost))
+            plan = self.plan.plan(step, used, self.other_time(), per_step, val_cost, self.shape.val_every_steps,
+                                  self.shape.nominal_steps, why, validated, self._after_run_cost(val_cost))
         else:
-            plan = make_plan(self.step, end, end, per_step, val_cost, used, self.other_time(), why)
-            self.budget.plans.append(plan)
-        if self.dist.main:
-            level = logging.DEBUG if why in ("re-plan", "validation") else logging.INFO
-            log.log(level, "time budget %.3g min (%s): the run ends at step %d (%.3f s per step, %.1f s of the "
-                    "budget used by step %d)", self.budget.limit_s / 60.0, why, plan["end"], per_step, used, self.step)
-        self._set_end(plan["end"])
+            plan = make_plan(step, end, end, per_step, val_cost, used, self.other_time(), why)
+            self.plan.plans.append(plan)
+        level = logging.DEBUG if why in ("re-plan", "validation") else logging.INFO
+        log.log(level, "time budget %.3g min (%s): the run ends at step %d (%.3f s per step, %.1f s of the "
+                "budget used by step %d)", self.plan.limit_s / 60.0, why, plan["end"], per_step, used, step)
         return int(plan["end"])

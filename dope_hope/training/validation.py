@@ -97,3 +97,15 @@ def object_hits(belief: np.ndarray, affinity: np.ndarray, gt: np.ndarray, classe
         group = maps[group_channels(k, num_objects)]
         out[k] = validation_hits(group[:NUM_KEYPOINTS], group[NUM_KEYPOINTS:], mine, stride, radius_px, threshold)
     return out
+
+
+def per_object_accuracy(names: Sequence[str], hits: Sequence[Sequence[float]]) -> dict[str, float]:
+    """``val_kp_acc/<name>`` and ``val_kp_acc_decoded/<name>`` of each object of a run of
+    several (``hits``: N rows of found, visible, found_decoded, visible_decoded); {} for one."""
+    if len(names) < 2:
+        return {}
+    out = {}
+    for name, (f, v, fd, vd) in zip(names, hits):
+        out[f"val_kp_acc/{name}"] = f / v if v else float("nan")
+        out[f"val_kp_acc_decoded/{name}"] = fd / vd if vd else float("nan")
+    return out
