@@ -66,6 +66,24 @@ def test_a_budget_spent_before_its_first_plan_ends_the_run_at_once():
     assert budget.plan.last["why"] == "budget spent before a plan" and budget.planned_steps == 5
 
 
+def test_an_end_planned_on_an_estimated_validation_moves_once_the_validation_is_measured():
+    """Slow first steps (a loader decoding every frame once: 10 s each) make the estimated
+    validation (2 batches x 3 steps x 10 s, and the thresholds' choice after it) fill the whole
+    budget: the first plan ends the run at once. The final validation then takes 2 s; planned
+    again from that measurement, at the steps' later speed, the run goes on."""
+    clock = Clock()
+    budget = TimeBudget(_shape(limit_s=200.0, after_run_validations=1.9, horizon_estimate_after=2), clock,
+                        started=0.0)
+    budget.begin_steps()
+    ends = _steps(budget, clock, 1, 15, 10.0)
+    assert ends[-1] == 15 and budget.end_rests_on_estimate
+    clock.now += 2.0
+    budget.validated(2.0)
+    end = budget.decide_end(15, validated=True)
+    assert end is not None and end > 15 and not budget.end_rests_on_estimate
+    assert budget.plan.last["why"] == "validation" and budget.plan.last["val_measured"]
+
+
 def test_the_thresholds_choice_is_counted_in_validations():
     assert after_run_validations(False, 3) is None
     assert after_run_validations(True, 1) == pytest.approx(1.9) and after_run_validations(True, 6) > 3.5

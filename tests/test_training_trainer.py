@@ -146,6 +146,29 @@ def test_time_budget_plans_with_the_loaders_steady_speed(tmp_path, monkeypatch, 
     assert per_step >= 0.75 * 0.03, plan
 
 
+def test_an_end_set_from_an_estimated_validation_moves_once_it_is_measured(tmp_path, monkeypatch, caplog):
+    """A first plan whose estimated validation fills the budget ends the run at once (as slow
+    first steps of a loader decoding every frame make it); the final validation, measured, is
+    cheap: the run plans again and trains on in the same epoch instead of leaving the budget unused."""
+    import re
+
+    from dope_hope.training.time_budget import TimeBudget
+
+    estimate = TimeBudget._val_cost
+    monkeypatch.setattr(TimeBudget, "_val_cost", lambda self, per_step: estimate(self, per_step)
+                        if self.val_steps else 1e6)
+    write_frames(tmp_path / "d", 44, seed=3)
+    caplog.set_level(logging.INFO, logger="dope_hope")
+    ov = _overrides(epochs=1000, time_limit_min=4 / 60, horizon_estimate_after=3)
+    out = train(TrainJob([tmp_path / "d"], "Ketchup", tmp_path / "o", progress=False, overrides=ov),
+                load_config("lite"))
+    first = next(r.getMessage() for r in caplog.records if "(first)" in r.getMessage())
+    first_end = int(re.search(r"ends at step (\d+)", first).group(1))
+    assert out["status"] == "time_limit" and out["step"] > first_end, first
+    rows = [json.loads(line) for line in (tmp_path / "o" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows if r["event"] == "val"][0] == first_end  # measured there, then on
+
+
 def test_training_skips_a_corrupt_frame_and_lowers_the_loss(tmp_path, caplog):
     write_frames(tmp_path / "d", 9, seed=2)
     (tmp_path / "d" / "000004.json").write_text("{ not json")

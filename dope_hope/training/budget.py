@@ -27,13 +27,14 @@ MIN_WINDOW_STEPS = 5
 
 
 def make_plan(step: int, end: int, budget_end: int, per_step_s: float, val_s: float, used_s: float,
-              other_s: float, why: str) -> dict[str, Any]:
+              other_s: float, why: str, val_measured: bool = True) -> dict[str, Any]:
     """One plan: made after ``step`` steps with ``used_s`` seconds of the budget used
     (``other_s`` of them not by steps: validations, each process's start), from ``per_step_s`` seconds per step and ``val_s``
-    per validation; the budget allows ``budget_end`` steps, the run ends at ``end`` (<= its
-    nominal length); ``why`` in words."""
+    per validation (``val_measured``: from validations this run made, else an estimate); the
+    budget allows ``budget_end`` steps, the run ends at ``end`` (<= its nominal length); ``why`` in words."""
     return {"step": int(step), "end": int(end), "budget_end": int(budget_end), "per_step_s": float(per_step_s),
-            "val_s": float(val_s), "used_s": float(used_s), "other_s": float(other_s), "why": str(why)}
+            "val_s": float(val_s), "used_s": float(used_s), "other_s": float(other_s), "why": str(why),
+            "val_measured": bool(val_measured)}
 
 
 @dataclass
@@ -93,11 +94,11 @@ class BudgetPlan:
 
     def plan(self, step: int, used_s: float, other_s: float, per_step_s: float, val_s: float,
              val_every_steps: int, nominal_end: int, why: str, validated: bool = False,
-             after_s: float = 0.0) -> dict[str, Any]:
+             after_s: float = 0.0, val_measured: bool = True) -> dict[str, Any]:
         """Make, record and return a plan (its ``end`` never before ``step``)."""
         budget_end = self.budget_steps(step, used_s, per_step_s, val_s, val_every_steps, validated, after_s)
         plan = make_plan(step, max(step, min(nominal_end, budget_end)), budget_end, per_step_s, val_s, used_s,
-                         other_s, why)
+                         other_s, why, val_measured)
         self.plans.append(plan)
         return plan
 

@@ -188,6 +188,16 @@ class TimeBudget:
         """The step the last plan ends the run at (None before a plan / without a limit)."""
         return None if self.plan is None or self.plan.last is None else int(self.plan.last["end"])
 
+    @property
+    def end_rests_on_estimate(self) -> bool:
+        """Whether the last plan's end was set from an estimated validation cost (no validation
+        measured yet): a run that reaches that end validates, then plans again from the
+        measured cost, which may move the end later (the estimate scales the step time, and the
+        first steps of a run whose loader decodes every frame once are far slower than its
+        validation)."""
+        last = None if self.plan is None else self.plan.last
+        return last is not None and not last.get("val_measured", True)
+
     # ------------------------------------------------------------------ the plans
     def _first_window_speed(self) -> tuple[float | None, int]:
         """Seconds per step of this process's steps since its speed window started
@@ -273,11 +283,12 @@ class TimeBudget:
         per_step = float(last["per_step_s"]) if per_step is None and last is not None else float(per_step or 0.0)
         val_cost = self._val_cost(per_step)
         used = self.used()
+        measured = bool(self.val_steps)
         if end is None:
             plan = self.plan.plan(step, used, self.other_time(), per_step, val_cost, self.shape.val_every_steps,
-                                  self.shape.nominal_steps, why, validated, self._after_run_cost(val_cost))
+                                  self.shape.nominal_steps, why, validated, self._after_run_cost(val_cost), measured)
         else:
-            plan = make_plan(step, end, end, per_step, val_cost, used, self.other_time(), why)
+            plan = make_plan(step, end, end, per_step, val_cost, used, self.other_time(), why, measured)
             self.plan.plans.append(plan)
         level = logging.DEBUG if why in ("re-plan", "validation") else logging.INFO
         log.log(level, "time budget %.3g min (%s): the run ends at step %d (%.3f s per step, %.1f s of the "

@@ -308,8 +308,11 @@ class Trainer:
 
     def _follow_budget(self, validated: bool = False) -> None:
         """Time-limited run, after each step (``validated``: after a validation): rank 0 asks
-        the budget whether the run's end moves; every rank takes the end it decided."""
-        if self.budget.plan is None or self.step >= self.total_steps:
+        the budget whether the run's end moves; every rank takes the end it decided. At the
+        end, only a validation after an end set from an estimated validation cost asks again."""
+        if self.budget.plan is None:
+            return
+        if self.step >= self.total_steps and not (validated and self.budget.end_rests_on_estimate):
             return
         end = self._broadcast_end(self.budget.decide_end(self.step, validated) if self.dist.main else None)
         if end is not None:
@@ -521,6 +524,7 @@ class Trainer:
                 if self.stop.reason in ("interrupted", "terminated"):
                     break
                 # the epoch's batches are done (or the step / time budget ran out inside it)
+                ended = self.step >= self.total_steps
                 if self.progress.val_done_epoch != self.epoch:
                     self._log_row(rows)  # the curves in results.png reach the validated step
                     if self._end_of_epoch():
@@ -528,6 +532,8 @@ class Trainer:
                         self._follow_budget(validated=True)
                 if self.step >= self.total_steps or self.stop.reason is not None:
                     break
+                if ended and self.progress.batch_in_epoch < self.steps_per_epoch:
+                    continue  # the end moved past a validation made inside the epoch: the epoch goes on
                 self.epoch += 1
                 self.progress.batch_in_epoch = 0
                 if ck_epochs and self.epoch % ck_epochs == 0:
