@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import contextvars
 import errno
 import importlib
 import signal
@@ -80,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     forget_created_folders()
     try:
         with _one_line_warnings(prefix), _sigterm_raises():
-            return int(args._run(args) or 0)
+            return int(contextvars.copy_context().run(args._run, args) or 0)  # its settings stay its own
     except DopeHopeError as exc:
         remove_empty_created_folders()  # bad input: no empty --out folder left behind
         print(f"{prefix}: error: {exc}", file=sys.stderr)

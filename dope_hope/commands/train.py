@@ -109,6 +109,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dope_hope.geometry import UNIT_FLAG
+
+    UNIT_FLAG.set("--units")  # named in the mesh unit hints
     started = time.monotonic()  # a time budget counts the command's own checks too
     from dope_hope.io.bop_scenes import is_bop_dataset
     from dope_hope.io.dope_json import list_dope_frames
