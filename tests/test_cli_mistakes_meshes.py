@@ -13,7 +13,11 @@ import numpy as np
 import pytest
 import trimesh
 from test_cli_mistakes import frames as frames  # noqa: PLC0414 - fixtures the tests take
+from test_cli_mistakes import mesh as mesh  # noqa: PLC0414
 from test_cli_mistakes import one_line_error, run_cli
+from test_cli_mistakes_edges import grocery as grocery  # noqa: PLC0414 - fixtures the tests take
+from test_cli_mistakes_edges import shelf as shelf  # noqa: PLC0414
+from test_cli_mistakes_edges import shelf_run as shelf_run  # noqa: PLC0414
 
 from dope_hope.assets import PRETRAINED_WEIGHTS
 
@@ -135,4 +139,54 @@ def test_a_unit_hint_names_the_flag_that_gives_it(command, flag, frames, tmp_pat
             "objects": ["objects", "--mesh", can_m]}[command]
     line = one_line_error(*run_cli(argv, capsys)[::2], command)
     assert line.endswith(f"the file is likely in m: give its unit as m ({flag} m)")
+    assert not out.exists()
+
+
+# ----------------------------------------------------------------------------- a resumed run's mesh
+def test_resume_with_a_mesh_named_for_no_object_of_the_run_is_refused(shelf_run, grocery, capsys):
+    """`train --resume --mesh NAME=PATH` without --object: NAME is checked against the objects
+    the run records, as --object would be."""
+    milk = grocery / "Milk" / "textured.obj"
+    before = {p.name: p.read_bytes() for p in shelf_run.iterdir() if p.is_file()}
+    argv = ["train", "--out", shelf_run, "--resume", "--steps", 2, "--no-progress", "--mesh", f"Milk={milk}",
+            "--units", "m"]
+    line = one_line_error(*run_cli(argv, capsys)[::2], "train")
+    assert f"--mesh Milk={milk}: Milk is not an object of this run (objects: Can, Cereal)" in line
+    assert {p.name: p.read_bytes() for p in shelf_run.iterdir() if p.is_file()} == before
+
+
+# ----------------------------------------------------------------------------- synth distractors
+def test_synth_distractors_in_another_unit_are_read_in_theirs_with_a_warning(mesh, grocery, tmp_path, capsys):
+    """The grocery can is in metres (5 x 5 x 8 cm): as an .obj it would be read in cm (0.5 mm)."""
+    folder = tmp_path / "distractors"
+    folder.mkdir()
+    can = folder / "Can.obj"
+    can.write_bytes((grocery / "Can" / "textured.obj").read_bytes())
+    out = tmp_path / "out"
+    code, _, err = run_cli(["synth", "--mesh", mesh, "--distractors", folder, "--out", out, "--count", 1,
+                            "--size", "32x32", "--no-progress"], capsys)
+    assert code == 0, err
+    warned = [line for line in err.splitlines() if ": warning: " in line]
+    assert len(warned) == 1 and warned[0].startswith(f"dope-hope synth: warning: --distractors {can}: box ")
+    assert warned[0].endswith(" cm is no object's size in cm, its suffix's unit; read in m")
+    assert (out / "000000.png").is_file()
+
+
+@pytest.mark.parametrize("shape, expected", [
+    ("flat", "mesh is flat: its box is 10 x 10 x 0 cm, zero along z"),
+    ("huge", "mesh box 1e+06 x 1e+06 x 1e+06 cm (read in cm) is too large for an object (largest side over 5 m); "
+             "no unit (m, cm, mm) makes it an object's size"),
+    ("nan", "line 8 ('v nan 5 5') is not a finite number"),
+])
+def test_synth_distractors_no_unit_makes_an_object_are_refused_before_any_frame(shape, expected, mesh, tmp_path,
+                                                                                capsys):
+    folder = tmp_path / "distractors"
+    bad = {"flat": lambda p: write_obj(p, [(0, 0, 0), (10, 0, 0), (0, 10, 0)], [(1, 2, 3)]),
+           "huge": lambda p: write_obj(p, [(0, 0, 0), (1e6, 0, 0), (0, 1e6, 0), (0, 0, 1e6)],
+                                       [(1, 2, 3), (1, 4, 2), (1, 3, 4), (2, 4, 3)]),
+           "nan": lambda p: cube_obj(p, "nan")}[shape](folder / "Bad.obj")
+    out = tmp_path / "out"
+    line = one_line_error(*run_cli(["synth", "--mesh", mesh, "--distractors", folder, "--out", out, "--count", 1,
+                                    "--size", "32x32", "--no-progress"], capsys)[::2], "synth")
+    assert f"{bad}: {expected}" in line
     assert not out.exists()

@@ -170,7 +170,8 @@ def run(args: argparse.Namespace) -> int:
                    init_weights=init_weights, init_reason=why, device=args.device,
                    progress=not args.no_progress, overrides=overrides, started=started,
                    objects=[] if one else objects, meshes={} if one else meshes,
-                   units={"": u for u in units.values()} if one else units)
+                   units={"": u for u in units.values()} if one else units,
+                   mesh_name=next(iter(meshes), "") or None if not objects else None)
     summary = train(job, config)
     status = summary["status"]
     acc, acc_d = summary.get("val_kp_acc"), summary.get("val_kp_acc_decoded")

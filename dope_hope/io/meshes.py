@@ -72,29 +72,53 @@ def check_solid_box(size_m: np.ndarray, units: str, source: str | os.PathLike) -
                                  "cuboid needs three positive sides")
 
 
-def first_nonfinite_vertex(path: Path) -> str | None:
-    """Where a mesh file holds a vertex coordinate that is not a finite number ("line 12" of an
-    OBJ, "vertex 7" of a PLY or another format), else None. Read before trimesh, whose loader
-    drops such a vertex and its faces without a word."""
+def file_vertices(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """Every vertex of a mesh file as stored (file units, NaN where an OBJ coordinate is not a
+    number), read without trimesh, whose loader drops a non-finite vertex and its faces:
+    (vertices (N, 3) float64, the OBJ line number of each (N,) or None for other formats).
+    A file that cannot be read this way gives (0, 3) vertices: load_mesh's trimesh load says why."""
+    path = Path(path)
     suffix = path.suffix.lower()
-    if suffix == ".obj":
-        with open(path, "rb") as f:
-            for number, line in enumerate(f, 1):
-                if line.startswith(b"v ") or line.startswith(b"v\t"):
-                    try:
-                        values = [float(v) for v in line.split()[1:4]]
-                    except ValueError:
-                        return f"line {number} ({line.strip().decode(errors='replace')[:60]!r})"
-                    if not np.all(np.isfinite(values)):
-                        return f"line {number} ({line.strip().decode(errors='replace')[:60]!r})"
-        return None
     try:
-        vertices = read_ply(path)[0] if suffix == ".ply" else np.asarray(
-            trimesh.load(str(path), force="mesh", process=False).vertices)
+        if suffix == ".obj":
+            rows, lines = [], []
+            with open(path, "rb") as f:
+                for number, line in enumerate(f, 1):
+                    if line[:2] in (b"v ", b"v\t"):
+                        try:
+                            rows.append([float(v) for v in line.split()[1:4]])
+                        except ValueError:
+                            rows.append([np.nan] * 3)
+                        lines.append(number)
+            return np.asarray(rows, dtype=np.float64).reshape(-1, 3), np.asarray(lines, dtype=np.int64)
+        if suffix == ".ply":
+            return read_ply(path)[0], None
+        return np.asarray(trimesh.load(str(path), force="mesh", process=False).vertices, dtype=np.float64), None
     except Exception:  # noqa: BLE001 - an unreadable file: load_mesh's trimesh load says why
-        return None
+        return np.zeros((0, 3)), None
+
+
+def first_nonfinite_vertex(path: str | os.PathLike) -> str | None:
+    """Where a mesh file holds a vertex coordinate that is not a finite number ("line 12
+    ('v nan 1 2')" of an OBJ, "vertex 7 ([...])" of a PLY or another format), else None."""
+    vertices, lines = file_vertices(path)
     bad = np.flatnonzero(~np.all(np.isfinite(vertices), axis=1))
-    return None if not len(bad) else f"vertex {int(bad[0])} ({np.round(vertices[bad[0]], 6).tolist()})"
+    if not len(bad):
+        return None
+    if lines is None:
+        return f"vertex {int(bad[0])} ({np.round(vertices[bad[0]], 6).tolist()})"
+    with open(path, "rb") as f:
+        text = f.read().splitlines()[int(lines[bad[0]]) - 1].strip().decode(errors="replace")[:60]
+    return f"line {int(lines[bad[0]])} ({text!r})"
+
+
+def check_finite_vertices(path: str | os.PathLike) -> None:
+    """InputFileError naming the line (OBJ) or index of a vertex of ``path`` that is not a
+    finite number (:func:`first_nonfinite_vertex`); the one rule, which :func:`load_mesh` applies."""
+    bad_vertex = first_nonfinite_vertex(path)
+    if bad_vertex is not None:
+        raise InputFileError(path, f"{bad_vertex} is not a finite number (a mesh with a hole where it was "
+                                   "would be read)")
 
 
 def load_mesh(path: str | os.PathLike, units: str | None = None, check_size: bool = True) -> trimesh.Trimesh:
@@ -123,10 +147,7 @@ def load_mesh(path: str | os.PathLike, units: str | None = None, check_size: boo
     if units not in UNIT_SCALE:
         raise InputFileError(path, f"unknown mesh unit {units!r}; use one of {sorted(UNIT_SCALE)}")
     require_file(path, "mesh file")
-    bad_vertex = first_nonfinite_vertex(path)
-    if bad_vertex is not None:
-        raise InputFileError(path, f"{bad_vertex} is not a finite number (a mesh with a hole where it was "
-                                   "would be read)")
+    check_finite_vertices(path)
     try:
         loaded = trimesh.load(str(path), force="mesh")
     except Exception as exc:  # trimesh raises many types for a corrupt file
