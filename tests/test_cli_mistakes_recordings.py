@@ -74,8 +74,12 @@ def test_a_camera_info_without_size_for_frames_of_two_sizes_is_refused(scenes, t
     rec = write_recording(tmp_path / "robot.bag", "ros1", [(a, da), (b2, db2)], scenes["K"], info_size=False)
     code, _, err = run_cli([rec, "--out", tmp_path / "res"], capsys)
     line = one_line_error(code, err)
-    assert (f"{rec} topic /camera/color/camera_info: its CameraInfo states no image size and robot.bag#000001 "
+    assert (f"{rec} topic /camera/color/camera_info: the camera states no image size and robot.bag#000001 "
             "is 160x120, the image robot.bag#000000 320x240: a K is the K of one size") in line
+    assert not (tmp_path / "res").exists()
+    given = scenes["images"] / "K.json"  # a K without a size, given for the recording's
+    code, _, err = run_cli([rec, "--camera", given, "--out", tmp_path / "res"], capsys)
+    assert f"{given}: the camera states no image size and robot.bag#000001 is 160x120" in one_line_error(code, err)
     assert not (tmp_path / "res").exists()
 
 
@@ -169,7 +173,7 @@ def test_realtime_does_not_wait_for_a_jump_of_the_stamps(scenes, tmp_path, capsy
     assert code == 0, err
     assert time.monotonic() - start < 45  # not the 60 s of the stamps
     assert warnings_of(err) == ["dope-hope infer: warning: robot.bag: frame 1 is stamped +60.000 s from the one "
-                                "before (more than 10 s, or backwards): --realtime plays it at once and paces from there"]
+                                "before (more than 10 s either way): --realtime plays it at once and paces from there"]
     assert "2 frame(s) read" in err
 
 

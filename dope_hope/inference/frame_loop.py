@@ -11,8 +11,8 @@
   to :data:`PREFETCH` frames ahead while the loop works, then waits for it.
 * ``pace=True`` plays a file as if it were live: each frame is published at its timestamp
   (the file's frame rate), and with ``latest=True`` the loop drops what it cannot keep up with.
-  A jump between two frames' timestamps of more than :data:`MAX_PACE_GAP_S` (a recording
-  whose stamps switch from simulated to wall-clock time) or backwards is not waited for: the
+  A jump between two frames' timestamps of more than :data:`MAX_PACE_GAP_S` either way (a
+  recording whose stamps switch from simulated to wall-clock time) is not waited for: the
   clock restarts at that frame, and a warning says so.
 
 Frames/s "end to end" = processed frames / seconds from taking the first frame to the end of
@@ -107,11 +107,11 @@ class FrameFeed:
                     break
                 if self.pace and item.timestamp_s is not None:
                     gap = None if previous is None else item.timestamp_s - previous
-                    if gap is not None and not 0 <= gap <= MAX_PACE_GAP_S:
+                    if gap is not None and abs(gap) > MAX_PACE_GAP_S:
                         start = None
                         if self.warn is not None:
                             self.warn(f"{self.source.name}: frame {item.index} is stamped {gap:+.3f} s from the one "
-                                      f"before (more than {MAX_PACE_GAP_S:g} s, or backwards): --realtime plays it "
+                                      f"before (more than {MAX_PACE_GAP_S:g} s either way): --realtime plays it "
                                       "at once and paces from there")
                     previous = item.timestamp_s
                     start = time.monotonic() - item.timestamp_s if start is None else start

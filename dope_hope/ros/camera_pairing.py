@@ -73,7 +73,7 @@ class CameraByStamp(Generic[Camera]):
         key = self._key_for(stamp_ns)
         first = self._first_size.setdefault(key, (int(width), int(height), image))
         if first[:2] != (int(width), int(height)):
-            raise CameraError(f"{self.where}: its CameraInfo states no image size and {image} is {width}x{height}, "
+            raise CameraError(f"{self.where}: the camera states no image size and {image} is {width}x{height}, "
                               f"the image {first[2]} {first[0]}x{first[1]}: a K is the K of one size "
                               "(record camera_info with its width and height, or give --camera)")
 
