@@ -4,12 +4,14 @@ Each subcommand lives in ``dope_hope/commands/<name>.py`` with ``add_arguments(p
 ``run(args) -> int``; heavy imports (torch, pyrender) happen inside ``run`` so that
 ``dope-hope --help`` stays fast. A :class:`DopeHopeError`, a bad option value and an
 unwritable output (disk full...) are printed on one line and the process exits with status 2;
-warnings print one line each; Ctrl-C exits 130, SIGTERM 143, after the command's cleanup.
+warnings print one line each; Ctrl-C exits 130, SIGTERM 143, after the command's cleanup
+(an output folder it created and left empty is removed).
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
+import contextvars
 import errno
 import importlib
 import signal
@@ -79,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     forget_created_folders()
     try:
         with _one_line_warnings(prefix), _sigterm_raises():
-            return int(args._run(args) or 0)
+            return int(contextvars.copy_context().run(args._run, args) or 0)  # its settings stay its own
     except DopeHopeError as exc:
         remove_empty_created_folders()  # bad input: no empty --out folder left behind
         print(f"{prefix}: error: {exc}", file=sys.stderr)
@@ -95,9 +97,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{prefix}: error: {where}{(exc.strerror or str(exc)).lower()}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        remove_empty_created_folders()  # stopped before writing anything: no empty --out folder
         print(f"{prefix}: interrupted", file=sys.stderr)
         return 130
     except Terminated:
+        remove_empty_created_folders()
         print(f"{prefix}: terminated", file=sys.stderr)
         return 143
 

@@ -4,7 +4,13 @@ command's settings (:func:`load_settings`: defaults, a --config file, --set item
 
 A config file is a plain nested dict. ``load_config("lite")`` reads ``dope_hope/configs/lite.yaml``,
 which ships inside the package (the repository's top-level ``configs`` links to it); any other
-argument is a path to a YAML file.
+argument is a path to a YAML file (one with a folder in it, ``./my_settings``, always).
+
+This module owns reading them (:func:`load_yaml`): UTF-8, or UTF-16 / UTF-8 with a byte order
+mark as Windows editors save them (PyYAML's own detection); any other bytes, a value nested
+deeper than :data:`MAX_NESTING` (a file's or a ``--set`` value's) and malformed YAML are one
+line naming the file; a key set twice in one mapping (YAML allows it, the last value wins)
+is a warning naming both lines.
 """
 from __future__ import annotations
 
@@ -12,6 +18,7 @@ import copy
 import dataclasses
 import math
 import re
+import warnings
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
@@ -24,31 +31,102 @@ from dope_hope.errors import ConfigError, InputFileError
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 
 
+#: Deepest nesting of lists and mappings a config file or ``--set`` value may hold (a config
+#: is sections of keys; a value a list of lists at most).
+MAX_NESTING = 32
+
+
 def config_path(name_or_path: str | Path) -> Path:
-    """Resolve a config name ("lite") or a path to an existing YAML file."""
+    """Resolve a config name ("lite") or a path to an existing YAML file (a value with a
+    folder in it, or a .yaml / .yml suffix, or an existing file, is a path)."""
     p = Path(name_or_path)
+    text = str(name_or_path)
     # A bare name ("synth") is a config name even when a folder of that name exists in the
     # working directory (e.g. the output folder of `dope-hope synth --out synth/...`).
-    if p.suffix in (".yaml", ".yml") or p.is_file():
+    if p.suffix in (".yaml", ".yml") or p.is_file() or "/" in text or "\\" in text:
+        if p.is_dir():
+            raise InputFileError(text, "config file is a folder, not a YAML file")
         if not p.is_file():
-            raise InputFileError(p, "config file not found")
+            raise InputFileError(text, "config file not found")
         return p
     candidate = CONFIG_DIR / f"{name_or_path}.yaml"
     if candidate.is_file():
         return candidate
     known = sorted(q.stem for q in CONFIG_DIR.glob("*.yaml")) if CONFIG_DIR.is_dir() else []
-    raise ConfigError(f"unknown config {str(name_or_path)!r}; known: {', '.join(known) or 'none'}")
+    raise ConfigError(f"unknown config {text!r}; known: {', '.join(known) or 'none'} (or a path to a YAML file)")
+
+
+class _CheckedLoader(yaml.SafeLoader):
+    """PyYAML's safe loader that notes each key a mapping sets twice: (key, first line, line)."""
+
+    def __init__(self, stream: Any):
+        super().__init__(stream)
+        self.repeated: list[tuple[Any, int, int]] = []
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                if key in seen:
+                    self.repeated.append((key, seen[key], key_node.start_mark.line + 1))
+                seen.setdefault(key, key_node.start_mark.line + 1)
+            except TypeError:  # an unhashable key: the base class says why
+                pass
+        return super().construct_mapping(node, deep=deep)
+
+
+def _nesting(value: Any) -> int:
+    """How deep lists and mappings nest in ``value`` (a scalar: 0), without recursion."""
+    deepest, stack = 0, [(value, 0)]
+    while stack:
+        item, depth = stack.pop()
+        children = item.values() if isinstance(item, dict) else item if isinstance(item, list) else None
+        if children is None:
+            continue
+        deepest = max(deepest, depth + 1)
+        if deepest > MAX_NESTING:
+            break
+        stack.extend((c, depth + 1) for c in children)
+    return deepest
+
+
+def parse_yaml_text(data: str | bytes, where: str, error: Callable[[str], Exception]) -> Any:
+    """The YAML value of ``data`` (bytes: UTF-8, or UTF-16 / UTF-8 with a byte order mark);
+    ``error(problem)`` is raised for bytes of another encoding, malformed YAML and a value
+    nested deeper than :data:`MAX_NESTING`; a key set twice is a warning naming ``where``."""
+    loader = None
+    try:
+        loader = _CheckedLoader(data)  # decodes bytes already
+        value = loader.get_single_data()
+    except yaml.reader.ReaderError as exc:
+        raise error(f"not UTF-8 or UTF-16 text ({exc.reason} at byte {exc.position}); save it as UTF-8") from None
+    except yaml.YAMLError as exc:
+        raise error(f"malformed YAML ({str(exc).splitlines()[0]})") from None
+    except RecursionError:
+        raise error(f"nested deeper than {MAX_NESTING} levels") from None
+    finally:
+        if loader is not None:
+            loader.dispose()
+    if _nesting(value) > MAX_NESTING:
+        raise error(f"nested deeper than {MAX_NESTING} levels")
+    for key, first, line in loader.repeated:
+        warnings.warn(f"{where}: line {line} sets {key!r} again (first on line {first}); the last value is "
+                      "taken", stacklevel=2)
+    return value
 
 
 def load_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a YAML mapping; malformed files raise InputFileError naming the file."""
+    """Read a YAML mapping (module docstring: encodings, nesting, repeated keys); an unreadable
+    or malformed file raises InputFileError naming the file."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        raw = path.read_bytes()
     except FileNotFoundError:
         raise InputFileError(path, "file not found") from None
-    except yaml.YAMLError as exc:
-        raise InputFileError(path, f"malformed YAML ({str(exc).splitlines()[0]})") from None
+    except IsADirectoryError:
+        raise InputFileError(path, "is a folder, not a YAML file") from None
+    data = parse_yaml_text(raw, str(path), lambda problem: InputFileError(path, problem))
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -310,10 +388,11 @@ def parse_assignment(item: str) -> dict[str, Any]:
     keys = dotted.strip().split(".")
     if not all(keys):
         raise ConfigError(f"--set {item}: empty key")
-    try:
-        value: Any = yaml.safe_load(raw)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"--set {item}: malformed value ({str(exc).splitlines()[0]})") from None
+    shown = item if len(item) <= 80 else item[:60] + "..." + item[-12:]
+    value: Any = parse_yaml_text(raw, f"--set {shown}", lambda problem: ConfigError(
+        f"--set {shown}: {problem.replace('malformed YAML', 'malformed value')}"))
+    if len(keys) > MAX_NESTING:
+        raise ConfigError(f"--set {shown}: key nested deeper than {MAX_NESTING} levels")
     if isinstance(value, str) and _NUMBER.fullmatch(raw.strip()):
         value = float(raw)  # 1e-3: a number (YAML 1.1 reads it as text)
     for key in reversed(keys):

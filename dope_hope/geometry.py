@@ -8,6 +8,7 @@ file boundaries and always as ``quaternion_xyzw``.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from contextvars import ContextVar
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -29,6 +30,17 @@ CUBOID_CORNER_SIGNS = np.array(
 )
 #: Metres per unit of a length in a file (meshes, BOP models, DOPE ``units``).
 UNIT_SCALE: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+#: The flag that gives a file's length unit in the running command ("--units" in synth, train
+#: and objects; "--mesh-units" in infer, evaluate, calibrate and import-official), which the
+#: unit hints name (:func:`unit_hint`); None where the command has none (bop-submit: BOP's mm).
+UNIT_FLAG: ContextVar[str | None] = ContextVar("unit_flag", default=None)
+
+
+def unit_hint(unit: str) -> str:
+    """``give its unit as cm (--units cm)``: the words of every "the file is likely in ..."
+    message, with the running command's flag (:data:`UNIT_FLAG`) when it has one."""
+    flag = UNIT_FLAG.get()
+    return f"give its unit as {unit}" + (f" ({flag} {unit})" if flag else "")
 
 
 def value_for_object(values: str | Mapping[str, str] | None, class_name: str) -> str | None:

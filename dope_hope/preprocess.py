@@ -117,13 +117,16 @@ def contain_scale(src_hw: Sequence[int], box_hw: Sequence[int]) -> float:
 
 def working_size(image_hw: Sequence[int], *, height: int | None = None,
                  input_hw: Sequence[int] | None = None, fixed_input_hw: Sequence[int] | None = None,
-                 legacy: bool = False) -> tuple[tuple[int, int], tuple[int, int]]:
+                 legacy: bool = False, too_large: str = "give a smaller height",
+                 ) -> tuple[tuple[int, int], tuple[int, int]]:
     """((H', W') resized content, (Hp, Wp) padded network input) for an (H, W) image.
 
     ``fixed_input_hw``: the only size the model takes (the image is fitted inside, no taller
     than ``height``). Otherwise ``height`` when given; else the model's training input size
     ``input_hw`` (contain fit); else (official weights, ``legacy``, or no recorded size)
     :data:`DEFAULT_HEIGHT`. The padded size rounds up to multiples of :data:`INPUT_MULTIPLE`.
+    A size beyond :data:`MAX_WORKING_SIDE` is a ConfigError ending in ``too_large`` (what to
+    change: the height by default; the scale that asked for it).
     """
     H, W = int(image_hw[0]), int(image_hw[1])
     if fixed_input_hw is not None:
@@ -141,7 +144,7 @@ def working_size(image_hw: Sequence[int], *, height: int | None = None,
     hw = (max(1, round(H * s)), max(1, round(W * s)))
     if max(hw) > MAX_WORKING_SIDE:
         raise ConfigError(f"a {W}x{H} image would be resized to {hw[1]}x{hw[0]} for the network, "
-                          f"beyond {MAX_WORKING_SIDE} pixels; give a smaller height")
+                          f"beyond {MAX_WORKING_SIDE} pixels; {too_large}")
     return hw, (_round_up(hw[0], INPUT_MULTIPLE), _round_up(hw[1], INPUT_MULTIPLE))
 
 

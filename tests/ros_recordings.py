@@ -27,11 +27,11 @@ def _store(ros1: bool):
     return get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
 
 
-def _header(T, ros1: bool, stamp_ns: int, seq: int):
+def _header(T, ros1: bool, stamp_ns: int, seq: int, frame_id: str = FRAME_ID):
     stamp = T["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
     if ros1:
-        return T["std_msgs/msg/Header"](seq=seq, stamp=stamp, frame_id=FRAME_ID)
-    return T["std_msgs/msg/Header"](stamp=stamp, frame_id=FRAME_ID)
+        return T["std_msgs/msg/Header"](seq=seq, stamp=stamp, frame_id=frame_id)
+    return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
 
 
 def colour_message(T, ros1: bool, rgb: np.ndarray, stamp_ns: int, seq: int = 0, compressed: str | None = None,
@@ -49,9 +49,9 @@ def colour_message(T, ros1: bool, rgb: np.ndarray, stamp_ns: int, seq: int = 0, 
 
 
 def depth_message(T, ros1: bool, depth_m: np.ndarray, stamp_ns: int, seq: int = 0, compressed: bool = False,
-                  encoding: str = "16UC1"):
+                  encoding: str = "16UC1", frame_id: str = FRAME_ID):
     """A depth Image (16UC1 mm or 32FC1 m) or a compressedDepth PNG (16UC1)."""
-    header = _header(T, ros1, stamp_ns, seq)
+    header = _header(T, ros1, stamp_ns, seq, frame_id)
     mm = np.round(np.nan_to_num(depth_m) * 1000).astype(np.uint16)
     if compressed:
         _, buf = cv2.imencode(".png", mm)
@@ -79,27 +79,35 @@ def write_recording(path: Path, kind: str, frames: list[tuple[np.ndarray, np.nda
                     depth: bool = True, info: bool = True, compressed: str | None = None,
                     compressed_depth: bool = False, encoding: str = "rgb8", depth_encoding: str = "16UC1",
                     depth_offset_ns: int = 0, extra: list[tuple[str, object]] = (),
-                    colour_topic: str = COLOUR) -> Path:
+                    colour_topic: str = COLOUR, stamps: list[int] | None = None, info_size: bool = True,
+                    depth_topic: str = DEPTH, depth_frame_id: str = FRAME_ID) -> Path:
     """Write ``frames`` ((rgb, depth metres) each) as a recording (module docstring); returns
-    the path to give ``infer``. ``extra``: (topic, message-maker(T, ros1, rgb, stamp)) pairs
-    written beside the colour topic with every frame (a second colour topic...)."""
+    the path to give ``infer``. ``K``: (3, 3), or one per frame (each frame's CameraInfo).
+    ``extra``: (topic, message-maker(T, ros1, rgb, stamp)) pairs written beside the colour
+    topic with every frame (a second colour topic...). ``stamps``: each frame's header stamp
+    (default: 10 frames/s from T0_NS; log times stay those); ``info_size``: the CameraInfo
+    states the image size (else 0 x 0)."""
     ros1 = kind == "ros1"
+    Ks = list(K) if np.ndim(K) == 3 else [K] * len(frames)
     T = _store(ros1).types
     store = _store(ros1)
     topics: dict[str, str] = {}
     messages = []
     for i, (rgb, d) in enumerate(frames):
-        stamp = T0_NS + i * PERIOD_NS
+        log = T0_NS + i * PERIOD_NS
+        stamp = log if stamps is None else stamps[i]
         topic = colour_topic + ("/compressed" if compressed else "")
-        messages.append((topic, stamp, colour_message(T, ros1, rgb, stamp, i, compressed, encoding)))
+        messages.append((topic, log, colour_message(T, ros1, rgb, stamp, i, compressed, encoding)))
         if depth:
-            dt = DEPTH + ("/compressedDepth" if compressed_depth else "")
-            messages.append((dt, stamp + depth_offset_ns, depth_message(T, ros1, d, stamp + depth_offset_ns, i,
-                                                                         compressed_depth, depth_encoding)))
+            dt = depth_topic + ("/compressedDepth" if compressed_depth else "")
+            messages.append((dt, log + depth_offset_ns, depth_message(T, ros1, d, stamp + depth_offset_ns, i,
+                                                                       compressed_depth, depth_encoding,
+                                                                       depth_frame_id)))
         if info:
-            messages.append((INFO, stamp, info_message(T, ros1, K, rgb.shape[1::-1], stamp, i)))
+            size = rgb.shape[1::-1] if info_size else (0, 0)
+            messages.append((INFO, log, info_message(T, ros1, Ks[i], size, stamp, i)))
         for t, make in extra:
-            messages.append((t, stamp, make(T, ros1, rgb, stamp)))
+            messages.append((t, log, make(T, ros1, rgb, stamp)))
     messages.sort(key=lambda m: m[1])
     for topic, _, msg in messages:
         topics.setdefault(topic, msg.__msgtype__)

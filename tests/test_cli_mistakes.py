@@ -343,7 +343,7 @@ def test_evaluate_refuses_a_mesh_that_is_not_the_datasets_object(mesh_flags, fra
     else:
         assert "does not match the cuboid 000000.json records [12.27, 16.72, 4.02] cm for DemoBox" in line
     if mesh_flags == ["--mesh-units", "mm"]:
-        assert line.endswith("(the file is likely in cm, not mm: give its unit as cm)")
+        assert line.endswith("(the file is likely in cm, not mm: give its unit as cm (--mesh-units cm))")
     assert not (tmp_path / "e").exists()  # nothing scored, no empty folder left
 
 

@@ -135,7 +135,7 @@ def test_train_mesh_off_by_a_unit_from_the_recorded_size_is_refused(grocery, she
     size = _box(grocery, "Can")[0]
     assert f"--mesh {can_mm}: mesh box {np.round(size * 1000, 2).tolist()} cm does not match the size " \
            f"000000.json records {np.round(size * 100, 2).tolist()} cm for Can (the file is likely in mm, " \
-           "not cm: give its unit as mm)" in line
+           "not cm: give its unit as mm (--units mm))" in line
     assert not out.exists()
 
 

@@ -165,9 +165,11 @@ def test_topic_table_lists_even_what_cannot_be_played(tmp_path):
 def test_recording_inputs_are_streams(tmp_path):
     folder = tmp_path / "bag2"
     folder.mkdir()
-    (folder / "metadata.yaml").write_text("x: 1\n")
+    (folder / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  version: 9\n")
     assert [stream_kind(p) for p in ("a.bag", "a.MCAP", "a.db3", str(folder), "a.png")] == \
         ["recording"] * 4 + [None]
+    assert not is_recording(str(tmp_path))
+    (tmp_path / "metadata.yaml").write_text("camera: kitchen\n")  # an image folder's own file
     assert not is_recording(str(tmp_path))
 
 
@@ -280,7 +282,8 @@ def test_writer_round_trip_types_stamps_frame_ids_and_fields(tmp_path):
     msgs = PoseMessages()
     path = tmp_path / "out" / "rec_poses"
     path.mkdir(parents=True)
-    (path / "stale.txt").write_text("old run")  # replaced whole on close
+    (path / "metadata.yaml").write_text("old run")  # an earlier run's bag: replaced whole on close
+    (path / "rec_poses.mcap").write_text("old run")
     writer = RecordingWriter(path)
     for i in range(2):
         for topic, msg in msgs.frame(T0_NS + i * PERIOD_NS, FRAME_ID, _objects(), K, b"\xff\xd8jpeg"):

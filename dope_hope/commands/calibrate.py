@@ -54,6 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dope_hope.geometry import UNIT_FLAG
+
+    UNIT_FLAG.set("--mesh-units")  # named in the mesh unit hints
     from dope_hope.evaluation.thresholds import calibrate_weights, thresholds_table
 
     choices, before = calibrate_weights(

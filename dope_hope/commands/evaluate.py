@@ -68,6 +68,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dope_hope.geometry import UNIT_FLAG
+
+    UNIT_FLAG.set("--mesh-units")  # named in the mesh unit hints
     from dope_hope.evaluation.evaluate import EvalConfig, run_evaluation
     from dope_hope.io.paths import output_dir
 

@@ -53,6 +53,9 @@ def _output_path(pth: Path, out: Path | None, several: bool) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dope_hope.geometry import UNIT_FLAG
+
+    UNIT_FLAG.set("--mesh-units")  # named in the mesh unit hints
     import numpy as np
 
     from dope_hope.catalog import get_object

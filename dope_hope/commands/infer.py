@@ -284,7 +284,7 @@ def _new_objects(args: argparse.Namespace) -> dict[str, Path] | None:
     from dope_hope.io.models_dir import new_object_meshes
 
     meshes = list(args.mesh or [])
-    new = not args.weights and meshes and (len(meshes) == 1 or not any(m.is_dir() for m in meshes))
+    new = not args.weights and meshes
     found = new_object_meshes(meshes) if new else None
     demo = found is not None and [n.lower() for n in found] == [DEMO_CLASS_NAME.lower()] and default_weights()
     if found is not None and not demo:
@@ -328,6 +328,9 @@ def _predictors(args: argparse.Namespace) -> list:
 
 # ----------------------------------------------------------------------------- run
 def run(args: argparse.Namespace) -> int:
+    from dope_hope.geometry import UNIT_FLAG
+
+    UNIT_FLAG.set("--mesh-units")  # named in the mesh unit hints
     from dope_hope.io.images import collect_images
     from dope_hope.io.paths import output_dir
     from dope_hope.io.streams import stream_kind

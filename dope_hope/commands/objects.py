@@ -1,5 +1,6 @@
 """List the 28 HOPE objects: BOP id, name, category, cuboid size (mesh frame) and diameter; or,
-with --mesh, each mesh's symmetries as training and evaluation resolve them."""
+with --mesh, each mesh's symmetries as training and evaluation resolve them (those found on
+the mesh: with the candidate axes tried)."""
 from __future__ import annotations
 
 import argparse
@@ -33,16 +34,23 @@ def _mesh_symmetries(args: argparse.Namespace) -> int:
             fields = found.detected.entry(mesh_units(path, args.units))
         else:
             fields = None if found.declaration is None else found.declaration.entry
+        tried = None if found.detected is None else found.detected.axes_tried
         if args.json:
-            print(json.dumps({"class": name, "mesh": str(path), "symmetries": found.describe(), "fields": fields}))
+            print(json.dumps({"class": name, "mesh": str(path), "symmetries": found.describe(), "fields": fields,
+                              **({"axes_tried": tried} if tried else {})}))
         else:
             print(f"{name}: {found.describe()}")
             if fields is not None:
                 print(f"  {json.dumps(fields)}")
+            if tried:
+                print(f"  axes tried: {tried}")
     return 0
 
 
 def run(args: argparse.Namespace) -> int:
+    from dope_hope.geometry import UNIT_FLAG
+
+    UNIT_FLAG.set("--units")  # named in the mesh unit hints
     from dope_hope.catalog import HOPE_OBJECTS
 
     if args.mesh:

@@ -79,6 +79,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dope_hope.geometry import UNIT_FLAG
+
+    UNIT_FLAG.set("--units")  # named in the mesh unit hints
     from dope_hope.catalog import object_names
     from dope_hope.io.models_dir import find_object_mesh, objects_in_folder
     from dope_hope.io.paths import output_dir

@@ -109,6 +109,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dope_hope.geometry import UNIT_FLAG
+
+    UNIT_FLAG.set("--units")  # named in the mesh unit hints
     started = time.monotonic()  # a time budget counts the command's own checks too
     from dope_hope.io.bop_scenes import is_bop_dataset
     from dope_hope.io.dope_json import list_dope_frames
@@ -164,7 +167,8 @@ def run(args: argparse.Namespace) -> int:
                    init_weights=init_weights, init_reason=why, device=args.device,
                    progress=not args.no_progress, overrides=overrides, started=started,
                    objects=[] if one else objects, meshes={} if one else meshes,
-                   units={"": u for u in units.values()} if one else units)
+                   units={"": u for u in units.values()} if one else units,
+                   mesh_name=next(iter(meshes), "") or None if not objects else None)
     summary = train(job, recipe)
     status = summary["status"]
     acc, acc_d = summary.get("val_kp_acc"), summary.get("val_kp_acc_decoded")

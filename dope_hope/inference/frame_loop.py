@@ -11,6 +11,9 @@
   to :data:`PREFETCH` frames ahead while the loop works, then waits for it.
 * ``pace=True`` plays a file as if it were live: each frame is published at its timestamp
   (the file's frame rate), and with ``latest=True`` the loop drops what it cannot keep up with.
+  A jump between two frames' timestamps of more than :data:`MAX_PACE_GAP_S` either way (a
+  recording whose stamps switch from simulated to wall-clock time) is not waited for: the
+  clock restarts at that frame, and a warning says so.
 
 Frames/s "end to end" = processed frames / seconds from taking the first frame to the end of
 the last callback: decoding (where not overlapped), network, decode + PnP, -LS / ICP and the
@@ -30,6 +33,8 @@ from dope_hope.io.streams import Frame, FrameSource, Grabbed
 
 #: Frames the reader decodes ahead of the loop when every frame is processed.
 PREFETCH = 2
+#: Largest jump between two frames' timestamps that pacing waits for, seconds.
+MAX_PACE_GAP_S = 10.0
 #: Seconds to wait for the reader thread to stop at the end.
 JOIN_TIMEOUT_S = 5.0
 
@@ -79,8 +84,10 @@ class FrameFeed:
     An exception in the reader is raised by the iteration once the frames before it are out.
     """
 
-    def __init__(self, source: FrameSource, latest: bool, pace: bool = False, max_frames: int | None = None):
+    def __init__(self, source: FrameSource, latest: bool, pace: bool = False, max_frames: int | None = None,
+                 warn: Callable[[str], None] | None = None):
         self.source, self.latest, self.pace, self.max_frames = source, latest, pace, max_frames
+        self.warn = warn
         self.read = 0
         self.dropped = 0
         self.error: BaseException | None = None
@@ -94,11 +101,19 @@ class FrameFeed:
 
     def _run(self) -> None:
         try:
-            start = None  # monotonic time of timestamp 0 when pacing
+            start = previous = None  # monotonic time of timestamp 0 when pacing; the last timestamp
             for item in self.source.grab():
                 if self._stop.is_set():
                     break
                 if self.pace and item.timestamp_s is not None:
+                    gap = None if previous is None else item.timestamp_s - previous
+                    if gap is not None and abs(gap) > MAX_PACE_GAP_S:
+                        start = None
+                        if self.warn is not None:
+                            self.warn(f"{self.source.name}: frame {item.index} is stamped {gap:+.3f} s from the one "
+                                      f"before (more than {MAX_PACE_GAP_S:g} s either way): --realtime plays it "
+                                      "at once and paces from there")
+                    previous = item.timestamp_s
                     start = time.monotonic() - item.timestamp_s if start is None else start
                     wait = start + item.timestamp_s - time.monotonic()
                     if wait > 0 and self._stop.wait(wait):
@@ -151,17 +166,19 @@ class FrameFeed:
 
 def run_stream(source: FrameSource, process: Callable[[Frame], bool | None], latest: bool | None = None,
                pace: bool = False, max_frames: int | None = None,
-               on_source_error: Callable[[BaseException], bool] | None = None) -> StreamStats:
+               on_source_error: Callable[[BaseException], bool] | None = None,
+               warn: Callable[[str], None] | None = None) -> StreamStats:
     """Feed the frames of ``source`` to ``process`` (module docstring); returns the stats.
 
     ``latest`` defaults to ``source.live or pace``. ``process(frame)`` returning False ends
     the stream. A source error (e.g. a camera unplugged) is raised unless
     ``on_source_error(exc)`` returns True, which ends the stream as if it had ended there.
     A file whose frames end before the count it states ends with ``stats.expected`` set.
-    Ctrl-C ends the stream like its end. The source is closed on return.
+    Ctrl-C ends the stream like its end. The source is closed on return. ``warn``: told of a
+    timestamp jump that pacing does not wait for.
     """
     latest = (source.live or pace) if latest is None else latest
-    feed = FrameFeed(source, latest=latest, pace=pace, max_frames=max_frames)
+    feed = FrameFeed(source, latest=latest, pace=pace, max_frames=max_frames, warn=warn)
     stats = StreamStats()
     t_first = t_last = None
     try:

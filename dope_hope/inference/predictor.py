@@ -329,8 +329,9 @@ class DopePredictor:
         """((H', W') resized content, (Hp, Wp) padded network input) of each of ``scales``
         (default ``multiscale.scales``) for an image of (H, W): scale 1 is :meth:`working_size`,
         another that size's height times the scale."""
-        base = self.working_size(image_hw)
-        return [base if s == 1.0 else working_size(image_hw, height=scaled_height(base[0][0], s))
+        base, key = self.working_size(image_hw), "multiscale.scales" if scales is None else "new_object.scales"
+        return [base if s == 1.0 else working_size(image_hw, height=scaled_height(base[0][0], s), too_large=(
+            f"{key} holds {s:g} (times the working height of {base[0][0]} px): give a smaller scale"))
                 for s in (self.options.multiscale.scales if scales is None else scales)]
 
     def trained_turns(self) -> TrainedTurns | None:

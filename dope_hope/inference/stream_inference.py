@@ -111,7 +111,8 @@ def predict_stream(source: FrameSource, predictors: Sequence[Any], sinks: Stream
         return False
 
     try:
-        stats = run_stream(source, process, pace=pace, max_frames=max_frames, on_source_error=source_failed)
+        stats = run_stream(source, process, pace=pace, max_frames=max_frames, on_source_error=source_failed,
+                           warn=warn)
     finally:
         bar.close()
     if stats.expected is not None and warn is not None:

@@ -19,7 +19,7 @@ from scipy.spatial import ConvexHull, QhullError
 from scipy.spatial.distance import pdist
 
 from dope_hope.errors import ConfigError, InputFileError
-from dope_hope.geometry import UNIT_SCALE
+from dope_hope.geometry import UNIT_SCALE, unit_hint
 from dope_hope.io.paths import require_file
 
 #: File unit assumed when ``units`` is not given (HOPE OBJ: cm; BOP PLY: mm).
@@ -55,9 +55,70 @@ def check_plausible_size(size_m: np.ndarray, units: str, source: str | os.PathLi
     what = f"small for an object (largest side under {lo * 1000:g} mm)" if largest < lo else \
         f"large for an object (largest side over {hi:g} m)"
     likely = likely_unit(size, units)
-    hint = (f"the file is likely in {likely}: give its unit as {likely}" if likely is not None
+    hint = (f"the file is likely in {likely}: {unit_hint(likely)}" if likely is not None
             else "no unit (m, cm, mm) makes it an object's size")
     raise InputFileError(source, f"mesh box {shown} {units} (read in {units}) is too {what}; {hint}")
+
+
+def check_solid_box(size_m: np.ndarray, units: str, source: str | os.PathLike) -> None:
+    """InputFileError naming ``source`` when a mesh box ``size_m`` (3,) m has a side of zero
+    (a flat mesh): an object's cuboid needs three positive sides."""
+    size = np.asarray(size_m, dtype=np.float64)
+    if np.all(size > 0):
+        return
+    shown = " x ".join(f"{v / UNIT_SCALE[units]:.4g}" for v in size)
+    flat = ", ".join("xyz"[k] for k in np.flatnonzero(size <= 0))
+    raise InputFileError(source, f"mesh is flat: its box is {shown} {units}, zero along {flat}; an object's "
+                                 "cuboid needs three positive sides")
+
+
+def file_vertices(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """Every vertex of a mesh file as stored (file units, NaN where an OBJ coordinate is not a
+    number), read without trimesh, whose loader drops a non-finite vertex and its faces:
+    (vertices (N, 3) float64, the OBJ line number of each (N,) or None for other formats).
+    A file that cannot be read this way gives (0, 3) vertices: load_mesh's trimesh load says why."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".obj":
+            rows, lines = [], []
+            with open(path, "rb") as f:
+                for number, line in enumerate(f, 1):
+                    if line[:2] in (b"v ", b"v\t"):
+                        try:
+                            rows.append([float(v) for v in line.split()[1:4]])
+                        except ValueError:
+                            rows.append([np.nan] * 3)
+                        lines.append(number)
+            return np.asarray(rows, dtype=np.float64).reshape(-1, 3), np.asarray(lines, dtype=np.int64)
+        if suffix == ".ply":
+            return read_ply(path)[0], None
+        return np.asarray(trimesh.load(str(path), force="mesh", process=False).vertices, dtype=np.float64), None
+    except Exception:  # noqa: BLE001 - an unreadable file: load_mesh's trimesh load says why
+        return np.zeros((0, 3)), None
+
+
+def first_nonfinite_vertex(path: str | os.PathLike) -> str | None:
+    """Where a mesh file holds a vertex coordinate that is not a finite number ("line 12
+    ('v nan 1 2')" of an OBJ, "vertex 7 ([...])" of a PLY or another format), else None."""
+    vertices, lines = file_vertices(path)
+    bad = np.flatnonzero(~np.all(np.isfinite(vertices), axis=1))
+    if not len(bad):
+        return None
+    if lines is None:
+        return f"vertex {int(bad[0])} ({np.round(vertices[bad[0]], 6).tolist()})"
+    with open(path, "rb") as f:
+        text = f.read().splitlines()[int(lines[bad[0]]) - 1].strip().decode(errors="replace")[:60]
+    return f"line {int(lines[bad[0]])} ({text!r})"
+
+
+def check_finite_vertices(path: str | os.PathLike) -> None:
+    """InputFileError naming the line (OBJ) or index of a vertex of ``path`` that is not a
+    finite number (:func:`first_nonfinite_vertex`); the one rule, which :func:`load_mesh` applies."""
+    bad_vertex = first_nonfinite_vertex(path)
+    if bad_vertex is not None:
+        raise InputFileError(path, f"{bad_vertex} is not a finite number (a mesh with a hole where it was "
+                                   "would be read)")
 
 
 def load_mesh(path: str | os.PathLike, units: str | None = None, check_size: bool = True) -> trimesh.Trimesh:
@@ -73,8 +134,9 @@ def load_mesh(path: str | os.PathLike, units: str | None = None, check_size: boo
         The mesh, vertices (V, 3) in metres; texture visuals kept when the file has them.
 
     Raises:
-        InputFileError: missing, unreadable or empty file, an unknown unit, or (``check_size``)
-        a box no object has in that unit.
+        InputFileError: missing, unreadable or empty file, an unknown unit, a vertex that is
+        not a finite number (its line or index named: trimesh would drop it and its faces), a
+        surface of zero area, or (``check_size``) a flat box or a box no object has in that unit.
     """
     path = Path(path)
     if units is None:
@@ -85,6 +147,7 @@ def load_mesh(path: str | os.PathLike, units: str | None = None, check_size: boo
     if units not in UNIT_SCALE:
         raise InputFileError(path, f"unknown mesh unit {units!r}; use one of {sorted(UNIT_SCALE)}")
     require_file(path, "mesh file")
+    check_finite_vertices(path)
     try:
         loaded = trimesh.load(str(path), force="mesh")
     except Exception as exc:  # trimesh raises many types for a corrupt file
@@ -96,7 +159,10 @@ def load_mesh(path: str | os.PathLike, units: str | None = None, check_size: boo
         raise InputFileError(path, "mesh file has no triangles")
     if not np.all(np.isfinite(loaded.vertices)):
         raise InputFileError(path, "mesh has non-finite vertex coordinates")
+    if not loaded.area > 0:
+        raise InputFileError(path, f"mesh has no surface: its {len(loaded.faces)} triangle(s) have zero area")
     if check_size:
+        check_solid_box(mesh_cuboid(loaded)[0] * UNIT_SCALE[units], units, path)
         check_plausible_size(mesh_cuboid(loaded)[0] * UNIT_SCALE[units], units, path)
     if UNIT_SCALE[units] != 1.0:
         loaded.apply_scale(UNIT_SCALE[units])
@@ -341,7 +407,7 @@ def check_mesh_box(mesh_size: np.ndarray, expected_size: np.ndarray, source: str
         hint = "wrong object or wrong mesh units?"
         likely = _unit_off_by(ratio, units)
         if likely is not None:
-            hint = f"the file is likely in {likely}, not {units}: give its unit as {likely}"
+            hint = f"the file is likely in {likely}, not {units}: {unit_hint(likely)}"
         raise ConfigError(
             f"{source}: mesh box {np.round(size * 100, 2).tolist()} cm does not match {reference} "
             f"{np.round(expected * 100, 2).tolist()} cm for {class_name} ({hint})")

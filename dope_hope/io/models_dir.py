@@ -114,10 +114,15 @@ def new_object_meshes(mesh_args: Sequence[str | os.PathLike], flag: str = "--mes
     pretrained start) -> {class name: path}, in the order given: NAME, else the file's
     (:func:`mesh_class_name`); or one models folder: each object it holds
     (:func:`objects_in_folder`, its mesh by :func:`find_object_mesh`). ConfigError naming
-    ``flag`` for two meshes of one name (names compare case-insensitively)."""
+    ``flag`` for two meshes of one name (names compare case-insensitively), and for a folder
+    among several values (one folder, or files)."""
     if len(mesh_args) == 1 and Path(mesh_args[0]).is_dir():
         folder = Path(mesh_args[0])
         return {name: find_object_mesh(name, folder) for name in objects_in_folder(folder)}
+    folder = next((os.fspath(a) for a in mesh_args if Path(a).is_dir()), None)
+    if folder is not None:
+        raise ConfigError(f"{flag} {folder}: a models folder, given with {len(mesh_args) - 1} other {flag} "
+                          f"value(s); give either mesh files ({flag} [NAME=]FILE, repeated) or one models folder")
     out: dict[str, Path] = {}
     for text in map(os.fspath, mesh_args):
         name, path = text.split("=", 1) if is_named_value(text) else (mesh_class_name(text), text)

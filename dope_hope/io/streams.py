@@ -312,12 +312,25 @@ class RealSenseCamera(FrameSource):
 
 
 # ----------------------------------------------------------------------------- dispatch
+#: Bytes of a folder's metadata.yaml searched for the ROS 2 bag key (it is the file's first key).
+ROS2_METADATA_HEAD = 4096
+
+
 def is_recording(item: str) -> bool:
-    """True for a ROS 1 bag, a ROS 2 MCAP / sqlite3 file or a ROS 2 bag folder (metadata.yaml)."""
+    """True for a ROS 1 bag, a ROS 2 MCAP / sqlite3 file or a ROS 2 bag folder (a
+    metadata.yaml that describes a bag: its ``rosbag2_bagfile_information`` key; an image
+    folder's own metadata.yaml does not make it a bag)."""
     path = Path(item)
     if path.suffix.lower() in RECORDING_SUFFIXES and not (GLOB_CHARS & set(item)):
         return True
-    return path.is_dir() and (path / "metadata.yaml").is_file()
+    metadata = path / "metadata.yaml"
+    if not (path.is_dir() and metadata.is_file()):
+        return False
+    try:
+        with open(metadata, "rb") as f:
+            return b"rosbag2_bagfile_information" in f.read(ROS2_METADATA_HEAD)
+    except OSError:
+        return True  # unreadable: the recording reader says why
 
 
 def stream_kind(item: str) -> str | None:

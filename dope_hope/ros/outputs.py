@@ -4,7 +4,7 @@
 each frame's detections (or tracked objects) become the messages of
 :mod:`dope_hope.ros.pose_messages`, stamped with the frame's recorded stamp and frame_id (a
 video or camera frame: the wall-clock time of the stream's first frame plus its timestamp, and
-``camera``), and go to a
+``camera``; a stamp before 1970, which neither an MCAP nor Foxglove can log, is refused), and go to a
 :class:`~dope_hope.ros.recording_writer.RecordingWriter` and/or a
 :class:`~dope_hope.ros.foxglove_live.FoxgloveLive` server: one set of messages for both.
 """
@@ -18,6 +18,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from dope_hope.errors import InputFileError
 from dope_hope.io.streams import Frame, FrameSource, is_recording
 from dope_hope.ros.foxglove_live import FoxgloveLive
 from dope_hope.ros.pose_messages import DEFAULT_FRAME_ID, PosedObject, PoseMessages
@@ -41,6 +42,9 @@ def frame_stamp(frame: Frame, start_ns: int = 0) -> tuple[int, str]:
     """(stamp ns, frame_id) of a frame: the recorded header's, else ``start_ns`` plus its
     timestamp and ``camera``."""
     stamp = frame.stamp_ns if frame.stamp_ns is not None else start_ns + round(frame.timestamp_s * 1e9)
+    if stamp < 0:  # MCAP and Foxglove log times are unsigned nanoseconds since 1970
+        raise InputFileError(frame.name, f"header stamp {stamp / 1e9:.9f} s is before 1970 (a valid ROS 2 time, "
+                                         "but the poses MCAP and Foxglove log times start at 1970)")
     return stamp, frame.frame_id or DEFAULT_FRAME_ID
 
 

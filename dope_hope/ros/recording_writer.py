@@ -3,7 +3,9 @@ writer (what ``ros2 bag play FOLDER`` plays and Foxglove opens as ``FOLDER/FOLDE
 
 :class:`RecordingWriter` writes into a temporary folder beside the target and renames it into
 place on :meth:`~RecordingWriter.close`; :meth:`~RecordingWriter.discard` (or an error) leaves
-nothing, so a reader never sees half a recording. Each topic's connection is added on its
+nothing, so a reader never sees half a recording. An existing folder is replaced only when
+it holds nothing but such a bag (its ``metadata.yaml`` and MCAP file): a folder holding
+anything else is refused before any work. Each topic's connection is added on its
 first message with the type's definition embedded (readers need no ROS packages); messages
 are stored on the log time the caller gives (the image's stamp).
 """
@@ -15,15 +17,28 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from dope_hope.errors import OutputPathError
 from dope_hope.io.atomic import write_error
 from dope_hope.ros.message_types import require_rosbags, ros2_typestore
+
+
+def check_replaceable_bag(path: Path) -> None:
+    """OutputPathError unless ``path`` is absent, or a folder holding only what a bag written
+    here holds (``metadata.yaml``, ``<folder name>.mcap``): a user's files are never replaced."""
+    if not path.is_dir():
+        return
+    bag = {"metadata.yaml", f"{path.name}.mcap"}
+    other = sorted(p.name for p in path.iterdir() if p.name not in bag or not p.is_file())
+    if other:
+        raise OutputPathError(path, f"holds {other[0]}" + (f" and {len(other) - 1} more" if len(other) > 1 else "")
+                              + ", which a poses bag does not: not replaced (another --out, or move it away)")
 
 
 class RecordingWriter:
     """A ROS 2 MCAP bag written atomically (module docstring).
 
     Args:
-        path: the bag folder to create (replaced on close when it exists); its MCAP file is
+        path: the bag folder to create (replaced on close when it holds only a bag); its MCAP file is
             ``path/<folder name>.mcap``.
     """
 
@@ -32,6 +47,7 @@ class RecordingWriter:
         from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: PLC0415 (rosbags is the optional ros extra)
 
         self.path = Path(path)
+        check_replaceable_bag(self.path)
         self.store = ros2_typestore()
         self.counts: dict[str, int] = {}
         self._connections: dict[str, Any] = {}

@@ -20,20 +20,29 @@ CompressedImage jpeg / png (colour), ``compressedDepth`` png (16UC1 millimetres,
 depth as ``image_transport``'s compressed_depth plugin writes it). Anything else is refused
 with the topic named.
 
-**Camera**: the first CameraInfo message (K; width and height checked against the images); a
-distorted camera (non-zero D, plumb_bob or rational_polynomial) is undistorted as
+**Camera**: each colour image is read with the CameraInfo of its own header stamp, as
+``image_transport`` pairs them (:class:`~dope_hope.ros.camera_pairing.CameraByStamp`: a recording
+of one camera needs no equal stamps; a camera that changes needs them); width and height are
+checked against the images (an info without a size: every image paired with it has the size of
+the first); a distorted camera (non-zero D, plumb_bob or rational_polynomial) is undistorted as
 ``image_proc`` does (:class:`~dope_hope.io.camera.Rectification`, depth with it), other
 distortion models are refused: never treated as pinhole. A camera given by the caller
 (``--camera``) replaces it.
 
 **Depth pairing**: each colour frame takes the depth message whose header stamp is nearest to
-its own, within ``tolerance_s`` (:data:`DEFAULT_SYNC_TOLERANCE_S`). A colour frame inside the
+its own, within ``tolerance_s`` (:data:`DEFAULT_SYNC_TOLERANCE_S`), one not yet paired first:
+colour frames that share a stamp (every stamp 0 in a converted recording) take the depth
+messages of that stamp in recorded order, and one warning says so; a depth image that a second
+colour frame of its stamp has to take again is counted in that warning. A colour frame inside the
 depth stream's span without one is an error (the recording's streams are out of step); colour
 frames before the first depth message or after the last are processed without depth and
-counted in one warning.
+counted in one warning. The depth topic must be registered to colour: a chosen depth topic
+whose header ``frame_id`` is not the colour image's is refused (``--depth-topic`` names one
+anyway, with a warning).
 
 Each :class:`~dope_hope.io.streams.Frame` carries the colour header's stamp (``stamp_ns``) and
-``frame_id``; ``timestamp_s`` is the stamp minus the first frame's.
+``frame_id``; ``timestamp_s`` is the stamp minus the first frame's. Frames are named after the
+recording's file or folder (``infer .`` inside a bag folder: the folder's own name).
 """
 from __future__ import annotations
 
@@ -50,6 +59,7 @@ import numpy as np
 from dope_hope.errors import CameraError, ConfigError, InputFileError
 from dope_hope.io.camera import ImageCamera, Rectification, parse_ros_camera_info
 from dope_hope.io.streams import Frame, FrameSource, Grabbed
+from dope_hope.ros.camera_pairing import CameraByStamp, single_camera
 from dope_hope.ros.defaults import DEFAULT_SYNC_TOLERANCE_S
 from dope_hope.ros.message_types import require_rosbags, ros1_typestore, ros2_typestore
 
@@ -139,17 +149,27 @@ def decode_depth(msg: Any, where: str) -> np.ndarray:
     return arr
 
 
+def _info_fields(msg: Any) -> dict[str, Any]:
+    """The fields of a CameraInfo message that make its camera (ROS 2 names k, d, r, p; ROS 1 K, D, R, P)."""
+    def field(name: str) -> list:
+        value = getattr(msg, name, None)
+        return [float(v) for v in (getattr(msg, name.upper()) if value is None else value)]
+
+    return {"k": field("k"), "d": field("d"), "r": field("r"), "p": field("p"),
+            "width": int(msg.width) or None, "height": int(msg.height) or None,
+            "distortion_model": msg.distortion_model or "plumb_bob"}
+
+
+def info_key(msg: Any) -> tuple:
+    """What tells two CameraInfo messages' cameras apart (equal keys: one camera)."""
+    return tuple((k, tuple(v) if isinstance(v, list) else v) for k, v in _info_fields(msg).items())
+
+
 def camera_from_info(msg: Any, where: str) -> tuple[np.ndarray, int | None, int | None, Rectification | None]:
     """(K of the frames, width, height, rectification or None) of a CameraInfo message:
     :func:`~dope_hope.io.camera.parse_ros_camera_info` on its fields (a distortion model
     OpenCV does not undistort is refused there)."""
-    def field(name: str) -> list:  # ROS 2 names k, d, r, p; ROS 1 K, D, R, P
-        value = getattr(msg, name, None)
-        return list(getattr(msg, name.upper()) if value is None else value)
-
-    data = {"k": field("k"), "d": field("d"), "r": field("r"), "p": field("p"),
-            "width": int(msg.width) or None, "height": int(msg.height) or None,
-            "distortion_model": msg.distortion_model or "plumb_bob"}
+    data = _info_fields(msg)
     if not np.any(data["r"]):
         data["r"] = None  # unset (all zero): the identity
     if not np.any(data["p"]):
@@ -292,21 +312,22 @@ def topic_table(path: str | os.PathLike, image_topic: str | None = None, depth_t
 
 
 class RecordingSource(FrameSource):
-    """The colour frames of a recording, with their paired depth and the recording's camera.
+    """The colour frames of a recording, with their paired depth and camera.
 
     Args:
         path: the recording (module docstring).
         image_topic, depth_topic, camera_info_topic: as :func:`choose_topics`.
         camera: intrinsics given by the caller (replace the recording's CameraInfo), or None.
         tolerance_s: largest colour-to-depth stamp difference of a pair, seconds.
-        warn: told (one line) how many colour frames were processed without depth.
+        warn: told (one line each) how many colour frames were processed without depth, what
+            shared stamps made of the pairing, and a named depth topic of another frame.
     """
 
     def __init__(self, path: str | os.PathLike, image_topic: str | None = None, depth_topic: str | None = None,
                  camera_info_topic: str | None = None, camera: ImageCamera | None = None,
                  tolerance_s: float = DEFAULT_SYNC_TOLERANCE_S, warn: Callable[[str], None] | None = None):
         self.path = Path(path)
-        self.name = self.path.name
+        self.name = recording_name(self.path)
         self.tolerance_ns = round(tolerance_s * 1e9)
         self.warn = warn
         self._reader = _open_reader(self.path)
@@ -314,8 +335,8 @@ class RecordingSource(FrameSource):
             self.topics = _topic_infos(self._reader)
             self.chosen = choose_topics(self.path, self.topics, image_topic, depth_topic, camera_info_topic)
             self.length = self.topics[self.chosen.image].count or None
-            self.camera = camera if camera is not None else self._recorded_camera()
-            self._check_first_messages()
+            self.cameras = single_camera(str(camera.source), camera) if camera is not None else self._recorded_cameras()
+            self._check_first_messages(depth_named=depth_topic not in (None, "none"))
         except BaseException:
             self.close()
             raise
@@ -334,36 +355,64 @@ class RecordingSource(FrameSource):
     def _where(self, topic: str) -> str:
         return f"{self.path} topic {topic}"
 
-    def _recorded_camera(self) -> ImageCamera:
+    def _recorded_cameras(self) -> CameraByStamp[ImageCamera]:
+        """Every CameraInfo message of the chosen topic by its stamp (module docstring)."""
         topic = self.chosen.camera_info
         if topic is None:
             raise CameraError(f"{self.path}: no camera_info topic for {self.chosen.image}; name one with "
                               "--camera-info-topic, or give --camera K.json|camera_info.yaml")
-        msg = next((m for _, _, m in self._messages([topic])), None)
-        if msg is None:
-            raise CameraError(f"{self._where(topic)}: holds no CameraInfo message; give --camera")
-        K, width, height, rect = camera_from_info(msg, self._where(topic))
-        return ImageCamera(K=K, width=width, height=height, source=Path(self._where(topic)), rectification=rect)
+        where = self._where(topic)
+        cameras: CameraByStamp[ImageCamera] = CameraByStamp(where)
 
-    def _check_first_messages(self) -> None:
+        def make(msg: Any) -> Callable[[], ImageCamera]:
+            def camera() -> ImageCamera:
+                K, width, height, rect = camera_from_info(msg, where)
+                return ImageCamera(K=K, width=width, height=height, source=Path(where), rectification=rect)
+            return camera
+
+        for _, _, msg in self._messages([topic]):
+            cameras.add(_stamp_ns(msg), info_key(msg), make(msg))
+        if not len(cameras):
+            raise CameraError(f"{where}: holds no CameraInfo message; give --camera")
+        return cameras
+
+    def _check_first_messages(self, depth_named: bool) -> None:
         """Decode the first colour and depth messages, so that an encoding this reader does not
-        take, or a camera of another size, is reported before any work."""
+        take, a camera of another size, depth of another size or frame than colour is
+        reported before any work; ``self.camera``: the first colour frame's camera."""
+        first = {}
         for topic, decode in ((self.chosen.image, decode_image), (self.chosen.depth, decode_depth)):
-            if topic is None:
-                continue
-            msg = next((m for _, _, m in self._messages([topic])), None)
-            if msg is None:
-                raise InputFileError(self.path, f"{topic}: holds no message")
-            image = decode(msg, self._where(topic))
-            self.camera.check_size(self._where(topic), image.shape[1], image.shape[0])
+            if topic is not None:
+                msg = next((m for _, _, m in self._messages([topic])), None)
+                if msg is None:
+                    raise InputFileError(self.path, f"{topic}: holds no message")
+                first[topic] = (msg, decode(msg, self._where(topic)))
+        msg, rgb = first[self.chosen.image]
+        self.camera = self.cameras.camera_for(_stamp_ns(msg))
+        self.camera.check_size(self._where(self.chosen.image), rgb.shape[1], rgb.shape[0])
+        if self.chosen.depth is None:
+            return
+        depth_msg, depth = first[self.chosen.depth]
+        if depth.shape != rgb.shape[:2]:
+            raise InputFileError(self._where(self.chosen.depth), _not_registered(
+                f"its images are {depth.shape[1]}x{depth.shape[0]}, the colour images {rgb.shape[1]}x{rgb.shape[0]}"))
+        colour_frame, depth_frame = str(msg.header.frame_id), str(depth_msg.header.frame_id)
+        if colour_frame != depth_frame:
+            problem = f"its frame_id is {depth_frame!r}, the colour images' {colour_frame!r}"
+            if not depth_named:
+                raise InputFileError(self._where(self.chosen.depth), _not_registered(problem))
+            if self.warn is not None:
+                self.warn(f"{self._where(self.chosen.depth)}: {problem}; used as registered to colour because "
+                          "--depth-topic names it")
 
     def grab(self) -> Iterator[Grabbed]:
         chosen, tol = self.chosen, self.tolerance_ns
         topics = [chosen.image] + ([chosen.depth] if chosen.depth else [])
         pending: collections.deque = collections.deque()  # colour (stamp, msg) awaiting depth
-        depths: collections.deque = collections.deque()  # (stamp, msg), stamps increasing
+        depths: list[list] = []  # [stamp, msg, times paired], stamps increasing
         first_depth: int | None = None
-        state = {"index": 0, "t0": None, "unpaired": 0}
+        state = {"index": 0, "t0": None, "unpaired": 0, "reused": 0}
+        stamps = StampTies()
 
         def emit(stamp: int, msg: Any, depth_msg: Any) -> Grabbed:
             index = state["index"]
@@ -373,8 +422,11 @@ class RecordingSource(FrameSource):
             return Grabbed(index, ts, lambda: self._frame(index, ts, stamp, msg, depth_msg))
 
         def pair(stamp: int, msg: Any, final: bool) -> Grabbed:
-            near = min(depths, key=lambda d: abs(d[0] - stamp), default=None)
+            # nearest stamp first; among equally near ones, one not yet paired, the earliest
+            near = min(depths, key=lambda d: (abs(d[0] - stamp), d[2] > 0), default=None)
             if near is not None and abs(near[0] - stamp) <= tol:
+                state["reused"] += near[2] > 0 and near[0] == stamp
+                near[2] += 1
                 return emit(stamp, msg, near[1])
             outside = first_depth is None or stamp < first_depth - tol or (final and stamp > depths[-1][0] + tol)
             if not outside:
@@ -385,8 +437,13 @@ class RecordingSource(FrameSource):
             state["unpaired"] += 1
             return emit(stamp, msg, None)
 
+        def exact_unpaired(stamp: int) -> bool:
+            return any(d[0] == stamp and not d[2] for d in depths)
+
         for topic, _, msg in self._messages(topics):
             stamp = _stamp_ns(msg)
+            if topic == chosen.image:
+                stamps.add(stamp)
             if topic == chosen.image and chosen.depth is None:
                 yield emit(stamp, msg, None)
                 continue
@@ -394,36 +451,47 @@ class RecordingSource(FrameSource):
                 pending.append((stamp, msg))
             else:
                 first_depth = stamp if first_depth is None else first_depth
-                depths.append((stamp, msg))
-            while pending and depths and depths[-1][0] > pending[0][0] + tol:
+                depths.append([stamp, msg, 0])
+            while pending and depths and (depths[-1][0] > pending[0][0] + tol or exact_unpaired(pending[0][0])):
                 yield pair(*pending.popleft(), final=False)
-                while len(depths) > 1 and pending and depths[1][0] < pending[0][0] - tol:
-                    depths.popleft()  # older than any colour frame still to pair
+                # drop what no colour frame still to come can take: depth older than the next
+                # colour frame's window, and a paired one with a later one of its stamp
+                keep_from = pending[0][0] - tol if pending else None
+                depths[:] = [d for i, d in enumerate(depths)
+                             if not (keep_from is not None and d[0] < keep_from and i < len(depths) - 1)
+                             and not (d[2] and any(e[0] == d[0] for e in depths[i + 1:]))]
         while pending:
             yield pair(*pending.popleft(), final=True)
-        if state["unpaired"] and chosen.depth and self.warn is not None:
-            self.warn(f"{self.path}: {state['unpaired']} colour frame(s) before the first or after the last "
-                      f"{chosen.depth} message were processed without depth")
+        if self.warn is not None:
+            if state["unpaired"] and chosen.depth:
+                self.warn(f"{self.path}: {state['unpaired']} colour frame(s) before the first or after the last "
+                          f"{chosen.depth} message were processed without depth")
+            tie = stamps.describe(chosen.image, chosen.depth, state["reused"])
+            if tie:
+                self.warn(f"{self.path}: {tie}")
         if state["index"] == 0:
             raise InputFileError(self.path, f"{chosen.image}: no message could be read")
 
     def _frame(self, index: int, timestamp_s: float, stamp: int, msg: Any, depth_msg: Any) -> Frame:
         rgb = decode_image(msg, self._where(self.chosen.image))
         name = f"{self.name}#{index:06d}"
-        self.camera.check_size(f"{self._where(self.chosen.image)} ({name})", rgb.shape[1], rgb.shape[0])
+        camera = self.cameras.camera_for(stamp)
+        where = f"{self._where(self.chosen.image)} ({name})"
+        camera.check_size(where, rgb.shape[1], rgb.shape[0])
+        stated = None if camera.width is None or camera.height is None else (camera.width, camera.height)
+        self.cameras.check_image_size(stamp, rgb.shape[1], rgb.shape[0], name, stated)
         depth = None
         if depth_msg is not None:
             depth = decode_depth(depth_msg, self._where(self.chosen.depth))
             if depth.shape != rgb.shape[:2]:
-                raise InputFileError(self._where(self.chosen.depth),
-                                     f"depth is {depth.shape[1]}x{depth.shape[0]}, the colour image "
-                                     f"{rgb.shape[1]}x{rgb.shape[0]}: not registered to colour (name an aligned "
-                                     "depth topic with --depth-topic, or --depth-topic none)")
-        rect = self.camera.rectification
+                raise InputFileError(self._where(self.chosen.depth), _not_registered(
+                    f"its image is {depth.shape[1]}x{depth.shape[0]}, the colour image {name} "
+                    f"{rgb.shape[1]}x{rgb.shape[0]}"))
+        rect = camera.rectification
         if rect is not None:
             rgb = rect.image(rgb)
             depth = None if depth is None else rect.depth(depth)
-        return Frame(index=index, timestamp_s=timestamp_s, name=name, rgb=rgb, K=self.camera.K, depth=depth,
+        return Frame(index=index, timestamp_s=timestamp_s, name=name, rgb=rgb, K=camera.K, depth=depth,
                      stamp_ns=stamp, frame_id=str(msg.header.frame_id))
 
     def close(self) -> None:
@@ -433,6 +501,50 @@ class RecordingSource(FrameSource):
                 reader.close()
             except Exception:  # noqa: BLE001 - closing a reader that failed midway
                 pass
+
+
+def recording_name(path: Path) -> str:
+    """The name of a recording's frames and outputs: its file or folder name (``.`` inside a
+    bag folder: that folder's name)."""
+    return path.name or path.resolve().name or str(path)
+
+
+def _not_registered(problem: str) -> str:
+    return (f"not registered to colour ({problem}); name a depth topic aligned to colour with --depth-topic "
+            "(RealSense: align_depth), or --depth-topic none")
+
+
+class StampTies:
+    """The colour stamps of a recording seen so far, and what their ties did to the pairing."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.first: int | None = None
+        self.all_equal = True
+        self.repeats = 0
+        self.first_repeat: int | None = None
+        self._last_seen: set[int] = set()
+
+    def add(self, stamp: int) -> None:
+        self.count += 1
+        self.first = stamp if self.first is None else self.first
+        self.all_equal = self.all_equal and stamp == self.first
+        if stamp in self._last_seen:
+            self.repeats += 1
+            self.first_repeat = stamp if self.first_repeat is None else self.first_repeat
+        self._last_seen.add(stamp)
+
+    def describe(self, image: str, depth: str | None, reused: int) -> str:
+        """One sentence for the warning ("" when every stamp is unique)."""
+        if not self.repeats:
+            return ""
+        paired = "" if depth is None else f", paired with {depth} in recorded order"
+        again = "" if not reused else f"; {reused} of them took a depth image already paired with another frame"
+        if self.all_equal:
+            return (f"every {image} message has the header stamp {self.first / 1e9:.6f} s: the frames are "
+                    f"taken in recorded order{paired}{again}")
+        return (f"{self.repeats} {image} message(s) repeat an earlier header stamp (first: "
+                f"{self.first_repeat / 1e9:.6f} s){paired}{again}")
 
 
 def open_recording(inputs: list[str], image_topic: str | None = None, depth_topic: str | None = None,

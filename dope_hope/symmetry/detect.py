@@ -13,8 +13,11 @@ distances to the faces of the nearest dense surface samples (``scipy.spatial.cKD
 upper bound of the true distance, so what is reported holds.
 
 Candidates, about axes through the box centre (the axis-aligned cuboid the labels use: the
-mesh frame's x, y, z) and, for a mesh modelled tilted in its own frame, the principal axes of
-its surface through its surface centroid:
+mesh frame's x, y, z); for a mesh modelled tilted in its own frame, the principal axes of
+its surface through its surface centroid; and, for a surface whose second moments are equal
+every way (a regular tetrahedron, cube, octahedron: principal axes say nothing there), the
+axes from the surface centroid through the convex hull's vertices (a tetrahedron's 120° turns
+about them). :attr:`DetectedSymmetries.axes_tried` says which were tried:
 
 - **continuous** about an axis: all of 12 turns by ``k * 360° / 13`` (k = 1..12; 13 is prime,
   so no n-fold prism with n < 13 passes) are symmetries;
@@ -58,6 +61,10 @@ NEAREST_FACES = 8
 CONTINUOUS_ANGLES_DEG = tuple(360.0 * k / 13.0 for k in range(1, 13))
 #: Orders n of the discrete turns tried about each axis (360° / n).
 DISCRETE_ORDERS = (2, 3, 4, 5, 6, 8)
+#: Second moments whose smallest is at least this share of the largest are "equal every way".
+ISOTROPIC_MOMENTS = 0.98
+#: Hull vertices (farthest from the centroid first) whose axes an isotropic surface tries.
+HULL_VERTEX_AXES = 16
 #: Principal axes closer than this to a box axis are that box axis, degrees.
 _SAME_AXIS_DEG = 10.0
 _AXIS_NAMES = "xyz"
@@ -113,6 +120,8 @@ class DetectedSymmetries:
         tolerance: the tolerance used. seconds: time taken. source: the mesh (for reports).
         extra_discrete: discrete transforms beyond the turns ``found`` lists (products of
             them, such as a square section's diagonal flips).
+        axes_tried: the candidate axes, in words ("the box axes x, y, z; 4 through the
+            convex hull's vertices").
     """
 
     discrete: np.ndarray
@@ -122,6 +131,7 @@ class DetectedSymmetries:
     seconds: float = 0.0
     source: str = "<mesh>"
     extra_discrete: int = 0
+    axes_tried: str = "the box axes x, y, z"
 
     @property
     def any(self) -> bool:
@@ -209,20 +219,49 @@ class _Surface:
         return worst_mean, worst_max
 
 
-def _principal_axes(surface: _Surface) -> list[tuple[np.ndarray, np.ndarray]]:
-    """[(unit axis, centre)]: the principal axes of the surface (its area's second moments)
-    through its centroid that differ from every box axis (a mesh modelled tilted in its frame)."""
+def _surface_moments(surface: _Surface) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(centroid (3,), second moments (3,) ascending, principal axes (3, 3) as columns) of the
+    surface's area, metres."""
     tri = surface.triangles  # exact area moments: E[x] = s / 3, E[x x^T] = (sum v v^T + s s^T) / 12
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     weight = area / area.sum()
     s = tri.sum(axis=1)
     centroid = weight @ s / 3.0
     second = np.einsum("f,fvi,fvj->ij", weight, tri, tri) / 12.0 + np.einsum("f,fi,fj->ij", weight, s, s) / 12.0
-    _, vecs = np.linalg.eigh(second - np.outer(centroid, centroid))
+    moments, vecs = np.linalg.eigh(second - np.outer(centroid, centroid))
+    return centroid, moments, vecs
+
+
+def _principal_axes(surface: _Surface) -> list[tuple[np.ndarray, np.ndarray]]:
+    """[(unit axis, centre)]: the principal axes of the surface (its area's second moments)
+    through its centroid that differ from every box axis (a mesh modelled tilted in its frame)."""
+    centroid, _, vecs = _surface_moments(surface)
     out = []
     for v in vecs.T:
         if np.max(np.abs(v)) < math.cos(math.radians(_SAME_AXIS_DEG)):
             out.append((v if v[np.argmax(np.abs(v))] > 0 else -v, centroid))
+    return out
+
+
+def _hull_vertex_axes(mesh: Any, surface: _Surface, tried: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """[(unit axis, centroid)]: for a surface whose second moments are equal every way, the
+    axes from its centroid through the convex hull's vertices (the farthest
+    :data:`HULL_VERTEX_AXES` first; one per line, none near an axis in ``tried``); else []."""
+    centroid, moments, _ = _surface_moments(surface)
+    if moments[0] < ISOTROPIC_MOMENTS * moments[-1]:
+        return []
+    hull = np.asarray(mesh.convex_hull.vertices, dtype=np.float64) - centroid
+    far = np.argsort(-np.linalg.norm(hull, axis=1))
+    same = math.cos(math.radians(_SAME_AXIS_DEG))
+    out: list[tuple[np.ndarray, np.ndarray]] = []
+    for v in hull[far[:HULL_VERTEX_AXES]]:
+        length = np.linalg.norm(v)
+        if length == 0:
+            continue
+        axis = v / length
+        if any(abs(float(axis @ t)) > same for t in tried + [a for a, _ in out]):
+            continue
+        out.append((axis, centroid))
     return out
 
 
@@ -276,8 +315,18 @@ def detect_symmetries(mesh: Any, tolerance: SymmetryTolerance | None = None, see
     generators: list[np.ndarray] = []
     for axis in np.eye(3):
         _axis_symmetries(axis, box_center, surface, tol, continuous, turns, generators)
+    tried = ["the box axes x, y, z"]
+    axes = list(np.eye(3))
     if not continuous and not turns:
-        for axis, center in _principal_axes(surface):
+        principal = _principal_axes(surface)
+        tried += [f"{len(principal)} principal axes"] if principal else []
+        for axis, center in principal:
+            axes.append(axis)
+            _axis_symmetries(axis, center, surface, tol, continuous, turns, generators)
+    if not continuous:
+        through_hull = _hull_vertex_axes(mesh, surface, axes)
+        tried += [f"{len(through_hull)} through the convex hull's vertices"] if through_hull else []
+        for axis, center in through_hull:
             _axis_symmetries(axis, center, surface, tol, continuous, turns, generators)
     group = _closure(generators)
     if group is None:  # the turns found do not close into a finite group within tolerance
@@ -304,7 +353,7 @@ def detect_symmetries(mesh: Any, tolerance: SymmetryTolerance | None = None, see
     extra = max(0, len(discrete) - listed) if not continuous else 0
     return DetectedSymmetries(np.array(discrete, dtype=np.float64).reshape(-1, 4, 4),
                               [(c.axis.copy(), c.center.copy()) for c in continuous], found, tol,
-                              time.perf_counter() - start, source, extra)
+                              time.perf_counter() - start, source, extra, "; ".join(tried))
 
 
 def _worst_error(transforms: list[np.ndarray], surface: _Surface,

@@ -7,7 +7,9 @@ models folder is found by :mod:`dope_hope.io.models_dir`).
 """
 from __future__ import annotations
 
+import multiprocessing
 import os
+import warnings
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -19,7 +21,18 @@ import numpy as np
 import trimesh
 
 from dope_hope.errors import InputFileError
-from dope_hope.io.meshes import load_mesh, mesh_cuboid
+from dope_hope.geometry import UNIT_SCALE
+from dope_hope.io.meshes import (
+    DEFAULT_UNITS,
+    PLAUSIBLE_SIZE_M,
+    check_finite_vertices,
+    check_plausible_size,
+    check_solid_box,
+    file_vertices,
+    likely_unit,
+    load_mesh,
+    mesh_cuboid,
+)
 from dope_hope.io.models_dir import mesh_class_name
 from dope_hope.synth.scene import ShapeInfo
 
@@ -144,6 +157,36 @@ def list_distractor_meshes(folder: str | os.PathLike,
     return out
 
 
+def distractor_units(files: Sequence[Path]) -> dict[Path, str]:
+    """The unit each distractor mesh is read in, checked before any frame (a distractor has no
+    flag of its own): its suffix's default (.obj cm, .ply mm) when its box is an object's size
+    there (:data:`~dope_hope.io.meshes.PLAUSIBLE_SIZE_M`), else the unit that makes it one, which
+    a warning names (in the main process only: the workers read the same). InputFileError
+    naming the file for a flat box or one no unit makes an object's, and for a vertex that is
+    not a finite number (where ``load_mesh`` would refuse it mid-run)."""
+    units: dict[Path, str] = {}
+    lo, hi = PLAUSIBLE_SIZE_M
+    for path in files:
+        default = DEFAULT_UNITS[path.suffix.lower()]
+        vertices, _ = file_vertices(path)
+        if not np.all(np.isfinite(vertices)):
+            check_finite_vertices(path)
+        if not len(vertices):
+            units[path] = default  # unreadable: load_mesh says why when it is drawn
+            continue
+        size = np.ptp(vertices, axis=0) * UNIT_SCALE[default]
+        check_solid_box(size, default, path)
+        unit = default if lo <= float(np.max(size)) <= hi else likely_unit(size, default)
+        if unit is None:
+            check_plausible_size(size, default, path)
+        units[path] = unit
+        if unit != default and multiprocessing.parent_process() is None:
+            shown = " x ".join(f"{v / UNIT_SCALE[default]:.4g}" for v in size)
+            warnings.warn(f"--distractors {path}: box {shown} {default} is no object's size in {default}, its "
+                          f"suffix's unit; read in {unit}", stacklevel=2)
+    return units
+
+
 class DistractorLibrary:
     """Lazily loaded distractor meshes with a small LRU cache.
 
@@ -151,10 +194,13 @@ class DistractorLibrary:
         files: mesh files (from :func:`list_distractor_meshes`).
         cache_size: meshes kept loaded.
         max_texture_px: textures are downscaled to at most this side.
+        units: each file's unit (default: :func:`distractor_units`, checked here).
     """
 
-    def __init__(self, files: list[Path], cache_size: int = 6, max_texture_px: int = 1024):
+    def __init__(self, files: list[Path], cache_size: int = 6, max_texture_px: int = 1024,
+                 units: dict[Path, str] | None = None):
         self.files = list(files)
+        self.units = distractor_units(self.files) if units is None else dict(units)
         self.cache_size = max(1, int(cache_size))
         self.max_texture_px = int(max_texture_px)
         self._cache: OrderedDict[int, MeshAsset] = OrderedDict()
@@ -167,7 +213,7 @@ class DistractorLibrary:
         if i in self._cache:
             self._cache.move_to_end(i)
             return self._cache[i]
-        asset = MeshAsset.load(self.files[i], max_texture_px=self.max_texture_px)
+        asset = MeshAsset.load(self.files[i], units=self.units.get(self.files[i]), max_texture_px=self.max_texture_px)
         self._shapes[i] = asset.shape
         self._cache[i] = asset
         while len(self._cache) > self.cache_size:

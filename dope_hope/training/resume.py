@@ -16,6 +16,7 @@ from typing import Any
 from torch import nn
 
 from dope_hope.errors import ConfigError
+from dope_hope.io.models_dir import check_run_object
 from dope_hope.model.checkpoint import TrainingState, load_checkpoint, save_checkpoint
 from dope_hope.training.objects import object_mesh_paths
 from dope_hope.training.settings import TrainConfig, TrainJob
@@ -124,8 +125,9 @@ def resumed_job(job: TrainJob) -> tuple[dict[str, Any] | None, dict[str, Any] | 
 def check_resume_flags(job: TrainJob, saved_job: dict[str, Any]) -> None:
     """ConfigError naming the flag for what a run continued from ``job.resume`` cannot honour
     (``saved_job``: the job its checkpoint records): other objects than its own (``--object``:
-    the network's map groups are the checkpoint's objects, in its order) and
-    ``--backbone-weights`` (the checkpoint's weights replace them)."""
+    the network's map groups are the checkpoint's objects, in its order),
+    ``--backbone-weights`` (the checkpoint's weights replace them) and ``--mesh NAME=PATH``
+    naming no object of the run."""
     saved = [str(n) for n in saved_job.get("objects") or ([saved_job["object"]] if saved_job.get("object") else [])]
     given = job.class_names if job.object_name else []
     if given and saved and [n.lower() for n in given] != [n.lower() for n in saved]:
@@ -135,6 +137,8 @@ def check_resume_flags(job: TrainJob, saved_job: dict[str, Any]) -> None:
     if job.backbone_weights is not None:
         raise ConfigError(f"--backbone-weights {job.backbone_weights}: --resume continues {job.resume} with its "
                           "own weights; give one of them")
+    if job.mesh_name is not None and saved:
+        check_run_object(job.mesh_name, saved, "--mesh", f"{job.mesh_name}={job.mesh}")
 
 
 def checkpoint_extra(ck: dict[str, Any]) -> dict[str, Any]:

@@ -29,7 +29,7 @@ from dope_hope.errors import ConfigError, DopeHopeError, InputFileError, Unknown
 from dope_hope.geometry import fit_cuboid
 from dope_hope.io.bop_scenes import recorded_box_size
 from dope_hope.io.dope_json import read_dope_json, recorded_cuboid_size
-from dope_hope.io.models_dir import find_object_mesh, parse_mesh_args
+from dope_hope.io.models_dir import find_object_mesh, is_named_value, parse_mesh_args
 from dope_hope.io.paths import require_file
 from dope_hope.model.settings import InputSettings, ModelSettings
 from dope_hope.training.augment import AugmentParams
@@ -71,6 +71,8 @@ class TrainJob:
             one class ``object_name``); see :attr:`class_names`.
         meshes: {class: mesh file} of the objects (several; one object: ``mesh``).
         units: {class: unit of its mesh file} ("m", "cm", "mm"; default the suffix's).
+        mesh_name: the NAME of ``--mesh NAME=PATH`` on a resumed run without ``--object``
+            (checked against the run's objects: ``training.resume.check_resume_flags``), or None.
     """
 
     data: list[Path]
@@ -92,6 +94,7 @@ class TrainJob:
     objects: list[str] = field(default_factory=list)
     meshes: dict[str, Path] = field(default_factory=dict)
     units: dict[str, str] = field(default_factory=dict)
+    mesh_name: str | None = None
 
     @property
     def class_names(self) -> list[str]:
@@ -457,7 +460,8 @@ def train_meshes(objects: Sequence[str], mesh_args: Sequence[str] | None, models
     ``NAME=PATH`` or a file that names its object; a NAME that is not an object of the run is
     refused: :func:`dope_hope.io.models_dir.parse_mesh_args`);
     ``--models-dir`` is searched for every object (:func:`~dope_hope.io.models_dir.find_object_mesh`).
-    Without objects (a resumed run) one mesh is the run's object's, keyed "".
+    Without objects (a resumed run) one mesh is the run's object's, keyed by the NAME of
+    ``NAME=PATH`` (checked on resume) or "".
 
     Raises:
         ConfigError: both --mesh and --models-dir; a mesh of no object of the run; units not
@@ -473,7 +477,8 @@ def train_meshes(objects: Sequence[str], mesh_args: Sequence[str] | None, models
         if len(mesh_args) != 1:
             raise ConfigError(f"--mesh: {len(mesh_args)} meshes for a resumed run; name its objects with --object")
         text = str(mesh_args[0])
-        meshes = {"": Path(text.split("=", 1)[1] if "=" in text and not Path(text).exists() else text)}
+        name, path = text.split("=", 1) if is_named_value(text) else ("", text)
+        meshes = {name: Path(path)}
     elif mesh_args:
         meshes = parse_mesh_args(mesh_args, names, in_order=True)
     if not units:
