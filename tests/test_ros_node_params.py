@@ -43,6 +43,8 @@ def test_node_settings_check_their_values():
     assert s.weights == ("a.pt",) and s.mesh == ("Ketchup=k.obj",) and s.threads == 2
     with pytest.raises(ConfigError, match="image_transport must be one of raw, compressed"):
         NodeSettings.from_mapping({"image_transport": "theora"})
+    with pytest.raises(ConfigError, match="input_reliability must be one of best_effort, reliable"):
+        NodeSettings.from_mapping({"input_reliability": "sometimes"})
     with pytest.raises(ConfigError, match="depth_tolerance_ms must be > 0"):
         NodeSettings.from_mapping({"depth_tolerance_ms": -1.0})
 

@@ -8,7 +8,7 @@ Examples:
   dope-hope ros2 --set decode.threshold=0.2 --ros-args -p mesh:="[meshes/]" -p icp:=true
   ros2 param set /dope_hope min_score 0.6                      (while it runs; classes too)
 
-Subscribes (sensor-data QoS): image (sensor_msgs/Image; CompressedImage on image/compressed
+Subscribes (sensor-data QoS; -p input_reliability:=reliable for large raw images): image (sensor_msgs/Image; CompressedImage on image/compressed
 with -p image_transport:=compressed), camera_info (each image paired with the camera info of
 its own stamp) and the aligned depth (16UC1 mm or 32FC1 m, paired by stamp within
 depth_tolerance_ms; -p use_depth:=false: none). Unremapped, a RealSense's names:
@@ -21,7 +21,7 @@ detections (Detection3DArray). When inference falls behind, the newest frame win
 ones are dropped and counted. Ctrl-C ends it (exit 0) with a summary line.
 
 Parameters: weights, mesh, mesh_units, up_axis, start, classes, backend, device, threads,
-image_transport, use_depth, depth_tolerance_ms, depth_wait_ms, depth_calibration, track,
+image_transport, input_reliability, use_depth, depth_tolerance_ms, depth_wait_ms, depth_calibration, track,
 overlay, and every inference setting under its --set name (min_score, height, icp,
 decode.threshold, ...: `dope-hope settings infer`); min_score and classes change at run time.
 Full reference: docs/commands/ros2.md.

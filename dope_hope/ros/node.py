@@ -4,7 +4,7 @@ and frame_id. :class:`DopeHopeNode` is importable for composition in a Python la
 this module after :func:`dope_hope.ros.ros2_runtime.prepare_ros2_process` (a command) or
 with rclpy working already (a user's own process).
 
-**Inputs** (sensor-data QoS; relative names, remappable: ``--ros-args -r image:=/my/topic``;
+**Inputs** (sensor-data QoS, ``input_reliability:=reliable`` for large raw images; relative names, remappable: ``--ros-args -r image:=/my/topic``;
 unremapped, a RealSense's, :data:`INPUT_DEFAULTS`): ``image`` (sensor_msgs/Image, or
 CompressedImage on ``image/compressed`` with ``image_transport:=compressed``),
 ``camera_info`` (paired by stamp, as image_transport's camera subscriber), ``depth``
@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
 from dope_hope.assets import DEMO_WEIGHTS
 from dope_hope.errors import ConfigError, DopeHopeError
@@ -181,8 +181,12 @@ class DopeHopeNode(Node):
         return self.resolve_topic_name(INPUT_DEFAULTS[name], only_expand=True)
 
     def _subscribe(self, msgtype: str, topic: str, add) -> None:
-        self.create_subscription(message_class(msgtype), topic, lambda raw: add(header_stamp_ns(raw), raw),
-                                 qos_profile_sensor_data, raw=True)
+        qos = QoSProfile(history=qos_profile_sensor_data.history, depth=qos_profile_sensor_data.depth,
+                         durability=qos_profile_sensor_data.durability,
+                         reliability=(ReliabilityPolicy.RELIABLE if self.settings.input_reliability == "reliable"
+                                      else qos_profile_sensor_data.reliability))
+        self.create_subscription(message_class(msgtype), topic, lambda raw: add(header_stamp_ns(raw), raw), qos,
+                                 raw=True)
 
     def _pose_publisher(self, class_name: str) -> Any:
         key = f"pose_{class_name}"
@@ -276,11 +280,16 @@ class DopeHopeNode(Node):
 
     def process(self, frame: CameraFrame) -> list:
         """One paired frame: decode, detect (and track), publish; returns the published objects."""
+        taken = time.perf_counter()
         rgb, K, depth, header = self.decode(frame)
         depth_image = as_depth_image(depth, K, 0.001, self.settings.depth_calibration, rgb.shape[:2])
+        decoded = time.perf_counter()
         with self._lock:
             classes = self.classes
             dets = predict_many(self.predictors, rgb, K, depth=depth_image, classes=classes)
+        self.get_logger().debug(f"frame {frame.stamp_ns}: waited {1000 * (taken - frame.arrival_s):.1f} ms, "
+                                f"decoded {1000 * (decoded - taken):.1f} ms, detected "
+                                f"{1000 * (time.perf_counter() - decoded):.1f} ms, depth {depth is not None}")
         if self.tracker is not None:
             counts = self.pairing.counts  # the frame's place in the stream, dropped frames counted
             dets = self.tracker.update(dets, K, depth_image, frame=counts.taken + counts.dropped, image_hw=rgb.shape[:2])

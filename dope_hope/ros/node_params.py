@@ -49,7 +49,9 @@ class NodeSettings(SectionSettings):
     ``infer``'s --mesh, --mesh-units, --up-axis, --start (new objects: meshes without
     weights); classes: the objects reported (none: all), changeable at run time; backend,
     device, threads (0: PyTorch's default): as ``infer``'s. image_transport: raw (Image on the
-    image topic) or compressed (CompressedImage on ``<image topic>/compressed``); use_depth:
+    image topic) or compressed (CompressedImage on ``<image topic>/compressed``);
+    input_reliability: the inputs' QoS reliability, best_effort (sensor-data QoS) or reliable
+    (large raw images that best effort loses in fragments, see docs/commands/ros2.md); use_depth:
     subscribe to the aligned depth; depth_tolerance_ms: the largest image-to-depth stamp
     difference; depth_wait_ms: how long an image waits for its depth while depth flows;
     depth_calibration: depth multiplied by it; track: stable track ids and smoothed poses
@@ -60,6 +62,7 @@ class NodeSettings(SectionSettings):
     RULES = {"weights": string_list, "mesh": string_list, "mesh_units": string_list, "up_axis": string_list,
              "classes": string_list, "backend": one_of("auto", "torch", "onnx"),
              "threads": lambda v, n: whole_number(v, n, 0), "image_transport": one_of("raw", "compressed"),
+             "input_reliability": one_of("best_effort", "reliable"),
              "use_depth": boolean, "depth_tolerance_ms": positive_float, "depth_wait_ms": positive_float,
              "depth_calibration": positive_float, "track": boolean, "overlay": boolean}
 
@@ -73,6 +76,7 @@ class NodeSettings(SectionSettings):
     device: str = "cpu"
     threads: int = 0
     image_transport: str = "raw"
+    input_reliability: str = "best_effort"
     use_depth: bool = True
     depth_tolerance_ms: float = 15.0
     depth_wait_ms: float = 500.0
