@@ -249,6 +249,20 @@ def test_parameters_change_on_the_next_frame_and_bad_values_are_refused(live, sc
     assert proc.poll() is None
 
 
+def test_each_frame_uses_the_camera_info_of_its_own_stamp(live, scenes):  # noqa: F811
+    peer, _, _ = live
+    rgb, depth = scenes["frames"][0]
+    wide = scenes["K"] * np.array([[1.5], [1.5], [1.0]])  # another focal length on one frame only
+    poses = []
+    for i, K in enumerate((scenes["K"], wide, scenes["K"])):
+        stamp = T0_NS + 6 * 10**9 + i * 10**8
+        peer.send(rgb, depth, K, stamp)
+        got = peer.poses_of(stamp)
+        assert len(got.poses) >= 1
+        poses.append(_pose_matrix(got.poses[0])[1])
+    assert np.linalg.norm(poses[1] - poses[0]) > 0.01 and np.allclose(poses[2], poses[0], atol=1e-6)
+
+
 def test_bad_camera_info_or_image_is_logged_and_skipped(live, scenes):  # noqa: F811
     peer, proc, log = live
     rgb, depth = scenes["frames"][1]

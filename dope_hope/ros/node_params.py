@@ -126,12 +126,9 @@ def given_inference_settings(values: Mapping[str, Any], base: Mapping[str, Any] 
         if isinstance(value, str) and not isinstance(defaults.get(name), str):
             nested = parse_assignment(f"{name}={value}")
         else:
-            nested = parse_assignment(f"{name}=null")
-            inner = nested
-            *parents, last = name.split(".")
-            for key in parents:
-                inner = inner[key]
-            inner[last] = value
+            nested = value
+            for key in reversed(name.split(".")):
+                nested = {key: nested}
         given = merge(given, nested)
     InferenceOptions.from_mapping(given)
     return given
