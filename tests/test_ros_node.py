@@ -285,3 +285,18 @@ def test_sigint_ends_the_node_cleanly(live):
     assert proc.wait(timeout=30) == 0
     last = log.read_text().strip().splitlines()[-1]
     assert re.fullmatch(r"dope-hope ros2: \d+ image\(s\) received, \d+ processed, .* \d+ skipped, .*", last), last
+
+
+def test_the_node_class_composes_and_refuses_a_bad_parameter_in_one_line(ros_env):
+    from dope_hope.errors import ConfigError
+    from dope_hope.ros.node import DopeHopeNode
+
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=int(ros_env["ROS_DOMAIN_ID"]))
+    try:
+        for override, message in ((Parameter("decode.threshold", value="high"), "decode.threshold must be a number"),
+                                  (Parameter("image_transport", value="theora"), "image_transport must be one of")):
+            with pytest.raises(ConfigError, match=message):
+                DopeHopeNode("dope_hope_composed", context=context, parameter_overrides=[override])
+    finally:
+        rclpy.try_shutdown(context=context)
