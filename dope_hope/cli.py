@@ -35,6 +35,7 @@ COMMANDS: tuple[tuple[str, str, str], ...] = (
     ("demo", "demo", "run the shipped demo model on freshly rendered scenes (PyTorch + ONNX, -LS, errors)"),
     ("import-official", "import_official", "import NVIDIA's published DOPE weights (.pth) as checkpoints"),
     ("bop-submit", "bop_submit", "run models on a BOP test split and write a BOP19 submission CSV"),
+    ("ros2", "ros2", "run as a live ROS 2 node: camera images in, poses out (pip install \"dope-hope[ros2]\")"),
     ("settings", "settings", "print a command's effective settings (defaults, --config, --set) as YAML"),
 )
 

@@ -80,27 +80,10 @@ def fixed_device(text: str) -> str:
 
 
 def parse_named_values(values: list[str], flag: str, accepted: tuple[str, ...]) -> str | dict[str, str] | None:
-    """``flag [NAME=]VALUE`` values -> one VALUE for every object, or {object: VALUE} ("" =
-    the others; a catalog NAME in its catalog spelling); None: none given. VALUE is one of
-    ``accepted``.
+    """``flag [NAME=]VALUE`` values: :func:`dope_hope.io.models_dir.named_object_values`."""
+    from dope_hope.io.models_dir import named_object_values  # the catalog costs scipy: not for --help
 
-    Raises:
-        ConfigError: a VALUE not accepted, or two values for the same object (or for all).
-    """
-    from dope_hope.catalog import object_names
-
-    given: dict[str, str] = {}
-    for text in values:
-        name, _, value = text.rpartition("=")
-        if value not in accepted:
-            raise ConfigError(f"{flag} {text}: must be one of {', '.join(accepted)}")
-        key = object_names([name])[0] if name and name.lower() != "all" else ""
-        if key in given:
-            raise ConfigError(f"{flag} {text}: {'every object' if not key else key} already has one")
-        given[key] = value
-    if not given:
-        return None
-    return given[""] if list(given) == [""] else given
+    return named_object_values(values, flag, accepted)
 
 
 def parse_mesh_units(values: list[str]) -> str | dict[str, str] | None:

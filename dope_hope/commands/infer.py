@@ -241,16 +241,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 # ----------------------------------------------------------------------------- setup
-def _resolve_weights(args: argparse.Namespace) -> list[Path]:
-    if args.weights:
-        return list(args.weights)
-    demo = default_weights()
-    if demo is None:
-        raise ConfigError("--weights is required (no demo model at dope_hope/assets/demo_lite.pt "
-                          "in this installation)")
-    return [demo]
-
-
 def _global_camera(args: argparse.Namespace):
     """The camera of every input from --camera or --fx --fy --cx --cy (None: each image's own)."""
     from dope_hope.geometry import intrinsics_matrix
@@ -276,28 +266,6 @@ def _warn(message: str) -> None:
     print(f"dope-hope infer: warning: {message}", file=sys.stderr, flush=True)
 
 
-def _new_objects(args: argparse.Namespace) -> dict[str, Path] | None:
-    """{class name: mesh file} of the new objects the pretrained start detects (no --weights,
-    every --mesh a [NAME=]FILE or one models folder, unless they are the demo model's object
-    alone), else None; ConfigError for --up-axis / --start without that case."""
-    from dope_hope.demo_object import DEMO_CLASS_NAME
-    from dope_hope.io.models_dir import new_object_meshes
-
-    meshes = list(args.mesh or [])
-    new = not args.weights and meshes
-    found = new_object_meshes(meshes) if new else None
-    demo = found is not None and [n.lower() for n in found] == [DEMO_CLASS_NAME.lower()] and default_weights()
-    if found is not None and not demo:
-        return found
-    flags = [f for f, v in (("--up-axis", args.up_axis), ("--start", args.start)) if v]
-    if flags and args.weights:
-        raise ConfigError(f"{', '.join(flags)}: for new objects detected by the pretrained start "
-                          "(--mesh FILE, no --weights); a trained model knows its objects")
-    if flags:
-        raise ConfigError(f"{', '.join(flags)}: give the new objects' mesh files (--mesh FILE) and no --weights")
-    return None
-
-
 def inference_settings(args: argparse.Namespace) -> dict:
     """The inference options the command line sets: --config and --set (checked: one line naming
     the file or item and section.key), then the flags that name an option (--height,
@@ -310,20 +278,15 @@ def inference_settings(args: argparse.Namespace) -> dict:
 
 
 def _predictors(args: argparse.Namespace) -> list:
-    """The predictors of --weights, or the pretrained start's of a new object's --mesh
-    (:func:`_new_objects`; their descriptions printed)."""
-    from dope_hope.inference.model_set import build_predictors
+    """The predictors of --weights (the demo model by default), or the pretrained start's of
+    each new object's --mesh (:func:`dope_hope.inference.model_choice.build_run_predictors`)."""
+    from dope_hope.inference.model_choice import ModelChoice, build_run_predictors
 
-    meshes = _new_objects(args)
-    if meshes is not None:
-        from dope_hope.inference.model_set import build_start_predictors
-
-        return build_start_predictors(meshes, up_axes=args.up_axis, mesh_units=args.mesh_units, start=args.start,
-                                      device=args.device, threads=args.threads, options=inference_settings(args),
-                                      classes=args.classes, note=_note)
-    return build_predictors(_resolve_weights(args), args.mesh or [], mesh_units=args.mesh_units,
-                            backend=args.backend, device=args.device, threads=args.threads,
-                            options=inference_settings(args), classes=args.classes, note=_note)
+    choice = ModelChoice(weights=tuple(args.weights or ()), meshes=tuple(args.mesh or ()), mesh_units=args.mesh_units,
+                         up_axes=args.up_axis, start=args.start,
+                         classes=None if args.classes is None else tuple(args.classes), backend=args.backend,
+                         device=args.device, threads=args.threads)
+    return build_run_predictors(choice, inference_settings(args), default_weights(), note=_note)
 
 
 # ----------------------------------------------------------------------------- run

@@ -22,7 +22,7 @@ import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from dope_hope.catalog import get_object
+from dope_hope.catalog import get_object, object_names
 from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
 
 _BOP_NAME = re.compile(r"obj_?(\d+)")
@@ -264,3 +264,25 @@ def objects_in_folder(models_dir: str | os.PathLike) -> list[str]:
         raise InputFileError(folder, "no mesh in this models folder (looked for obj_NNNNNN.ply, "
                                      "<Name>.obj|ply and <Name>/*.obj|ply)")
     return sorted(names, key=str.lower)
+
+
+def named_object_values(values: Sequence[str], flag: str, accepted: tuple[str, ...]) -> str | dict[str, str] | None:
+    """``flag [NAME=]VALUE`` values -> one VALUE for every object, or {object: VALUE} ("" =
+    the others; a catalog NAME in its catalog spelling); None: none given. VALUE is one of
+    ``accepted``.
+
+    Raises:
+        ConfigError: a VALUE not accepted, or two values for the same object (or for all).
+    """
+    given: dict[str, str] = {}
+    for text in values:
+        name, _, value = text.rpartition("=")
+        if value not in accepted:
+            raise ConfigError(f"{flag} {text}: must be one of {', '.join(accepted)}")
+        key = object_names([name])[0] if name and name.lower() != "all" else ""
+        if key in given:
+            raise ConfigError(f"{flag} {text}: {'every object' if not key else key} already has one")
+        given[key] = value
+    if not given:
+        return None
+    return given[""] if list(given) == [""] else given

@@ -207,6 +207,21 @@ class PoseMessages:
         return self.T["sensor_msgs/msg/CompressedImage"](header=header, format=fmt,
                                                          data=np.frombuffer(data, dtype=np.uint8))
 
+    def header(self, stamp_ns: int, frame_id: str):
+        """A std_msgs/Header on ``stamp_ns`` (ns) in ``frame_id``."""
+        return self._header(stamp_ns, frame_id)
+
+    def pose_stamped(self, header, obj: PosedObject):
+        """geometry_msgs/PoseStamped of one object's pose (as the official DOPE node's pose_CLASS)."""
+        return self.T["geometry_msgs/msg/PoseStamped"](header=header, pose=self._pose(obj.R, obj.t))
+
+    def image(self, header, rgb: np.ndarray):
+        """sensor_msgs/Image rgb8 of an (H, W, 3) uint8 RGB image."""
+        rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
+        h, w = rgb.shape[:2]
+        return self.T["sensor_msgs/msg/Image"](header=header, height=h, width=w, encoding="rgb8", is_bigendian=0,
+                                               step=w * 3, data=rgb.reshape(-1))
+
     def frame(self, stamp_ns: int, frame_id: str, objects: Sequence[PosedObject], K: np.ndarray,
               overlay_jpeg: bytes | None = None) -> list[tuple[str, Any]]:
         """(topic, message) of one frame, every topic of :data:`TOPICS` (the overlay only when
