@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dope_hope.adapt.labelling import LabelledFrame, PoseLabel
+from dope_hope.adaptation.labelling import LabelledFrame, PoseLabel
 from dope_hope.annotation import FrameAnnotation, ObjectAnnotation
 from dope_hope.io.atomic import atomic_write_text
 from dope_hope.io.dope_json import write_dope_json

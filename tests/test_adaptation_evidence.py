@@ -1,4 +1,4 @@
-"""The depth's verdict on a pose (dope_hope.adapt.evidence): the true pose of a box in front of a
+"""The depth's verdict on a pose (dope_hope.adaptation.evidence): the true pose of a box in front of a
 table is kept; the same pose 3 cm farther, 3 cm to the side, or against a depth that disagrees
 is rejected, each for its own reason."""
 from __future__ import annotations
@@ -8,8 +8,8 @@ import pytest
 from box_depth import box_surface_points, render_box_depth
 from scipy.spatial.transform import Rotation
 
-from dope_hope.adapt.evidence import pose_evidence, rejection
-from dope_hope.adapt.settings import AdaptConfig, LabelSettings
+from dope_hope.adaptation.evidence import pose_evidence, rejection
+from dope_hope.adaptation.settings import AdaptConfig, LabelSettings
 from dope_hope.config import load_settings
 from dope_hope.errors import ConfigError
 from dope_hope.refine.depth import DepthImage

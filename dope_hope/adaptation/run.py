@@ -4,12 +4,12 @@ unlabelled RGB-D frames, with the depth as the teacher.
 The loop, in ``out/`` (each step resumes where it stopped; the same command continues):
 
 1. ``frames/``: the unlabelled frames, read once from the recording / video / folder
-   (:mod:`dope_hope.adapt.frames`; at most ``max_frames``).
+   (:mod:`dope_hope.adaptation.frames`; at most ``max_frames``).
 2. For each round r (``finetune.rounds``): ``round_r/labels/`` (the model of the round before,
-   round 1 the given weights, labels the frames: :mod:`dope_hope.adapt.labelling`, written by
-   :mod:`dope_hope.adapt.label_set`; ``preview_round_r.png`` with ``preview``), ``round_r/mix/``
-   (synthetic frames, :func:`dope_hope.adapt.finetune.synthetic_mix`), ``round_r/train/`` (the
-   fine-tuning, :func:`dope_hope.adapt.finetune.finetune_round`, the time budget shared by the
+   round 1 the given weights, labels the frames: :mod:`dope_hope.adaptation.labelling`, written by
+   :mod:`dope_hope.adaptation.label_set`; ``preview_round_r.png`` with ``preview``), ``round_r/mix/``
+   (synthetic frames, :func:`dope_hope.adaptation.finetune.synthetic_mix`), ``round_r/train/`` (the
+   fine-tuning, :func:`dope_hope.adaptation.finetune.finetune_round`, the time budget shared by the
    rounds).
 3. ``adapted.pt``: the last round's model, recording what it adapted on (``adapted``).
 
@@ -27,11 +27,11 @@ from typing import Any
 
 from tqdm import tqdm
 
-from dope_hope.adapt.finetune import FINISHED, finetune_round, record_adaptation, synthetic_mix
-from dope_hope.adapt.frames import open_unlabelled
-from dope_hope.adapt.label_set import FrameStore, LabelCounts, write_label_set
-from dope_hope.adapt.labelling import DepthLabeller
-from dope_hope.adapt.settings import AdaptConfig
+from dope_hope.adaptation.finetune import FINISHED, finetune_round, record_adaptation, synthetic_mix
+from dope_hope.adaptation.frames import open_unlabelled
+from dope_hope.adaptation.label_set import FrameStore, LabelCounts, write_label_set
+from dope_hope.adaptation.labelling import DepthLabeller
+from dope_hope.adaptation.settings import AdaptConfig
 from dope_hope.errors import ConfigError, DopeHopeError, InputFileError
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.io.camera import ImageCamera

@@ -5,7 +5,7 @@ Two passes over a sequence of frames (:class:`~dope_hope.io.streams.Frame`, in r
 1. **Detected labels** (:meth:`DepthLabeller.label_frame`): the model runs on each frame with
    its depth (the predictor's own stages: several working sizes, -LS, ICP; the settings'
    ``infer`` section) and each pose is kept only where the depth confirms it
-   (:func:`dope_hope.adapt.evidence.pose_evidence`); rejected poses are kept too, with the
+   (:func:`dope_hope.adaptation.evidence.pose_evidence`); rejected poses are kept too, with the
    reason, for the preview and the counts.
 2. **Carried labels** (:meth:`DepthLabeller.carry`): the frames are played forward, then
    backward, through the stream tracker (:class:`~dope_hope.inference.tracking.PoseTracker`,
@@ -24,8 +24,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from dope_hope.adapt.evidence import LabelEvidence, pose_evidence
-from dope_hope.adapt.settings import AdaptConfig
+from dope_hope.adaptation.evidence import LabelEvidence, pose_evidence
+from dope_hope.adaptation.settings import AdaptConfig
 from dope_hope.geometry import project_points, projected_bbox
 from dope_hope.inference.detection import Detection
 from dope_hope.inference.predictor import DopePredictor
@@ -86,7 +86,7 @@ class DepthLabeller:
 
     Args:
         predictor: the model with its inference options (``infer`` of the settings).
-        settings: the whole :class:`~dope_hope.adapt.settings.AdaptConfig` (``labels``, ``carry``).
+        settings: the whole :class:`~dope_hope.adaptation.settings.AdaptConfig` (``labels``, ``carry``).
     """
 
     def __init__(self, predictor: DopePredictor, settings: AdaptConfig):

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from dope_hope.adapt.settings import FineTuneSettings
+from dope_hope.adaptation.settings import FineTuneSettings
 from dope_hope.errors import ConfigError
 from dope_hope.io.atomic import atomic_write_stream, atomic_write_text
 from dope_hope.io.dope_json import list_dope_frames

@@ -16,7 +16,7 @@ of the label's evidence (:class:`LabelEvidence`):
   depth support on a flat face but its outline leaves the object's depth edges;
 
 plus the detection's score. :func:`rejection` is the one rule that turns them into kept or
-rejected (with the reason), by :class:`~dope_hope.adapt.settings.LabelSettings`.
+rejected (with the reason), by :class:`~dope_hope.adaptation.settings.LabelSettings`.
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
-from dope_hope.adapt.settings import LabelSettings
+from dope_hope.adaptation.settings import LabelSettings
 from dope_hope.refine.depth import DepthImage
 from dope_hope.refine.icp import depth_support, silhouette_mask
 from dope_hope.refine.line_search import auto_splat_px, visible_points

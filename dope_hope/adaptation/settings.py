@@ -30,7 +30,7 @@ ADAPT_SCALES: tuple[float, ...] = (1.0, 0.75, 1.33)
 
 @dataclass(frozen=True)
 class LabelSettings(SectionSettings):
-    """When the depth confirms a pose (:func:`dope_hope.adapt.evidence.pose_evidence`).
+    """When the depth confirms a pose (:func:`dope_hope.adaptation.evidence.pose_evidence`).
 
     min_score: least detection score of a label (a carried label: its track's last score).
     min_support: least share of the pose's visible, unoccluded surface that the depth
