@@ -20,7 +20,7 @@ Two passes over a sequence of frames (:class:`~dope_hope.io.streams.Frame`, in r
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -50,6 +50,23 @@ class PoseLabel:
     evidence: LabelEvidence
     detection: Detection | None = None
 
+    def to_record(self) -> dict:
+        """The label at full precision (the first pass's log, :meth:`from_record`)."""
+        return {"class": self.class_name, "R": np.asarray(self.R, np.float64).tolist(),
+                "t": np.asarray(self.t, np.float64).tolist(),
+                "projected_2d": np.asarray(self.projected_2d, np.float64).tolist(),
+                "bbox_2d": None if self.bbox_2d is None else np.asarray(self.bbox_2d, np.float64).tolist(),
+                "evidence": {k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+                             for k, v in asdict(self.evidence).items()}}
+
+    @classmethod
+    def from_record(cls, rec: dict) -> PoseLabel:
+        """A label read back from :meth:`to_record` (without its detection)."""
+        ev = LabelEvidence(**{k: (float("nan") if v is None and k in ("residual_m", "edge", "icp_fit") else v)
+                              for k, v in rec["evidence"].items()})
+        return cls(rec["class"], np.array(rec["R"]), np.array(rec["t"]), np.array(rec["projected_2d"]),
+                   None if rec["bbox_2d"] is None else np.array(rec["bbox_2d"]), ev)
+
     def to_json(self) -> dict:
         """The label's record: class, pose (metres), projected cuboid, and its evidence."""
         return {"class": self.class_name, "R": np.asarray(self.R, np.float64).round(6).tolist(),
@@ -70,6 +87,17 @@ class LabelledFrame:
     hw: tuple[int, int]
     kept: list[PoseLabel] = field(default_factory=list)
     rejected: list[PoseLabel] = field(default_factory=list)
+
+    def to_record(self) -> dict:
+        """The frame's labels at full precision (the first pass's log)."""
+        return {"index": self.index, "name": self.name, "K": np.asarray(self.K).tolist(), "hw": list(self.hw),
+                "kept": [lab.to_record() for lab in self.kept], "rejected": [lab.to_record() for lab in self.rejected]}
+
+    @classmethod
+    def from_record(cls, rec: dict) -> LabelledFrame:
+        """A frame's labels read back from :meth:`to_record`."""
+        return cls(rec["index"], rec["name"], np.array(rec["K"]), tuple(rec["hw"]),
+                   [PoseLabel.from_record(r) for r in rec["kept"]], [PoseLabel.from_record(r) for r in rec["rejected"]])
 
     @property
     def detected(self) -> bool:

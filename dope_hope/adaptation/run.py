@@ -6,7 +6,8 @@ The loop, in ``out/`` (each step resumes where it stopped; the same command cont
 1. ``frames/``: the unlabelled frames, read once from the recording / video / folder
    (:mod:`dope_hope.adaptation.frames`; at most ``max_frames``).
 2. For each round r (``finetune.rounds``): ``round_r/labels/`` (the model of the round before,
-   round 1 the given weights, labels the frames: :mod:`dope_hope.adaptation.labelling`, written by
+   round 1 the given weights, labels the frames: :mod:`dope_hope.adaptation.labelling`, its
+   first pass logged frame by frame in ``round_r/detected.jsonl``, written by
    :mod:`dope_hope.adaptation.label_set`; ``preview_round_r.png`` with ``preview``), ``round_r/mix/``
    (synthetic frames, :func:`dope_hope.adaptation.finetune.synthetic_mix`), ``round_r/train/`` (the
    fine-tuning, :func:`dope_hope.adaptation.finetune.finetune_round`, the time budget shared by the
@@ -30,10 +31,11 @@ from tqdm import tqdm
 from dope_hope.adaptation.finetune import FINISHED, finetune_round, record_adaptation, synthetic_mix
 from dope_hope.adaptation.frames import open_unlabelled
 from dope_hope.adaptation.label_set import FrameStore, LabelCounts, write_label_set
-from dope_hope.adaptation.labelling import DepthLabeller
+from dope_hope.adaptation.labelling import DepthLabeller, LabelledFrame
 from dope_hope.adaptation.settings import AdaptConfig
 from dope_hope.errors import ConfigError, DopeHopeError, InputFileError
 from dope_hope.inference.predictor import DopePredictor
+from dope_hope.io.atomic import atomic_write_text
 from dope_hope.io.camera import ImageCamera
 from dope_hope.io.dope_json import list_dope_frames
 from dope_hope.io.paths import output_dir, require_file
@@ -88,11 +90,34 @@ def _read_frames(source, store: FrameStore, max_frames: int | None, progress: bo
     store.finish(source.name)
 
 
+def _detected_labels(store: FrameStore, labeller: DepthLabeller, log: Path, progress: bool) -> list[LabelledFrame]:
+    """The first pass (detected labels) of every frame, logged a line per frame to ``log``:
+    an interrupted pass goes on after the frames it logged (a cut last line is done again),
+    and the labels are always read back from the log, so a resumed round is the one that ran
+    through."""
+    done: list[str] = []
+    if log.is_file():
+        for line in log.read_text().splitlines():
+            try:
+                if json.loads(line)["index"] != len(done):
+                    break
+            except (ValueError, KeyError):
+                break
+            done.append(line)
+        atomic_write_text(log, "".join(line + "\n" for line in done))
+    with open(log, "a") as f:
+        for i in tqdm(range(len(done), len(store)), desc=f"labels {log.parent.name}", unit="frame",
+                      initial=len(done), total=len(store), disable=not progress):
+            f.write(json.dumps(labeller.label_frame(store.frame(i)).to_record()) + "\n")
+            f.flush()
+    return [LabelledFrame.from_record(json.loads(line)) for line in log.read_text().splitlines()]
+
+
 def _label_round(store: FrameStore, predictor: DopePredictor, cfg: AdaptConfig, folder: Path,
                  preview: Path | None, extra: dict, progress: bool) -> LabelCounts:
     labeller = DepthLabeller(predictor, cfg)
-    frames = [labeller.label_frame(store.frame(i))
-              for i in tqdm(range(len(store)), desc=f"labels {folder.parent.name}", unit="frame", disable=not progress)]
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    frames = _detected_labels(store, labeller, folder.parent / "detected.jsonl", progress)
     labeller.carry(frames, store.depth)
     cuboids = {o.class_name: (o.cuboid_size_m, o.cuboid_center_m) for o in predictor.objects}
     return write_label_set(store, folder, frames, cuboids, extra, preview)
