@@ -22,10 +22,16 @@ test frames) before and after. Targets (issue): -LS 2 cm >= 1.3x, no detection <
     python bench/adapt_shift.py --out /tmp/adapt_shift                 # the e2e Ketchup model
     python bench/adapt_shift.py --quick --out /tmp/adapt_shift_quick   # minutes, end to end
 
-Every stage keeps its result in --out and a rerun skips it (the same settings). --quick: the
-shipped demo model on the demo box (its mesh and a few synthetic frames made here), one short
-adaptation and one short test sequence at 320x240, one round of two steps: it checks that the
-pipeline runs, its figures mean nothing.
+Every stage keeps its result in --out and a rerun skips it (the same settings). --demo: the
+shipped demo model on the demo box instead (its mesh, and --synthetic-frames frames of the demo
+config to mix in and as many held out, made here; the demo model trained on grace_hopper.jpg
+among its photographs: give it --adapt-photo ../shared/data/backgrounds/messy_office.png, which it
+never saw). --quick: --demo with one short adaptation and one short test sequence at 320x240, one
+round of two steps: it checks that the pipeline runs, its figures mean nothing.
+
+    python bench/adapt_shift.py --demo --adapt-photo ../shared/data/backgrounds/messy_office.png \
+        --adapt-sequences 5 --test-sequences 3 --frames 20 --synthetic-frames 60 --rounds 1 \
+        --time-budget 6 --out /tmp/adapt_shift_demo
 """
 from __future__ import annotations
 
@@ -86,24 +92,32 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--set", nargs="+", default=[], dest="overrides", metavar="SECTION.KEY=VALUE",
                    help="adapt settings on top")
+    p.add_argument("--adapt-photo", type=Path, default=PHOTOS / "grace_hopper.jpg",
+                   help="backdrop of the adaptation sequences")
+    p.add_argument("--test-photo", type=Path, default=PHOTOS / "Minduka_Present_Blue_Pack.png",
+                   help="backdrop of the test sequences")
+    p.add_argument("--demo", action="store_true",
+                   help="the shipped demo model on the demo box, its synthetic frames made here (demo config)")
     p.add_argument("--quick", action="store_true", help="minutes, end to end (module docstring)")
     args = p.parse_args(argv)
     if args.quick:
         args.adapt_sequences, args.test_sequences, args.frames, args.synthetic_frames = 1, 1, 6, 4
-        args.size, args.rounds = "320x240", 1
+        args.size, args.rounds, args.demo = "320x240", 1, True
     return args
 
 
-def quick_model(out: Path) -> tuple[Path, Path, Path]:
-    """The shipped demo model, the demo box's mesh and six synthetic demo frames (--quick)."""
+def demo_model(out: Path, count: int, size: tuple[int, int]) -> tuple[Path, Path, Path, Path]:
+    """The shipped demo model, the demo box's mesh and ``count`` synthetic frames of the demo
+    config to mix in and as many held out (other seed): (weights, mesh, mix, held-out)."""
     mesh = write_demo_object(out / "mesh")
-    synth = out / "synthetic"
-    if len(list_dope_frames(synth) if synth.is_dir() else []) < 6:
-        with FrameGenerator(mesh, size=(320, 240), config=DEMO_CONFIG, class_name=DEMO_CLASS_NAME,
-                            depth_noise=True, seed=5) as gen:
-            for i in range(6):
-                gen.write_frame(synth, i)
-    return DEMO_WEIGHTS, mesh, synth
+    folders = (out / "synthetic", out / "synthetic_test")
+    for folder, seed in zip(folders, (5, 6)):
+        if len(list_dope_frames(folder) if folder.is_dir() else []) < count:
+            with FrameGenerator(mesh, size=size, config=DEMO_CONFIG, class_name=DEMO_CLASS_NAME,
+                                depth_noise=True, seed=seed) as gen:
+                for i in range(count):
+                    gen.write_frame(folder, i)
+    return DEMO_WEIGHTS, mesh, folders[0], folders[1]
 
 
 def render_sequences(folder: Path, mesh: Path, class_name: str, photo: Path, count: int, frames: int,
@@ -197,9 +211,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
-    if args.quick:
-        weights, mesh, synth = quick_model(out)
-        class_name, synth_test = "DemoBox", synth
+    if args.demo:
+        weights, mesh, synth, synth_test = demo_model(out, args.synthetic_frames,
+                                                      (320, 240) if args.quick else (640, 480))
+        class_name = DEMO_CLASS_NAME
     else:
         weights = args.weights or next(p for p in (E2E / "run" / "best.pt", E2E / "run" / "last.pt") if p.is_file())
         mesh, synth = args.mesh or SHARED_KETCHUP, args.synthetic or E2E / "train"
@@ -211,9 +226,9 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"{out}: another bench's folder (differs in {', '.join(changed)}); give a new --out")
     shift = SHIFT if not args.quick else {**SHIFT, "target": {**SHIFT["target"], "distance_m": [0.3, 0.4]}}
     print(f"adapt shift bench: {class_name}, {weights}; {cpu_line()}; {os.cpu_count()} CPU(s)", flush=True)
-    adapt_seqs = render_sequences(out / "domain" / "adapt", mesh, class_name, PHOTOS / "grace_hopper.jpg",
+    adapt_seqs = render_sequences(out / "domain" / "adapt", mesh, class_name, args.adapt_photo,
                                   args.adapt_sequences, args.frames, args.size, 501, shift)
-    test_seqs = render_sequences(out / "domain" / "test", mesh, class_name, PHOTOS / "Minduka_Present_Blue_Pack.png",
+    test_seqs = render_sequences(out / "domain" / "test", mesh, class_name, args.test_photo,
                                  args.test_sequences, args.frames, args.size, 901, shift)
     test_frames = [p for s in test_seqs for p in list_dope_frames(s)]
     synth_frames = list_dope_frames(synth_test)[: args.synthetic_frames]
