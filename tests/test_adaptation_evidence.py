@@ -38,7 +38,7 @@ def test_the_true_pose_is_kept():
 def test_a_pose_3cm_farther_is_rejected_by_its_depth_support():
     t = T * (1 + 0.03 / np.linalg.norm(T))
     ev = pose_evidence(R, t, POINTS, scene_depth(), 0.9, LabelSettings())
-    assert not ev.kept and ("labels.min_support" in ev.reason or "labels.min_pixels" in ev.reason)
+    assert not ev.kept and ("labels.min_support" in ev.reason or "labels.min_points" in ev.reason)
 
 
 def test_a_pose_3cm_to_the_side_is_rejected():
@@ -53,7 +53,7 @@ def test_a_depth_that_disagrees_rejects_the_true_pose():
     assert not ev.kept and "labels.min_support" in ev.reason and ev.residual_m > 0.2
     board = DepthImage.from_raw(np.full(HW, 0.3, np.float32), K)  # a board in front hides it all
     ev = pose_evidence(R, T, POINTS, board, 0.9, LabelSettings())
-    assert not ev.kept and "labels.min_pixels" in ev.reason
+    assert not ev.kept and "labels.min_points" in ev.reason
 
 
 def test_a_low_score_is_rejected_whatever_the_depth():

@@ -105,8 +105,8 @@ def pose_evidence(R: np.ndarray, t: np.ndarray, model_points: np.ndarray, depth:
 def rejection(ev: LabelEvidence, settings: LabelSettings) -> str | None:
     """Why the depth does not confirm a pose of evidence ``ev`` (None: it does): the first of
     too few points, score, support, residual and edge below (above) its setting."""
-    if ev.points < settings.min_pixels:
-        return f"{ev.points} visible surface points (< labels.min_pixels {settings.min_pixels})"
+    if ev.points < settings.min_points:
+        return f"{ev.points} visible surface points (< labels.min_points {settings.min_points})"
     if ev.score < settings.min_score:
         return f"score {ev.score:.2f} < labels.min_score {settings.min_score:g}"
     if ev.support < settings.min_support:

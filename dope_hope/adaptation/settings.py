@@ -37,14 +37,14 @@ class LabelSettings(SectionSettings):
     confirms within ``tolerance_m``. max_residual_m: largest median |depth - surface| over
     those points, metres. min_edge: least share of the pose's silhouette outline that lies
     on a depth edge within ``edge_px``. edge_jump: relative depth jump that makes an edge.
-    tolerance_m: depth agreement of a supported point, metres. min_pixels: fewest visible
-    surface pixels a label needs (smaller: too little evidence).
+    tolerance_m: depth agreement of a supported point, metres. min_points: fewest visible
+    unoccluded surface points (of the predictor's ls_points samples) a label needs (smaller: too little evidence).
     """
 
     SECTION = "labels"
     RULES = {"min_score": finite_float, "min_support": fraction, "max_residual_m": positive_float,
              "min_edge": fraction, "edge_px": at_least(0), "edge_jump": positive_float,
-             "tolerance_m": positive_float, "min_pixels": at_least(1)}
+             "tolerance_m": positive_float, "min_points": at_least(1)}
 
     min_score: float = 0.3
     min_support: float = 0.6
@@ -53,7 +53,7 @@ class LabelSettings(SectionSettings):
     edge_px: int = 3
     edge_jump: float = 0.03
     tolerance_m: float = 0.01
-    min_pixels: int = 30
+    min_points: int = 30
 
 
 @dataclass(frozen=True)
