@@ -10,6 +10,8 @@ stays light (no torch, no OpenGL)::
                                                              # pretrained start on its cuboid
     model = dope_hope.build_model("lite")                   # a fresh lite network (packaged config)
     ketchup = dope_hope.get_object("Ketchup")                # catalog entry (size in metres)
+    dope_hope.adapt(["lab.mcap"], "model.pt", "ketchup.obj", "adapt_out")  # a model taught by its
+                                                             # own depth-confirmed labels
 
 Units are metres everywhere inside the package; see docs/ARCHITECTURE.md for the conventions
 (camera, pose, cuboid keypoint order, file formats).
@@ -32,12 +34,14 @@ _LAZY = {
     "build_model": "dope_hope.model.network",
     "get_object": "dope_hope.catalog",
     "HOPE_OBJECTS": "dope_hope.catalog",
+    "adapt": "dope_hope.adaptation.run",
 }
 
 __all__ = ["DopeHopeError", "Detection", "DopePredictor", "HOPE_OBJECTS", "MeshStartPredictor", "__version__",
-           "build_model", "get_object", "load_model", "predict_many"]
+           "adapt", "build_model", "get_object", "load_model", "predict_many"]
 
 if TYPE_CHECKING:
+    from dope_hope.adaptation.run import adapt
     from dope_hope.catalog import HOPE_OBJECTS, get_object
     from dope_hope.inference.detection import Detection
     from dope_hope.inference.mesh_start import MeshStartPredictor

@@ -30,6 +30,7 @@ COMMANDS: tuple[tuple[str, str, str], ...] = (
     ("infer", "infer", "detect objects and estimate 6-DoF poses in images (JSON lines + overlays)"),
     ("synth", "synth", "generate domain-randomized synthetic frames (DOPE format)"),
     ("evaluate", "evaluate", "evaluate pose predictions: HOPE tables, curves, BOP19 AR"),
+    ("adapt", "adapt", "teach a model the lab's domain from unlabelled RGB-D recordings, with depth as the teacher"),
     ("calibrate", "calibrate", "choose each object's score threshold on labelled frames and record it with the weights"),
     ("export", "export", "export a checkpoint to ONNX (native or Isaac ROS layout, fp32 or INT8)"),
     ("demo", "demo", "run the shipped demo model on freshly rendered scenes (PyTorch + ONNX, -LS, errors)"),

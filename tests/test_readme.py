@@ -9,6 +9,8 @@ dropped) and its commands run in README order in a sandbox folder, shrunk for sp
 * ``torchrun``: ``--nproc_per_node 1`` plus the train shrinking, as a subprocess
   (tests/test_training_trainer.py runs two processes);
 * ``dope-hope infer ... --max-frames N``: ``--max-frames 6``;
+* ``dope-hope adapt``: ``--max-frames 3 --set finetune.steps=1 finetune.rounds=1
+  infer.multiscale.scales=[1]``;
 * every other command exactly as written. ``dope-hope`` commands run in-process (cli.main).
 
 The sandbox holds what a user downloads: ``hope/meshes/full/Ketchup/`` (links to the shared
@@ -22,6 +24,11 @@ has it, else a checkpoint fitted in seconds (tests/fitted_model.py).
 The recording section runs in its own sandbox too (:func:`test_recording_section`):
 ``robot.bag`` (ROS 1) and ``robot_ros2/`` (ROS 2, MCAP storage, JPEG CompressedImage) of
 rendered demo scenes, written by rosbags' writers (tests/ros_recordings.py).
+
+The adapt section runs in its own sandbox too (:func:`test_adapt_section`): ``lab/`` (a ROS 2
+bag, MCAP storage) of rendered demo scenes, the shipped demo model as ``runs/ketchup/best.pt``,
+the demo box's mesh as ``hope/meshes/full/Ketchup/textured.obj`` and three synthetic frames of
+it as ``data/ketchup``.
 
 The video section runs in its own sandbox (:func:`test_video_section`): ``clip.mp4`` and
 ``camera_info.yaml`` of rendered demo scenes, camera 0 an OpenCV capture of that clip, and
@@ -56,11 +63,12 @@ TINY = {"model": {"arch": "lite", "head": 50, "stages": 1,
 TASKS = ["See it work: `dope-hope demo`", "Generate training data for a HOPE object", "Train on your own mesh",
          "Many objects in one network", "Infer on a RealSense image with depth", "Pose a new object with no training",
          "Infer on a video, a webcam or a live RealSense", "Infer on a robot recording, view it in Foxglove",
-         "Use NVIDIA's published DOPE weights for the HOPE objects",
+         "Teach a model your lab: record, adapt, infer", "Use NVIDIA's published DOPE weights for the HOPE objects",
          "Export to ONNX for CPU inference or Isaac ROS", "Evaluate, and submit to the BOP challenge",
          "Train on many GPUs with torchrun"]
 VIDEO_TASK = "Infer on a video, a webcam or a live RealSense"
 RECORDING_TASK = "Infer on a robot recording, view it in Foxglove"
+ADAPT_TASK = "Teach a model your lab: record, adapt, infer"
 
 
 # ----------------------------------------------------------------------------- parsing
@@ -123,6 +131,9 @@ def shrink(argv: list[str]) -> list[str]:
         args = _set(args, "--calibration-images", "2")
     elif sub == "infer" and "--max-frames" in args:
         args = _set(args, "--max-frames", "6")
+    elif sub == "adapt":
+        args = _set(args, "--max-frames", "3") + ["--set", "finetune.steps=1", "finetune.rounds=1",
+                                                   "infer.multiscale.scales=[1]"]
     return [prog, *args]
 
 
@@ -239,7 +250,7 @@ def sandbox(shared_data, tmp_path, monkeypatch) -> Path:
 
 
 def test_task_sections_run_in_order(sandbox):
-    for _heading, cmds in [b for b in readme_blocks()[1:] if b[0] not in (VIDEO_TASK, RECORDING_TASK)]:
+    for _heading, cmds in [b for b in readme_blocks()[1:] if b[0] not in (VIDEO_TASK, RECORDING_TASK, ADAPT_TASK)]:
         for argv in cmds:
             run_command(shrink(argv), sandbox)
     # What each section promises a user, checked on the files it left.
@@ -355,3 +366,43 @@ def test_recording_section(tmp_path, monkeypatch):
         assert records and all({"stamp_ns", "frame_id"} <= set(r) for r in records)
         assert (work / "res" / res / f"{name}_poses" / f"{name}_poses.mcap").is_file()
     assert all("track_id" in json.loads(line) for line in (work / "res" / "robot" / "predictions.jsonl").open())
+
+
+def test_adapt_section(tmp_path, monkeypatch):
+    """The record, adapt, infer block on a recording of rendered demo scenes (module docstring)."""
+    import shutil
+
+    from fitted_model import fit_demo_checkpoint
+    from ros_recordings import write_recording
+
+    from dope_hope.assets import DEMO_WEIGHTS
+    from dope_hope.demo_object import DEMO_CLASS_NAME, write_demo_object
+
+    work = tmp_path / "work"
+    mesh = write_demo_object(work / "hope" / "meshes" / "full" / "Ketchup")
+    for f in list(mesh.parent.iterdir()):  # the demo box under the block's mesh path
+        if f.suffix == ".obj":
+            f.rename(f.with_name("textured.obj"))
+    (work / "runs" / "ketchup").mkdir(parents=True)
+    weights = DEMO_WEIGHTS if DEMO_WEIGHTS.is_file() else fit_demo_checkpoint(tmp_path / "fit" / "demo.pt", seed=7)
+    shutil.copy(weights, work / "runs" / "ketchup" / "best.pt")
+    import dope_hope.model  # noqa: F401 - torchvision before the GL context
+    from dope_hope.synth import FrameGenerator
+    from dope_hope.synth.settings import PLAIN_OVERRIDES
+
+    still = {**PLAIN_OVERRIDES, "camera": {"focal_jitter": 0.0, "aspect_jitter": 0.0, "principal_jitter_px": 0.0}}
+    with FrameGenerator(work / "hope" / "meshes" / "full" / "Ketchup" / "textured.obj", size=(320, 240),
+                        config={**still, "target": {"count": [1, 1], "distance_m": [0.4, 0.5], "truncation_prob": 0.0}},
+                        class_name=DEMO_CLASS_NAME, depth_noise=True, seed=11) as gen:
+        rendered = [gen.render_frame(i) for i in range(3)]
+        for i in range(3):
+            gen.write_frame(work / "data" / "ketchup", 10 + i)
+    write_recording(work / "lab", "ros2-mcap", [(f.rgb, f.depth) for f in rendered], rendered[0].annotation.K)
+    monkeypatch.chdir(work)
+    (heading, cmds), = [b for b in readme_blocks() if b[0] == ADAPT_TASK]
+    outputs = [run_command(shrink(argv), work) for argv in cmds]
+    assert "adapted model:" in outputs[0]
+    adapted = load_checkpoint(work / "adapt" / "ketchup" / "adapted.pt")
+    assert adapted["adapted"]["frame_count"] == 3 and adapted["adapted"]["rounds"][0]["counts"]["labelled_frames"] >= 1
+    assert (work / "adapt" / "ketchup" / "preview_round_1.png").is_file()
+    assert (work / "res" / "lab" / "predictions.jsonl").is_file()

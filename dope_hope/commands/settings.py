@@ -10,7 +10,8 @@ Examples:
 Commands with settings: synth (the generator's ranges, dope_hope/configs/synth.yaml), train
 (a training recipe: model, input, targets, train, augment; default config lite), infer, demo and
 bop-submit (the inference options: top-level keys and one section per stage,
-dope_hope/configs/infer.yaml), export (the export section). Each of them takes the same
+dope_hope/configs/infer.yaml), export (the export section), adapt (labels, carry, finetune and
+the labelling's inference options, infer). Each of them takes the same
 --config FILE and --set SECTION.KEY=VALUE; a --config file holds only what it changes. For
 infer, a model whose file records its own threshold uses it as min_score unless --config or
 --set gives one.
@@ -31,6 +32,7 @@ SETTINGS_OF: dict[str, tuple[str, str, str | None]] = {
     "demo": ("dope_hope.inference.options", "InferenceOptions", None),
     "bop-submit": ("dope_hope.inference.options", "InferenceOptions", None),
     "export": ("dope_hope.export.to_onnx", "ExportConfig", None),
+    "adapt": ("dope_hope.adaptation.settings", "AdaptConfig", None),
 }
 
 
@@ -45,7 +47,8 @@ def add_settings_arguments(parser: argparse.ArgumentParser, command: str, config
                         help="settings on top of --config, values as YAML, e.g. "
                              + {"synth": "--set target.count=[1,1] lights.shadows=true",
                                 "train": "--set train.lr=1e-3 augment.rotation_deg=30",
-                                "export": "--set export.opset=18"}.get(command, "--set tracking.reprojection_px=2.0 "
+                                "export": "--set export.opset=18",
+                                "adapt": "--set finetune.rounds=3 labels.min_support=0.7"}.get(command, "--set tracking.reprojection_px=2.0 "
                                                                                  "decode.threshold=0.2"))
 
 

@@ -1,0 +1,61 @@
+"""Labels of frames with known truth (dope_hope.adaptation.labelling): the model's confirmed
+detection is kept and lies on the truth; a frame whose colour shows nothing (the detector
+misses) gets the pose the tracker carries from its neighbour, re-fitted against its depth."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from adapt_frames import demo_weights, write_scene_frames
+
+from dope_hope.adaptation.labelling import DepthLabeller, frame_depth
+from dope_hope.adaptation.settings import AdaptConfig
+from dope_hope.inference.predictor import DopePredictor
+from dope_hope.io.dope_json import read_dope_json
+from dope_hope.io.images import read_depth_m, read_rgb
+from dope_hope.io.streams import Frame
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("labelling")
+    frames, mesh = write_scene_frames(tmp, count=1)
+    cfg = AdaptConfig.from_mapping({"infer": {"multiscale": {"scales": [1.0]}}})
+    predictor = DopePredictor(demo_weights(tmp), mesh=mesh, options=cfg.infer.given())
+    truth = read_dope_json(frames / "000000.json")
+    frame = Frame(0, 0.0, "000000.png", read_rgb(frames / "000000.png"), truth.K,
+                  read_depth_m(frames / "000000.depth.png"))
+    return DepthLabeller(predictor, cfg), frame, truth.objects[0]
+
+
+def test_the_confirmed_detection_is_kept_on_the_truth(scene):
+    labeller, frame, truth = scene
+    lf = labeller.label_frame(frame)
+    assert len(lf.kept) == 1 and lf.detected
+    lab = lf.kept[0]
+    assert lab.evidence.source == "detected" and lab.evidence.reason == "ok"
+    assert np.linalg.norm(lab.t - truth.t) < 0.02
+    assert lab.evidence.support >= 0.6 and lab.evidence.edge >= 0.5
+
+
+def test_a_missed_frame_gets_a_carried_label(scene):
+    labeller, frame, truth = scene
+    blind = Frame(1, 1.0, "blind.png", np.full_like(frame.rgb, 127), frame.K, frame.depth)  # the colour shows nothing
+    frames = [labeller.label_frame(frame), labeller.label_frame(blind), labeller.label_frame(frame)]
+    assert not frames[1].kept and not frames[1].detected  # the detector missed it
+    depth = frame_depth(frame)
+    assert labeller.carry(frames, lambda i: depth) == 1
+    (lab,) = frames[1].kept
+    assert lab.evidence.source == "carried" and lab.detection is None
+    assert np.linalg.norm(lab.t - truth.t) < 0.02
+    assert [len(f.kept) for f in frames] == [1, 1, 1]  # the detected frames get nothing carried
+
+
+def test_a_carried_pose_the_depth_denies_is_rejected(scene):
+    labeller, frame, _ = scene
+    wall = Frame(1, 1.0, "wall.png", np.full_like(frame.rgb, 127), frame.K,
+                 np.full(frame.depth.shape, 1.5, np.float32))  # the object is gone
+    frames = [labeller.label_frame(frame), labeller.label_frame(wall)]
+    walls = frame_depth(wall)
+    assert labeller.carry(frames, lambda i: frame_depth(frame) if i == 0 else walls) == 0
+    assert not frames[1].kept
+    assert frames[1].rejected and frames[1].rejected[0].evidence.source == "carried"
