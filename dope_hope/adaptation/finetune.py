@@ -24,12 +24,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from dope_hope.adaptation.settings import FineTuneSettings
 from dope_hope.errors import ConfigError
 from dope_hope.io.atomic import atomic_write_stream, atomic_write_text
 from dope_hope.io.dope_json import list_dope_frames
 from dope_hope.model.checkpoint import load_checkpoint
+from dope_hope.training.settings import TrainJob
+from dope_hope.training.trainer import train
 
 #: The marker of a round whose training ended (its summary), beside ``train/``.
 TRAINED_MARKER = "trained.json"
@@ -79,9 +82,6 @@ def finetune_round(start: Path, data: Sequence[Path], frames: int, out: Path, me
     Returns the round's record: ``status`` (the trainer's), ``best`` (the round's model, when
     it finished: a status of :data:`FINISHED`); a finished round is not run again (its marker
     :data:`TRAINED_MARKER` beside ``out``)."""
-    from dope_hope.training.settings import TrainJob  # torch: the training stack
-    from dope_hope.training.trainer import train
-
     marker = out.parent / TRAINED_MARKER
     if marker.is_file():
         return json.loads(marker.read_text())
@@ -118,8 +118,6 @@ def record_adaptation(src: Path, dst: Path, adapted: dict[str, Any]) -> Path:
     """Copy the checkpoint ``src`` to ``dst`` (atomically) with ``adapted``, what the model was
     adapted on (plain data: the starting model, the frames, each round's label counts, the
     synthetic share, the settings), under the checkpoint's key ``adapted``."""
-    import torch  # only for the checkpoint write
-
     ckpt = load_checkpoint(src)
     ckpt["adapted"] = json.loads(json.dumps(adapted, default=str))
     atomic_write_stream(dst, lambda f: torch.save(ckpt, f))

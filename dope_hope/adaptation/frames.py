@@ -14,6 +14,7 @@ from dope_hope.errors import CameraError, ConfigError, InputFileError
 from dope_hope.io.camera import ImageCamera, camera_search_description, find_image_camera
 from dope_hope.io.images import collect_images, read_depth_m, read_rgb
 from dope_hope.io.streams import Frame, FrameSource, Grabbed, VideoFile, stream_kind
+from dope_hope.ros.recordings import open_recording
 
 
 class DepthImageFiles(FrameSource):
@@ -96,8 +97,6 @@ def open_unlabelled(inputs: list[str], camera: ImageCamera | None = None, depth:
     if any(kinds) and len(inputs) != 1:
         raise ConfigError(f"{next(i for i, k in zip(inputs, kinds) if k)}: a recording or video must be the only input")
     if kinds[0] == "recording":
-        from dope_hope.ros.recordings import open_recording  # rosbags: the optional extra "ros"
-
         if depth is not None:
             raise ConfigError(f"--depth: the recording {inputs[0]} brings its own depth (--depth-topic)")
         return open_recording(inputs, image_topic, depth_topic, camera_info_topic, camera, icp=True, warn=warn)

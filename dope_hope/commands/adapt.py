@@ -66,7 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def _note(message: str) -> None:
+def _adapt_note(message: str) -> None:
     print(f"dope-hope adapt: {message}", file=sys.stderr, flush=True)
 
 
@@ -94,9 +94,9 @@ def run(args: argparse.Namespace) -> int:
                    settings=settings, camera=camera, depth=args.depth, depth_scale_mm=args.depth_scale,
                    image_topic=args.image_topic, depth_topic=args.depth_topic,
                    camera_info_topic=args.camera_info_topic, max_frames=args.max_frames, preview=args.preview,
-                   progress=not args.no_progress, note=_note)
+                   progress=not args.no_progress, note=_adapt_note)
     if result.weights is None:
-        _note(f"training {result.status}: run the same command again to resume")
+        _adapt_note(f"training {result.status}: run the same command again to resume")
         return {"interrupted": 130, "terminated": 143}.get(result.status, 1)
     print(f"adapted model: {result.weights}")
     return 0

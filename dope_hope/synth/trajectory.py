@@ -99,8 +99,8 @@ class TrajectoryRenderer:
         noise). Views are drawn in order; each view's post-processing and noise draw from
         streams of (seed, scene_index, view)."""
         if self._renderer is None:  # OpenGL starts with the first render
-            from dope_hope.synth.materials import MeshBuilder
-            from dope_hope.synth.render import SceneRenderer
+            from dope_hope.synth.materials import MeshBuilder  # noqa: PLC0415 (OpenGL starts with the first render)
+            from dope_hope.synth.render import SceneRenderer  # noqa: PLC0415 (OpenGL starts with the first render)
 
             W, H = self.gen.size
             self._renderer = SceneRenderer(W, H, shadows=bool(self.gen.cfg["lights"]["shadows"]))
