@@ -217,7 +217,8 @@ class TimeBudget:
         MIN_WINDOW_STEPS steps back, the first plan's figure when all are."""
         since = next((p for p in reversed(self.plan.plans) if step - int(p["step"]) >= MIN_WINDOW_STEPS), None)
         if since is None:
-            return float(self.plan.plans[0]["per_step_s"]) if self.plan.plans else float(last["per_step_s"])
+            first = self.plan.plans[0] if self.plan.plans else last
+            return max(1e-9, float(first["per_step_s"]))
         train_s = (self.used() - self.other_time()) - (float(since["used_s"]) - float(since.get("other_s", 0.0)))
         return max(1e-9, train_s / (step - int(since["step"])))
 
@@ -258,7 +259,8 @@ class TimeBudget:
                 self.val_steps.append(self.val_seconds / measured)
             if used + self.val_seconds + self._after_run_cost(self.val_seconds) >= self.plan.limit_s:
                 # the final validation (and the thresholds' choice) would not fit
-                return self.plan_now(step, "budget spent before a plan", per_step=measured or 0.0, end=step)
+                return self.plan_now(step, "budget spent before a plan", per_step=measured or 0.0, end=step,
+                                     val_measured=True)  # spent on what was measured: no estimate
             if measured is None or (window_steps < self.shape.horizon_estimate_after and not validated):
                 return None
             return self.plan_now(step, "first", per_step=measured)
@@ -276,14 +278,16 @@ class TimeBudget:
         return None
 
     def plan_now(self, step: int, why: str, per_step: float | None = None, end: int | None = None,
-                 validated: bool = False) -> int:
+                 validated: bool = False, val_measured: bool | None = None) -> int:
         """Rank 0: record a plan made after step ``step`` from ``per_step`` seconds per step
-        (default: the last plan's) or, given ``end``, the end itself; return the end step."""
+        (default: the last plan's) or, given ``end``, the end itself; return the end step.
+        ``val_measured``: whether the plan rests on measured validations (default: whether
+        this run measured one)."""
         last = self.plan.last
         per_step = float(last["per_step_s"]) if per_step is None and last is not None else float(per_step or 0.0)
         val_cost = self._val_cost(per_step)
         used = self.used()
-        measured = bool(self.val_steps)
+        measured = bool(self.val_steps) if val_measured is None else val_measured
         if end is None:
             plan = self.plan.plan(step, used, self.other_time(), per_step, val_cost, self.shape.val_every_steps,
                                   self.shape.nominal_steps, why, validated, self._after_run_cost(val_cost), measured)
