@@ -21,7 +21,7 @@ def test_quick_run_writes_the_table_and_resumes(shared_data, ketchup_obj, tmp_pa
     out = tmp_path / "e2e"
     cmd = [sys.executable, str(REPO / "bench" / "e2e_accuracy.py"), "--quick", "--out", str(out),
            "--mesh", str(ketchup_obj), "--backgrounds", str(shared_data / "backgrounds")]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=420)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     for stage in STAGES:  # each stage printed the exact command a user would type
         assert f"[{stage}] $ dope-hope " in proc.stdout
