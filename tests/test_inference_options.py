@@ -73,6 +73,7 @@ def test_presets_put_what_is_given_on_top_and_fit_the_model():
     assert o.icp is False and o.multiscale.scales == (1.0, 0.75, 1.33) and o.multiscale.duplicate_iou == 0.3
     assert "multiscale" not in preset_options("accurate", fixed_size=True)
     assert preset_options("accurate", {"multiscale": {"scales": [1.0]}}, fixed_size=True)["multiscale"] == {"scales": [1.0]}
+    assert preset_options("accurate", meshes=False)["appearance"] == {}  # no mesh: no turns to warn of
     new = preset_options("accurate", new_object=True)
     assert new == {"icp": "auto", "appearance": {}}
     assert load_config("infer_accurate")["appearance"] == {"trained_turns": True}  # the file is not changed

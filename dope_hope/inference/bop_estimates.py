@@ -74,8 +74,9 @@ def load_bop_models(weights: Sequence[str | os.PathLike], models_dir: Path | Non
                 raise ConfigError(f"{w}: a second model for obj_id {obj_id} ({name})")
         meshes = {name: find_object_mesh(name, models_dir, required=models_dir_given) for name in names}
         fixed = getattr(opened, "fixed_input_hw", None) is not None
-        predictor = DopePredictor(opened, mesh={k: v for k, v in meshes.items() if v is not None},
-                                  options=preset_options(preset, predictor_options, fixed_size=fixed))
+        found = {k: v for k, v in meshes.items() if v is not None}
+        predictor = DopePredictor(opened, mesh=found,
+                                  options=preset_options(preset, predictor_options, fixed_size=fixed, meshes=bool(found)))
         for obj_id, name in zip(ids, names):
             out.predictors[obj_id], out.class_of[obj_id] = predictor, name
     return out

@@ -154,7 +154,7 @@ def build_predictors(weights: Sequence[Path], meshes: Sequence[str | Path] = (),
             note(f"model {model.describe()}")
         fixed = getattr(model, "fixed_input_hw", None) is not None
         predictors.append(DopePredictor(model, mesh=files[i] or None, mesh_units=mesh_units, classes=keep,
-                                        options=preset_options(preset, options, fixed_size=fixed)))
+                                        options=preset_options(preset, options, fixed_size=fixed, meshes=bool(files[i]))))
         if predictors[-1].own_min_score:
             scores = {obj.class_name: obj.min_score for obj in predictors[-1].objects}
             text = (f"{', '.join(scores)}: min score {next(iter(scores.values())):g}"

@@ -65,18 +65,20 @@ def icp_mode(value: Any, name: str) -> bool | str:
 
 
 def preset_options(preset: str, given: Mapping[str, Any] | None = None, *, fixed_size: bool = False,
-                   new_object: bool = False) -> dict[str, Any]:
+                   new_object: bool = False, meshes: bool = True) -> dict[str, Any]:
     """The option overrides of ``preset`` (:data:`PRESETS`) with ``given`` (what the user set,
     nested as a config file writes it) on top. For a model of one input size (``fixed_size``:
     a fixed-size export) and for a new object's detector (``new_object``: its working sizes are
-    ``new_object.scales``, and its own turns), the preset's working sizes and trained turns are
-    left out; what ``given`` sets is kept whatever it is (and checked where it is used)."""
+    ``new_object.scales``, and its own turns), the preset's working sizes are left out; its
+    trained turns for a new object's detector and for a model given no mesh (``meshes``
+    false: they need a textured one, and a setting nobody asked for warns of nothing); what
+    ``given`` sets is kept whatever it is (and checked where it is used)."""
     if preset not in PRESETS:
         raise ConfigError(f"preset: one of {', '.join(PRESETS)}, got {preset!r}")
     base = load_config(PRESETS[preset]) if PRESETS[preset] else {}
     if fixed_size or new_object:
         base.pop("multiscale", None)
-    if new_object:
+    if new_object or not meshes:
         base.get("appearance", {}).pop("trained_turns", None)
     return merge(base, dict(given or {}))
 
