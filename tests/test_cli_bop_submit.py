@@ -102,7 +102,7 @@ def test_targets_only_gt_poses_in_millimetres(bop_root, tmp_path, monkeypatch):
         assert rotation_error_deg(r.R, R_GT) < 0.1
         assert np.linalg.norm(r.t - T_GT) < 1e-3 and 0 < r.score <= 1 and r.time >= 0
     assert "1,0,11," in out.read_text() and f"{1000 * T_GT[2]:.0f}" in out.read_text()  # mm on disk
-    assert len(made[0].calls) == 2
+    assert len(made[0].calls) == 2 * 3  # two images, three working sizes each (the accurate preset)
     assert "no model for targeted obj_id(s) 5" in stdout
 
 
@@ -129,13 +129,18 @@ def test_icp_corrects_the_rotation_on_the_bop_depth(bop_root, tmp_path, monkeypa
 
     monkeypatch.setattr("dope_hope.inference.backends.open_backend", fake_open_backend)
     ls, icp = tmp_path / "a_hope-test.csv", tmp_path / "b_hope-test.csv"
-    assert _run(["bop-submit", "--bop-root", bop_root, "--weights", "k.pt", "--out", ls, "--no-progress"])[0] == 0
+    assert _run(["bop-submit", "--bop-root", bop_root, "--weights", "k.pt", "--out", ls, "--no-progress",
+                 "--fast"])[0] == 0  # -LS alone
     rc, _, stderr = _run(["bop-submit", "--bop-root", bop_root, "--weights", "k.pt", "--out", icp,
-                          "--icp", "--no-progress"])
+                          "--icp", "--no-progress", "--fast"])
     assert rc == 0, stderr
     for a, b in zip(read_bop_csv(ls), read_bop_csv(icp)):
         assert rotation_error_deg(a.R, R_GT) > 15
         assert rotation_error_deg(b.R, R_GT) < 1.5 and np.linalg.norm(b.t - T_GT) < 0.004
+    default = tmp_path / "d_hope-test.csv"  # the accurate preset: ICP where there is depth and a mesh
+    assert _run(["bop-submit", "--bop-root", bop_root, "--weights", "k.pt", "--out", default, "--no-progress"])[0] == 0
+    for a, b in zip(read_bop_csv(icp), read_bop_csv(default)):
+        assert rotation_error_deg(b.R, R_GT) < 1.5 and np.linalg.norm(b.t - a.t) < 0.002
     rc, _, stderr = _run(["bop-submit", "--bop-root", bop_root, "--weights", "k.pt", "--out",
                           tmp_path / "c_hope-test.csv", "--icp", "--no-depth"])
     assert rc == 2 and "--icp" in stderr and "--no-depth" in stderr

@@ -188,16 +188,23 @@ def test_icp_flag_refines_the_rotation_against_the_depth(frames, tmp_path, monke
     (gt,) = read_dope_json(frames / "000000.json").objects
     base = [frames / "000000.png", "--weights", "w.pt", "--depth", "auto",
             "--mesh", frames.parent / "mesh" / "DemoBox.obj", "--out", tmp_path / "o", "--no-overlay"]
-    code, (ls,), err = run_cli(base, capsys)
+    code, (ls,), err = run_cli(base + ["--fast"], capsys)  # the packaged defaults: -LS alone
     assert code == 0, err
     assert "icp_applied" not in ls and rotation_error_deg(np.array(ls["R"]), gt.R) > 15
-    code, (rec,), err = run_cli(base + ["--icp"], capsys)
+    for flags in (["--fast", "--icp"], []):  # an image's default (the accurate preset) runs ICP too
+        code, (rec,), err = run_cli(base + flags, capsys)
+        assert code == 0, err
+        assert rec["ls_applied"] is True and rec["icp_applied"] is True, rec["icp_reason"]
+        assert rotation_error_deg(np.array(rec["R"]), gt.R) < 2.0
+        assert np.linalg.norm(np.array(rec["t"]) - gt.t) < 0.005
+    code, (mono,), err = run_cli(base[:3] + base[5:], capsys)  # no depth: no ICP, no error
     assert code == 0, err
-    assert rec["ls_applied"] is True and rec["icp_applied"] is True, rec["icp_reason"]
-    assert rotation_error_deg(np.array(rec["R"]), gt.R) < 2.0
-    assert np.linalg.norm(np.array(rec["t"]) - gt.t) < 0.005
+    assert mono["ls_applied"] is False and mono["icp_applied"] is False and mono["icp_reason"] == "no depth image"
     line = one_line_error(*run_cli(base[:3] + ["--icp"], capsys)[::2])
     assert "--icp" in line and "--depth" in line
+    with pytest.raises(SystemExit) as exc:
+        run_cli(base + ["--fast", "--accurate"], capsys)
+    assert exc.value.code == 2 and "--accurate: not allowed with argument --fast" in capsys.readouterr().err
 
 
 def test_errors_exit_2_with_one_line(frames, lite_weights, tmp_path, capsys):

@@ -13,7 +13,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parent.parent
 STAGES = ("synth-train", "train", "synth-test", "infer-ls", "infer", "infer-icp", "infer-turns", "infer-scales",
-          "eval-meanssd", "eval-addh")
+          "infer-default", "eval-meanssd", "eval-addh", "eval-bop19")
 
 
 @pytest.mark.slow
@@ -21,7 +21,7 @@ def test_quick_run_writes_the_table_and_resumes(shared_data, ketchup_obj, tmp_pa
     out = tmp_path / "e2e"
     cmd = [sys.executable, str(REPO / "bench" / "e2e_accuracy.py"), "--quick", "--out", str(out),
            "--mesh", str(ketchup_obj), "--backgrounds", str(shared_data / "backgrounds")]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=420)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     for stage in STAGES:  # each stage printed the exact command a user would type
         assert f"[{stage}] $ dope-hope " in proc.stdout
@@ -31,18 +31,26 @@ def test_quick_run_writes_the_table_and_resumes(shared_data, ketchup_obj, tmp_pa
     assert train_line.count("--set") == 1
     assert "symmetry-aware labels: bottle category, 2 corner-permuting" in (out / "logs" / "train.log").read_text()
     table = [line for line in proc.stdout.splitlines() if line.startswith("| lite |")]
-    assert [line.split("|")[2].strip() for line in table] == ["-LS", "none", "-LS+ICP", "turns+-LS", "scales+-LS"]
-    assert all(len(line.split("|")) == 13 for line in table)
+    assert [line.split("|")[2].strip() for line in table] == ["-LS", "none", "-LS+ICP", "turns+-LS", "scales+-LS",
+                                                              "default"]
+    assert all(len(line.split("|")) == 15 for line in table)  # BOP19's targets' recall in the last two
     results = json.loads((out / "results.json").read_text())
-    assert set(results["results"]) == {"lite -LS", "lite none", "lite -LS+ICP", "lite turns+-LS", "lite scales+-LS"}
+    assert set(results["results"]) == {"lite -LS", "lite none", "lite -LS+ICP", "lite turns+-LS", "lite scales+-LS",
+                                       "lite default"}
     for row in results["results"].values():
-        assert {"recall_2cm_meanssd", "recall_10cm_addh", "median_addh_cm", "ar_mssd", "ar_mspd"} <= set(row)
+        assert {"recall_2cm_meanssd", "recall_10cm_addh", "median_addh_cm", "ar_mssd", "ar_mspd",
+                "recall_2cm_meanssd_bop_targets"} <= set(row)
         assert 0.0 <= row["recall_2cm_meanssd"] <= 1.0 and 0.0 <= row["ar_mssd"] <= 1.0
-    assert (out / "results.md").read_text().count("| lite |") == 5
+    assert (out / "results.md").read_text().count("| lite |") == 6
     turns_line = next(line for line in proc.stdout.splitlines() if line.startswith("[infer-turns] $"))
     assert "--set appearance.trained_turns=true" in turns_line and "--depth auto" in turns_line
     scales_line = next(line for line in proc.stdout.splitlines() if line.startswith("[infer-scales] $"))
     assert "--set 'multiscale.scales=[1,0.75,1.33]'" in scales_line and "--depth auto" in scales_line
+    assert "--fast" in scales_line and "--fast" in turns_line  # each method: the packaged defaults, one change
+    default_line = next(line for line in proc.stdout.splitlines() if line.startswith("[infer-default] $"))
+    assert "--fast" not in default_line and "--set" not in default_line and "--depth auto" in default_line
+    bop_line = next(line for line in proc.stdout.splitlines() if line.startswith("[eval-bop19] $"))
+    assert "--min-visible bop19" in bop_line
     assert len(list((out / "test").glob("*.depth.png"))) == 3
     # what is measured: the default recipe's training frames, the CPU, the budget spent, the losses
     synth_train = next(line for line in proc.stdout.splitlines() if line.startswith("[synth-train] $"))
@@ -53,12 +61,16 @@ def test_quick_run_writes_the_table_and_resumes(shared_data, ketchup_obj, tmp_pa
     assert results["steps"] > 0 and 0.5 < results["budget_share"] <= 1.1
     assert f"trained {results['steps']} steps" in proc.stdout and "% of the 0.2-min budget" in proc.stdout
     gt = sum(len(json.loads(p.read_text())["objects"]) for p in (out / "test").glob("[0-9]*.json"))
-    assert set(results["lost"]) == {"no detection", "beyond 10 cm", "within 10 cm, not 2 cm", "within 2 cm"}
-    assert sum(results["lost"].values()) == gt and "held-out instances" in proc.stdout
-    bands = results["lost_by_visibility"]
-    assert list(bands) == ["< 0.1", "0.1-0.5", "0.5-0.95", ">= 0.95"] and "visible >= 0.95:" in proc.stdout
-    assert {k: sum(c[k] for c in bands.values()) for k in results["lost"]} == results["lost"]
-    assert sum(results["lost_scales"].values()) == gt and "with the three working sizes" in proc.stdout
+    assert list(results["losses"]) == ["infer_ls", "infer_scales", "infer_default"]
+    for losses in results["losses"].values():
+        assert set(losses["lost"]) == {"no detection", "beyond 10 cm", "within 10 cm, not 2 cm", "within 2 cm"}
+        assert sum(losses["lost"].values()) == gt and "held-out instances" in proc.stdout
+        bands = losses["lost_by_visibility"]
+        assert list(bands) == ["< 0.1", "0.1-0.5", "0.5-0.95", ">= 0.95"] and "visible >= 0.95:" in proc.stdout
+        assert {k: sum(c[k] for c in bands.values()) for k in losses["lost"]} == losses["lost"]
+        assert sum(losses["lost_bop_targets"].values()) == sum(n for b, c in bands.items() if b != "< 0.1"
+                                                               for n in c.values())
+    assert "three working sizes" in proc.stdout and "of BOP19's targets (visible >= 0.1)" in proc.stdout
     assert set(results["cpu"]["flags"]) >= {"amx_bf16", "avx512_bf16", "avx512_vnni"}
 
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=120)

@@ -280,6 +280,42 @@ def test_end_to_end_recall_precision_table_and_curves(tmp_path, capsys):
     assert summary["methods"]["mixed"]["bop19"] is None  # not a BOP dataset, no --bop-ar
 
 
+def test_min_visible_counts_bop19_targets_only_and_ignores_detections_of_the_others(tmp_path, capsys):
+    """Tuna of frame 1 is 5 % visible: with the BOP19 floor it is no GT instance and its
+    detection (1.2 cm) neither a true nor a false positive; HOPE's convention (the default)
+    counts it."""
+    data = write_dataset(tmp_path / "data")
+    pred_path = tmp_path / "mixed.jsonl"
+    write_predictions_jsonl(pred_path, predictions_mixed(), method="mixed")
+    tables = {}
+    for floor in ("hope", "bop19", "0.75"):
+        out = tmp_path / floor
+        assert main(["evaluate", "-p", str(pred_path), "-d", str(data), "--min-visible", floor,
+                     "--out", str(out), "--no-progress"]) == 0
+        tables[floor] = {r["object"]: r for r in read_rows(out / "per_object_mixed.csv")}
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["gt_instances"] == 6
+        assert summary["gt_instances_counted"] == {"hope": 6, "bop19": 5, "0.75": 3}[floor]
+    assert (tables["hope"]["Tuna"]["gt"], tables["hope"]["Tuna"]["recall_2cm"]) == ("1", "1.0")
+    assert tables["bop19"]["Tuna"]["gt"] == "0"
+    assert tables["bop19"]["Tuna"]["recall_2cm"] == tables["bop19"]["Tuna"]["precision_2cm"] == ""
+    assert tables["bop19"]["Ketchup"] == tables["hope"]["Ketchup"]
+    assert float(tables["bop19"]["overall"]["recall_2cm"]) == pytest.approx((0.5 + 1 / 3) / 2)
+    # 0.75: Ketchup 0.9 of frame 0 (found), Milk 0.8 (5.4 cm) and 1.0 (found at 0.8); the
+    # Milk estimate 3.3 cm off the 0.6-visible Milk is matched to it at 10 cm and not counted
+    milk = tables["0.75"]["Milk"]
+    assert (milk["gt"], float(milk["recall_2cm"]), float(milk["recall_10cm"])) == ("2", 0.5, 1.0)
+    assert float(milk["precision_10cm"]) == 1.0 and float(milk["precision_2cm"]) == pytest.approx(1 / 3)
+    assert "GT instances counted: 5 of 6, those at least 0.1 (bop19) visible" in \
+        (tmp_path / "bop19" / "per_object_mixed.md").read_text()
+    capsys.readouterr()
+    assert main(["evaluate", "-p", str(pred_path), "-d", str(data), "--min-visible", "most",
+                 "--out", str(tmp_path / "bad"), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--min-visible" in err[0] and "'most'" in err[0]
+    assert not (tmp_path / "bad" / "summary.json").exists()
+
+
 def test_end_to_end_bop_average_recall_without_depth(tmp_path):
     data = write_dataset(tmp_path / "data")
     pred_path = tmp_path / "mixed.jsonl"

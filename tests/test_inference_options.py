@@ -5,7 +5,7 @@ import pytest
 
 from dope_hope.config import load_config
 from dope_hope.errors import ConfigError
-from dope_hope.inference.options import InferenceOptions
+from dope_hope.inference.options import InferenceOptions, preset_options
 from dope_hope.refine.line_search import LineSearchSettings
 
 
@@ -42,7 +42,7 @@ def test_overrides_and_stage_keywords_are_accepted():
     ({"height": 5}, "height must be a whole number of pixels in 8..4096"),
     ({"min_score": float("nan")}, "min_score must be a finite number"),
     ({"pose_search": "brute"}, "pose_search must be one of hypotheses, groups"),
-    ({"icp": "yes"}, "icp must be true or false"),
+    ({"icp": "yes"}, "icp must be true, false or auto, got 'yes'"),
     ({"ls_points": 10.5}, "ls_points must be a whole number, got 10.5"),
     ({"icp_points": 9}, "icp_points must be >= 10, got 9"),
     ({"ls_points": True}, "ls_points must be a number, got True"),
@@ -57,3 +57,25 @@ def test_whole_numbers_follow_the_config_rule():
     """The one number rule (config.whole_number): 10.0 counts as 10, as it does in a config."""
     o = InferenceOptions.from_mapping({"ls_points": 10.0, "icp_points": 12})
     assert o.ls_points == 10 and isinstance(o.ls_points, int) and o.icp_points == 12
+
+
+def test_presets_put_what_is_given_on_top_and_fit_the_model():
+    """"fast" is the packaged defaults; "accurate" its packaged file (three sizes, ICP where it
+    can run, the turns), under what a user sets; a fixed-size export keeps one size, a new
+    object's detector its own sizes and turns."""
+    assert preset_options("fast") == {} and preset_options("fast", {"icp": True}) == {"icp": True}
+    accurate = preset_options("accurate")
+    assert accurate == load_config("infer_accurate")
+    o = InferenceOptions.from_mapping(accurate)
+    assert o.icp == "auto" and o.multiscale.scales == (1.0, 0.75, 1.33) and o.appearance.trained_turns
+    given = preset_options("accurate", {"icp": False, "multiscale": {"duplicate_iou": 0.3}})
+    o = InferenceOptions.from_mapping(given)
+    assert o.icp is False and o.multiscale.scales == (1.0, 0.75, 1.33) and o.multiscale.duplicate_iou == 0.3
+    assert "multiscale" not in preset_options("accurate", fixed_size=True)
+    assert preset_options("accurate", {"multiscale": {"scales": [1.0]}}, fixed_size=True)["multiscale"] == {"scales": [1.0]}
+    assert preset_options("accurate", meshes=False)["appearance"] == {}  # no mesh: no turns to warn of
+    new = preset_options("accurate", new_object=True)
+    assert new == {"icp": "auto", "appearance": {}}
+    assert load_config("infer_accurate")["appearance"] == {"trained_turns": True}  # the file is not changed
+    with pytest.raises(ConfigError, match="preset: one of fast, accurate, got 'best'"):
+        preset_options("best")

@@ -295,6 +295,28 @@ def test_icp_without_a_mesh_is_refused_for_non_boxes():
     DopePredictor(backend(), icp=True)  # Cookies is a box: its cuboid is its surface
 
 
+def test_icp_auto_runs_where_there_is_depth_and_a_surface():
+    """icp="auto" (the accurate preset's): a box's detection with depth gets ICP as with
+    icp=True; without depth, -LS and ICP neither; a bottle without its mesh has no surface to
+    fit: -LS alone, and no refusal at construction."""
+    R, t = POSES[0]
+    depth_mm = np.round(render_box_depth(OBJ.size_array, R, t, K640, (480, 640)) * 1000).astype(np.uint16)
+    R_net = R @ Rotation.from_euler("y", 25, degrees=True).as_matrix()
+    (on,) = DopePredictor(backend(poses=[(R_net, 1.06 * t)]), height=400, icp=True).predict(
+        white((480, 640)), K640, depth=depth_mm)
+    auto = DopePredictor(backend(poses=[(R_net, 1.06 * t)]), height=400, icp="auto")
+    (det,) = auto.predict(white((480, 640)), K640, depth=depth_mm)
+    assert det.icp_applied and rotation_error_deg(det.R, R) < 1.0
+    np.testing.assert_allclose(det.R, on.R, atol=1e-12)
+    (mono,) = auto.predict(white((480, 640)), K640)
+    assert not mono.icp_applied and mono.icp_reason == "no depth image"
+    b = TargetsBackend("Ketchup", get_object("Ketchup").size_array, POSES[:1], K640, (480, 640))
+    bottle = DopePredictor(b, icp="auto")
+    assert bottle.icp_objects == set() and auto.icp_objects == {OBJ.name}
+    (ls,) = bottle.predict(white((480, 640)), K640, depth=depth_mm)
+    assert ls.icp_reason == "not requested" and not bottle.icp_runs(bottle.objects[0], DepthImage.from_raw(depth_mm, K640))
+
+
 def test_line_search_widens_where_its_optimum_lies_beyond_its_range():
     R, t = POSES[0]
     depth_mm = np.round(render_box_depth(OBJ.size_array, R, t, K640, (480, 640)) * 1000).astype(np.uint16)

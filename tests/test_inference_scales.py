@@ -71,6 +71,38 @@ def test_another_size_finds_what_the_working_size_misses(scene):
     np.testing.assert_allclose(box, plain.bbox_2d, atol=1.0)
 
 
+def test_the_gate_runs_the_other_sizes_only_where_the_first_leaves_belief_unexplained(scene):
+    """multiscale.gate: where the working size finds the box (all belief inside its 2D box)
+    the other size does not run and the detection is the one-size one; where the working size
+    sees belief but finds no box (a partly hidden one: its maps too weak to decode), the other
+    size runs and finds it."""
+    _, _, R_gt, _ = scene
+    backend = backend_of(scene)
+    _, (one,) = predict(scene, backend)
+    base = backend.calls[-1]["resized"][0]
+    backend.calls.clear()
+    _, (gated,) = predict(scene, backend, multiscale={"scales": [1.0, 0.5], "gate": 0.1})
+    assert [c["resized"][0] for c in backend.calls] == [base]
+    for field in ("R", "t", "bbox_2d"):
+        np.testing.assert_array_equal(getattr(one, field), getattr(gated, field), err_msg=field)
+
+    class FaintAtOneSize(BlindAtOneSize):  # the working size's maps at a fifth: below decoding
+        def run(self, batch):
+            belief, affinity = TargetsBackend.run(self, batch)
+            return (0.2 * belief, affinity) if self.calls[-1]["resized"][0] == self.blind_height else (belief, affinity)
+
+    faint = backend_of(scene, FaintAtOneSize)
+    faint.blind_height = base
+    assert predict(scene, faint, min_score=0.5)[1] == []
+    faint.calls.clear()
+    _, (found,) = predict(scene, faint, min_score=0.5, multiscale={"scales": [1.0, 0.5], "gate": 0.1})
+    assert [c["resized"][0] for c in faint.calls] == [base, scaled_height(base, 0.5)]
+    assert rotation_error_deg(found.R, R_gt) < 1.0
+    faint.calls.clear()
+    assert predict(scene, faint, min_score=0.5, multiscale={"scales": [1.0, 0.5], "gate": 0.5})[1] == []
+    assert len(faint.calls) == 1  # the faint belief stays under a gate of 0.5: one size
+
+
 def test_one_size_twice_is_that_size(scene):
     """The same size twice: every detection pooled with its own copy, the depth stages after
     the pooling place it exactly as they do at one size."""

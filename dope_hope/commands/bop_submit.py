@@ -16,7 +16,9 @@ Poses are refined with the depth line search (-LS) on the split's
 depth images unless --no-depth; the line search uses the object's mesh from
 BOP_ROOT/DATASET/models when found (or --models-dir: obj_NNNNNN.ply, or the other names of
 dope_hope/io/models_dir.py; a --models-dir without the object's mesh is an error); --icp adds the depth ICP after it (all six DoF,
-dope_hope/refine/icp.py). Every estimate is written with its score and the image's total
+dope_hope/refine/icp.py). The inference settings are the "accurate" preset's (three working
+sizes, ICP where there is depth and a mesh or box, the trained turns where not; --fast: one
+size, the packaged defaults), --config and --set on top. Every estimate is written with its score and the image's total
 time (reading + all models, seconds), t in millimetres (io/bop_csv.py). Evaluate it with
   dope-hope evaluate -p dopehope-lite_hope-test.csv -d bop/hope --format bop --models-dir bop/hope/models_eval
 """
@@ -26,7 +28,7 @@ import argparse
 from pathlib import Path
 
 from dope_hope.commands.argtypes import finite_float, fixed_device, positive_float, positive_int, working_side
-from dope_hope.commands.settings import add_settings_arguments, given_settings
+from dope_hope.commands.settings import add_preset_arguments, add_settings_arguments, given_settings
 from dope_hope.errors import ConfigError, InputFileError
 
 # The library is imported inside the functions: cli.py imports every command to build --help,
@@ -58,6 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-score", type=finite_float,
                         help="drop estimates scoring lower (default 0: BOP ranks every estimate by its score)")
     add_settings_arguments(parser, "bop-submit")
+    add_preset_arguments(parser, "default --accurate")
     parser.add_argument("--backend", choices=("auto", "torch", "onnx"), default="auto")
     parser.add_argument("--device", type=fixed_device, default="cpu", help="torch device (cpu, cuda)")
     parser.add_argument("--threads", type=positive_int, help="CPU threads for the network")
@@ -74,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     options = {"min_score": 0.0, **given_settings("bop-submit", args.config, args.overrides)}
     flags = {"height": args.height, "min_score": args.min_score, "icp": True if args.icp else None}
     options.update({k: v for k, v in flags.items() if v is not None})
-    args.icp = bool(options.get("icp"))
+    args.icp = options.get("icp") is True
     if args.icp and args.no_depth:
         raise ConfigError("--icp refines against the depth: it cannot go with --no-depth")
     output_file(args.out)
@@ -91,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     if not models_dir.is_dir():
         models_dir = None  # no DATASET/models: the line search uses each model's cuboid
     models = load_bop_models(args.weights, models_dir, args.models_dir is not None, options,
-                             args.backend, args.device, args.threads)
+                             args.backend, args.device, args.threads, preset=args.preset or "accurate")
     frames, wanted = targeted_frames(split_dir, targets_path)
     no_model = sorted({o for objs in (wanted or {}).values() for o in objs} - set(models.predictors))
     done = estimate_frames(split_dir, frames, wanted, models, use_depth=not args.no_depth,

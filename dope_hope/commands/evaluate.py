@@ -14,6 +14,11 @@ the object's BOP models_info.json entry beside its mesh, else its declaration (-
 NAME=FILE, or model_info.json beside its mesh: BOP fields symmetries_discrete /
 symmetries_continuous in the mesh's unit), else the HOPE catalog's category, else those found
 on its mesh (dope_hope.symmetry.detect).
+
+Instances counted (--min-visible): by default every annotated instance, HOPE's own convention
+(NVlabs Deep_Object_Pose evaluate/evaluate.py counts every object of a frame's annotation);
+--min-visible bop19 (0.1) counts BOP19's targets only, those at least a tenth visible. A
+detection of an instance under the floor is neither a true nor a false positive.
 """
 from __future__ import annotations
 
@@ -64,6 +69,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                     help="compute the BOP19 average recall (default: only for --format bop)")
     ar.add_argument("--no-bop-ar", dest="bop_ar", action="store_false",
                     help="skip the BOP19 average recall")
+    parser.add_argument("--min-visible", default="hope", metavar="hope|bop19|F",
+                        help="count the GT instances at least this fraction visible: hope (default, 0: every "
+                             "annotated instance, as HOPE's evaluation counts them), bop19 (0.1, BOP19's "
+                             "targets) or a fraction in [0, 1]")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -80,6 +89,6 @@ def run(args: argparse.Namespace) -> int:
                      mesh=list(args.mesh), models_dir=args.models_dir, mesh_units=parse_mesh_units(args.mesh_units),
                      out=args.out, methods=args.method, bop_ar=args.bop_ar,
                      progress=not args.no_progress, symmetries=list(args.symmetries),
-                     official_frame=args.official_frame)
+                     official_frame=args.official_frame, min_visible=args.min_visible)
     run_evaluation(cfg)
     return 0

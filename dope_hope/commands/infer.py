@@ -79,6 +79,12 @@ the annotation's, else 1 = uint16 millimetres); float depth images (EXR) are met
 (needs depth) then refines the whole pose, rotation included, by ICP against the depth
 ("-LS + ICP", dope_hope/refine/icp.py); each record says whether it was applied (icp_applied,
 icp_reason).
+
+Presets: images and folders run the "accurate" settings (three working sizes, ICP where there
+is depth and a mesh or catalog box, the trained turns about a bottle's or can's axis where
+not: dope_hope/configs/infer_accurate.yaml); video, cameras and recordings the packaged
+defaults ("fast": one size, ICP only with --icp), to keep the frame rate. --fast / --accurate
+choose the other; --config and --set apply on top.
 """
 from __future__ import annotations
 
@@ -97,7 +103,7 @@ from dope_hope.commands.argtypes import (
     positive_int,
     working_side,
 )
-from dope_hope.commands.settings import add_settings_arguments, given_settings
+from dope_hope.commands.settings import add_preset_arguments, add_settings_arguments, given_settings
 from dope_hope.config import load_config
 from dope_hope.errors import ConfigError, DopeHopeError
 from dope_hope.ros.defaults import DEFAULT_FOXGLOVE_PORT, DEFAULT_SYNC_TOLERANCE_S  # plain numbers
@@ -235,6 +241,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="hypotheses (default): candidate corner peaks + multi-hypothesis PnP; "
                              "groups: DOPE's one corner per type (faster, finds fewer)")
     add_settings_arguments(parser, "infer")
+    add_preset_arguments(parser, "default --accurate for images and folders, --fast for video, cameras and recordings")
     parser.add_argument("--device", type=fixed_device, default="cpu", help="torch device (cpu, cuda, cuda:1)")
     parser.add_argument("--threads", type=positive_int, help="CPU threads for the network")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -286,7 +293,8 @@ def _predictors(args: argparse.Namespace) -> list:
                          up_axes=args.up_axis, start=args.start,
                          classes=None if args.classes is None else tuple(args.classes), backend=args.backend,
                          device=args.device, threads=args.threads)
-    return build_run_predictors(choice, inference_settings(args), default_weights(), note=_note)
+    return build_run_predictors(choice, inference_settings(args), default_weights(), note=_note,
+                                preset=args.preset)
 
 
 # ----------------------------------------------------------------------------- run
@@ -294,15 +302,19 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.geometry import UNIT_FLAG
 
     UNIT_FLAG.set("--mesh-units")  # named in the mesh unit hints
+
+    from dope_hope.inference.options import STILL_IMAGE_PRESET, STREAM_PRESET
     from dope_hope.io.images import collect_images
     from dope_hope.io.paths import output_dir
     from dope_hope.io.streams import stream_kind
 
-    args.icp = bool(inference_settings(args).get("icp"))  # settings checked before any work
+    args.icp = inference_settings(args).get("icp") is True  # settings checked before any work
     args.mesh_units = parse_mesh_units(args.mesh_units)  # [NAME=]UNIT values -> a unit or {NAME: unit}
     args.up_axis = parse_up_axes(args.up_axis)  # [NAME=]AXIS values -> an axis or {NAME: axis}
     if any(stream_kind(item) for item in args.inputs):
+        args.preset = args.preset or STREAM_PRESET
         return _run_stream(args)
+    args.preset = args.preset or STILL_IMAGE_PRESET
     given = [f"--{o.replace('_', '-')}" for o in STREAM_OPTIONS + RECORDING_OPTIONS
              if getattr(args, o) not in (None, False)]
     if given:

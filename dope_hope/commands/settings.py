@@ -52,6 +52,18 @@ def add_settings_arguments(parser: argparse.ArgumentParser, command: str, config
                                                                                  "decode.threshold=0.2"))
 
 
+def add_preset_arguments(parser: argparse.ArgumentParser, default_text: str) -> None:
+    """``--fast`` / ``--accurate``: the inference preset (dope_hope.inference.options.PRESETS) the
+    --config and --set options apply over; ``default_text`` says which one runs without either."""
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--fast", dest="preset", action="store_const", const="fast",
+                       help="one working size, no turns, ICP only with --icp: the frame rate first "
+                            f"(the packaged defaults; {default_text})")
+    group.add_argument("--accurate", dest="preset", action="store_const", const="accurate",
+                       help="three working sizes, ICP where there is depth and a mesh or box, the trained "
+                            f"turns where not (dope_hope/configs/infer_accurate.yaml; {default_text})")
+
+
 def settings_class(command: str) -> Any:
     """The settings class of ``command``."""
     module, name, _ = SETTINGS_OF[command]

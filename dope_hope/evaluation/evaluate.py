@@ -18,7 +18,9 @@ inference output (per-image JSON; :func:`dope_hope.io.predictions.read_official_
 whose poses of the cuboid centre are moved to the mesh origin (:func:`cuboid_centres_to_origins`).
 
 Errors are ADD-H by default (500 model points); ``add``, ``adds``, ``meanssd``, ``mssd`` on
-request (:mod:`~dope_hope.evaluation.matching`); tables and curves in
+request (:mod:`~dope_hope.evaluation.matching`), over the GT instances at least
+``min_visible`` visible (default every annotated instance, HOPE's own convention; 0.1 BOP19's);
+tables and curves in
 :mod:`~dope_hope.evaluation.reports`; BOP19 AR in :mod:`~dope_hope.evaluation.bop19`.
 """
 from __future__ import annotations
@@ -26,7 +28,7 @@ from __future__ import annotations
 import json
 import re
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -37,9 +39,13 @@ from dope_hope.evaluation.bop19 import bop19_average_recall
 from dope_hope.evaluation.datasets import Dataset, assign_predictions, load_dataset
 from dope_hope.evaluation.matching import (
     DEFAULT_METRIC,
+    DEFAULT_MIN_VISIBLE,
     METRIC_LABELS,
     METRICS,
+    VISIBLE_FLOORS,
     compute_errors,
+    visible_enough,
+    visible_floor,
 )
 from dope_hope.evaluation.object_models import NUM_MODEL_POINTS, ObjectModel, load_models
 from dope_hope.evaluation.reports import (
@@ -78,6 +84,13 @@ class EvalConfig:
     progress: bool = False
     symmetries: list[str] = field(default_factory=list)
     official_frame: str = "legacy"
+    min_visible: float | str = DEFAULT_MIN_VISIBLE  # a fraction, or a name of VISIBLE_FLOORS
+
+
+def floor_label(min_visible: float) -> str:
+    """The visible floor as the reports name it: its convention's name where it is one."""
+    names = [k for k, v in VISIBLE_FLOORS.items() if v == min_visible]
+    return f"{min_visible:g}" + (f" ({names[0]})" if names else "")
 
 
 def cuboid_centres_to_origins(preds: list[Prediction], models: dict[str, ObjectModel]) -> None:
@@ -120,10 +133,15 @@ def _load_predictions(cfg: EvalConfig, dataset: Dataset, log: Callable[[str], No
     return loaded
 
 
+def counted_instances(dataset: Dataset, min_visible: float) -> int:
+    """The dataset's GT instances at least ``min_visible`` visible (a missing visibility counts as 1)."""
+    return sum(int(np.count_nonzero(visible_enough(f.objects, min_visible))) for f in dataset.frames)
+
+
 def _report_notes(dataset: Dataset, path: Path, preds: list[Prediction], primary: str,
-                  models: dict[str, ObjectModel]) -> list[str]:
+                  models: dict[str, ObjectModel], min_visible: float) -> list[str]:
     """The lines above a method's table: dataset, predictions (how many were refined), metric,
-    models."""
+    the instances counted, models."""
     n_gt = sum(len(f.objects) for f in dataset.frames)
     ls = [p.ls_applied for p in preds if p.ls_applied is not None]
     icp = [p.extra["icp_applied"] for p in preds if isinstance(p.extra.get("icp_applied"), bool)]
@@ -136,6 +154,8 @@ def _report_notes(dataset: Dataset, path: Path, preds: list[Prediction], primary
             + ")",
             f"metric: {METRIC_LABELS[primary]} ({NUM_MODEL_POINTS} model points); matching "
             f"per image and class, one-to-one, greedy in descending score, error < threshold",
+            f"GT instances counted: {counted_instances(dataset, min_visible)} of {n_gt}, those at least "
+            f"{floor_label(min_visible)} visible (a detection of one under it is not counted)",
             "models: " + "; ".join(f"{n}: {m.source}" for n, m in sorted(models.items()))]
 
 
@@ -164,12 +184,13 @@ def _evaluate_method(cfg: EvalConfig, dataset: Dataset, models: dict[str, Object
     primary = cfg.metrics[0]
     log(f"{name}: {len(preds)} detections in {sum(1 for b in by_frame if b)} of "
         f"{len(dataset.frames)} images; {sum(len(f.objects) for f in dataset.frames)} GT instances")
-    groups = compute_errors(dataset, by_frame, models, cfg.metrics, progress=cfg.progress)
+    groups = compute_errors(dataset, by_frame, models, cfg.metrics, progress=cfg.progress,
+                            min_visible=cfg.min_visible)
     rows = object_table(dataset, groups, models, primary)
     for m in cfg.metrics:
         curves[(name, m)] = detection_rates(groups, models, m)
     bop = bop19_average_recall(dataset, by_frame, models, progress=cfg.progress) if bop_ar else None
-    notes = _report_notes(dataset, path, preds, primary, models)
+    notes = _report_notes(dataset, path, preds, primary, models, cfg.min_visible)
     stem = _safe_name(name)
     out_dir = Path(cfg.out)
     md_path, csv_path = out_dir / f"per_object_{stem}.md", out_dir / f"per_object_{stem}.csv"
@@ -195,6 +216,7 @@ def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[
     for m in cfg.metrics:
         if m not in METRICS:
             raise ConfigError(f"unknown metric {m!r}; use one of {', '.join(METRICS)}")
+    cfg = replace(cfg, min_visible=visible_floor(cfg.min_visible))
     if cfg.methods is not None and len(cfg.methods) != len(cfg.predictions):
         raise ConfigError(f"--method: {len(cfg.methods)} names for {len(cfg.predictions)} "
                           f"prediction files")
@@ -215,6 +237,8 @@ def run_evaluation(cfg: EvalConfig, log: Callable[[str], None] = print) -> dict[
     summary: dict[str, Any] = {"dataset": str(dataset.root), "format": dataset.fmt,
                                "frames": len(dataset.frames),
                                "gt_instances": sum(len(f.objects) for f in dataset.frames),
+                               "min_visible": cfg.min_visible,
+                               "gt_instances_counted": counted_instances(dataset, cfg.min_visible),
                                "metric": cfg.metrics[0], "metrics": list(cfg.metrics),
                                "models": {n: m.source for n, m in models.items()}, "methods": {}}
     curves: dict = {}

@@ -6,6 +6,15 @@ threshold (:func:`greedy_match`). :func:`pose_error` is the one place that turns
 into an error value. ``dope-hope evaluate`` (:func:`compute_errors`) and ``dope-hope demo``
 (:func:`match_frame`, :func:`pose_errors`) both count through here, so the demo's scenes
 found equal evaluate's true positives on the same predictions.
+
+**Which instances count** (``min_visible``, ``dope-hope evaluate --min-visible``): by default
+every annotated instance, as HOPE's own evaluation counts them (NVlabs Deep_Object_Pose
+``evaluate/evaluate.py`` and ``add_compute.py``, the scripts of the HOPE paper's DOPE figures:
+every object of a frame's annotation is a GT instance, whatever its visibility); BOP19 counts
+only instances at least a tenth visible (bop_toolkit's ``visib_gt_min`` 0.1). An instance under
+the floor is matched like the others (an estimate of it is no false positive) but counts
+neither as a GT instance nor, matched, as a detection: the toolkit's rule for GT instances that
+are not valid. A missing visibility counts as visible.
 """
 from __future__ import annotations
 
@@ -20,7 +29,7 @@ from tqdm import tqdm
 from dope_hope.annotation import ObjectAnnotation
 from dope_hope.errors import ConfigError
 from dope_hope.evaluation import metrics
-from dope_hope.evaluation.datasets import Dataset
+from dope_hope.evaluation.datasets import VISIB_GT_MIN, Dataset
 from dope_hope.evaluation.object_models import ObjectModel
 from dope_hope.io.predictions import Prediction
 
@@ -38,6 +47,31 @@ METRIC_LABELS = {"addh": "ADD-H", "add": "ADD", "adds": "ADD-S", "meanssd": "Mea
 
 #: The metric of the HOPE paper's tables (and of ``dope-hope demo``'s "found").
 DEFAULT_METRIC = "addh"
+
+#: Visible-fraction floors of the counted GT instances by convention (module docstring):
+#: "hope" every annotated instance (the default), "bop19" those at least a tenth visible.
+VISIBLE_FLOORS = {"hope": 0.0, "bop19": VISIB_GT_MIN}
+#: The default floor: HOPE's own convention.
+DEFAULT_MIN_VISIBLE = VISIBLE_FLOORS["hope"]
+
+
+def visible_floor(value: float | str) -> float:
+    """A visible-fraction floor: a name of :data:`VISIBLE_FLOORS` or a fraction in [0, 1];
+    ConfigError naming ``--min-visible`` otherwise."""
+    text = str(value).strip().lower()
+    if text in VISIBLE_FLOORS:
+        return VISIBLE_FLOORS[text]
+    try:
+        floor = float(text)
+    except ValueError:
+        floor = math.nan
+    if not 0.0 <= floor <= 1.0:
+        raise ConfigError(f"--min-visible: expected {', '.join(VISIBLE_FLOORS)} or a fraction in [0, 1], got {value!r}")
+    return floor
+
+
+#: :func:`counted_matches`' mark of an estimate matched to an instance under the floor.
+UNCOUNTED = -2
 
 
 class ScoredPose(Protocol):
@@ -116,16 +150,39 @@ class GroupErrors:
     scores: np.ndarray                       # (P,)
     gt: list[ObjectAnnotation]               # G instances
     errors: dict[str, np.ndarray]            # metric -> (P, G) metres
+    counted: np.ndarray | None = None        # (G,) bool: instances at or above the visible floor (None: all)
+
+    @property
+    def n_counted(self) -> int:
+        """GT instances that count (at or above the visible floor)."""
+        return len(self.gt) if self.counted is None else int(np.count_nonzero(self.counted))
+
+
+def visible_enough(gts: Sequence[ObjectAnnotation], min_visible: float) -> np.ndarray:
+    """(G,) bool: the instances whose visible fraction is at least ``min_visible`` (a missing
+    visibility counts as 1)."""
+    return np.array([(1.0 if g.visibility is None else float(g.visibility)) >= min_visible for g in gts], dtype=bool)
+
+
+def counted_matches(group: GroupErrors, metric: str, threshold: float) -> np.ndarray:
+    """(P,) the matches of :func:`greedy_match` over all of the group's GT instances at
+    ``threshold`` (metres), with a match to an instance under the visible floor marked
+    :data:`UNCOUNTED` (module docstring): >= 0 a true positive, -1 none."""
+    match = greedy_match(group.errors[metric], group.scores, threshold)
+    if group.counted is not None and len(group.gt):
+        match[(match >= 0) & ~group.counted[np.maximum(match, 0)]] = UNCOUNTED
+    return match
 
 
 def compute_errors(dataset: Dataset, preds_by_frame: list[list[Prediction]],
                    models: dict[str, ObjectModel], metric_names: Sequence[str],
                    upper: float | None = max(CURVE_THRESHOLDS_M),
-                   progress: bool = False) -> list[GroupErrors]:
+                   progress: bool = False, min_visible: float = DEFAULT_MIN_VISIBLE) -> list[GroupErrors]:
     """Error matrices for every (image, class) that has GT instances or predictions.
 
     ADD-H values above ``upper`` may be returned as a lower bound (>= ``upper``), which
-    never changes a match at thresholds <= ``upper``.
+    never changes a match at thresholds <= ``upper``. ``min_visible``: the visible-fraction
+    floor of the instances that count (module docstring; 0: all).
     """
     groups = []
     for fi in tqdm(range(len(dataset.frames)), desc="errors", unit="img", disable=not progress):
@@ -137,7 +194,7 @@ def compute_errors(dataset: Dataset, preds_by_frame: list[list[Prediction]],
             ps = [p for p in preds_by_frame[fi] if p.class_name == c]
             errs = {m: error_matrix(m, ps, gts, models[c], upper=upper) for m in metric_names}
             groups.append(GroupErrors(fi, c, np.array([p.score for p in ps], dtype=np.float64),
-                                      gts, errs))
+                                      gts, errs, visible_enough(gts, min_visible)))
     return groups
 
 

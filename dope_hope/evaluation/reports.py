@@ -25,8 +25,9 @@ from dope_hope.evaluation.matching import (
     CURVE_THRESHOLDS_M,
     METRIC_LABELS,
     TABLE_THRESHOLDS_M,
+    UNCOUNTED,
     GroupErrors,
-    greedy_match,
+    counted_matches,
 )
 from dope_hope.evaluation.object_models import ObjectModel
 
@@ -73,14 +74,18 @@ def _nanmean(values: Sequence[float]) -> float:
     return float(np.mean(vals)) if vals else math.nan
 
 
-def _matched_errors(groups: list[GroupErrors], metric: str, threshold: float) -> dict[str, list[float]]:
-    """Class -> errors of the true positives at ``threshold``."""
+def _matched_errors(groups: list[GroupErrors], metric: str,
+                    threshold: float) -> tuple[dict[str, list[float]], dict[str, int]]:
+    """(class -> errors of the true positives at ``threshold``, class -> estimates matched to
+    an instance under the visible floor: no detection of the table)."""
     out: dict[str, list[float]] = {}
+    uncounted: dict[str, int] = {}
     for g in groups:
         E = g.errors[metric]
-        m = greedy_match(E, g.scores, threshold)
+        m = counted_matches(g, metric, threshold)
         out.setdefault(g.class_name, []).extend(float(E[i, j]) for i, j in enumerate(m) if j >= 0)
-    return out
+        uncounted[g.class_name] = uncounted.get(g.class_name, 0) + int(np.count_nonzero(m == UNCOUNTED))
+    return out, uncounted
 
 
 def object_table(dataset: Dataset, groups: list[GroupErrors], models: dict[str, ObjectModel],
@@ -90,15 +95,18 @@ def object_table(dataset: Dataset, groups: list[GroupErrors], models: dict[str, 
     n_pred: dict[str, int] = {}
     stats: dict[str, dict[str, list[float]]] = {}
     for g in groups:
-        n_gt[g.class_name] = n_gt.get(g.class_name, 0) + len(g.gt)
+        n_gt[g.class_name] = n_gt.get(g.class_name, 0) + g.n_counted
         n_pred[g.class_name] = n_pred.get(g.class_name, 0) + len(g.scores)
         s = stats.setdefault(g.class_name, {"vis": [], "pix": [], "dist": []})
         K = dataset.frames[g.frame].K
-        for o in g.gt:
+        for k, o in enumerate(g.gt):
+            if g.counted is not None and not g.counted[k]:
+                continue
             s["vis"].append(math.nan if o.visibility is None else float(o.visibility))
             s["pix"].append(_projected_area_px(o, models[g.class_name], K))
             s["dist"].append(float(np.linalg.norm(o.t)))
-    tps = {th: _matched_errors(groups, metric, th) for th in thresholds}
+    matched = {th: _matched_errors(groups, metric, th) for th in thresholds}
+    tps = {th: m[0] for th, m in matched.items()}
     med_th = max(thresholds)
     rows = []
     for name in n_gt:
@@ -107,7 +115,8 @@ def object_table(dataset: Dataset, groups: list[GroupErrors], models: dict[str, 
         for th in thresholds:
             k = len(tps[th].get(name, []))
             tp[th] = k
-            prec[th] = k / n_pred[name] if n_pred[name] else math.nan
+            detections = n_pred[name] - matched[th][1].get(name, 0)
+            prec[th] = k / detections if detections else math.nan
             rec[th] = k / n_gt[name] if n_gt[name] else math.nan
         med = tps[med_th].get(name, [])
         rows.append(ObjectRow(
@@ -216,7 +225,7 @@ def detection_rates(groups: list[GroupErrors], models: dict[str, ObjectModel], m
     """{group: {"gt": n, "tp": [..], "rate": [..]}} for "overall", each category and object.
 
     The rate at a threshold is the fraction of GT instances matched with an error below it
-    (pooled over the group's instances).
+    (pooled over the group's instances; those under the visible floor count in neither).
     """
     out: dict[str, dict[str, Any]] = {}
 
@@ -226,9 +235,9 @@ def detection_rates(groups: list[GroupErrors], models: dict[str, ObjectModel], m
     for g in groups:
         cat = models[g.class_name].category
         for name in ("overall", cat, g.class_name):
-            bucket(name)["gt"] += len(g.gt)
+            bucket(name)["gt"] += g.n_counted
         for k, th in enumerate(thresholds):
-            n = int(np.count_nonzero(greedy_match(g.errors[metric], g.scores, th) >= 0))
+            n = int(np.count_nonzero(counted_matches(g, metric, th) >= 0))
             for name in ("overall", cat, g.class_name):
                 bucket(name)["tp"][k] += n
     for b in out.values():

@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from dope_hope.errors import ConfigError, InputFileError, UnknownObjectError
 from dope_hope.inference import backends  # looked up at each call: a substituted open_backend counts
+from dope_hope.inference.options import preset_options
 from dope_hope.inference.predictor import DopePredictor, predict_many
 from dope_hope.io.bop_csv import BopEstimate
 from dope_hope.io.images import read_depth_m, read_rgb
@@ -49,7 +50,7 @@ class BopModels:
 
 def load_bop_models(weights: Sequence[str | os.PathLike], models_dir: Path | None, models_dir_given: bool,
                     predictor_options: Mapping[str, Any], backend: str = "auto", device: str = "cpu",
-                    threads: int | None = None) -> BopModels:
+                    threads: int | None = None, preset: str = "fast") -> BopModels:
     """Open every model and give it its objects' meshes for the depth steps.
 
     Args:
@@ -58,6 +59,7 @@ def load_bop_models(weights: Sequence[str | os.PathLike], models_dir: Path | Non
         models_dir_given: the folder was named by the user: it must hold every object's mesh
             (a dataset's own ``models/`` may lack one: that object keeps its cuboid).
         predictor_options: DopePredictor overrides (``height``, ``min_score``, ``icp``, ...).
+        preset: the options they are read over (:func:`~dope_hope.inference.options.preset_options`).
 
     Raises:
         ConfigError: two models (or one model twice) for the same obj_id.
@@ -71,8 +73,10 @@ def load_bop_models(weights: Sequence[str | os.PathLike], models_dir: Path | Non
             if obj_id in out.predictors or ids.count(obj_id) > 1:
                 raise ConfigError(f"{w}: a second model for obj_id {obj_id} ({name})")
         meshes = {name: find_object_mesh(name, models_dir, required=models_dir_given) for name in names}
-        predictor = DopePredictor(opened, mesh={k: v for k, v in meshes.items() if v is not None},
-                                  **predictor_options)
+        fixed = getattr(opened, "fixed_input_hw", None) is not None
+        found = {k: v for k, v in meshes.items() if v is not None}
+        predictor = DopePredictor(opened, mesh=found,
+                                  options=preset_options(preset, predictor_options, fixed_size=fixed, meshes=bool(found)))
         for obj_id, name in zip(ids, names):
             out.predictors[obj_id], out.class_of[obj_id] = predictor, name
     return out

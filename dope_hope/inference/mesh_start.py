@@ -228,7 +228,7 @@ class MeshStartPredictor(DopePredictor):
         if classes is not None and self.class_name not in classes:
             return []
         cache = {} if cache is None else cache
-        icp_first = depth is not None and self.options.icp
+        icp_first = self.icp_runs(self.objects[0], depth)
         pooled: list[Detection] = []
         for i, (key, net_input) in enumerate(self.network_inputs(rgb, cache, self.scales)):
             maps_key = ("start maps", self.start_id, *key)  # the start's maps know no object: shared

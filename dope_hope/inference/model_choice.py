@@ -65,7 +65,7 @@ def new_objects(choice: ModelChoice, default_weights: Path | None) -> dict[str, 
 
 
 def build_run_predictors(choice: ModelChoice, options: Mapping[str, Any] | None, default_weights: Path | None,
-                         note: Callable[[str], None] = lambda message: None) -> list:
+                         note: Callable[[str], None] = lambda message: None, preset: str = "fast") -> list:
     """The predictors of ``choice``: the pretrained start's for new objects' meshes
     (:func:`new_objects`), else one per model file (``default_weights`` when none is given).
 
@@ -74,6 +74,9 @@ def build_run_predictors(choice: ModelChoice, options: Mapping[str, Any] | None,
             :class:`~dope_hope.inference.options.InferenceOptions`).
         default_weights: the model run when ``choice`` names none (the shipped demo model), or None.
         note: told what each model runs as and which threshold it brings.
+        preset: the inference preset under ``options`` ("fast": the packaged defaults, what a
+            stream and the ROS node run; "accurate": still images;
+            :data:`~dope_hope.inference.options.PRESETS`).
 
     Raises:
         ConfigError: no weights and no default; meshes, units or classes that do not fit.
@@ -83,11 +86,11 @@ def build_run_predictors(choice: ModelChoice, options: Mapping[str, Any] | None,
     if meshes is not None:
         return build_start_predictors(meshes, up_axes=choice.up_axes, mesh_units=choice.mesh_units, start=choice.start,
                                       device=choice.device, threads=choice.threads, options=options,
-                                      classes=classes, note=note)
+                                      classes=classes, note=note, preset=preset)
     weights = list(choice.weights) or ([default_weights] if default_weights is not None else [])
     if not weights:
         raise ConfigError("--weights is required (no demo model at dope_hope/assets/demo_lite.pt "
                           "in this installation)")
     return build_predictors(weights, list(choice.meshes), mesh_units=choice.mesh_units, backend=choice.backend,
                             device=choice.device, threads=choice.threads, options=options, classes=classes,
-                            note=note)
+                            note=note, preset=preset)

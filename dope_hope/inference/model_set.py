@@ -24,6 +24,7 @@ from dope_hope.errors import ConfigError
 from dope_hope.geometry import value_for_object
 from dope_hope.inference import backends  # looked up at each call: a substituted open_backend counts
 from dope_hope.inference.mesh_start import MeshStartPredictor
+from dope_hope.inference.options import preset_options
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.inference.tracking import PoseTracker, class_symmetry_transforms
 from dope_hope.io.models_dir import check_run_object, find_object_mesh, is_named_value, parse_mesh_args
@@ -118,7 +119,7 @@ def build_predictors(weights: Sequence[Path], meshes: Sequence[str | Path] = (),
                      mesh_units: str | Mapping[str, str] | None = None,
                      backend: str = "auto", device: str = "cpu", threads: int | None = None,
                      options: Mapping[str, Any] | None = None, classes: Sequence[str] | None = None,
-                     note: Callable[[str], None] = lambda message: None) -> list[DopePredictor]:
+                     note: Callable[[str], None] = lambda message: None, preset: str = "fast") -> list[DopePredictor]:
     """A predictor per model file in ``weights`` that detects one of ``classes`` (all: None).
 
     Args:
@@ -132,6 +133,8 @@ def build_predictors(weights: Sequence[Path], meshes: Sequence[str | Path] = (),
         note: told what each model runs as (an ONNX file: fp32 or INT8), which threshold
             a model brings along and (starting "warning: ") which model reports an object that
             several hold (:func:`kept_classes`).
+        preset: the options ``options`` are read over (:func:`~dope_hope.inference.options.preset_options`;
+            "fast": the packaged defaults; "accurate" with one working size for a fixed-size export).
 
     Raises ConfigError for meshes or units that do not fit the models, a class no model detects.
     """
@@ -149,8 +152,9 @@ def build_predictors(weights: Sequence[Path], meshes: Sequence[str | Path] = (),
             continue  # none of --classes: this model is not run
         if hasattr(model, "describe"):  # ONNX: fp32 or INT8, and what INT8 costs
             note(f"model {model.describe()}")
+        fixed = getattr(model, "fixed_input_hw", None) is not None
         predictors.append(DopePredictor(model, mesh=files[i] or None, mesh_units=mesh_units, classes=keep,
-                                        options=dict(options or {})))
+                                        options=preset_options(preset, options, fixed_size=fixed, meshes=bool(files[i]))))
         if predictors[-1].own_min_score:
             scores = {obj.class_name: obj.min_score for obj in predictors[-1].objects}
             text = (f"{', '.join(scores)}: min score {next(iter(scores.values())):g}"
@@ -172,8 +176,8 @@ def stream_tracker(predictors: Sequence[DopePredictor]) -> PoseTracker:
 def build_start_predictors(meshes: Mapping[str, str | Path], *, up_axes: str | Mapping[str, str] | None = None,
                            mesh_units: str | Mapping[str, str] | None = None, start: str | Path | None = None,
                            device: str = "cpu", threads: int | None = None, options: Mapping[str, Any] | None = None,
-                           classes: Sequence[str] | None = None, note: Callable[[str], None] = lambda message: None
-                           ) -> list[MeshStartPredictor]:
+                           classes: Sequence[str] | None = None, note: Callable[[str], None] = lambda message: None,
+                           preset: str = "fast") -> list[MeshStartPredictor]:
     """A :class:`~dope_hope.inference.mesh_start.MeshStartPredictor` per new object (the
     pretrained start as a detector of its mesh's cuboid, no training), in the order given;
     their network runs once per image and working size for all of them (the start's maps
@@ -185,6 +189,8 @@ def build_start_predictors(meshes: Mapping[str, str | Path], *, up_axes: str | M
             NAME one of ``meshes``): the vertical mesh axis (default y) and the file's unit.
         start, device, threads, options: as :class:`MeshStartPredictor` takes them.
         classes: keep these of ``meshes`` (``--classes``; None: all).
+        preset: the options ``options`` are read over (:func:`~dope_hope.inference.options.preset_options`
+            for a new object: the "accurate" preset's ICP, not its sizes or turns).
 
     Raises ConfigError for a NAME of ``up_axes``, ``mesh_units`` or ``classes`` that is not one
     of ``meshes``.
@@ -198,7 +204,8 @@ def build_start_predictors(meshes: Mapping[str, str | Path], *, up_axes: str | M
         if kept is not None and name not in kept:
             continue
         p = MeshStartPredictor(path, class_name=name, up_axis=value_for_object(up_axes, name) or "y", mesh_units=mesh_units,
-                               start=start, device=device, threads=threads, options=options)
+                               start=start, device=device, threads=threads,
+                               options=preset_options(preset, options, new_object=True))
         note(p.describe())
         predictors.append(p)
     return predictors

@@ -6,6 +6,15 @@ with a model's maps (the settings of ``dope-hope infer``, ``demo`` and ``bop-sub
 have one owner), and one section per stage, each the stage's settings dataclass, which sits
 beside the stage's function and owns that section's defaults. Every key is checked: an
 unknown key or a bad value is a ConfigError naming it.
+
+**Presets** (:data:`PRESETS`, ``dope-hope infer --fast`` / ``--accurate``): "fast", the
+packaged defaults (one working size, no turns, ICP only when asked), what a
+:class:`~dope_hope.inference.predictor.DopePredictor` built without options and every stream
+(video, camera, RealSense, recording, a robot node) runs: the frame rate first; "accurate",
+``dope_hope/configs/infer_accurate.yaml`` over them, what still images, folders and
+``bop-submit`` run by default: the settings that measure best on held-out frames (three
+working sizes, ICP where there is depth and a surface to fit, the trained turns where there
+is not). :func:`preset_options` puts what a user sets on top of a preset.
 """
 from __future__ import annotations
 
@@ -16,13 +25,14 @@ from typing import Any
 from dope_hope.config import (
     SectionSettings,
     at_least,
-    boolean,
     finite_float,
     load_config,
+    merge,
     one_of,
     or_none,
     section,
 )
+from dope_hope.errors import ConfigError
 from dope_hope.inference.appearance import AppearanceSettings
 from dope_hope.inference.new_object_settings import NewObjectSettings
 from dope_hope.inference.pnp import PnpSettings
@@ -36,6 +46,42 @@ from dope_hope.refine.line_search import LineSearchSettings
 
 #: Pose searches: multi-hypothesis PnP over corner candidates, or DOPE's one-to-one grouping.
 POSE_SEARCHES = ("hypotheses", "groups")
+
+#: The values of ``icp``: off, after -LS on every detection (depth required), or "auto": after
+#: -LS where the image has depth and the object a surface to fit (a mesh, or a catalog box).
+ICP_MODES = (False, True, "auto")
+#: The inference presets (module docstring): name -> the packaged config of what it changes
+#: over ``infer.yaml`` (None: nothing).
+PRESETS: dict[str, str | None] = {"fast": None, "accurate": "infer_accurate"}
+#: The preset of still images, folders and ``bop-submit``; of video, cameras and recordings.
+STILL_IMAGE_PRESET, STREAM_PRESET = "accurate", "fast"
+
+
+def icp_mode(value: Any, name: str) -> bool | str:
+    """The rule of ``icp``: true, false or "auto" (:data:`ICP_MODES`)."""
+    if value is True or value is False or value == "auto":
+        return value
+    raise ConfigError(f"{name} must be true, false or auto, got {value!r}")
+
+
+def preset_options(preset: str, given: Mapping[str, Any] | None = None, *, fixed_size: bool = False,
+                   new_object: bool = False, meshes: bool = True) -> dict[str, Any]:
+    """The option overrides of ``preset`` (:data:`PRESETS`) with ``given`` (what the user set,
+    nested as a config file writes it) on top. For a model of one input size (``fixed_size``:
+    a fixed-size export) and for a new object's detector (``new_object``: its working sizes are
+    ``new_object.scales``, and its own turns), the preset's working sizes are left out; its
+    trained turns for a new object's detector and for a model given no mesh (``meshes``
+    false: they need a textured one, and a setting nobody asked for warns of nothing); what
+    ``given`` sets is kept whatever it is (and checked where it is used)."""
+    if preset not in PRESETS:
+        raise ConfigError(f"preset: one of {', '.join(PRESETS)}, got {preset!r}")
+    base = load_config(PRESETS[preset]) if PRESETS[preset] else {}
+    if fixed_size or new_object:
+        base.pop("multiscale", None)
+    if new_object or not meshes:
+        base.get("appearance", {}).pop("trained_turns", None)
+    return merge(base, dict(given or {}))
+
 
 #: The top-level defaults, as ``dope_hope/configs/infer.yaml`` gives them (its stage sections
 #: are empty: their defaults are the stage classes').
@@ -73,20 +119,20 @@ class InferenceOptions(SectionSettings):
 
     height: working height in px or None (the model's training scale). pose_search: one of
     :data:`POSE_SEARCHES`. min_score: detections below are dropped. ls_points / icp_points:
-    model points for -LS / ICP. icp: ICP after -LS when depth is given. decode, pnp,
+    model points for -LS / ICP. icp: one of :data:`ICP_MODES`. decode, pnp,
     hypotheses, line_search, icp_refine, tracking, appearance, new_object, multiscale: each stage's settings (a
     mapping given for one is read over its defaults); :attr:`stages` holds them together.
     """
 
     SECTION = ""
     RULES = {"height": or_none(check_working_side), "pose_search": one_of(*POSE_SEARCHES),
-             "min_score": finite_float, "ls_points": at_least(10), "icp": boolean, "icp_points": at_least(10)}
+             "min_score": finite_float, "ls_points": at_least(10), "icp": icp_mode, "icp_points": at_least(10)}
 
     height: int | None = TOP_LEVEL_DEFAULTS["height"]
     pose_search: str = TOP_LEVEL_DEFAULTS["pose_search"]
     min_score: float = TOP_LEVEL_DEFAULTS["min_score"]
     ls_points: int = TOP_LEVEL_DEFAULTS["ls_points"]
-    icp: bool = TOP_LEVEL_DEFAULTS["icp"]
+    icp: bool | str = TOP_LEVEL_DEFAULTS["icp"]
     icp_points: int = TOP_LEVEL_DEFAULTS["icp_points"]
     decode: DecodeSettings = section(DecodeSettings)
     pnp: PnpSettings = section(PnpSettings)

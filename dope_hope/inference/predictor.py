@@ -51,14 +51,16 @@ run on one image (:func:`predict_many`). The pipeline of :meth:`DopePredictor.pr
    line search, point-to-plane ICP of ``icp_points`` model points against the depth under the
    object refines all six DoF; kept only when it does not fit the depth worse and keeps to the
    object's own depth support (the detected region: the silhouette of the pose it starts
-   from). Without ``mesh=`` only the catalog's boxes are allowed.
-7. **Turns by the texture** (optional, ``appearance.trained_turns``, without ICP;
+   from). Without ``mesh=`` only the catalog's boxes are allowed; ``icp="auto"`` runs it where
+   the image has depth and the object a surface to fit (:meth:`DopePredictor.icp_runs`).
+7. **Turns by the texture** (optional, ``appearance.trained_turns``, where ICP does not run;
    :class:`dope_hope.inference.turns.TrainedTurns`): each pose turned about its object's long
    axis to the turn whose textured render the network's first layers find most like the image;
    before -LS, which then places the pose kept.
 
 Several working sizes (optional, ``multiscale.scales``, :mod:`dope_hope.inference.scales`):
-steps 1-4 at each, the detections pooled (a duplicate of a higher-scoring one by its 2D box
+steps 1-4 at each (after the first only where its detections leave belief unexplained, with
+``multiscale.gate``), the detections pooled (a duplicate of a higher-scoring one by its 2D box
 dropped), then steps 5-7 on those kept.
 """
 from __future__ import annotations
@@ -92,7 +94,8 @@ from dope_hope.inference.object_geometry import ObjectGeometry
 from dope_hope.inference.options import InferenceOptions
 from dope_hope.inference.pnp import PoseEstimate, pose_may_reach, score_in_view, solve_pnp
 from dope_hope.inference.pose_search import solve_pnp_instances
-from dope_hope.inference.scales import pool_detections, scaled_height
+from dope_hope.inference.reported_objects import meshes_by_group, select_groups
+from dope_hope.inference.scales import belief_beyond_boxes, pool_detections, scaled_height
 from dope_hope.inference.turns import TrainedTurns
 from dope_hope.maps.decode import (
     corner_candidates,
@@ -100,7 +103,6 @@ from dope_hope.maps.decode import (
     decoder_peaks,
 )
 from dope_hope.maps.peaks import Peaks, split_peaks
-from dope_hope.model.info import ObjectInfo
 from dope_hope.preprocess import (
     NetworkInput,
     check_intrinsics,
@@ -147,18 +149,10 @@ class DopePredictor:
     cuboid_pnp, model_points, bbox_points and icp_model.
     """
 
-    def __init__(
-        self,
-        weights: str | os.PathLike | MapBackend,
-        backend: str = "auto",
-        device: str = "cpu",
-        threads: int | None = None,
-        mesh: Any = None,
-        mesh_units: str | Mapping[str, str] | None = None,
-        options: InferenceOptions | Mapping[str, Any] | None = None,
-        classes: Sequence[str] | None = None,
-        **overrides: Any,
-    ):
+    def __init__(self, weights: str | os.PathLike | MapBackend, backend: str = "auto", device: str = "cpu",
+                 threads: int | None = None, mesh: Any = None, mesh_units: str | Mapping[str, str] | None = None,
+                 options: InferenceOptions | Mapping[str, Any] | None = None, classes: Sequence[str] | None = None,
+                 **overrides: Any):
         if isinstance(options, InferenceOptions):
             options = options.to_dict()
         given = {**(options or {}), **overrides}
@@ -185,7 +179,7 @@ class DopePredictor:
         #: number of objects (channel groups) in the model's maps
         self.num_model_objects = len(model_objects)
         groups = select_groups(model_objects, classes)
-        meshes = _meshes_by_group(mesh, [model_objects[k].class_name for k in groups])
+        meshes = meshes_by_group(mesh, [model_objects[k].class_name for k in groups])
         self.objects = [ObjectGeometry(model_objects[k], k, self.legacy, meshes.get(i),
                                        value_for_object(mesh_units, model_objects[k].class_name),
                                        self.options.ls_points, self.options.icp_points)
@@ -196,7 +190,9 @@ class DopePredictor:
         #: whether the thresholds are the model's own (recorded with its weights, none given)
         self.own_min_score = "min_score" not in given and (
             model_min_score(b) is not None or any(model_objects[k].min_score is not None for k in groups))
-        if self.options.icp:
+        #: the objects ICP may fit: all with icp=True (checked), those with a surface with "auto"
+        self.icp_objects = {o.class_name for o in self.objects if self.options.icp is True or _icp_surface(o)}
+        if self.options.icp is True:
             for obj in self.objects:
                 obj.check_icp_surface()
         self._turns: TrainedTurns | None = None  # appearance.trained_turns, built on first use
@@ -210,8 +206,7 @@ class DopePredictor:
 
     def _only(self) -> ObjectGeometry:
         if len(self.objects) != 1:
-            raise AttributeError(f"this predictor reports {len(self.objects)} objects "
-                                 f"({', '.join(self.class_names)}): use .objects")
+            raise AttributeError(f"this predictor reports {len(self.objects)} objects ({', '.join(self.class_names)}): use .objects")
         return self.objects[0]
 
     class_name = property(lambda self: self._only().class_name, doc="The one object's class.")
@@ -299,17 +294,35 @@ class DopePredictor:
             if on_maps is not None and i == 0:
                 on_maps(self, belief, affinity, net_in)
             out += self.detections_from_maps(belief, affinity, net_in, K, None if late else depth, classes)
+            if i == 0 and len(scales) > 1 and self.first_size_explains(belief, affinity, net_in, out, classes):
+                break  # multiscale.gate: nothing the first size missed, no other size
         if not late:
             return out
         if len(scales) > 1:
             out = pool_detections(out, self.options.multiscale.duplicate_iou)
         for det in out:  # the turn first: -LS then places the pose it kept
             obj = self.object_of(det)
-            if turns is not None:
+            if turns is not None and not self.icp_runs(obj, depth):
                 turns.turn(det, rgb, K)
             self.depth_stages(obj, det, depth)
             self.project_detection(obj, det, K, rgb.shape[:2])
         return out
+
+    def first_size_explains(self, belief: np.ndarray, affinity: np.ndarray, net_in: NetworkInput,
+                            detections: Sequence[Detection], classes: Collection[str] | None = None) -> bool:
+        """Whether the first working size's ``detections`` explain its maps, so that the other
+        sizes need not run (``multiscale.gate``, :mod:`~dope_hope.inference.scales`): no object's
+        belief outside its detections' 2D boxes reaches the gate. False without a gate."""
+        gate = self.options.multiscale.gate
+        if gate is None:
+            return False
+        for obj in self.objects:
+            if classes is None or obj.class_name in classes:
+                boxes = [net_in.to_network_px(np.reshape(d.bbox_2d, (2, 2))) / self.stride for d in detections
+                         if d.class_name == obj.class_name and d.bbox_2d is not None]
+                if belief_beyond_boxes(obj.channels(belief, affinity)[0], boxes) > gate:
+                    return False
+        return True
 
     def network_inputs(self, rgb: np.ndarray, cache: dict[tuple, Any], scales: Sequence[float] | None = None,
                        ) -> list[tuple[tuple, NetworkInput]]:
@@ -337,12 +350,12 @@ class DopePredictor:
     def trained_turns(self) -> TrainedTurns | None:
         """The turns of ``appearance.trained_turns`` (module docstring, step 7), built on first
         use, the objects they skip named in a warning; None where the setting is off, or where
-        ICP runs (a warning says so, once). Their features: the backend's own first layers (a
+        ICP runs on every detection (``icp=True``; a warning says so, once). Their features: the backend's own first layers (a
         PyTorch model), else the shipped start's (an ONNX model)."""
         if not self.options.appearance.trained_turns:
             return None
         told, self._turns_told = self._turns_told, True
-        if self.options.icp:
+        if self.options.icp is True:
             if not told:
                 warnings.warn("appearance.trained_turns does not run with ICP: the depth fit places the turn",
                               UserWarning, stacklevel=3)
@@ -435,15 +448,21 @@ class DopePredictor:
         return out
 
     def depth_stages(self, obj: ObjectGeometry, det: Detection, depth: DepthImage | None) -> None:
-        """-LS, then ICP where ``icp`` is set, in place on ``det`` of object ``obj`` (its pose the
-        keypoints'); without ``depth`` only the reason ICP did not run. ``projected_2d`` and
-        ``bbox_2d`` are the caller's."""
+        """-LS, then ICP where it runs (:meth:`icp_runs`), in place on ``det`` of object ``obj``
+        (its pose the keypoints'); without ``depth`` only the reason ICP did not run.
+        ``projected_2d`` and ``bbox_2d`` are the caller's."""
         if depth is not None:
             self._line_search(obj, det, depth)
-            if self.options.icp:
+            if self.icp_runs(obj, depth):
                 self._refine_icp(obj, det, depth)
         elif self.options.icp:
             det.icp_reason = "no depth image"
+
+    def icp_runs(self, obj: ObjectGeometry, depth: DepthImage | None) -> bool:
+        """Whether ICP refines object ``obj``'s detections in an image with ``depth`` (or None):
+        ``icp`` true and a depth image, or "auto", a depth image and a surface to fit (a mesh,
+        or a catalog box: :meth:`~dope_hope.inference.object_geometry.ObjectGeometry.check_icp_surface`)."""
+        return bool(self.options.icp) and depth is not None and obj.class_name in self.icp_objects
 
     def object_of(self, det: Detection) -> ObjectGeometry:
         """The reported object a detection of this predictor belongs to (by class)."""
@@ -524,46 +543,6 @@ class DopePredictor:
                 f"frame={'legacy' if self.legacy else 'mesh'}, height={self.options.height})")
 
 
-def select_groups(objects: Sequence[ObjectInfo], classes: Sequence[str] | None,
-                  flag: str = "classes") -> list[int]:
-    """Channel groups of ``classes`` among a model's ``objects`` (channel order; all when None).
-
-    Names match exactly, else case-insensitively; ConfigError naming ``flag`` and the model's
-    objects for a class it does not detect, or for an empty list."""
-    names = [o.class_name for o in objects]
-    if classes is None:
-        return list(range(len(objects)))
-    if not len(classes):
-        raise ConfigError(f"{flag}: give at least one class (the model's objects: {', '.join(names)})")
-    groups = set()
-    for c in classes:
-        hits = [k for k, n in enumerate(names) if n == c] or \
-            [k for k, n in enumerate(names) if n.lower() == str(c).lower()]
-        if len(hits) != 1:
-            raise ConfigError(f"{flag}: {c!r} is not an object of this model (its objects: {', '.join(names)})")
-        groups.add(hits[0])
-    return sorted(groups)
-
-
-def _meshes_by_group(mesh: Any, names: Sequence[str]) -> dict[int, Any]:
-    """``mesh`` (one mesh, or class name -> mesh) as {index into ``names``: mesh} (``names``: the
-    reported objects, a subset of the model's where ``classes`` selects some)."""
-    if mesh is None:
-        return {}
-    if not isinstance(mesh, Mapping):
-        if len(names) != 1:
-            raise ConfigError(f"mesh: this predictor reports {len(names)} objects ({', '.join(names)}): "
-                              "give a mapping class name -> mesh")
-        return {0: mesh}
-    out: dict[int, Any] = {}
-    lower = [n.lower() for n in names]
-    for name, m in mesh.items():
-        if str(name).lower() not in lower:
-            raise ConfigError(f"mesh: {name!r} is not an object this predictor reports ({', '.join(names)})")
-        out[lower.index(str(name).lower())] = m
-    return out
-
-
 def as_depth_image(depth: np.ndarray | DepthImage | None, K: np.ndarray, depth_scale_m: float,
                    calibration: float, image_hw: tuple[int, int]) -> DepthImage | None:
     """The predictor's depth boundary: None stays None, a raw array becomes a checked
@@ -597,6 +576,15 @@ def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.n
         out.extend(p.detect_image(rgb, K, depth, cache, on_maps, classes))
     out.sort(key=lambda d: -d.score)
     return out
+
+
+def _icp_surface(obj: ObjectGeometry) -> bool:
+    """Whether ICP has a surface of ``obj`` to fit (its mesh, or the cuboid of a catalog box)."""
+    try:
+        obj.check_icp_surface()
+    except ConfigError:
+        return False
+    return True
 
 
 @functools.cache

@@ -338,7 +338,7 @@ class PoseTracker:
             ls = (bool(res.applied), f"coasted: {res.reason}")
             if res.applied:
                 t = res.t
-                if p.options.icp:
+                if p.options.icp is True or (p.options.icp == "auto" and class_name in p.icp_objects):
                     probe = Detection(class_name, tr.score, R, t, np.full((NUM_KEYPOINTS, 2), np.nan),
                                       np.zeros(NUM_KEYPOINTS), np.zeros(NUM_KEYPOINTS, bool),
                                       np.zeros((NUM_KEYPOINTS, 2)), float("nan"), self.geometry[class_name].cuboid_size_m,
