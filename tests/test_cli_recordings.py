@@ -74,10 +74,11 @@ def run_cli(argv: list[str], capsys) -> tuple[int, list[dict], str]:
 
 
 def image_detections(scenes, capsys, tmp_path, suffix: str, depth: bool) -> list[list[dict]]:
-    """Per frame, the records of `infer` on the frame's image (with --depth PATH when ``depth``)."""
+    """Per frame, the records of `infer` on the frame's image (with --depth PATH when ``depth``),
+    with the settings a stream runs (``--fast``: the preset of recordings and the live node)."""
     images, per_frame = scenes["images"], []
     for i in range(len(scenes["frames"])):
-        argv = [images / f"{i:06d}{suffix}", "--camera", images / "K.json", "--out", tmp_path / f"img{i}"]
+        argv = [images / f"{i:06d}{suffix}", "--camera", images / "K.json", "--out", tmp_path / f"img{i}", "--fast"]
         code, recs, err = run_cli(argv + (["--depth", images / f"{i:06d}.depth.png"] if depth else []), capsys)
         assert code == 0, err
         per_frame.append(recs)
