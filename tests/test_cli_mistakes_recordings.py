@@ -42,7 +42,7 @@ def image_records(frames: list[tuple[np.ndarray, np.ndarray]], Ks: list[np.ndarr
         write_depth_mm(folder / "f.depth.png", depth)
         (folder / "K.json").write_text(json.dumps({"K": K.tolist()}))
         code, recs, err = run_cli([folder / "f.png", "--camera", folder / "K.json", "--depth", folder / "f.depth.png",
-                                   "--out", folder / "out"], capsys)
+                                   "--out", folder / "out", "--fast"], capsys)  # a recording's preset
         assert code == 0, err
         out.append(recs)
     return out

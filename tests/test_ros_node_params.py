@@ -31,7 +31,7 @@ def test_given_parameters_nest_as_a_settings_file_over_the_command_settings():
 @pytest.mark.parametrize("values, message", [
     ({"decode.threshold": "high"}, "decode.threshold"),
     ({"decode.nope": 1.0}, "unknown setting decode.nope"),
-    ({"icp": 1}, "icp must be true or false"),
+    ({"icp": 1}, "icp must be true, false or auto"),
 ])
 def test_a_bad_inference_parameter_is_named(values, message):
     with pytest.raises(ConfigError, match=message):

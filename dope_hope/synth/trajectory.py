@@ -103,7 +103,7 @@ class TrajectoryRenderer:
             from dope_hope.synth.render import SceneRenderer  # noqa: PLC0415 (OpenGL starts with the first render)
 
             W, H = self.gen.size
-            self._renderer = SceneRenderer(W, H, shadows=bool(self.gen.cfg["lights"]["shadows"]))
+            self._renderer = SceneRenderer(W, H, shadows=bool(self.gen.cfg.lights.shadows))
             self._meshes = MeshBuilder()
         seed = self.gen.seed if seed is None else int(seed)
         spec, streams, targets, _ = self.gen.sample_scene(scene_index, seed)
@@ -120,10 +120,10 @@ class TrajectoryRenderer:
                                         lambda o: (targets[o.target_index].cuboid_size,
                                                    targets[o.target_index].cuboid_center))
             rng = np.random.default_rng([seed, int(scene_index), k])
-            rgb = post_process(rng, composite(backdrop, out.color, out.alpha), self.gen.cfg["post"])
+            rgb = post_process(rng, composite(backdrop, out.color, out.alpha), self.gen.cfg.post)
             depth = out.depth
             if self.gen.depth_noise:
-                depth = add_realsense_noise(out.depth, rgb, view.K, rng, **noise_kwargs(self.gen.cfg["depth_noise"]))
+                depth = add_realsense_noise(out.depth, rgb, view.K, rng, **noise_kwargs(self.gen.cfg.depth_noise))
             annotation, stats = annotate_frame(view, out, boxes)
             yield SynthFrame(index=k, rgb=rgb, depth=depth, depth_clean=out.depth, seg=out.seg,
                              annotation=annotation, stats=stats, scene=view, target=targets[0],
