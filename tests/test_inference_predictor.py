@@ -29,7 +29,7 @@ from dope_hope.geometry import (
     scale_intrinsics,
 )
 from dope_hope.inference.backends import MapBackend, TorchBackend
-from dope_hope.inference.predictor import DopePredictor, predict_many
+from dope_hope.inference.predictor import NO_ICP_SURFACE, DopePredictor, predict_many
 from dope_hope.model import build_model
 from dope_hope.model.checkpoint import (
     import_official,
@@ -314,7 +314,7 @@ def test_icp_auto_runs_where_there_is_depth_and_a_surface():
     bottle = DopePredictor(b, icp="auto")
     assert bottle.icp_objects == set() and auto.icp_objects == {OBJ.name}
     (ls,) = bottle.predict(white((480, 640)), K640, depth=depth_mm)
-    assert ls.icp_reason == "not requested" and not bottle.icp_runs(bottle.objects[0], DepthImage.from_raw(depth_mm, K640))
+    assert ls.icp_reason == NO_ICP_SURFACE and not bottle.icp_runs(bottle.objects[0], DepthImage.from_raw(depth_mm, K640))
 
 
 def test_line_search_widens_where_its_optimum_lies_beyond_its_range():

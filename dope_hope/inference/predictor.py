@@ -114,6 +114,9 @@ from dope_hope.refine.depth import DepthImage
 from dope_hope.refine.icp import icp_refine, own_depth_support
 from dope_hope.refine.line_search import depth_line_search
 
+#: ``icp_reason`` of a detection that ``icp: auto`` leaves to -LS: its object has nothing to fit.
+NO_ICP_SURFACE = "no surface to fit (icp: auto needs the object's mesh or a catalog box)"
+
 
 # ----------------------------------------------------------------------------- predictor
 class DopePredictor:
@@ -455,6 +458,8 @@ class DopePredictor:
             self._line_search(obj, det, depth)
             if self.icp_runs(obj, depth):
                 self._refine_icp(obj, det, depth)
+            elif self.options.icp:  # (icp: auto, an object with no mesh and no catalog box)
+                det.icp_reason = NO_ICP_SURFACE
         elif self.options.icp:
             det.icp_reason = "no depth image"
 
