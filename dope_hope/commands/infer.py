@@ -213,14 +213,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mesh-units", action="append", default=[], metavar="[NAME=]UNIT",
                         help="unit of the mesh files, m, cm or mm (default: .obj cm, .ply mm); NAME=UNIT "
                              "for one object's mesh (repeat; objects of mixed units)")
-    start = parser.add_argument_group("new objects with no training (--mesh [NAME=]FILE, repeatable, no --weights)")
-    start.add_argument("--up-axis", action="append", default=[], metavar="[NAME=]AXIS",
-                       help="a new object's mesh: the mesh axis that is its vertical axis, as the pretrained "
-                            "start learned y for cans and bottles: x, y (default), z, or =-x, =-y, =-z "
-                            "(--up-axis=-z); NAME=AXIS for one object's mesh (repeat)")
-    start.add_argument("--start", type=Path, metavar="W",
-                       help="a new object's mesh: the start to run (default: the shipped "
-                            "dope_hope/assets/pretrained_lite.pt)")
+    _add_new_object_arguments(parser)
     parser.add_argument("--out", type=Path, default=Path("infer_out"), metavar="DIR",
                         help="folder for overlays and predictions.jsonl (default ./infer_out)")
     parser.add_argument("--no-overlay", action="store_true", help="do not write overlay images / video")
@@ -245,6 +238,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", type=fixed_device, default="cpu", help="torch device (cpu, cuda, cuda:1)")
     parser.add_argument("--threads", type=positive_int, help="CPU threads for the network")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _add_new_object_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of new objects the pretrained start detects (--mesh FILE, no --weights)."""
+    start = parser.add_argument_group("new objects with no training (--mesh [NAME=]FILE, repeatable, no --weights)")
+    start.add_argument("--up-axis", action="append", default=[], metavar="[NAME=]AXIS",
+                       help="a new object's mesh: the mesh axis that is its vertical axis, as the pretrained "
+                            "start learned y for cans and bottles: x, y (default), z, or =-x, =-y, =-z "
+                            "(--up-axis=-z); NAME=AXIS for one object's mesh (repeat)")
+    start.add_argument("--start", type=Path, metavar="W",
+                       help="a new object's mesh: the start to run (default: the shipped "
+                            "dope_hope/assets/pretrained_lite.pt)")
 
 
 # ----------------------------------------------------------------------------- setup
