@@ -87,7 +87,7 @@ def seen_keypoints(predictor: DopePredictor, belief: np.ndarray, net_in, K: np.n
             continue
         c0, c1 = max(0, int(round(u)) - r), min(w, int(round(u)) + r + 1)
         r0, r1 = max(0, int(round(v)) - r), min(h, int(round(v)) + r + 1)
-        seen[k] = c0 < c1 and r0 < r1 and belief[k, r0:r1, c0:c1].max() > predictor.options.stages.decode.threshold
+        seen[k] = c0 < c1 and r0 < r1 and belief[k, r0:r1, c0:c1].max() > predictor.options.decode.threshold
     return seen
 
 
@@ -133,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
                 belief, _, net_in = maps
                 seen = seen_keypoints(predictor, belief, net_in, frame.K, gt.R, gt.t)
                 cause = (CAUSES[2] if not seen[8] else CAUSES[3]
-                         if seen.sum() < predictor.options.stages.pnp.min_points else CAUSES[4])
+                         if seen.sum() < predictor.options.pnp.min_points else CAUSES[4])
             band = next(label for label, lo, hi in VISIBILITY_BANDS if lo <= visible < hi)
             counts[band][cause] += 1
             for j in range(len(args.also)):

@@ -19,7 +19,7 @@ import dataclasses
 import math
 import re
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
@@ -400,18 +400,16 @@ def parse_assignment(item: str) -> dict[str, Any]:
     return value
 
 
-def load_settings(cls: type[_Settings], config: str | Path | Mapping[str, Any] | None = None,
-                  assignments: list[str] | tuple[str, ...] = (), base: Mapping[str, Any] | None = None,
-                  ) -> _Settings:
-    """The one loader of a command's settings: ``cls``'s defaults, then ``base`` (e.g. the
-    config a checkpoint recorded), then ``config`` (a packaged config's name, a YAML file or a
-    mapping) and last each ``section.key=value`` of ``assignments``, each deep-merged over the
-    ones before (a file or ``--set`` only holds what it changes).
+def settings_layers(config: str | Path | Mapping[str, Any] | None = None,
+                    assignments: list[str] | tuple[str, ...] = (), base: Mapping[str, Any] | None = None,
+                    ) -> list[tuple[str, Mapping[str, Any]]]:
+    """Each source of a command's settings read once, in the order they apply: (where it came
+    from, as messages name it; its nested mapping): ``base`` ("recorded config"), ``config`` (a
+    packaged config's name, a YAML file or a mapping), then each ``section.key=value`` of
+    ``assignments`` ("--set ITEM").
 
     Raises:
-        ConfigError: one line naming where the bad key or value came from (the file, or the
-            ``--set`` item) and ``section.key`` (unknown key, or the value's rule).
-        InputFileError: an unreadable or malformed file.
+        ConfigError: a malformed ``--set`` item. InputFileError: an unreadable or malformed file.
     """
     layers: list[tuple[str, Mapping[str, Any]]] = []
     if base is not None:
@@ -424,8 +422,15 @@ def load_settings(cls: type[_Settings], config: str | Path | Mapping[str, Any] |
                        else str(path), load_yaml(path)))
     for item in assignments:
         layers.append((f"--set {item}", parse_assignment(item)))
-    values = cls().to_dict()
+    return layers
+
+
+def settings_from_layers(cls: type[_Settings], layers: Sequence[tuple[str, Mapping[str, Any]]]) -> _Settings:
+    """``cls``'s defaults with each layer of :func:`settings_layers` deep-merged over the ones
+    before (a file or ``--set`` only holds what it changes), each checked as it comes: a bad
+    key or value is a ConfigError naming the layer and ``section.key``."""
     settings = cls()
+    values = settings.to_dict()
     for where, layer in layers:
         values = merge(values, dict(layer))
         try:
@@ -433,6 +438,22 @@ def load_settings(cls: type[_Settings], config: str | Path | Mapping[str, Any] |
         except ConfigError as exc:
             raise ConfigError(f"{where}: {exc}") from None
     return settings
+
+
+def load_settings(cls: type[_Settings], config: str | Path | Mapping[str, Any] | None = None,
+                  assignments: list[str] | tuple[str, ...] = (), base: Mapping[str, Any] | None = None,
+                  ) -> _Settings:
+    """The one loader of a command's settings: ``cls``'s defaults, then ``base`` (e.g. the
+    config a checkpoint recorded), then ``config`` (a packaged config's name, a YAML file or a
+    mapping) and last each ``section.key=value`` of ``assignments``
+    (:func:`settings_from_layers` over :func:`settings_layers`).
+
+    Raises:
+        ConfigError: one line naming where the bad key or value came from (the file, or the
+            ``--set`` item) and ``section.key`` (unknown key, or the value's rule).
+        InputFileError: an unreadable or malformed file.
+    """
+    return settings_from_layers(cls, settings_layers(config, assignments, base))
 
 
 def settings_yaml(settings: SectionSettings) -> str:

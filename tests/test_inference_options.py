@@ -79,3 +79,34 @@ def test_presets_put_what_is_given_on_top_and_fit_the_model():
     assert load_config("infer_accurate")["appearance"] == {"trained_turns": True}  # the file is not changed
     with pytest.raises(ConfigError, match="preset: one of fast, accurate, got 'best'"):
         preset_options("best")
+
+
+def test_infer_reads_each_setting_once_and_builds_a_predictors_options_once(tmp_path, monkeypatch, capsys):
+    """`infer --set` on one model: the item is parsed once; InferenceOptions is built for the
+    defaults and the --set layer as the loader checks them, then once by the predictor (and
+    copied once to take the model's own threshold), which runs with the value given."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    import dope_hope.config as config
+    from dope_hope.cli import main
+    from dope_hope.inference.predictor import DopePredictor
+
+    image = tmp_path / "frame.png"
+    cv2.imwrite(str(image), np.zeros((64, 80, 3), np.uint8))
+    (tmp_path / "frame.json").write_text(json.dumps({"camera_data": {
+        "intrinsics": {"fx": 60.0, "fy": 60.0, "cx": 40.0, "cy": 32.0}, "width": 80, "height": 64}, "objects": []}))
+    parsed, built, used = [], [], []
+    real_parse, real_post = config.parse_assignment, InferenceOptions.__post_init__
+    monkeypatch.setattr(config, "parse_assignment", lambda item: parsed.append(item) or real_parse(item))
+    monkeypatch.setattr(InferenceOptions, "__post_init__", lambda self: built.append(1) or real_post(self))
+    real_detect = DopePredictor.detect_image
+    monkeypatch.setattr(DopePredictor, "detect_image",
+                        lambda self, *a, **k: used.append(self.options) or real_detect(self, *a, **k))
+    assert main(["infer", str(image), "--set", "decode.threshold=0.2", "--out", str(tmp_path / "out"),
+                 "--no-progress", "--no-overlay", "--fast"]) == 0
+    assert parsed == ["decode.threshold=0.2"]
+    assert len(built) == 4  # defaults, the --set layer; the predictor's, its copy with the model's min_score
+    assert [o.decode.threshold for o in used] == [0.2] and used[0].min_score == 0.55  # the demo model's own

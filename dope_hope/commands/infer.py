@@ -289,17 +289,17 @@ def inference_settings(args: argparse.Namespace) -> dict:
     return given
 
 
-def _predictors(args: argparse.Namespace) -> list:
+def _predictors(args: argparse.Namespace, given: dict) -> list:
     """The predictors of --weights (the demo model by default), or the pretrained start's of
-    each new object's --mesh (:func:`dope_hope.inference.model_choice.build_run_predictors`)."""
+    each new object's --mesh (:func:`dope_hope.inference.model_choice.build_run_predictors`),
+    with the options ``given`` (:func:`inference_settings`) over the run's preset."""
     from dope_hope.inference.model_choice import ModelChoice, build_run_predictors
 
     choice = ModelChoice(weights=tuple(args.weights or ()), meshes=tuple(args.mesh or ()), mesh_units=args.mesh_units,
                          up_axes=args.up_axis, start=args.start,
                          classes=None if args.classes is None else tuple(args.classes), backend=args.backend,
                          device=args.device, threads=args.threads)
-    return build_run_predictors(choice, inference_settings(args), default_weights(), note=_note,
-                                preset=args.preset)
+    return build_run_predictors(choice, given, default_weights(), note=_note, preset=args.preset)
 
 
 # ----------------------------------------------------------------------------- run
@@ -313,17 +313,18 @@ def run(args: argparse.Namespace) -> int:
     from dope_hope.io.paths import output_dir
     from dope_hope.io.streams import stream_kind
 
-    args.icp = inference_settings(args).get("icp") is True  # settings checked before any work
+    given = inference_settings(args)  # read and checked once, before any work
+    args.icp = given.get("icp") is True
     args.mesh_units = parse_mesh_units(args.mesh_units)  # [NAME=]UNIT values -> a unit or {NAME: unit}
     args.up_axis = parse_up_axes(args.up_axis)  # [NAME=]AXIS values -> an axis or {NAME: axis}
     if any(stream_kind(item) for item in args.inputs):
         args.preset = args.preset or STREAM_PRESET
-        return _run_stream(args)
+        return _run_stream(args, given)
     args.preset = args.preset or STILL_IMAGE_PRESET
-    given = [f"--{o.replace('_', '-')}" for o in STREAM_OPTIONS + RECORDING_OPTIONS
-             if getattr(args, o) not in (None, False)]
-    if given:
-        raise ConfigError(f"{', '.join(given)}: for a video or camera input, not images")
+    stream_flags = [f"--{o.replace('_', '-')}" for o in STREAM_OPTIONS + RECORDING_OPTIONS
+                    if getattr(args, o) not in (None, False)]
+    if stream_flags:
+        raise ConfigError(f"{', '.join(stream_flags)}: for a video or camera input, not images")
     if args.icp and args.depth is None:
         raise ConfigError("--icp refines against a depth image: give --depth PATH or --depth auto")
     images = collect_images(args.inputs)
@@ -335,7 +336,7 @@ def run(args: argparse.Namespace) -> int:
         check_output_names(images)
     global_cam = _global_camera(args)
     out = output_dir(args.out)
-    predictors = _predictors(args)
+    predictors = _predictors(args, given)
     options = ImageOptions(depth=args.depth, depth_scale_mm=args.depth_scale, depth_calibration=args.depth_calibration,
                            overlay=not args.no_overlay, belief=args.belief)
     result = predict_images(images, predictors, out, global_cam, options, progress=not args.no_progress,
@@ -385,8 +386,9 @@ def _stream_outputs(args: argparse.Namespace, out: Path, source, warn):
     return video, window
 
 
-def _run_stream(args: argparse.Namespace) -> int:
-    """`run` for a video file, a camera, a RealSense or a recording (module docstring, "Streams")."""
+def _run_stream(args: argparse.Namespace, given: dict) -> int:
+    """`run` for a video file, a camera, a RealSense or a recording (module docstring, "Streams"),
+    with the inference options ``given``."""
     from dope_hope.inference.frame_loop import passive_openmp
     from dope_hope.io.paths import output_dir
     from dope_hope.io.predictions import write_predictions_jsonl
@@ -406,7 +408,7 @@ def _run_stream(args: argparse.Namespace) -> int:
         from dope_hope.inference.stream_inference import StreamSinks, predict_stream
         from dope_hope.ros.outputs import open_ros_outputs
 
-        predictors = _predictors(args)
+        predictors = _predictors(args, given)
         video, window = _stream_outputs(args, out, source, _warn)
         ros = open_ros_outputs(out, source, args.foxglove, not args.no_overlay, _note)
         sinks = StreamSinks(on_record=lambda rec: print(json.dumps(rec), flush=True), video=video, window=window,

@@ -22,7 +22,7 @@ import argparse
 import importlib
 from typing import Any
 
-from dope_hope.config import config_path, load_settings, load_yaml, merge, parse_assignment, settings_yaml
+from dope_hope.config import load_settings, merge, settings_from_layers, settings_layers, settings_yaml
 
 #: The commands that have settings: command -> (module, settings class, default --config).
 SETTINGS_OF: dict[str, tuple[str, str, str | None]] = {
@@ -77,13 +77,15 @@ def command_settings(command: str, config: Any, overrides: list[str]) -> Any:
 
 def given_settings(command: str, config: Any, overrides: list[str]) -> dict[str, Any]:
     """What ``config`` and ``overrides`` set, nested as a file writes it (checked first: one
-    line naming the file or --set item and section.key for a bad one)."""
-    command_settings(command, config, overrides)
+    line naming the file or --set item and section.key for a bad one); each read once
+    (:func:`dope_hope.config.settings_layers`). The command's own default config is checked
+    and left out: it is no setting a user gave."""
+    layers = settings_layers(config, overrides)
+    settings_from_layers(settings_class(command), layers)
     given: dict[str, Any] = {}
-    if config is not None and config != SETTINGS_OF[command][2]:
-        given = load_yaml(config_path(config))
-    for item in overrides:
-        given = merge(given, parse_assignment(item))
+    for i, (_, layer) in enumerate(layers):
+        if not (i == 0 and config is not None and config == SETTINGS_OF[command][2]):
+            given = merge(given, dict(layer))
     return given
 
 

@@ -62,8 +62,9 @@ from dope_hope.geometry import value_for_object
 from dope_hope.inference.appearance import AppearanceCheck, AppearanceSettings, surface_appearance
 from dope_hope.inference.backends import start_backend
 from dope_hope.inference.detection import Detection
+from dope_hope.inference.object_geometry import MeshFromFile
 from dope_hope.inference.predictor import DopePredictor
-from dope_hope.inference.scales import MultiscaleSettings, pool_detections
+from dope_hope.inference.scales import pool_detections
 from dope_hope.inference.turns import turn_detection
 from dope_hope.io.meshes import load_mesh, mesh_cuboid
 from dope_hope.io.models_dir import mesh_class_name
@@ -168,14 +169,13 @@ class MeshStartPredictor(DopePredictor):
         backend = start_backend(self.start, name, size, device, threads)
         stat = self.start.stat()
         self.start_id = (str(self.start.resolve()), stat.st_size, stat.st_mtime_ns, device)
-        given = {**(dict(options or {})), **overrides}
-        given.setdefault("min_score", 0.0)
-        super().__init__(backend, mesh=loaded, options=given)
-        self.objects[0].mesh_file, self.objects[0].mesh_units = mesh_file, units  # read here, not by the object
-        self.up_axis = up_axis
-        if self.options.multiscale.scales != MultiscaleSettings.scales:
+        given = {"min_score": 0.0, **dict(options or {}), **overrides}
+        if isinstance(given.get("multiscale"), Mapping) and "scales" in given["multiscale"]:
             raise ConfigError("multiscale.scales sets a trained model's working sizes; a new object's are "
                               "new_object.scales")
+        super().__init__(backend, mesh=loaded if mesh_file is None else MeshFromFile(loaded, mesh_file, units),
+                         options=given)
+        self.up_axis = up_axis
         self.scales = self.options.new_object.scales
         self.objects[0].set_pnp_frame(A)
         self.symmetries = cuboid_rotations(size)

@@ -7,6 +7,7 @@ each object's detections use its own cuboid, mesh and symmetries.
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,18 @@ from dope_hope.geometry import CUBOID_CORNER_SIGNS, LEGACY_TO_MESH, NUM_KEYPOINT
 from dope_hope.model.info import ObjectInfo
 
 
+@dataclass(frozen=True)
+class MeshFromFile:
+    """A mesh already read from its file: ``mesh`` (``trimesh.Trimesh``, metres), ``path`` and
+    the ``units`` it was read in. A predictor that needs the box before it is built (a new
+    object's, :class:`~dope_hope.inference.mesh_start.MeshStartPredictor`) hands its mesh so:
+    the object keeps the file (its symmetry declarations sit beside it) without reading it twice."""
+
+    mesh: Any
+    path: Path
+    units: str | None
+
+
 class ObjectGeometry:
     """One object of a model, as the predictor uses it.
 
@@ -25,10 +38,11 @@ class ObjectGeometry:
         info: the model's :class:`~dope_hope.model.info.ObjectInfo` (class, cuboid, symmetries).
         group: its channel group k (belief [9k, 9k + 9), affinity [16k, 16k + 16)).
         legacy: the model's keypoints are in the legacy frame (official HOPE weights).
-        mesh: optional mesh file or loaded ``trimesh.Trimesh`` (metres): its box replaces the
+        mesh: optional mesh file, loaded ``trimesh.Trimesh`` (metres) or :class:`MeshFromFile`: its box replaces the
             model's cuboid (refused when it differs by more than 25 %) and its surface feeds
             the depth steps.
-        mesh_units: units of a mesh file ("m", "cm", "mm"; default by suffix).
+        mesh_units: units of a mesh file ("m", "cm", "mm"; default by suffix; a
+            :class:`MeshFromFile` brings its own).
         ls_points, icp_points: surface points sampled for the line search / ICP (the
             inference options' ``ls_points`` / ``icp_points``).
 
@@ -50,8 +64,11 @@ class ObjectGeometry:
         self.min_score: float | None = info.min_score
         self.ls_points, self.icp_points = int(ls_points), int(icp_points)
         self.mesh = None
-        self.mesh_file = Path(mesh) if isinstance(mesh, (str, os.PathLike)) else None
-        self.mesh_units = mesh_units if self.mesh_file is not None else None
+        if isinstance(mesh, MeshFromFile):
+            self.mesh_file, self.mesh_units, mesh = Path(mesh.path), mesh.units, mesh.mesh
+        else:
+            self.mesh_file = Path(mesh) if isinstance(mesh, (str, os.PathLike)) else None
+            self.mesh_units = mesh_units if self.mesh_file is not None else None
         size = np.asarray(info.size_m, dtype=np.float64).reshape(3)
         center = np.zeros(3)
         if mesh is not None:

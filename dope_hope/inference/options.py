@@ -89,39 +89,23 @@ TOP_LEVEL_DEFAULTS: dict[str, Any] = {k: v for k, v in load_config("infer").item
 
 
 @dataclass(frozen=True)
-class StageSettings:
-    """The stage sections of :class:`InferenceOptions` as their settings objects: decode
-    (:func:`~dope_hope.maps.decode.corner_candidates` / :func:`~dope_hope.maps.decode.decode_maps`),
-    pnp (:func:`~dope_hope.inference.pnp.solve_pnp`), hypotheses
-    (:func:`~dope_hope.inference.pose_search.solve_pnp_candidates`), line_search
-    (:func:`~dope_hope.refine.line_search.depth_line_search`), icp_refine
-    (:func:`~dope_hope.refine.icp.icp_refine`), tracking (the stream tracker), appearance
-    (the appearance check of a new object's cuboid detector,
-    :class:`~dope_hope.inference.appearance.AppearanceCheck`), new_object (that detector's
-    working sizes, :class:`~dope_hope.inference.mesh_start.MeshStartPredictor`), multiscale (a
-    trained model's working sizes and the pooling of every model's,
-    :mod:`dope_hope.inference.scales`)."""
-
-    decode: DecodeSettings
-    pnp: PnpSettings
-    hypotheses: HypothesisSettings
-    line_search: LineSearchSettings
-    icp_refine: IcpSettings
-    tracking: TrackingSettings
-    appearance: AppearanceSettings
-    new_object: NewObjectSettings
-    multiscale: MultiscaleSettings
-
-
-@dataclass(frozen=True)
 class InferenceOptions(SectionSettings):
     """Inference options (see ``dope_hope/configs/infer.yaml`` for each key's meaning).
 
     height: working height in px or None (the model's training scale). pose_search: one of
     :data:`POSE_SEARCHES`. min_score: detections below are dropped. ls_points / icp_points:
     model points for -LS / ICP. icp: one of :data:`ICP_MODES`. decode, pnp,
-    hypotheses, line_search, icp_refine, tracking, appearance, new_object, multiscale: each stage's settings (a
-    mapping given for one is read over its defaults); :attr:`stages` holds them together.
+    hypotheses, line_search, icp_refine, tracking, appearance, new_object, multiscale: each stage's settings
+    object, as its function takes it (a mapping given for one is read over its defaults):
+    decode (:func:`~dope_hope.maps.decode.corner_candidates` / :func:`~dope_hope.maps.decode.decode_maps`),
+    pnp (:func:`~dope_hope.inference.pnp.solve_pnp`), hypotheses
+    (:func:`~dope_hope.inference.pose_search.solve_pnp_candidates`), line_search
+    (:func:`~dope_hope.refine.line_search.depth_line_search`), icp_refine
+    (:func:`~dope_hope.refine.icp.icp_refine`), tracking (the stream tracker), appearance (the
+    appearance check of a new object's cuboid detector,
+    :class:`~dope_hope.inference.appearance.AppearanceCheck`), new_object (that detector's working
+    sizes, :class:`~dope_hope.inference.mesh_start.MeshStartPredictor`), multiscale (a trained
+    model's working sizes and the pooling of every model's, :mod:`dope_hope.inference.scales`).
     """
 
     SECTION = ""
@@ -143,12 +127,6 @@ class InferenceOptions(SectionSettings):
     appearance: AppearanceSettings = section(AppearanceSettings)
     new_object: NewObjectSettings = section(NewObjectSettings)
     multiscale: MultiscaleSettings = section(MultiscaleSettings)
-
-    @property
-    def stages(self) -> StageSettings:
-        """The stage sections as the settings objects their functions take."""
-        return StageSettings(self.decode, self.pnp, self.hypotheses, self.line_search, self.icp_refine,
-                             self.tracking, self.appearance, self.new_object, self.multiscale)
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any] | None = None,

@@ -156,10 +156,11 @@ class DopePredictor:
                  threads: int | None = None, mesh: Any = None, mesh_units: str | Mapping[str, str] | None = None,
                  options: InferenceOptions | Mapping[str, Any] | None = None, classes: Sequence[str] | None = None,
                  **overrides: Any):
-        if isinstance(options, InferenceOptions):
-            options = options.to_dict()
-        given = {**(options or {}), **overrides}
-        InferenceOptions.from_mapping(given)  # a bad option is refused before a model loads
+        if isinstance(options, InferenceOptions) and not overrides:
+            built, given = options, options.to_dict()  # every option given, min_score too
+        else:
+            given = {**(options.to_dict() if isinstance(options, InferenceOptions) else options or {}), **overrides}
+            built = InferenceOptions.from_mapping(given)  # a bad option is refused before a model loads
         if isinstance(classes, str):
             classes = [classes]
         if isinstance(weights, (str, os.PathLike)):
@@ -169,7 +170,10 @@ class DopePredictor:
         else:
             raise ConfigError(f"weights must be a file path or a MapBackend, got {type(weights).__name__}")
         b = self.backend
-        self.options = InferenceOptions.from_mapping(given, model_min_score=model_min_score(b))
+        own = model_min_score(b)
+        #: the options, built once: the model's own threshold (recorded with its weights) is
+        #: min_score unless one is given
+        self.options = built if "min_score" in given or own is None else replace(built, min_score=own)
         fixed = getattr(b, "fixed_input_hw", None)
         if fixed is not None and len(self.options.multiscale.scales) > 1:
             raise ConfigError(f"multiscale.scales: this model takes {fixed[0]}x{fixed[1]} inputs only (a fixed-size "
@@ -391,7 +395,7 @@ class DopePredictor:
         None: all)."""
         K = check_intrinsics(K)
         K_net = net_in.network_K(K)
-        threshold = self.options.stages.decode.threshold
+        threshold = self.options.decode.threshold
         live = []
         for obj in self.objects:
             if classes is not None and obj.class_name not in classes:
@@ -402,10 +406,10 @@ class DopePredictor:
         if not live:
             return []
         stacked = live[0][1] if len(live) == 1 else np.concatenate([b for _, b, _ in live])
-        all_peaks = split_peaks(decoder_peaks(stacked, self.options.stages.decode), len(live), NUM_KEYPOINTS)
+        all_peaks = split_peaks(decoder_peaks(stacked, self.options.decode), len(live), NUM_KEYPOINTS)
         out: list[Detection] = []
         for (obj, b, a), peaks in zip(live, all_peaks):
-            if not pose_may_reach(peaks.channel, peaks.score, self.options.stages.pnp, obj.min_score):
+            if not pose_may_reach(peaks.channel, peaks.score, self.options.pnp, obj.min_score):
                 continue  # no pose of these maps could reach min_score: nothing to decode
             out += self._object_detections(obj, b, a, peaks, net_in, K, K_net, depth)
         out.sort(key=lambda d: -d.score)
@@ -417,7 +421,7 @@ class DopePredictor:
         """One object's detections from its own (9, h, w) / (16, h, w) maps and their peaks."""
         mean_scale = math.sqrt(net_in.scale[0] * net_in.scale[1])
         out: list[Detection] = []
-        pnp = self.options.stages.pnp
+        pnp = self.options.pnp
         for est in self._poses(belief, affinity, K_net, obj.cuboid_pnp, obj.min_score, peaks):
             if pnp.score_in_view:  # a keypoint beyond the border is not a missing one
                 est = replace(est, score=score_in_view(est, net_in.resized_hw, pnp.min_points))
@@ -501,14 +505,14 @@ class DopePredictor:
         pose (its own depth support, :func:`~dope_hope.refine.icp.own_depth_support` with the
         ``icp_refine`` settings of that rule, reaches ``min_own_support``: the object is
         occluded, not misplaced, and a wider search would move it onto its occluder)."""
-        stages = self.options.stages
-        settings = stages.line_search
+        options = self.options
+        settings = options.line_search
         ls = depth_line_search(det.R, det.t, obj.model_points, depth, settings)
         wide_range = settings.wide_search
         if ls.at_bound and wide_range is not None:
             label = f"search {wide_range[0]:g}-{wide_range[1]:g}"
-            here = own_depth_support(det.R, det.t, obj.model_points, depth, stages.icp_refine)
-            if here >= stages.icp_refine.min_own_support:
+            here = own_depth_support(det.R, det.t, obj.model_points, depth, options.icp_refine)
+            if here >= options.icp_refine.min_own_support:
                 ls = replace(ls, reason=f"{ls.reason}; no {label}: the depth confirms the keypoints' pose "
                                         f"(own depth support {here:.2f})")
             else:
@@ -520,7 +524,7 @@ class DopePredictor:
     def _refine_icp(self, obj: ObjectGeometry, det: Detection, depth: DepthImage) -> None:
         """The ICP step of the module docstring, in place on ``det`` (after the line search)."""
         points, normals = obj.icp_model
-        res = icp_refine(det.R, det.t, points, normals, depth, self.options.stages.icp_refine)
+        res = icp_refine(det.R, det.t, points, normals, depth, self.options.icp_refine)
         det.icp_applied, det.icp_reason = res.applied, res.reason
         det.icp_fit = res.fit_after if res.applied else res.fit_before
         if res.applied:
@@ -532,16 +536,16 @@ class DopePredictor:
         docstring), best first; keypoints in the network's own order; ``cuboid`` (9, 3);
         ``min_score``: the object's threshold; ``peaks``: the maps'
         :func:`~dope_hope.maps.decode.decoder_peaks` when already found."""
-        stages = self.options.stages
-        if self.options.pose_search == "groups":
-            found = [solve_pnp(inst.keypoints, inst.scores, cuboid, K_net, stages.pnp)
-                     for inst in decode_maps(belief, affinity, self.stride, stages.decode, peaks=peaks)]
+        options = self.options
+        if options.pose_search == "groups":
+            found = [solve_pnp(inst.keypoints, inst.scores, cuboid, K_net, options.pnp)
+                     for inst in decode_maps(belief, affinity, self.stride, options.decode, peaks=peaks)]
             return [e for e in found if e is not None]
-        candidates = corner_candidates(belief, affinity, self.stride, stages.decode, peaks=peaks)
+        candidates = corner_candidates(belief, affinity, self.stride, options.decode, peaks=peaks)
         # A centroid whose candidates allow no pose min_score keeps: no search.
-        candidates = [c for c in candidates if pose_may_reach(c.keypoint_ids, c.scores, stages.pnp, min_score)]
+        candidates = [c for c in candidates if pose_may_reach(c.keypoint_ids, c.scores, options.pnp, min_score)]
         return solve_pnp_instances([(c.keypoint_ids, c.xy, c.scores) for c in candidates], cuboid,
-                                   K_net, stages.hypotheses, stages.pnp, min_score=min_score)
+                                   K_net, options.hypotheses, options.pnp, min_score=min_score)
 
     def __repr__(self) -> str:
         return (f"DopePredictor(classes={list(self.class_names)!r}, stride={self.stride}, "

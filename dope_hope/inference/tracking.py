@@ -301,7 +301,7 @@ class PoseTracker:
             if depth is not None:
                 p = self.predictors[class_name]
                 res = depth_line_search(det.R, t, self.geometry[class_name].model_points, depth,
-                                        replace(p.options.stages.line_search, search=self.settings.coast_search))
+                                        replace(p.options.line_search, search=self.settings.coast_search))
                 t = res.t if res.applied else t
         R, t = tr.filter.update(det.R, t, self._noise_scale(det))
         tr.hits, tr.misses, tr.score = tr.hits + 1, 0, float(det.score)
@@ -333,7 +333,7 @@ class PoseTracker:
         ls = (False, "no depth image")
         if depth is not None and self.settings.coast_refine:
             p = self.predictors[class_name]
-            settings = replace(p.options.stages.line_search, search=self.settings.coast_search)
+            settings = replace(p.options.line_search, search=self.settings.coast_search)
             res = depth_line_search(R, t, self.geometry[class_name].model_points, depth, settings)
             ls = (bool(res.applied), f"coasted: {res.reason}")
             if res.applied:
