@@ -314,3 +314,13 @@ def unnamed_modules() -> list[str]:
 
 def test_every_module_is_named_in_the_layout():
     assert unnamed_modules() == [], "modules missing from the module list of docs/ARCHITECTURE.md (## Layout)"
+
+
+#: The longest a module of the package may be: past it, a module holds more than one job.
+MAX_MODULE_LINES = 600
+
+
+def test_no_module_is_over_the_line_limit():
+    long = {str(p.relative_to(REPO)): n for p in sorted((REPO / PACKAGE).rglob("*.py"))
+            if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES}
+    assert long == {}, f"modules over {MAX_MODULE_LINES} lines: split them by job"

@@ -156,11 +156,9 @@ class DopePredictor:
                  threads: int | None = None, mesh: Any = None, mesh_units: str | Mapping[str, str] | None = None,
                  options: InferenceOptions | Mapping[str, Any] | None = None, classes: Sequence[str] | None = None,
                  **overrides: Any):
-        if isinstance(options, InferenceOptions) and not overrides:
-            built, given = options, options.to_dict()  # every option given, min_score too
-        else:
-            given = {**(options.to_dict() if isinstance(options, InferenceOptions) else options or {}), **overrides}
-            built = InferenceOptions.from_mapping(given)  # a bad option is refused before a model loads
+        given = {**(options.to_dict() if isinstance(options, InferenceOptions) else options or {}), **overrides}
+        # built once (a bad option refused before a model loads); an InferenceOptions gives every option
+        built = options if isinstance(options, InferenceOptions) and not overrides else InferenceOptions.from_mapping(given)
         if isinstance(classes, str):
             classes = [classes]
         if isinstance(weights, (str, os.PathLike)):
@@ -170,9 +168,7 @@ class DopePredictor:
         else:
             raise ConfigError(f"weights must be a file path or a MapBackend, got {type(weights).__name__}")
         b = self.backend
-        own = model_min_score(b)
-        #: the options, built once: the model's own threshold (recorded with its weights) is
-        #: min_score unless one is given
+        own = model_min_score(b)  # the model's threshold, recorded with its weights: min_score unless given
         self.options = built if "min_score" in given or own is None else replace(built, min_score=own)
         fixed = getattr(b, "fixed_input_hw", None)
         if fixed is not None and len(self.options.multiscale.scales) > 1:
