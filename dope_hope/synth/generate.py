@@ -29,7 +29,7 @@ from dope_hope.synth.background import BackgroundSource
 from dope_hope.synth.depth_noise import add_realsense_noise, noise_kwargs
 from dope_hope.synth.hard_negatives import TargetLook
 from dope_hope.synth.postprocess import composite, post_process
-from dope_hope.synth.scene import ObjectSpec, SceneSpec, frame_streams, sample_scene
+from dope_hope.synth.scene import SceneSpec, frame_streams, sample_scene
 from dope_hope.synth.settings import load_synth_config, parse_size
 from dope_hope.synth.writer import write_frame
 from dope_hope.version import __version__
@@ -173,13 +173,6 @@ class FrameGenerator:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _mesh_for(self, obj: ObjectSpec, target: MeshAsset):
-        if obj.source == "target":
-            return self._meshes.target(target, obj.material)
-        if obj.source == "mesh":
-            return self._meshes.library_mesh(self.library.get(obj.mesh_index), obj.material)
-        return self._meshes.primitive_mesh(obj.geometry, obj.material)
-
     def _target_looks(self, targets: list[MeshAsset]) -> list[TargetLook]:
         """The targets' sizes, shape classes and colours (for the hard negatives); the fixed
         targets' made once, a procedural target's per frame."""
@@ -241,7 +234,7 @@ class FrameGenerator:
         spec, streams, targets, category = self.sample_scene(index, seed, force_occluder)
         target = targets[0]
         W, H = self.size
-        out = self._renderer.render(spec, lambda obj: self._mesh_for(obj, targets[obj.target_index]),
+        out = self._renderer.render(spec, lambda obj: self._meshes.object_mesh(obj, targets, self.library),
                                     lambda obj: (targets[obj.target_index].cuboid_size,
                                                  targets[obj.target_index].cuboid_center),
                                     with_alone_depth=with_alone_depth)

@@ -12,7 +12,7 @@ import trimesh
 
 from dope_hope.render.gl import import_pyrender
 from dope_hope.synth.assets import MeshAsset
-from dope_hope.synth.scene import MaterialSpec
+from dope_hope.synth.scene import MaterialSpec, ObjectSpec
 
 pyrender = import_pyrender()
 
@@ -106,6 +106,16 @@ class MeshBuilder:
         material = make_material(spec, texture)
         return pyrender.Mesh(primitives=[pyrender_primitive(asset.mesh, material, use_uv=texture is not None,
                                                             colors=colors)])
+
+    def object_mesh(self, obj: ObjectSpec, targets: list[MeshAsset], library) -> pyrender.Mesh:
+        """The mesh of one scene object: its target (``targets[obj.target_index]``), a
+        distractor of ``library`` (a :class:`~dope_hope.synth.assets.DistractorLibrary`) or a
+        primitive, with its material."""
+        if obj.source == "target":
+            return self.target(targets[obj.target_index], obj.material)
+        if obj.source == "mesh":
+            return self.library_mesh(library.get(obj.mesh_index), obj.material)
+        return self.primitive_mesh(obj.geometry, obj.material)
 
     @staticmethod
     def primitive_mesh(geometry: trimesh.Trimesh, spec: MaterialSpec) -> pyrender.Mesh:

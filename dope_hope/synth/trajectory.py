@@ -84,13 +84,6 @@ class TrajectoryRenderer:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _mesh_for(self, obj: ObjectSpec, targets: list):
-        if obj.source == "target":
-            return self._meshes.target(targets[obj.target_index], obj.material)
-        if obj.source == "mesh":
-            return self._meshes.library_mesh(self.gen.library.get(obj.mesh_index), obj.material)
-        return self._meshes.primitive_mesh(obj.geometry, obj.material)
-
     def sequence(self, scene_index: int, frames: int, seed: int | None = None, sweep_deg: float = 40.0,
                  rise_deg: float = 10.0) -> Iterator[SynthFrame]:
         """The ``frames`` views of scene ``scene_index`` (the generator's frame of that index and
@@ -116,7 +109,7 @@ class TrajectoryRenderer:
             view = SceneSpec(spec.width, spec.height, spec.K, spec.znear, spec.zfar,
                              [_moved_object(o, T) for o in spec.objects], [_moved_light(li, T) for li in spec.lights],
                              spec.ambient, spec.target_material)
-            out = self._renderer.render(view, lambda o: self._mesh_for(o, targets),
+            out = self._renderer.render(view, lambda o: self._meshes.object_mesh(o, targets, self.gen.library),
                                         lambda o: (targets[o.target_index].cuboid_size,
                                                    targets[o.target_index].cuboid_center))
             rng = np.random.default_rng([seed, int(scene_index), k])
