@@ -7,6 +7,7 @@ import json
 import shutil
 
 import pytest
+import torch
 from adapt_frames import demo_weights, write_scene_frames
 from test_cli_mistakes import run_cli
 
@@ -34,8 +35,14 @@ def test_adapt_labels_trains_and_resumes_to_the_same_result(lab, capsys, monkeyp
     assert written["objects"] and written["adapt"]["labels"][0]["kept"] and "support" in written["adapt"]["labels"][0]
     counts = json.loads((labels / "summary.json").read_text())["counts"]
     assert counts["frames"] == 3 and counts["labelled_frames"] >= 2
-    adapted = load_checkpoint(out / "adapted.pt")["adapted"]
+    model = load_checkpoint(out / "adapted.pt")
+    adapted = model["adapted"]
     assert adapted["frame_count"] == 3 and adapted["rounds"][0]["counts"] == counts and adapted["synthetic"]
+    # the run's final weights (not a best.pt chosen on a frame or two), with the thresholds it started from
+    final = load_checkpoint(out / "round_1" / "train" / "last.pt")
+    assert all(torch.equal(model["model"][k], v) for k, v in final["model"].items())
+    start = load_checkpoint(weights)
+    assert model.get("min_score") == start.get("min_score") is not None and final.get("min_score") is None
     assert (out / "preview_round_1.png").is_file()
     first = (labels / "labels.jsonl").read_text()
 

@@ -13,6 +13,12 @@ into the round's ``mix/`` folder, which the trainer reads beside ``labels/`` as 
 its recipe the checkpoint's own, with ``finetune.lr`` and the round's share of the time budget
 or ``finetune.steps``), or, when the round's run was interrupted, its ``last.pt`` resumed
 (``--resume``): the same result as an uninterrupted run, as the trainer resumes.
+
+**The round's model** (``model.pt`` beside the run): the run's final weights (its ``last.pt``,
+the end of its schedule; not its ``best.pt``, which the trainer chooses on the validation
+share of the round's frames: 3 frames of a round of 100, chance) with the score thresholds of
+the model the round started from (an ``--init`` run starts without them, and its few
+validation frames cannot choose new ones; `dope-hope calibrate` on held-out frames can).
 """
 from __future__ import annotations
 
@@ -30,12 +36,15 @@ from dope_hope.adaptation.settings import FineTuneSettings
 from dope_hope.errors import ConfigError
 from dope_hope.io.atomic import atomic_write_stream, atomic_write_text
 from dope_hope.io.dope_json import list_dope_frames
-from dope_hope.model.checkpoint import load_checkpoint
+from dope_hope.model.checkpoint import load_checkpoint, with_min_scores
+from dope_hope.model.info import ModelInfo
 from dope_hope.training.settings import TrainJob
 from dope_hope.training.trainer import train
 
 #: The marker of a round whose training ended (its summary), beside ``train/``.
 TRAINED_MARKER = "trained.json"
+#: The round's model (module docstring), beside ``train/``.
+ROUND_MODEL = "model.pt"
 #: The trainer's statuses of a run that ended by itself (not interrupted).
 FINISHED = ("completed", "time_limit")
 
@@ -107,11 +116,22 @@ def finetune_round(start: Path, data: Sequence[Path], frames: int, out: Path, me
     summary = train(job, {} if resume else dict(ckpt["config"]))
     if summary.get("status") not in FINISHED:
         return {"status": summary.get("status")}  # interrupted: the same command resumes it
-    best = out / "best.pt"
-    record = {"status": summary.get("status"), "step": summary.get("step"),
-              "best": str(best if best.is_file() else last), "val_kp_acc": summary.get("val_kp_acc")}
+    model = round_model(last, start, out.parent / ROUND_MODEL)
+    record = {"status": summary.get("status"), "step": summary.get("step"), "weights": str(model),
+              "val_kp_acc": summary.get("val_kp_acc")}
     atomic_write_text(marker, json.dumps(record, indent=1, default=str) + "\n")
     return record
+
+
+def round_model(final: Path, start: Path, dst: Path) -> Path:
+    """Write the round's model (module docstring) to ``dst`` (atomically): the checkpoint
+    ``final`` with the score thresholds of ``start`` (the model's own and each object's, where
+    ``start`` records them)."""
+    info = ModelInfo.from_checkpoint(load_checkpoint(start), start)
+    ckpt = with_min_scores(load_checkpoint(final), final, info.min_score,
+                           {o.class_name: o.min_score for o in info.objects if o.min_score is not None})
+    atomic_write_stream(dst, lambda f: torch.save(ckpt, f))
+    return dst
 
 
 def record_adaptation(src: Path, dst: Path, adapted: dict[str, Any]) -> Path:

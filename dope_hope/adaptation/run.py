@@ -202,7 +202,7 @@ def adapt(inputs: Sequence[str], weights: str | Path, mesh: str | Path, out: str
         if trained.get("status") not in FINISHED:
             result.status = str(trained.get("status"))
             return result
-        model = Path(trained["best"])
+        model = Path(trained["weights"])
         note(f"round {r}: trained ({trained.get('status')}, step {trained.get('step')}) -> {model}")
     result.weights = record_adaptation(model, out / ADAPTED_NAME, {
         "from": str(weights), "frames": job["inputs"], "frame_count": len(store), "rounds": result.rounds,
