@@ -178,6 +178,23 @@ def test_a_replan_bends_the_cosine_without_a_jump():
     assert w(3) == 0.4 and w(10) == 1.0 and w(40) == pytest.approx(0.1)
 
 
+def test_a_warm_restart_climbs_from_the_floor_and_keeps_its_ramp_through_replans():
+    from dope_hope.training.schedule import LrLambda
+
+    f = LrLambda("cosine", horizon=100, warmup=10, min_factor=0.02)
+    assert f.ended(100) and not f.ended(99) and f(100) == pytest.approx(0.02)
+    f.restart(100, 300)
+    assert [f(s) for s in range(100)] == [LrLambda("cosine", horizon=100, warmup=10, min_factor=0.02)(s)
+                                          for s in range(100)]
+    assert f(100) == pytest.approx(0.02 + 0.98 / 10) and f(109) == 1.0 and f(300) == pytest.approx(0.02)
+    assert not f.ended(299) and f.ended(300)
+    f.replan(105, 400)  # a time budget's re-plan during the ramp: the ramp goes on, the end moves
+    assert f(109) == 1.0 and f(400) == pytest.approx(0.02) and f(250) > f(300) > f(399)
+    old = LrLambda("cosine", horizon=100, warmup=10, min_factor=0.02)
+    old.segments = [(50, 80, 0.9)]  # an older checkpoint's 3-field segment
+    assert old(80) == pytest.approx(0.02) and old(50) == pytest.approx(0.9)
+
+
 def test_continued_replans_follow_one_cosine_restarted_ones_stay_high():
     """A time budget re-plans its end some thirty times in 30 minutes (a step or two each way).
     ``continue``: the learning rate goes on along its cosine's phase, so it anneals as one cosine
@@ -440,9 +457,29 @@ def test_resume_with_more_steps_says_which_wins_and_runs_them(data, tmp_path, ca
     said = [(r.levelname, r.getMessage()) for r in caplog.records if "given now" in r.getMessage()]
     tail = "" if budget is None else ", or earlier when the 10-min time budget is spent"
     assert said == [("WARNING", f"resume: train.steps 6 given now win(s) over the checkpoint's 4: the run "
-                                f"ends at step 6{tail}")]
+                                f"ends at step 6{tail}; the run had ended: its learning rate restarts warm to "
+                                "0.002 (SGDR)")]
     summary = json.loads((run / "summary.json").read_text())
     assert (summary["status"], summary["step"]) == ("completed", 6) and out.startswith("completed: step 6")
+
+
+def test_a_finished_run_trained_longer_restarts_its_learning_rate_warm(data, tmp_path, capsys):
+    """A run that reached its end sits at the cosine's floor; given more steps at --resume it
+    warms up to the peak again and anneals to the new end (a re-plan from the floor kept the
+    continued 30 -> 60 -> 120-minute Ketchup runs at 0.02 of the peak all along)."""
+    run = tmp_path / "run"
+    sets = ["--set", *TINY_SET, "train.warmup_steps=2", "train.lr=0.01"]
+    code, _, err = run_cli(["train", "--data", data, "--object", "Ketchup", "--out", run, "--no-progress",
+                            "--steps", "6", *sets], capsys)
+    assert code == 0, err
+    code, _, err = run_cli(["train", "--out", run, "--resume", "--steps", "16", "--no-progress"], capsys)
+    assert code == 0, err
+    lr = {r["step"]: r["lr"] for r in map(json.loads, (run / "metrics.jsonl").read_text().splitlines())
+          if r["event"] == "train"}
+    floor = 0.01 * 0.02  # lite's min_lr_factor
+    assert lr[6] == pytest.approx(floor, rel=0.05)       # the first run's end
+    assert lr[8] == pytest.approx(0.01, rel=0.05)        # two steps of warm-up later: the peak again
+    assert floor < lr[12] < lr[8] and lr[16] == pytest.approx(floor, rel=0.05)
 
 
 @pytest.mark.parametrize("sig, code, status", [(signal.SIGTERM, 143, "terminated"), (signal.SIGINT, 130, "interrupted")])

@@ -21,6 +21,15 @@ How a cosine goes on at a re-plan (``train.cosine_replan``):
   Ketchup model so far (one run each, bench/RESULTS.md "End-to-end accuracy").
 - ``continue``: the cosine goes on from the phase it had reached, so a run anneals as one
   cosine over the steps it makes, and a re-plan that keeps the end changes nothing.
+
+**A finished run trained on** (a longer ``--time-budget``, ``--steps`` or ``--epochs`` at
+``--resume``; :meth:`LrLambda.restart`): its rate had reached the floor, so a re-plan "from
+where it is" would keep it there for the whole continuation (a 30-minute Ketchup run continued
+to 60 and 120 minutes trained at 0.02 of the peak and gained nothing: bench/EXPERIMENTS.md
+"Training curve"). It restarts warm instead (SGDR, Loshchilov & Hutter 2017, "SGDR: Stochastic
+Gradient Descent with Warm Restarts"): the warm-up's steps up from the floor to the peak, then
+the decay to the floor at the new end. Each segment ``(start, end, top, ramp)`` carries its own
+warm-up ``ramp`` (0: none; a 3-tuple from an older checkpoint reads as 0).
 """
 from __future__ import annotations
 
@@ -50,19 +59,41 @@ class LrLambda:
     def replan(self, step: int, end: int) -> None:
         """From ``step`` on, the cosine (or wsd's decay) falls from its present factor to the
         floor at ``end``, as the module docstring says; earlier steps keep their factors, and a
-        re-plan during the warm-up starts at its end."""
+        re-plan during the warm-up (the first, or a restart's) starts at its end."""
         start = max(int(step), self.warmup)
+        seg_start, _, top, ramp = self._segment_at(start)
+        if ramp and start < seg_start + ramp:  # a restart's warm-up: it goes on to the new end
+            self.segments = [seg for seg in self.segments if seg[0] < seg_start] + [(seg_start, int(end), top, ramp)]
+            return
         factor = self(start)
-        self.segments = [seg for seg in self.segments if seg[0] < start] + [(start, int(end), float(factor))]
+        self.segments = [seg for seg in self.segments if seg[0] < start] + [(start, int(end), float(factor), 0)]
+
+    def restart(self, step: int, end: int) -> None:
+        """A warm restart at ``step`` (module docstring): ``warmup`` steps up to the peak, then
+        the decay to the floor at ``end``; earlier steps keep their factors."""
+        start = int(step)
+        self.segments = [seg for seg in self.segments if seg[0] < start] + [(start, int(end), 1.0, self.warmup)]
+
+    def ended(self, step: int) -> bool:
+        """Whether ``step`` is at or past the end of the plan in force (its rate at the floor)."""
+        return self.kind in self.REPLANNED and step >= self._segment_at(step)[1]
+
+    def _segment_at(self, step: int) -> tuple[int, int, float, int]:
+        """The plan in force at ``step``: (start, end, top factor, warm-up steps)."""
+        plan = (self.warmup, self.horizon, 1.0, 0)
+        for seg in self.segments:  # the last re-plan at or before `step`
+            if seg[0] <= step:
+                plan = (int(seg[0]), int(seg[1]), float(seg[2]), int(seg[3]) if len(seg) > 3 else 0)
+        return plan
 
     def __call__(self, step: int) -> float:
         if self.warmup > 0 and step < self.warmup:
             return (step + 1) / self.warmup
         if self.kind in self.REPLANNED:
-            start, end, top = self.warmup, self.horizon, 1.0
-            for seg in self.segments:  # the last re-plan at or before `step`
-                if seg[0] <= step:
-                    start, end, top = seg
+            start, end, top, ramp = self._segment_at(step)
+            if ramp and step < start + ramp:  # a restart's warm-up, from the floor
+                return self.min_factor + (top - self.min_factor) * (step - start + 1) / ramp
+            start += ramp
             if self.kind == "wsd":
                 return self._wsd(step, start, end, top)
             p = min(1.0, (step - start) / max(1, end - start))

@@ -278,6 +278,7 @@ class Trainer:
         a length (``steps``, ``epochs``) or budget given now that differs wins, at once (one
         line says so) and the learning rate falls from where it is to the new end."""
         ts, plan = self.recipe.train, self.budget.plan
+        finished = self.lr_lambda.ended(self.step)  # its rate at the floor: a longer run restarts warm
         plans = extra.get("plans")
         if plans is None and extra.get("planned_steps") is not None and plan is not None:
             self.total_steps = min(self.nominal_steps, int(extra["planned_steps"]))  # one fixed plan: measured again
@@ -293,13 +294,16 @@ class Trainer:
             self.total_steps = self.nominal_steps
         if changed and ts.schedule in LrLambda.REPLANNED and not self.budget.shape.sets_horizon:
             self.lr_lambda.replan(self.step, max(self.step + 1, self.total_steps))
+        if restart := changed and finished and self.total_steps > self.step:
+            self.lr_lambda.restart(self.step, self.total_steps)
         if changed and self.dist.main:
             now = ", ".join(f"train.{k} {getattr(ts, k)}" for k in changed)
             before = ", ".join(f"{getattr(saved, k)}" for k in changed)
             tail = (f", or earlier when the {ts.time_limit_min:g}-min time budget is spent"
                     if plan is not None and self.total_steps >= self.nominal_steps else "")
-            log.warning("resume: %s given now win(s) over the checkpoint's %s: the run ends at step %d%s",
-                        now, before, self.total_steps, tail)
+            warm = f"; the run had ended: its learning rate restarts warm to {ts.lr:g} (SGDR)" if restart else ""
+            log.warning("resume: %s given now win(s) over the checkpoint's %s: the run ends at step %d%s%s",
+                        now, before, self.total_steps, tail, warm)
 
     # ------------------------------------------------------------------ the run's end
     def request_stop(self, reason: str = "interrupted") -> None:
