@@ -140,7 +140,7 @@ def test_lost_instances_sees_the_keypoints_whose_belief_reaches_the_threshold_ne
     R, t = np.eye(3), np.array([0.0, 0.0, 1.0])
     box = cuboid_keypoints(np.array([0.2, 0.3, 0.1]))
     predictor = SimpleNamespace(cuboid_mesh=box, stride=4,
-                                options=SimpleNamespace(stages=SimpleNamespace(decode=SimpleNamespace(threshold=0.1))))
+                                options=SimpleNamespace(decode=SimpleNamespace(threshold=0.1)))
     net_in = SimpleNamespace(to_network_px=lambda uv: np.asarray(uv, dtype=float))
     cells = project_points(box, K, R, t) / 4
     belief = np.zeros((9, 24, 32))

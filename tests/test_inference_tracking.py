@@ -33,7 +33,7 @@ def fake_predictor(**tracking):
     box = SimpleNamespace(class_name="DemoBox", cuboid_size_m=DEMO_SIZE_M, cuboid_center_m=np.zeros(3),
                           cuboid_mesh=CUBOID, bbox_points=CUBOID[:8], model_points=CUBOID)
     return SimpleNamespace(class_names=("DemoBox",), objects=[box],
-                           options=SimpleNamespace(stages=SimpleNamespace(line_search=LineSearchSettings()), icp=False,
+                           options=SimpleNamespace(line_search=LineSearchSettings(), icp=False,
                                                    tracking=tracking))
 
 
