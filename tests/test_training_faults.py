@@ -482,6 +482,19 @@ def test_a_finished_run_trained_longer_restarts_its_learning_rate_warm(data, tmp
     assert floor < lr[12] < lr[8] and lr[16] == pytest.approx(floor, rel=0.05)
 
 
+def test_a_run_that_spent_its_time_budget_restarts_warm_when_given_more(data, tmp_path, capsys, caplog):
+    """A time budget's last re-plan leaves the schedule's end a step past the run's: the run's
+    own end (its last plan) is what says it finished."""
+    run = tmp_path / "run"
+    code, _, err = run_cli(["train", "--data", data, "--object", "Ketchup", "--out", run, "--no-progress",
+                            "--time-budget", "0.05", "--set", *TINY_SET, "train.epochs=1000"], capsys)
+    assert code == 0 and json.loads((run / "summary.json").read_text())["status"] == "time_limit", err
+    code, _, err = run_cli(["train", "--out", run, "--resume", "--time-budget", "0.1", "--no-progress"], capsys)
+    assert code == 0, err
+    said = [r.getMessage() for r in caplog.records if "given now" in r.getMessage()]
+    assert len(said) == 1 and said[0].endswith("; the run had ended: its learning rate restarts warm to 0.002 (SGDR)")
+
+
 @pytest.mark.parametrize("sig, code, status", [(signal.SIGTERM, 143, "terminated"), (signal.SIGINT, 130, "interrupted")])
 def test_a_signal_during_training_exits_as_a_shell_expects(data, tmp_path, sig, code, status):
     out = tmp_path / "o"
