@@ -83,9 +83,9 @@ def given_settings(command: str, config: Any, overrides: list[str]) -> dict[str,
     layers = settings_layers(config, overrides)
     settings_from_layers(settings_class(command), layers)
     given: dict[str, Any] = {}
-    for i, (_, layer) in enumerate(layers):
-        if not (i == 0 and config is not None and config == SETTINGS_OF[command][2]):
-            given = merge(given, dict(layer))
+    default_first = config is not None and config == SETTINGS_OF[command][2]
+    for _, layer in layers[1 if default_first else 0:]:
+        given = merge(given, dict(layer))
     return given
 
 

@@ -279,7 +279,8 @@ class Trainer:
         line says so) and the learning rate falls from where it is to the new end."""
         ts, plan = self.recipe.train, self.budget.plan
         plans = extra.get("plans")  # a run that reached its end (its rate at the floor) restarts warm when longer
-        finished = self.lr_lambda.ended(self.step) or bool(plans) and self.step >= int(plans[-1]["end"])
+        finished = ts.schedule in LrLambda.REPLANNED and (
+            self.lr_lambda.ended(self.step) or bool(plans) and self.step >= int(plans[-1]["end"]))
         if plans is None and extra.get("planned_steps") is not None and plan is not None:
             self.total_steps = min(self.nominal_steps, int(extra["planned_steps"]))  # one fixed plan: measured again
         changed = [k for k in ("steps", "epochs", "time_limit_min") if getattr(ts, k) != getattr(saved, k)]
