@@ -1,6 +1,7 @@
 """The depth's verdict on a pose (dope_hope.adaptation.evidence): the true pose of a box in front of a
-table is kept; the same pose 3 cm farther, 3 cm to the side, or against a depth that disagrees
-is rejected, each for its own reason."""
+table is kept, also where the sensor dropped half of its depth; the same pose 3 cm farther, 3 cm
+to the side, against a depth that disagrees or over nothing but holes is rejected, each for its own
+reason."""
 from __future__ import annotations
 
 import numpy as np
@@ -35,6 +36,22 @@ def test_the_true_pose_is_kept():
     assert ev.support > 0.8 and ev.residual_m < 0.003 and ev.edge > 0.8
 
 
+def test_holes_in_the_depth_say_nothing_against_the_true_pose():
+    d = scene_depth()
+    box = render_box_depth(BOX, R, T, K, HW) > 0
+    holes = box & (np.random.default_rng(1).random(HW) < 0.5)  # a dark surface: half its pixels dropped
+    ev = pose_evidence(R, T, POINTS, DepthImage.from_raw(np.where(holes, np.nan, d.metres).astype(np.float32), K),
+                       0.9, LabelSettings())
+    assert ev.kept and 0.4 < ev.measured < 0.7 and ev.support > 0.8
+
+
+def test_a_pose_over_nothing_but_holes_is_rejected():
+    box = render_box_depth(BOX, R, T, K, HW) > 0
+    d = DepthImage.from_raw(np.where(box, np.nan, scene_depth().metres).astype(np.float32), K)
+    ev = pose_evidence(R, T, POINTS, d, 0.9, LabelSettings())
+    assert not ev.kept and ev.measured < 0.3 and "labels.min_measured" in ev.reason  # the outline sees the wall
+
+
 def test_a_pose_3cm_farther_is_rejected_by_its_depth_support():
     t = T * (1 + 0.03 / np.linalg.norm(T))
     ev = pose_evidence(R, t, POINTS, scene_depth(), 0.9, LabelSettings())
@@ -65,7 +82,7 @@ def test_a_low_score_is_rejected_whatever_the_depth():
 
 def test_evidence_is_plain_json():
     rec = pose_evidence(R, T, POINTS, scene_depth(), 0.9, LabelSettings()).to_json()
-    assert set(rec) >= {"score", "support", "residual_m", "edge", "points", "source", "kept", "reason"}
+    assert set(rec) >= {"score", "support", "measured", "residual_m", "edge", "points", "source", "kept", "reason"}
     assert rec["icp_fit"] is None and rec["source"] == "detected"
 
 

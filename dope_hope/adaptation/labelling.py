@@ -15,12 +15,17 @@ Two passes over a sequence of frames (:class:`~dope_hope.io.streams.Frame`, in r
    frame that holds no label of its class, a coasted pose that the depth confirms becomes a
    label (``source: carried``; one instance per class and frame is carried where the model
    found another): the frames where the model missed the object are
-   the ones these labels teach it to detect.
+   the ones these labels teach it to detect. Each input folder is a sequence of its own
+   (:func:`sequences`): nothing is carried across. With ``carry.chain`` the passes repeat, fed the
+   carried labels too, until a pass adds none: a run of missed frames longer than
+   ``max_frames`` is crossed by labels that the depth confirmed one frame at a time (a pose
+   the depth does not confirm ends the chain there).
 """
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
+from pathlib import PurePosixPath
 
 import numpy as np
 
@@ -62,7 +67,7 @@ class PoseLabel:
     @classmethod
     def from_record(cls, rec: dict) -> PoseLabel:
         """A label read back from :meth:`to_record` (without its detection)."""
-        ev = LabelEvidence(**{k: (float("nan") if v is None and k in ("residual_m", "edge", "icp_fit") else v)
+        ev = LabelEvidence(**{k: (float("nan") if v is None and k in ("residual_m", "edge", "icp_fit", "measured") else v)
                               for k, v in rec["evidence"].items()})
         return cls(rec["class"], np.array(rec["R"]), np.array(rec["t"]), np.array(rec["projected_2d"]),
                    None if rec["bbox_2d"] is None else np.array(rec["bbox_2d"]), ev)
@@ -102,6 +107,19 @@ class LabelledFrame:
     @property
     def detected(self) -> bool:
         return any(lab.evidence.source == "detected" for lab in self.kept)
+
+
+def sequences(frames: Sequence[LabelledFrame]) -> list[range]:
+    """The index ranges of ``frames`` that are one sequence each: consecutive frames whose
+    names share a folder (the frames of one input folder; a recording's or a video's frames
+    are one). The tracker never carries a pose from one sequence into another."""
+    runs: list[range] = []
+    start = 0
+    for i in range(1, len(frames) + 1):
+        if i == len(frames) or PurePosixPath(frames[i].name).parent != PurePosixPath(frames[start].name).parent:
+            runs.append(range(start, i))
+            start = i
+    return runs
 
 
 def frame_depth(frame: Frame) -> DepthImage:
@@ -149,15 +167,30 @@ class DepthLabeller:
         c = self.settings.carry
         if not c.enabled or not frames:
             return 0
+        found = 0
+        for run in sequences(frames):
+            added = self._carry_pass(frames, run, depth_of, ("detected",))
+            found += added
+            while c.chain and added:
+                added = self._carry_pass(frames, run, depth_of, ("detected", "carried"))
+                found += added
+        return found
+
+    def _carry_pass(self, frames: Sequence[LabelledFrame], run: range, depth_of: Callable[[int], DepthImage],
+                    fed_sources: tuple[str, ...]) -> int:
+        """One forward and one backward play of the tracker over ``frames[run]`` (one
+        sequence), fed the kept labels of ``fed_sources``; a frame's rejected carried pose is
+        recorded once (the first pass's)."""
+        c = self.settings.carry
         tracking = replace(self.predictor.options.tracking, confirm_hits=1, max_coast=c.max_frames,
                            max_misses=c.max_frames)
         found = 0
-        for order in (range(len(frames)), range(len(frames) - 1, -1, -1)):
+        for order in (run, run[::-1]):
             tracker = PoseTracker(self.predictor, settings=tracking)
             for step, i in enumerate(order):
                 f = frames[i]
                 fed = [lab.detection or self._as_detection(lab) for lab in f.kept
-                       if lab.evidence.source == "detected"]
+                       if lab.evidence.source in fed_sources]
                 depth = depth_of(i)
                 coasted = [o for o in tracker.update(fed, f.K, depth if depth.usable else None, frame=step,
                                                      image_hw=f.hw) if o.tracked == "coasted"]
@@ -168,7 +201,8 @@ class DepthLabeller:
                     if lab.evidence.kept:
                         f.kept.append(lab)
                         found += 1
-                    else:
+                    elif not any(r.class_name == o.class_name and r.evidence.source == "carried"
+                                 for r in f.rejected):
                         f.rejected.append(lab)
         return found
 

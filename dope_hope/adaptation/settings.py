@@ -33,8 +33,9 @@ class LabelSettings(SectionSettings):
     """When the depth confirms a pose (:func:`dope_hope.adaptation.evidence.pose_evidence`).
 
     min_score: least detection score of a label (a carried label: its track's last score).
-    min_support: least share of the pose's visible, unoccluded surface that the depth
-    confirms within ``tolerance_m``. max_residual_m: largest median |depth - surface| over
+    min_measured: least share of the pose's visible, unoccluded surface where the sensor
+    measured a depth. min_support: least share of those measured points whose depth confirms
+    the surface within ``tolerance_m``. max_residual_m: largest median |depth - surface| over
     those points, metres. min_edge: least share of the pose's silhouette outline that lies
     on a depth edge within ``edge_px``. edge_jump: relative depth jump that makes an edge.
     tolerance_m: depth agreement of a supported point, metres. min_points: fewest visible
@@ -42,12 +43,13 @@ class LabelSettings(SectionSettings):
     """
 
     SECTION = "labels"
-    RULES = {"min_score": finite_float, "min_support": fraction, "max_residual_m": positive_float,
+    RULES = {"min_score": finite_float, "min_measured": fraction, "min_support": fraction, "max_residual_m": positive_float,
              "min_edge": fraction, "edge_px": at_least(0), "edge_jump": positive_float,
              "tolerance_m": positive_float, "min_points": at_least(1)}
 
     min_score: float = 0.3
-    min_support: float = 0.6
+    min_measured: float = 0.3
+    min_support: float = 0.8
     max_residual_m: float = 0.006
     min_edge: float = 0.5
     edge_px: int = 3
@@ -61,14 +63,17 @@ class CarrySettings(SectionSettings):
     """Labels carried by the tracker into frames where the model missed the object.
 
     enabled: carry at all. max_frames: farthest frame from a confirmed label, before or after
-    it (the tracker's ``max_coast``).
+    it (the tracker's ``max_coast``). chain: a carried label the depth confirms is carried on
+    in turn (the passes repeat until none is added), so a run of missed frames longer than
+    ``max_frames`` is filled one depth-confirmed frame at a time.
     """
 
     SECTION = "carry"
-    RULES = {"enabled": boolean, "max_frames": at_least(1)}
+    RULES = {"enabled": boolean, "max_frames": at_least(1), "chain": boolean}
 
     enabled: bool = True
     max_frames: int = 5
+    chain: bool = True
 
 
 @dataclass(frozen=True)
@@ -77,7 +82,8 @@ class FineTuneSettings(SectionSettings):
 
     rounds: label, train, label again, this many times. time_budget_min: minutes of training
     of all rounds together (shared evenly). synthetic_ratio: synthetic frames per labelled
-    frame in each round's training data (0: the labels alone). max_synthetic: most synthetic
+    frame in each round's training data (0: the labels alone; 4: docs/commands/adapt.md says
+    why). max_synthetic: most synthetic
     frames per round (None: no bound). lr: learning rate of the fine-tuning (None: the
     model's recipe's). steps: optimizer steps per round instead of the time budget (None:
     the budget decides). batch_size: frames per step (None: the recipe's, lowered to fit the
@@ -91,7 +97,7 @@ class FineTuneSettings(SectionSettings):
 
     rounds: int = 2
     time_budget_min: float = 10.0
-    synthetic_ratio: float = 1.0
+    synthetic_ratio: float = 4.0
     max_synthetic: int | None = None
     lr: float | None = 3e-4
     steps: int | None = None
