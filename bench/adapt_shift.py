@@ -185,8 +185,11 @@ def label_accuracy(job: Path, base: Path, mesh: Path, class_name: str, rounds: i
         if not path.is_file():
             break
         kept = right = carried = carried_right = missed = filled = 0
-        for line in path.read_text().splitlines():
-            rec = json.loads(line)
+        records = [json.loads(line) for line in path.read_text().splitlines()]
+        seeded = {str(Path(names[rec["index"]]).parent) for rec in records  # sequences with a detected label
+                  if any(lab["source"] == "detected" for lab in rec["kept"])}
+        missed_seeded = 0
+        for rec in records:
             truth = read_dope_json((base / names[rec["index"]]).with_suffix(".json"))
             gts = [o for o in truth.objects if o.class_name == class_name]
             for lab in rec["kept"]:
@@ -200,9 +203,11 @@ def label_accuracy(job: Path, base: Path, mesh: Path, class_name: str, rounds: i
             seen = any((g.visibility or 0.0) >= 0.3 for g in gts)
             if seen and not any(lab["source"] == "detected" for lab in rec["kept"]):
                 missed += 1
+                missed_seeded += int(str(Path(names[rec["index"]]).parent) in seeded)
                 filled += int(any(lab["source"] == "carried" for lab in rec["kept"]))
         out.append({"round": r, "kept": kept, "right": right, "carried": carried, "carried_right": carried_right,
-                    "missed_visible": missed, "filled": filled})
+                    "missed_visible": missed, "filled": filled, "missed_in_seeded": missed_seeded,
+                    "sequences_seeded": len(seeded)})
     return out
 
 
@@ -276,7 +281,9 @@ def main(argv: list[str] | None = None) -> int:
     for r in labels:
         print(f"round {r['round']}: {r['kept']} labels kept, {r['right']} within 2 cm "
               f"({r['right'] / max(r['kept'], 1):.1%}); carried {r['carried']} ({r['carried_right']} within 2 cm); "
-              f"filled {r['filled']} of the {r['missed_visible']} frames where the model missed a visible object")
+              f"filled {r['filled']} of the {r['missed_visible']} frames where the model missed a visible object "
+              f"({r['missed_in_seeded']} of them in the {r['sequences_seeded']} sequences with a detected label: "
+              "nothing can be carried into a sequence without one)")
     (out / "results.json").write_text(json.dumps({"before": before, "after": after, "synthetic_before": synth_before,
                                                   "synthetic_after": synth_after, "labels": labels,
                                                   "adapt_seconds": round(adapt_s, 1), "cpu": cpu_line()}, indent=1))
