@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from adapt_frames import demo_weights, write_scene_frames
 
-from dope_hope.adaptation.labelling import DepthLabeller, LabelledFrame, frame_depth, sequences
+from dope_hope.adaptation.labelling import DepthLabeller, LabelledFrame, frame_depth, sequences, unseeded
 from dope_hope.adaptation.settings import AdaptConfig
 from dope_hope.inference.predictor import DopePredictor
 from dope_hope.io.dope_json import read_dope_json
@@ -82,6 +82,8 @@ def test_the_input_folders_are_sequences_of_their_own(scene):
     labeller, frame, _ = scene
     named = [LabelledFrame(i, n, frame.K, (4, 4)) for i, n in enumerate(["a/0.png", "a/1.png", "b/0.png", "0.png"])]
     assert sequences(named) == [range(0, 2), range(2, 3), range(3, 4)]
+    named[1].kept.append(labeller.label_frame(frame).kept[0])  # a confirmed detection in a/
+    assert unseeded(named) == [2, 3]  # b/ and the top folder's frame: nothing to carry there
     first = labeller.label_frame(Frame(0, 0.0, "seq_00/000019.png", frame.rgb, frame.K, frame.depth))
     blind = labeller.label_frame(Frame(1, 1.0, "seq_01/000000.png", np.full_like(frame.rgb, 127), frame.K, frame.depth))
     depth = frame_depth(frame)

@@ -109,3 +109,17 @@ def test_bad_input_is_one_line_and_nothing_is_written(lab, capsys, case, expecte
     assert code == 2, err
     assert expected in err and len(err.strip().splitlines()) == 1, err
     assert not out.exists()
+
+
+def test_a_sequence_the_first_pass_confirms_nothing_in_is_labelled_again_at_the_seed_sizes(lab, capsys):
+    tmp, frames, mesh, weights = lab
+    argv = ["adapt", frames, "--weights", weights, "--mesh", mesh, "--synthetic", frames, "--no-progress",
+            "--set", "finetune.steps=1", "finetune.rounds=1", "infer.multiscale.scales=[0.25]"]
+    code, _, err = run_cli([*argv, "carry.seed_scales=null", "--out", tmp / "unseeded"], capsys)
+    assert code == 2 and "confirms no label" in err  # at a quarter of its size the model finds nothing
+    code, _, err = run_cli([*argv, "carry.seed_scales=[1]", "--out", tmp / "seeded"], capsys)
+    assert code == 0, err
+    seeded = [json.loads(line) for line in (tmp / "seeded" / "round_1" / "seeded.jsonl").read_text().splitlines()]
+    assert [r["index"] for r in seeded] == [0, 1, 2] and sum(bool(r["kept"]) for r in seeded) >= 2
+    counts = json.loads((tmp / "seeded" / "round_1" / "labels" / "summary.json").read_text())["counts"]
+    assert counts["detected_kept"] >= 2

@@ -16,7 +16,9 @@ Two passes over a sequence of frames (:class:`~dope_hope.io.streams.Frame`, in r
    label (``source: carried``; one instance per class and frame is carried where the model
    found another): the frames where the model missed the object are
    the ones these labels teach it to detect. Each input folder is a sequence of its own
-   (:func:`sequences`): nothing is carried across. With ``carry.chain`` the passes repeat, fed the
+   (:func:`sequences`): nothing is carried across, and a sequence without one confirmed
+   detection (:func:`unseeded`) is labelled again at ``carry.seed_scales`` first (in
+   :mod:`dope_hope.adaptation.run`). With ``carry.chain`` the passes repeat, fed the
    carried labels too, until a pass adds none: a run of missed frames longer than
    ``max_frames`` is crossed by labels that the depth confirmed one frame at a time (a pose
    the depth does not confirm ends the chain there).
@@ -120,6 +122,12 @@ def sequences(frames: Sequence[LabelledFrame]) -> list[range]:
             runs.append(range(start, i))
             start = i
     return runs
+
+
+def unseeded(frames: Sequence[LabelledFrame]) -> list[int]:
+    """The indices (into ``frames``) of the frames of every sequence (:func:`sequences`) in
+    which no detection was confirmed: nothing can be carried there."""
+    return [i for run in sequences(frames) if not any(frames[j].detected for j in run) for i in run]
 
 
 def frame_depth(frame: Frame) -> DepthImage:

@@ -7,7 +7,8 @@ The loop, in ``out/`` (each step resumes where it stopped; the same command cont
    (:mod:`dope_hope.adaptation.frames`; at most ``max_frames``).
 2. For each round r (``finetune.rounds``): ``round_r/labels/`` (the model of the round before,
    round 1 the given weights, labels the frames: :mod:`dope_hope.adaptation.labelling`, its
-   first pass logged frame by frame in ``round_r/detected.jsonl``, written by
+   first pass logged frame by frame in ``round_r/detected.jsonl``, the sequences where it
+   confirmed nothing labelled again at ``carry.seed_scales`` in ``round_r/seeded.jsonl``, written by
    :mod:`dope_hope.adaptation.label_set`; ``preview_round_r.png`` with ``preview``), ``round_r/mix/``
    (synthetic frames, :func:`dope_hope.adaptation.finetune.synthetic_mix`), ``round_r/train/`` (the
    fine-tuning, :func:`dope_hope.adaptation.finetune.finetune_round`, the time budget shared by the
@@ -31,7 +32,7 @@ from tqdm import tqdm
 from dope_hope.adaptation.finetune import FINISHED, finetune_round, record_adaptation, synthetic_mix
 from dope_hope.adaptation.frames import open_unlabelled
 from dope_hope.adaptation.label_set import FrameStore, LabelCounts, write_label_set
-from dope_hope.adaptation.labelling import DepthLabeller, LabelledFrame
+from dope_hope.adaptation.labelling import DepthLabeller, LabelledFrame, unseeded
 from dope_hope.adaptation.settings import AdaptConfig
 from dope_hope.errors import ConfigError, DopeHopeError, InputFileError
 from dope_hope.inference.predictor import DopePredictor
@@ -90,34 +91,54 @@ def _read_frames(source, store: FrameStore, max_frames: int | None, progress: bo
     store.finish(source.name)
 
 
-def _detected_labels(store: FrameStore, labeller: DepthLabeller, log: Path, progress: bool) -> list[LabelledFrame]:
-    """The first pass (detected labels) of every frame, logged a line per frame to ``log``:
-    an interrupted pass goes on after the frames it logged (a cut last line is done again),
-    and the labels are always read back from the log, so a resumed round is the one that ran
-    through."""
+def _detected_labels(store: FrameStore, labeller: DepthLabeller, log: Path, progress: bool,
+                     indices: Sequence[int] | None = None) -> list[LabelledFrame]:
+    """The first pass (detected labels) of the store's frames ``indices`` (default all),
+    logged a line per frame to ``log``: an interrupted pass goes on after the frames it logged
+    (a cut last line is done again), and the labels are always read back from the log, so a
+    resumed round is the one that ran through."""
+    indices = list(range(len(store))) if indices is None else list(indices)
     done: list[str] = []
     if log.is_file():
         for line in log.read_text().splitlines():
             try:
-                if json.loads(line)["index"] != len(done):
+                if len(done) >= len(indices) or json.loads(line)["index"] != indices[len(done)]:
                     break
             except (ValueError, KeyError):
                 break
             done.append(line)
         atomic_write_text(log, "".join(line + "\n" for line in done))
     with open(log, "a") as f:
-        for i in tqdm(range(len(done), len(store)), desc=f"labels {log.parent.name}", unit="frame",
-                      initial=len(done), total=len(store), disable=not progress):
+        for i in tqdm(indices[len(done):], desc=f"{log.stem} {log.parent.name}", unit="frame",
+                      initial=len(done), total=len(indices), disable=not progress):
             f.write(json.dumps(labeller.label_frame(store.frame(i)).to_record()) + "\n")
             f.flush()
     return [LabelledFrame.from_record(json.loads(line)) for line in log.read_text().splitlines()]
 
 
+def _seed_predictor(model: Path, mesh: Path, mesh_units: str | None, cfg: AdaptConfig) -> DopePredictor:
+    """The round's model at the working sizes ``carry.seed_scales`` (the labelling's other
+    inference options as they are)."""
+    options = dict(cfg.infer.given())
+    options["multiscale"] = {**cfg.infer.multiscale.to_dict(), "scales": list(cfg.carry.seed_scales)}
+    return DopePredictor(model, mesh=mesh, mesh_units=mesh_units, options=options)
+
+
 def _label_round(store: FrameStore, predictor: DopePredictor, cfg: AdaptConfig, folder: Path,
-                 preview: Path | None, extra: dict, progress: bool) -> LabelCounts:
+                 preview: Path | None, extra: dict, progress: bool,
+                 seeder: Callable[[], DopePredictor] | None = None) -> LabelCounts:
+    """One round's labels (module docstring, step 2): the first pass; the frames of the
+    sequences where it confirmed nothing again with ``seeder()`` (``carry.seed_scales``; its
+    result kept where it confirms a detection); the carrying; the label set written."""
     labeller = DepthLabeller(predictor, cfg)
     folder.parent.mkdir(parents=True, exist_ok=True)
     frames = _detected_labels(store, labeller, folder.parent / "detected.jsonl", progress)
+    todo = unseeded(frames) if cfg.carry.enabled and cfg.carry.seed_scales and seeder is not None else []
+    if todo:
+        again = _detected_labels(store, DepthLabeller(seeder(), cfg), folder.parent / "seeded.jsonl", progress, todo)
+        for i, lf in zip(todo, again):
+            if lf.detected:
+                frames[i] = lf
     labeller.carry(frames, store.depth)
     cuboids = {o.class_name: (o.cuboid_size_m, o.cuboid_center_m) for o in predictor.objects}
     return write_label_set(store, folder, frames, cuboids, extra, preview)
@@ -186,7 +207,8 @@ def adapt(inputs: Sequence[str], weights: str | Path, mesh: str | Path, out: str
             p = predictor if r == 1 else DopePredictor(model, mesh=mesh, mesh_units=mesh_units,
                                                        options=cfg.infer.given())
             counts = _label_round(store, p, cfg, labels, out / f"preview_round_{r}.png" if preview else None,
-                                  {"model": str(model), "round": r}, progress)
+                                  {"model": str(model), "round": r}, progress,
+                                  lambda m=model: _seed_predictor(m, mesh, mesh_units, cfg))
         note(f"round {r}: {counts.detected_kept} detected and {counts.carried_kept} carried label(s) kept, "
              f"{counts.detected_rejected + counts.carried_rejected} rejected; {counts.labelled_frames} of "
              f"{counts.frames} frames labelled, {counts.filled_frames} of the {counts.missed_frames} the model missed")

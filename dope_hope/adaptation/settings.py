@@ -14,6 +14,7 @@ from dope_hope.config import (
     SectionSettings,
     at_least,
     boolean,
+    each,
     finite_float,
     fraction,
     nonnegative_float,
@@ -65,15 +66,19 @@ class CarrySettings(SectionSettings):
     enabled: carry at all. max_frames: farthest frame from a confirmed label, before or after
     it (the tracker's ``max_coast``). chain: a carried label the depth confirms is carried on
     in turn (the passes repeat until none is added), so a run of missed frames longer than
-    ``max_frames`` is filled one depth-confirmed frame at a time.
+    ``max_frames`` is filled one depth-confirmed frame at a time. seed_scales: the working
+    sizes the model runs at again, on the frames of a sequence where it confirmed no detection
+    (a far, small object is found at a larger size: one confirmed label there seeds the
+    carrying of the whole sequence); null for none.
     """
 
     SECTION = "carry"
-    RULES = {"enabled": boolean, "max_frames": at_least(1), "chain": boolean}
+    RULES = {"enabled": boolean, "max_frames": at_least(1), "chain": boolean, "seed_scales": or_none(each(positive_float))}
 
     enabled: bool = True
     max_frames: int = 5
     chain: bool = True
+    seed_scales: tuple[float, ...] | None = (1.77,)
 
 
 @dataclass(frozen=True)
