@@ -271,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
 
     print(f"\nshifted held-out: {before['instances']} instances in {len(test_frames)} frames; "
           f"adaptation: {sum(len(list_dope_frames(s)) for s in adapt_seqs)} frames, {adapt_s / 60:.1f} min "
-          f"(labelling + training, this run; shared machine)")
+          f"(labelling + training, this run)")
     print("| figure | before | after | after / before |\n|---|---|---|---|")
     for key, name in (("ls_2cm", "recall at 2 cm, -LS"), ("icp_2cm", "recall at 2 cm, -LS + ICP"),
                       ("ls_10cm", "recall at 10 cm, -LS"), ("no_detection", "no detection")):
