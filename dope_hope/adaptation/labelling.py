@@ -69,7 +69,8 @@ class PoseLabel:
     @classmethod
     def from_record(cls, rec: dict) -> PoseLabel:
         """A label read back from :meth:`to_record` (without its detection)."""
-        ev = LabelEvidence(**{k: (float("nan") if v is None and k in ("residual_m", "edge", "icp_fit", "measured") else v)
+        nan_when_none = ("residual_m", "edge", "icp_fit", "measured")
+        ev = LabelEvidence(**{k: (float("nan") if v is None and k in nan_when_none else v)
                               for k, v in rec["evidence"].items()})
         return cls(rec["class"], np.array(rec["R"]), np.array(rec["t"]), np.array(rec["projected_2d"]),
                    None if rec["bbox_2d"] is None else np.array(rec["bbox_2d"]), ev)

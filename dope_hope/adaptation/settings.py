@@ -44,7 +44,8 @@ class LabelSettings(SectionSettings):
     """
 
     SECTION = "labels"
-    RULES = {"min_score": finite_float, "min_measured": fraction, "min_support": fraction, "max_residual_m": positive_float,
+    RULES = {"min_score": finite_float, "min_measured": fraction, "min_support": fraction,
+             "max_residual_m": positive_float,
              "min_edge": fraction, "edge_px": at_least(0), "edge_jump": positive_float,
              "tolerance_m": positive_float, "min_points": at_least(1)}
 
@@ -73,7 +74,8 @@ class CarrySettings(SectionSettings):
     """
 
     SECTION = "carry"
-    RULES = {"enabled": boolean, "max_frames": at_least(1), "chain": boolean, "seed_scales": or_none(each(positive_float))}
+    RULES = {"enabled": boolean, "max_frames": at_least(1), "chain": boolean,
+             "seed_scales": or_none(each(positive_float))}
 
     enabled: bool = True
     max_frames: int = 5
