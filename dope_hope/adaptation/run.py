@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -119,21 +119,19 @@ def _detected_labels(store: FrameStore, labeller: DepthLabeller, log: Path, prog
 def _seed_predictor(model: Path, mesh: Path, mesh_units: str | None, cfg: AdaptConfig) -> DopePredictor:
     """The round's model at the working sizes ``carry.seed_scales`` (the labelling's other
     inference options as they are)."""
-    options = dict(cfg.infer.given())
-    options["multiscale"] = {**cfg.infer.multiscale.to_dict(), "scales": list(cfg.carry.seed_scales)}
-    return DopePredictor(model, mesh=mesh, mesh_units=mesh_units, options=options)
+    seeding = replace(cfg.infer, multiscale=replace(cfg.infer.multiscale, scales=tuple(cfg.carry.seed_scales)))
+    return DopePredictor(model, mesh=mesh, mesh_units=mesh_units, options=seeding.given())
 
 
 def _label_round(store: FrameStore, predictor: DopePredictor, cfg: AdaptConfig, folder: Path,
-                 preview: Path | None, extra: dict, progress: bool,
-                 seeder: Callable[[], DopePredictor] | None = None) -> LabelCounts:
+                 preview: Path | None, extra: dict, progress: bool, seeder: Callable[[], DopePredictor]) -> LabelCounts:
     """One round's labels (module docstring, step 2): the first pass; the frames of the
     sequences where it confirmed nothing again with ``seeder()`` (``carry.seed_scales``; its
     result kept where it confirms a detection); the carrying; the label set written."""
     labeller = DepthLabeller(predictor, cfg)
     folder.parent.mkdir(parents=True, exist_ok=True)
     frames = _detected_labels(store, labeller, folder.parent / "detected.jsonl", progress)
-    todo = unseeded(frames) if cfg.carry.enabled and cfg.carry.seed_scales and seeder is not None else []
+    todo = unseeded(frames) if cfg.carry.enabled and cfg.carry.seed_scales else []
     if todo:
         again = _detected_labels(store, DepthLabeller(seeder(), cfg), folder.parent / "seeded.jsonl", progress, todo)
         for i, lf in zip(todo, again):
