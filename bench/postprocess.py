@@ -33,11 +33,12 @@ over the same range in 0.1 % steps (the simple way to do it), same cost function
 depth of a ray-cast box, ~4200 surface points.
 
 -LS + ICP (``--only-icp``): ``dope_hope.refine.icp.icp_refine`` with its ten starts (the default: a
-coarse phase on a thinned scene, four finish) against the same ten starts all on every point
-(the baseline) and against one start, after the line search, per object: the box's depth as
-above, the input pose turned 20 deg (random axis) or 80 deg (about the box's long axis: a
-lite net's commonest rotation error) and 10 % too far; time, and how often each ends within
-1 deg and 2 mm.
+coarse phase on a thinned scene, four finish; the model's nearest points looked up on its
+grid) against the same ten starts all on every point, against the exact nearest points
+(``icp_refine.nearest: exact``, scipy's cKDTree: the baselines) and against one start, after
+the line search, per object: the box's depth as above, the input pose turned 20 deg (random
+axis) or 80 deg (about the box's long axis: a lite net's commonest rotation error) and 10 %
+too far; time, and how often each ends within 1 deg and 2 mm.
 
     python bench/postprocess.py [--scenes 5] [--rounds 5] [--repeats 3] [--only-maps | --only-icp]
 """
@@ -335,7 +336,8 @@ def icp_section(repeats: int) -> int:
                                              return_normals=True)
     rng = np.random.default_rng(7)
     for kind in ("20 deg, random axis", "80 deg about the long axis"):
-        rows = {"one start": [], "ten starts, all points": [], "ten starts (default)": []}
+        rows = {"one start": [], "ten starts, all points": [], "ten starts, exact nearest": [],
+                "ten starts (default)": []}
         for i in range(10):
             R = Rotation.random(random_state=200 + i).as_matrix()
             t = np.array([rng.uniform(-0.1, 0.1), rng.uniform(-0.06, 0.06), rng.uniform(0.5, 1.0)])
@@ -346,6 +348,7 @@ def icp_section(repeats: int) -> int:
             ls = depth_line_search(R0, 1.1 * t, pts, DepthImage.from_raw(depth, K640))
             for name, kw in (("one start", {"start_rotations": ()}),
                              ("ten starts, all points", {"coarse_points": None}),
+                             ("ten starts, exact nearest", {"nearest": "exact"}),
                              ("ten starts (default)", {})):
                 dt, res = timed(icp_refine, R0, ls.t, icp_pts, icp_nrm, DepthImage.from_raw(depth, K640),
                                 IcpSettings(**kw), repeats=repeats)
@@ -355,9 +358,10 @@ def icp_section(repeats: int) -> int:
         times = {}
         for name, r in rows.items():
             times[name] = 1000 * np.median([x[0] for x in r])
-            print(f"  {name:22s} {times[name]:7.2f} ms   within 1 deg and 2 mm: {sum(x[1] for x in r)}/{len(r)}")
+            print(f"  {name:26s} {times[name]:7.2f} ms   within 1 deg and 2 mm: {sum(x[1] for x in r)}/{len(r)}")
         print(f"  time ratio ten (all points) / ten (default, coarse phase on a thinned scene): "
-              f"{times['ten starts, all points'] / times['ten starts (default)']:.1f}x; "
+              f"{times['ten starts, all points'] / times['ten starts (default)']:.1f}x; exact nearest / grid "
+              f"{times['ten starts, exact nearest'] / times['ten starts (default)']:.1f}x; "
               f"ten (default) / one: {times['ten starts (default)'] / times['one start']:.1f}x")
     return 0
 
