@@ -314,13 +314,43 @@ def test_line_search_bracket_with_scales_without_depth_warns_nothing():
 
     from dope_hope.refine.line_search import _best_scale
 
-    def cost(s: float) -> float:
-        return np.inf if s > 1.02 else (s - 1.0) ** 2
+    class Cost:
+        def __call__(self, s: float) -> float:
+            return np.inf if s > 1.02 else (s - 1.0) ** 2
+
+        def costs(self, scales: np.ndarray) -> np.ndarray:
+            return np.array([self(s) for s in scales])
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        scale, at_bound = _best_scale(cost, (0.5, 1.5), 11)
+        scale, at_bound = _best_scale(Cost(), (0.5, 1.5), 11)
     assert scale == pytest.approx(1.0, abs=1e-4) and not at_bound
+
+
+@pytest.mark.parametrize("cost", ["median", "huber"])
+def test_the_grid_costs_in_one_pass_equal_each_scale_on_its_own(cost):
+    """The line search's grid (all scales in one array pass) costs what each scale's own
+    residuals give: median |r|, or the mean Huber loss; inf where too few points have depth."""
+    from dope_hope.refine.line_search import _ScaleCost
+
+    R, t = _ls_pose(2)
+    depth = render_box_depth(BOX, R, t, K320, HW320)
+    depth[:, :150] = 0.0  # no depth on the left: some scales' points fall there
+    D = DepthImage.from_raw(depth, K320).metres
+    scales = np.linspace(0.4, 2.5, 41)
+    counts = [_ScaleCost(POINTS @ R.T, t, K320, D, 1, cost, 0.01).residuals(s).size for s in scales]
+    min_valid = int(np.median(counts))  # about half the scales have too few points with depth
+    f = _ScaleCost(POINTS @ R.T, t, K320, D, min_valid=min_valid, cost=cost, huber_delta_m=0.01)
+    expected = []
+    for s in scales:
+        a = np.abs(f.residuals(s))
+        d = 0.01
+        expected.append(np.inf if a.size < min_valid else np.median(a) if cost == "median"
+                        else np.mean(np.where(a <= d, 0.5 * a * a, d * (a - 0.5 * d))))
+    got = f.costs(scales)
+    assert np.isinf(expected).any() and np.isfinite(expected).sum() > 10
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=0)
+    assert f(scales[7]) == pytest.approx(expected[7], rel=1e-12)
 
 
 def test_the_inliers_a_pose_needs_bound_the_divisor_of_its_score():

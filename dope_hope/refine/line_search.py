@@ -172,13 +172,26 @@ def auto_splat_px(model_points: np.ndarray, K: np.ndarray, depth_m: float) -> in
     The spacing is the median nearest-neighbour distance (scipy cKDTree, on at most 1000
     query points); a (2r+1)-wide window then covers the gaps between front points.
     """
-    P = np.asarray(model_points, dtype=np.float64)
+    P = np.ascontiguousarray(model_points, dtype=np.float64)
     if len(P) < 2:
         return 1
-    query = P[:: max(1, len(P) // 1000)]
-    d, _ = cKDTree(P).query(query, k=2)
-    spacing_px = float(np.median(d[:, 1])) * float(K[0, 0]) / max(depth_m, 1e-6)
+    spacing_px = _point_spacing_m(P) * float(K[0, 0]) / max(depth_m, 1e-6)
     return int(np.clip(np.ceil(spacing_px / 2.0), 1, 6))
+
+
+_SPACINGS: dict[tuple, float] = {}
+
+
+def _point_spacing_m(P: np.ndarray) -> float:
+    """The median nearest-neighbour distance of (N, 3) points (N >= 2), metres, of at most
+    1000 of them; kept per point set (by its bytes: one tree per model, not per detection)."""
+    key = (P.shape, hash(P.tobytes()))
+    if key not in _SPACINGS:
+        if len(_SPACINGS) >= 64:
+            _SPACINGS.pop(next(iter(_SPACINGS)))
+        d, _ = cKDTree(P).query(P[:: max(1, len(P) // 1000)], k=2)
+        _SPACINGS[key] = float(np.median(d[:, 1]))
+    return _SPACINGS[key]
 
 
 def sample_depth(D: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -224,15 +237,30 @@ class _ScaleCost:
 
     def __call__(self, s: float) -> float:
         """The robust cost (median |r| or mean Huber); inf with too few valid points."""
-        r = self.residuals(s)
-        if r.size < self.min_valid:
-            return np.inf
-        a = np.abs(r)
-        if self.cost == "median":
-            return float(np.median(a))
+        return float(self.costs(np.array([s]))[0])
+
+    def costs(self, scales: np.ndarray) -> np.ndarray:
+        """(S,) the cost of :meth:`__call__` at each of ``scales`` (S,), all in one array pass
+        (the line search's grid)."""
+        X = self.A[None] + np.asarray(scales, dtype=np.float64)[:, None, None] * self.t  # (S, M, 3)
+        uvw = X @ self.K.T
+        z = uvw[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            a = np.abs(sample_depth(self.D, uvw[..., 0] / z, uvw[..., 1] / z) - z)  # NaN: no depth
+        n = np.isfinite(a).sum(axis=1)
+        out = np.full(len(a), np.inf)
+        rows = n >= max(self.min_valid, 1)
+        a, n = a[rows], n[rows]
+        if self.cost == "median":  # NaNs sort last: each row's median of its n finite values
+            a = np.sort(a, axis=1)
+            lo = np.take_along_axis(a, ((n - 1) // 2)[:, None], axis=1)[:, 0]
+            hi = np.take_along_axis(a, (n // 2)[:, None], axis=1)[:, 0]
+            out[rows] = 0.5 * (lo + hi)
+            return out
         d = self.huber_delta_m
-        quad = a <= d
-        return float(np.mean(np.where(quad, 0.5 * a * a, d * (a - 0.5 * d))))
+        loss = np.where(a <= d, 0.5 * a * a, d * (a - 0.5 * d))
+        out[rows] = np.nansum(loss, axis=1) / n
+        return out
 
 
 def _best_scale(objective: _ScaleCost, search: tuple[float, float],
@@ -242,7 +270,7 @@ def _best_scale(objective: _ScaleCost, search: tuple[float, float],
     scale has valid depth."""
     lo, hi = float(search[0]), float(search[1])
     grid = np.linspace(lo, hi, grid_steps)
-    costs = np.array([objective(s) for s in grid])
+    costs = objective.costs(grid)
     if not np.isfinite(costs).any():
         return None
     i = int(np.argmin(costs))
