@@ -611,3 +611,33 @@ def test_a_centroid_whose_peaks_cannot_reach_min_score_is_not_searched(monkeypat
     dets = DopePredictor(backend_, min_score=0.5).predict(white((480, 640)), K640)
     assert searched == [1]  # the weak centroid is dropped before the search
     assert [(d.score, d.t.tolist()) for d in dets] == [(d.score, d.t.tolist()) for d in all_dets if d.score >= 0.5]
+
+
+@pytest.mark.parametrize("scales", [(1.0,), (1.0, 0.75)])
+def test_a_pose_under_the_threshold_is_kept_where_the_depth_confirms_it(scales):
+    """Faint maps (peaks at 0.3: every pose scores under the threshold 0.5): with
+    ``depth_confirm`` and ICP, the pose the depth confirms is kept, scored at the threshold,
+    flagged, its keypoint score in ``network_score``; without depth, with depth of something
+    else, or without the rule, nothing is kept. One size or several (the late depth stages)."""
+    R, t = POSES[0]
+    depth_mm = np.round(render_box_depth(OBJ.size_array, R, t, K640, (480, 640)) * 1000).astype(np.uint16)
+    elsewhere = np.round(render_box_depth(OBJ.size_array, R, t + [0.2, 0.0, 0.0], K640, (480, 640)) * 1000
+                         ).astype(np.uint16)
+
+    def predictor(**kw):
+        faint = _FadedBackend(OBJ.name, OBJ.size_array, [POSES[0]], K640, (480, 640), gain=0.3)
+        return DopePredictor(faint, height=400, min_score=0.5, icp=True, multiscale={"scales": list(scales)}, **kw)
+
+    confirm = {"depth_confirm": {"min_score": 0.1}}
+    (det,) = predictor(**confirm).predict(white((480, 640)), K640, depth=depth_mm)
+    assert det.depth_confirmed and det.score == 0.5 and 0.1 <= det.network_score < 0.5
+    assert det.icp_applied and det.icp_fit >= 0.95
+    assert rotation_error_deg(det.R, R) < 1.0 and np.linalg.norm(det.t - t) < 0.003
+    rec = det.to_json("a.png")
+    assert rec["depth_confirmed"] is True and rec["network_score"] == pytest.approx(det.network_score, abs=1e-4)
+    assert predictor(**confirm).predict(white((480, 640)), K640) == []  # no depth: the threshold alone
+    assert predictor(**confirm).predict(white((480, 640)), K640, depth=elsewhere) == []
+    assert predictor().predict(white((480, 640)), K640, depth=depth_mm) == []  # the rule off (the default)
+    strong = DopePredictor(backend(poses=[POSES[0]]), height=400, min_score=0.5, icp=True, **confirm)
+    (kept,) = strong.predict(white((480, 640)), K640, depth=depth_mm)
+    assert not kept.depth_confirmed and kept.score > 0.9 and "depth_confirmed" not in kept.to_json("a.png")

@@ -49,7 +49,9 @@ class Detection:
     cuboid_symmetries: with pose_ambiguity, all the cuboid's symmetries (names).
     network_score / appearance_score: with pose_ambiguity, the pose score of the maps and
         the appearance check's (:mod:`dope_hope.inference.appearance`); ``score`` is their
-        geometric mean.
+        geometric mean. network_score also holds a depth-confirmed pose's own keypoint score.
+    depth_confirmed: the pose scored under the object's threshold and the depth confirmed it
+        (:mod:`dope_hope.inference.depth_confirm`); ``score`` is then that threshold.
     texture_turn_deg: where ``appearance.trained_turns`` ran (:mod:`dope_hope.inference.turns`),
         the turn about the object's long axis it applied, degrees in [0, 360) (0: the network's
         pose kept), with ``appearance_score`` (its colour score); NaN where it did not run.
@@ -78,6 +80,7 @@ class Detection:
     network_score: float = float("nan")
     appearance_score: float = float("nan")
     texture_turn_deg: float = float("nan")
+    depth_confirmed: bool = False
 
     @property
     def quaternion_xyzw(self) -> np.ndarray:
@@ -94,7 +97,8 @@ class Detection:
         ``icp_reason`` and ``icp_fit``, and for a detector of a cuboid ``pose_ambiguity``,
         ``cuboid_symmetries``, ``network_score`` and ``appearance_score``, and where a trained
         model's pose was turned by its texture ``texture_turn_deg`` and ``appearance_score``,
-        which the evaluation ignores.
+        and for a pose the depth confirmed ``depth_confirmed`` and ``network_score``, which the
+        evaluation ignores.
 
         ``image`` names the frame (omitted when None: then pass ``scene_id``/``im_id``);
         ``extra`` adds keys (e.g. ``time``, ``scene_id``). The result is strict JSON (no NaN).
@@ -120,6 +124,8 @@ class Detection:
         elif math.isfinite(self.texture_turn_deg):
             rec.update(texture_turn_deg=round(float(self.texture_turn_deg), 2),
                        appearance_score=round(float(self.appearance_score), 4))
+        if self.depth_confirmed:
+            rec.update(depth_confirmed=True, network_score=round(float(self.network_score), 4))
         if image is None:
             del rec["image"]
         return rec

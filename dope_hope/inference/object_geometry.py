@@ -132,6 +132,14 @@ class ObjectGeometry:
         box.apply_translation(self.cuboid_center_m)
         return box
 
+    def has_icp_surface(self) -> bool:
+        """Whether ICP has a surface to fit (:meth:`check_icp_surface` passes)."""
+        try:
+            self.check_icp_surface()
+        except ConfigError:
+            return False
+        return True
+
     def check_icp_surface(self) -> None:
         """Without a mesh ICP fits the cuboid's surface to the depth: right for a box only."""
         if self.mesh is not None:

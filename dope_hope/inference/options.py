@@ -34,6 +34,7 @@ from dope_hope.config import (
 )
 from dope_hope.errors import ConfigError
 from dope_hope.inference.appearance import AppearanceSettings
+from dope_hope.inference.depth_confirm import DepthConfirmSettings
 from dope_hope.inference.new_object_settings import NewObjectSettings
 from dope_hope.inference.pnp import PnpSettings
 from dope_hope.inference.pose_search import HypothesisSettings
@@ -69,7 +70,8 @@ def preset_options(preset: str, given: Mapping[str, Any] | None = None, *, fixed
     """The option overrides of ``preset`` (:data:`PRESETS`) with ``given`` (what the user set,
     nested as a config file writes it) on top. For a model of one input size (``fixed_size``:
     a fixed-size export) and for a new object's detector (``new_object``: its working sizes are
-    ``new_object.scales``, and its own turns), the preset's working sizes are left out; its
+    ``new_object.scales``, its own turns and pose rule), the preset's working sizes (and for
+    the detector its ``depth_confirm``) are left out; its
     trained turns for a new object's detector and for a model given no mesh (``meshes``
     false: they need a textured one, and a setting nobody asked for warns of nothing); what
     ``given`` sets is kept whatever it is (and checked where it is used)."""
@@ -78,6 +80,8 @@ def preset_options(preset: str, given: Mapping[str, Any] | None = None, *, fixed
     base = load_config(PRESETS[preset]) if PRESETS[preset] else {}
     if fixed_size or new_object:
         base.pop("multiscale", None)
+    if new_object:  # its own pose rule (the appearance check), not the depth confirmation
+        base.pop("depth_confirm", None)
     if new_object or not meshes:
         base.get("appearance", {}).pop("trained_turns", None)
     return merge(base, dict(given or {}))
@@ -95,13 +99,14 @@ class InferenceOptions(SectionSettings):
     height: working height in px or None (the model's training scale). pose_search: one of
     :data:`POSE_SEARCHES`. min_score: detections below are dropped. ls_points / icp_points:
     model points for -LS / ICP. icp: one of :data:`ICP_MODES`. decode, pnp,
-    hypotheses, line_search, icp_refine, tracking, appearance, new_object, multiscale: each stage's settings
+    hypotheses, line_search, icp_refine, depth_confirm, tracking, appearance, new_object, multiscale: each stage's settings
     object, as its function takes it (a mapping given for one is read over its defaults):
     decode (:func:`~dope_hope.maps.decode.corner_candidates` / :func:`~dope_hope.maps.decode.decode_maps`),
     pnp (:func:`~dope_hope.inference.pnp.solve_pnp`), hypotheses
     (:func:`~dope_hope.inference.pose_search.solve_pnp_candidates`), line_search
     (:func:`~dope_hope.refine.line_search.depth_line_search`), icp_refine
-    (:func:`~dope_hope.refine.icp.icp_refine`), tracking (the stream tracker), appearance (the
+    (:func:`~dope_hope.refine.icp.icp_refine`), depth_confirm (the poses under the threshold the
+    depth keeps, :mod:`dope_hope.inference.depth_confirm`), tracking (the stream tracker), appearance (the
     appearance check of a new object's cuboid detector,
     :class:`~dope_hope.inference.appearance.AppearanceCheck`), new_object (that detector's working
     sizes, :class:`~dope_hope.inference.mesh_start.MeshStartPredictor`), multiscale (a trained
@@ -123,6 +128,7 @@ class InferenceOptions(SectionSettings):
     hypotheses: HypothesisSettings = section(HypothesisSettings)
     line_search: LineSearchSettings = section(LineSearchSettings)
     icp_refine: IcpSettings = section(IcpSettings)
+    depth_confirm: DepthConfirmSettings = section(DepthConfirmSettings)
     tracking: TrackingSettings = section(TrackingSettings)
     appearance: AppearanceSettings = section(AppearanceSettings)
     new_object: NewObjectSettings = section(NewObjectSettings)

@@ -89,6 +89,7 @@ from dope_hope.geometry import (
     value_for_object,
 )
 from dope_hope.inference.backends import MapBackend, backend_objects, model_min_score, open_backend, start_backend
+from dope_hope.inference.depth_confirm import keep_detection, pose_floor, worth_icp
 from dope_hope.inference.detection import Detection
 from dope_hope.inference.object_geometry import ObjectGeometry
 from dope_hope.inference.options import InferenceOptions
@@ -194,7 +195,7 @@ class DopePredictor:
         self.own_min_score = "min_score" not in given and (
             model_min_score(b) is not None or any(model_objects[k].min_score is not None for k in groups))
         #: the objects ICP may fit: all with icp=True (checked), those with a surface with "auto"
-        self.icp_objects = {o.class_name for o in self.objects if self.options.icp is True or _icp_surface(o)}
+        self.icp_objects = {o.class_name for o in self.objects if self.options.icp is True or o.has_icp_surface()}
         if self.options.icp is True:
             for obj in self.objects:
                 obj.check_icp_surface()
@@ -292,11 +293,13 @@ class DopePredictor:
         turns = self.trained_turns()
         late = turns is not None or len(scales) > 1  # the depth stages after the turns / the pooling
         out: list[Detection] = []
+        floors = {o.class_name: pose_floor(o.min_score, self.options.depth_confirm, self.icp_runs(o, depth))
+                  for o in self.objects}
         for i, (_, net_input) in enumerate(self.network_inputs(rgb, cache)):
             belief, affinity, net_in = self.infer_maps(net_input)
             if on_maps is not None and i == 0:
                 on_maps(self, belief, affinity, net_in)
-            out += self.detections_from_maps(belief, affinity, net_in, K, None if late else depth, classes)
+            out += self.detections_from_maps(belief, affinity, net_in, K, None if late else depth, classes, floors)
             if i == 0 and len(scales) > 1 and self.first_size_explains(belief, affinity, net_in, out, classes):
                 break  # multiscale.gate: nothing the first size missed, no other size
         if not late:
@@ -309,7 +312,7 @@ class DopePredictor:
                 turns.turn(det, rgb, K)
             self.depth_stages(obj, det, depth)
             self.project_detection(obj, det, K, rgb.shape[:2])
-        return out
+        return [d for d in out if keep_detection(d, self.object_of(d).min_score, self.options.depth_confirm)]
 
     def first_size_explains(self, belief: np.ndarray, affinity: np.ndarray, net_in: NetworkInput,
                             detections: Sequence[Detection], classes: Collection[str] | None = None) -> bool:
@@ -379,7 +382,8 @@ class DopePredictor:
 
     def detections_from_maps(self, belief: np.ndarray, affinity: np.ndarray, net_in: NetworkInput,
                              K: np.ndarray, depth: DepthImage | None = None,
-                             classes: Collection[str] | None = None) -> list[Detection]:
+                             classes: Collection[str] | None = None,
+                             floors: Mapping[str, float] | None = None) -> list[Detection]:
         """Decode + PnP (+ line search, ICP) the maps of :meth:`infer_maps` (see :meth:`predict`),
         object by object; an object whose belief maps peak nowhere above the decode threshold
         is skipped before any decoding (one max over its maps), and so is one whose peaks could
@@ -388,7 +392,9 @@ class DopePredictor:
         all the objects left are found in one search over their stacked belief maps (each
         channel on its own: the peaks of a search per object, for about the cost of one).
         ``classes``: decode only those of the predictor's objects this time (exact class names;
-        None: all)."""
+        None: all). ``floors``: the lowest pose score searched per class (default each object's
+        threshold; lower where :mod:`~dope_hope.inference.depth_confirm` runs: the depth
+        stages then keep or drop what scores under the threshold)."""
         K = check_intrinsics(K)
         K_net = net_in.network_K(K)
         threshold = self.options.decode.threshold
@@ -405,23 +411,26 @@ class DopePredictor:
         all_peaks = split_peaks(decoder_peaks(stacked, self.options.decode), len(live), NUM_KEYPOINTS)
         out: list[Detection] = []
         for (obj, b, a), peaks in zip(live, all_peaks):
-            if not pose_may_reach(peaks.channel, peaks.score, self.options.pnp, obj.min_score):
-                continue  # no pose of these maps could reach min_score: nothing to decode
-            out += self._object_detections(obj, b, a, peaks, net_in, K, K_net, depth)
+            floor = obj.min_score if floors is None else floors[obj.class_name]
+            if not pose_may_reach(peaks.channel, peaks.score, self.options.pnp, floor):
+                continue  # no pose of these maps could reach the floor: nothing to decode
+            out += self._object_detections(obj, b, a, peaks, net_in, K, K_net, depth, floor)
         out.sort(key=lambda d: -d.score)
         return out
 
     def _object_detections(self, obj: ObjectGeometry, belief: np.ndarray, affinity: np.ndarray, peaks: Peaks,
                            net_in: NetworkInput, K: np.ndarray, K_net: np.ndarray,
-                           depth: DepthImage | None) -> list[Detection]:
-        """One object's detections from its own (9, h, w) / (16, h, w) maps and their peaks."""
+                           depth: DepthImage | None, floor: float) -> list[Detection]:
+        """One object's detections from its own (9, h, w) / (16, h, w) maps and their peaks,
+        its poses searched down to ``floor`` (those under its threshold kept only where the depth
+        confirms them, :func:`~dope_hope.inference.depth_confirm.keep_detection`)."""
         mean_scale = math.sqrt(net_in.scale[0] * net_in.scale[1])
         out: list[Detection] = []
         pnp = self.options.pnp
-        for est in self._poses(belief, affinity, K_net, obj.cuboid_pnp, obj.min_score, peaks):
+        for est in self._poses(belief, affinity, K_net, obj.cuboid_pnp, floor, peaks):
             if pnp.score_in_view:  # a keypoint beyond the border is not a missing one
                 est = replace(est, score=score_in_view(est, net_in.resized_hw, pnp.min_points))
-            if est.score < obj.min_score:
+            if est.score < floor:
                 continue
             R, t = est.R, est.t
             kp, scores, inliers = est.keypoints, est.keypoint_scores, est.inliers
@@ -441,7 +450,8 @@ class DopePredictor:
                 cuboid_size_m=obj.cuboid_size_m.copy(), cuboid_center_m=obj.cuboid_center_m.copy(),
             )
             self.depth_stages(obj, det, depth)
-            out.append(det)
+            if depth is None or keep_detection(det, obj.min_score, self.options.depth_confirm):
+                out.append(det)  # without depth here (several sizes, the turns), the caller's stages decide
         if out:  # the final poses' projections, all at once
             Rs, ts = np.stack([d.R for d in out]), np.stack([d.t for d in out])
             projected = project_points_poses(obj.cuboid_mesh, K, Rs, ts)
@@ -451,13 +461,14 @@ class DopePredictor:
         return out
 
     def depth_stages(self, obj: ObjectGeometry, det: Detection, depth: DepthImage | None) -> None:
-        """-LS, then ICP where it runs (:meth:`icp_runs`), in place on ``det`` of object ``obj``
-        (its pose the keypoints'); without ``depth`` only the reason ICP did not run.
-        ``projected_2d`` and ``bbox_2d`` are the caller's."""
+        """-LS, then ICP where it runs (:meth:`icp_runs`; under the threshold only after -LS,
+        :func:`~dope_hope.inference.depth_confirm.worth_icp`), in place on ``det`` of object ``obj``
+        (its pose the keypoints'); without ``depth`` only the reason ICP did not run (``projected_2d``, ``bbox_2d``: the caller's)."""
         if depth is not None:
             self._line_search(obj, det, depth)
             if self.icp_runs(obj, depth):
-                self._refine_icp(obj, det, depth)
+                if worth_icp(det, obj.min_score):
+                    self._refine_icp(obj, det, depth)
             elif self.options.icp:  # (icp: auto, an object with no mesh and no catalog box)
                 det.icp_reason = NO_ICP_SURFACE
         elif self.options.icp:
@@ -465,8 +476,7 @@ class DopePredictor:
 
     def icp_runs(self, obj: ObjectGeometry, depth: DepthImage | None) -> bool:
         """Whether ICP refines object ``obj``'s detections in an image with ``depth`` (or None):
-        ``icp`` true and a depth image, or "auto", a depth image and a surface to fit (a mesh,
-        or a catalog box: :meth:`~dope_hope.inference.object_geometry.ObjectGeometry.check_icp_surface`)."""
+        ``icp`` true and depth, or "auto", depth and a surface to fit (:attr:`icp_objects`)."""
         return bool(self.options.icp) and depth is not None and obj.class_name in self.icp_objects
 
     def object_of(self, det: Detection) -> ObjectGeometry:
@@ -581,15 +591,6 @@ def predict_many(predictors: Sequence[DopePredictor], image: np.ndarray, K: np.n
         out.extend(p.detect_image(rgb, K, depth, cache, on_maps, classes))
     out.sort(key=lambda d: -d.score)
     return out
-
-
-def _icp_surface(obj: ObjectGeometry) -> bool:
-    """Whether ICP has a surface of ``obj`` to fit (its mesh, or the cuboid of a catalog box)."""
-    try:
-        obj.check_icp_surface()
-    except ConfigError:
-        return False
-    return True
 
 
 @functools.cache
