@@ -134,7 +134,7 @@ class IcpSettings(SectionSettings):
     runs every iteration on all points). min_own_support: least own depth support of a pose
     (step 6), in [0, 1]. nearest: how a scene point finds its model point (step 2): "grid" (a
     :class:`~dope_hope.refine.nearest.NearestPointGrid`) or "exact" (``scipy``'s cKDTree,
-    about 3x slower a detection: the baseline).
+    2.8-3.0x slower a detection: the baseline).
     """
 
     SECTION = "icp_refine"
