@@ -3,8 +3,8 @@
 Runs `dope-hope infer TEST --mesh KETCHUP` without --weights (the start as a detector of the
 mesh's cuboid, with the appearance check; docs/commands/infer.md "A new object with no
 training") on the held-out test set of bench/e2e_accuracy.py (its ``synth-test`` stage: the
-same command, seed 1001, 640x480, photo backgrounds, depth noise), with -LS (`--depth auto`,
-`--min-score 0`), and with -LS + ICP (`--icp`: the depth's own fit of the mesh, where the image
+same command, seed 1001, 640x480, photo backgrounds, depth noise), with -LS (`--fast --depth
+auto --min-score 0`: the still-image default would run ICP too), and with -LS + ICP (`--icp`: the depth's own fit of the mesh, where the image
 alone places a bottle it never learned only roughly), and scores both with `dope-hope evaluate
 --metric meanssd`: recall at 2 cm and 10 cm MeanSSD. With ``--baseline B.pt`` the same runs
 for a second start and the ratios are printed (``--start`` / ``--baseline``: e.g. a newly
@@ -121,8 +121,9 @@ def main(argv: list[str] | None = None) -> int:
     mesh_flags = [a for n, (m, u, _) in objects.items() for a in ("--mesh", f"{n}={m}", "--mesh-units", f"{n}={u}")]
     up_flags = [f"--up-axis={n}={a}" for n, (_, _, a) in objects.items()]
     for label, start in starts.items():
+        # --fast: -LS alone, then --icp (the still-image default runs ICP wherever there is depth)
         infer = ["infer", test_dir, *mesh_flags, *up_flags, "--start", start, "--depth", "auto", "--min-score", "0",
-                 "--no-overlay", "--no-progress"]
+                 "--fast", "--no-overlay", "--no-progress"]
         pipe.stage(f"infer-{label}", [*infer, "--out", out / label])
         pipe.stage(f"infer-{label}-icp", [*infer, "--icp", "--out", out / f"{label}_icp"])
     for suffix in ("", "_icp"):
