@@ -20,7 +20,7 @@ of the shared data (``grocery_objects/``: Bread, Can, Cereal, Lemon, Milk; metre
 3. ``synth-test``: held-out 640x480 frames (seed 1001) with two to four of the objects each
    (:data:`TEST_SCENE`), a real photo background (the shared ``backgrounds/``, which no
    training frame uses) and RealSense-like depth noise.
-4. ``infer-all`` / ``infer-six``: `dope-hope infer --depth auto` (the depth line search,
+4. ``infer-all`` / ``infer-six``: `dope-hope infer --fast --depth auto` (the depth line search,
    "-LS", on each object's mesh: ``--mesh NAME=PATH --mesh-units NAME=UNIT``) with the one
    model, and with the six models (one ``--weights`` each); ``infer-all-icp`` /
    ``infer-six-icp`` the same with ``--icp`` (-LS + ICP).
@@ -295,8 +295,8 @@ def run_stages(args: argparse.Namespace, out: Path, meshes: dict[str, Path], uni
     def mesh_flags(objects: list[str]) -> list[str]:
         return [a for n in objects for a in ("--mesh", f"{n}={meshes[n]}", "--mesh-units", f"{n}={units[n]}")]
 
-    def infer(folder: Path, *flags) -> list:
-        return ["infer", folder, "--depth", "auto", *flags, "--no-overlay", "--no-progress", *mesh_flags(names)]
+    def infer(folder: Path, *flags) -> list:  # --fast: -LS, or with --icp -LS + ICP (not the still-image default)
+        return ["infer", folder, "--fast", "--depth", "auto", *flags, "--no-overlay", "--no-progress", *mesh_flags(names)]
 
     six = [a for n in names for a in ("--weights", single_ckpts[n])]
     for stage, folder, flags in (("infer-{}", test_dir, ()), ("infer-calib-{}", calib_dir, ()),
