@@ -318,14 +318,14 @@ class DopePredictor:
                             detections: Sequence[Detection], classes: Collection[str] | None = None) -> bool:
         """Whether the first working size's ``detections`` explain its maps, so that the other
         sizes need not run (``multiscale.gate``, :mod:`~dope_hope.inference.scales`): no object's
-        belief outside its detections' 2D boxes reaches the gate. False without a gate."""
+        belief outside its detections' 2D boxes (at its threshold) reaches the gate. False without a gate."""
         gate = self.options.multiscale.gate
         if gate is None:
             return False
         for obj in self.objects:
             if classes is None or obj.class_name in classes:
                 boxes = [net_in.to_network_px(np.reshape(d.bbox_2d, (2, 2))) / self.stride for d in detections
-                         if d.class_name == obj.class_name and d.bbox_2d is not None]
+                         if d.class_name == obj.class_name and d.bbox_2d is not None and d.score >= obj.min_score]
                 if belief_beyond_boxes(obj.channels(belief, affinity)[0], boxes) > gate:
                     return False
         return True

@@ -463,7 +463,7 @@ def icp_refine(
     S = points_in_region(region, depth.metres, depth.K, s.max_scene_points)
     if len(S) < s.min_points:
         return refuse(f"too few depth pixels under the object ({len(S)} < {s.min_points})", n_points=len(S))
-    reach_m = max(max(s.thresholds_m), s.fit_threshold_m)
+    reach_m = max((*s.thresholds_m, s.fit_threshold_m))
     grid = nearest_point_grid(P, reach_m) if s.nearest == "grid" else ExactNearest(P, reach_m)
     search = _Search(S, np.concatenate([P, N], axis=1), grid, list(s.thresholds_m), s.min_points, s.fit_threshold_m)
     fit_before = float(search.fits(S, R0[None], t0[None])[0])
