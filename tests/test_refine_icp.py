@@ -12,7 +12,7 @@ from dope_hope.errors import ConfigError
 from dope_hope.geometry import intrinsics_matrix, rotation_error_deg
 from dope_hope.io.meshes import sample_surface_points
 from dope_hope.refine.depth import DepthImage
-from dope_hope.refine.icp import IcpSettings, depth_support, icp_refine, scene_points_under, silhouette_mask
+from dope_hope.refine.icp import IcpSettings, depth_support, icp_refine, points_in_region, silhouette_mask
 
 K = intrinsics_matrix(600.0, 600.0, 319.5, 239.5)
 HW = (480, 640)
@@ -91,13 +91,14 @@ def test_a_move_beyond_the_bounds_is_refused():
 def test_scene_points_are_the_depth_under_the_dilated_silhouette():
     D = depth_mm() * 0.001
     D[D == 0] = np.nan
-    S = scene_points_under(POINTS @ R_GT.T + T_GT, D, K, dilate=0.0, max_points=100000)
+    region = silhouette_mask(POINTS @ R_GT.T + T_GT, K, D.shape, dilate=0.0)
+    S = points_in_region(region, D, K, max_points=100000)
     assert len(S) > 1000
     # back-projection: every point lies on the box surface (within the mm rounding)
     local = (S - T_GT) @ R_GT
     outside = np.abs(local) - BOX / 2
     assert np.all(outside.max(axis=1) < 0.002) and np.all(np.abs(outside).min(axis=1) < 0.002)
-    assert len(scene_points_under(POINTS @ R_GT.T + T_GT, D, K, 0.0, max_points=500)) == 500
+    assert len(points_in_region(region, D, K, max_points=500)) == 500
 
 
 def test_bad_arguments_raise():

@@ -209,22 +209,6 @@ def silhouette_mask(points_c: np.ndarray, K: np.ndarray, hw: tuple[int, int], di
     return mask.astype(bool)
 
 
-def scene_points_under(points_c: np.ndarray, D: np.ndarray, K: np.ndarray, dilate: float,
-                       max_points: int) -> np.ndarray:
-    """Back-projected depth pixels under the dilated silhouette of projected points.
-
-    Args:
-        points_c: (N, 3) camera-frame model points, metres (those at z <= 0 are ignored).
-        D: (H, W) depth, metres, NaN = invalid. K: (3, 3).
-        dilate: dilation as a fraction of the silhouette's larger bounding-box side.
-        max_points: thin evenly to at most this many.
-
-    Returns:
-        (M, 3) camera-frame points, metres (M may be 0).
-    """
-    return points_in_region(silhouette_mask(points_c, K, D.shape, dilate), D, K, max_points)
-
-
 def points_in_region(region: np.ndarray, D: np.ndarray, K: np.ndarray, max_points: int) -> np.ndarray:
     """(M, 3) camera-frame points, metres, of the valid depth pixels of ``region`` ((H, W) bool)
     in depth D ((H, W) metres, NaN invalid; K (3, 3)), thinned evenly to at most ``max_points``."""
@@ -288,12 +272,20 @@ def _fits(grid: NearestLookup, PN: np.ndarray, x: np.ndarray, threshold_m: float
     is 0."""
     if not x.shape[1]:
         return np.full(len(x), np.nan)
+    diff, normals, near = _pairs(grid, PN, x, threshold_m)
+    r = np.sum(diff * normals, axis=-1)
+    return np.where(near, np.clip(1.0 - (r / threshold_m) ** 2, 0.0, 1.0), 0.0).sum(axis=1) / x.shape[1]
+
+
+def _pairs(grid: NearestLookup, PN: np.ndarray, x: np.ndarray, threshold_m: float
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2 for model-frame scene points ``x`` (B, n, 3): (x minus its nearest model point
+    (B, n, 3), that point's normal (B, n, 3), whether the pair is within ``threshold_m`` (B, n)
+    bool); ``PN`` (M, 6) the model's points and normals, ``grid`` its lookup."""
     idx = grid.nearest(x)
     mn = PN[idx]
     diff = x - mn[..., :3]
-    near = (idx >= 0) & (np.sum(diff * diff, axis=-1) <= threshold_m ** 2)
-    r = np.sum(diff * mn[..., 3:], axis=-1)
-    return np.where(near, np.clip(1.0 - (r / threshold_m) ** 2, 0.0, 1.0), 0.0).sum(axis=1) / x.shape[1]
+    return diff, mn[..., 3:], (idx >= 0) & (np.sum(diff * diff, axis=-1) <= threshold_m ** 2)
 
 
 def _in_model_frame(S: np.ndarray, Rs: np.ndarray, ts: np.ndarray) -> np.ndarray:
@@ -316,20 +308,16 @@ def _iterate(S: np.ndarray, PN: np.ndarray, grid: NearestLookup, Rs: np.ndarray,
     live = np.arange(len(Rs))
     for th in thresholds_m:
         x = _in_model_frame(S, Rs[live], ts[live])  # (b, n, 3)
-        idx = grid.nearest(x)
-        mn = PN[idx]
-        diff = x - mn[..., :3]
-        pair = (idx >= 0) & (np.sum(diff * diff, axis=-1) <= th * th)
+        diff, n, pair = _pairs(grid, PN, x, th)
         count = pair.sum(axis=1)
         for b, c in zip(live, count):
             if c < min_points:
                 problems[b] = f"ICP lost the object ({int(c)} pairs within {th * 100:.1f} cm)"
         keep = count >= min_points
-        live, x, mn, diff, pair, count = live[keep], x[keep], mn[keep], diff[keep], pair[keep], count[keep]
+        live, x, n, diff, pair, count = live[keep], x[keep], n[keep], diff[keep], pair[keep], count[keep]
         if not len(live):
             break
         w = pair.astype(np.float64)
-        n = mn[..., 3:]
         r = np.sum(diff * n, axis=-1) * w
         A = np.concatenate([np.cross(x, n), n], axis=2) * w[..., None]  # (b, n, 6)
         At = A.transpose(0, 2, 1)

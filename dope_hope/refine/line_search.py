@@ -26,6 +26,7 @@ optimum sits on the search bound or its residual exceeds ``max_residual_m``.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -175,23 +176,18 @@ def auto_splat_px(model_points: np.ndarray, K: np.ndarray, depth_m: float) -> in
     P = np.ascontiguousarray(model_points, dtype=np.float64)
     if len(P) < 2:
         return 1
-    spacing_px = _point_spacing_m(P) * float(K[0, 0]) / max(depth_m, 1e-6)
+    spacing_px = _point_spacing_m(P.reshape(-1, 3).tobytes()) * float(K[0, 0]) / max(depth_m, 1e-6)
     return int(np.clip(np.ceil(spacing_px / 2.0), 1, 6))
 
 
-_SPACINGS: dict[tuple, float] = {}
-
-
-def _point_spacing_m(P: np.ndarray) -> float:
-    """The median nearest-neighbour distance of (N, 3) points (N >= 2), metres, of at most
-    1000 of them; kept per point set (by its bytes: one tree per model, not per detection)."""
-    key = (P.shape, hash(P.tobytes()))
-    if key not in _SPACINGS:
-        if len(_SPACINGS) >= 64:
-            _SPACINGS.pop(next(iter(_SPACINGS)))
-        d, _ = cKDTree(P).query(P[:: max(1, len(P) // 1000)], k=2)
-        _SPACINGS[key] = float(np.median(d[:, 1]))
-    return _SPACINGS[key]
+@functools.lru_cache(maxsize=64)
+def _point_spacing_m(points: bytes) -> float:
+    """The median nearest-neighbour distance of the float64 (N, 3) points in ``points`` (N >=
+    2), metres, of at most 1000 of them; kept per point set (one tree per model, not per
+    detection)."""
+    P = np.frombuffer(points).reshape(-1, 3)
+    d, _ = cKDTree(P).query(P[:: max(1, len(P) // 1000)], k=2)
+    return float(np.median(d[:, 1]))
 
 
 def sample_depth(D: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -226,13 +222,18 @@ class _ScaleCost:
     cost: str
     huber_delta_m: float
 
+    def depth_minus_z(self, scales: np.ndarray) -> np.ndarray:
+        """(S, M) depth minus point depth, metres, of every point at each of ``scales`` (S,);
+        NaN where the depth has none or the point leaves the image."""
+        X = self.A[None] + np.asarray(scales, dtype=np.float64)[:, None, None] * self.t  # (S, M, 3)
+        uvw = X @ self.K.T
+        z = uvw[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return sample_depth(self.D, uvw[..., 0] / z, uvw[..., 1] / z) - z
+
     def residuals(self, s: float) -> np.ndarray:
         """(M',) depth minus point depth, metres, where both are finite."""
-        X = self.A + s * self.t
-        uvw = X @ self.K.T
-        z = uvw[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r = sample_depth(self.D, uvw[:, 0] / z, uvw[:, 1] / z) - z
+        r = self.depth_minus_z(np.array([s]))[0]
         return r[np.isfinite(r)]
 
     def __call__(self, s: float) -> float:
@@ -242,11 +243,7 @@ class _ScaleCost:
     def costs(self, scales: np.ndarray) -> np.ndarray:
         """(S,) the cost of :meth:`__call__` at each of ``scales`` (S,), all in one array pass
         (the line search's grid)."""
-        X = self.A[None] + np.asarray(scales, dtype=np.float64)[:, None, None] * self.t  # (S, M, 3)
-        uvw = X @ self.K.T
-        z = uvw[..., 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            a = np.abs(sample_depth(self.D, uvw[..., 0] / z, uvw[..., 1] / z) - z)  # NaN: no depth
+        a = np.abs(self.depth_minus_z(scales))  # NaN: no depth
         n = np.isfinite(a).sum(axis=1)
         out = np.full(len(a), np.inf)
         rows = n >= max(self.min_valid, 1)

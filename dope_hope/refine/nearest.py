@@ -17,6 +17,7 @@ returned and drops pairs beyond its threshold.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -96,18 +97,14 @@ class ExactNearest:
 #: What ICP looks its model points up in: the grid, or the exact tree (its baseline).
 NearestLookup = NearestPointGrid | ExactNearest
 
-_GRIDS: dict[tuple, NearestPointGrid] = {}
-
-
 def nearest_point_grid(points: np.ndarray, reach_m: float) -> NearestPointGrid:
     """The :class:`NearestPointGrid` of (N, 3) model ``points`` (metres) answering within
     ``reach_m``: built on first use, then kept (:data:`CACHE_SIZE` grids, by the points' bytes:
     every detection of one object shares its model's grid)."""
-    P = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-    key = (P.shape, hash(P.tobytes()), float(reach_m))
-    grid = _GRIDS.get(key)
-    if grid is None:
-        if len(_GRIDS) >= CACHE_SIZE:
-            _GRIDS.pop(next(iter(_GRIDS)))
-        grid = _GRIDS[key] = NearestPointGrid.build(P, reach_m)
-    return grid
+    return _grid_of(np.ascontiguousarray(points, dtype=np.float64).tobytes(), float(reach_m))
+
+
+@functools.lru_cache(maxsize=CACHE_SIZE)
+def _grid_of(points: bytes, reach_m: float) -> NearestPointGrid:
+    """:func:`nearest_point_grid` of the float64 (N, 3) points in ``points``."""
+    return NearestPointGrid.build(np.frombuffer(points).reshape(-1, 3), reach_m)
